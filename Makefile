@@ -1,0 +1,34 @@
+# Two commands do everything (see README):
+#   make demo   sets up .venv and runs the main job on the embedded default synthetic scene
+#   make test   builds a fresh virtualenv from scratch and runs the whole test suite (CI runs this)
+PYTHON ?= python3
+VENV ?= .venv
+TEST_VENV ?= .venv-test
+# torch first and pinned: the CPU build lies on local disk; an unpinned torch pulls a CUDA build.
+TORCH_SPEC ?= torch==2.13.0
+PYTEST_ARGS ?= -n 2 -q
+
+.PHONY: setup demo test lint clean
+
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(VENV)/bin/python -m pip install -q --upgrade pip
+	$(VENV)/bin/python -m pip install -q "$(TORCH_SPEC)"
+	$(VENV)/bin/python -m pip install -q -e ".[text,test]"
+	touch $@
+
+setup: $(VENV)/.installed
+
+demo: setup
+	$(VENV)/bin/bench4d demo
+
+test:
+	rm -rf $(TEST_VENV)
+	$(PYTHON) -m venv $(TEST_VENV)
+	$(TEST_VENV)/bin/python -m pip install -q --upgrade pip
+	$(TEST_VENV)/bin/python -m pip install -q "$(TORCH_SPEC)"
+	$(TEST_VENV)/bin/python -m pip install -q -e ".[text,test]"
+	$(TEST_VENV)/bin/python -m pytest $(PYTEST_ARGS)
+
+clean:
+	rm -rf $(VENV) $(TEST_VENV) .pytest_cache

@@ -1,0 +1,8 @@
+"""bench4d: the open benchmark for open-vocabulary 4D language fields.
+
+The harness: scene data model (:mod:`benchmark.scene`), loaders (:mod:`benchmark.loaders`),
+the synthetic 4D scene generator (:mod:`benchmark.synthetic`), the metrics core
+(:mod:`benchmark.metrics`), and the CLI ``bench4d`` (:mod:`benchmark.cli`).
+"""
+
+__version__ = "0.1.0"

@@ -1,0 +1,66 @@
+"""``bench4d``: one entry point, subcommands loaded lazily.
+
+Each subcommand lives in its own module under :mod:`benchmark.commands` and exposes
+``add_arguments(parser)`` and ``run(args) -> int``. Modules are imported only when their command runs,
+so ``bench4d --help`` stays fast and an optional backend missing breaks only the command that needs it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from .errors import InputError
+
+# command name -> (module under benchmark.commands, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "data": ("data", "make, validate and show scenes (make-synthetic, validate, show)"),
+    "score": ("score", "score prediction files against ground-truth annotations"),
+    "recon": ("recon", "reconstruct a scene with 3D-GS / 4D-GS and report PSNR, SSIM, time, memory"),
+    "methods": ("methods", "list registered methods and supervision sources"),
+    "eval": ("eval", "fit a method on a scene, answer every annotated query, score and record"),
+    "run-all": ("run_all", "evaluate methods x scenes x seeds; mean and spread over seeds"),
+    "leaderboard": ("leaderboard", "regenerate leaderboard.md and reports/*.csv from results"),
+    "plot": ("plot", "charts: pareto (accuracy vs speed), timeline (similarity over time)"),
+    "annotate": ("annotate", "local web app to annotate query masks and time segments"),
+    "demo": ("demo", "the main job: a synthetic scene end to end, printing metrics and timings"),
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = argparse.ArgumentParser(prog="bench4d", description="bench4d: open-vocabulary 4D language field benchmark")
+    from . import __version__
+
+    parser.add_argument("--version", action="version", version=f"bench4d {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    wanted = next((a for a in argv if not a.startswith("-")), None)
+    for name, (module, help_text) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        if name == wanted:
+            mod = importlib.import_module(f"benchmark.commands.{module}")
+            mod.add_arguments(p)
+            p.set_defaults(_run=mod.run)
+    if wanted is not None and wanted not in COMMANDS:
+        import difflib
+
+        close = difflib.get_close_matches(wanted, COMMANDS, n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        parser.error(f"unknown command {wanted!r}{hint}")
+    args = parser.parse_args(argv)
+    if not getattr(args, "_run", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args._run(args) or 0)
+    except InputError as err:
+        print(f"bench4d {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,39 @@
+"""Errors a user can act on.
+
+Every malformed input must surface as an :class:`InputError` naming the file and the field,
+never as a traceback from deep inside numpy. The CLI prints these without a traceback.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class InputError(ValueError):
+    """A user-supplied file or value is malformed.
+
+    ``str(err)`` reads ``"<file>: <field>: <message>"`` so the user knows where to look.
+    """
+
+    def __init__(self, file: str | Path | None, field: str | None, message: str):
+        self.file = None if file is None else str(file)
+        self.field = field
+        self.message = message
+        parts = [p for p in (self.file, field) if p]
+        super().__init__(": ".join(parts + [message]))
+
+
+def require(condition: bool, file: str | Path | None, field: str | None, message: str) -> None:
+    """Raise :class:`InputError` unless ``condition`` holds."""
+    if not condition:
+        raise InputError(file, field, message)
+
+
+def require_key(mapping: dict, key: str, file: str | Path | None, parent: str = "") -> object:
+    """Return ``mapping[key]`` or raise an error naming ``parent.key`` in ``file``."""
+    field = f"{parent}.{key}" if parent else key
+    if not isinstance(mapping, dict):
+        raise InputError(file, parent or None, f"expected an object, got {type(mapping).__name__}")
+    if key not in mapping:
+        raise InputError(file, field, "missing required key")
+    return mapping[key]

@@ -1,0 +1,1 @@
+"""Methods: the Gaussian core, 2D supervision sources, language fields and registered methods."""
