@@ -1,0 +1,1 @@
+"""Captioners (MLLM, template, file) and the object-wise visual prompts they see."""

@@ -1,0 +1,111 @@
+"""Time-varying semantic fields: the status deformable network and the Non-Status baseline.
+
+Status deformable network (4D LangSplat): each Gaussian carries ``K`` state vectors in the caption
+latent space; a small MLP on the (frozen) 4D-GS HexPlane feature at ``(x, t)`` gives ``K`` weights and
+the Gaussian's feature at time ``t`` is the weighted sum of its states. The paper says the weights
+sum to one (softmax, our default); the release has no softmax (``weight_mode="linear"``).
+
+Model no more than a scene needs: Gaussians whose semantics never change (``semantic_dynamic`` is
+False) carry ONE vector, not ``K`` states, and skip the MLP.
+
+Non-Status Field (baseline): ``f(x, t) = f_static + MLP(hexplane(x, t))``, a direct deformation of
+the feature instead of a mixture of states.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, Optional
+
+import torch
+import torch.nn as nn
+
+
+@dataclass
+class StatusFieldConfig:
+    """Shape and initialisation of the time-varying field."""
+
+    num_states: int = 3
+    """``K`` states per semantically dynamic Gaussian (paper: 3; Table 5 ablates 2-6)."""
+    hidden_dim: int = 64
+    """Width of the weight MLP."""
+    weight_mode: Literal["softmax", "linear"] = "softmax"
+    """``"softmax"``: weights sum to one (paper). ``"linear"``: raw MLP outputs (release)."""
+    init_noise: float = 0.1
+    """Std of the noise added to the static feature to initialise each state (states must differ
+    or they receive identical gradients)."""
+
+
+class StatusField(nn.Module):
+    """Per-Gaussian states mixed by weights predicted from the HexPlane feature at (x, t)."""
+
+    def __init__(self, static_features: torch.Tensor, hexplane_dim: int,
+                 semantic_dynamic: Optional[torch.Tensor] = None,
+                 cfg: Optional[StatusFieldConfig] = None, seed: int = 0):
+        """
+        Args:
+            static_features:  [N, D] initial (time-averaged) latent feature of every Gaussian.
+            hexplane_dim:     F, dimension of the HexPlane feature fed to the weight MLP.
+            semantic_dynamic: [N] bool, Gaussians whose semantics change over time (all if None).
+        """
+        super().__init__()
+        cfg = cfg or StatusFieldConfig()
+        self.cfg = cfg
+        n, d = static_features.shape
+        dyn = torch.ones(n, dtype=torch.bool) if semantic_dynamic is None else semantic_dynamic.bool().cpu()
+        self.register_buffer("dynamic_index", torch.nonzero(dyn).flatten())
+        self.register_buffer("static_index", torch.nonzero(~dyn).flatten())
+        gen = torch.Generator().manual_seed(seed)
+        base = static_features.detach().float().cpu()
+        # Layout [N_dyn, K, D]: state k of Gaussian n is base[n] + noise (the release scrambled this
+        # by viewing a [K, N, D] tensor as [N, K, D]).
+        noise = cfg.init_noise * torch.randn(len(self.dynamic_index), cfg.num_states, d, generator=gen)
+        self.states = nn.Parameter(base[self.dynamic_index][:, None, :] + noise)
+        self.fixed = nn.Parameter(base[self.static_index].clone())
+        self.weight_mlp = nn.Sequential(nn.Linear(hexplane_dim, cfg.hidden_dim), nn.ReLU(),
+                                        nn.Linear(cfg.hidden_dim, cfg.num_states))
+        self.num_gaussians = n
+        self.latent_dim = d
+
+    def weights(self, hexplane_features: torch.Tensor) -> torch.Tensor:
+        """[N_dyn, F] HexPlane features of the dynamic Gaussians -> [N_dyn, K] state weights."""
+        logits = self.weight_mlp(hexplane_features)
+        return torch.softmax(logits, dim=-1) if self.cfg.weight_mode == "softmax" else logits
+
+    def forward(self, hexplane_features: torch.Tensor) -> torch.Tensor:
+        """[N_dyn, F] HexPlane features at (x, t) of the dynamic Gaussians -> [N, D] features at t."""
+        w = self.weights(hexplane_features)  # [N_dyn, K]
+        dyn_feat = torch.einsum("nk,nkd->nd", w, self.states)
+        out = self.states.new_empty(self.num_gaussians, self.latent_dim)
+        out[self.dynamic_index] = dyn_feat
+        out[self.static_index] = self.fixed
+        return out
+
+    def parameter_bytes(self) -> int:
+        """Bytes of per-Gaussian and network parameters (for the memory-per-Gaussian report)."""
+        return sum(p.numel() * p.element_size() for p in self.parameters())
+
+
+class NonStatusField(nn.Module):
+    """Baseline: ``f(x, t) = f_static + MLP(hexplane(x, t))`` for every Gaussian."""
+
+    def __init__(self, static_features: torch.Tensor, hexplane_dim: int, hidden_dim: int = 64):
+        """
+        Args:
+            static_features: [N, D] initial latent feature of every Gaussian.
+            hexplane_dim:    F, dimension of the HexPlane feature.
+        """
+        super().__init__()
+        self.static = nn.Parameter(static_features.detach().float().clone())
+        d = static_features.shape[1]
+        self.delta_mlp = nn.Sequential(nn.Linear(hexplane_dim, hidden_dim), nn.ReLU(),
+                                       nn.Linear(hidden_dim, d))
+        nn.init.zeros_(self.delta_mlp[-1].weight)  # start at the static feature
+        nn.init.zeros_(self.delta_mlp[-1].bias)
+
+    def forward(self, hexplane_features: torch.Tensor) -> torch.Tensor:
+        """[N, F] HexPlane features at (x, t) -> [N, D] features at t."""
+        return self.static + self.delta_mlp(hexplane_features)
+
+    def parameter_bytes(self) -> int:
+        return sum(p.numel() * p.element_size() for p in self.parameters())

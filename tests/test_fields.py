@@ -1,0 +1,124 @@
+"""Language-field building blocks: relevance query steps, autoencoder, status network."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from methods.fields.autoencoder import AutoencoderConfig, train_autoencoder
+from methods.fields.relevance import (RelevanceConfig, majority_filter, query_levels, relevance,
+                                      smooth, threshold_mask)
+from methods.fields.status import NonStatusField, StatusField, StatusFieldConfig
+
+
+def test_relevance_matches_lerf_formula():
+    torch.manual_seed(0)
+    f = F.normalize(torch.randn(5, 8), dim=-1)
+    q = F.normalize(torch.randn(8), dim=-1)
+    c = F.normalize(torch.randn(4, 8), dim=-1)
+    got = relevance(f, q, c, temperature=10.0)
+    # Direct formula: min over phrases of exp(10 q.f) / (exp(10 q.f) + exp(10 c.f)).
+    eq = torch.exp(10 * (f @ q))[:, None]
+    ec = torch.exp(10 * (f @ c.T))
+    want = (eq / (eq + ec)).min(dim=1).values
+    assert torch.allclose(got, want, atol=1e-6)
+
+
+def test_smoothing_excludes_padding_from_mean():
+    v = torch.ones(1, 9, 9)
+    out = smooth(v, 5)
+    # With padding counted, corners would be pulled towards 0; excluded, a constant map stays constant.
+    assert torch.allclose(out, v)
+    spike = torch.zeros(9, 9)
+    spike[4, 4] = 1.0
+    out = smooth(spike, 3)
+    assert out[4, 4].item() == pytest.approx(0.5 * (1 + 1 / 9))
+    assert out[0, 0].item() == 0.0
+
+
+@pytest.mark.parametrize("variant,cut", [("paper", 0.4), ("release", 0.7)])
+def test_threshold_variants(variant, cut):
+    ramp = torch.linspace(0, 1, 101).reshape(1, 101).repeat(3, 1)
+    mask = threshold_mask(ramp, RelevanceConfig(threshold_variant=variant))
+    first_on = int(torch.nonzero(mask[0])[0])
+    assert ramp[0, first_on].item() > cut
+    assert ramp[0, first_on - 1].item() <= cut + 1e-6
+
+
+def test_majority_filter_removes_speckle_keeps_blob():
+    m = torch.zeros(20, 20, dtype=torch.bool)
+    m[5:15, 5:15] = True
+    m[1, 18] = True  # isolated speckle
+    out = majority_filter(m, 7)
+    assert not out[1, 18]
+    assert out[8:12, 8:12].all()
+    assert not out[0:3, 0:3].any()
+
+
+def test_query_levels_picks_level_with_highest_peak():
+    torch.manual_seed(0)
+    d = 16
+    q = F.normalize(torch.randn(d), dim=0)
+    canon = F.normalize(torch.randn(4, d), dim=-1)
+    other = F.normalize(torch.randn(d), dim=0)
+    feats = other.expand(3, 32, 32, d).clone()
+    feats[1, 10:20, 10:20] = q  # the query object appears at level 1 only
+    res = query_levels(feats, q, canon, RelevanceConfig(smoothing_kernel=5))
+    assert res.level == 1
+    inside = res.mask[12:18, 12:18].float().mean().item()
+    outside = res.mask[:8].float().mean().item()
+    assert inside == 1.0 and outside == 0.0
+
+
+def test_autoencoder_reconstructs_distinct_vectors():
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(12, 32)).astype(np.float32)
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    cfg = AutoencoderConfig(hidden_dims=(32, 16), latent_dim=3, max_steps=800, epochs=1000)
+    model, report = train_autoencoder(x, cfg, seed=0)
+    assert report.reconstruction_cosine > 0.9
+    # An untrained model of the same shape does far worse: the test can fail.
+    from methods.fields.autoencoder import FeatureAutoencoder
+    untrained = FeatureAutoencoder(32, cfg)
+    with torch.no_grad():
+        cos0 = F.cosine_similarity(untrained(torch.as_tensor(x)), torch.as_tensor(x)).mean().item()
+    assert cos0 < 0.5
+
+
+def test_status_field_layout_weights_and_static_gaussians():
+    n, d, fdim = 10, 6, 8
+    base = torch.arange(n * d, dtype=torch.float32).reshape(n, d)
+    dyn = torch.zeros(n, dtype=torch.bool)
+    dyn[[1, 4, 7]] = True
+    field = StatusField(base, fdim, dyn, StatusFieldConfig(num_states=3, init_noise=0.01))
+    # Layout: each state of Gaussian n starts near base[n] (not another Gaussian's feature).
+    assert torch.allclose(field.states.mean(1), base[dyn], atol=0.05)
+    h = torch.randn(3, fdim)
+    w = field.weights(h)
+    assert torch.allclose(w.sum(-1), torch.ones(3), atol=1e-6)
+    out = field(h)
+    assert out.shape == (n, d)
+    assert torch.equal(out[~dyn], base[~dyn])
+    # Static Gaussians carry one vector, not K: parameters shrink accordingly.
+    full = StatusField(base, fdim, None, StatusFieldConfig(num_states=3))
+    per_gauss_saved = (full.states.numel() - field.states.numel() - field.fixed.numel()) * 4
+    assert per_gauss_saved == (7 * 3 * d - 7 * d) * 4
+    linear = StatusField(base, fdim, dyn, StatusFieldConfig(weight_mode="linear"))
+    assert not torch.allclose(linear.weights(h).sum(-1), torch.ones(3))
+
+
+def test_non_status_field_starts_at_static_and_learns_a_delta():
+    base = torch.randn(5, 6)
+    field = NonStatusField(base, 4)
+    h = torch.randn(5, 4)
+    assert torch.allclose(field(h), base)
+    target = base + 1.0
+    opt = torch.optim.Adam(field.parameters(), lr=0.05)
+    for _ in range(200):
+        loss = (field(h) - target).abs().mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert loss.item() < 0.1
