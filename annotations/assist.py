@@ -1,0 +1,403 @@
+"""Assisted segmentation for the annotation tool: a box (and corrective clicks) to a binary mask.
+
+Two backends share one call, :meth:`Segmenter.segment`:
+
+* :class:`GrabCutSegmenter` (default, offline, no weights): OpenCV GrabCut on a crop around the
+  box, downscaled to a bounded size so one call stays well under a second at 960x540. Corrective
+  clicks (left = "this is the object", right = "this is not") become hard labels in a disk and
+  GrabCut is re-run from the current mask.
+* :class:`SamSegmenter` (optional): Segment Anything, loading weights from a path the user gives.
+  Image embeddings are computed per frame in a background thread (the tool asks for the frames
+  around the one on screen) and cached in memory and, optionally, on disk.
+
+Coordinates follow :mod:`benchmark.scene`: ``(x, y)`` are continuous pixel coordinates with the
+image's top-left corner at ``(0, 0)``; pixel ``(row i, column j)`` covers ``[j, j+1) x [i, i+1)``.
+Masks are ``(H, W)`` bool, images ``(H, W, 3)`` uint8 RGB.
+"""
+
+from __future__ import annotations
+
+import collections
+import hashlib
+import queue
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Optional, Protocol, Sequence
+
+import cv2
+import numpy as np
+
+from benchmark.errors import InputError
+
+Box = tuple[float, float, float, float]
+"""``(x0, y0, x1, y1)`` in pixel coordinates (corners, any order)."""
+Click = tuple[float, float, int]
+"""``(x, y, label)``: label 1 = part of the object (left click), 0 = not (right click)."""
+
+
+class Segmenter(Protocol):
+    """What the annotation server needs from an assisted segmenter."""
+
+    name: str
+
+    def segment(self, frame_key: str, image: np.ndarray, box: Optional[Box], clicks: Sequence[Click] = (),
+                current: Optional[np.ndarray] = None) -> np.ndarray:
+        """(H, W, 3) uint8 image -> (H, W) bool mask for the box and clicks.
+
+        ``current`` is the (H, W) bool mask on screen; corrective clicks refine it.
+        """
+
+    def prefetch(self, frame_key: str, load_image: Callable[[], np.ndarray]) -> None:
+        """Hint that ``frame_key`` may be segmented soon (precompute what can be)."""
+
+
+# ---------------------------------------------------------------------------------------------
+# GrabCut
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class GrabCutConfig:
+    """Settings of the GrabCut backend."""
+
+    margin: float = 0.25
+    """Context added around the box on each side, as a fraction of the box's larger side: GrabCut
+    learns the background colours from this ring."""
+    min_margin_px: int = 16
+    """At least this much context (pixels) on each side of the box."""
+    max_side: int = 256
+    """A crop whose larger side exceeds this is downscaled before GrabCut (its cost grows with
+    the pixel count); the result is upscaled back to full resolution."""
+    iterations: int = 4
+    """GrabCut iterations for a new box."""
+    refine_iterations: int = 3
+    """GrabCut iterations after corrective clicks."""
+    click_radius_px: float = 6.0
+    """Radius of the hard-labelled disk around a corrective click, in full-resolution pixels."""
+
+
+class GrabCutSegmenter:
+    """Box (+ clicks) to mask with GrabCut on a bounded crop (see :class:`GrabCutConfig`)."""
+
+    name = "grabcut"
+
+    def __init__(self, config: Optional[GrabCutConfig] = None):
+        self.config = config or GrabCutConfig()
+
+    def prefetch(self, frame_key: str, load_image: Callable[[], np.ndarray]) -> None:
+        """Nothing to precompute for GrabCut."""
+
+    def segment(self, frame_key: str, image: np.ndarray, box: Optional[Box], clicks: Sequence[Click] = (),
+                current: Optional[np.ndarray] = None) -> np.ndarray:
+        image = _check_image(image)
+        height, width = image.shape[:2]
+        current = None if current is None else _check_mask(current, (height, width))
+        clicks = [(float(x), float(y), int(lbl)) for x, y, lbl in clicks]
+        if box is None and current is not None and current.any():
+            ys, xs = np.nonzero(current)
+            box = (xs.min(), ys.min(), xs.max() + 1, ys.max() + 1)
+        if box is None:
+            if not any(lbl == 1 for _, _, lbl in clicks):
+                return np.zeros((height, width), bool) if current is None else current.copy()
+            # clicks alone: a box around the positive clicks, a few click radii wide
+            pos = np.array([(x, y) for x, y, lbl in clicks if lbl == 1])
+            pad = 8 * self.config.click_radius_px
+            box = (pos[:, 0].min() - pad, pos[:, 1].min() - pad, pos[:, 0].max() + pad, pos[:, 1].max() + pad)
+        bx0, by0, bx1, by1 = _box_pixels(box, width, height)
+        if bx1 - bx0 < 2 or by1 - by0 < 2:
+            raise InputError(None, "box", f"box {box} covers less than 2x2 pixels of the {width}x{height} image")
+
+        # crop = box + context, grown to hold every click and the current mask
+        side = max(bx1 - bx0, by1 - by0)
+        pad = max(self.config.min_margin_px, int(round(self.config.margin * side)))
+        cx0, cy0, cx1, cy1 = bx0 - pad, by0 - pad, bx1 + pad, by1 + pad
+        for x, y, _ in clicks:
+            cx0, cy0, cx1, cy1 = min(cx0, int(x) - pad), min(cy0, int(y) - pad), max(cx1, int(x) + pad), max(cy1, int(y) + pad)
+        cx0, cy0, cx1, cy1 = max(cx0, 0), max(cy0, 0), min(cx1, width), min(cy1, height)
+        crop = image[cy0:cy1, cx0:cx1]
+        ch, cw = crop.shape[:2]
+        scale = min(1.0, self.config.max_side / max(ch, cw))
+        sw, sh = max(2, int(round(cw * scale))), max(2, int(round(ch * scale)))
+        sx, sy = sw / cw, sh / ch
+        small = cv2.resize(crop, (sw, sh), interpolation=cv2.INTER_AREA) if scale < 1.0 else crop.copy()
+
+        # labels: outside the box is background; inside, the current mask (if any) or "probably object"
+        labels = np.full((sh, sw), cv2.GC_BGD, np.uint8)
+        r0, r1 = int(np.floor((by0 - cy0) * sy)), int(np.ceil((by1 - cy0) * sy))
+        c0, c1 = int(np.floor((bx0 - cx0) * sx)), int(np.ceil((bx1 - cx0) * sx))
+        refine = current is not None and bool(current[cy0:cy1, cx0:cx1].any()) and bool(clicks)
+        if refine:
+            cur = cv2.resize(current[cy0:cy1, cx0:cx1].astype(np.uint8), (sw, sh), interpolation=cv2.INTER_NEAREST)
+            labels[:] = np.where(cur > 0, cv2.GC_PR_FGD, cv2.GC_PR_BGD)
+            outside = np.ones((sh, sw), bool)
+            outside[r0:r1, c0:c1] = False
+            # far from the box and from the current mask: background for sure
+            labels[outside & (cur == 0)] = cv2.GC_BGD
+        else:
+            labels[r0:r1, c0:c1] = cv2.GC_PR_FGD
+        if not (labels == cv2.GC_BGD).any():
+            # the box fills the whole image: let the crop's border ring stand in for background
+            ring = np.zeros((sh, sw), bool)
+            ring[:2, :], ring[-2:, :], ring[:, :2], ring[:, -2:] = True, True, True, True
+            labels[ring & (labels != cv2.GC_FGD)] = cv2.GC_PR_BGD
+        radius = max(1, int(round(self.config.click_radius_px * scale)))
+        for x, y, lbl in clicks:
+            centre = (int((x - cx0) * sx), int((y - cy0) * sy))
+            cv2.circle(labels, centre, radius, int(cv2.GC_FGD if lbl == 1 else cv2.GC_BGD), thickness=-1)
+
+        fg_possible = np.isin(labels, (cv2.GC_FGD, cv2.GC_PR_FGD))
+        if not fg_possible.any():
+            return np.zeros((height, width), bool)
+        iterations = self.config.refine_iterations if (refine or clicks) else self.config.iterations
+        bgd_model = np.zeros((1, 65), np.float64)
+        fgd_model = np.zeros((1, 65), np.float64)
+        try:
+            cv2.grabCut(small, labels, None, bgd_model, fgd_model, iterations, cv2.GC_INIT_WITH_MASK)
+        except cv2.error:
+            # degenerate colour statistics (e.g. a flat crop): keep the prior labelling
+            pass
+        fg_small = np.isin(labels, (cv2.GC_FGD, cv2.GC_PR_FGD)).astype(np.float32)
+        fg_crop = (cv2.resize(fg_small, (cw, ch), interpolation=cv2.INTER_LINEAR) >= 0.5) if scale < 1.0 \
+            else fg_small > 0.5
+        out = np.zeros((height, width), bool)
+        out[cy0:cy1, cx0:cx1] = fg_crop
+        if current is not None and refine:
+            # the crop holds the box, clicks and context; keep the user's mask beyond it untouched
+            keep = current.copy()
+            keep[cy0:cy1, cx0:cx1] = False
+            out |= keep
+        _stamp_clicks(out, clicks, self.config.click_radius_px)
+        return out
+
+
+def _stamp_clicks(mask: np.ndarray, clicks: Sequence[Click], radius: float) -> None:
+    """Force the click disks to their labels at full resolution (upscaling may have blurred them)."""
+    h, w = mask.shape
+    r = int(np.ceil(radius))
+    for x, y, lbl in clicks:
+        i0, i1 = max(0, int(y) - r), min(h, int(y) + r + 1)
+        j0, j1 = max(0, int(x) - r), min(w, int(x) + r + 1)
+        if i0 >= i1 or j0 >= j1:
+            continue
+        ii, jj = np.mgrid[i0:i1, j0:j1]
+        disk = (jj + 0.5 - x) ** 2 + (ii + 0.5 - y) ** 2 <= radius ** 2
+        mask[i0:i1, j0:j1][disk] = bool(lbl == 1)
+
+
+def _box_pixels(box: Box, width: int, height: int) -> tuple[int, int, int, int]:
+    """Corner box -> integer pixel bounds ``[x0, x1) x [y0, y1)`` clipped to the image."""
+    try:
+        x0, y0, x1, y1 = (float(v) for v in box)
+    except (TypeError, ValueError):
+        raise InputError(None, "box", f"expected four numbers (x0, y0, x1, y1), got {box!r}") from None
+    if not all(np.isfinite([x0, y0, x1, y1])):
+        raise InputError(None, "box", f"non-finite coordinates {box!r}")
+    x0, x1 = sorted((x0, x1))
+    y0, y1 = sorted((y0, y1))
+    return (int(np.clip(np.floor(x0), 0, width)), int(np.clip(np.floor(y0), 0, height)),
+            int(np.clip(np.ceil(x1), 0, width)), int(np.clip(np.ceil(y1), 0, height)))
+
+
+def _check_image(image: np.ndarray) -> np.ndarray:
+    image = np.asarray(image)
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise InputError(None, "image", f"expected (H, W, 3) RGB, got shape {image.shape}")
+    if image.dtype != np.uint8:
+        image = (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    return np.ascontiguousarray(image)
+
+
+def _check_mask(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    mask = np.asarray(mask).astype(bool)
+    if mask.shape != shape:
+        raise InputError(None, "mask", f"expected shape {shape}, got {mask.shape}")
+    return mask
+
+
+# ---------------------------------------------------------------------------------------------
+# Segment Anything (optional)
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class SamConfig:
+    """Settings of the optional SAM backend."""
+
+    checkpoint: Optional[Path] = None
+    """Path to the SAM weights on the user's machine (nothing is downloaded)."""
+    model_type: str = "vit_b"
+    """Registry name of the architecture matching the checkpoint (``vit_b``, ``vit_l``, ``vit_h``)."""
+    device: str = "cpu"
+    """Torch device for the image encoder and mask decoder."""
+    memory_cache: int = 24
+    """Image embeddings kept in memory (vit_b: 4 MiB each)."""
+    cache_dir: Optional[Path] = None
+    """Where embeddings are also cached on disk (``None``: memory only)."""
+
+
+@dataclass
+class _Embedding:
+    features: object
+    """(1, 256, 64, 64) torch tensor: the image encoder's output."""
+    original_size: tuple[int, int]
+    input_size: tuple[int, int]
+
+
+class SamSegmenter:
+    """Segment Anything with per-frame embeddings computed in the background and cached.
+
+    ``predictor`` is a ``segment_anything.SamPredictor`` (or anything with its ``set_image`` /
+    ``predict`` interface and ``features``/``original_size``/``input_size`` attributes); by default one
+    is built from :attr:`SamConfig.checkpoint`.
+    """
+
+    name = "sam"
+
+    def __init__(self, config: SamConfig, predictor=None):
+        self.config = config
+        self._predictor = predictor if predictor is not None else _load_sam_predictor(config)
+        self._cache: collections.OrderedDict[str, _Embedding] = collections.OrderedDict()
+        self._lock = threading.Lock()          # guards the cache and the pending set
+        self._model_lock = threading.Lock()    # one forward pass at a time (the predictor is stateful)
+        self._pending: dict[str, Callable[[], np.ndarray]] = {}
+        self._jobs: "queue.Queue[str]" = queue.Queue()
+        self._worker = threading.Thread(target=self._run_worker, name="sam-embeddings", daemon=True)
+        self._worker.start()
+        if config.cache_dir is not None:
+            Path(config.cache_dir).mkdir(parents=True, exist_ok=True)
+
+    # -- embeddings -----------------------------------------------------------------------------
+    def prefetch(self, frame_key: str, load_image: Callable[[], np.ndarray]) -> None:
+        with self._lock:
+            if frame_key in self._cache or frame_key in self._pending:
+                return
+            self._pending[frame_key] = load_image
+        self._jobs.put(frame_key)
+
+    def cached(self, frame_key: str) -> bool:
+        with self._lock:
+            return frame_key in self._cache
+
+    def wait_idle(self, timeout: float = 60.0) -> bool:
+        """Block until every prefetched embedding is computed (tests and benchmarks)."""
+        import time
+
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            with self._lock:
+                if not self._pending and self._jobs.empty():
+                    return True
+            time.sleep(0.01)
+        return False
+
+    def _run_worker(self) -> None:
+        while True:
+            key = self._jobs.get()
+            with self._lock:
+                loader = self._pending.get(key)
+            if loader is None:
+                continue
+            try:
+                self._embedding(key, _check_image(loader()))
+            except Exception:  # noqa: BLE001 - a failed prefetch is retried in the foreground
+                pass
+            finally:
+                with self._lock:
+                    self._pending.pop(key, None)
+
+    def _disk_path(self, frame_key: str) -> Optional[Path]:
+        if self.config.cache_dir is None:
+            return None
+        digest = hashlib.sha1(f"{self.config.model_type}:{frame_key}".encode()).hexdigest()[:20]
+        return Path(self.config.cache_dir) / f"{digest}.pt"
+
+    def _embedding(self, frame_key: str, image: np.ndarray) -> _Embedding:
+        with self._lock:
+            emb = self._cache.get(frame_key)
+            if emb is not None:
+                self._cache.move_to_end(frame_key)
+                return emb
+        path = self._disk_path(frame_key)
+        emb = None
+        if path is not None and path.is_file():
+            import torch
+
+            try:
+                saved = torch.load(path, map_location=self.config.device, weights_only=True)
+                emb = _Embedding(saved["features"], tuple(saved["original_size"]), tuple(saved["input_size"]))
+            except Exception:  # noqa: BLE001 - a corrupt cache entry is recomputed
+                emb = None
+        if emb is None:
+            with self._model_lock:
+                self._predictor.set_image(image)
+                emb = _Embedding(self._predictor.features, tuple(self._predictor.original_size),
+                                 tuple(self._predictor.input_size))
+            if path is not None:
+                import torch
+
+                from benchmark.atomic import atomic_path
+
+                with atomic_path(path) as tmp:
+                    torch.save({"features": emb.features, "original_size": list(emb.original_size),
+                                "input_size": list(emb.input_size)}, tmp)
+        with self._lock:
+            self._cache[frame_key] = emb
+            self._cache.move_to_end(frame_key)
+            while len(self._cache) > self.config.memory_cache:
+                self._cache.popitem(last=False)
+        return emb
+
+    # -- masks ----------------------------------------------------------------------------------
+    def segment(self, frame_key: str, image: np.ndarray, box: Optional[Box], clicks: Sequence[Click] = (),
+                current: Optional[np.ndarray] = None) -> np.ndarray:
+        image = _check_image(image)
+        height, width = image.shape[:2]
+        if box is None and not clicks:
+            return np.zeros((height, width), bool) if current is None else _check_mask(current, (height, width))
+        emb = self._embedding(frame_key, image)
+        coords = np.array([(x, y) for x, y, _ in clicks], np.float32) if clicks else None
+        labels = np.array([lbl for _, _, lbl in clicks], np.int32) if clicks else None
+        box_arr = None
+        if box is not None:
+            x0, y0, x1, y1 = _box_pixels(box, width, height)
+            box_arr = np.array([x0, y0, x1, y1], np.float32)
+        with self._model_lock:
+            self._predictor.features = emb.features
+            self._predictor.original_size = emb.original_size
+            self._predictor.input_size = emb.input_size
+            self._predictor.is_image_set = True
+            masks, _, _ = self._predictor.predict(point_coords=coords, point_labels=labels, box=box_arr,
+                                                  multimask_output=False)
+        return np.asarray(masks[0]).astype(bool)
+
+
+def _load_sam_predictor(config: SamConfig):
+    if config.checkpoint is None:
+        raise InputError(None, "--sam-checkpoint", "the SAM backend needs a path to its weights")
+    path = Path(config.checkpoint)
+    if not path.is_file():
+        raise InputError(path, "--sam-checkpoint", "SAM weights not found")
+    try:
+        from segment_anything import SamPredictor, sam_model_registry
+    except ImportError:
+        raise InputError(None, "--segmenter sam",
+                         "the SAM backend needs the optional package: pip install 'bench4d[sam]'") from None
+    if config.model_type not in sam_model_registry:
+        raise InputError(None, "--sam-model", f"unknown SAM model {config.model_type!r} "
+                                              f"(known: {', '.join(sorted(sam_model_registry))})")
+    try:
+        model = sam_model_registry[config.model_type](checkpoint=str(path))
+    except Exception as err:  # noqa: BLE001 - torch's messages for a wrong checkpoint are long
+        raise InputError(path, "--sam-checkpoint",
+                         f"cannot load as SAM {config.model_type}: {type(err).__name__}: {str(err)[:200]}") from None
+    model.to(config.device)
+    model.eval()
+    return SamPredictor(model)
+
+
+def make_segmenter(kind: str = "grabcut", *, sam_checkpoint: Optional[Path] = None, sam_model: str = "vit_b",
+                   cache_dir: Optional[Path] = None, device: str = "cpu") -> Segmenter:
+    """The backend named by ``kind`` (``"grabcut"`` or ``"sam"``)."""
+    if kind == "grabcut":
+        return GrabCutSegmenter()
+    if kind == "sam":
+        return SamSegmenter(SamConfig(checkpoint=sam_checkpoint, model_type=sam_model, device=device,
+                                      cache_dir=cache_dir))
+    raise InputError(None, "--segmenter", f"unknown segmenter {kind!r} (grabcut or sam)")

@@ -1,0 +1,544 @@
+"""The project's annotation file: one versioned, validated JSON per scene.
+
+Files live in ``annotations/scenes/<dataset>/<scene>.json``. They are COCO-shaped (``images``,
+``categories``, ``annotations`` with COCO RLE masks) so COCO tools can read the masks, plus the
+time-sensitive labels and the scene facts COCO has no place for.
+
+Schema (``"version": 1``)
+-------------------------
+.. code-block:: text
+
+    {
+      "format": "bench4d-annotations",         # required, exactly this string
+      "version": 1,                            # required, exactly 1
+      "scene": "split-cookie",                 # required, non-empty string
+      "num_time_steps": 100,                   # required, positive int or null (= unknown)
+      "info": {...},                           # optional object: provenance (tool, sources, annotator)
+      "images": [                              # the evaluated frames
+        {"id": 1,                              # int, unique
+         "file_name": "000123",                # the scene's frame name (Frame.name), unique; not a path
+         "width": 536, "height": 960,          # ints > 0: the size the masks are drawn at
+         "time_index": 123,                    # int >= 0 (< num_time_steps when that is known)
+         "camera_id": "0"}                     # optional string, default "0"
+      ],
+      "categories": [                          # the queries
+        {"id": 1, "name": "cookie",            # id int unique; name = query text, non-empty, unique
+         "kind": "agnostic",                   # "agnostic" | "sensitive" (optional, default "agnostic")
+         "level": "whole"},                    # optional string or null (informational)
+        {"id": 2, "name": "cracked cookie", "kind": "sensitive",
+         "base": 1}                            # sensitive only, required: id of an agnostic category
+      ],
+      "annotations": [                         # one per annotated (agnostic category, image)
+        {"id": 1, "image_id": 1, "category_id": 1,
+         "segmentation": {"size": [960, 536], "counts": "<COCO compressed RLE string>"},
+         "area": 1234,                         # optional on load; when given must equal the mask's area
+         "bbox": [x, y, w, h],                 # optional, informational (COCO toBbox of the mask)
+         "iscrowd": 1,                         # optional, informational (COCO: RLE masks are "crowd")
+         "absent": false}                      # optional on load; see "absent" below
+      ],
+      "time_segments": {"2": [[0, 10], [40, 55]]}   # category id (as a JSON string key) -> intervals
+    }
+
+Rules
+-----
+* **Absent vs. not annotated.** An entry in ``annotations`` for (category, image) means *annotated*.
+  An annotated mask with no foreground pixel means *absent* ("the object is not in this frame"): a
+  frame that scores a false positive as IoU 0. A (category, image) pair with *no entry* is *not
+  annotated* and is never scored. The RLE is authoritative; ``absent`` is written as a convenience
+  and, when given on load, must agree with the mask (``true`` exactly when the RLE is empty). A
+  hand-written file may give ``"absent": true`` with no ``segmentation`` at all: that is an empty
+  mask of the image's size.
+* Only time-agnostic categories own masks; a time-sensitive category inherits the masks of its
+  ``base`` (the release's rule) and owns its ``time_segments``. At most one annotation per
+  (category, image).
+* ``time_segments`` intervals ``[l, r]`` are inclusive at both ends, in 0-based ``time_index``
+  units, ``0 <= l <= r`` and ``r < num_time_steps`` when that is known. Only sensitive categories may
+  have them; a sensitive category without an entry holds nowhere.
+* RLE ``size`` is ``[height, width]`` and must equal the image's size. ``counts`` is a COCO
+  compressed string (written) or an uncompressed list of run lengths (accepted on load); either
+  must describe exactly ``height * width`` pixels.
+
+:func:`save_annotations` writes atomically and :func:`load_annotations` reproduces the same
+:class:`~annotations.model.AnnotationSet` (every field, intervals and masks bit-exact).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+from pycocotools import mask as mask_utils
+
+from benchmark.atomic import read_json, write_text
+from benchmark.errors import InputError
+
+from .model import AnnotatedFrame, AnnotationSet, Query
+
+FORMAT_NAME = "bench4d-annotations"
+FORMAT_VERSION = 1
+
+__all__ = ["FORMAT_NAME", "FORMAT_VERSION", "annotation_set_to_dict", "annotation_set_from_dict",
+           "save_annotations", "load_annotations", "validate_against_scene", "validate_rle",
+           "rle_area", "rle_bbox", "rle_is_empty"]
+
+
+# ---------------------------------------------------------------------------------------------
+# RLE helpers
+# ---------------------------------------------------------------------------------------------
+def _counts_from_string(counts: str) -> Optional[np.ndarray]:
+    """Decode COCO's compressed RLE string into run lengths, or ``None`` if it is malformed.
+
+    COCO packs each run length (after the first two, as a difference from the run two places
+    back) into 5-bit groups, low first, as characters ``'0' + c`` where bit 0x20 of ``c`` says
+    "more groups follow" and bit 0x10 of the last group is the sign. Parsed here with numpy so a
+    corrupt string is caught before pycocotools' C decoder walks off the end of its buffer.
+    """
+    raw = np.frombuffer(counts.encode("ascii", errors="replace"), dtype=np.uint8).astype(np.int64) - 48
+    if raw.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    if raw.min() < 0 or raw.max() > 63:
+        return None
+    more = (raw & 0x20) != 0
+    if more[-1]:
+        return None  # the string ends inside a number
+    ends = np.flatnonzero(~more)
+    starts = np.concatenate([[0], ends[:-1] + 1])
+    lengths = ends - starts + 1
+    if lengths.max() > 12:  # 60 bits: far beyond any image size, and keeps int64 shifts exact
+        return None
+    group = np.repeat(np.arange(ends.size), lengths)
+    k = np.arange(raw.size) - starts[group]
+    values = np.zeros(ends.size, dtype=np.int64)
+    np.add.at(values, group, (raw & 0x1F) << (5 * k))
+    negative = (raw[ends] & 0x10) != 0
+    values[negative] -= np.left_shift(np.int64(1), 5 * lengths[negative])
+    # undo the delta coding: cnts[i] += cnts[i-2] for i > 2 (COCO's rule starts at index 3)
+    out = values.copy()
+    if out.size > 3:
+        odd = out[1::2].copy()
+        out[1::2] = np.cumsum(odd)
+        even = out[2::2].copy()
+        out[2::2] = np.cumsum(even)
+    return out
+
+
+def validate_rle(rle: Any, file: str | Path | None, field: str,
+                 size: Optional[tuple[int, int]] = None) -> dict:
+    """Check a COCO RLE and return it as ``{"size": [h, w], "counts": str}``.
+
+    ``size`` is the expected ``(height, width)``. Raises :class:`InputError` naming ``field``.
+    """
+    if not isinstance(rle, dict):
+        raise InputError(file, field, f"expected an RLE object with 'size' and 'counts', got {type(rle).__name__}")
+    for key in ("size", "counts"):
+        if key not in rle:
+            raise InputError(file, f"{field}.{key}", "missing required key")
+    rsize = rle["size"]
+    if (not isinstance(rsize, (list, tuple)) or len(rsize) != 2
+            or not all(_is_int(v) and v > 0 for v in rsize)):
+        raise InputError(file, f"{field}.size", f"expected [height, width] of positive ints, got {rsize!r}")
+    h, w = int(rsize[0]), int(rsize[1])
+    if size is not None and (h, w) != tuple(size):
+        raise InputError(file, f"{field}.size",
+                         f"mask is {w}x{h} (WxH) but its image is {size[1]}x{size[0]}")
+    counts = rle["counts"]
+    if isinstance(counts, bytes):
+        try:
+            counts = counts.decode("ascii")
+        except UnicodeDecodeError:
+            raise InputError(file, f"{field}.counts", "compressed RLE is not ASCII") from None
+    if isinstance(counts, str):
+        runs = _counts_from_string(counts)
+        if runs is None:
+            raise InputError(file, f"{field}.counts", "malformed compressed RLE string")
+        out = {"size": [h, w], "counts": counts}
+    elif isinstance(counts, list):
+        if not all(_is_int(c) for c in counts):
+            raise InputError(file, f"{field}.counts", "uncompressed RLE counts must be integers")
+        runs = np.asarray(counts, dtype=np.int64)
+        out = None
+    else:
+        raise InputError(file, f"{field}.counts",
+                         f"expected a compressed string or a list of run lengths, got {type(counts).__name__}")
+    if runs.size and runs.min() < 0:
+        raise InputError(file, f"{field}.counts", "negative run length")
+    if int(runs.sum()) != h * w:
+        raise InputError(file, f"{field}.counts",
+                         f"run lengths cover {int(runs.sum())} pixels but size {h}x{w} has {h * w}")
+    if out is None:
+        comp = mask_utils.frPyObjects({"size": [h, w], "counts": [int(c) for c in counts]}, h, w)
+        out = {"size": [h, w], "counts": comp["counts"].decode("ascii")}
+    return out
+
+
+def _coco_rle(rle: dict) -> dict:
+    counts = rle["counts"]
+    return {"size": list(rle["size"]), "counts": counts.encode("ascii") if isinstance(counts, str) else counts}
+
+
+def rle_area(rle: dict) -> int:
+    """Foreground pixel count of a (compressed) RLE."""
+    return int(mask_utils.area(_coco_rle(rle)))
+
+
+def rle_bbox(rle: dict) -> list[float]:
+    """COCO ``[x, y, w, h]`` of a (compressed) RLE (zeros when empty)."""
+    return [float(v) for v in mask_utils.toBbox(_coco_rle(rle))]
+
+
+def rle_is_empty(rle: dict) -> bool:
+    return rle_area(rle) == 0
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+
+
+# ---------------------------------------------------------------------------------------------
+# AnnotationSet <-> dict
+# ---------------------------------------------------------------------------------------------
+def annotation_set_to_dict(aset: AnnotationSet) -> dict:
+    """The JSON object of the schema above (raises :class:`InputError` if ``aset`` is inconsistent)."""
+    # validate by the same rules the loader applies, so a saved file always loads
+    images = [{"id": int(f.id), "file_name": str(f.name), "width": int(f.width), "height": int(f.height),
+               "time_index": int(f.time_index), "camera_id": str(f.camera_id)} for f in aset.frames]
+    categories = []
+    for q in aset.queries:
+        cat: dict[str, Any] = {"id": int(q.id), "name": q.text, "kind": q.kind}
+        if q.base is not None:
+            cat["base"] = int(q.base)
+        if q.level is not None:
+            cat["level"] = q.level
+        categories.append(cat)
+    annotations = []
+    frame_order = {f.id: i for i, f in enumerate(aset.frames)}
+    query_order = {q.id: i for i, q in enumerate(aset.queries)}
+    keys = sorted(aset.masks, key=lambda k: (frame_order.get(k[1], math.inf), query_order.get(k[0], math.inf),
+                                              k[1], k[0]))
+    for ann_id, (qid, fid) in enumerate(keys, start=1):
+        rle = aset.masks[(qid, fid)]
+        counts = rle["counts"]
+        seg = {"size": [int(rle["size"][0]), int(rle["size"][1])],
+               "counts": counts.decode("ascii") if isinstance(counts, bytes) else counts}
+        if isinstance(seg["counts"], list):
+            seg = validate_rle(seg, None, f"masks[{qid}, {fid}]")
+        area = rle_area(seg)
+        annotations.append({"id": ann_id, "image_id": int(fid), "category_id": int(qid), "segmentation": seg,
+                            "area": area, "bbox": rle_bbox(seg), "iscrowd": 1, "absent": area == 0})
+    for q in aset.queries:
+        if q.kind != "sensitive" and q.intervals:
+            raise InputError("<in-memory AnnotationSet>", f"queries[{q.id}].intervals",
+                             f"time-agnostic query {q.text!r} has time intervals; only sensitive queries do")
+    time_segments = {str(q.id): [[int(a), int(b)] for a, b in q.intervals]
+                     for q in aset.queries if q.kind == "sensitive"}
+    doc = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "scene": aset.scene,
+           "num_time_steps": None if aset.num_time_steps is None else int(aset.num_time_steps),
+           "info": dict(aset.info), "images": images, "categories": categories,
+           "annotations": annotations, "time_segments": time_segments}
+    annotation_set_from_dict(doc, file="<in-memory AnnotationSet>")
+    return doc
+
+
+def annotation_set_from_dict(doc: Any, file: str | Path | None = None) -> AnnotationSet:
+    """Validate a parsed annotation JSON and build the :class:`AnnotationSet` (rules above)."""
+    if not isinstance(doc, dict):
+        raise InputError(file, None, f"expected a JSON object at the top level, got {type(doc).__name__}")
+    for key in ("format", "version", "scene", "num_time_steps", "images", "categories", "annotations"):
+        if key not in doc:
+            raise InputError(file, key, "missing required key")
+    if doc["format"] != FORMAT_NAME:
+        raise InputError(file, "format", f"expected {FORMAT_NAME!r}, got {doc['format']!r}")
+    if not _is_int(doc["version"]) or doc["version"] != FORMAT_VERSION:
+        raise InputError(file, "version",
+                         f"unsupported version {doc['version']!r}; this bench4d reads version {FORMAT_VERSION}")
+    scene = doc["scene"]
+    if not isinstance(scene, str) or not scene:
+        raise InputError(file, "scene", "expected a non-empty string")
+    nts = doc["num_time_steps"]
+    if nts is not None and not (_is_int(nts) and nts > 0):
+        raise InputError(file, "num_time_steps", f"expected a positive integer or null, got {nts!r}")
+    info = doc.get("info", {})
+    if not isinstance(info, dict):
+        raise InputError(file, "info", f"expected an object, got {type(info).__name__}")
+
+    frames = _parse_images(doc["images"], nts, file)
+    queries = _parse_categories(doc["categories"], file)
+    frame_by_id = {f.id: f for f in frames}
+    query_by_id = {q.id: q for q in queries}
+    masks = _parse_annotations(doc["annotations"], frame_by_id, query_by_id, file)
+    _parse_time_segments(doc.get("time_segments", {}), query_by_id, nts, file)
+    return AnnotationSet(scene=scene, frames=frames, queries=queries, masks=masks,
+                         num_time_steps=None if nts is None else int(nts), info=info)
+
+
+def _require_list(value: Any, file, field: str) -> list:
+    if not isinstance(value, list):
+        raise InputError(file, field, f"expected a list, got {type(value).__name__}")
+    return value
+
+
+def _get(item: Any, key: str, file, field: str, *, types: tuple = (), default: Any = ..., check=None,
+         expect: str = "") -> Any:
+    """``item[key]`` with presence/type checks; errors name ``field.key``."""
+    if not isinstance(item, dict):
+        raise InputError(file, field, f"expected an object, got {type(item).__name__}")
+    name = f"{field}.{key}"
+    if key not in item:
+        if default is ...:
+            raise InputError(file, name, "missing required key")
+        return default
+    value = item[key]
+    ok = (_is_int(value) if types == (int,) else isinstance(value, types)) if types else True
+    if ok and check is not None:
+        ok = check(value)
+    if not ok:
+        raise InputError(file, name, f"expected {expect or '/'.join(t.__name__ for t in types)}, got {value!r}")
+    return value
+
+
+def _parse_images(images: Any, nts: Optional[int], file) -> list[AnnotatedFrame]:
+    frames: list[AnnotatedFrame] = []
+    seen_ids: dict[int, int] = {}
+    seen_names: dict[str, int] = {}
+    for i, im in enumerate(_require_list(images, file, "images")):
+        field = f"images[{i}]"
+        fid = _get(im, "id", file, field, types=(int,))
+        name = _get(im, "file_name", file, field, types=(str,), check=bool, expect="a non-empty frame name")
+        width = _get(im, "width", file, field, types=(int,), check=lambda v: v > 0, expect="a positive int")
+        height = _get(im, "height", file, field, types=(int,), check=lambda v: v > 0, expect="a positive int")
+        ti = _get(im, "time_index", file, field, types=(int,), check=lambda v: v >= 0, expect="an int >= 0")
+        cam = _get(im, "camera_id", file, field, types=(str,), default="0")
+        if nts is not None and ti >= nts:
+            raise InputError(file, f"{field}.time_index", f"{ti} is out of range for num_time_steps={nts}")
+        if fid in seen_ids:
+            raise InputError(file, f"{field}.id", f"duplicate image id {fid} (also images[{seen_ids[fid]}])")
+        if name in seen_names:
+            raise InputError(file, f"{field}.file_name",
+                             f"duplicate frame name {name!r} (also images[{seen_names[name]}])")
+        seen_ids[fid] = i
+        seen_names[name] = i
+        frames.append(AnnotatedFrame(id=int(fid), name=name, time_index=int(ti), width=int(width),
+                                     height=int(height), camera_id=cam))
+    return frames
+
+
+def _parse_categories(categories: Any, file) -> list[Query]:
+    queries: list[Query] = []
+    seen_ids: dict[int, int] = {}
+    seen_names: dict[str, int] = {}
+    for i, cat in enumerate(_require_list(categories, file, "categories")):
+        field = f"categories[{i}]"
+        qid = _get(cat, "id", file, field, types=(int,))
+        name = _get(cat, "name", file, field, types=(str,))
+        if not name.strip():
+            raise InputError(file, f"{field}.name", "empty query text")
+        kind = _get(cat, "kind", file, field, types=(str,), default="agnostic",
+                    check=lambda v: v in ("agnostic", "sensitive"), expect="'agnostic' or 'sensitive'")
+        level = _get(cat, "level", file, field, types=(str, type(None)), default=None)
+        base = _get(cat, "base", file, field, types=(int, type(None)), default=None)
+        if isinstance(base, bool):
+            raise InputError(file, f"{field}.base", f"expected a category id, got {base!r}")
+        if qid in seen_ids:
+            raise InputError(file, f"{field}.id", f"duplicate category id {qid} (also categories[{seen_ids[qid]}])")
+        if name in seen_names:
+            raise InputError(file, f"{field}.name",
+                             f"duplicate query text {name!r} (also categories[{seen_names[name]}])")
+        if kind == "agnostic" and base is not None:
+            raise InputError(file, f"{field}.base", "only a time-sensitive category has a base")
+        if kind == "sensitive" and base is None:
+            raise InputError(file, f"{field}.base",
+                             "a time-sensitive category needs 'base': the agnostic category whose masks it uses")
+        seen_ids[qid] = i
+        seen_names[name] = i
+        queries.append(Query(id=int(qid), text=name, kind=kind, base=None if base is None else int(base),
+                             level=level))
+    by_id = {q.id: (i, q) for i, q in enumerate(queries)}
+    for i, q in enumerate(queries):
+        if q.base is None:
+            continue
+        if q.base not in by_id:
+            raise InputError(file, f"categories[{i}].base", f"unknown category id {q.base}")
+        if by_id[q.base][1].kind != "agnostic":
+            raise InputError(file, f"categories[{i}].base",
+                             f"base {q.base} ({by_id[q.base][1].text!r}) is not a time-agnostic category")
+    return queries
+
+
+def _parse_annotations(annotations: Any, frame_by_id: dict[int, AnnotatedFrame],
+                       query_by_id: dict[int, Query], file) -> dict[tuple[int, int], dict]:
+    masks: dict[tuple[int, int], dict] = {}
+    seen_ids: dict[int, int] = {}
+    where: dict[tuple[int, int], int] = {}
+    for i, ann in enumerate(_require_list(annotations, file, "annotations")):
+        field = f"annotations[{i}]"
+        aid = _get(ann, "id", file, field, types=(int,))
+        fid = _get(ann, "image_id", file, field, types=(int,))
+        qid = _get(ann, "category_id", file, field, types=(int,))
+        absent = _get(ann, "absent", file, field, types=(bool,), default=None)
+        if aid in seen_ids:
+            raise InputError(file, f"{field}.id", f"duplicate annotation id {aid} (also annotations[{seen_ids[aid]}])")
+        seen_ids[aid] = i
+        if fid not in frame_by_id:
+            raise InputError(file, f"{field}.image_id", f"unknown image id {fid}")
+        if qid not in query_by_id:
+            raise InputError(file, f"{field}.category_id", f"unknown category id {qid}")
+        query = query_by_id[qid]
+        if query.kind != "agnostic":
+            raise InputError(file, f"{field}.category_id",
+                             f"category {qid} ({query.text!r}) is time-sensitive: it inherits the masks of its "
+                             f"base {query.base}; annotate the base instead")
+        if (qid, fid) in where:
+            raise InputError(file, field, f"second annotation of category {qid} on image {fid} "
+                                          f"(also annotations[{where[(qid, fid)]}]); one mask per pair")
+        where[(qid, fid)] = i
+        frame = frame_by_id[fid]
+        size = (frame.height, frame.width)
+        if "segmentation" not in ann:
+            if absent is not True:
+                raise InputError(file, f"{field}.segmentation",
+                                 "missing required key (only an annotation with \"absent\": true may omit it)")
+            rle = {"size": [frame.height, frame.width], "counts": _empty_counts(frame.height, frame.width)}
+        else:
+            rle = validate_rle(ann["segmentation"], file, f"{field}.segmentation", size)
+        area = rle_area(rle)
+        if absent is not None and absent != (area == 0):
+            raise InputError(file, f"{field}.absent",
+                             f"says {str(absent).lower()} but the mask has {area} foreground pixels")
+        if "area" in ann:
+            given = ann["area"]
+            if not isinstance(given, (int, float, np.number)) or isinstance(given, bool) or given != area:
+                raise InputError(file, f"{field}.area", f"is {given!r} but the mask has {area} foreground pixels")
+        if "bbox" in ann:
+            bbox = ann["bbox"]
+            if (not isinstance(bbox, list) or len(bbox) != 4
+                    or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in bbox)):
+                raise InputError(file, f"{field}.bbox", f"expected [x, y, w, h] numbers, got {bbox!r}")
+        masks[(qid, fid)] = rle
+    return masks
+
+
+def _empty_counts(height: int, width: int) -> str:
+    rle = mask_utils.encode(np.zeros((height, width), dtype=np.uint8, order="F"))
+    return rle["counts"].decode("ascii")
+
+
+def _parse_time_segments(segments: Any, query_by_id: dict[int, Query], nts: Optional[int], file) -> None:
+    if not isinstance(segments, dict):
+        raise InputError(file, "time_segments", f"expected an object {{category id: intervals}}, "
+                                                f"got {type(segments).__name__}")
+    for key, intervals in segments.items():
+        field = f"time_segments.{key}"
+        try:
+            qid = int(key)
+        except ValueError:
+            raise InputError(file, field, f"key {key!r} is not a category id") from None
+        if qid not in query_by_id:
+            raise InputError(file, field, f"unknown category id {qid}")
+        query = query_by_id[qid]
+        if query.kind != "sensitive":
+            raise InputError(file, field, f"category {qid} ({query.text!r}) is time-agnostic; "
+                                          "only time-sensitive categories have time segments")
+        parsed = []
+        for j, iv in enumerate(_require_list(intervals, file, field)):
+            if not (isinstance(iv, list) and len(iv) == 2 and all(_is_int(v) for v in iv)):
+                raise InputError(file, f"{field}[{j}]", f"expected [l, r] integers, got {iv!r}")
+            lo, hi = int(iv[0]), int(iv[1])
+            if lo < 0:
+                raise InputError(file, f"{field}[{j}]", f"negative time index in {iv}")
+            if lo > hi:
+                raise InputError(file, f"{field}[{j}]", f"l > r in {iv} (intervals are inclusive [l, r])")
+            if nts is not None and hi >= nts:
+                raise InputError(file, f"{field}[{j}]", f"{iv} reaches past num_time_steps={nts}")
+            parsed.append((lo, hi))
+        query.intervals = parsed
+
+
+# ---------------------------------------------------------------------------------------------
+# files
+# ---------------------------------------------------------------------------------------------
+def save_annotations(aset: AnnotationSet, path: str | Path, *, overwrite: bool = False) -> Path:
+    """Write ``aset`` to ``path`` atomically (schema above); returns the path.
+
+    An existing file is a user's work: it is replaced only with ``overwrite=True`` (an editor saving
+    the file it opened passes that); otherwise :class:`InputError`.
+    """
+    path = Path(path)
+    if not overwrite and path.exists():
+        raise InputError(path, None, "file exists; pass overwrite=True to replace it")
+    doc = annotation_set_to_dict(aset)
+    write_text(path, dumps_annotations(doc))
+    return path
+
+
+def dumps_annotations(doc: dict) -> str:
+    """JSON text with one line per image / category / annotation / time segment (diff-friendly)."""
+    def one(v: Any) -> str:
+        return json.dumps(v, ensure_ascii=False, separators=(", ", ": "))
+
+    lines = ["{"]
+    keys = list(doc)
+    for n, key in enumerate(keys):
+        value = doc[key]
+        comma = "," if n < len(keys) - 1 else ""
+        if isinstance(value, list) and value:
+            items = [f"    {one(v)}" for v in value]
+            lines.append(f"  {one(key)}: [\n" + ",\n".join(items) + f"\n  ]{comma}")
+        elif isinstance(value, dict) and value:
+            items = [f"    {one(str(k))}: {one(v)}" for k, v in value.items()]
+            lines.append(f"  {one(key)}: {{\n" + ",\n".join(items) + f"\n  }}{comma}")
+        else:
+            lines.append(f"  {one(key)}: {one(value)}{comma}")
+    return "\n".join(lines) + "\n}\n"
+
+
+def load_annotations(path: str | Path, scene=None) -> AnnotationSet:
+    """Read and validate an annotation file; with a :class:`benchmark.scene.Scene`, also check it
+    against the scene (:func:`validate_against_scene`)."""
+    path = Path(path)
+    aset = annotation_set_from_dict(read_json(path), file=path)
+    if scene is not None:
+        validate_against_scene(aset, scene, file=path)
+    return aset
+
+
+def validate_against_scene(aset: AnnotationSet, scene, file: str | Path | None = None) -> None:
+    """Check that ``aset`` describes ``scene`` (a :class:`benchmark.scene.Scene`).
+
+    Every annotated frame must be a frame of the scene with the same ``time_index`` and
+    ``camera_id``, and masks must have the size of that frame's camera image. ``num_time_steps``
+    (when known) must cover every time index the scene has, and time segments must lie inside the
+    scene's time range. Errors name ``file`` (default: ``<annotations of SCENE>``) and the field.
+    """
+    file = file if file is not None else f"<annotations of {aset.scene}>"
+    names = {f.name: f for f in scene.frames}
+    for i, af in enumerate(aset.frames):
+        field = f"images[{i}]"
+        sf = names.get(af.name)
+        if sf is None:
+            sample = ", ".join(repr(n) for n in list(names)[:3])
+            raise InputError(file, f"{field}.file_name",
+                             f"frame {af.name!r} is not in scene {scene.name!r} (its frames are named like {sample})")
+        if sf.time_index != af.time_index:
+            raise InputError(file, f"{field}.time_index",
+                             f"frame {af.name!r} has time_index {af.time_index} but the scene says {sf.time_index}")
+        if str(sf.camera_id) != str(af.camera_id):
+            raise InputError(file, f"{field}.camera_id",
+                             f"frame {af.name!r} has camera {af.camera_id!r} but the scene says {sf.camera_id!r}")
+        if (sf.camera.width, sf.camera.height) != (af.width, af.height):
+            raise InputError(file, f"{field}.width/height",
+                             f"frame {af.name!r} is annotated at {af.width}x{af.height} but the scene's image is "
+                             f"{sf.camera.width}x{sf.camera.height} (re-import with that target size)")
+    if not scene.frames:
+        return
+    last = max(f.time_index for f in scene.frames)
+    if aset.num_time_steps is not None and aset.num_time_steps <= last:
+        raise InputError(file, "num_time_steps",
+                         f"{aset.num_time_steps} but scene {scene.name!r} has frames up to time_index {last}")
+    for q in aset.sensitive_queries:
+        for j, (lo, hi) in enumerate(q.intervals):
+            if hi > last:
+                raise InputError(file, f"time_segments.{q.id}[{j}]",
+                                 f"[{lo}, {hi}] reaches past the scene's last time_index {last}")

@@ -1,0 +1,99 @@
+"""Automatic checks of an annotation set, shown in the tool's review mode.
+
+Each finding names a query, a frame and a kind; the reviewer jumps there and decides. Checks:
+
+* ``no-mask-in-interval``: a frame inside a time-sensitive query's interval where its base query
+  has no mask ("not annotated" where the state is said to hold: the frame cannot be scored).
+* ``absent-in-interval``: inside an interval, the base is marked absent (the state cannot hold on
+  an object that is not there).
+* ``mask-outside-interval``: a non-empty base mask just outside an interval (within
+  :attr:`ReviewConfig.edge_frames` of its edge): confirm the edge, the state must not hold there.
+* ``empty``: a mask with no pixel ("absent in this frame"): confirm the object is really gone.
+* ``tiny``: fewer than :attr:`ReviewConfig.tiny_pixels` pixels.
+* ``fragmented``: more than :attr:`ReviewConfig.max_components` connected pieces of meaningful size.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import cv2
+import numpy as np
+
+from ..model import AnnotationSet, decode_mask
+
+
+@dataclass
+class ReviewConfig:
+    """Thresholds of the automatic review checks."""
+
+    tiny_pixels: int = 64
+    """A non-empty mask with fewer pixels than this is flagged ``tiny``."""
+    max_components: int = 3
+    """More connected pieces than this (8-connectivity) is flagged ``fragmented``."""
+    min_component_pixels: int = 4
+    """Pieces smaller than this are counted as specks (always flagged, see ``specks``)."""
+    edge_frames: int = 2
+    """``mask-outside-interval`` looks this many time steps beyond each interval edge."""
+
+
+def review(aset: AnnotationSet, frame_index: dict[str, int], config: Optional[ReviewConfig] = None) -> list[dict]:
+    """Findings for ``aset``; ``frame_index`` maps frame names to the tool's frame indices.
+
+    Returns dicts ``{"kind", "query", "frame" (tool index or None), "frame_name", "time_index", "message"}``
+    sorted by query then time.
+    """
+    config = config or ReviewConfig()
+    findings: list[dict] = []
+    frames_by_id = {f.id: f for f in aset.frames}
+
+    def add(kind: str, qid: int, frame, message: str) -> None:
+        findings.append({"kind": kind, "query": qid, "frame": frame_index.get(frame.name),
+                         "frame_name": frame.name, "time_index": frame.time_index, "message": message})
+
+    # per-mask checks
+    for (qid, fid), rle in aset.masks.items():
+        frame = frames_by_id.get(fid)
+        if frame is None:
+            continue
+        mask = decode_mask(rle)
+        area = int(mask.sum())
+        if area == 0:
+            add("empty", qid, frame, "marked absent (empty mask): confirm the object is not visible")
+            continue
+        if area < config.tiny_pixels:
+            add("tiny", qid, frame, f"only {area} pixels")
+        n, _, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+        sizes = stats[1:, cv2.CC_STAT_AREA]
+        pieces = int((sizes >= config.min_component_pixels).sum())
+        specks = int((sizes < config.min_component_pixels).sum())
+        if pieces > config.max_components:
+            add("fragmented", qid, frame, f"{pieces} separate pieces")
+        elif specks:
+            add("fragmented", qid, frame, f"{specks} speck(s) under {config.min_component_pixels} pixels")
+
+    # interval checks for time-sensitive queries (their masks are their base's)
+    for q in aset.sensitive_queries:
+        if q.base is None:
+            continue
+        for frame in aset.frames:
+            t = frame.time_index
+            rle = aset.masks.get((q.base, frame.id))
+            inside = q.holds_at(t)
+            if inside and rle is None:
+                add("no-mask-in-interval", q.id, frame,
+                    f"t={t} is inside an interval of {q.text!r} but its base has no mask here")
+            elif inside and decode_mask(rle).sum() == 0:
+                add("absent-in-interval", q.id, frame,
+                    f"t={t} is inside an interval of {q.text!r} but its base is marked absent")
+            elif not inside and rle is not None and q.intervals:
+                near = [(a, b) for a, b in q.intervals
+                        if a - config.edge_frames <= t < a or b < t <= b + config.edge_frames]
+                if near and decode_mask(rle).any():
+                    a, b = near[0]
+                    add("mask-outside-interval", q.id, frame,
+                        f"t={t} is just outside [{a}, {b}] of {q.text!r} and the object is visible: "
+                        "confirm the state does not hold here")
+    findings.sort(key=lambda f: (f["query"], f["time_index"], f["frame_name"], f["kind"]))
+    return findings

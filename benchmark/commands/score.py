@@ -1,0 +1,187 @@
+"""``bench4d score``: score prediction folders against ground-truth annotations.
+
+    bench4d score --gt scene.json --pred preds/scene [--out results.json]
+    bench4d score --gt a.json --gt b.json --pred preds/          # preds/<scene>/ per GT scene
+    bench4d score --gt a.json --pred pa --gt b.json --pred pb    # explicit pairs
+
+Prediction folders are described in :mod:`benchmark.predictions`; the metrics and the temporal
+rule in :mod:`benchmark.metrics`. Prints a plain-text table; ``--out`` writes the results JSON
+(metrics in percent, the per-query table, the per-frame records, the rule used, provenance).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import platform
+import sys
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from ..atomic import write_json
+from ..errors import InputError
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--gt", action="append", required=True, metavar="ANNOTATIONS",
+                        help="ground-truth annotation file (bench4d JSON); repeat for several scenes")
+    parser.add_argument("--pred", action="append", required=True, metavar="DIR",
+                        help="prediction folder, one per --gt; or one folder holding <scene>/ subfolders")
+    parser.add_argument("--out", type=Path, default=None, help="write the results JSON here (atomically)")
+    parser.add_argument("--threshold-variant", choices=("paper", "release"), default=None,
+                        help="tau = mean of smoothed scores (paper, default) or of unsmoothed ones (release)")
+    parser.add_argument("--smoothing-ends", choices=("renormalise", "keep", "replicate"), default=None,
+                        help="missing neighbours in temporal smoothing (default renormalise; release: keep)")
+    parser.add_argument("--smoothing-weights", default=None, metavar="W,W,W",
+                        help="temporal smoothing kernel (default 0.1,0.8,0.1; '1' disables)")
+    parser.add_argument("--release-rule", action="store_true",
+                        help="the release's temporal rule (ends=keep, threshold=release); other flags override")
+    parser.add_argument("--eval-frames", default="all", metavar="all|NAME,NAME|@FILE",
+                        help="frames to score: all annotated frames (default), a comma list, or @file (one name a line)")
+    parser.add_argument("--allow-extra", action="store_true", help="ignore predicted queries unknown to the GT")
+    parser.add_argument("--no-frames", action="store_true", help="leave per-frame records out of the results JSON")
+    parser.add_argument("--quiet", action="store_true", help="print only the dataset line")
+
+
+def _temporal_config(args: argparse.Namespace):
+    import dataclasses
+
+    from ..metrics import TemporalRuleConfig
+
+    base = TemporalRuleConfig.release() if args.release_rule else TemporalRuleConfig()
+    changes: dict = {}
+    if args.threshold_variant:
+        changes["threshold_variant"] = args.threshold_variant
+    if args.smoothing_ends:
+        changes["ends"] = args.smoothing_ends
+    if args.smoothing_weights:
+        try:
+            changes["weights"] = tuple(float(x) for x in args.smoothing_weights.split(","))
+        except ValueError:
+            raise InputError(None, "--smoothing-weights", f"not a comma list of numbers: {args.smoothing_weights!r}") from None
+    try:
+        return dataclasses.replace(base, **changes)
+    except ValueError as err:
+        raise InputError(None, "--smoothing-weights", str(err)) from None
+
+
+def _eval_frames(spec: str) -> set[str] | None:
+    if spec == "all":
+        return None
+    if spec.startswith("@"):
+        path = Path(spec[1:])
+        if not path.is_file():
+            raise InputError(path, "--eval-frames", "file not found")
+        names = [line.strip() for line in path.read_text(encoding="utf-8").splitlines()]
+        names = [n for n in names if n and not n.startswith("#")]
+    else:
+        names = [n.strip() for n in spec.split(",") if n.strip()]
+    if not names:
+        raise InputError(None, "--eval-frames", "no frame names given")
+    return set(names)
+
+
+def _pairs(gts: list[str], preds: list[str], asets: list) -> list[tuple[object, Path]]:
+    if len(preds) == len(gts):
+        return list(zip(asets, (Path(p) for p in preds)))
+    if len(preds) == 1:
+        root = Path(preds[0])
+        pairs = []
+        for gt, aset in zip(gts, asets):
+            folder = root / aset.scene
+            if not folder.is_dir():
+                raise InputError(folder, None, f"no prediction folder for scene {aset.scene!r} (from {gt})")
+            pairs.append((aset, folder))
+        return pairs
+    raise InputError(None, "--pred", f"give one --pred per --gt ({len(gts)}), or one folder with <scene>/ subfolders")
+
+
+def _fmt(value: object, digits: int = 2) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, (float, np.floating)):
+        return "-" if math.isnan(value) else f"{value:.{digits}f}"
+    return str(value)
+
+
+def format_table(headers: list[str], rows: list[list[object]]) -> str:
+    """Plain-text table, numbers right-aligned, text left-aligned."""
+    cells = [[_fmt(v) for v in row] for row in rows]
+    numeric = [all(isinstance(r[i], (int, float, np.number)) or r[i] is None for r in rows) for i in range(len(headers))]
+    widths = [max([len(h)] + [len(r[i]) for r in cells]) for i, h in enumerate(headers)]
+
+    def line(values: list[str]) -> str:
+        return "  ".join(v.rjust(w) if num else v.ljust(w) for v, w, num in zip(values, widths, numeric)).rstrip()
+
+    return "\n".join([line(headers), line(["-" * w for w in widths])] + [line(r) for r in cells])
+
+
+def report_text(dataset, quiet: bool = False) -> str:
+    """The printed report of a :class:`~benchmark.metrics.DatasetScore` (percent)."""
+    from ..metrics import REPORT_METRICS
+
+    parts = []
+    if not quiet:
+        q = dataset.query_table()
+        rows = [[r.scene, r.query, r.kind, int(r.frames), 100 * r.miou, 100 * r.macc, 100 * r.acc, 100 * r.viou]
+                for r in q.itertuples()]
+        parts.append(format_table(["scene", "query", "kind", "frames", "IoU", "pixAcc", "Acc", "vIoU"], rows))
+        s = dataset.scene_table()
+        rows = [[r["scene"], *[r[m] for m in REPORT_METRICS], int(r["count"])] for r in s.to_dict(orient="records")]
+        parts.append(format_table(["scene", *REPORT_METRICS, "queries"], rows))
+    summary = dataset.summary()
+    parts.append(format_table(["dataset", *REPORT_METRICS, "scenes"],
+                              [["mean over scenes", *[summary[m] for m in REPORT_METRICS], summary["scenes"]]]))
+    return "\n\n".join(parts)
+
+
+def run(args: argparse.Namespace) -> int:
+    from annotations.format import load_annotations
+
+    from .. import __version__
+    from ..metrics import ScoreConfig, aggregate_scenes, score_scene
+    from ..predictions import read_predictions
+
+    temporal = _temporal_config(args)
+    wanted = _eval_frames(args.eval_frames)
+    asets = [load_annotations(Path(p)) for p in args.gt]
+    pairs = _pairs(args.gt, args.pred, asets)
+    if wanted is not None:
+        every = set().union(*({f.name for f in a.frames} for a in asets))
+        unknown = sorted(wanted - every)
+        if unknown:
+            raise InputError(None, "--eval-frames", f"not frames of any given scene: {unknown[:5]}")
+
+    start = time.perf_counter()
+    scenes = []
+    for aset, folder in pairs:
+        frames = None if wanted is None else tuple(sorted(wanted & {f.name for f in aset.frames}))
+        config = ScoreConfig(temporal=temporal, eval_frames=frames, allow_extra=args.allow_extra)
+        scenes.append(score_scene(aset, read_predictions(folder), config))
+    dataset = aggregate_scenes(scenes)
+    seconds = time.perf_counter() - start
+
+    print(report_text(dataset, quiet=args.quiet))
+    records = sum(len(s.records) for s in scenes)
+    print(f"\nscored {records} (query, frame) records in {seconds:.3f} s; rule: {temporal.threshold_variant} "
+          f"threshold, ends={temporal.ends}, weights={list(temporal.weights)}")
+    for s in scenes:
+        if s.skipped:
+            print(f"note: {s.scene}: not scored (no evaluated frame): {', '.join(s.skipped)}", file=sys.stderr)
+    if args.out is not None:
+        provenance = {
+            "bench4d_version": __version__,
+            "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "command": "bench4d score " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["score"] else None,
+            "gt": [str(Path(p).resolve()) for p in args.gt],
+            "pred": [str(folder.resolve()) for _, folder in pairs],
+            "python": platform.python_version(),
+            "numpy": np.__version__,
+            "score_seconds": round(seconds, 4),
+        }
+        write_json(args.out, dataset.to_json(provenance, include_frames=not args.no_frames))
+        print(f"wrote {args.out}")
+    return 0

@@ -1,0 +1,28 @@
+"""The metrics core: pure metric functions, the temporal decision rule, aggregation, scoring.
+
+* :mod:`.masks`: :func:`iou`, :func:`pixel_accuracy` (empty-mask rules in their docstrings).
+* :mod:`.temporal`: :class:`TemporalRuleConfig`, :func:`smooth_scores`, :func:`decide_temporal`,
+  :func:`apply_temporal_rule`, :func:`temporal_accuracy`, :func:`video_iou`.
+* :mod:`.captions`: :func:`delta_sim` and its scene/dataset forms.
+* :mod:`.aggregate`: :class:`FrameRecord`, :func:`aggregate` (frame -> query -> scene -> dataset).
+* :mod:`.scoring`: :class:`ScoreConfig`, :func:`score_agnostic`, :func:`score_sensitive`,
+  :func:`score_scene` -> :class:`SceneScore`, :func:`aggregate_scenes` -> :class:`DatasetScore`.
+"""
+
+from .aggregate import LEVELS, FrameRecord, aggregate, records_table
+from .captions import cosine_similarity, delta_sim, delta_sim_scene, mean_delta_sim
+from .masks import EMPTY_IOU, accuracy_from_confusion, confusion, iou, iou_from_confusion, pixel_accuracy
+from .scoring import (REPORT_METRICS, AgnosticScore, DatasetScore, QueryScore, SceneScore, ScoreConfig,
+                      SensitiveScore, aggregate_scenes, score_agnostic, score_scene, score_sensitive)
+from .temporal import (EMPTY_UNION_VIOU, TemporalDecision, TemporalRuleConfig, apply_temporal_rule,
+                       decide_temporal, smooth_scores, temporal_accuracy, temporal_threshold, video_iou)
+
+__all__ = [
+    "LEVELS", "FrameRecord", "aggregate", "records_table",
+    "cosine_similarity", "delta_sim", "delta_sim_scene", "mean_delta_sim",
+    "EMPTY_IOU", "accuracy_from_confusion", "confusion", "iou", "iou_from_confusion", "pixel_accuracy",
+    "REPORT_METRICS", "AgnosticScore", "DatasetScore", "QueryScore", "SceneScore", "ScoreConfig",
+    "SensitiveScore", "aggregate_scenes", "score_agnostic", "score_scene", "score_sensitive",
+    "EMPTY_UNION_VIOU", "TemporalDecision", "TemporalRuleConfig", "apply_temporal_rule",
+    "decide_temporal", "smooth_scores", "temporal_accuracy", "temporal_threshold", "video_iou",
+]

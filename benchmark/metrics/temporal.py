@@ -1,0 +1,201 @@
+"""The temporal decision rule for time-sensitive queries, and the metrics Acc and vIoU.
+
+One rule shared by every method (the harness owns it; methods only report per-frame scores ``s_t``).
+For one query, over its evaluated frames in time order:
+
+1. **Smoothing** (paper Sec. 4 / release ``smooth_feature_post``):
+   ``s~_t = sum_k w_k s_{t+k}`` with ``w = (0.1, 0.8, 0.1)`` over neighbouring *evaluated* frames.
+   A neighbour is *missing* when it falls outside the sequence or its score is undefined (NaN);
+   :attr:`TemporalRuleConfig.ends` says what happens then (default: the remaining weights are
+   renormalised to sum to 1; ``"keep"`` is the release's behaviour, which keeps the raw value).
+2. **Threshold** ``tau``: the mean over frames of the smoothed scores (``"paper"``), or of the
+   unsmoothed scores while still thresholding the smoothed ones (``"release"``). Undefined scores
+   are left out of the mean.
+3. **Decision** ``pred_t = s~_t >= tau`` (equality up to a tiny relative float tolerance). A frame whose own score is undefined (the method's
+   spatial mask was empty, so there is nothing to average) is decided
+   :attr:`TemporalRuleConfig.undefined_decision` (default: negative). If every score is undefined,
+   ``tau`` is NaN and every frame gets that decision.
+
+Metrics (fractions in [0, 1]):
+* :func:`temporal_accuracy`: fraction of evaluated frames with ``pred_t == label_t``.
+* :func:`video_iou`: ``vIoU = (1 / |S_u|) sum_{t in S_i} IoU_t`` with ``S_u`` the frames predicted
+  or labelled positive and ``S_i`` the frames both; empty ``S_u`` -> :data:`EMPTY_UNION_VIOU`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Literal
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+
+EndMode = Literal["renormalise", "keep", "replicate"]
+ThresholdVariant = Literal["paper", "release"]
+
+EMPTY_UNION_VIOU = 1.0
+"""vIoU when no frame is predicted positive and none is labelled positive (``S_u`` empty): the
+method correctly says "never", the temporal analogue of the both-empty IoU rule. (The release
+returns 0 here; with its annotations the case never arises because every time query holds somewhere.)"""
+
+
+@dataclass(frozen=True)
+class TemporalRuleConfig:
+    """Constants of the temporal decision rule (defaults: the paper's)."""
+
+    weights: tuple[float, ...] = (0.1, 0.8, 0.1)
+    """Smoothing kernel over neighbouring evaluated frames, centred, odd length, summing to 1.
+    Paper and release: ``(0.1, 0.8, 0.1)``; the release also offers ``(0.1, 0.2, 0.4, 0.2, 0.1)``;
+    ``(1.0,)`` disables smoothing."""
+    ends: EndMode = "renormalise"
+    """What a missing neighbour (outside the sequence, or an undefined score) does:
+    ``"renormalise"`` (default): drop it and rescale the remaining weights to sum to 1, e.g. the
+    first frame gets ``(0.8 s_0 + 0.1 s_1) / 0.9``;
+    ``"keep"`` (release): the frame keeps its unsmoothed score;
+    ``"replicate"``: the missing neighbour takes the frame's own score (edge padding at the ends),
+    e.g. ``0.9 s_0 + 0.1 s_1``."""
+    threshold_variant: ThresholdVariant = "paper"
+    """``"paper"``: ``tau`` = mean of the smoothed scores, threshold the smoothed scores.
+    ``"release"``: ``tau`` = mean of the unsmoothed scores, threshold the smoothed scores (the
+    release's mix)."""
+    inclusive: bool = True
+    """``pred_t = s~_t >= tau`` (paper and release); ``False`` uses ``>``."""
+    undefined_decision: bool = False
+    """Decision for a frame whose score is undefined (NaN, e.g. an empty spatial mask)."""
+    tie_tolerance: float = 1e-9
+    """Relative tolerance (times the largest ``|s~_t|``) within which ``s~_t`` counts as equal to
+    ``tau``, so float rounding cannot split ties: a constant score sequence is all positive with
+    ``>=``. Not a paper constant; 0 compares exactly."""
+
+    def __post_init__(self) -> None:
+        w = np.asarray(self.weights, dtype=np.float64)
+        object.__setattr__(self, "weights", tuple(float(x) for x in w))
+        if w.ndim != 1 or w.size % 2 == 0:
+            raise ValueError(f"weights must be a 1-D kernel of odd length, got {self.weights}")
+        if not np.all(np.isfinite(w)) or np.any(w < 0):
+            raise ValueError(f"weights must be finite and non-negative, got {self.weights}")
+        if abs(w.sum() - 1.0) > 1e-6:
+            raise ValueError(f"weights must sum to 1, got sum {w.sum():.6g}")
+        if w[w.size // 2] <= 0:
+            raise ValueError("the centre weight must be positive")
+        if not (self.tie_tolerance >= 0):
+            raise ValueError(f"tie_tolerance must be >= 0, got {self.tie_tolerance}")
+        if self.ends not in ("renormalise", "keep", "replicate"):
+            raise ValueError(f"ends must be 'renormalise', 'keep' or 'replicate', got {self.ends!r}")
+        if self.threshold_variant not in ("paper", "release"):
+            raise ValueError(f"threshold_variant must be 'paper' or 'release', got {self.threshold_variant!r}")
+
+    @classmethod
+    def release(cls) -> "TemporalRuleConfig":
+        """The release's behaviour: raw score kept at the ends, tau from the unsmoothed scores."""
+        return cls(ends="keep", threshold_variant="release")
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["weights"] = list(self.weights)
+        return d
+
+
+@dataclass(frozen=True)
+class TemporalDecision:
+    """Everything the rule computed for one query (arrays in time order)."""
+
+    scores: np.ndarray
+    """(T,) float64 raw scores ``s_t`` (NaN = undefined)."""
+    smoothed: np.ndarray
+    """(T,) float64 smoothed scores ``s~_t`` (NaN where ``s_t`` is NaN)."""
+    threshold: float
+    """``tau`` (NaN if every score is undefined)."""
+    decisions: np.ndarray
+    """(T,) bool ``pred_t``."""
+
+
+def _scores_array(scores: np.ndarray) -> np.ndarray:
+    s = np.asarray(scores, dtype=np.float64)
+    if s.ndim != 1:
+        raise ValueError(f"scores must be a 1-D array over frames, got shape {s.shape}")
+    if np.isinf(s).any():
+        raise ValueError("scores contain inf (use NaN for an undefined score)")
+    return s
+
+
+def smooth_scores(scores: np.ndarray, config: TemporalRuleConfig = TemporalRuleConfig()) -> np.ndarray:
+    """Smooth ``scores`` (T,) in time order -> (T,) float64 (see :class:`TemporalRuleConfig`).
+
+    NaN scores stay NaN and count as missing neighbours for the frames beside them.
+    """
+    s = _scores_array(scores)
+    w = np.asarray(config.weights)
+    r = w.size // 2
+    if s.size == 0 or r == 0:
+        return s.copy()
+    padded = np.full(s.size + 2 * r, np.nan)
+    padded[r : r + s.size] = s
+    windows = sliding_window_view(padded, w.size)  # (T, K): frame t's neighbours t-r .. t+r
+    present = ~np.isnan(windows)
+    weighted = (np.where(present, windows, 0.0) * w).sum(axis=1)
+    if config.ends == "renormalise":
+        total = (present * w).sum(axis=1)  # >= centre weight > 0 wherever s_t is defined
+        out = np.divide(weighted, total, out=np.full_like(weighted, np.nan), where=total > 0)
+    elif config.ends == "replicate":
+        out = weighted + (~present * w).sum(axis=1) * s
+    else:  # "keep"
+        out = np.where(present.all(axis=1), weighted, s)
+    out[np.isnan(s)] = np.nan
+    return out
+
+
+def temporal_threshold(scores: np.ndarray, smoothed: np.ndarray, config: TemporalRuleConfig) -> float:
+    """``tau``: mean of ``smoothed`` (paper) or of ``scores`` (release) over defined values; NaN if none."""
+    source = smoothed if config.threshold_variant == "paper" else scores
+    defined = source[~np.isnan(source)]
+    return float(defined.mean()) if defined.size else float("nan")
+
+
+def apply_temporal_rule(scores: np.ndarray, config: TemporalRuleConfig = TemporalRuleConfig()) -> TemporalDecision:
+    """Run the whole rule on ``scores`` (T,) in time order (NaN = undefined)."""
+    s = _scores_array(scores)
+    smoothed = smooth_scores(s, config)
+    tau = temporal_threshold(s, smoothed, config)
+    defined = ~np.isnan(smoothed)
+    if np.isnan(tau):
+        decisions = np.full(s.shape, bool(config.undefined_decision))
+    else:
+        tol = config.tie_tolerance * float(np.nanmax(np.abs(smoothed)))
+        above = smoothed >= tau - tol if config.inclusive else smoothed > tau + tol
+        decisions = np.where(defined, above, bool(config.undefined_decision))
+    return TemporalDecision(scores=s, smoothed=smoothed, threshold=tau, decisions=decisions.astype(bool))
+
+
+def decide_temporal(scores: np.ndarray, config: TemporalRuleConfig = TemporalRuleConfig()) -> np.ndarray:
+    """``pred_t`` (T,) bool for ``scores`` (T,) in time order; see :func:`apply_temporal_rule`."""
+    return apply_temporal_rule(scores, config).decisions
+
+
+def temporal_accuracy(decisions: np.ndarray, labels: np.ndarray) -> float:
+    """Fraction of frames with ``decisions`` (T,) == ``labels`` (T,). No frames (T = 0) -> NaN."""
+    d = np.asarray(decisions, dtype=bool)
+    y = np.asarray(labels, dtype=bool)
+    if d.shape != y.shape or d.ndim != 1:
+        raise ValueError(f"decisions {d.shape} and labels {y.shape} must be equal 1-D shapes")
+    return float((d == y).mean()) if d.size else float("nan")
+
+
+def video_iou(decisions: np.ndarray, labels: np.ndarray, frame_iou: np.ndarray) -> float:
+    """vIoU of ``decisions`` (T,) bool vs ``labels`` (T,) bool with spatial ``frame_iou`` (T,).
+
+    ``(1 / |S_u|) sum_{t in S_i} frame_iou_t``; ``S_u = decisions | labels``, ``S_i = decisions & labels``.
+    Empty ``S_u`` -> :data:`EMPTY_UNION_VIOU` (1.0). ``frame_iou`` must be defined on ``S_i``.
+    """
+    d = np.asarray(decisions, dtype=bool)
+    y = np.asarray(labels, dtype=bool)
+    v = np.asarray(frame_iou, dtype=np.float64)
+    if not (d.shape == y.shape == v.shape) or d.ndim != 1:
+        raise ValueError(f"decisions {d.shape}, labels {y.shape}, frame_iou {v.shape} must be equal 1-D shapes")
+    union = d | y
+    both = d & y
+    if not union.any():
+        return EMPTY_UNION_VIOU
+    if np.isnan(v[both]).any():
+        raise ValueError("frame_iou is NaN on a frame predicted and labelled positive")
+    return float(v[both].sum() / union.sum())

@@ -1,0 +1,348 @@
+"""Prediction files: what any method (ours, or another release's outputs converted) hands to scoring.
+
+One folder per (method, scene). Two layouts, read by :func:`read_predictions`:
+
+**JSON layout** (default; what :func:`write_predictions` writes)::
+
+    DIR/predictions.json
+    {
+      "format": "bench4d-predictions", "version": 1,
+      "scene": "split-cookie",            # optional; checked against the GT scene when given
+      "method": "4dlangsplat",            # optional, informational
+      "info": {...},                      # optional, free provenance
+      "queries": {
+        "<query text>": {
+          "kind": "agnostic" | "sensitive",             # optional; checked against the GT when given
+          "masks": {"<frame name>": <COCO RLE>, ...},    # required for every evaluated frame
+          "scores": {"<frame name>": float | null, ...}, # sensitive: s_t (null = undefined)
+          "decisions": {"<frame name>": bool, ...}       # sensitive, optional: used only without scores
+        }
+      }
+    }
+
+COCO RLE is ``{"size": [H, W], "counts": "<compressed string>"}`` (or uncompressed list counts),
+as :func:`annotations.model.encode_mask` writes. Frame names are
+:attr:`annotations.model.AnnotatedFrame.name`.
+
+**PNG layout** (easy to produce from any code)::
+
+    DIR/masks/<query slug>/<frame name>.png   # single channel, nonzero = positive
+    DIR/scores.json                            # optional for time-agnostic-only predictions
+    {
+      "format": "bench4d-predictions", "version": 1, "scene": ..., "method": ..., "masks": "png",
+      "queries": {"<query text>": {"kind": ..., "slug": "<folder name>", "frames": [...],
+                                   "scores": {...}, "decisions": {...}}}
+    }
+
+``slug`` defaults to :func:`query_slug` of the text (lower case, runs of non-word characters ->
+``-``); ``frames`` (optional) lists the PNGs to read, otherwise every PNG in the folder is read.
+A ``masks/<folder>`` not listed in ``scores.json`` is matched to the GT query whose slug it is.
+
+A time-sensitive query needs a mask (its spatial answer, scored against the base object's GT mask
+for vIoU) and a score or decision on every evaluated frame. When scores are given the harness's
+temporal rule decides; ``decisions`` are used only when ``scores`` are absent (methods that only
+give yes/no).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional, Union
+
+import numpy as np
+
+from annotations.model import decode_mask, encode_mask
+
+from .atomic import read_json, write_json
+from .errors import InputError
+from .imageio import read_mask, write_image
+
+FORMAT = "bench4d-predictions"
+VERSION = 1
+JSON_FILE = "predictions.json"
+SCORES_FILE = "scores.json"
+MASKS_DIR = "masks"
+KINDS = ("agnostic", "sensitive")
+
+MaskSource = Union[np.ndarray, dict, Path]
+"""A mask as held in memory: (H, W) bool array, COCO RLE dict, or a PNG path (read lazily)."""
+
+
+def query_slug(text: str) -> str:
+    """Folder-safe name of a query: ``"Cracked cookie!"`` -> ``"cracked-cookie"``."""
+    slug = re.sub(r"[\W_]+", "-", text.strip().lower()).strip("-")
+    return slug or "query"
+
+
+def field_name(query: str, part: Optional[str] = None, frame: Optional[str] = None) -> str:
+    """The field path used in error messages: ``queries['cup'].masks['000012']``."""
+    name = f"queries[{query!r}]"
+    if part:
+        name += f".{part}"
+    if frame is not None:
+        name += f"[{frame!r}]"
+    return name
+
+
+@dataclass
+class QueryPrediction:
+    """A method's answer to one query on one scene."""
+
+    text: str
+    """Query text (or, for a PNG folder not listed in scores.json, its slug)."""
+    kind: Optional[str] = None
+    """``"agnostic"``, ``"sensitive"``, or ``None`` (take the GT's)."""
+    masks: dict[str, MaskSource] = field(default_factory=dict)
+    """Frame name -> (H, W) bool mask / COCO RLE / PNG path."""
+    scores: dict[str, float] = field(default_factory=dict)
+    """Sensitive: frame name -> raw score ``s_t`` (NaN = undefined)."""
+    decisions: dict[str, bool] = field(default_factory=dict)
+    """Sensitive, optional: frame name -> yes/no, used only when ``scores`` is empty."""
+    source: Optional[Path] = None
+    """File it was read from, for error messages (``None`` when built in memory)."""
+
+    def mask(self, frame: str) -> np.ndarray:
+        """The (H, W) bool mask of ``frame``; malformed data raises :class:`InputError`."""
+        where = field_name(self.text, "masks", frame)
+        if frame not in self.masks:
+            raise InputError(self.source, where, "missing mask for this evaluated frame")
+        value = self.masks[frame]
+        if isinstance(value, Path):
+            return read_mask(value) > 0
+        if isinstance(value, dict):
+            from annotations.format import validate_rle  # checks the runs cover exactly H x W pixels
+
+            return decode_mask(validate_rle(value, self.source, where))
+        arr = np.asarray(value)
+        if arr.ndim != 2:
+            raise InputError(self.source, where, f"mask must be 2-D (H, W), got shape {arr.shape}")
+        return arr.astype(bool, copy=False)
+
+
+@dataclass
+class ScenePredictions:
+    """All of a method's answers on one scene."""
+
+    scene: Optional[str] = None
+    method: Optional[str] = None
+    queries: dict[str, QueryPrediction] = field(default_factory=dict)
+    """Query text -> prediction."""
+    info: dict = field(default_factory=dict)
+    """Free provenance (method config, timings)."""
+    source: Optional[Path] = None
+    """File or folder it was read from (``None`` when built in memory)."""
+
+    def add(self, prediction: QueryPrediction) -> None:
+        self.queries[prediction.text] = prediction
+
+    def find(self, text: str, *, by_slug: bool = True) -> Optional[QueryPrediction]:
+        """The prediction for query ``text``: exact text first, then (if ``by_slug``) the one
+        prediction whose :func:`query_slug` equals the text's (PNG folders named by slug)."""
+        if text in self.queries:
+            return self.queries[text]
+        if not by_slug:
+            return None
+        slug = query_slug(text)
+        matches = [p for k, p in self.queries.items() if query_slug(k) == slug]
+        return matches[0] if len(matches) == 1 else None
+
+
+# -- writing ---------------------------------------------------------------------------------------
+def _score_json(value: float) -> Optional[float]:
+    v = float(value)
+    return None if math.isnan(v) else v
+
+
+def _rle_of(pred: QueryPrediction, frame: str) -> dict:
+    value = pred.masks[frame]
+    return dict(value) if isinstance(value, dict) else encode_mask(pred.mask(frame))
+
+
+def _header(preds: ScenePredictions) -> dict:
+    return {"format": FORMAT, "version": VERSION, "scene": preds.scene, "method": preds.method,
+            "info": preds.info}
+
+
+def write_predictions(directory: str | Path, predictions: ScenePredictions, *, layout: str = "json",
+                      overwrite: bool = False) -> Path:
+    """Write ``predictions`` into ``directory`` (atomically, file by file); return the main file.
+
+    ``layout="json"`` writes ``predictions.json``; ``layout="png"`` writes ``masks/<slug>/<frame>.png``
+    and ``scores.json``. An existing main file is an error unless ``overwrite``.
+    """
+    directory = Path(directory)
+    if layout not in ("json", "png"):
+        raise ValueError(f"layout must be 'json' or 'png', got {layout!r}")
+    main = directory / (JSON_FILE if layout == "json" else SCORES_FILE)
+    if main.exists() and not overwrite:
+        raise InputError(main, None, "already exists (pass overwrite=True to replace it)")
+    for text, pred in predictions.queries.items():
+        if pred.kind is not None and pred.kind not in KINDS:
+            raise InputError(None, field_name(text, "kind"), f"must be one of {KINDS}, got {pred.kind!r}")
+    doc = _header(predictions)
+    queries: dict[str, dict] = {}
+    if layout == "json":
+        for text, pred in predictions.queries.items():
+            entry: dict = {"kind": pred.kind} if pred.kind else {}
+            entry["masks"] = {frame: _rle_of(pred, frame) for frame in pred.masks}
+            if pred.scores:
+                entry["scores"] = {f: _score_json(s) for f, s in pred.scores.items()}
+            if pred.decisions:
+                entry["decisions"] = {f: bool(d) for f, d in pred.decisions.items()}
+            queries[text] = entry
+    else:
+        slugs: dict[str, str] = {}
+        for text, pred in predictions.queries.items():
+            slug = query_slug(text)
+            if slug in slugs:
+                raise InputError(None, field_name(text), f"folder name {slug!r} clashes with query {slugs[slug]!r}")
+            slugs[slug] = text
+            for frame in pred.masks:
+                if not frame or "/" in frame or "\\" in frame or frame.startswith("."):
+                    raise InputError(None, field_name(text, "masks", frame), "frame name unusable as a file name")
+                mask = pred.mask(frame)
+                write_image(directory / MASKS_DIR / slug / f"{frame}.png", mask.astype(np.uint8) * 255)
+            entry = {"kind": pred.kind} if pred.kind else {}
+            entry.update(slug=slug, frames=list(pred.masks))
+            if pred.scores:
+                entry["scores"] = {f: _score_json(s) for f, s in pred.scores.items()}
+            if pred.decisions:
+                entry["decisions"] = {f: bool(d) for f, d in pred.decisions.items()}
+            queries[text] = entry
+        doc["masks"] = "png"
+    doc["queries"] = queries
+    write_json(main, doc, indent=None if layout == "json" else 2)
+    return main
+
+
+# -- reading ---------------------------------------------------------------------------------------
+def _check_header(doc: object, path: Path) -> dict:
+    if not isinstance(doc, dict):
+        raise InputError(path, None, f"expected a JSON object, got {type(doc).__name__}")
+    if doc.get("format") != FORMAT:
+        raise InputError(path, "format", f"expected {FORMAT!r}, got {doc.get('format')!r}")
+    version = doc.get("version")
+    if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+        raise InputError(path, "version", f"expected an integer >= 1, got {version!r}")
+    if version > VERSION:
+        raise InputError(path, "version", f"version {version} is newer than this bench4d reads ({VERSION})")
+    for key in ("scene", "method"):
+        if doc.get(key) is not None and not isinstance(doc[key], str):
+            raise InputError(path, key, "must be a string")
+    if not isinstance(doc.get("info", {}), dict):
+        raise InputError(path, "info", "must be an object")
+    queries = doc.get("queries", {})
+    if not isinstance(queries, dict):
+        raise InputError(path, "queries", "must be an object {query text: {...}}")
+    for text, entry in queries.items():
+        if not isinstance(entry, dict):
+            raise InputError(path, field_name(text), "must be an object")
+        kind = entry.get("kind")
+        if kind is not None and kind not in KINDS:
+            raise InputError(path, field_name(text, "kind"), f"must be one of {KINDS}, got {kind!r}")
+    return doc
+
+
+def _frame_map(entry: dict, part: str, path: Path, text: str) -> dict:
+    value = entry.get(part, {})
+    if not isinstance(value, dict):
+        raise InputError(path, field_name(text, part), "must be an object {frame name: value}")
+    return value
+
+
+def _read_scores(entry: dict, path: Path, text: str) -> tuple[dict[str, float], dict[str, bool]]:
+    scores: dict[str, float] = {}
+    for frame, value in _frame_map(entry, "scores", path, text).items():
+        if value is None:
+            scores[frame] = float("nan")
+        elif isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
+            scores[frame] = float(value)
+        else:
+            raise InputError(path, field_name(text, "scores", frame), f"expected a finite number or null, got {value!r}")
+    decisions: dict[str, bool] = {}
+    for frame, value in _frame_map(entry, "decisions", path, text).items():
+        if not isinstance(value, bool):
+            raise InputError(path, field_name(text, "decisions", frame), f"expected true or false, got {value!r}")
+        decisions[frame] = value
+    return scores, decisions
+
+
+def _check_rle(rle: object, path: Path, where: str) -> dict:
+    if not isinstance(rle, dict) or "size" not in rle or "counts" not in rle:
+        raise InputError(path, where, "expected a COCO RLE object {\"size\": [H, W], \"counts\": ...}")
+    size = rle["size"]
+    if (not isinstance(size, list) or len(size) != 2
+            or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in size)):
+        raise InputError(path, f"{where}.size", f"expected [H, W] non-negative integers, got {size!r}")
+    if not isinstance(rle["counts"], (str, list)):
+        raise InputError(path, f"{where}.counts", "expected a string or a list of integers")
+    return rle
+
+
+def _read_json_layout(path: Path) -> ScenePredictions:
+    doc = _check_header(read_json(path), path)
+    preds = ScenePredictions(scene=doc.get("scene"), method=doc.get("method"), info=doc.get("info", {}),
+                             source=path)
+    for text, entry in doc.get("queries", {}).items():
+        masks = {frame: _check_rle(rle, path, field_name(text, "masks", frame))
+                 for frame, rle in _frame_map(entry, "masks", path, text).items()}
+        scores, decisions = _read_scores(entry, path, text)
+        preds.add(QueryPrediction(text=text, kind=entry.get("kind"), masks=masks, scores=scores,
+                                  decisions=decisions, source=path))
+    return preds
+
+
+def _read_png_layout(directory: Path) -> ScenePredictions:
+    masks_dir = directory / MASKS_DIR
+    scores_path = directory / SCORES_FILE
+    doc = _check_header(read_json(scores_path), scores_path) if scores_path.exists() else {}
+    preds = ScenePredictions(scene=doc.get("scene"), method=doc.get("method"), info=doc.get("info", {}),
+                             source=directory)
+    listed: set[str] = set()
+    for text, entry in doc.get("queries", {}).items():
+        slug = entry.get("slug", query_slug(text))
+        if not isinstance(slug, str) or not slug or "/" in slug or slug.startswith("."):
+            raise InputError(scores_path, field_name(text, "slug"), f"not a folder name: {slug!r}")
+        listed.add(slug)
+        folder = masks_dir / slug
+        frames = entry.get("frames")
+        if frames is None:
+            files = sorted(folder.glob("*.png")) if folder.is_dir() else []
+            masks = {f.stem: f for f in files}
+        elif isinstance(frames, list) and all(isinstance(f, str) for f in frames):
+            masks = {f: folder / f"{f}.png" for f in frames}
+        else:
+            raise InputError(scores_path, field_name(text, "frames"), "must be a list of frame names")
+        scores, decisions = _read_scores(entry, scores_path, text)
+        preds.add(QueryPrediction(text=text, kind=entry.get("kind"), masks=masks, scores=scores,
+                                  decisions=decisions, source=folder))
+    if masks_dir.is_dir():
+        for folder in sorted(p for p in masks_dir.iterdir() if p.is_dir() and p.name not in listed):
+            masks = {f.stem: f for f in sorted(folder.glob("*.png"))}
+            preds.add(QueryPrediction(text=folder.name, masks=masks, source=folder))
+    return preds
+
+
+def read_predictions(directory: str | Path) -> ScenePredictions:
+    """Read a prediction folder in either layout (module docstring). Masks decode lazily.
+
+    Structural problems raise :class:`InputError` naming the file and field; whether the
+    predictions cover the ground truth is checked when scoring.
+    """
+    directory = Path(directory)
+    if directory.is_file() and directory.name in (JSON_FILE, SCORES_FILE):
+        directory = directory.parent
+    if not directory.is_dir():
+        raise InputError(directory, None, "prediction folder not found")
+    json_path = directory / JSON_FILE
+    has_png = (directory / MASKS_DIR).is_dir() or (directory / SCORES_FILE).exists()
+    if json_path.exists() and has_png:
+        raise InputError(directory, None, f"holds both {JSON_FILE} and the PNG layout ({MASKS_DIR}/, {SCORES_FILE}); keep one")
+    if json_path.exists():
+        return _read_json_layout(json_path)
+    if has_png:
+        return _read_png_layout(directory)
+    raise InputError(directory, None, f"no {JSON_FILE} and no {MASKS_DIR}/ folder: not a prediction folder")

@@ -1,0 +1,277 @@
+"""Metrics core: hand-computed cases (numbers worked out in the comments) and property tests."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from annotations.model import AnnotationSet, Query
+from benchmark.metrics import (EMPTY_IOU, EMPTY_UNION_VIOU, TemporalRuleConfig, aggregate, apply_temporal_rule,
+                               decide_temporal, delta_sim, delta_sim_scene, iou, mean_delta_sim, pixel_accuracy,
+                               score_agnostic, score_sensitive, smooth_scores, temporal_accuracy, video_iou)
+
+FAST = settings(max_examples=60, deadline=None)
+masks_2d = st.tuples(st.integers(1, 6), st.integers(1, 6)).flatmap(
+    lambda hw: st.tuples(arrays(bool, hw), arrays(bool, hw)))
+
+
+# -- spatial -------------------------------------------------------------------------------------------
+def test_iou_and_pixel_accuracy_by_hand():
+    pred = np.array([[1, 1, 0], [0, 0, 0]], bool)
+    gt = np.array([[0, 1, 1], [0, 0, 0]], bool)
+    # intersection = 1 pixel (0,1); union = 3 pixels -> 1/3
+    assert iou(pred, gt) == pytest.approx(1 / 3)
+    # disagreeing pixels (0,0), (0,2) -> 2 of 6 wrong -> 4/6
+    assert pixel_accuracy(pred, gt) == pytest.approx(4 / 6)
+
+
+def test_empty_mask_rules():
+    empty = np.zeros((2, 3), bool)
+    some = np.zeros((2, 3), bool)
+    some[0, 0] = some[1, 2] = True
+    assert iou(empty, empty) == EMPTY_IOU == 1.0          # both empty: DAVIS convention
+    assert pixel_accuracy(empty, empty) == 1.0
+    assert iou(empty, some) == 0.0                         # missed object
+    assert pixel_accuracy(empty, some) == pytest.approx(4 / 6)
+    assert iou(some, empty) == 0.0                         # false positive on an "absent" frame
+    assert pixel_accuracy(some, empty) == pytest.approx(4 / 6)
+
+
+def test_batched_and_scalar_shapes():
+    rng = np.random.default_rng(1)
+    p, g = rng.random((2, 5, 4, 3)) > 0.5, rng.random((2, 5, 4, 3)) > 0.5
+    batch = iou(p, g)
+    assert batch.shape == (2, 5)
+    assert batch[1, 3] == pytest.approx(float(iou(p[1, 3], g[1, 3])))
+    assert pixel_accuracy(p, g).shape == (2, 5)
+    assert np.ndim(iou(p[0, 0], g[0, 0])) == 0
+
+
+def test_score_agnostic_stack_or_sequence():
+    rng = np.random.default_rng(2)
+    p, g = rng.random((3, 4, 5)) > 0.5, rng.random((3, 4, 5)) > 0.5
+    stacked, listed = score_agnostic(p, g), score_agnostic(list(p), list(g))
+    np.testing.assert_allclose(stacked.iou, listed.iou)
+    np.testing.assert_allclose(stacked.acc, listed.acc)
+    assert stacked.miou == pytest.approx(np.mean([iou(a, b) for a, b in zip(p, g)]))
+    with pytest.raises(ValueError):
+        score_agnostic(list(p), list(g[:2]))
+
+
+def test_bad_mask_shapes_raise():
+    with pytest.raises(ValueError, match="differs"):
+        iou(np.zeros((2, 3)), np.zeros((3, 2)))
+    with pytest.raises(ValueError, match="no pixels"):
+        pixel_accuracy(np.zeros((0, 3)), np.zeros((0, 3)))
+    with pytest.raises(ValueError, match="2 axes"):
+        iou(np.zeros(3), np.zeros(3))
+
+
+@FAST
+@given(masks_2d)
+def test_spatial_properties(pair):
+    p, g = pair
+    # perfect prediction scores 1 (100%) for every mask, empty included
+    assert iou(g, g) == 1.0 and pixel_accuracy(g, g) == 1.0
+    # the complement scores 0 for every mask: union = all pixels, intersection and agreement empty
+    assert iou(~g, g) == 0.0 and pixel_accuracy(~g, g) == 0.0
+    v, a = float(iou(p, g)), float(pixel_accuracy(p, g))
+    assert 0.0 <= v <= 1.0 and 0.0 <= a <= 1.0
+    assert v == float(iou(g, p)) and a == float(pixel_accuracy(g, p))
+    # integer 0/1 masks mean the same as bool masks
+    assert v == float(iou(p.astype(np.uint8), g.astype(np.int64)))
+
+
+# -- temporal rule ----------------------------------------------------------------------------------------
+S = np.array([0.2, 0.6, 0.4, 0.9])
+
+
+def test_smoothing_by_hand_each_end_mode():
+    # interior: t1 = .1*.2 + .8*.6 + .1*.4 = .54 ; t2 = .1*.6 + .8*.4 + .1*.9 = .47
+    # renormalise: t0 = (.8*.2 + .1*.6)/.9 = .22/.9 ; t3 = (.1*.4 + .8*.9)/.9 = .76/.9
+    np.testing.assert_allclose(smooth_scores(S, TemporalRuleConfig()), [0.22 / 0.9, 0.54, 0.47, 0.76 / 0.9])
+    # keep (release): the ends keep their raw score
+    np.testing.assert_allclose(smooth_scores(S, TemporalRuleConfig(ends="keep")), [0.2, 0.54, 0.47, 0.9])
+    # replicate: t0 = .9*.2 + .1*.6 = .24 ; t3 = .1*.4 + .9*.9 = .85
+    np.testing.assert_allclose(smooth_scores(S, TemporalRuleConfig(ends="replicate")), [0.24, 0.54, 0.47, 0.85])
+    # weights (1,) disable smoothing
+    np.testing.assert_allclose(smooth_scores(S, TemporalRuleConfig(weights=(1.0,))), S)
+
+
+def test_rule_by_hand_default():
+    # smoothed (renormalise) = [.24444, .54, .47, .84444]; tau = 2.09889 / 4 = .524722
+    r = apply_temporal_rule(S)
+    assert r.threshold == pytest.approx((0.22 / 0.9 + 0.54 + 0.47 + 0.76 / 0.9) / 4)
+    assert r.decisions.tolist() == [False, True, False, True]
+    assert decide_temporal(S).tolist() == r.decisions.tolist()
+
+
+def test_paper_and_release_thresholds_differ_by_hand():
+    s = np.array([0.5, 0.2, 0.2, 1.0])
+    # ends=keep: smoothed = [.5, .05+.16+.02=.23, .02+.16+.1=.28, 1.0]
+    # paper tau = (.5+.23+.28+1)/4 = .5025 -> frame 0 (0.5) negative
+    paper = apply_temporal_rule(s, TemporalRuleConfig(ends="keep"))
+    np.testing.assert_allclose(paper.smoothed, [0.5, 0.23, 0.28, 1.0])
+    assert paper.threshold == pytest.approx(0.5025)
+    assert paper.decisions.tolist() == [False, False, False, True]
+    # release tau = mean of raw = 1.9/4 = .475 -> frame 0 positive
+    release = apply_temporal_rule(s, TemporalRuleConfig.release())
+    assert release.threshold == pytest.approx(0.475)
+    assert release.decisions.tolist() == [True, False, False, True]
+
+
+def test_undefined_scores_by_hand():
+    s = np.array([0.2, np.nan, 0.6, 0.4])
+    # renormalise, NaN = missing neighbour: t0 = .8*.2/.8 = .2 ; t2 = (.8*.6 + .1*.4)/.9 = .52/.9 ;
+    # t3 = (.1*.6 + .8*.4)/.9 = .38/.9 ; paper tau = (.2 + .52/.9 + .38/.9)/3 = (.2 + 1)/3 = .4
+    r = apply_temporal_rule(s)
+    np.testing.assert_allclose(r.smoothed[[0, 2, 3]], [0.2, 0.52 / 0.9, 0.38 / 0.9])
+    assert math.isnan(r.smoothed[1])
+    assert r.threshold == pytest.approx(0.4)
+    assert r.decisions.tolist() == [False, False, True, True]   # the NaN frame is negative
+    # keep: every frame next to the NaN keeps its raw value
+    np.testing.assert_allclose(smooth_scores(s, TemporalRuleConfig(ends="keep"))[[0, 2, 3]], [0.2, 0.6, 0.4])
+    # the undefined frame's decision is a named option
+    assert apply_temporal_rule(s, TemporalRuleConfig(undefined_decision=True)).decisions.tolist() == [False, True, True, True]
+    # all undefined: tau NaN, every frame negative
+    r = apply_temporal_rule(np.full(3, np.nan))
+    assert math.isnan(r.threshold) and not r.decisions.any()
+    assert apply_temporal_rule(np.zeros(0)).decisions.shape == (0,)
+
+
+def test_rule_config_validation():
+    for bad in ({"weights": (0.5, 0.5)}, {"weights": (0.2, 0.7, 0.2)}, {"weights": (-0.1, 1.2, -0.1)},
+                {"weights": (0.5, 0.0, 0.5)}, {"ends": "wrap"}, {"threshold_variant": "mean"},
+                {"tie_tolerance": -1.0}):
+        with pytest.raises(ValueError):
+            TemporalRuleConfig(**bad)
+    with pytest.raises(ValueError, match="inf"):
+        smooth_scores(np.array([0.0, np.inf]))
+    assert TemporalRuleConfig(weights=(0.1, 0.2, 0.4, 0.2, 0.1)).weights == (0.1, 0.2, 0.4, 0.2, 0.1)
+
+
+CONFIGS = [TemporalRuleConfig(ends=e, threshold_variant=v) for e in ("renormalise", "keep", "replicate")
+           for v in ("paper", "release")]
+ten_scores = st.lists(st.integers(0, 10), min_size=1, max_size=12).map(lambda v: np.array(v) / 10)
+
+
+@FAST
+@given(st.floats(-5, 5, allow_nan=False, allow_subnormal=False).filter(lambda v: v == 0 or abs(v) > 1e-200),
+       st.integers(1, 12), st.sampled_from(CONFIGS))
+def test_constant_scores_are_all_positive(value, n, config):
+    # ties must not be split by float rounding: s~_t == tau everywhere (values near the float
+    # minimum are left out: the test process flushes subnormals to zero, which breaks any sum)
+    assert apply_temporal_rule(np.full(n, value), config).decisions.all()
+
+
+@FAST
+@given(ten_scores, st.sampled_from([0.5, 2.0, 3.0]), st.sampled_from([-1.0, 0.0, 0.7]), st.sampled_from(CONFIGS))
+def test_rule_invariant_to_positive_affine_maps(scores, a, b, config):
+    r = apply_temporal_rule(scores, config)
+    assert (apply_temporal_rule(a * scores + b, config).decisions == r.decisions).all()
+    assert np.nanmin(scores) - 1e-12 <= r.threshold <= np.nanmax(scores) + 1e-12
+
+
+@FAST
+@given(st.lists(st.booleans(), min_size=2, max_size=12).filter(lambda v: 0 < sum(v) < len(v)),
+       st.sampled_from(["paper", "release"]))
+def test_perfect_and_complement_scores_without_smoothing(labels, variant):
+    y = np.array(labels)
+    config = TemporalRuleConfig(weights=(1.0,), threshold_variant=variant)
+    ious = np.ones(y.size)
+    perfect = score_sensitive(y, ious, scores=y.astype(float), config=config)
+    assert perfect.accuracy == 1.0 and perfect.viou == 1.0
+    worst = score_sensitive(y, np.zeros(y.size), scores=(~y).astype(float), config=config)
+    assert worst.accuracy == 0.0 and worst.viou == 0.0
+
+
+@FAST
+@given(st.lists(st.booleans(), min_size=1, max_size=12))
+def test_perfect_and_complement_decisions(labels):
+    y = np.array(labels)
+    perfect = score_sensitive(y, np.ones(y.size), decisions=y)
+    assert perfect.accuracy == 1.0 and perfect.viou == 1.0 and perfect.rule is None
+    worst = score_sensitive(y, np.ones(y.size), decisions=~y)
+    assert worst.accuracy == 0.0 and worst.viou == 0.0
+
+
+def test_temporal_accuracy_and_viou_by_hand():
+    d = np.array([True, True, False, False])
+    y = np.array([False, True, True, False])
+    assert temporal_accuracy(d, y) == 0.5                       # frames 1 and 3 agree
+    # S_u = {0, 1, 2}, S_i = {1} -> IoU_1 / 3 = .6 / 3
+    assert video_iou(d, y, np.array([0.9, 0.6, 0.3, 0.1])) == pytest.approx(0.2)
+    # empty S_u: nothing predicted, nothing labelled
+    assert video_iou(np.zeros(3, bool), np.zeros(3, bool), np.full(3, np.nan)) == EMPTY_UNION_VIOU == 1.0
+    assert math.isnan(temporal_accuracy(np.zeros(0, bool), np.zeros(0, bool)))
+    with pytest.raises(ValueError, match="NaN"):
+        video_iou(d, y, np.array([0.9, np.nan, 0.3, 0.1]))
+    with pytest.raises(ValueError):
+        video_iou(d, y[:3], np.zeros(4))
+
+
+# -- Delta-sim ------------------------------------------------------------------------------------------------
+def test_delta_sim_by_hand():
+    q = np.array([1.0, 0.0])
+    caps = np.array([[2.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+    # cos = [1, 0, 1/sqrt(2)]; positives {0}: 1 ; negatives {1, 2}: (0 + .70711)/2 = .35355
+    assert delta_sim(q, caps, np.array([True, False, False])) == pytest.approx(1 - 0.5 / math.sqrt(2))
+    assert math.isnan(delta_sim(q, caps, np.zeros(3, bool)))       # no positive
+    assert math.isnan(delta_sim(q, caps, np.ones(3, bool)))        # no negative
+    with pytest.raises(ValueError):
+        delta_sim(q, np.zeros((3, 2)), np.array([True, False, False]))   # zero vectors
+    with pytest.raises(ValueError):
+        delta_sim(q, caps, np.array([True, False]))
+
+
+def test_delta_sim_scene_and_mean():
+    aset = AnnotationSet(scene="s", queries=[
+        Query(0, "cookie"), Query(1, "cracked cookie", "sensitive", base=0, intervals=[(2, 3)]),
+        Query(2, "whole cookie", "sensitive", base=0, intervals=[(0, 9)])])
+    caps = {("cookie", t): np.array([1.0, 0.0]) if t >= 2 else np.array([0.0, 1.0]) for t in range(4)}
+    table = delta_sim_scene(aset, {"cracked cookie": np.array([1.0, 0.0]), "whole cookie": np.array([0.0, 1.0])}, caps)
+    row = table.set_index("query").loc["cracked cookie"]
+    # positives t=2,3 have cos 1, negatives t=0,1 cos 0 -> 100 percent
+    assert (row["positives"], row["negatives"], row["delta_sim"]) == (2, 2, pytest.approx(100.0))
+    assert math.isnan(table.set_index("query").loc["whole cookie", "delta_sim"])   # no negatives
+    assert mean_delta_sim(table) == pytest.approx(100.0)                            # NaN left out
+    assert math.isnan(mean_delta_sim(table.iloc[1:]))
+
+
+# -- aggregation -----------------------------------------------------------------------------------------------
+def _frames_table() -> pd.DataFrame:
+    return pd.DataFrame([
+        ("A", "q1", "f1", 1.0), ("A", "q1", "f2", 0.0), ("A", "q2", "f1", 1.0), ("B", "q1", "f1", 0.25),
+    ], columns=["scene", "query", "frame", "iou"])
+
+
+def test_aggregation_levels_by_hand():
+    t = _frames_table()
+    # query: A/q1 = .5, A/q2 = 1, B/q1 = .25 ; scene: A = .75, B = .25 ; dataset = .5
+    q = aggregate(t, ["iou"], to="query")
+    assert q["iou"].tolist() == [0.5, 1.0, 0.25] and q["count"].tolist() == [2, 1, 1]
+    s = aggregate(t, ["iou"], to="scene")
+    assert s["iou"].tolist() == [0.75, 0.25] and s["count"].tolist() == [3, 1]
+    d = aggregate(t, ["iou"])
+    # not the pooled frame mean (.5625) nor the pooled query mean (.5833)
+    assert d["iou"].iloc[0] == pytest.approx(0.5) and d["count"].iloc[0] == 4
+    assert aggregate(q, ["iou"], start="query")["iou"].iloc[0] == pytest.approx(0.5)
+
+
+def test_aggregation_skips_nan_and_ignores_row_order():
+    t = _frames_table()
+    t["viou"] = [np.nan, np.nan, np.nan, 0.4]
+    d = aggregate(t, ["iou", "viou"])
+    assert d["viou"].iloc[0] == pytest.approx(0.4)      # scene A has no value: left out, not 0
+    shuffled = t.sample(frac=1.0, random_state=3)[["iou", "frame", "viou", "query", "scene"]]
+    pd.testing.assert_frame_equal(aggregate(shuffled, ["iou", "viou"], to="query"), aggregate(t, ["iou", "viou"], to="query"))
+    with pytest.raises(ValueError):
+        aggregate(t, ["iou"], start="scene", to="query")
+    with pytest.raises(ValueError, match="lacks"):
+        aggregate(t, ["acc"])
