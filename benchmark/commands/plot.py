@@ -1,0 +1,42 @@
+"""``bench4d plot``: charts into ``reports/`` (PNG and PDF).
+
+    bench4d plot pareto   [--results-dir results] [--reports-dir reports]
+    bench4d plot timeline --method M --scene S --query Q [--track oracle] [--seed 0]
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="chart", metavar="CHART", required=True)
+    p = sub.add_parser("pareto", help="accuracy vs query FPS and vs fit time, Pareto front drawn")
+    _common(p)
+    t = sub.add_parser("timeline", help="one time-sensitive query's similarity over time (paper Fig. 4 analogue)")
+    _common(t)
+    t.add_argument("--method", required=True)
+    t.add_argument("--scene", required=True, help="scene name (as in the results folder)")
+    t.add_argument("--query", required=True, help="time-sensitive query text")
+    t.add_argument("--track", default="oracle")
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--dataset", default=None, help="dataset folder, when a scene name exists in several")
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--results-dir", type=Path, default=Path("results"))
+    p.add_argument("--reports-dir", type=Path, default=Path("reports"))
+
+
+def run(args: argparse.Namespace) -> int:
+    from .. import plots
+
+    if args.chart == "pareto":
+        written = plots.pareto(args.results_dir, args.reports_dir)
+    else:
+        written = plots.timeline(args.method, args.scene, args.query, results_dir=args.results_dir,
+                                 reports_dir=args.reports_dir, track=args.track, seed=args.seed, dataset=args.dataset)
+    for path in written:
+        print(path)
+    return 0

@@ -1,0 +1,322 @@
+"""``bench4d recon``: reconstruct a scene with 4D-GS and the static 3D-GS reference; report quality and cost.
+
+SCENE is a scene folder (any layout :func:`benchmark.loaders.load_scene` reads) or a synthetic preset
+name (generated once into ``--cache-dir``). Each model is trained in its own child process, so that its
+peak memory (``getrusage`` maxrss; ``torch.cuda.max_memory_allocated`` on CUDA) is its own, and is then
+scored on the scene's test frames: PSNR and SSIM (scikit-image, data range 1), fit time (wall and CPU),
+render FPS, Gaussian count. A few renders are saved as PNG beside ``report.json`` (written atomically).
+
+The static 3D-GS reference gets the same iteration budget as 4D-GS; on scenes with motion 4D-GS must
+beat it. For 4D-GS the report also measures what skipping the deformation of static Gaussians saves
+(per-step CPU time and autograd activation memory, and test PSNR with and without skipping);
+``--compare-static-skip`` additionally trains a 4D-GS with skipping off.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any, Optional
+
+from ..errors import InputError
+
+MODELS = ("3dgs", "4dgs")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scene", required=True, help="scene folder or synthetic preset name")
+    parser.add_argument("--model", choices=("3dgs", "4dgs", "both"), default="both",
+                        help="which reconstruction(s) to run (default both: 4D-GS and its 3D-GS reference)")
+    parser.add_argument("--size", type=int, default=128, help="image width of a generated synthetic preset")
+    parser.add_argument("--scale", type=float, default=None,
+                        help="resolution multiplier for a scene folder (e.g. 0.5: D-NeRF 400 -> 200 px)")
+    parser.add_argument("--iters", type=int, default=None,
+                        help="total 4D-GS iterations, split static:deformation as the recipe's 3000:10000 "
+                             "(default 3000); the 3D-GS reference gets the same total")
+    parser.add_argument("--static-iters", type=int, default=None, help="override the 4D-GS static stage length")
+    parser.add_argument("--deform-iters", type=int, default=None, help="override the deformation stage length")
+    parser.add_argument("--reference-iters", type=int, default=None,
+                        help="3D-GS reference iterations (default: the 4D-GS total)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a config field, e.g. gaussians.sh_degree=1 or "
+                             "deformation.hexplane.spatial_resolution=64 (repeatable)")
+    parser.add_argument("--out", type=Path, default=None, help="output folder (default reports/recon/<scene>)")
+    parser.add_argument("--cache-dir", type=Path, default=Path("cache"), help="where presets are generated")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch threads per training process (default: min(2, CPU count))")
+    parser.add_argument("--device", default="cpu", help="cpu or cuda[:N]")
+    parser.add_argument("--renders", type=int, default=3, help="test renders saved per model as PNG")
+    parser.add_argument("--compare-static-skip", action="store_true",
+                        help="also train 4D-GS with static-Gaussian skipping off and compare")
+    parser.add_argument("--no-isolate", action="store_true",
+                        help="train in this process (peak memory then covers everything before it)")
+    parser.add_argument("--log-every", type=int, default=0, help="print training progress every N iterations")
+
+
+# ---------------------------------------------------------------------------------------------------
+# Configuration
+# ---------------------------------------------------------------------------------------------------
+def build_config(args: argparse.Namespace):
+    """The :class:`ReconConfig` of this run (iterations, seed, ``--set`` overrides)."""
+    from methods.gaussians.config import ReconConfig
+
+    cfg = ReconConfig(seed=args.seed, log_every=args.log_every)
+    total = args.iters if args.iters is not None else 3000
+    if total < 2:
+        raise InputError(None, "--iters", f"must be at least 2, got {total}")
+    ratio = cfg.paper_static_iterations / (cfg.paper_static_iterations + cfg.deformation.paper_iterations)
+    cfg.static_iterations = max(1, int(round(total * ratio)))
+    cfg.deformation_iterations = max(1, total - cfg.static_iterations)
+    if args.static_iters is not None:
+        cfg.static_iterations = args.static_iters
+    if args.deform_iters is not None:
+        cfg.deformation_iterations = args.deform_iters
+    if cfg.static_iterations < 0 or cfg.deformation_iterations < 0:
+        raise InputError(None, "--static-iters/--deform-iters", "iteration counts must be >= 0")
+    cfg.reference_iterations = args.reference_iters
+    for item in args.set:
+        apply_override(cfg, item)
+    return cfg
+
+
+def apply_override(cfg: Any, item: str) -> None:
+    """Set ``a.b.c=value`` on the nested dataclass ``cfg``; value parsed as JSON, else kept a string."""
+    key, sep, raw = item.partition("=")
+    if not sep or not key.strip():
+        raise InputError(None, "--set", f"expected KEY=VALUE, got {item!r}")
+    obj = cfg
+    parts = key.strip().split(".")
+    for name in parts[:-1]:
+        if not dataclasses.is_dataclass(obj) or not hasattr(obj, name):
+            raise InputError(None, "--set", f"unknown config field {key!r}")
+        obj = getattr(obj, name)
+    name = parts[-1]
+    if not dataclasses.is_dataclass(obj) or name not in {f.name for f in dataclasses.fields(obj)}:
+        raise InputError(None, "--set", f"unknown config field {key!r}")
+    try:
+        value = json.loads(raw)
+    except json.JSONDecodeError:
+        value = raw
+    current = getattr(obj, name)
+    if isinstance(current, tuple) and isinstance(value, list):
+        value = tuple(value)
+    elif isinstance(current, bool) and not isinstance(value, bool):
+        raise InputError(None, "--set", f"{key} expects true/false, got {raw!r}")
+    elif isinstance(current, (int, float)) and not isinstance(current, bool):
+        if not isinstance(value, (int, float)) or isinstance(value, bool):
+            raise InputError(None, "--set", f"{key} expects a number, got {raw!r}")
+        value = type(current)(value) if isinstance(current, float) or float(value).is_integer() else value
+    setattr(obj, name, value)
+
+
+# ---------------------------------------------------------------------------------------------------
+# One model: train, evaluate, save renders (runs in a child process by default)
+# ---------------------------------------------------------------------------------------------------
+def load_for_recon(scene_dir: str, scale: Optional[float]):
+    from ..loaders import load_scene
+
+    return load_scene(scene_dir, scale=scale) if scale is not None else load_scene(scene_dir)
+
+
+def fit_and_evaluate(job: dict) -> dict:
+    """Train one model as ``job`` says and return its report entry (also used in-process by tests)."""
+    import functools
+    import resource
+
+    import numpy as np
+    import torch
+
+    from methods.gaussians.rasterize import rasterize
+    from methods.gaussians.train import Trainer, evaluate, make_views, measure_static_skip
+
+    from ..imageio import write_image
+
+    torch.set_num_threads(job["threads"])
+    torch.set_flush_denormal(True)  # transmittance products underflow into slow denormals on CPU
+    device = job["device"]
+    cuda = device.startswith("cuda")
+    scene = job.get("scene_object") or load_for_recon(job["scene_dir"], job["scale"])
+    cfg = job["config"]
+    rast = functools.partial(rasterize, backend="auto")
+    rss_before = _maxrss_mib(resource)
+    trainer = Trainer(scene, cfg, device=device, rasterize_fn=rast)
+    rss_loaded = _maxrss_mib(resource)
+    if cuda:
+        torch.cuda.reset_peak_memory_stats(torch.device(device))
+    kind = job["model"]
+    result = trainer.fit_3dgs() if kind == "3dgs" else trainer.fit_4dgs()
+    rss_trained = _maxrss_mib(resource)
+    test_frames = scene.test_frames or scene.split("val")
+    if not test_frames:
+        raise InputError(scene.root, "frames", "the scene has no test or val frames to evaluate on")
+    ev = evaluate(result.model, test_frames, scene.background, rast, device=device, keep_renders=job["renders"])
+    entry: dict[str, Any] = {
+        "model": kind, "label": job.get("label", kind),
+        "psnr": ev["psnr"], "ssim": ev["ssim"], "test_frames": len(test_frames),
+        "fit_seconds": result.fit_seconds, "fit_cpu_seconds": result.fit_cpu_seconds,
+        "iterations": sum(s["iterations"] for s in result.stages),
+        "render_fps": ev["render_fps"],
+        "gaussians": result.model.num_gaussians, "cap": result.cap, "extent": result.extent,
+        "peak_rss_mib": rss_trained, "rss_after_loading_mib": rss_loaded, "rss_at_start_mib": rss_before,
+        "stages": result.stages, "per_frame": ev["per_frame"],
+    }
+    if cuda:
+        entry["cuda_max_memory_allocated_mib"] = torch.cuda.max_memory_allocated(torch.device(device)) / 2 ** 20
+    if kind == "4dgs":
+        entry["dynamic_gaussians"] = result.model.num_dynamic()
+        if cfg.deformation.static_skip and result.model.dynamic_mask is not None:
+            train_views = trainer.views
+            effect = measure_static_skip(result.model, train_views, trainer.background, rast,
+                                         cfg.deformation.lambda_dssim)
+            full = evaluate(result.model, test_frames, scene.background, rast, device=device, skip_static=False)
+            effect["test_psnr_skip"] = ev["psnr"]
+            effect["test_psnr_full"] = full["psnr"]
+            entry["static_skip"] = effect
+    out_dir = Path(job["out_dir"])
+    saved = []
+    for name, pred, gt in ev["renders"]:
+        pred_path = out_dir / "renders" / f"{job.get('label', kind)}_{name}.png"
+        gt_path = out_dir / "renders" / f"gt_{name}.png"
+        write_image(pred_path, pred)
+        if not gt_path.exists():
+            write_image(gt_path, gt)
+        saved.append(str(pred_path))
+    entry["renders"] = saved
+    del ev, result, trainer
+    return _jsonable(entry)
+
+
+def _maxrss_mib(resource) -> float:
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return rss / 1024.0 if sys.platform != "darwin" else rss / 2 ** 20
+
+
+def _jsonable(obj: Any) -> Any:
+    import numpy as np
+
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def _child(job: dict, result_path: str) -> None:
+    """Child-process entry: train, evaluate, write the entry (or the error) as JSON."""
+    from ..atomic import write_json
+
+    try:
+        write_json(result_path, {"ok": True, "entry": fit_and_evaluate(job)})
+    except InputError as err:
+        write_json(result_path, {"ok": False, "error": str(err), "input_error": True})
+    except Exception as err:  # noqa: BLE001 - reported to the parent, which re-raises
+        import traceback
+
+        write_json(result_path, {"ok": False, "error": f"{type(err).__name__}: {err}",
+                                 "traceback": traceback.format_exc()})
+
+
+def run_job(job: dict, isolate: bool) -> dict:
+    """Run one model job, in a fresh ``spawn`` child process unless ``isolate`` is false."""
+    if not isolate:
+        return fit_and_evaluate(job)
+    import multiprocessing as mp
+    import tempfile
+
+    from ..atomic import read_json
+
+    with tempfile.TemporaryDirectory(prefix="bench4d-recon-") as tmp:
+        result_path = str(Path(tmp) / "result.json")
+        proc = mp.get_context("spawn").Process(target=_child, args=(job, result_path))
+        proc.start()
+        proc.join()
+        if not Path(result_path).is_file():
+            raise RuntimeError(f"training process for {job['model']} died (exit code {proc.exitcode})")
+        payload = read_json(result_path)
+    if not payload["ok"]:
+        if payload.get("input_error"):
+            raise InputError(None, None, payload["error"])
+        raise RuntimeError(f"{job['model']} failed: {payload['error']}\n{payload.get('traceback', '')}")
+    return payload["entry"]
+
+
+# ---------------------------------------------------------------------------------------------------
+# Command
+# ---------------------------------------------------------------------------------------------------
+def run(args: argparse.Namespace) -> int:
+    from ..atomic import write_json
+    from ..runner import device_description, git_state, package_versions, resolve_scene
+    from ._common import check_device
+
+    check_device(args.device)
+    if args.size <= 0:
+        raise InputError(None, "--size", f"must be positive, got {args.size}")
+    if args.scale is not None and args.scale <= 0:
+        raise InputError(None, "--scale", f"must be positive, got {args.scale}")
+    threads = args.threads or min(2, os.cpu_count() or 1)
+    if threads < 1:
+        raise InputError(None, "--threads", f"must be >= 1, got {threads}")
+    cfg = build_config(args)
+    scene_dir = resolve_scene(args.scene, args.cache_dir, size=args.size, log=print)
+    scene = load_for_recon(str(scene_dir), args.scale)  # validate early, and for the summary
+    print(f"bench4d recon: {scene.summary()}")
+    out_dir = args.out or Path("reports") / "recon" / scene.name
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+    wanted = ["4dgs", "3dgs"] if args.model == "both" else [args.model]
+    jobs = []
+    for kind in wanted:
+        jobs.append({"model": kind, "label": kind, "config": cfg})
+    if args.compare_static_skip and "4dgs" in wanted:
+        no_skip = dataclasses.replace(cfg, deformation=dataclasses.replace(cfg.deformation, static_skip=False))
+        jobs.append({"model": "4dgs", "label": "4dgs-no-static-skip", "config": no_skip})
+
+    report: dict[str, Any] = {
+        "command": "bench4d recon " + " ".join(sys.argv[2:] if sys.argv[1:2] == ["recon"] else sys.argv[1:]),
+        "scene": {"name": scene.name, "dataset": scene.dataset, "folder": str(scene_dir), "scale": args.scale,
+                  "train_frames": len(scene.train_frames), "test_frames": len(scene.test_frames),
+                  "time_steps": scene.num_time_steps,
+                  "image_size": None if not scene.frames else [scene.frames[0].camera.width,
+                                                               scene.frames[0].camera.height]},
+        "config": dataclasses.asdict(cfg), "threads": threads, "environment": device_description(args.device),
+        "packages": package_versions(("numpy", "torch", "scikit-image")), "git": git_state(),
+        "models": {},
+    }
+    started = time.perf_counter()
+    for job in jobs:
+        job.update({"scene_dir": str(scene_dir), "scale": args.scale, "device": args.device, "threads": threads,
+                    "renders": args.renders, "out_dir": str(out_dir)})
+        print(f"  training {job['label']} ...", flush=True)
+        entry = run_job(job, isolate=not args.no_isolate)
+        report["models"][job["label"]] = entry
+        print(f"  {job['label']:<22} PSNR {entry['psnr']:.2f} dB  SSIM {entry['ssim']:.4f}  "
+              f"fit {entry['fit_seconds']:.0f} s wall / {entry['fit_cpu_seconds']:.0f} s CPU  "
+              f"{entry['render_fps']:.1f} FPS  {entry['gaussians']} Gaussians  peak {entry['peak_rss_mib']:.0f} MiB",
+              flush=True)
+        write_json(out_dir / "report.json", report)  # partial report survives an interruption
+    models = report["models"]
+    if "4dgs" in models and "3dgs" in models:
+        gain = models["4dgs"]["psnr"] - models["3dgs"]["psnr"]
+        report["comparison"] = {"psnr_gain_4dgs_over_3dgs": gain, "ssim_gain_4dgs_over_3dgs":
+                                models["4dgs"]["ssim"] - models["3dgs"]["ssim"], "4dgs_beats_3dgs": gain > 0}
+        print(f"  4D-GS - 3D-GS: {gain:+.2f} dB PSNR")
+    if "4dgs" in models and "static_skip" in models["4dgs"]:
+        s = models["4dgs"]["static_skip"]
+        print(f"  static skip: {s['dynamic']}/{s['gaussians']} dynamic; step {s['step_cpu_ms_skip']:.0f} vs "
+              f"{s['step_cpu_ms_full']:.0f} ms CPU; deform activations {s['deform_saved_mib_skip']:.1f} vs "
+              f"{s['deform_saved_mib_full']:.1f} MiB; test PSNR {s['test_psnr_skip']:.2f} vs {s['test_psnr_full']:.2f}")
+    report["total_seconds"] = time.perf_counter() - started
+    write_json(out_dir / "report.json", report)
+    print(f"  report: {out_dir / 'report.json'}")
+    return 0

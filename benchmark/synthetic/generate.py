@@ -1,0 +1,163 @@
+"""Generate a preset scene: render every frame, write the layout, the truth and the annotations.
+
+The scene is built in a staging folder beside ``out_dir`` and moved into place only when complete,
+so an interrupted run never leaves a half-written scene, and an existing folder is replaced only
+when asked to and only if it is itself a generated scene.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import time
+import zlib
+from collections import defaultdict
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from ..errors import InputError
+from . import layouts
+from .gt import build_annotations
+from .model import Catalogue, FrameContext
+from .presets import PRESETS, PresetSpec
+from .render import SurfaceLayer, background_instances, instances, render, surfaces
+from .truth import TRUTH_DIR, TruthFrame, save_levels, write_truth
+
+GENERATOR = "bench4d.synthetic"
+GENERATOR_VERSION = "1.0"
+MIN_FRAMES = 4
+"""Fewest frames a scene may have (a held-out frame and state changes need room)."""
+NEAR_FAR_MARGIN = (0.9, 1.1)
+"""near/far written to the layout = (min depth * first, max depth * second) over what was rendered."""
+
+
+def _spec(preset: str) -> PresetSpec:
+    if preset not in PRESETS:
+        import difflib
+
+        close = difflib.get_close_matches(preset, PRESETS, n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise InputError(None, "preset", f"unknown preset {preset!r}{hint}; available: {', '.join(PRESETS)}")
+    return PRESETS[preset]
+
+
+def _check_target(out: Path, overwrite: bool) -> None:
+    if out.exists() and not out.is_dir():
+        raise InputError(out, None, "exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()):
+        if not overwrite:
+            raise InputError(out, None, "folder exists and is not empty; pass overwrite=True (--overwrite) to "
+                                        "replace a previously generated scene")
+        if layouts.read_meta(out).get("generator") != GENERATOR:
+            raise InputError(out, None, f"folder is not empty and has no {layouts.META_FILE} from the generator: "
+                                        "refusing to replace it")
+
+
+def _publish(staging: Path, out: Path) -> None:
+    """Move the finished staging folder to ``out`` (replacing an empty or generated folder)."""
+    trash = None
+    if out.exists():
+        trash = out.parent / f".{out.name}.old-{os.getpid()}-{time.time_ns()}"
+        os.replace(out, trash)
+    os.replace(staging, out)
+    if trash is not None:
+        shutil.rmtree(trash, ignore_errors=True)
+
+
+def resolve_settings(preset: str, size: Optional[int], frames: Optional[int], views: Optional[int],
+                     layout: Optional[str]) -> tuple[PresetSpec, int, int, int, str]:
+    """(spec, size, frames, views, layout) with defaults filled in and values checked."""
+    spec = _spec(preset)
+    layout = layout or spec.default_layout
+    if layout not in layouts.LAYOUTS:
+        raise InputError(None, "layout", f"unknown layout {layout!r} (valid: {', '.join(layouts.LAYOUTS)})")
+    size = spec.default_size if size is None else int(size)
+    if size < 8 or size % 2:
+        raise InputError(None, "size", f"image width must be an even number >= 8, got {size}")
+    frames = spec.default_frames if frames is None else int(frames)
+    if frames < MIN_FRAMES:
+        raise InputError(None, "frames", f"need at least {MIN_FRAMES} frames, got {frames}")
+    views = spec.default_views if views is None else int(views)
+    if layout == "neu3d" and views < 2:
+        raise InputError(None, "views", f"a rig needs a test camera and a training camera (>= 2 views), got {views}")
+    if layout != "neu3d":
+        views = 1
+    return spec, size, frames, views, layout
+
+
+def generate(preset: str, out_dir: str | Path, *, size: Optional[int] = None, frames: Optional[int] = None,
+             views: Optional[int] = None, layout: Optional[str] = None, seed: int = 0, overwrite: bool = False,
+             shadows: bool = True) -> Path:
+    """Render preset ``preset`` into ``out_dir`` and return the folder.
+
+    ``size`` is the image width in pixels (default: the preset's, 128); ``frames`` the video length;
+    ``views`` the rig size in the Neu3D layout; ``layout`` one of ``hypernerf``, ``neu3d``, ``dnerf``
+    (default: the preset's). The same arguments and ``seed`` give identical files.
+    """
+    spec, size, frames, views, layout = resolve_settings(preset, size, frames, views, layout)
+    out = Path(out_dir)
+    _check_target(out, overwrite)
+    out.parent.mkdir(parents=True, exist_ok=True)
+
+    rng = np.random.default_rng([int(seed), zlib.crc32(preset.encode())])
+    scene = spec.build(rng, frames)
+    catalogue = Catalogue.build(scene.wholes)
+    records = layouts.plan(layout, scene, size, frames, views, rng)
+    by_time: dict[int, list[layouts.FrameRecord]] = defaultdict(list)
+    for rec in records:
+        by_time[rec.time_index].append(rec)
+    background = layouts.LAYOUT_SPECS[layout].background
+
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.staging-", dir=out.parent))
+    try:
+        truth_dir = staging / TRUTH_DIR
+        depth_range: dict[str, list[float]] = {}
+        evaluated = []
+        # The surroundings are static: a fixed camera (a rig) sees the same background every frame.
+        bg = background_instances(scene, FrameContext(0, frames)) if background else []
+        static_layers: dict[int, SurfaceLayer] = {}
+        for ti in range(frames):
+            insts = instances(scene, catalogue, FrameContext(ti, frames), background=False)
+            for rec in by_time[ti]:
+                static = None
+                if bg:
+                    key = id(rec.camera)  # rig frames share their camera object
+                    if key not in static_layers:
+                        if layout != "neu3d":
+                            static_layers.clear()  # a moving camera never sees the same layer twice
+                        static_layers[key] = surfaces(bg, rec.camera)
+                    static = static_layers[key]
+                res = render(insts, rec.camera, scene.light, shadows=shadows, static=static)
+                layouts.write_image(staging, layout, rec, res)
+                save_levels(truth_dir, rec.name, res.ids, res.depth)
+                finite = res.depth[np.isfinite(res.depth)]
+                if finite.size:
+                    lo, hi = depth_range.setdefault(rec.camera_id, [np.inf, 0.0])
+                    depth_range[rec.camera_id] = [min(lo, float(finite.min())), max(hi, float(finite.max()))]
+                if rec.split == "test":
+                    evaluated.append((rec.name, ti, rec.camera_id, res.ids))
+        near_far = {cam: (lo * NEAR_FAR_MARGIN[0], hi * NEAR_FAR_MARGIN[1]) for cam, (lo, hi) in depth_range.items()}
+        info = {"generator": GENERATOR, "generator_version": GENERATOR_VERSION, "preset": preset, "seed": int(seed),
+                "size": size, "num_views": views, "time_sensitive": spec.time_sensitive}
+        all_near = min(v[0] for v in near_far.values())
+        all_far = max(v[1] for v in near_far.values())
+        layouts.write_metadata(staging, layout, records, near_far, frames,
+                               {**info, "truth": TRUTH_DIR, "annotations": "annotations.json",
+                                "near_far": [all_near, all_far], "analogue": spec.analogue})
+        write_truth(truth_dir, frames=[TruthFrame(r.name, r.split, r.time_index, r.time, r.camera_id, r.camera,
+                                                  r.image_file) for r in records],
+                    catalogue=catalogue, info={**info, "layout": layout, "num_frames": frames})
+        from annotations.format import save_annotations
+
+        aset = build_annotations(out.name, catalogue, evaluated, frames, time_sensitive=spec.time_sensitive,
+                                 info={"source": f"{GENERATOR} {GENERATOR_VERSION} (exact, from the id maps)",
+                                       "preset": preset, "seed": int(seed), "layout": layout})
+        save_annotations(aset, staging / "annotations.json")
+        _publish(staging, out)
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging, ignore_errors=True)
+    return out

@@ -1,0 +1,236 @@
+"""Writers for the three on-disk layouts the loaders read (HyperNeRF, Neu3D, D-NeRF).
+
+Each layout plans its frames (:class:`FrameRecord`: the name the loader will give the frame, split,
+time, camera) and writes images and metadata files. The conventions are those of
+:mod:`benchmark.loaders` (see each loader's docstring); the generator's own tests read every layout
+back through :func:`benchmark.loaders.load_scene`.
+
+Frame names, splits and times per layout
+----------------------------------------
+* ``hypernerf``: one moving camera; ids ``000000 ...``; ``val_ids`` (the test split) are frames
+  ``i % 4 == 2``, every other frame trains; ``time = i / (N - 1)`` (``warp_id / max(warp_id)``).
+  Only ``rgb/1x`` is written (the loader falls back to 1x when ``rgb/2x`` is absent, so the images
+  it returns by default have the size the truth and annotations are drawn at; ``scale=0.5`` gives
+  area-downsampled 2x images).
+* ``neu3d``: a fixed rig, ``camXX/images/NNNN.png``; frames ``camXX_NNNN``; ``cam00`` is the test
+  view; ``time = k / N`` with ``N`` in ``bench4d_meta.json``.
+* ``dnerf``: one random hemisphere camera per frame, RGBA on a transparent background (objects
+  only); files ``<split>/r_<i>`` numbered by the *video* frame so stems are unique, frames
+  ``<split>_r_<i>``; test = ``i % 4 == 2``, val = ``i % 12 == 0``; ``time = i / (N - 1)``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import cv2
+import numpy as np
+
+from ..atomic import write_json
+from ..imageio import write_image
+from ..scene import Camera
+from . import cameras as cams
+from .model import SceneDef
+from .render import RenderResult
+
+Layout = Literal["hypernerf", "neu3d", "dnerf"]
+LAYOUTS: tuple[Layout, ...] = ("hypernerf", "neu3d", "dnerf")
+META_FILE = "bench4d_meta.json"
+
+
+@dataclass(frozen=True)
+class SplitRule:
+    """How video frames are split (monocular and D-NeRF layouts)."""
+
+    test_every: int = 4
+    """Every ``test_every``-th frame is held out ..."""
+    test_offset: int = 2
+    """... starting at this frame (the release's "train index + 2")."""
+    val_every: int = 12
+    """D-NeRF only: frames ``i % val_every == 0`` form the (small) validation split."""
+
+    def split(self, i: int, with_val: bool) -> str:
+        if i % self.test_every == self.test_offset:
+            return "test"
+        if with_val and i % self.val_every == 0:
+            return "val"
+        return "train"
+
+
+@dataclass(frozen=True)
+class LayoutSpec:
+    """Per-layout camera setup."""
+
+    setup: cams.CameraSetup
+    background: bool
+    """Whether the static surroundings are rendered (not in D-NeRF: transparent background)."""
+
+
+LAYOUT_SPECS: dict[str, LayoutSpec] = {
+    # Portrait phone video with a slightly off-centre principal point and non-square pixels,
+    # like the real HyperNeRF captures (the loader must honour both).
+    "hypernerf": LayoutSpec(cams.CameraSetup(cams.Intrinsics(52.0, 4 / 3, (0.012, -0.009), 1.004)), True),
+    # Landscape 4:3 rig (Neu3D is 1352x1014); LLFF poses have no principal point: centred. The fit
+    # uses the narrow vertical field of view, where table-top content is short: a tighter margin.
+    "neu3d": LayoutSpec(cams.CameraSetup(cams.Intrinsics(55.0, 0.75), sweep_deg=80.0, elevation_deg=28.0,
+                                         margin=0.85), True),
+    # Square renders, D-NeRF's camera_angle_x = 0.6911 rad (39.6 degrees).
+    "dnerf": LayoutSpec(cams.CameraSetup(cams.Intrinsics(np.degrees(0.6911112070083618), 1.0)), False),
+}
+
+
+@dataclass
+class FrameRecord:
+    """One image to render and write."""
+
+    name: str
+    """The frame name the loader gives it (``Frame.name``)."""
+    split: str
+    time_index: int
+    time: float
+    """Normalised time as the layout's loader computes it."""
+    camera_id: str
+    camera: Camera
+    """Camera at the written (1x) resolution."""
+    image_file: str
+    """Path of the image relative to the scene folder."""
+
+
+def plan(layout: Layout, scene: SceneDef, width: int, num_frames: int, num_views: int,
+         rng: np.random.Generator, rule: SplitRule = SplitRule()) -> list[FrameRecord]:
+    """Cameras, names, splits and times of every image of the layout."""
+    spec = LAYOUT_SPECS[layout]
+    c, r = scene.focus_center, scene.focus_radius
+    n = num_frames
+    if layout == "hypernerf":
+        path = cams.monocular(spec.setup, c, r, n, width, rng)
+        return [FrameRecord(f"{i:06d}", rule.split(i, False), i, i / max(1, n - 1), "0", path[i],
+                            f"rgb/1x/{i:06d}.png") for i in range(n)]
+    if layout == "neu3d":
+        rig = cams.rig(spec.setup, c, r, num_views, width, rng)
+        return [FrameRecord(f"cam{v:02d}_{k:04d}", "test" if v == 0 else "train", k, k / n, f"cam{v:02d}",
+                            rig[v], f"cam{v:02d}/images/{k:04d}.png") for k in range(n) for v in range(num_views)]
+    if layout == "dnerf":
+        views = cams.hemisphere(spec.setup, c, r, n, width, rng)
+        out = []
+        for i in range(n):
+            split = rule.split(i, True)
+            out.append(FrameRecord(f"{split}_r_{i:03d}", split, i, i / max(1, n - 1), "0", views[i],
+                                   f"{split}/r_{i:03d}.png"))
+        return out
+    raise ValueError(f"unknown layout {layout!r} (valid: {', '.join(LAYOUTS)})")
+
+
+def write_image(root: Path, layout: Layout, record: FrameRecord, result: RenderResult) -> None:
+    """Write the frame's image file (RGBA with alpha = objects for D-NeRF)."""
+    path = root / record.image_file
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if layout == "dnerf":
+        rgb = np.where(result.alpha[..., None], result.rgb, 0.0)
+        rgba = np.concatenate([rgb, result.alpha[..., None].astype(np.float32)], axis=-1)
+        _imwrite_fast(path, rgba)
+    else:
+        _imwrite_fast(path, result.rgb)
+
+
+def _imwrite_fast(path: Path, image: np.ndarray) -> None:
+    """PNG with light compression (speed over size; the files are regenerated at will)."""
+    img = (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    code = cv2.COLOR_RGBA2BGRA if img.shape[2] == 4 else cv2.COLOR_RGB2BGR
+    ok, buf = cv2.imencode(".png", cv2.cvtColor(img, code), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:  # pragma: no cover - cv2 encodes any uint8 image
+        write_image(path, image)
+        return
+    path.write_bytes(buf.tobytes())  # inside the generator's staging folder: published atomically
+
+
+def write_metadata(root: Path, layout: Layout, records: list[FrameRecord], near_far: dict[str, tuple[float, float]],
+                   num_frames: int, meta: dict) -> None:
+    """The layout's camera and index files, plus ``bench4d_meta.json``.
+
+    ``near_far`` maps camera id -> (near, far) depth of the content it sees.
+    """
+    if layout == "hypernerf":
+        _write_hypernerf(root, records, near_far)
+    elif layout == "neu3d":
+        _write_neu3d(root, records, near_far)
+    elif layout == "dnerf":
+        _write_dnerf(root, records)
+    write_json(root / META_FILE, {**meta, "layout": layout, "num_frames": num_frames})
+
+
+def _write_hypernerf(root: Path, records: list[FrameRecord], near_far: dict[str, tuple[float, float]]) -> None:
+    near = min(v[0] for v in near_far.values())
+    far = max(v[1] for v in near_far.values())
+    # Identity normalisation: the loader's world = (position - center) * scale is our world.
+    write_json(root / "scene.json", {"scale": 1.0, "center": [0.0, 0.0, 0.0], "near": near, "far": far})
+    ids = [r.name for r in records]
+    write_json(root / "dataset.json", {
+        "count": len(ids), "num_exemplars": len(ids), "ids": ids,
+        "train_ids": [r.name for r in records if r.split == "train"],
+        "val_ids": [r.name for r in records if r.split == "test"],
+    })
+    write_json(root / "metadata.json", {r.name: {"warp_id": r.time_index, "camera_id": 0, "time_id": r.time_index,
+                                                 "appearance_id": r.time_index} for r in records})
+    for r in records:
+        cam = r.camera
+        write_json(root / "camera" / f"{r.name}.json", {
+            "orientation": cam.R.tolist(),  # world-to-camera rotation, rows = camera axes
+            "position": cam.center.tolist(),
+            "focal_length": cam.fx,
+            "principal_point": [cam.cx, cam.cy],
+            "skew": 0.0,
+            "pixel_aspect_ratio": cam.fy / cam.fx,
+            "radial_distortion": [0.0, 0.0, 0.0],
+            "tangential_distortion": [0.0, 0.0],
+            "image_size": [cam.width, cam.height],  # Nerfies order: width first
+        })
+
+
+def _write_neu3d(root: Path, records: list[FrameRecord], near_far: dict[str, tuple[float, float]]) -> None:
+    by_cam: dict[str, Camera] = {}
+    for r in records:
+        by_cam.setdefault(r.camera_id, r.camera)
+    rows = []
+    for cam_id in sorted(by_cam, key=lambda s: int(s[3:])):
+        cam = by_cam[cam_id]
+        if abs(cam.cx - cam.width / 2) > 1e-9 or abs(cam.cy - cam.height / 2) > 1e-9 or cam.fx != cam.fy:
+            raise ValueError("LLFF poses need a centred principal point and square pixels")
+        c2w = cam.camera_to_world
+        llff = np.stack([c2w[:3, 1], c2w[:3, 0], -c2w[:3, 2]], axis=1)  # columns: down, right, backwards
+        pose = np.concatenate([llff, c2w[:3, 3:4], np.array([[cam.height], [cam.width], [cam.fx]])], axis=1)
+        near, far = near_far[cam_id]
+        rows.append(np.concatenate([pose.reshape(-1), [near, far]]))
+    np.save(root / "poses_bounds.npy", np.asarray(rows, dtype=np.float64))
+
+
+def _write_dnerf(root: Path, records: list[FrameRecord]) -> None:
+    for split in ("train", "val", "test"):
+        recs = [r for r in records if r.split == split]
+        if not recs:
+            continue  # the loader rejects an empty split file; an absent one is fine
+        cam0 = recs[0].camera
+        frames = []
+        for r in recs:
+            cam = r.camera
+            if abs(cam.cx - cam.width / 2) > 1e-9 or abs(cam.cy - cam.height / 2) > 1e-9 or cam.fx != cam.fy:
+                raise ValueError("D-NeRF cameras need a centred principal point and square pixels")
+            c2w = cam.camera_to_world.copy()
+            c2w[:3, 1:3] *= -1.0  # OpenCV (y down, z forward) -> OpenGL (y up, looks along -z)
+            frames.append({"file_path": "./" + r.image_file[: -len(".png")], "time": r.time,
+                           "transform_matrix": c2w.tolist()})
+        write_json(root / f"transforms_{split}.json", {"camera_angle_x": cam0.fov_x, "frames": frames})
+
+
+def read_meta(root: Path) -> dict:
+    """``bench4d_meta.json`` of a generated scene, or ``{}``."""
+    path = Path(root) / META_FILE
+    if not path.is_file():
+        return {}
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        return {}

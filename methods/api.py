@@ -1,0 +1,153 @@
+"""The method API: what the harness fits, queries, times and ranks, the same way for every method.
+
+A method is a class with two class methods::
+
+    model = MyMethod.fit(scene, supervision, config, seed=0, device="cpu", progress=progress,
+                         work_dir=path)       # train on the scene's training frames + 2D supervision
+    model.save(directory)                     # the fit cache
+    model = MyMethod.load(directory, supervision=supervision, device="cpu")
+
+and the :class:`Model` answers queries on any frames of the scene (usually held-out test frames):
+
+* time-agnostic: ``model.query_agnostic(text, frames) -> [AgnosticAnswer(mask, relevance)]``
+* time-sensitive: ``model.query_sensitive(text, frames) -> [SensitiveAnswer(mask, score)]``
+
+A method answers with per-frame *scores*; the harness turns them into yes/no decisions with the
+shared temporal rule (:func:`benchmark.metrics.temporal.decide_temporal`), so no method can tune its
+own threshold. A method never sees ground-truth annotations: only the scene (images, cameras, times)
+and the :class:`~methods.supervision.base.Supervision` of its training frames.
+
+Registering a method takes one spec file in :mod:`methods.specs` (see :mod:`methods.registry`).
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar, Iterable, Literal, Optional, Sequence
+
+import numpy as np
+
+from benchmark.scene import Frame, Scene
+
+from .supervision.base import Supervision
+
+QueryKind = Literal["agnostic", "sensitive"]
+QUERY_KINDS: tuple[str, str] = ("agnostic", "sensitive")
+
+
+@dataclass
+class AgnosticAnswer:
+    """Answer to a time-agnostic query on one frame."""
+
+    mask: np.ndarray
+    """(H, W) bool: where the queried thing is."""
+    relevance: np.ndarray
+    """(H, W) float32: the method's per-pixel relevance (any monotone scale; for inspection)."""
+
+
+@dataclass
+class SensitiveAnswer:
+    """Answer to a time-sensitive query on one frame."""
+
+    mask: np.ndarray
+    """(H, W) bool: where the queried thing would be (scored for vIoU on positive frames)."""
+    score: float
+    """How much the query holds at this frame (higher = more); NaN = undefined (nothing matched)."""
+
+
+class Progress:
+    """tqdm bars that honour ``--quiet``; a method calls ``progress(iterable, desc=..., total=...)``."""
+
+    def __init__(self, quiet: bool = False, *, leave: bool = False) -> None:
+        self.quiet = quiet
+        self.leave = leave
+
+    def __call__(self, iterable: Optional[Iterable] = None, *, desc: Optional[str] = None,
+                 total: Optional[int] = None, **kwargs: Any):
+        from tqdm.auto import tqdm
+
+        return tqdm(iterable, desc=desc, total=total, disable=self.quiet, leave=self.leave,
+                    dynamic_ncols=True, file=sys.stderr, **kwargs)
+
+    def log(self, message: str) -> None:
+        """A line for the user (suppressed by ``--quiet``), written without breaking open bars."""
+        if not self.quiet:
+            from tqdm.auto import tqdm
+
+            tqdm.write(message, file=sys.stderr)
+
+
+class Model(abc.ABC):
+    """A fitted method on one scene."""
+
+    supports: ClassVar[frozenset[str]] = frozenset(QUERY_KINDS)
+    """Query kinds this model answers."""
+
+    def query_agnostic(self, text: str, frames: Sequence[Frame]) -> list[AgnosticAnswer]:
+        """One :class:`AgnosticAnswer` per frame, in order, each at that frame's camera size."""
+        raise NotImplementedError(f"{type(self).__name__} does not answer time-agnostic queries")
+
+    def query_sensitive(self, text: str, frames: Sequence[Frame]) -> list[SensitiveAnswer]:
+        """One :class:`SensitiveAnswer` per frame, in order, each at that frame's camera size."""
+        raise NotImplementedError(f"{type(self).__name__} does not answer time-sensitive queries")
+
+    @abc.abstractmethod
+    def save(self, directory: Path) -> None:
+        """Write everything :meth:`Method.load` needs into the (existing, empty) ``directory``."""
+
+
+class Method(abc.ABC):
+    """A registered method: fits a :class:`Model` on a scene."""
+
+    supports: ClassVar[frozenset[str]] = frozenset(QUERY_KINDS)
+    """Query kinds the fitted models answer."""
+    code_version: ClassVar[str] = "1"
+    """Bump to invalidate cached fits when behaviour changes in a way the source hash misses."""
+    resumable: ClassVar[bool] = False
+    """True when :meth:`fit` writes intermediate checkpoints into ``work_dir`` and resumes from them."""
+
+    @classmethod
+    @abc.abstractmethod
+    def fit(cls, scene: Scene, supervision: Supervision, config: Any, *, seed: int, device: str,
+            progress: Progress, work_dir: Optional[Path] = None) -> Model:
+        """Fit on ``scene``'s training frames and ``supervision``.
+
+        ``work_dir`` (when given) persists across interrupted runs of the same fit: a resumable
+        method writes checkpoints there atomically and continues from the last one.
+        """
+
+    @classmethod
+    @abc.abstractmethod
+    def load(cls, directory: Path, *, supervision: Supervision, device: str) -> Model:
+        """Rebuild the model that :meth:`Model.save` wrote into ``directory``."""
+
+
+def check_agnostic(answers: Sequence[AgnosticAnswer], frames: Sequence[Frame], who: str) -> None:
+    """Raise a clear error if ``answers`` do not match ``frames`` (count, shapes, dtypes)."""
+    if len(answers) != len(frames):
+        raise ValueError(f"{who}: {len(answers)} answers for {len(frames)} frames")
+    for answer, frame in zip(answers, frames):
+        size = (frame.camera.height, frame.camera.width)
+        mask = np.asarray(answer.mask)
+        rel = np.asarray(answer.relevance)
+        if mask.shape != size or mask.dtype != bool:
+            raise ValueError(f"{who}: mask for frame {frame.name!r} must be bool {size}, got {mask.dtype} {mask.shape}")
+        if rel.shape != size:
+            raise ValueError(f"{who}: relevance for frame {frame.name!r} must be {size}, got {rel.shape}")
+
+
+def check_sensitive(answers: Sequence[SensitiveAnswer], frames: Sequence[Frame], who: str) -> None:
+    if len(answers) != len(frames):
+        raise ValueError(f"{who}: {len(answers)} answers for {len(frames)} frames")
+    for answer, frame in zip(answers, frames):
+        size = (frame.camera.height, frame.camera.width)
+        mask = np.asarray(answer.mask)
+        if mask.shape != size or mask.dtype != bool:
+            raise ValueError(f"{who}: mask for frame {frame.name!r} must be bool {size}, got {mask.dtype} {mask.shape}")
+        score = float(answer.score)
+        if math.isinf(score):
+            raise ValueError(f"{who}: score for frame {frame.name!r} is inf (use NaN for undefined)")

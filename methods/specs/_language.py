@@ -1,0 +1,105 @@
+"""Options shared by the language-field methods (``langsplat``, ``deformable-clip``, ``4d-langsplat``).
+
+A private module (leading underscore): the registry does not look for a ``SPEC`` here. Imports
+nothing heavy, so ``bench4d methods`` lists the methods without loading torch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+CANONICAL_PHRASES: tuple[str, ...] = ("object", "things", "stuff", "texture")
+"""LERF's canonical negative phrases, as used by LangSplat and 4D LangSplat."""
+
+
+@dataclass
+class LanguageMethodConfig:
+    """Every constant of geometry, autoencoder, field and query (paper values by default where the
+    recipe fixes one; CPU-scale iteration counts, with the paper's in the docstring)."""
+
+    # --- geometry (fitted once per scene, geometry options and seed; then frozen) ----------------
+    static_iterations: int = 1000
+    """4D-GS static (3D-GS) stage (protocol: 3 000). The recipe's schedule intervals are scaled to
+    the run length (:mod:`methods.gaussians.config`)."""
+    deformation_iterations: int = 2000
+    """4D-GS deformation stage (protocol: 10 000)."""
+    static_model_iterations: Optional[int] = None
+    """Iterations of the static 3D-GS of ``langsplat``; ``None`` = static + deformation iterations
+    (the same optimisation budget as the 4D-GS)."""
+    max_gaussians: int = 360_000
+    """Upper bound of the scene-adaptive Gaussian cap (protocol: densification up to 360k)."""
+    gaussians_per_foreground_pixel: float = 2.0
+    """Gaussian cap = this x mean foreground pixels of a training view (see
+    :class:`methods.gaussians.config.GaussianConfig`)."""
+
+    # --- autoencoder D -> latent (one per scene, on the distinct mask features) -------------------
+    latent_dim: int = 3
+    """Latent channels per level (paper: 3 for CLIP)."""
+    ae_hidden_dims: tuple[int, ...] = (256, 128, 64, 32)
+    """Encoder widths between D and the latent; the decoder mirrors them (release: 256-128-64-32)."""
+    ae_cosine_weight: float = 1.0
+    """Weight of the ``1 - cos`` term added to the MSE (release: 1)."""
+    ae_learning_rate: float = 1e-3
+    """Adam learning rate (release: 1e-4 over pixel-level data; distinct mask features are few)."""
+    ae_batch_size: int = 64
+    """Minibatch size (release: 64)."""
+    ae_epochs: int = 100
+    """Epochs over the distinct features (release: 100)."""
+    ae_max_steps: int = 3000
+    """Cap on autoencoder steps."""
+
+    # --- language field (per-Gaussian latents of the three levels, geometry frozen) ---------------
+    field_iterations: int = 1200
+    """Field optimisation steps, one training view each (release: 10 000 on a GPU)."""
+    field_learning_rate: float = 1e-2
+    """Adam learning rate of the features (release: 2.5e-3 over a 10x longer schedule)."""
+    field_loss_weight: float = 0.2
+    """Weight of the L1 language loss inside valid masks (protocol: 0.2)."""
+    field_init_std: float = 0.0
+    """Standard deviation of the initial features (release: zeros)."""
+
+    # --- time-agnostic query (shared/docs/protocol.md) -------------------------------------------
+    canonical_phrases: tuple[str, ...] = CANONICAL_PHRASES
+    """Negative phrases of the LERF relevance (paper and release: object, things, stuff, texture)."""
+    temperature: float = 10.0
+    """Scale ``s`` of ``exp(s q.f)`` in the relevance (paper and release: 10)."""
+    smoothing_kernel: int = 29
+    """Average-pooling window mixed into the relevance map (paper and release: 29)."""
+    threshold: float = 0.4
+    """Threshold on the min-max rescaled smoothed relevance (paper and release: 0.4)."""
+    threshold_variant: str = "paper"
+    """``"paper"``: rescaled > threshold; ``"release"``: ``clip(2 x - 1, 0, 1) > threshold``."""
+    majority_kernel: int = 7
+    """Majority filter window on the binary mask (release: 7)."""
+    majority_fraction: float = 0.5
+    """A pixel stays when more than this fraction of its window is set (release: 0.5)."""
+    decode_chunk: int = 65536
+    """Pixels decoded at once (bounds query memory at any image size; no effect on results)."""
+
+    # --- time-sensitive answers of the relevance-score baselines ----------------------------------
+    sensitive_mask: str = "unfiltered"
+    """Mask inside which the relevance is averaged for a time-sensitive score: ``"unfiltered"`` (the
+    release uses the mask before the majority filter) or ``"filtered"``."""
+
+    # --- engineering ------------------------------------------------------------------------------
+    render_backend: str = "auto"
+    """Rasterizer backend: ``"auto"`` (gsplat on CUDA when importable, else PyTorch), ``"torch"``, ``"gsplat"``."""
+    shared_cache_dir: Optional[str] = None
+    """Where fitted geometries and fields are shared between methods and runs; ``None`` = the
+    runner's cache folder (the parent of its ``fits`` folder), or no sharing outside the runner."""
+
+    def __post_init__(self) -> None:
+        self.canonical_phrases = tuple(self.canonical_phrases)
+        self.ae_hidden_dims = tuple(int(x) for x in self.ae_hidden_dims)
+        if self.threshold_variant not in ("paper", "release"):
+            raise ValueError(f"threshold_variant must be 'paper' or 'release', got {self.threshold_variant!r}")
+        if self.sensitive_mask not in ("unfiltered", "filtered"):
+            raise ValueError(f"sensitive_mask must be 'unfiltered' or 'filtered', got {self.sensitive_mask!r}")
+        if self.render_backend not in ("auto", "torch", "gsplat"):
+            raise ValueError(f"render_backend must be 'auto', 'torch' or 'gsplat', got {self.render_backend!r}")
+        for name in ("static_iterations", "deformation_iterations", "field_iterations", "ae_max_steps"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0")
+        if self.smoothing_kernel % 2 == 0 or self.majority_kernel % 2 == 0:
+            raise ValueError("smoothing_kernel and majority_kernel must be odd (centred windows)")

@@ -1,0 +1,118 @@
+"""Options of the time-varying semantic field (``4d-langsplat``'s status field, ``non-status-field``).
+
+A private module (leading underscore): the registry looks for no ``SPEC`` here. It imports nothing
+heavy, so method specs can inherit these options without loading torch. The code that reads them is
+:mod:`methods.fields.time_varying`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+CAPTIONER_CHOICES = ("auto", "template", "qwen2-vl", "file")
+TRACK_CHOICES = ("auto", "truth", "file")
+
+
+@dataclass
+class TimeVaryingOptions:
+    """Captions, autoencoder, status field and its training (paper values by default; CPU-scale
+    iteration counts with the release's in the docstring)."""
+
+    # --- captions -------------------------------------------------------------------------------
+    captioner: str = "auto"
+    """``"template"`` (oracle: the scene's states), ``"qwen2-vl"``, ``"file"``; ``"auto"`` = template on
+    the oracle track, qwen2-vl on the real one."""
+    captions_file: Optional[str] = None
+    """JSON captions for ``captioner="file"`` (:mod:`methods.captioners.file`)."""
+    qwen_model: Optional[str] = None
+    """Qwen2-VL folder or hub id (``None``: ``$BENCH4D_QWEN2VL`` or Qwen/Qwen2-VL-7B-Instruct)."""
+    object_tracks: str = "auto"
+    """Where the tracked objects come from: ``"truth"`` (oracle track only), ``"file"`` (masks in
+    ``captions_file``); ``"auto"`` = truth on the oracle track, the file otherwise."""
+    visual_prompt: str = "blur+gray+contour"
+    """Visual prompt of the captioner (paper: all three cues)."""
+    text_prompt: str = "video+image"
+    """Text prompt of the captioner: ``"none"``, ``"video"``, ``"video+image"`` (release)."""
+    caption_seed: int = 0
+    """Seed of the template captioner's paraphrase draw (fixed, so every method and seed sees the
+    same captions)."""
+
+    # --- caption autoencoder ------------------------------------------------------------------------
+    tv_latent_dim: int = 6
+    """Latent channels of the caption autoencoder (paper: 4096 -> 6)."""
+    tv_ae_hidden_dims: tuple[int, ...] = (256, 128, 64, 32)
+    """Encoder widths between D and the latent; the decoder mirrors them."""
+    tv_ae_max_steps: int = 3000
+    """Cap on the caption autoencoder's optimisation steps (batch 64, 100 epochs, release)."""
+
+    # --- time-agnostic caption field (the states' starting point) -----------------------------------
+    tv_static_iterations: int = 300
+    """Steps of the time-agnostic caption field the states are initialised from (release: 1 000
+    static + 10 000 refinement on a GPU; geometry is frozen here, so a few passes over the views fit it)."""
+    tv_learning_rate: float = 1e-2
+    """Adam learning rate of per-Gaussian latents (states, fixed vectors, static field)."""
+
+    # --- status deformable network ------------------------------------------------------------------
+    num_states: int = 3
+    """``K``, states per semantically dynamic Gaussian (paper: 3; Table 5 ablates 2-6). With
+    ``choose_states`` this is the cap of the per-scene choice."""
+    choose_states: bool = True
+    """Choose ``K`` per scene: the largest number of distinct caption states of any object in the
+    training captions (at least 2 when some object changes), capped by ``num_states``. ``False``
+    uses ``num_states`` as is (the K ablation)."""
+    weight_mode: str = "softmax"
+    """``"softmax"``: the K weights sum to one (paper); ``"linear"``: raw MLP outputs (release)."""
+    status_hidden_dim: int = 64
+    """Width of the weight MLP (and of the Non-Status baseline's delta MLP)."""
+    status_init_noise: float = 0.1
+    """Std of the noise added to the static latent to initialise each state."""
+    status_iterations: int = 1200
+    """Steps of the status stage, one training view each (release: 10 000 on an 80 GB GPU)."""
+    status_mlp_learning_rate: float = 1e-3
+    """Adam learning rate of the weight MLP (and of the Non-Status delta MLP)."""
+    status_loss_weight: float = 0.2
+    """Weight of the L1 language loss inside the object masks (protocol: 0.2)."""
+
+    # --- semantically static Gaussians --------------------------------------------------------------
+    skip_static_semantics: bool = True
+    """Gaussians of objects whose captions never change carry ONE latent, not K states (not in the
+    paper; ``False`` gives every Gaussian K states, as the release)."""
+    semantic_change_tolerance: float = 0.02
+    """An object's semantics "never change" when every caption embedding lies within this cosine
+    distance of their mean direction (0 for the template captioner's constant captions; an MLLM's
+    rewording of a static object stays small). Errs on the safe side: a changing object is never
+    frozen, at worst a static one carries K states."""
+    dynamic_weight_share: float = 0.2
+    """A Gaussian carries states when at least this share of its accumulated blending weight over
+    the training views falls on semantically changing objects."""
+    state_silhouette_min: float = 0.05
+    """Distinct caption states of a changing object: the k in 2..cap whose k-means clustering of its
+    caption embeddings has the best silhouette; below this silhouette the object counts 2 states."""
+
+    # --- engineering ----------------------------------------------------------------------------------
+    tv_cache_view_mib: float = 512.0
+    """Per-view frozen inputs (deformed Gaussians, HexPlane features) are cached while they fit in
+    this many MiB; beyond it they are recomputed each step."""
+
+    def check_time_varying(self) -> None:
+        """Raise ``ValueError`` on inconsistent options (called by the configs' ``__post_init__``)."""
+        self.tv_ae_hidden_dims = tuple(int(x) for x in self.tv_ae_hidden_dims)
+        if self.captioner not in CAPTIONER_CHOICES:
+            raise ValueError(f"captioner must be one of {CAPTIONER_CHOICES}, got {self.captioner!r}")
+        if self.object_tracks not in TRACK_CHOICES:
+            raise ValueError(f"object_tracks must be one of {TRACK_CHOICES}, got {self.object_tracks!r}")
+        if self.weight_mode not in ("softmax", "linear"):
+            raise ValueError(f"weight_mode must be 'softmax' or 'linear', got {self.weight_mode!r}")
+        if self.num_states < 1:
+            raise ValueError("num_states must be >= 1")
+        for name in ("tv_static_iterations", "status_iterations", "tv_ae_max_steps"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0")
+        if not 0 <= self.dynamic_weight_share <= 1:
+            raise ValueError("dynamic_weight_share must be in [0, 1]")
+        if self.semantic_change_tolerance < 0:
+            raise ValueError("semantic_change_tolerance must be >= 0")
+
+    def __post_init__(self) -> None:
+        self.check_time_varying()

