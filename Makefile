@@ -28,6 +28,7 @@ test:
 	$(TEST_VENV)/bin/python -m pip install -q --upgrade pip
 	$(TEST_VENV)/bin/python -m pip install -q "$(TORCH_SPEC)"
 	$(TEST_VENV)/bin/python -m pip install -q -e ".[text,test]"
+	bash tests/browser_setup.sh
 	$(TEST_VENV)/bin/python -m pytest $(PYTEST_ARGS)
 
 clean:
