@@ -73,6 +73,17 @@ class GrabCutConfig:
     """GrabCut iterations after corrective clicks."""
     click_radius_px: float = 6.0
     """Radius of the hard-labelled disk around a corrective click, in full-resolution pixels."""
+    flood_tolerance: float = 8.0
+    """A click also claims the connected region around it whose CIELAB channels stay within this
+    of the clicked colour (as "probably" labels); 0 disables."""
+    flood_reach: float = 0.2
+    """That region is cut to a disk of this fraction of the crop's larger side around the click."""
+    background_prior: bool = True
+    """Start box pixels whose colour matches the context ring as "probably background"."""
+    ring_colours: int = 6
+    """Colour clusters (k-means) summarising the context ring for :attr:`background_prior`."""
+    ring_distance: float = 10.0
+    """A box pixel within this CIELAB distance of a ring cluster counts as background-coloured."""
 
 
 class GrabCutSegmenter:
@@ -134,12 +145,33 @@ class GrabCutSegmenter:
             labels[outside & (cur == 0)] = cv2.GC_BGD
         else:
             labels[r0:r1, c0:c1] = cv2.GC_PR_FGD
+            if self.config.background_prior:
+                # inside the box, pixels coloured like the context ring start as "probably background":
+                # otherwise a box around a thin or spread-out object (limbs, a person with arms
+                # out) teaches GrabCut's object model the background colour seen between the limbs
+                like_bg = _like_ring(small, labels == cv2.GC_BGD, self.config.ring_colours,
+                                     self.config.ring_distance)
+                inside = np.zeros((sh, sw), bool)
+                inside[r0:r1, c0:c1] = True
+                labels[inside & like_bg] = cv2.GC_PR_BGD
         if not (labels == cv2.GC_BGD).any():
             # the box fills the whole image: let the crop's border ring stand in for background
             ring = np.zeros((sh, sw), bool)
             ring[:2, :], ring[-2:, :], ring[:, :2], ring[:, -2:] = True, True, True, True
             labels[ring & (labels != cv2.GC_FGD)] = cv2.GC_PR_BGD
         radius = max(1, int(round(self.config.click_radius_px * scale)))
+        if self.config.flood_tolerance > 0 and clicks:
+            # a click speaks for the uniform region around it, not only its disk: that region starts
+            # on the clicked side ("probably"), so one right click on a face removes the face
+            lab = cv2.cvtColor(small, cv2.COLOR_RGB2LAB)
+            reach = max(radius, int(self.config.flood_reach * max(sh, sw)))
+            for x, y, lbl in clicks:
+                centre = (int((x - cx0) * sx), int((y - cy0) * sy))
+                region = _flood(lab, centre, self.config.flood_tolerance, reach)
+                if lbl == 1:
+                    labels[region & (labels != cv2.GC_FGD) & (labels != cv2.GC_BGD)] = cv2.GC_PR_FGD
+                else:
+                    labels[region & (labels != cv2.GC_FGD)] = cv2.GC_PR_BGD
         for x, y, lbl in clicks:
             centre = (int((x - cx0) * sx), int((y - cy0) * sy))
             cv2.circle(labels, centre, radius, int(cv2.GC_FGD if lbl == 1 else cv2.GC_BGD), thickness=-1)
@@ -167,6 +199,42 @@ class GrabCutSegmenter:
             out |= keep
         _stamp_clicks(out, clicks, self.config.click_radius_px)
         return out
+
+
+def _like_ring(image: np.ndarray, ring: np.ndarray, k: int, distance: float) -> np.ndarray:
+    """(h, w) bool: pixels of ``image`` (uint8 RGB) within ``distance`` (CIELAB) of a ring colour cluster."""
+    samples = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(np.float32)
+    ring_px = samples[ring]
+    if ring_px.shape[0] < 2 * k:
+        return np.zeros(image.shape[:2], bool)
+    rng = np.random.default_rng(0)
+    if ring_px.shape[0] > 4000:
+        ring_px = ring_px[rng.choice(ring_px.shape[0], 4000, replace=False)]
+    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 0.5)
+    cv2.setRNGSeed(0)
+    _, _, centres = cv2.kmeans(ring_px, k, None, criteria, 2, cv2.KMEANS_PP_CENTERS)
+    flat = samples.reshape(-1, 3)
+    d2 = ((flat[:, None, :] - centres[None, :, :]) ** 2).sum(-1).min(1)
+    return (d2 <= distance ** 2).reshape(image.shape[:2])
+
+
+def _flood(lab: np.ndarray, seed: tuple[int, int], tolerance: float, reach: int) -> np.ndarray:
+    """(h, w) bool: pixels connected to ``seed`` (x, y) within ``tolerance`` of its colour, within ``reach``."""
+    h, w = lab.shape[:2]
+    x, y = seed
+    if not (0 <= x < w and 0 <= y < h):
+        return np.zeros((h, w), bool)
+    x0, y0, x1, y1 = max(0, x - reach), max(0, y - reach), min(w, x + reach + 1), min(h, y + reach + 1)
+    crop = np.ascontiguousarray(lab[y0:y1, x0:x1])
+    mask = np.zeros((y1 - y0 + 2, x1 - x0 + 2), np.uint8)
+    tol = (tolerance,) * 3
+    cv2.floodFill(crop, mask, (x - x0, y - y0), (0, 0, 0), tol, tol,
+                  4 | cv2.FLOODFILL_FIXED_RANGE | cv2.FLOODFILL_MASK_ONLY | (1 << 8))
+    out = np.zeros((h, w), bool)
+    region = mask[1:-1, 1:-1].astype(bool)
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    out[y0:y1, x0:x1] = region & ((xx - x) ** 2 + (yy - y) ** 2 <= reach ** 2)
+    return out
 
 
 def _stamp_clicks(mask: np.ndarray, clicks: Sequence[Click], radius: float) -> None:

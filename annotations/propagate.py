@@ -64,6 +64,9 @@ class PropagationConfig:
     """GrabCut iterations of the edge refinement."""
     grabcut_max_side: int = 384
     """A refinement crop larger than this is downscaled first (GrabCut's cost grows with area)."""
+    compose_motion: bool = True
+    """In a chain, warp the last anchor mask (the start, or the last refined / per-pixel result) by
+    the composed motion instead of re-warping each step's output (one resampling, not one per step)."""
     max_refine_change: float = 0.2
     """If the refinement changes more than this fraction of the warped mask's area, it is rejected
     (GrabCut's colour model failed) and the warped mask kept."""
@@ -221,8 +224,15 @@ def refine_edge(image: np.ndarray, mask: np.ndarray, config: PropagationConfig) 
 
 
 def propagate_step(src_image: np.ndarray, dst_image: np.ndarray, src_mask: np.ndarray,
-                   config: Optional[PropagationConfig] = None) -> StepResult:
-    """Carry ``src_mask`` (H, W) from ``src_image`` to ``dst_image`` (both (H, W, 3) uint8)."""
+                   config: Optional[PropagationConfig] = None,
+                   anchor: Optional[tuple[np.ndarray, np.ndarray]] = None) -> StepResult:
+    """Carry ``src_mask`` (H, W) from ``src_image`` to ``dst_image`` (both (H, W, 3) uint8).
+
+    ``anchor = (keyframe mask (H, W), (2, 3) affine keyframe -> source)``: when the motion fit
+    succeeds, the *keyframe's* mask is warped by the composed motion instead of ``src_mask``, so a
+    chain of steps resamples the mask once rather than once per step (no accumulated blur, no drift
+    from re-thresholding). :attr:`StepResult.matrix` is then keyframe -> target.
+    """
     config = config or PropagationConfig()
     src_mask = np.asarray(src_mask).astype(bool)
     if src_image.shape[:2] != src_mask.shape or dst_image.shape[:2] != src_mask.shape:
@@ -240,7 +250,12 @@ def propagate_step(src_image: np.ndarray, dst_image: np.ndarray, src_mask: np.nd
         # crop coordinates -> full image: T(+x0,+y0) . M . T(-x0,-y0)
         full = matrix.astype(np.float64).copy()
         full[:, 2] += np.array([x0, y0], np.float64) - full[:, :2] @ np.array([x0, y0], np.float64)
-        warped = warp_by_affine(src_mask, full)
+        if anchor is not None:
+            anchor_mask, to_src = anchor
+            full = compose_affine(full, to_src)
+            warped = warp_by_affine(anchor_mask, full)
+        else:
+            warped = warp_by_affine(src_mask, full)
         result = StepResult(warped, "affine", ratio, full)
     else:
         back = dis_flow(dst_gray, src_gray, config.flow_preset)
@@ -259,15 +274,32 @@ def propagate_chain(images: Sequence[np.ndarray] | Callable[[int], np.ndarray], 
     ``images`` is a sequence or a function ``i -> (H, W, 3) uint8`` (lazy loading).
     """
     get = images if callable(images) else images.__getitem__
+    cfg = config or PropagationConfig()
     out: list[StepResult] = []
     mask = np.asarray(start_mask).astype(bool)
+    anchor = (mask, IDENTITY.copy())
     prev = get(0)
     for i in range(1, count + 1):
         cur = get(i)
-        step = propagate_step(prev, cur, mask, config)
+        step = propagate_step(prev, cur, mask, cfg, anchor=anchor)
         out.append(step)
+        # motion fits compose from the last anchor; a refined or per-pixel step becomes the new anchor
+        if step.method == "affine" and not step.refined and cfg.compose_motion:
+            anchor = (anchor[0], step.matrix)
+        else:
+            anchor = (step.mask, IDENTITY.copy())
         mask, prev = step.mask, cur
     return out
+
+
+IDENTITY = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+
+
+def compose_affine(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:
+    """(2, 3) affine ``outer . inner`` (apply ``inner`` first)."""
+    a = np.vstack([outer, [0.0, 0.0, 1.0]])
+    b = np.vstack([inner, [0.0, 0.0, 1.0]])
+    return (a @ b)[:2]
 
 
 def signed_distance(mask: np.ndarray) -> np.ndarray:

@@ -16,7 +16,7 @@ Each finding names a query, a frame and a kind; the reviewer jumps there and dec
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import NamedTuple, Optional, Sequence
 
 import cv2
 import numpy as np
@@ -38,8 +38,17 @@ class ReviewConfig:
     """``mask-outside-interval`` looks this many time steps beyond each interval edge."""
 
 
-def review(aset: AnnotationSet, frame_index: dict[str, int], config: Optional[ReviewConfig] = None) -> list[dict]:
-    """Findings for ``aset``; ``frame_index`` maps frame names to the tool's frame indices.
+class _FrameRef(NamedTuple):
+    name: str
+    time_index: int
+
+
+def review(aset: AnnotationSet, tool_frames: Sequence[tuple[int, str, int, str]],
+           config: Optional[ReviewConfig] = None) -> list[dict]:
+    """Findings for ``aset``; ``tool_frames`` lists the tool's frames as (index, name, time_index, split).
+
+    The interval checks look at every tool frame of a split that has annotated frames (the
+    evaluated split: annotating test frames does not make every training frame a finding).
 
     Returns dicts ``{"kind", "query", "frame" (tool index or None), "frame_name", "time_index", "message"}``
     sorted by query then time.
@@ -47,6 +56,9 @@ def review(aset: AnnotationSet, frame_index: dict[str, int], config: Optional[Re
     config = config or ReviewConfig()
     findings: list[dict] = []
     frames_by_id = {f.id: f for f in aset.frames}
+    frame_index = {name: i for i, name, _, _ in tool_frames}
+    id_by_name = {f.name: f.id for f in aset.frames}
+    evaluated = {split for _, name, _, split in tool_frames if name in id_by_name}
 
     def add(kind: str, qid: int, frame, message: str) -> None:
         findings.append({"kind": kind, "query": qid, "frame": frame_index.get(frame.name),
@@ -77,9 +89,12 @@ def review(aset: AnnotationSet, frame_index: dict[str, int], config: Optional[Re
     for q in aset.sensitive_queries:
         if q.base is None:
             continue
-        for frame in aset.frames:
-            t = frame.time_index
-            rle = aset.masks.get((q.base, frame.id))
+        for index, name, t, split in tool_frames:
+            if split not in evaluated:
+                continue
+            frame = _FrameRef(name, t)
+            fid = id_by_name.get(name)
+            rle = None if fid is None else aset.masks.get((q.base, fid))
             inside = q.holds_at(t)
             if inside and rle is None:
                 add("no-mask-in-interval", q.id, frame,

@@ -18,6 +18,8 @@ import hmac
 import json
 import re
 import secrets
+import signal
+import socket
 import sys
 import threading
 import traceback
@@ -60,8 +62,8 @@ class AnnotationServer(ThreadingHTTPServer):
 
     def __init__(self, session: AnnotationSession, host: str = "127.0.0.1", port: int = 0,
                  token: Optional[str] = None, extra_hosts: tuple[str, ...] = ()):
-        if ":" in host and not host.startswith("["):
-            self.address_family = __import__("socket").AF_INET6
+        if ":" in host.strip("[]"):
+            self.address_family = socket.AF_INET6
         super().__init__((host.strip("[]"), port), _Handler)
         self.session = session
         self.token = token or secrets.token_urlsafe(24)
@@ -198,6 +200,9 @@ class _Handler(BaseHTTPRequestHandler):
     def _route_get(self, url) -> None:
         s = self.server.session
         path = url.path
+        if path == "/favicon.ico":
+            self._send(HTTPStatus.NO_CONTENT, b"", "image/x-icon", cache="max-age=86400")
+            return
         if path in ("/", "/index.html"):
             self._static("index.html")
             return
@@ -261,6 +266,10 @@ class _Handler(BaseHTTPRequestHandler):
             self._error(HTTPStatus.NOT_FOUND, "not found")
 
 
+def _terminate(signum, frame) -> None:  # noqa: ARG001 - signal handler signature
+    raise KeyboardInterrupt
+
+
 def serve(session: AnnotationSession, host: str = "127.0.0.1", port: int = 0, *, token: Optional[str] = None,
           quiet: bool = True, ready: Optional[threading.Event] = None, announce=print) -> None:
     """Run the server until interrupted; prints the address first. Releases the session's lock."""
@@ -273,6 +282,8 @@ def serve(session: AnnotationSession, host: str = "127.0.0.1", port: int = 0, *,
     sys.stdout.flush()
     if ready is not None:
         ready.set()
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _terminate)  # a plain kill still releases the lock file
     try:
         httpd.serve_forever(poll_interval=0.2)
     except KeyboardInterrupt:

@@ -65,6 +65,9 @@ class SessionConfig:
     """Recorded in ``info.annotator`` (a scripted session must say so, e.g. ``"scripted"``)."""
     method: Optional[str] = None
     """Recorded in ``info.method`` when given (how masks were made, for scripted sessions)."""
+    record_timing: bool = True
+    """Add the page's active editing time per frame to ``info.annotation_seconds`` (off for scripted
+    sessions, whose timings would say nothing about human effort)."""
     autosave_delay_ms: int = 1000
     """The page saves this long after an edit (and at once on frame change)."""
     image_cache: int = 48
@@ -376,6 +379,10 @@ class AnnotationSession:
         info["revision"] = self.revision
         info["saved"] = _now()
         info.setdefault("annotator", self.config.annotator)
+        # everyone who edited the file, so a scripted pass over a human file (or back) stays visible
+        who = info.setdefault("annotators", [info["annotator"]])
+        if self.config.annotator not in who:
+            who.append(self.config.annotator)
         if self.config.method:
             info["method"] = self.config.method
         info["segmenter"] = self.segmenter.name
@@ -469,7 +476,7 @@ class AnnotationSession:
                 raise
 
     def _add_timing(self, timing: Any) -> None:
-        if not timing:
+        if not timing or not self.config.record_timing:
             return
         if not isinstance(timing, dict):
             raise InputError(None, "timing", "expected {frame index: seconds}")
@@ -615,7 +622,8 @@ class AnnotationSession:
 
     def review(self) -> list[dict]:
         with self._lock:
-            return review(self.aset, self.index_of, self.config.review)
+            return review(self.aset, [(i, f.name, f.time_index, f.split) for i, f in enumerate(self.frames)],
+                          self.config.review)
 
     # -- import / export ------------------------------------------------------------------------
     def export(self, fmt: Any) -> dict:

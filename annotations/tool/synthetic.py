@@ -69,12 +69,14 @@ def _object_sprite(rng: np.random.Generator, radius: int, palette: str) -> tuple
 
 def rigid_sequence(num_frames: int = 60, width: int = 960, height: int = 540, *, seed: int = 0,
                    radius_frac: float = 0.16, travel_frac: float = 0.5, total_turn_deg: float = 45.0,
-                   scale_change: float = 0.1, palette: str = "warm", noise: float = 3.0) -> RigidSequence:
+                   scale_change: float = 0.1, palette: str = "warm", noise: float = 3.0,
+                   blur: float = 0.8) -> RigidSequence:
     """Render ``num_frames`` frames of one textured blob translating, rotating and scaling slightly.
 
     The object (radius ``radius_frac * height``) crosses ``travel_frac`` of the width, turns by
     ``total_turn_deg`` and grows by ``scale_change`` (relative) over the sequence. ``palette`` as in
-    :func:`_object_sprite`; ``noise`` is the standard deviation of per-frame sensor noise, in 8-bit levels.
+    :func:`_object_sprite`; ``noise`` is the standard deviation of per-frame sensor noise, in 8-bit levels;
+    ``blur`` the sigma (pixels) of a Gaussian lens blur. The true mask is the object's coverage >= 0.5.
     """
     rng = np.random.default_rng(seed)
     background = _background(rng, height, width)
@@ -94,7 +96,9 @@ def rigid_sequence(num_frames: int = 60, width: int = 960, height: int = 540, *,
         tex = cv2.warpAffine(sprite, m, (width, height), flags=cv2.INTER_LINEAR, borderValue=0)
         a = cv2.warpAffine(alpha, m, (width, height), flags=cv2.INTER_LINEAR, borderValue=0)
         mask = a >= 0.5
-        frame = np.where(mask[..., None], tex, background)
+        # soft (anti-aliased) edge and a slight lens blur, as a camera would record it
+        frame = a[..., None] * tex + (1.0 - a[..., None]) * background
+        frame = cv2.GaussianBlur(frame, (0, 0), blur) if blur > 0 else frame
         frame = frame * 255.0 + rng.normal(0.0, noise, frame.shape)
         images.append(np.clip(frame + 0.5, 0, 255).astype(np.uint8))
         masks.append(mask)
@@ -121,7 +125,8 @@ def write_dnerf_scene(sequence: RigidSequence, out_dir: str | Path, *, split: st
         write_image(out / f"{rel}{ext}", img)
         # OpenGL camera-to-world: 4 units in front of the origin, looking down -z
         c2w = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 4.0], [0.0, 0.0, 0.0, 1.0]]
-        frames.append({"file_path": f"./{rel}", "time": t / max(1, n - 1), "transform_matrix": c2w})
+        shown = f"./{rel}" if ext == ".png" else f"./{rel}{ext}"  # D-NeRF leaves out only .png
+        frames.append({"file_path": shown, "time": t / max(1, n - 1), "transform_matrix": c2w})
     write_json(out / f"transforms_{split}.json", {"camera_angle_x": 0.69, "frames": frames})
     if split != "train":
         write_json(out / "transforms_train.json", {"camera_angle_x": 0.69, "frames": []})

@@ -32,6 +32,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="recorded in the file's info (use 'scripted' for automated sessions)")
     parser.add_argument("--method", default=None,
                         help="recorded in the file's info.method (how masks were made; for scripted sessions)")
+    parser.add_argument("--no-timing", action="store_true",
+                        help="do not record active editing time per frame (scripted sessions)")
     parser.add_argument("--autosave-ms", type=int, default=1000, help="autosave delay after an edit (default 1000)")
     parser.add_argument("--verbose", action="store_true", help="log every request")
 
@@ -60,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
     segmenter = make_segmenter(args.segmenter, sam_checkpoint=args.sam_checkpoint, sam_model=args.sam_model,
                                cache_dir=cache_dir)
     config = SessionConfig(split=args.split, annotator=args.annotator, method=args.method,
-                           autosave_delay_ms=args.autosave_ms)
+                           record_timing=not args.no_timing, autosave_delay_ms=args.autosave_ms)
     session = AnnotationSession(scene, path, segmenter=segmenter, config=config)
     serve(session, args.host, args.port, quiet=not args.verbose)
     return 0

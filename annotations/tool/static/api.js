@@ -2,7 +2,7 @@
 
 const TOKEN_KEY = "bench4d-token";
 
-// The server prints http://host:port/#token=...; the fragment never leaves the browser. Keep the
+// The server prints the page address with "#token=..." at its end; a fragment never leaves the browser. Keep the
 // token for this tab (reloads) and take it out of the address bar.
 export function readToken() {
   const m = /(?:^#|&)token=([A-Za-z0-9_-]+)/.exec(window.location.hash);
