@@ -18,7 +18,6 @@ import argparse
 import dataclasses
 import json
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -49,12 +48,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=None, help="output folder (default reports/recon/<scene>)")
     parser.add_argument("--cache-dir", type=Path, default=Path("cache"), help="where presets are generated")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--threads", type=int, default=None,
-                        help="torch threads per training process (default: min(2, CPU count))")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch threads per training process (default 1: on a shared 2-core machine a "
+                             "second thread costs several times the CPU per step, see reports/rasterizer_cpu.md)")
     parser.add_argument("--device", default="cpu", help="cpu or cuda[:N]")
     parser.add_argument("--renders", type=int, default=3, help="test renders saved per model as PNG")
     parser.add_argument("--compare-static-skip", action="store_true",
                         help="also train 4D-GS with static-Gaussian skipping off and compare")
+    parser.add_argument("--save-models", action="store_true",
+                        help="also save each trained model as <out>/<model>.pt (torch.save of its tensors)")
     parser.add_argument("--no-isolate", action="store_true",
                         help="train in this process (peak memory then covers everything before it)")
     parser.add_argument("--log-every", type=int, default=0, help="print training progress every N iterations")
@@ -130,11 +132,10 @@ def fit_and_evaluate(job: dict) -> dict:
     import functools
     import resource
 
-    import numpy as np
     import torch
 
     from methods.gaussians.rasterize import rasterize
-    from methods.gaussians.train import Trainer, evaluate, make_views, measure_static_skip
+    from methods.gaussians.train import Trainer, evaluate, measure_static_skip
 
     from ..imageio import write_image
 
@@ -180,6 +181,11 @@ def fit_and_evaluate(job: dict) -> dict:
             effect["test_psnr_full"] = full["psnr"]
             entry["static_skip"] = effect
     out_dir = Path(job["out_dir"])
+    if job.get("save_model"):
+        from methods.gaussians.model import save_model
+
+        save_model(out_dir / f"{job.get('label', kind)}.pt", result.model)
+        entry["model_file"] = str(out_dir / f"{job.get('label', kind)}.pt")
     saved = []
     for name, pred, gt in ev["renders"]:
         pred_path = out_dir / "renders" / f"{job.get('label', kind)}_{name}.png"
@@ -264,7 +270,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(None, "--size", f"must be positive, got {args.size}")
     if args.scale is not None and args.scale <= 0:
         raise InputError(None, "--scale", f"must be positive, got {args.scale}")
-    threads = args.threads or min(2, os.cpu_count() or 1)
+    threads = args.threads
     if threads < 1:
         raise InputError(None, "--threads", f"must be >= 1, got {threads}")
     cfg = build_config(args)
@@ -296,7 +302,7 @@ def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     for job in jobs:
         job.update({"scene_dir": str(scene_dir), "scale": args.scale, "device": args.device, "threads": threads,
-                    "renders": args.renders, "out_dir": str(out_dir)})
+                    "renders": args.renders, "out_dir": str(out_dir), "save_model": args.save_models})
         print(f"  training {job['label']} ...", flush=True)
         entry = run_job(job, isolate=not args.no_isolate)
         report["models"][job["label"]] = entry

@@ -40,14 +40,26 @@ class LanguageMethodConfig:
     """Encoder widths between D and the latent; the decoder mirrors them (release: 256-128-64-32)."""
     ae_cosine_weight: float = 1.0
     """Weight of the ``1 - cos`` term added to the MSE (release: 1)."""
-    ae_learning_rate: float = 1e-3
-    """Adam learning rate (release: 1e-4 over pixel-level data; distinct mask features are few)."""
+    ae_learning_rate: float = 3e-4
+    """Adam learning rate (release: 1e-4 over every pixel's feature)."""
     ae_batch_size: int = 64
     """Minibatch size (release: 64)."""
     ae_epochs: int = 100
-    """Epochs over the distinct features (release: 100)."""
-    ae_max_steps: int = 3000
-    """Cap on autoencoder steps."""
+    """Epochs over the distinct features (release: 100 epochs over every pixel's feature)."""
+    ae_min_steps: int = 8000
+    """At least this many steps: 100 epochs over a few distinct mask features (the oracle track has
+    one per object name) are a few hundred steps, far from the release's millions of pixel samples;
+    text embeddings of names differ by a few hundredths of cosine, so the decoder must be precise
+    (the reconstruction cosine is reported in the fit's info)."""
+    ae_max_steps: int = 10000
+    """Cap on autoencoder steps (bounds the cost with many distinct features, e.g. CLIP on SAM masks)."""
+
+    unmasked_text: Optional[str] = "background"
+    """Pixels that no mask of a level covers are supervised at that level as one more mask whose
+    feature is this text's passage embedding (the run's text encoder / the image-text source's text
+    tower). The paper's SAM masks cover (nearly) every pixel, background included; the oracle
+    segmenter leaves the surroundings unmasked, and unsupervised Gaussians decode to arbitrary
+    features that the min-max threshold then selects. ``None`` = leave them unsupervised (release)."""
 
     # --- language field (per-Gaussian latents of the three levels, geometry frozen) ---------------
     field_iterations: int = 1200
@@ -98,7 +110,7 @@ class LanguageMethodConfig:
             raise ValueError(f"sensitive_mask must be 'unfiltered' or 'filtered', got {self.sensitive_mask!r}")
         if self.render_backend not in ("auto", "torch", "gsplat"):
             raise ValueError(f"render_backend must be 'auto', 'torch' or 'gsplat', got {self.render_backend!r}")
-        for name in ("static_iterations", "deformation_iterations", "field_iterations", "ae_max_steps"):
+        for name in ("static_iterations", "deformation_iterations", "field_iterations", "ae_max_steps", "ae_min_steps"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0")
         if self.smoothing_kernel % 2 == 0 or self.majority_kernel % 2 == 0:

@@ -86,14 +86,22 @@ class TimeVaryingOptions:
     dynamic_weight_share: float = 0.2
     """A Gaussian carries states when at least this share of its accumulated blending weight over
     the training views falls on semantically changing objects."""
-    state_silhouette_min: float = 0.05
-    """Distinct caption states of a changing object: the k in 2..cap whose k-means clustering of its
-    caption embeddings has the best silhouette; below this silhouette the object counts 2 states."""
+    min_state_run: float = 4.0
+    """Distinct caption states of a changing object: the largest k whose k-means clusters of its
+    captions (in time order) each last at least this many consecutive frames per run on average;
+    paraphrases of one state, drawn frame by frame, alternate in short runs (a cluster holding a
+    fraction p of a state's frames at random has mean runs of 1 / (1 - p) frames: 4 needs p >= 0.75,
+    while the other clusters of that split then run about 1 / p <= 1.33 frames and fail)."""
 
     # --- engineering ----------------------------------------------------------------------------------
+    blend_operators: bool = True
+    """Record each training view's sparse alpha-blending operator once (geometry is frozen, so
+    rendering a feature is a fixed sparse linear map) and train by sparse products instead of
+    rasterizing every step: the same loss to float rounding, tens of times faster on CPU. Checked
+    against a rendering per view; views that do not match, or exceed the budget, rasterize."""
     tv_cache_view_mib: float = 512.0
-    """Per-view frozen inputs (deformed Gaussians, HexPlane features) are cached while they fit in
-    this many MiB; beyond it they are recomputed each step."""
+    """Memory for what is cached per training view (blending operators first, then HexPlane inputs);
+    beyond it views are rasterized / recomputed each step."""
 
     def check_time_varying(self) -> None:
         """Raise ``ValueError`` on inconsistent options (called by the configs' ``__post_init__``)."""

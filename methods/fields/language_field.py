@@ -1,0 +1,432 @@
+"""The time-agnostic language field: per-Gaussian latent features on ONE frozen geometry.
+
+4D LangSplat (and LangSplat before it) attaches a low-dimensional latent feature to every Gaussian
+for each of the three SAM levels (small / middle / large) and renders it like a colour; the
+autoencoder of :mod:`methods.fields.autoencoder` maps rendered latents back to the language space.
+The release trains a separate Gaussian model per level, each relearning the RGB geometry; here the
+three levels are three groups of channels of ONE model, rendered together in one rasterizer call
+(``levels x latent`` channels, 9 by default), on a geometry that is fitted once and then frozen.
+
+* :class:`FrozenGeometry`: a fitted static 3D-GS or deformable 4D-GS reduced to what shapes the
+  Gaussians (means, rotations, scales, opacities, deformation field); colours are dropped.
+  :meth:`FrozenGeometry.at` gives the Gaussians at time ``t`` (a static geometry ignores ``t``).
+  Features do not deform, as in the paper: only positions, scales and rotations move.
+* :class:`LanguageField`: the ``[N, levels * latent]`` feature table and its rendering.
+* :func:`train_language_field`: L1 between rendered and target latents inside the valid masks of
+  every level (pixels covered by a mask of that level), geometry frozen, Adam.
+* :func:`render_levels` / :func:`decode_for_relevance`: the query side (render the latent maps at a
+  frame's camera and time, decode each level, and reduce the decoded features to the few
+  coordinates the LERF relevance needs, exactly, so the protocol's :func:`query_levels` runs on
+  small tensors at any image size).
+
+Everything takes a ``device`` and stays on it; numpy appears only where supervision comes in.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Optional, Sequence
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from benchmark.scene import Camera
+
+
+# ---------------------------------------------------------------------------------------------------
+# Configuration
+# ---------------------------------------------------------------------------------------------------
+@dataclass
+class LanguageFieldConfig:
+    """Shape and training of the time-agnostic language field."""
+
+    num_levels: int = 3
+    """Feature levels carried by every Gaussian (SAM small / middle / large: 3)."""
+    latent_dim: int = 3
+    """Latent channels per level (paper: the CLIP autoencoder's 3)."""
+    iterations: int = 1200
+    """Optimisation steps, one training view each. The release refines the language field for
+    10 000 iterations (4D LangSplat) or 30 000 (LangSplat) on a GPU; the field is a linear function
+    of the features once geometry is frozen, so a few hundred passes over the training views fit it."""
+    learning_rate: float = 1e-2
+    """Adam learning rate of the features (release: 2.5e-3 over 10 000+ iterations; the shorter CPU
+    schedule needs a larger step to move zero-initialised features to unit-norm latents)."""
+    loss_weight: float = 0.2
+    """Weight of the language L1 loss (protocol: 0.2). With geometry frozen it only rescales the
+    gradient, which Adam normalises; kept so that the loss values match the recipe's."""
+    init_std: float = 0.0
+    """Standard deviation of the initial features (release: zeros)."""
+    render_backend: str = "auto"
+    """Rasterizer backend (``"auto"``: gsplat on CUDA when importable, else the PyTorch one)."""
+    near: float = 0.01
+    """Near plane passed to the rasterizer (camera-space depth)."""
+    cache_view_geometry_mib: float = 512.0
+    """Deformed Gaussians of the training views are computed once and kept while they fit in this
+    many MiB (geometry is frozen, so they never change); beyond it they are recomputed per step."""
+    log_every: int = 100
+    """Record the loss every this many steps (in the training report)."""
+
+    @property
+    def channels(self) -> int:
+        """Rendered channels: ``num_levels * latent_dim``."""
+        return self.num_levels * self.latent_dim
+
+
+# ---------------------------------------------------------------------------------------------------
+# Frozen geometry
+# ---------------------------------------------------------------------------------------------------
+@dataclass
+class GaussianState:
+    """Activated Gaussians at one time (all detached)."""
+
+    means: torch.Tensor
+    """[N, 3] world positions."""
+    quats: torch.Tensor
+    """[N, 4] unit quaternions (w, x, y, z)."""
+    scales: torch.Tensor
+    """[N, 3] activated scales."""
+    opacities: torch.Tensor
+    """[N] activated opacities."""
+
+    def nbytes(self) -> int:
+        return sum(t.numel() * t.element_size() for t in (self.means, self.quats, self.scales, self.opacities))
+
+
+class FrozenGeometry:
+    """A fitted Gaussian geometry (static 3D-GS or deformable 4D-GS), colours dropped, nothing trainable.
+
+    Wraps the Gaussian core's own classes so deformation is exactly what training used
+    (:meth:`methods.gaussians.model.DeformableGaussians.deform`).
+    """
+
+    def __init__(self, model) -> None:
+        """``model``: a :class:`~methods.gaussians.model.GaussianModel` or
+        :class:`~methods.gaussians.model.DeformableGaussians`."""
+        from methods.gaussians.model import DeformableGaussians, GaussianModel
+
+        if isinstance(model, DeformableGaussians):
+            self.kind = "4dgs"
+            gaussians = model.gaussians
+        elif isinstance(model, GaussianModel):
+            self.kind = "3dgs"
+            gaussians = model
+        else:
+            raise TypeError(f"expected GaussianModel or DeformableGaussians, got {type(model).__name__}")
+        p = gaussians.params
+        n = p["means"].shape[0]
+        dev = p["means"].device
+        # Shape only: SH colour is irrelevant to the language field (degree 0, zero coefficients).
+        shape_params = {"means": p["means"].detach(), "quats": p["quats"].detach(),
+                        "log_scales": p["log_scales"].detach(), "opacity_logits": p["opacity_logits"].detach(),
+                        "sh_dc": torch.zeros(n, 1, 3, device=dev), "sh_rest": torch.zeros(n, 0, 3, device=dev)}
+        self.gaussians = GaussianModel(shape_params, sh_degree=0)
+        for t in self.gaussians.params.values():
+            t.requires_grad_(False)
+        self.deformable = None
+        if self.kind == "4dgs":
+            model.field.requires_grad_(False)
+            self.deformable = DeformableGaussians(self.gaussians, model.field)
+            self.deformable.dynamic_mask = None if model.dynamic_mask is None else model.dynamic_mask.detach().clone()
+
+    @property
+    def num_gaussians(self) -> int:
+        return self.gaussians.num_gaussians
+
+    @property
+    def device(self) -> torch.device:
+        return self.gaussians.params["means"].device
+
+    @property
+    def is_dynamic(self) -> bool:
+        return self.deformable is not None
+
+    @torch.no_grad()
+    def at(self, t: float) -> GaussianState:
+        """The Gaussians at time ``t`` in [0, 1] (a static geometry ignores ``t``)."""
+        g = self.gaussians
+        if self.deformable is None:
+            means, quats, scales = g.means, g.quats, g.scales
+        else:
+            means, quats, scales = self.deformable.deform(float(t), skip_static=True)
+        return GaussianState(means, quats, scales, g.opacities)
+
+    @torch.no_grad()
+    def hexplane_features(self, t: float, means: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """[N, F] frozen HexPlane features at time ``t`` (the status field's input); 4D-GS only."""
+        if self.deformable is None:
+            raise ValueError("a static 3D-GS geometry has no HexPlane features")
+        return self.deformable.hexplane_features(float(t), means)
+
+    # -- persistence ---------------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        p = self.gaussians.params
+        state = {"kind": self.kind,
+                 "shape": {k: p[k].detach().cpu() for k in ("means", "quats", "log_scales", "opacity_logits")}}
+        if self.deformable is not None:
+            fld = self.deformable.field
+            state["deformation"] = {
+                "config": dataclasses.asdict(fld.cfg),
+                "time_resolution": int(fld.hexplane.time_resolution),
+                "state": {k: v.detach().cpu() for k, v in fld.state_dict().items()},
+                "dynamic_mask": None if self.deformable.dynamic_mask is None else self.deformable.dynamic_mask.cpu(),
+            }
+        return state
+
+    @staticmethod
+    def from_state_dict(state: dict, device: torch.device | str = "cpu") -> "FrozenGeometry":
+        from methods.gaussians.config import DeformationConfig, HexPlaneConfig
+        from methods.gaussians.hexplane import DeformationField
+        from methods.gaussians.model import DeformableGaussians, GaussianModel
+
+        shape = {k: v.to(device) for k, v in state["shape"].items()}
+        n = shape["means"].shape[0]
+        params = {**shape, "sh_dc": torch.zeros(n, 1, 3, device=device), "sh_rest": torch.zeros(n, 0, 3, device=device)}
+        gm = GaussianModel(params, sh_degree=0)
+        if state["kind"] == "3dgs":
+            return FrozenGeometry(gm)
+        d = state["deformation"]
+        cfg_dict = dict(d["config"])
+        hp = dict(cfg_dict.pop("hexplane"))
+        hp["multires"] = tuple(hp["multires"])
+        cfg = DeformationConfig(hexplane=HexPlaneConfig(**hp), **cfg_dict)
+        box_min = d["state"]["hexplane.box_min"]
+        bounds = torch.stack([box_min, box_min + d["state"]["hexplane.box_size"]])
+        fld = DeformationField(cfg, bounds, d["time_resolution"])
+        fld.load_state_dict(d["state"])
+        deformable = DeformableGaussians(gm, fld.to(device))
+        deformable.dynamic_mask = None if d["dynamic_mask"] is None else d["dynamic_mask"].to(device)
+        return FrozenGeometry(deformable)
+
+
+# ---------------------------------------------------------------------------------------------------
+# The field
+# ---------------------------------------------------------------------------------------------------
+def camera_tensors(camera: Camera, device: torch.device | str) -> tuple[torch.Tensor, torch.Tensor, int, int]:
+    """``(viewmat [4, 4], K [3, 3], width, height)`` of ``camera`` for the rasterizer."""
+    from methods.gaussians.rasterize import camera_to_tensors
+
+    return camera_to_tensors(camera, device=device)
+
+
+class LanguageField(nn.Module):
+    """Per-Gaussian latent features of every level: ``features`` [N, levels * latent_dim].
+
+    Channel ``l * latent_dim + k`` is latent coordinate ``k`` of level ``l``.
+    """
+
+    def __init__(self, num_gaussians: int, cfg: Optional[LanguageFieldConfig] = None, *,
+                 generator: Optional[torch.Generator] = None, device: torch.device | str = "cpu") -> None:
+        super().__init__()
+        self.cfg = cfg or LanguageFieldConfig()
+        init = torch.zeros(num_gaussians, self.cfg.channels)
+        if self.cfg.init_std > 0:
+            init = self.cfg.init_std * torch.randn(num_gaussians, self.cfg.channels, generator=generator)
+        self.features = nn.Parameter(init.to(device))
+
+    def render(self, state: GaussianState, camera: Camera) -> torch.Tensor:
+        """[L, H, W, d] rendered latent maps of every level at ``camera`` (one rasterizer call).
+
+        Differentiable in :attr:`features` only (``state`` is frozen); background 0.
+        """
+        from methods.gaussians.rasterize import rasterize
+
+        viewmat, K, w, h = camera_tensors(camera, self.features.device)
+        out = rasterize(state.means, state.quats, state.scales, state.opacities, self.features, viewmat, K, w, h,
+                        near=self.cfg.near, backend=self.cfg.render_backend, channel_chunk=self.cfg.channels)
+        return out.image.view(h, w, self.cfg.num_levels, self.cfg.latent_dim).permute(2, 0, 1, 3)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Training
+# ---------------------------------------------------------------------------------------------------
+@dataclass
+class FieldTarget:
+    """Supervision of one training view, as indices into a latent table (compact at any size)."""
+
+    camera: Camera
+    time: float
+    index: torch.Tensor
+    """[L, H, W] int64 row of :attr:`latents` per pixel and level; -1 = no mask (pixel not supervised)."""
+    latents: torch.Tensor
+    """[M, d] latent vectors of this view's masks (all levels, rows referenced by :attr:`index`)."""
+
+
+def make_target(camera: Camera, time_value: float, levels: np.ndarray, level_latents: Sequence[torch.Tensor],
+                device: torch.device | str) -> FieldTarget:
+    """Build a :class:`FieldTarget` from a frame's mask-index maps and per-level mask latents.
+
+    Args:
+        levels:        (L, H, W) int mask index per level, -1 = none.
+        level_latents: per level, [M_l, d] latent of mask ``i`` in row ``i``.
+    """
+    idx = torch.as_tensor(np.asarray(levels, dtype=np.int64), device=device).clone()
+    offsets = np.cumsum([0] + [int(t.shape[0]) for t in level_latents])
+    for level in range(idx.shape[0]):
+        plane = idx[level]
+        plane[plane >= 0] += int(offsets[level])
+    d = level_latents[0].shape[1] if level_latents else 0
+    table = (torch.cat([t.to(device) for t in level_latents], 0) if offsets[-1] > 0
+             else torch.zeros(0, d, device=device))
+    return FieldTarget(camera, float(time_value), idx, table)
+
+
+@dataclass
+class FieldReport:
+    """How training the field went."""
+
+    iterations: int
+    seconds: float
+    final_loss: float
+    losses: list[float] = field(default_factory=list)
+    supervised_fraction: float = 0.0
+    """Mean fraction of (pixel, level) pairs inside a mask over the training views."""
+
+
+def masked_l1(pred: torch.Tensor, target: FieldTarget) -> torch.Tensor:
+    """Mean over levels of the mean L1 over the supervised pixels of that level.
+
+    Args:
+        pred: [L, H, W, d] rendered latents.
+    """
+    valid = target.index >= 0  # [L, H, W]
+    gathered = target.latents[target.index.clamp_min(0)]  # [L, H, W, d]
+    err = (pred - gathered).abs().sum(-1) * valid  # [L, H, W]
+    counts = valid.flatten(1).sum(1)  # [L]
+    per_level = err.flatten(1).sum(1) / (counts.clamp_min(1) * pred.shape[-1])
+    has = counts > 0
+    return per_level[has].mean() if bool(has.any()) else pred.sum() * 0.0
+
+
+def train_language_field(geometry: FrozenGeometry, targets: Sequence[FieldTarget],
+                         cfg: Optional[LanguageFieldConfig] = None, *, seed: int = 0,
+                         progress: Optional[Callable] = None) -> tuple[LanguageField, FieldReport]:
+    """Fit a :class:`LanguageField` on ``geometry`` (frozen) to ``targets``, one random view per step."""
+    cfg = cfg or LanguageFieldConfig()
+    if not targets:
+        raise ValueError("the language field needs at least one training view")
+    device = geometry.device
+    gen = torch.Generator().manual_seed(seed)
+    fld = LanguageField(geometry.num_gaussians, cfg, generator=gen, device=device)
+    opt = torch.optim.Adam([fld.features], lr=cfg.learning_rate)
+    per_view_bytes = geometry.at(targets[0].time).nbytes()
+    cache_states = not geometry.is_dynamic or per_view_bytes * len(targets) <= cfg.cache_view_geometry_mib * 2 ** 20
+    states: dict[int, GaussianState] = {}
+    static_state = None if geometry.is_dynamic else geometry.at(0.0)
+    rng = np.random.default_rng(seed)
+    order: list[int] = []
+    losses: list[float] = []
+    loss_value = float("nan")
+    steps = range(cfg.iterations)
+    if progress is not None:
+        steps = progress(steps, desc="language field", total=cfg.iterations)
+    start = time.perf_counter()
+    for step in steps:
+        if not order:
+            order = rng.permutation(len(targets)).tolist()
+        v = order.pop()
+        target = targets[v]
+        if static_state is not None:
+            state = static_state
+        elif v in states:
+            state = states[v]
+        else:
+            state = geometry.at(target.time)
+            if cache_states:
+                states[v] = state
+        pred = fld.render(state, target.camera)
+        loss = cfg.loss_weight * masked_l1(pred, target)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if step % max(1, cfg.log_every) == 0 or step == cfg.iterations - 1:
+            loss_value = float(loss.detach())
+            losses.append(loss_value)
+    seconds = time.perf_counter() - start
+    frac = float(np.mean([float((t.index >= 0).float().mean()) for t in targets]))
+    return fld, FieldReport(cfg.iterations, seconds, loss_value, losses, frac)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Query side
+# ---------------------------------------------------------------------------------------------------
+def relevance_basis(query: torch.Tensor, canon: torch.Tensor) -> torch.Tensor:
+    """[D, k] orthonormal basis of the span of the query and canonical phrase embeddings.
+
+    Args:
+        query: [D]; canon: [P, D].
+    """
+    stacked = torch.cat([query[None], canon], 0).T  # [D, P + 1]
+    q, r = torch.linalg.qr(stacked)
+    keep = r.diagonal().abs() > 1e-6 * r.diagonal().abs().max().clamp_min(1e-12)
+    return q[:, keep]
+
+
+@torch.no_grad()
+def decode_for_relevance(latents: torch.Tensor, decoder: Callable[[torch.Tensor], torch.Tensor],
+                         basis: torch.Tensor, chunk: int = 65536) -> torch.Tensor:
+    """Decode latent maps and keep only what the LERF relevance depends on, exactly.
+
+    The relevance of a pixel depends on its decoded feature ``f`` only through ``f . x / |f|`` for
+    ``x`` in span(query, canonical phrases). With ``B`` [D, k] an orthonormal basis of that span,
+    ``g = [B^T f, |f - B B^T f|]`` has ``|g| = |f|`` and ``g . [B^T x, 0] = f . x``, so the
+    relevance computed on ``g`` against the projected phrases equals the one on ``f``, while
+    ``g`` has ``k + 1`` (<= 6) channels instead of D (512 for CLIP): the protocol's query runs
+    unchanged at any image size.
+
+    When ``decoder`` is an ``nn.Sequential`` ending in ``nn.Linear`` (``f = W h + b``), ``f`` is never
+    formed: ``B^T f = (B^T W) h + B^T b`` and ``|f|^2 = h^T (W^T W) h + 2 (W^T b) . h + |b|^2``, which
+    costs ``hidden^2`` instead of ``hidden x D`` per pixel (same values up to float rounding).
+
+    Args:
+        latents: [..., d] rendered latents.
+        basis:   [D, k] orthonormal columns (:func:`relevance_basis`).
+    Returns:
+        [..., k + 1] reduced decoded features.
+    """
+    shape = latents.shape[:-1]
+    flat = latents.reshape(-1, latents.shape[-1])
+    k = basis.shape[1]
+    out = latents.new_empty(flat.shape[0], k + 1)
+    last = decoder[-1] if isinstance(decoder, nn.Sequential) and len(decoder) > 0 else None
+    if isinstance(last, nn.Linear) and last.in_features < last.out_features:
+        trunk = decoder[:-1]
+        w = last.weight  # [D, hidden]
+        b = last.bias if last.bias is not None else w.new_zeros(w.shape[0])
+        proj = w.T @ basis  # [hidden, k]
+        proj_b = b @ basis  # [k]
+        gram = w.T @ w  # [hidden, hidden]
+        wb = w.T @ b  # [hidden]
+        bb = b @ b
+        for s in range(0, flat.shape[0], chunk):
+            h = trunk(flat[s:s + chunk])  # [c, hidden]
+            par = h @ proj + proj_b
+            norm2 = ((h @ gram) * h).sum(-1) + 2.0 * (h @ wb) + bb
+            out[s:s + chunk, :-1] = par
+            out[s:s + chunk, -1] = (norm2 - (par * par).sum(-1)).clamp_min(0.0).sqrt()
+        return out.reshape(*shape, k + 1)
+    for s in range(0, flat.shape[0], chunk):
+        f = decoder(flat[s:s + chunk])  # [c, D]
+        par = f @ basis  # [c, k]
+        perp2 = (f * f).sum(-1) - (par * par).sum(-1)
+        out[s:s + chunk, :-1] = par
+        out[s:s + chunk, -1] = perp2.clamp_min(0.0).sqrt()
+    return out.reshape(*shape, k + 1)
+
+
+def project_phrases(basis: torch.Tensor, query: torch.Tensor, canon: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Query [D] and canonical phrases [P, D] in the reduced coordinates of :func:`decode_for_relevance`:
+    ``([k + 1], [P, k + 1])`` (last coordinate 0: phrases lie in the span)."""
+    q = F.normalize(query, dim=-1)
+    c = F.normalize(canon, dim=-1)
+    zq = torch.cat([q @ basis, q.new_zeros(1)])
+    zc = torch.cat([c @ basis, c.new_zeros(c.shape[0], 1)], 1)
+    return zq, zc
+
+
+__all__ = ["LanguageFieldConfig", "GaussianState", "FrozenGeometry", "LanguageField", "FieldTarget", "make_target",
+           "FieldReport", "masked_l1", "train_language_field", "relevance_basis", "decode_for_relevance",
+           "project_phrases", "camera_tensors"]

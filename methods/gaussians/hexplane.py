@@ -1,0 +1,156 @@
+"""4D-GS deformation field: a multi-resolution HexPlane over (x, y, z, t) and small MLP heads.
+
+HexPlane (Cao & Johnson 2023; as used by 4D-GS, Wu et al. 2024): six 2-D feature planes, one per pair of
+the four axes (xy, xz, yz spatial; xt, yt, zt spatio-temporal). A point's feature is the *product* over
+the six planes of the bilinearly sampled plane features; features of all resolutions (``multires``) are
+concatenated. An MLP trunk maps the feature to a hidden vector, and one head per deformed attribute maps
+that to an offset of position, log-scale and (raw) quaternion.
+
+The planes of one resolution are stored stacked, spatial ``[3, C, R, R]`` and temporal ``[3, C, T, R]``,
+so each level costs two batched ``grid_sample`` calls instead of six.
+
+Temporal regularisers (K-Planes / 4D-GS): total variation of the spatial planes, second-order smoothness
+along t of the time planes, and L1 pulling the time planes towards 1 (no motion). The release computes
+them but never adds them (a stage-name check); :meth:`HexPlane.regularisers` returns them for the
+trainer to add.
+"""
+
+from __future__ import annotations
+
+from typing import Union
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .config import DeformationConfig, HexPlaneConfig
+
+# Axis pairs of the planes, (horizontal axis, vertical axis) in grid_sample's (x, y) order.
+SPATIAL_PAIRS = ((0, 1), (0, 2), (1, 2))  # xy, xz, yz
+TIME_PAIRS = ((0, 3), (1, 3), (2, 3))  # xt, yt, zt (t along the plane's rows)
+
+TimeLike = Union[float, torch.Tensor]
+
+
+class HexPlane(nn.Module):
+    """Six multi-resolution feature planes over the box ``bounds`` x [0, 1] (time)."""
+
+    def __init__(self, cfg: HexPlaneConfig, bounds: torch.Tensor, time_resolution: int):
+        """``bounds``: (2, 3) [min, max] world box the spatial axes span; ``time_resolution``: T >= 2."""
+        super().__init__()
+        self.cfg = cfg
+        bounds = torch.as_tensor(bounds, dtype=torch.float32).reshape(2, 3)
+        size = (bounds[1] - bounds[0]).clamp_min(1e-6)
+        self.register_buffer("box_min", bounds[0].clone())
+        self.register_buffer("box_size", size.clone())
+        self.time_resolution = max(2, int(time_resolution))
+        self.spatial = nn.ParameterList()
+        self.temporal = nn.ParameterList()
+        c = cfg.output_dim
+        for mult in cfg.multires:
+            r = cfg.spatial_resolution * mult
+            sp = torch.empty(3, c, r, r).uniform_(cfg.spatial_init_low, cfg.spatial_init_high)
+            tp = torch.full((3, c, self.time_resolution, r), float(cfg.time_init_value))
+            self.spatial.append(nn.Parameter(sp))
+            self.temporal.append(nn.Parameter(tp))
+
+    @property
+    def feature_dim(self) -> int:
+        return self.cfg.feature_dim
+
+    def normalise(self, xyz: torch.Tensor) -> torch.Tensor:
+        """(N, 3) world points -> (N, 3) in [-1, 1] over the plane box (outside: clamped by sampling)."""
+        return (xyz - self.box_min) * (2.0 / self.box_size) - 1.0
+
+    def forward(self, xyz: torch.Tensor, t: TimeLike) -> torch.Tensor:
+        """Features at (N, 3) world points ``xyz`` and time ``t`` (scalar or (N,) in [0, 1]) -> (N, F).
+
+        Time is mapped to [-1, 1] so the whole time axis is used (the release feeds t in [0, 1] to a
+        [-1, 1] grid, i.e. uses only half of its time planes).
+        """
+        n = xyz.shape[0]
+        p = self.normalise(xyz)
+        tt = torch.as_tensor(t, dtype=p.dtype, device=p.device)
+        tt = (tt * 2.0 - 1.0).expand(n) if tt.dim() == 0 else tt.reshape(n) * 2.0 - 1.0
+        # (3, 1, N, 2) sample coordinates for the three spatial and the three time planes
+        sp_coords = torch.stack([p[:, [a, b]] for a, b in SPATIAL_PAIRS], 0).unsqueeze(1)
+        tp_coords = torch.stack([torch.stack([p[:, a], tt], -1) for a, _ in TIME_PAIRS], 0).unsqueeze(1)
+        feats = []
+        for sp, tp in zip(self.spatial, self.temporal):
+            fs = F.grid_sample(sp, sp_coords, mode="bilinear", padding_mode="border", align_corners=True)
+            ft = F.grid_sample(tp, tp_coords, mode="bilinear", padding_mode="border", align_corners=True)
+            # (3, C, 1, N) each -> product over the six planes -> (N, C)
+            prod = (fs.prod(0) * ft.prod(0)).reshape(fs.shape[1], n)
+            feats.append(prod.t())
+        return torch.cat(feats, dim=1)
+
+    def regularisers(self) -> dict[str, torch.Tensor]:
+        """Unweighted temporal regularisers (scalars with gradients), summed over planes and levels.
+
+        ``plane_tv``: mean squared first differences of each spatial plane along both axes (x2, K-Planes);
+        ``time_smoothness``: mean squared second difference along t of each time plane;
+        ``l1_time_planes``: mean |1 - value| of each time plane.
+        """
+        tv = smooth = l1 = self.box_min.new_zeros(())
+        for sp, tp in zip(self.spatial, self.temporal):
+            dh = (sp[:, :, 1:, :] - sp[:, :, :-1, :]).square().mean(dim=(1, 2, 3))
+            dw = (sp[:, :, :, 1:] - sp[:, :, :, :-1]).square().mean(dim=(1, 2, 3))
+            tv = tv + 2.0 * (dh + dw).sum()
+            first = tp[:, :, 1:, :] - tp[:, :, :-1, :]
+            if first.shape[2] >= 2:
+                second = first[:, :, 1:, :] - first[:, :, :-1, :]
+                smooth = smooth + second.square().mean(dim=(1, 2, 3)).sum()
+            l1 = l1 + (1.0 - tp).abs().mean(dim=(1, 2, 3)).sum()
+        return {"plane_tv": tv, "time_smoothness": smooth, "l1_time_planes": l1}
+
+
+class DeformationField(nn.Module):
+    """HexPlane + MLP trunk + heads: (x, t) -> offsets of position, log-scale and raw quaternion."""
+
+    def __init__(self, cfg: DeformationConfig, bounds: torch.Tensor, time_resolution: int):
+        """``bounds``: (2, 3) world box of the HexPlane; ``time_resolution``: rows of the time planes."""
+        super().__init__()
+        self.cfg = cfg
+        self.hexplane = HexPlane(cfg.hexplane, bounds, time_resolution)
+        w = cfg.net_width
+        layers: list[nn.Module] = [nn.Linear(self.hexplane.feature_dim, w)]
+        for _ in range(cfg.net_depth):
+            layers += [nn.ReLU(), nn.Linear(w, w)]
+        self.trunk = nn.Sequential(*layers)
+        # The heads' hidden layers (ReLU, Linear(W, W), ReLU) of all heads as one Linear(W, 3W):
+        # mathematically three independent heads, one matmul instead of three.
+        self.head_names = [name for name, on in (("position", cfg.deform_position), ("scale", cfg.deform_scale),
+                                                 ("rotation", cfg.deform_rotation)) if on]
+        self.head_dims = {"position": 3, "scale": 3, "rotation": 4}
+        self.heads_hidden = nn.Linear(w, w * max(1, len(self.head_names)))
+        self.heads_out = nn.ModuleDict({name: nn.Linear(w, self.head_dims[name]) for name in self.head_names})
+        for m in self.modules():
+            if isinstance(m, nn.Linear):
+                nn.init.xavier_uniform_(m.weight)
+                nn.init.zeros_(m.bias)
+        if cfg.zero_init_heads:
+            for head in self.heads_out.values():
+                nn.init.zeros_(head.weight)
+
+    def features(self, xyz: torch.Tensor, t: TimeLike) -> torch.Tensor:
+        """(N, 3) points at time t -> (N, F) HexPlane features."""
+        return self.hexplane(xyz, t)
+
+    def forward(self, xyz: torch.Tensor, t: TimeLike) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(N, 3) canonical points at time t -> offsets ((N, 3) position, (N, 3) log-scale, (N, 4) quat).
+
+        Disabled heads return zeros.
+        """
+        n = xyz.shape[0]
+        h = self.trunk(self.hexplane(xyz, t))
+        hidden = torch.relu(self.heads_hidden(torch.relu(h)))
+        chunks = hidden.chunk(max(1, len(self.head_names)), dim=1)
+        out = {name: self.heads_out[name](chunk) for name, chunk in zip(self.head_names, chunks)}
+        return tuple(out[name] if name in out else xyz.new_zeros(n, self.head_dims[name])
+                     for name in ("position", "scale", "rotation"))
+
+    def mlp_parameters(self) -> list[nn.Parameter]:
+        return [p for name, p in self.named_parameters() if not name.startswith("hexplane.")]
+
+    def grid_parameters(self) -> list[nn.Parameter]:
+        return list(self.hexplane.parameters())

@@ -1,0 +1,575 @@
+"""What ``langsplat``, ``deformable-clip`` and ``4d-langsplat`` share: geometry, autoencoder, field, query.
+
+The three methods differ only in their geometry and their time-sensitive behaviour:
+
+=================  ==============  ================================================================
+method             geometry        time-sensitive answer
+=================  ==============  ================================================================
+``langsplat``      static 3D-GS    relevance score (mean relevance inside the spatial mask); time
+                                   is ignored by the geometry (Qin et al., CVPR 2024)
+``deformable-clip`` 4D-GS          relevance score, as the paper's baseline
+``4d-langsplat``   4D-GS           the status field (:class:`TimeVaryingHead`, its own issue);
+                                   time-agnostic half only until it is plugged in
+=================  ==============  ================================================================
+
+Fitting (:func:`fit_language_field`):
+
+1. **Geometry** (:func:`fit_geometry`): 3D-GS or 4D-GS on the training frames' RGB with the Gaussian
+   core's trainer, then frozen (:class:`~methods.fields.language_field.FrozenGeometry`). Cached per
+   (scene's training data, geometry kind, geometry options, seed, device kind, Gaussian-core code)
+   under ``<cache>/language/<dataset>-<scene>/``, so ``deformable-clip`` and ``4d-langsplat`` (and
+   later ``non-status-field``) share ONE 4D-GS fit.
+2. **Autoencoder** D -> ``latent_dim`` on the distinct mask features of all levels and training
+   frames, weighted by their total area (the release trains on every pixel's feature, i.e. area
+   weighted), at least ``ae_min_steps`` steps; its reconstruction cosine is recorded. Pixels that no
+   mask covers first become one more mask per level named ``unmasked_text`` (default
+   "background"; :func:`with_unmasked_as`): the paper's SAM masks cover the background, the oracle
+   segmenter does not, and unsupervised Gaussians decode to arbitrary features.
+3. **Field** (:func:`~methods.fields.language_field.train_language_field`): per-Gaussian latents of
+   the three levels on the frozen geometry, L1 inside valid masks. Cached per (geometry, supervision
+   fingerprint, autoencoder and field options, seed, code), shared like the geometry.
+
+Querying (:class:`LanguageFieldModel`): render the 3 x ``latent_dim`` latent channels at the frame's
+camera and time in one rasterizer call, decode each level, and run the protocol's
+:func:`~methods.fields.relevance.query_levels` (relevance against the canonical phrases, 29x29
+smoothing, min-max threshold, 7x7 majority filter, level with the highest peak) on exactly reduced
+features (:func:`~methods.fields.language_field.decode_for_relevance`).
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+import hashlib
+import json
+import time
+import typing
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar, Optional, Sequence
+
+import numpy as np
+import torch
+
+from benchmark.atomic import atomic_path, write_json
+from benchmark.errors import InputError
+from benchmark.scene import Frame, Scene
+
+from .api import AgnosticAnswer, Method, Model, Progress, SensitiveAnswer
+from .fields.autoencoder import AutoencoderConfig, FeatureAutoencoder, train_autoencoder
+from .fields.language_field import (FieldTarget, FrozenGeometry, LanguageField, LanguageFieldConfig,
+                                    decode_for_relevance, make_target, project_phrases, relevance_basis,
+                                    train_language_field)
+from .fields.relevance import AgnosticResult, RelevanceConfig, encode_canonical, query_levels
+from .specs._language import LanguageMethodConfig
+from .supervision.base import LEVELS, Supervision, TextEncoder
+
+MODEL_FILE = "language_model.pt"
+META_FILE = "language_model.json"
+HEAD_DIR = "time_varying"
+CACHE_SUBDIR = "language"
+
+_HERE = Path(__file__).resolve().parent
+GEOMETRY_SOURCES = tuple(sorted((_HERE / "gaussians").rglob("*.py")))
+"""Files whose content defines a geometry fit (part of the geometry cache key)."""
+FIELD_SOURCES = (_HERE / "fields" / "language_field.py", _HERE / "fields" / "autoencoder.py",
+                 _HERE / "fields" / "relevance.py", Path(__file__).resolve())
+"""Files whose content defines a field fit and its queries (part of cache keys and of the methods'
+``code_version``, since the registry hashes only each method's entry-point module)."""
+
+
+def source_hash(paths: Sequence[Path]) -> str:
+    """Short hash of the content of ``paths`` (missing files hash as absent)."""
+    digest = hashlib.sha256()
+    for path in paths:
+        digest.update(path.name.encode())
+        digest.update(path.read_bytes() if path.is_file() else b"<missing>")
+    return digest.hexdigest()[:16]
+
+
+def _stable_hash(obj: Any) -> str:
+    from .supervision.cache import stable_hash
+
+    return stable_hash(obj, 24)
+
+
+def _device_kind(device: str | torch.device) -> str:
+    return "cuda" if torch.device(device).type == "cuda" else "cpu"
+
+
+# ---------------------------------------------------------------------------------------------------
+# Config pieces
+# ---------------------------------------------------------------------------------------------------
+def recon_config(config: LanguageMethodConfig, seed: int):
+    """The Gaussian core's :class:`~methods.gaussians.config.ReconConfig` for this method config."""
+    from methods.gaussians.config import GaussianConfig, ReconConfig
+
+    g = GaussianConfig(max_gaussians=config.max_gaussians,
+                       gaussians_per_foreground_pixel=config.gaussians_per_foreground_pixel)
+    return ReconConfig(gaussians=g, static_iterations=config.static_iterations,
+                       deformation_iterations=config.deformation_iterations,
+                       reference_iterations=config.static_model_iterations, seed=seed)
+
+
+def autoencoder_config(config: LanguageMethodConfig, num_features: Optional[int] = None) -> AutoencoderConfig:
+    """The autoencoder's config; with ``num_features`` (distinct features) the epochs are raised so that
+    training runs at least ``ae_min_steps`` steps (and at most ``ae_max_steps``)."""
+    epochs = config.ae_epochs
+    if num_features is not None:
+        steps_per_epoch = max(1, -(-int(num_features) // config.ae_batch_size))
+        epochs = max(epochs, -(-min(config.ae_min_steps, config.ae_max_steps) // steps_per_epoch))
+    return AutoencoderConfig(hidden_dims=tuple(config.ae_hidden_dims), latent_dim=config.latent_dim,
+                             cosine_weight=config.ae_cosine_weight, learning_rate=config.ae_learning_rate,
+                             batch_size=config.ae_batch_size, epochs=epochs, max_steps=config.ae_max_steps)
+
+
+def field_config(config: LanguageMethodConfig) -> LanguageFieldConfig:
+    return LanguageFieldConfig(num_levels=len(LEVELS), latent_dim=config.latent_dim,
+                               iterations=config.field_iterations, learning_rate=config.field_learning_rate,
+                               loss_weight=config.field_loss_weight, init_std=config.field_init_std,
+                               render_backend=config.render_backend)
+
+
+def relevance_config(config: LanguageMethodConfig) -> RelevanceConfig:
+    return RelevanceConfig(canonical_phrases=tuple(config.canonical_phrases), temperature=config.temperature,
+                           smoothing_kernel=config.smoothing_kernel, threshold=config.threshold,
+                           threshold_variant=config.threshold_variant,  # type: ignore[arg-type]
+                           majority_kernel=config.majority_kernel, majority_fraction=config.majority_fraction)
+
+
+def config_to_dict(config: Any) -> dict:
+    return json.loads(json.dumps(dataclasses.asdict(config), default=str))
+
+
+def config_from_dict(cls: type, data: dict) -> Any:
+    """Rebuild dataclass ``cls`` from :func:`config_to_dict` output (lists back to tuples; unknown keys
+    from older versions dropped)."""
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    kwargs = {}
+    for key, value in data.items():
+        if key not in names:
+            continue
+        if isinstance(value, list) and typing.get_origin(hints.get(key)) is tuple:
+            value = tuple(value)
+        kwargs[key] = value
+    return cls(**kwargs)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Shared cache
+# ---------------------------------------------------------------------------------------------------
+def shared_cache_root(config: LanguageMethodConfig, work_dir: Optional[Path]) -> Optional[Path]:
+    """Root of the shared geometry/field cache: ``config.shared_cache_dir``, else the runner's cache
+    folder (the runner's ``work_dir`` is ``<cache>/fits/<method>/<scene>/<key>.work``), else ``None``."""
+    if config.shared_cache_dir:
+        return Path(config.shared_cache_dir)
+    if work_dir is None:
+        return None
+    for parent in Path(work_dir).resolve().parents:
+        if parent.name == "fits":
+            return parent.parent
+    return None
+
+
+def _scene_folder(root: Path, scene: Scene) -> Path:
+    return root / CACHE_SUBDIR / f"{scene.dataset}-{scene.name}"
+
+
+def _torch_load(path: Path, device: str | torch.device) -> Optional[dict]:
+    try:
+        return torch.load(path, map_location=device, weights_only=True)
+    except Exception:  # a corrupt or incompatible cache file is refitted, never trusted
+        return None
+
+
+def _torch_save(path: Path, obj: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
+
+
+# ---------------------------------------------------------------------------------------------------
+# 1. geometry
+# ---------------------------------------------------------------------------------------------------
+@dataclass
+class GeometryFit:
+    geometry: FrozenGeometry
+    key: str
+    info: dict
+    cached: bool
+
+
+def geometry_key(scene: Scene, kind: str, config: LanguageMethodConfig, seed: int, device: str) -> str:
+    from .supervision.cache import scene_fingerprint
+
+    return _stable_hash({"kind": kind, "recon": config_to_dict(recon_config(config, seed)), "seed": seed,
+                         "device": _device_kind(device), "scene": scene_fingerprint(scene, scene.train_frames),
+                         "code": source_hash(GEOMETRY_SOURCES)})
+
+
+def fit_geometry(scene: Scene, kind: str, config: LanguageMethodConfig, *, seed: int, device: str,
+                 progress: Progress, cache_root: Optional[Path]) -> GeometryFit:
+    """Static 3D-GS (``kind="3dgs"``) or 4D-GS (``"4dgs"``) on the training frames, cached (see module docstring)."""
+    if kind not in ("3dgs", "4dgs"):
+        raise ValueError(f"geometry kind must be '3dgs' or '4dgs', got {kind!r}")
+    key = geometry_key(scene, kind, config, seed, device)
+    path = None if cache_root is None else _scene_folder(cache_root, scene) / f"geometry-{kind}-{key}.pt"
+    if path is not None and path.is_file():
+        saved = _torch_load(path, device)
+        if saved is not None and saved.get("key") == key:
+            progress.log(f"geometry: cached {kind} fit {path.name}")
+            return GeometryFit(FrozenGeometry.from_state_dict(saved["geometry"], device), key,
+                               json.loads(saved["info"]), True)
+    import functools
+
+    from methods.gaussians.rasterize import rasterize
+    from methods.gaussians.train import Trainer
+
+    recon = recon_config(config, seed)
+    trainer = Trainer(scene, recon, device=device,
+                      rasterize_fn=functools.partial(rasterize, backend=config.render_backend))
+    progress.log(f"geometry: fitting {kind} on {len(trainer.views)} training views (cap {trainer.cap} Gaussians)")
+    start = time.perf_counter()
+    result = trainer.fit_3dgs() if kind == "3dgs" else trainer.fit_4dgs()
+    seconds = time.perf_counter() - start
+    geometry = FrozenGeometry(result.model)
+    info = {"kind": kind, "key": key, "seconds": seconds, "gaussians": geometry.num_gaussians,
+            "cap": result.cap, "extent": result.extent,
+            "stages": [{k: v for k, v in s.items() if k != "events"} for s in result.stages]}
+    if geometry.deformable is not None:
+        info["dynamic_gaussians"] = geometry.deformable.num_dynamic()
+    if path is not None:
+        _torch_save(path, {"key": key, "geometry": geometry.state_dict(), "info": json.dumps(info)})
+    return GeometryFit(geometry, key, info, False)
+
+
+# ---------------------------------------------------------------------------------------------------
+# 2. autoencoder
+# ---------------------------------------------------------------------------------------------------
+def distinct_features(supervision: Supervision) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct mask features of all training frames and levels, with their total areas.
+
+    Returns ((M, D) float32 features, (M,) float64 pixel counts). Features equal up to 1e-6 (the
+    oracle track gives one vector per object name) are merged.
+    """
+    rows, areas = [], []
+    for fs in supervision.frames:
+        for level in range(len(LEVELS)):
+            feats = fs.features[level]
+            if feats.shape[0] == 0:
+                continue
+            plane = fs.levels[level]
+            counts = np.bincount(plane[plane >= 0].ravel(), minlength=feats.shape[0])[: feats.shape[0]]
+            rows.append(np.asarray(feats, dtype=np.float32))
+            areas.append(counts.astype(np.float64))
+    if not rows:
+        raise InputError(None, "supervision", "no mask has a feature: the language field has nothing to learn")
+    feats = np.concatenate(rows, 0)
+    area = np.concatenate(areas, 0)
+    keys = np.round(feats * 1e6).astype(np.int64)
+    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    total = np.bincount(inverse.ravel(), weights=area, minlength=first.size)
+    keep = total > 0
+    return feats[first][keep], total[keep]
+
+
+def with_unmasked_as(supervision: Supervision, text: Optional[str]) -> Supervision:
+    """A copy of ``supervision`` where, at every level, the pixels no mask covers form one more mask
+    whose feature is the passage embedding of ``text`` (``None``: ``supervision`` unchanged)."""
+    if not text:
+        return supervision
+    feature = np.asarray(supervision.text_encoder.encode([text], kind="passage"), dtype=np.float32)  # [1, D]
+    frames = []
+    for fs in supervision.frames:
+        levels = fs.levels.copy()
+        feats = list(fs.features)
+        for level in range(len(LEVELS)):
+            hole = levels[level] < 0
+            if hole.any():
+                levels[level][hole] = feats[level].shape[0]
+                feats[level] = np.concatenate([np.asarray(feats[level], np.float32).reshape(-1, feature.shape[1]),
+                                               feature], 0)
+        frames.append(dataclasses.replace(fs, levels=levels, features=tuple(feats)))
+    return dataclasses.replace(supervision, frames=frames)
+
+
+# ---------------------------------------------------------------------------------------------------
+# 3. field
+# ---------------------------------------------------------------------------------------------------
+@dataclass
+class SharedField:
+    """The time-agnostic half of every language-field method on one scene."""
+
+    geometry: FrozenGeometry
+    field: LanguageField
+    autoencoder: FeatureAutoencoder
+    info: dict
+    """Fit facts: geometry (kind, Gaussians, seconds), autoencoder (reconstruction cosine), field
+    (loss, seconds), cache keys and whether each part came from the cache."""
+
+
+def field_targets(scene: Scene, supervision: Supervision, autoencoder: FeatureAutoencoder,
+                  device: str | torch.device) -> list[FieldTarget]:
+    """One :class:`FieldTarget` per supervised training frame (mask latents from the autoencoder)."""
+    targets = []
+    with torch.no_grad():
+        for fs in supervision.frames:
+            frame = scene.frame(fs.name)
+            size = (frame.camera.height, frame.camera.width)
+            if tuple(fs.levels.shape[1:]) != size:
+                raise InputError(frame.image_path, "supervision",
+                                 f"masks of frame {fs.name!r} are {fs.levels.shape[1:]} but its camera is {size}")
+            latents = [autoencoder.encode(torch.as_tensor(np.asarray(f, dtype=np.float32), device=device))
+                       if f.shape[0] else torch.zeros(0, autoencoder.cfg.latent_dim, device=device)
+                       for f in fs.features]
+            targets.append(make_target(frame.camera, frame.time, fs.levels, latents, device))
+    return targets
+
+
+def fit_language_field(scene: Scene, supervision: Supervision, config: LanguageMethodConfig, *, kind: str,
+                       seed: int, device: str, progress: Progress,
+                       cache_root: Optional[Path]) -> SharedField:
+    """Geometry, autoencoder and field of ``scene`` (each cached when ``cache_root`` is given)."""
+    geo = fit_geometry(scene, kind, config, seed=seed, device=device, progress=progress, cache_root=cache_root)
+    supervision = with_unmasked_as(supervision, config.unmasked_text)
+    feats, areas = distinct_features(supervision)
+    ae_cfg = autoencoder_config(config, feats.shape[0])
+    f_cfg = field_config(config)
+    key = _stable_hash({"geometry": geo.key, "supervision": supervision.fingerprint,
+                        "unmasked_text": config.unmasked_text, "autoencoder": config_to_dict(ae_cfg),
+                        "field": config_to_dict(f_cfg), "seed": seed, "device": _device_kind(device),
+                        "code": source_hash(FIELD_SOURCES)})
+    path = None if cache_root is None else _scene_folder(cache_root, scene) / f"field-{kind}-{key}.pt"
+    if path is not None and path.is_file():
+        saved = _torch_load(path, device)
+        if saved is not None and saved.get("key") == key:
+            progress.log(f"language field: cached fit {path.name}")
+            ae = FeatureAutoencoder(int(saved["input_dim"]), ae_cfg).to(device)
+            ae.load_state_dict(saved["autoencoder"])
+            fld = LanguageField(geo.geometry.num_gaussians, f_cfg, device=device)
+            fld.features.data.copy_(saved["features"])
+            info = json.loads(saved["info"])
+            info["geometry"] = geo.info
+            info["cached"] = {"geometry": geo.cached, "field": True}
+            return SharedField(geo.geometry, fld.requires_grad_(False), ae.eval(), info)
+
+    progress.log(f"autoencoder: {feats.shape[0]} distinct features of dimension {feats.shape[1]}")
+    ae, ae_report = train_autoencoder(feats, ae_cfg, seed=seed, weights=areas, device=device)
+    ae.eval().requires_grad_(False)
+    targets = field_targets(scene, supervision, ae, device)
+    fld, report = train_language_field(geo.geometry, targets, f_cfg, seed=seed, progress=progress)
+    fld.requires_grad_(False)
+    info = {"key": key,
+            "autoencoder": {"distinct_features": int(feats.shape[0]), "feature_dim": int(feats.shape[1]),
+                            "reconstruction_cosine": ae_report.reconstruction_cosine, "steps": ae_report.steps,
+                            "seconds": ae_report.seconds},
+            "field": {"iterations": report.iterations, "seconds": report.seconds, "final_loss": report.final_loss,
+                      "losses": report.losses, "supervised_fraction": report.supervised_fraction,
+                      "views": len(targets)}}
+    if path is not None:
+        _torch_save(path, {"key": key, "input_dim": int(feats.shape[1]), "autoencoder": ae.state_dict(),
+                           "features": fld.features.detach().cpu(), "info": json.dumps(info)})
+    info = {**info, "geometry": geo.info, "cached": {"geometry": geo.cached, "field": False}}
+    return SharedField(geo.geometry, fld, ae, info)
+
+
+# ---------------------------------------------------------------------------------------------------
+# The time-sensitive hook
+# ---------------------------------------------------------------------------------------------------
+@dataclass
+class FitContext:
+    """Everything a :class:`TimeVaryingHead` may fit on (the time-agnostic half is already fitted)."""
+
+    scene: Scene
+    supervision: Supervision
+    config: Any
+    seed: int
+    device: str
+    progress: Progress
+    shared: SharedField
+    """Frozen geometry (4D-GS: ``shared.geometry.hexplane_features(t)``), field and autoencoder."""
+    cache_root: Optional[Path] = None
+    work_dir: Optional[Path] = None
+
+
+class TimeVaryingHead(abc.ABC):
+    """The time-sensitive half of a language-field method (4D LangSplat's status field plugs in here).
+
+    A head scores how much a query holds at a frame, given the time-agnostic answer of the same text
+    (the spatial mask of the protocol's time-sensitive query).
+    """
+
+    name: ClassVar[str] = "time-varying"
+
+    @classmethod
+    @abc.abstractmethod
+    def fit(cls, context: FitContext) -> "TimeVaryingHead":
+        """Fit on the training frames (``context.supervision``) with the time-agnostic half frozen."""
+
+    @abc.abstractmethod
+    def score(self, text: str, frame: Frame, spatial: AgnosticResult, model: "LanguageFieldModel") -> float:
+        """Score of ``text`` at ``frame`` (NaN = undefined) given the time-agnostic answer ``spatial``."""
+
+    @abc.abstractmethod
+    def save(self, directory: Path) -> None:
+        """Write what :meth:`load` needs into the (existing) ``directory``."""
+
+    @classmethod
+    @abc.abstractmethod
+    def load(cls, directory: Path, *, model: "LanguageFieldModel", device: str) -> "TimeVaryingHead":
+        """Rebuild the head saved in ``directory`` on the loaded time-agnostic ``model``."""
+
+
+# ---------------------------------------------------------------------------------------------------
+# The fitted model
+# ---------------------------------------------------------------------------------------------------
+class LanguageFieldModel(Model):
+    """A fitted language-field method on one scene (see the module docstring)."""
+
+    def __init__(self, method: str, config: LanguageMethodConfig, text_encoder: TextEncoder, shared: SharedField, *,
+                 sensitive: Optional[str], head: Optional[TimeVaryingHead] = None, device: str = "cpu") -> None:
+        self.method = method
+        self.config = config
+        self.text_encoder = text_encoder
+        self.geometry = shared.geometry
+        self.field = shared.field
+        self.autoencoder = shared.autoencoder
+        self.fit_info = shared.info
+        self.sensitive = sensitive
+        self.head = head
+        self.device = torch.device(device)
+        self.relevance_cfg = relevance_config(config)
+        kinds = {"agnostic"}
+        if sensitive == "relevance" or head is not None:
+            kinds.add("sensitive")
+        self.supports = frozenset(kinds)
+        self._canon: Optional[torch.Tensor] = None
+        self._phrases: dict[str, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
+
+    # -- query pieces ---------------------------------------------------------------------------------
+    def canonical(self) -> torch.Tensor:
+        """[P, D] canonical phrase embeddings (same text encoder as the queries)."""
+        if self._canon is None:
+            self._canon = encode_canonical(self.text_encoder, self.config.canonical_phrases).to(self.device)
+        return self._canon
+
+    def query_embedding(self, text: str) -> torch.Tensor:
+        """[D] embedding of a query text."""
+        return torch.as_tensor(self.text_encoder.encode([text], kind="query")[0], device=self.device)
+
+    def _reduced_phrases(self, text: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        if text not in self._phrases:
+            q = self.query_embedding(text)
+            canon = self.canonical()
+            basis = relevance_basis(q, canon)
+            zq, zc = project_phrases(basis, q, canon)
+            self._phrases[text] = (basis, zq, zc)
+        return self._phrases[text]
+
+    @torch.no_grad()
+    def render_latents(self, frame: Frame) -> torch.Tensor:
+        """[L, H, W, d] rendered latent maps of every level at the frame's camera and time."""
+        return self.field.render(self.geometry.at(frame.time), frame.camera)
+
+    @torch.no_grad()
+    def decode_levels(self, latents: torch.Tensor) -> torch.Tensor:
+        """[L, H, W, D] decoded language features (full dimension: for inspection and the status field)."""
+        return self.autoencoder.decode(latents)
+
+    @torch.no_grad()
+    def agnostic(self, text: str, frame: Frame) -> AgnosticResult:
+        """The protocol's time-agnostic query on one frame (all tensors on the model's device)."""
+        basis, zq, zc = self._reduced_phrases(text)
+        reduced = decode_for_relevance(self.render_latents(frame), self.autoencoder.decoder, basis,
+                                       self.config.decode_chunk)
+        return query_levels(reduced, zq, zc, self.relevance_cfg)
+
+    def relevance_score(self, result: AgnosticResult) -> float:
+        """Mean smoothed relevance inside the spatial mask (NaN when the mask is empty)."""
+        mask = result.mask_unfiltered if self.config.sensitive_mask == "unfiltered" else result.mask
+        if not bool(mask.any()):
+            return float("nan")
+        return float(result.relevance[mask].mean())
+
+    # -- the API ----------------------------------------------------------------------------------------
+    def query_agnostic(self, text: str, frames: Sequence[Frame]) -> list[AgnosticAnswer]:
+        out = []
+        for frame in frames:
+            res = self.agnostic(text, frame)
+            out.append(AgnosticAnswer(mask=res.mask.cpu().numpy(), relevance=res.relevance.float().cpu().numpy()))
+        return out
+
+    def query_sensitive(self, text: str, frames: Sequence[Frame]) -> list[SensitiveAnswer]:
+        if "sensitive" not in self.supports:
+            raise NotImplementedError(f"{self.method} does not answer time-sensitive queries yet")
+        out = []
+        for frame in frames:
+            res = self.agnostic(text, frame)
+            score = (self.head.score(text, frame, res, self) if self.head is not None
+                     else self.relevance_score(res))
+            out.append(SensitiveAnswer(mask=res.mask.cpu().numpy(), score=score))
+        return out
+
+    # -- persistence --------------------------------------------------------------------------------------
+    def save(self, directory: Path) -> None:
+        directory = Path(directory)
+        state = {"geometry": self.geometry.state_dict(), "features": self.field.features.detach().cpu(),
+                 "autoencoder": {k: v.cpu() for k, v in self.autoencoder.state_dict().items()},
+                 "input_dim": int(self.autoencoder.input_dim)}
+        with atomic_path(directory / MODEL_FILE) as tmp:
+            torch.save(state, tmp)
+        write_json(directory / META_FILE, {"method": self.method, "config": config_to_dict(self.config),
+                                           "sensitive": self.sensitive,
+                                           "head": None if self.head is None else self.head.name,
+                                           "fit_info": self.fit_info})
+        if self.head is not None:
+            (directory / HEAD_DIR).mkdir(exist_ok=True)
+            self.head.save(directory / HEAD_DIR)
+
+
+class LanguageFieldMethod(Method):
+    """Base of the language-field methods; subclasses set :attr:`geometry_kind` and :attr:`sensitive`."""
+
+    name: ClassVar[str] = "language-field"
+    geometry_kind: ClassVar[str] = "4dgs"
+    """``"3dgs"`` (static) or ``"4dgs"`` (deformable)."""
+    sensitive: ClassVar[Optional[str]] = "relevance"
+    """``"relevance"``: time-sensitive score = mean relevance inside the spatial mask; ``None``: no
+    time-sensitive answers unless :attr:`time_varying_head` is set."""
+    time_varying_head: ClassVar[Optional[type[TimeVaryingHead]]] = None
+    """The head fitted after the time-agnostic half (4D LangSplat's status field), or ``None``."""
+    config_class: ClassVar[type] = LanguageMethodConfig
+    code_version = "lf-" + source_hash(FIELD_SOURCES)
+
+    @classmethod
+    def fit(cls, scene: Scene, supervision: Supervision, config: LanguageMethodConfig, *, seed: int, device: str,
+            progress: Progress, work_dir: Optional[Path] = None) -> LanguageFieldModel:
+        cache_root = shared_cache_root(config, work_dir)
+        shared = fit_language_field(scene, supervision, config, kind=cls.geometry_kind, seed=seed, device=device,
+                                    progress=progress, cache_root=cache_root)
+        head = None
+        if cls.time_varying_head is not None:
+            ctx = FitContext(scene, supervision, config, seed, device, progress, shared, cache_root, work_dir)
+            head = cls.time_varying_head.fit(ctx)
+        return LanguageFieldModel(cls.name, config, supervision.text_encoder, shared, sensitive=cls.sensitive,
+                                  head=head, device=device)
+
+    @classmethod
+    def load(cls, directory: Path, *, supervision: Supervision, device: str) -> LanguageFieldModel:
+        directory = Path(directory)
+        meta = json.loads((directory / META_FILE).read_text())
+        config = config_from_dict(cls.config_class, meta["config"])
+        state = torch.load(directory / MODEL_FILE, map_location=device, weights_only=True)
+        geometry = FrozenGeometry.from_state_dict(state["geometry"], device)
+        ae = FeatureAutoencoder(int(state["input_dim"]), autoencoder_config(config)).to(device)
+        ae.load_state_dict(state["autoencoder"])
+        fld = LanguageField(geometry.num_gaussians, field_config(config), device=device)
+        fld.features.data.copy_(state["features"])
+        shared = SharedField(geometry, fld.requires_grad_(False), ae.eval().requires_grad_(False), meta["fit_info"])
+        model = LanguageFieldModel(meta["method"], config, supervision.text_encoder, shared, sensitive=cls.sensitive,
+                                   device=device)
+        if cls.time_varying_head is not None and meta.get("head"):
+            model.head = cls.time_varying_head.load(directory / HEAD_DIR, model=model, device=device)
+            model.supports = frozenset(model.supports | {"sensitive"})
+        return model

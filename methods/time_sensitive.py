@@ -1,0 +1,98 @@
+"""Time-sensitive heads of the language-field methods: 4D LangSplat's status field and the Non-Status
+baseline, plugged into :class:`methods.language_methods.LanguageFieldModel` as
+:class:`~methods.language_methods.TimeVaryingHead` subclasses.
+
+Both fit :func:`methods.fields.time_varying.fit_time_varying_field` on the method's frozen 4D-GS
+(shared with the time-agnostic half) and score a time-sensitive query on a frame as the protocol
+says: the spatial mask is the time-agnostic answer of the same text (after the 7x7 majority filter,
+or before it as the release does: the methods' shared ``sensitive_mask`` option), and
+``s_t`` = mean cosine, over that mask, between the decoded time-varying feature and the query's
+text embedding (NaN on an empty mask).
+
+Captions are cached under ``<cache>/captions/`` (the runner's cache folder, or the config's
+``shared_cache_dir``), so every method and seed on a scene reuses one captioning run.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import ClassVar
+
+import numpy as np
+import torch
+
+from benchmark.atomic import atomic_path, write_json
+from benchmark.scene import Frame
+
+from .fields.relevance import AgnosticResult
+from .fields.time_varying import build_captions, embed_captions, fit_time_varying_field, load_time_varying_field
+from .language_methods import FitContext, LanguageFieldModel, TimeVaryingHead, source_hash
+
+_HERE = Path(__file__).resolve().parent
+TIME_VARYING_SOURCES = (Path(__file__).resolve(), _HERE / "fields" / "time_varying.py", _HERE / "fields" / "status.py",
+                        *sorted((_HERE / "captioners").glob("*.py")))
+"""Files whose content defines a time-varying fit (part of the methods' ``code_version``: the runner
+hashes only each method's entry-point module)."""
+TIME_VARYING_CODE = source_hash(TIME_VARYING_SOURCES)
+
+STATE_FILE = "time_varying.pt"
+INFO_FILE = "time_varying.json"
+
+
+class _FieldHead(TimeVaryingHead):
+    kind: ClassVar[str] = "status"
+
+    def __init__(self, field, text_encoder) -> None:
+        self.field = field
+        self.text_encoder = text_encoder
+        self._queries: dict[str, np.ndarray] = {}
+
+    @classmethod
+    def fit(cls, context: FitContext) -> "_FieldHead":
+        cfg = context.config
+        captions, tracks = build_captions(context.scene, context.supervision.track, cfg,
+                                          cache_root=context.cache_root, device=context.device,
+                                          progress=context.progress)
+        sup = embed_captions(captions, tracks, context.supervision.text_encoder)
+        field = fit_time_varying_field(context.shared.geometry, context.scene, sup, cfg, kind=cls.kind,
+                                       seed=context.seed, device=context.device, progress=context.progress,
+                                       log=context.progress.log, backend=cfg.render_backend)
+        mem = field.memory()
+        context.progress.log(f"{cls.name}: K = {field.info['num_states']}, {field.info['dynamic_gaussians']} of "
+                             f"{mem['gaussians']} Gaussians carry states, {mem['bytes_per_gaussian']:.1f} B/Gaussian, "
+                             f"{field.info['train']['seconds']:.1f} s")
+        return cls(field, context.supervision.text_encoder)
+
+    def query_embedding(self, text: str) -> np.ndarray:
+        if text not in self._queries:
+            self._queries[text] = self.text_encoder.encode([text], kind="query")[0]
+        return self._queries[text]
+
+    def score(self, text: str, frame: Frame, spatial: AgnosticResult, model: LanguageFieldModel) -> float:
+        mask = spatial.mask_unfiltered if model.config.sensitive_mask == "unfiltered" else spatial.mask
+        return self.field.score(frame, mask, self.query_embedding(text))
+
+    def save(self, directory: Path) -> None:
+        directory = Path(directory)
+        with atomic_path(directory / STATE_FILE) as tmp:
+            torch.save(self.field.state(), tmp)
+        write_json(directory / INFO_FILE, {"head": self.name, "info": self.field.info})
+
+    @classmethod
+    def load(cls, directory: Path, *, model: LanguageFieldModel, device: str) -> "_FieldHead":
+        state = torch.load(Path(directory) / STATE_FILE, map_location=device, weights_only=True)
+        return cls(load_time_varying_field(state, model.geometry, device), model.text_encoder)
+
+
+class StatusHead(_FieldHead):
+    """4D LangSplat's status deformable network."""
+
+    name = "status-field"
+    kind = "status"
+
+
+class NonStatusHead(_FieldHead):
+    """The Non-Status Field baseline: a direct deformation of the feature, ``f + MLP(hexplane(x, t))``."""
+
+    name = "non-status-field"
+    kind = "non-status"

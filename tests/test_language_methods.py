@@ -1,0 +1,147 @@
+"""``langsplat``, ``deformable-clip`` and ``4d-langsplat`` through the runner on the tiny ``smoke``
+preset: registration, shared geometry/field cache, answers, save/load, time-sensitive behaviour.
+
+Iteration counts are tiny (the point is the plumbing; quality is measured by ``bench4d eval``)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from benchmark.runner import EvalOptions, evaluate
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = {"static_iterations": 20, "deformation_iterations": 20, "field_iterations": 30, "ae_max_steps": 60,
+        "render_backend": "torch"}
+
+
+@pytest.fixture(scope="module")
+def smoke(tmp_path_factory) -> dict:
+    from benchmark.loaders import load_scene
+    from benchmark.synthetic.generate import generate
+    from methods.supervision.cache import build_supervision
+
+    base = tmp_path_factory.mktemp("lf")
+    scene_dir = Path(generate("smoke", base / "scenes" / "smoke", size=48))
+    scene = load_scene(scene_dir)
+    cache = base / "cache"
+    supervision = build_supervision(scene, "oracle", cache_dir=cache)
+    return {"scene_dir": scene_dir, "scene": scene, "cache": cache, "results": base / "results",
+            "supervision": supervision}
+
+
+def _eval(smoke, method: str, seed: int = 0):
+    return evaluate(EvalOptions(method=method, scene=str(smoke["scene_dir"]), seed=seed, results_dir=smoke["results"],
+                                cache_dir=smoke["cache"], quiet=True, timing_frames=1, timing_repeats=1,
+                                method_options=dict(TINY)))
+
+
+def test_specs_list_without_torch_and_declare_what_the_classes_support():
+    code = ("import sys; from methods import registry; names = registry.names(); "
+            "assert {'langsplat', 'deformable-clip', '4d-langsplat'} <= set(names), names; "
+            "assert 'torch' not in sys.modules; print('ok')")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    from methods import registry
+
+    for name, kind, queries in [("langsplat", "3dgs", {"agnostic", "sensitive"}),
+                                ("deformable-clip", "4dgs", {"agnostic", "sensitive"}),
+                                ("4d-langsplat", "4dgs", {"agnostic"})]:
+        spec = registry.get(name)
+        cls = spec.load()
+        assert set(spec.queries) == queries and cls.supports == frozenset(queries)
+        assert cls.geometry_kind == kind
+    cfg = registry.get("4d-langsplat").make_config({"canonical_phrases": "object,stuff", "threshold_variant": "release"})
+    assert cfg.canonical_phrases == ("object", "stuff")
+    with pytest.raises(ValueError, match="threshold_variant"):
+        registry.get("langsplat").make_config({"threshold_variant": "other"})
+
+
+def test_methods_share_one_4dgs_fit_answer_every_query_and_reload(smoke):
+    first = _eval(smoke, "deformable-clip")
+    doc = first.results
+    assert doc["metrics"]["agnostic_queries"] == 8 and doc["metrics"]["sensitive_queries"] == 4
+    assert all(0.0 <= doc["metrics"][k] <= 100.0 for k in ("mIoU", "mAcc", "Acc", "vIoU"))
+    assert doc["timing"]["query_agnostic"]["fps"] > 0
+
+    # 4d-langsplat reuses the 4D-GS AND the field that deformable-clip fitted (same scene, options, seed)
+    folder = smoke["cache"] / "language" / f"{smoke['scene'].dataset}-smoke"
+    files = sorted(p.name for p in folder.iterdir())
+    assert sum(f.startswith("geometry-4dgs") for f in files) == 1 and sum(f.startswith("field-4dgs") for f in files) == 1
+    second = _eval(smoke, "4d-langsplat")
+    assert sorted(p.name for p in folder.iterdir()) == files
+    assert second.results["unanswered_queries"] == ["closed box", "open box", "intact bar", "broken bar"]
+    assert second.results["metrics"]["mIoU"] == pytest.approx(doc["metrics"]["mIoU"])  # identical time-agnostic half
+
+    # langsplat fits its own static 3D-GS
+    third = _eval(smoke, "langsplat")
+    assert any(p.name.startswith("geometry-3dgs") for p in folder.iterdir())
+    assert third.results["metrics"]["sensitive_queries"] == 4
+
+    # the fit cache reloads a model that answers exactly as the fitted one
+    from methods import registry
+
+    spec = registry.get("deformable-clip")
+    fit_dirs = list((smoke["cache"] / "fits" / "deformable-clip").rglob("language_model.pt"))
+    assert len(fit_dirs) == 1
+    model = spec.load().load(fit_dirs[0].parent, supervision=smoke["supervision"], device="cpu")
+    meta = json.loads((fit_dirs[0].parent / "language_model.json").read_text())
+    assert meta["fit_info"]["autoencoder"]["reconstruction_cosine"] > 0.0
+    assert meta["fit_info"]["geometry"]["kind"] == "4dgs"
+    frames = smoke["scene"].test_frames
+    answers = model.query_agnostic("box", frames)
+    again = model.query_agnostic("box", frames)
+    for a, b, f in zip(answers, again, frames):
+        assert a.mask.shape == (f.camera.height, f.camera.width) and a.mask.dtype == bool
+        assert np.array_equal(a.mask, b.mask) and a.mask.any()
+    preds = json.loads((first.path.parent / "seed0.predictions" / "predictions.json").read_text())
+    assert preds["method"] == "deformable-clip"
+
+
+def test_time_sensitive_score_is_mean_relevance_inside_the_spatial_mask(smoke):
+    from methods import registry
+    from methods.language_methods import fit_language_field, LanguageFieldModel
+    from methods.api import Progress
+
+    cfg = registry.get("deformable-clip").make_config(dict(TINY))
+    shared = fit_language_field(smoke["scene"], smoke["supervision"], cfg, kind="4dgs", seed=0, device="cpu",
+                                progress=Progress(True), cache_root=smoke["cache"])
+    model = LanguageFieldModel("deformable-clip", cfg, smoke["supervision"].text_encoder, shared, sensitive="relevance")
+    frame = smoke["scene"].test_frames[0]
+    res = model.agnostic("open box", frame)
+    want = float(res.relevance[res.mask_unfiltered].mean())
+    got = model.query_sensitive("open box", [frame])[0]
+    assert got.score == pytest.approx(want)
+    assert np.array_equal(got.mask, res.mask.numpy())
+    res.mask_unfiltered[:] = False
+    assert np.isnan(model.relevance_score(res))
+    no_head = LanguageFieldModel("4d-langsplat", cfg, smoke["supervision"].text_encoder, shared, sensitive=None)
+    with pytest.raises(NotImplementedError):
+        no_head.query_sensitive("open box", [frame])
+
+
+def test_unmasked_pixels_become_one_background_mask_per_level(smoke):
+    from methods.language_methods import distinct_features, with_unmasked_as
+
+    sup = smoke["supervision"]
+    assert any((fs.levels < 0).any() for fs in sup.frames)  # the oracle leaves the surroundings unmasked
+    filled = with_unmasked_as(sup, "background")
+    bg = sup.text_encoder.encode(["background"], kind="passage")[0]
+    for before, after in zip(sup.frames, filled.frames):
+        assert (after.levels >= 0).all()
+        for level in range(3):
+            hole = before.levels[level] < 0
+            if hole.any():
+                idx = np.unique(after.levels[level][hole])
+                assert idx.tolist() == [before.features[level].shape[0]]
+                assert np.allclose(after.features[level][idx[0]], bg)
+            assert np.array_equal(after.levels[level][~hole], before.levels[level][~hole])
+    assert with_unmasked_as(sup, None) is sup
+    f0, _ = distinct_features(sup)
+    f1, _ = distinct_features(filled)
+    assert f1.shape[0] == f0.shape[0] + 1

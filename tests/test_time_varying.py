@@ -1,0 +1,304 @@
+"""The time-varying semantic field (status / Non-Status) on a small hand-built 4D-GS.
+
+Two blobs of Gaussians in front of one camera: a "box" whose caption changes from closed to open
+half way, and a "ball" whose caption never changes. The HexPlane's time planes are randomised, so
+its features vary with t (as a trained 4D-GS's do where things move); nothing moves.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from benchmark.metrics import apply_temporal_rule
+from benchmark.scene import Camera, Frame, Scene
+from methods.captioners.base import Captions, ObjectTracks
+from methods.fields.language_field import FrozenGeometry
+from methods.fields.status import StatusField
+from methods.fields.time_varying import (choose_num_states, embed_captions, fit_time_varying_field,
+                                         load_time_varying_field, object_blend_weights, object_semantics,
+                                         render_channels)
+from methods.specs._time_varying import TimeVaryingOptions
+from methods.supervision.base import TextEncoder
+
+W, H = 32, 24
+TRAIN_T = np.linspace(0.0, 1.0, 9)
+TEST_T = np.array([0.06, 0.19, 0.31, 0.44, 0.56, 0.69, 0.81, 0.94])
+N_PER = 150
+
+
+class BagOfWords(TextEncoder):
+    """Deterministic toy encoder: normalised sum of fixed random word vectors (shared words -> similar)."""
+
+    name = "bag-of-words"
+
+    @property
+    def dim(self) -> int:
+        return 48
+
+    def _encode(self, texts, kind):
+        out = []
+        for t in texts:
+            v = np.zeros(self.dim)
+            for w in t.lower().split():
+                seed = int(hashlib.sha256(w.encode()).hexdigest()[:8], 16)
+                v += np.random.default_rng(seed).standard_normal(self.dim)
+            out.append(v)
+        return np.stack(out)
+
+
+def _camera() -> Camera:
+    w2c = np.eye(4)
+    w2c[2, 3] = 2.0  # world origin 2 units in front of the camera (OpenCV: looking along +z)
+    return Camera(W, H, 30.0, 30.0, W / 2, H / 2, w2c)
+
+
+@pytest.fixture(scope="module")
+def world():
+    from methods.gaussians.config import DeformationConfig, HexPlaneConfig
+    from methods.gaussians.hexplane import DeformationField
+    from methods.gaussians.model import DeformableGaussians, GaussianModel
+
+    torch.manual_seed(0)  # the deformation field's own initialisation draws from the global generator
+    gen = torch.Generator().manual_seed(0)
+    centres = torch.tensor([[-0.35, 0.0, 0.0], [0.35, 0.0, 0.0]])
+    means = torch.cat([c + 0.12 * torch.randn(N_PER, 3, generator=gen) * torch.tensor([1, 1, 0.3]) for c in centres])
+    n = means.shape[0]
+    params = {"means": means, "sh_dc": torch.zeros(n, 1, 3), "sh_rest": torch.zeros(n, 0, 3),
+              "opacity_logits": torch.full((n,), 2.0), "log_scales": torch.full((n, 3), np.log(0.05)),
+              "quats": torch.tensor([1.0, 0, 0, 0]).repeat(n, 1)}
+    cfg = DeformationConfig(hexplane=HexPlaneConfig(spatial_resolution=8, output_dim=4, multires=(1,)))
+    fld = DeformationField(cfg, torch.tensor([[-1.0, -1, -1], [1, 1, 1]]), time_resolution=6)
+    with torch.no_grad():
+        fld.hexplane.temporal[0].uniform_(0.3, 1.7, generator=gen)
+    geometry = FrozenGeometry(DeformableGaussians(GaussianModel(params, sh_degree=0), fld))
+    owner = np.repeat([0, 1], N_PER)
+
+    cam = _camera()
+    frames = [Frame(f"tr{i}", cam, float(t), i * 2, "train", load_image=lambda: np.zeros((H, W, 3), np.float32))
+              for i, t in enumerate(TRAIN_T)]
+    frames += [Frame(f"te{i}", cam, float(t), i * 2 + 1, "test", load_image=lambda: np.zeros((H, W, 3), np.float32))
+               for i, t in enumerate(TEST_T)]
+    scene = Scene("toy", "synthetic", frames, np.array([[-1.0, -1, -1], [1, 1, 1]]))
+    onehot = torch.nn.functional.one_hot(torch.as_tensor(owner), 2).float()
+
+    def ids_at(frame):
+        img = render_channels(geometry.at(frame.time), onehot, frame.camera).numpy()
+        ids = np.where(img.max(-1) > 0.5, img.argmax(-1), -1)
+        return ids.astype(np.int32)
+
+    train = [f for f in scene.frames if f.split == "train"]
+    tracks = ObjectTracks("test", [f.name for f in train], [ids_at(f) for f in train], {0: "box", 1: "ball"})
+    captions = Captions("toy", "test", "oracle", {})
+    for f in train:
+        captions.frames[(f.name, 0)] = "the box is open" if f.time >= 0.5 else "the box is closed"
+        captions.frames[(f.name, 1)] = "a striped ball"
+    encoder = BagOfWords()
+    sup = embed_captions(captions, tracks, encoder)
+    masks = {f.name: ids_at(f) for f in scene.frames}  # evaluation masks (the test plays the harness)
+    return SimpleNamespace(geometry=geometry, owner=owner, scene=scene, tracks=tracks, sup=sup, encoder=encoder,
+                           masks=masks)
+
+
+def _options(**kw) -> TimeVaryingOptions:
+    base = dict(tv_ae_max_steps=400, tv_static_iterations=60, status_iterations=300, tv_ae_hidden_dims=(32, 16))
+    return TimeVaryingOptions(**{**base, **kw})
+
+
+@pytest.fixture(scope="module")
+def status_field(world):
+    return fit_time_varying_field(world.geometry, world.scene, world.sup, _options(), kind="status", seed=0,
+                                  backend="torch")
+
+
+def _scores(world, tv, text, frames):
+    q = world.encoder.encode([text], kind="query")[0]
+    return np.array([tv.score(f, world.masks[f.name] == 0, q) for f in frames])
+
+
+def test_object_semantics_and_k(world):
+    sem = object_semantics(world.sup, tolerance=0.02, max_states=3, min_state_run=4.0)
+    assert sem[0].dynamic and sem[0].states == 2
+    assert not sem[1].dynamic and sem[1].states == 1 and sem[1].spread < 1e-6
+    assert choose_num_states(sem, _options(num_states=3)) == 2
+    assert choose_num_states(sem, _options(num_states=5, choose_states=False)) == 5
+    assert choose_num_states({1: sem[1]}, _options()) == 1
+
+
+def _sup_from(x: np.ndarray):
+    frames = [f"f{i:02d}" for i in range(len(x))]
+    caps = Captions("s", "t", "oracle", {}, frames={(f, 0): f"text {i}" for i, f in enumerate(frames)})
+    return SimpleNamespace(captions=caps, embeddings=x.astype(np.float32),
+                           object_rows=lambda obj: list(range(len(frames))))
+
+
+def test_object_semantics_counts_states_not_paraphrases():
+    rng = np.random.default_rng(0)
+    centres = rng.standard_normal((3, 16))
+    # three states holding in turn for 6 frames each
+    x = np.concatenate([c + 0.05 * rng.standard_normal((6, 16)) for c in centres])
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    assert object_semantics(_sup_from(x), tolerance=0.02, max_states=4, min_state_run=4.0)[0].states == 3
+    assert object_semantics(_sup_from(x), tolerance=0.02, max_states=2, min_state_run=4.0)[0].states == 2
+    assert not object_semantics(_sup_from(x), tolerance=2.0, max_states=4, min_state_run=4.0)[0].dynamic
+    # two states, each worded in two clearly different ways drawn frame by frame: still two states
+    words = rng.standard_normal((2, 2, 16))
+    pick = rng.integers(0, 2, 24)
+    y = np.stack([words[i // 12, pick[i]] for i in range(24)])
+    y = y + np.where(np.arange(24)[:, None] < 12, 2.0, -2.0) * centres[0]  # the state dominates the wording
+    y /= np.linalg.norm(y, axis=1, keepdims=True)
+    sem = object_semantics(_sup_from(y), tolerance=0.02, max_states=4, min_state_run=4.0)[0]
+    assert sem.dynamic and sem.states == 2
+
+
+def test_blend_weights_assign_gaussians_to_their_objects(world):
+    w = object_blend_weights(world.geometry, world.scene, world.tracks, [0, 1], backend="torch").numpy()
+    assert w.shape == (2 * N_PER, 3) and (w >= 0).all()
+    seen = w.sum(1) > 1e-3
+    share_box = w[:, 0] / np.maximum(w.sum(1), 1e-12)
+    share_none = w[:, 2] / np.maximum(w.sum(1), 1e-12)
+    # a blob's rim also covers pixels outside its (alpha > 0.5) mask: those count as "no object"
+    assert np.mean(share_box[(world.owner == 0) & seen] > 0.5) > 0.9
+    assert np.mean(share_box[(world.owner == 1) & seen] < 0.2) > 0.9  # the blobs touch near x = 0
+    assert np.all(share_none[seen] < 1.0) and np.median(share_none[seen]) < 0.3
+
+
+def test_status_field_answers_when_the_box_is_open(world, status_field):
+    tv = status_field
+    assert tv.info["num_states"] == 2
+    dyn = np.zeros(2 * N_PER, bool)
+    dyn[tv.module.dynamic_index.numpy()] = True
+    assert dyn[world.owner == 0].mean() > 0.8 and dyn[world.owner == 1].mean() < 0.1
+    test_frames = [f for f in world.scene.frames if f.split == "test"]
+    truth = TEST_T >= 0.5
+    for text, positive in (("box open", truth), ("box closed", ~truth)):
+        s = _scores(world, tv, text, test_frames)
+        assert np.all(np.isfinite(s))
+        assert s[positive].min() > s[~positive].max(), (text, s)
+        assert np.array_equal(apply_temporal_rule(s).decisions, positive)
+    # the ball's semantics never change: its score is flat
+    ball = np.array([tv.score(f, world.masks[f.name] == 1, world.encoder.encode(["striped ball"], kind="query")[0])
+                     for f in test_frames])
+    assert ball.max() - ball.min() < 0.05 and ball.min() > 0.5
+
+
+def test_score_empty_mask_is_nan_and_shape_checked(world, status_field):
+    frame = world.scene.frames[0]
+    q = world.encoder.encode(["box open"], kind="query")[0]
+    assert np.isnan(status_field.score(frame, np.zeros((H, W), bool), q))
+    with pytest.raises(ValueError, match="spatial mask"):
+        status_field.score(frame, np.ones((H + 1, W), bool), q)
+
+
+def test_memory_of_states_only_where_semantics_change(world, status_field):
+    mem = status_field.memory()
+    n_dyn, n = mem["dynamic_gaussians"], mem["gaussians"]
+    k, d = mem["num_states"], status_field.info["latent_dim"]
+    net = sum(p.numel() * 4 for p in status_field.module.weight_mlp.parameters())
+    assert mem["parameter_bytes"] == (n_dyn * k * d + (n - n_dyn) * d) * 4 + net
+    assert mem["all_states_bytes"] == n * k * d * 4 + net
+    assert 0.2 < mem["saved_fraction"] < 0.6
+
+
+def test_save_load_round_trip(world, status_field, tmp_path):
+    torch.save(status_field.state(), tmp_path / "tv.pt")
+    back = load_time_varying_field(torch.load(tmp_path / "tv.pt", weights_only=True), world.geometry)
+    frames = [f for f in world.scene.frames if f.split == "test"]
+    assert np.allclose(_scores(world, back, "box open", frames), _scores(world, status_field, "box open", frames))
+
+
+def test_head_scores_inside_the_chosen_spatial_mask(world, status_field, tmp_path):
+    from methods.fields.relevance import AgnosticResult
+    from methods.time_sensitive import StatusHead
+
+    head = StatusHead(status_field, world.encoder)
+    frame = [f for f in world.scene.frames if f.split == "test"][-1]
+    box = torch.as_tensor(world.masks[frame.name] == 0)
+    spatial = AgnosticResult(mask=box, mask_unfiltered=torch.zeros_like(box), relevance=box.float(), level=0,
+                             level_peaks=torch.ones(3))
+    filtered = SimpleNamespace(config=SimpleNamespace(sensitive_mask="filtered"))
+    unfiltered = SimpleNamespace(config=SimpleNamespace(sensitive_mask="unfiltered"))
+    assert head.score("box open", frame, spatial, filtered) == pytest.approx(
+        _scores(world, status_field, "box open", [frame])[0], abs=1e-6)
+    assert np.isnan(head.score("box open", frame, spatial, unfiltered))  # the release's mask is empty here
+    head.save(tmp_path)
+    again = StatusHead.load(tmp_path, model=SimpleNamespace(geometry=world.geometry, text_encoder=world.encoder),
+                            device="cpu")
+    assert again.score("box open", frame, spatial, filtered) == pytest.approx(
+        head.score("box open", frame, spatial, filtered), abs=1e-6)
+
+
+def test_variants_k_layout_and_non_status(world):
+    fixed = fit_time_varying_field(world.geometry, world.scene, world.sup,
+                                   _options(num_states=4, choose_states=False, skip_static_semantics=False,
+                                            weight_mode="linear", status_iterations=20),
+                                   kind="status", seed=1, backend="torch")
+    assert isinstance(fixed.module, StatusField)
+    assert fixed.module.states.shape == (2 * N_PER, 4, 6) and fixed.memory()["saved_fraction"] == pytest.approx(0.0)
+    non = fit_time_varying_field(world.geometry, world.scene, world.sup, _options(status_iterations=150),
+                                 kind="non-status", seed=0, backend="torch")
+    assert non.module.static.shape == (2 * N_PER, 6)
+    frames = [f for f in world.scene.frames if f.split == "test"]
+    s = _scores(world, non, "box open", frames)
+    assert np.all(np.isfinite(s))
+    with pytest.raises(ValueError, match="kind"):
+        fit_time_varying_field(world.geometry, world.scene, world.sup, _options(), kind="states")
+
+
+def test_blend_operator_is_the_rendering(world):
+    from methods.fields.time_varying import blend_operator
+
+    frame = world.scene.frames[3]
+    state = world.geometry.at(frame.time)
+    pixels = torch.as_tensor(np.nonzero(world.masks[frame.name].reshape(-1) >= 0)[0])
+    op = blend_operator(state, frame.camera, pixels)
+    assert op is not None and op.w.shape == (pixels.numel(), 2 * N_PER)
+    x = torch.randn(2 * N_PER, 5, requires_grad=True)
+    image = render_channels(state, x, frame.camera, backend="torch")
+    want = image.reshape(-1, 5)[pixels]
+    got = op(x)
+    assert torch.allclose(got, want, atol=1e-5)
+    g = torch.randn_like(got)
+    (gx_op,) = torch.autograd.grad((got * g).sum(), x)
+    (gx_render,) = torch.autograd.grad((want * g).sum(), x)
+    assert torch.allclose(gx_op, gx_render, atol=1e-5)
+
+
+def test_operators_and_rasterizer_train_the_same_field(world):
+    fast = fit_time_varying_field(world.geometry, world.scene, world.sup, _options(status_iterations=40),
+                                  kind="status", seed=0, backend="torch")
+    slow = fit_time_varying_field(world.geometry, world.scene, world.sup,
+                                  _options(status_iterations=40, blend_operators=False),
+                                  kind="status", seed=0, backend="torch")
+    assert fast.info["blend_operators"]["recorded"] == len(world.tracks.frame_names)
+    assert slow.info["blend_operators"]["recorded"] == 0
+    assert torch.allclose(fast.module.states, slow.module.states, atol=1e-3)
+
+
+def test_measure_status_speed_small():
+    from methods.fields.time_varying import measure_status_speed
+
+    out = measure_status_speed(400, 32, 24, num_states=3, dynamic_fraction=0.5, iterations=1, warmup=1,
+                               operator=True)
+    assert 150 < out["dynamic_gaussians"] < 250
+    assert out["rasterize_seconds_per_iteration"] > 0 and out["operator_seconds_per_iteration"] > 0
+    # half the Gaussians carry 3 states of 6 floats, the others one latent
+    assert 4 * 6 * (1 + 0.5 * 2) < out["parameter_bytes_per_gaussian"] < 4 * 6 * 3 + 200
+
+
+def test_object_weights_from_operators_match_rendering(world):
+    from methods.fields.time_varying import caption_targets, object_weights_from_operators, prepare_views
+    from methods.fields.autoencoder import AutoencoderConfig, train_autoencoder
+
+    ae, _ = train_autoencoder(world.sup.embeddings, AutoencoderConfig(hidden_dims=(16,), latent_dim=6, max_steps=1))
+    views, info = prepare_views(world.geometry, caption_targets(world.scene, world.sup, ae, "cpu"), budget_mib=64)
+    assert info["recorded"] == len(views)
+    fast = object_weights_from_operators(views, world.tracks, [0, 1])
+    slow = object_blend_weights(world.geometry, world.scene, world.tracks, [0, 1], backend="torch")
+    assert torch.allclose(fast, slow, atol=1e-4)
+    views[0].op = None
+    assert object_weights_from_operators(views, world.tracks, [0, 1]) is None
