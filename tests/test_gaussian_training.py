@@ -174,7 +174,11 @@ def test_schedule_scaling_keeps_the_paper_shape():
     s = Schedule(GaussianConfig(), 3000 / 30000)
     assert s.at(500) == 50 and s.at(100) == 10 and s.at(3000) == 300
     assert not s.densify_now(50) and s.densify_now(60) and not s.densify_now(65) and not s.densify_now(1510)
-    assert s.reset_opacity_now(300, 3000) and not s.reset_opacity_now(3000, 3000)
+    # resets are never closer than min_opacity_reset_gap (500): the scaled 300 is raised to 500
+    assert s.reset_opacity_now(500, 3000) and not s.reset_opacity_now(300, 3000)
+    assert not s.reset_opacity_now(1500, 1500)  # never at a stage's last iteration
+    dense = Schedule(GaussianConfig(min_opacity_reset_gap=0), 0.1)
+    assert dense.reset_opacity_now(300, 3000) and not dense.reset_opacity_now(1800, 3000)  # window ends at 1500
     assert [s.sh_degree(i) for i in (0, 99, 100, 250, 5000)] == [0, 0, 1, 2, 3]
     assert s.position_lr(0, 2.0) == pytest.approx(2 * 1.6e-4)
     assert s.position_lr(3000, 2.0) == pytest.approx(2 * 1.6e-6)
@@ -355,7 +359,7 @@ def test_tiny_3dgs_fit_static_scene():
     scene = toy_scene(size=16, times=2, views_per_time=9, motion=0.0)
     cfg = small_recon_config(0, 0)
     trainer = Trainer(scene, cfg, rasterize_fn=RAST)
-    result = trainer.fit_3dgs(300)
+    result = trainer.fit_3dgs(600)
     ev = evaluate(result.model, scene.test_frames, scene.background, RAST)
     assert result.stages[0]["final_loss"] < 0.5 * result.stages[0]["first_loss"]
     baseline = _initial_psnr(scene, cfg)

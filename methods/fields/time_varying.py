@@ -14,9 +14,10 @@ Pipeline (:func:`fit_time_varying_field`):
    consecutive frames (paraphrases alternate frame to frame, states hold). ``K`` per scene is the
    largest count (capped by ``num_states``), unless fixed (the K ablation).
 3. **Autoencoder** D -> 6 on the distinct caption embeddings, weighted by their pixel areas.
-4. **Semantically static Gaussians** (:func:`object_blend_weights`): each Gaussian's accumulated
-   alpha-blending weight over the training views on each object's pixels (one backward pass per view:
-   the gradient of the rendered object-indicator channels with respect to per-Gaussian colours is
+4. **Semantically static Gaussians**: each Gaussian's accumulated alpha-blending weight over the
+   training views on each object's pixels (:func:`object_weights_from_operators` from the recorded
+   blending operators below, else :func:`object_blend_weights`: one backward pass per view, the
+   gradient of the rendered object-indicator channels with respect to per-Gaussian colours being
    exactly that weight). A Gaussian carries K states only when at least ``dynamic_weight_share`` of
    its weight falls on changing objects; the rest carry ONE latent.
 5. **Time-agnostic caption field**: per-Gaussian latents (zeros at first, as the release) fitted on
@@ -741,6 +742,7 @@ def fit_time_varying_field(geometry: FrozenGeometry, scene: Scene, sup: CaptionS
         raise InputError(None, "geometry", "the time-varying field needs a 4D-GS geometry (HexPlane features)")
     torch.manual_seed(seed)
     t0 = time.perf_counter()
+    cpu0 = time.process_time()
     near = 0.01
     info: dict[str, Any] = {"kind": kind, "captioner": sup.captions.captioner, "captions_track": sup.captions.track,
                             "objects": len(sup.captions.objects()), "distinct_captions": len(sup.texts),
@@ -827,6 +829,7 @@ def fit_time_varying_field(geometry: FrozenGeometry, scene: Scene, sup: CaptionS
                               backend=backend, near=near, progress=progress, desc=f"{kind} field")
     info["memory"] = tv.memory()
     info["seconds"] = time.perf_counter() - t0
+    info["cpu_seconds"] = time.process_time() - cpu0  # all threads; independent of a shared machine's load
     tv.info = info
     return tv.requires_grad_(False)
 

@@ -458,6 +458,10 @@ class Trainer:
                                    g.extent_margin)
         self.cap = gaussian_cap(self.views, bg, g)
         self.window = gaussian_window(g.ssim_window, g.ssim_sigma).to(self.device)
+        self._reset_random()
+
+    def _reset_random(self) -> None:
+        """Every fit starts from the run's seed, whatever ran before it on this trainer."""
         self.generator = torch.Generator().manual_seed(self.cfg.seed)
         self.rng = np.random.default_rng(self.cfg.seed)
         self._order: list[int] = []
@@ -467,6 +471,7 @@ class Trainer:
         """Static 3D-GS for ``iterations`` (default: the 4D-GS total, the same budget)."""
         c = self.cfg
         iterations = iterations or c.reference_iterations or (c.static_iterations + c.deformation_iterations)
+        self._reset_random()
         model = initial_gaussians(self.scene, c.gaussians, self.cap, self.generator, self.device, self.views)
         opt = GaussianOptimizer(model, c.gaussians, self.extent)
         t0, c0 = time.perf_counter(), time.process_time()
@@ -480,6 +485,7 @@ class Trainer:
     def fit_4dgs(self) -> FitResult:
         """4D-GS: static stage, then deformation stage (canonical Gaussians + deformation field)."""
         c = self.cfg
+        self._reset_random()
         model = initial_gaussians(self.scene, c.gaussians, self.cap, self.generator, self.device, self.views)
         opt = GaussianOptimizer(model, c.gaussians, self.extent)
         result = FitResult("4dgs", model, 0.0, extent=self.extent, cap=self.cap)
