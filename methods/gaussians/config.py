@@ -43,16 +43,18 @@ class GaussianConfig:
     """Random initialisation uses at most this fraction of the scene's Gaussian cap, leaving room for
     densification to put Gaussians where the images need them (a CPU-scale choice; the paper has no cap).
     Measured on split-cookie at 128 px, 1 000 iterations: 0.1 gives +1 dB test PSNR over 0.5 at equal
-    CPU time, and a much cheaper start (fewer overlapping random blobs)."""
+    CPU time, and a much cheaper start (fewer overlapping random blobs). On a tiny object toy scene 0.5
+    fits faster: the best value depends on the scene; this one suits the benchmark's scenes."""
     init_knn: int = 3
-    """Initial scale = mean distance to this many nearest neighbours (paper: 3)."""
+    """Initial scale = RMS distance to this many nearest neighbours (paper release: 3)."""
 
     # --- model size (scene-adaptive cap) ---------------------------------------------------------
     gaussians_per_foreground_pixel: float = 1.0
-    """Gaussian cap = this x mean number of foreground pixels per training view. A Gaussian needs a few
-    pixels to be constrained; content seen from several sides needs a few times one view's pixels.
-    Foreground comes from the scene's alpha masks, else from pixels that differ from the known
-    background, else the whole image."""
+    """Gaussian cap = this x mean number of foreground pixels per training view, so the model grows with
+    what the images can constrain (128x170 room scene: 21 760; D-NeRF lego at 200 px: 10 259; jumping
+    jacks: 3 195), never a constant. One per pixel is a CPU-scale choice (2 per pixel roughly doubles the
+    per-step rasterisation cost of the room scenes). Foreground comes from the scene's
+    alpha masks, else from pixels that differ from the known background, else the whole image."""
     foreground_threshold: float = 0.02
     """A pixel is foreground when some channel differs from the known background by more than this."""
     min_gaussians: int = 500
@@ -248,17 +250,20 @@ class DeformationConfig:
     Gaussian's region) every this fraction of the stage, and once more at its end."""
     static_time_samples: int = 16
     """Times in [0, 1] at which the deformation is sampled for the check."""
-    static_pixel_tol: float = 0.1
+    static_pixel_tol: float = 1.0
     """Static when the position offset varies over time by less than this many pixels in the training
-    view where it looks largest (nearest camera): motion nobody can see. A world-space tolerance
+    view where it looks largest (nearest camera). Trained on monocular video, the field jitters static
+    content by about a pixel (lego at 200 px: median 1.1 px over the sequence; split-cookie: 2 px), so
+    sub-pixel tolerances find nothing; at 1 px, half of lego is static, the remaining training absorbs
+    the change, and test PSNR is unchanged (see reports/recon). A world-space tolerance
     (``static_position_tol``) is used when no cameras are given."""
     static_position_tol: float = 1e-3
     """Fallback without cameras: static when the position offset varies by less than this fraction of
     the scene extent."""
-    static_scale_tol: float = 1e-2
-    """... and the log-scale offset by less than this."""
-    static_rotation_tol: float = 1e-2
-    """... and the quaternion offset by less than this (relative to the quaternion's norm)."""
+    static_scale_tol: float = 0.1
+    """... and the log-scale offset by less than this (10% size change: the same jitter shows in scales)."""
+    static_rotation_tol: float = 0.05
+    """... and the quaternion offset by less than this fraction of the quaternion's norm."""
 
 
 @dataclass

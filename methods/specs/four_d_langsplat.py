@@ -1,4 +1,4 @@
-"""Spec of ``4d-langsplat`` (time-agnostic half; the status field adds the time-sensitive half)."""
+"""Spec of ``4d-langsplat``: time-agnostic three-level field + the status field for time-sensitive queries."""
 
 from __future__ import annotations
 
@@ -6,21 +6,27 @@ from dataclasses import dataclass
 
 from methods.registry import MethodSpec
 from methods.specs._language import LanguageMethodConfig
+from methods.specs._time_varying import TimeVaryingOptions
 
 
 @dataclass
-class FourDLangSplatConfig(LanguageMethodConfig):
-    """Options of :class:`methods.four_d_langsplat.FourDLangSplat` (time-agnostic half: shared with
-    ``deformable-clip``, so both methods reuse one cached 4D-GS and field per scene and seed)."""
+class FourDLangSplatConfig(LanguageMethodConfig, TimeVaryingOptions):
+    """Options of :class:`methods.four_d_langsplat.FourDLangSplat`: the time-agnostic half (shared with
+    ``deformable-clip``, so both methods reuse one cached 4D-GS and field per scene and seed) and the
+    time-varying field (:class:`methods.specs._time_varying.TimeVaryingOptions`)."""
+
+    def __post_init__(self) -> None:
+        LanguageMethodConfig.__post_init__(self)
+        self.check_time_varying()
 
 
 SPEC = MethodSpec(
     name="4d-langsplat",
-    description="4D LangSplat: 4D-GS + three-level language field (time-agnostic half; the status "
-                "field for time-sensitive queries plugs in later)",
+    description="4D LangSplat: 4D-GS + three-level language field; time-sensitive queries by the status "
+                "deformable network on object-wise captions",
     entry_point="methods.four_d_langsplat:FourDLangSplat",
     config=FourDLangSplatConfig,
     paper="Li et al., 4D LangSplat: 4D Language Gaussian Splatting via Multimodal Large Language Models, CVPR 2025",
     tracks=("oracle", "real"),
-    queries=("agnostic",),
+    queries=("agnostic", "sensitive"),
 )
