@@ -87,6 +87,11 @@ class Model(abc.ABC):
     supports: ClassVar[frozenset[str]] = frozenset(QUERY_KINDS)
     """Query kinds this model answers."""
 
+    def prepare(self, texts: Sequence[str]) -> None:
+        """Told the texts an evaluation is about to ask (or, with the texts of one timed call, that the
+        next call must do all its work). A model may keep per-frame work shared by these texts between
+        calls, and must drop anything kept for earlier texts; answers must not change. Default: nothing."""
+
     def query_agnostic(self, text: str, frames: Sequence[Frame]) -> list[AgnosticAnswer]:
         """One :class:`AgnosticAnswer` per frame, in order, each at that frame's camera size."""
         raise NotImplementedError(f"{type(self).__name__} does not answer time-agnostic queries")

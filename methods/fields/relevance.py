@@ -6,8 +6,9 @@ canonical phrases' embeddings:
 1. L2-normalise each pixel's feature.
 2. LERF relevance: ``r = min_c exp(s q.f) / (exp(s q.f) + exp(s c.f))`` with ``s = 10``;
    equivalently ``sigmoid(s (q.f - max_c c.f))`` (computed that way: no overflow).
-3. Smooth: ``v = (v + avgpool_k(v)) / 2`` with a ``k x k`` (29) window, stride 1, and the padding
-   excluded from the mean.
+3. Smooth: ``v = (v + avgpool_k(v)) / 2`` with a ``k x k`` (29 at the paper's 960x536; scaled to the
+   rendered resolution by default, see :attr:`RelevanceConfig.kernel_scaling`) window, stride 1, and
+   the padding excluded from the mean.
 4. Rescale by min-max and threshold (paper: rescaled > 0.4; release:
    ``clip(2 (v - min) / (max - min) - 1, 0, 1) > 0.4``, i.e. rescaled > 0.7).
 5. Majority filter ``7 x 7`` (mean of the binary mask > 0.5).
@@ -18,6 +19,7 @@ All functions take torch tensors and run on CPU or CUDA; every constant is a nam
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal, Optional, Sequence
 
@@ -47,6 +49,30 @@ class RelevanceConfig:
     """Side of the majority filter applied to the binary mask (7x7, mean > 0.5)."""
     majority_fraction: float = 0.5
     """A pixel stays in the mask when more than this fraction of its window is in the mask."""
+    kernel_scaling: Literal["resolution", "fixed"] = "resolution"
+    """``"resolution"``: both windows are the paper's sizes scaled by ``sqrt(H W / (H_ref W_ref))`` to the
+    rendered image, rounded to the nearest odd size (at least 1), so they cover the same fraction of the
+    image as in the paper (29 px at 960x536 is 5 px at 128x170). ``"fixed"``: the pixel sizes as given,
+    whatever the resolution (the release's code, literally). Measured with perfect (ground-truth)
+    features on split-cookie at 128 px, release threshold: mIoU 77.2 fixed vs 90.8 scaled, because a
+    29x29 window at 128 px spreads every small part's relevance over its neighbours."""
+    reference_size: tuple[int, int] = (536, 960)
+    """(height, width) at which the window sizes above are defined: the release renders HyperNeRF's
+    ``rgb/2x`` images, 960x536."""
+
+    def kernels_for(self, height: int, width: int) -> tuple[int, int]:
+        """(smoothing, majority) window sides for an image of ``height x width`` (see ``kernel_scaling``)."""
+        if self.kernel_scaling == "fixed":
+            return self.smoothing_kernel, self.majority_kernel
+        if self.kernel_scaling != "resolution":
+            raise ValueError(f"kernel_scaling must be 'resolution' or 'fixed', got {self.kernel_scaling!r}")
+        scale = math.sqrt(height * width / float(self.reference_size[0] * self.reference_size[1]))
+        return _nearest_odd(self.smoothing_kernel * scale), _nearest_odd(self.majority_kernel * scale)
+
+
+def _nearest_odd(size: float) -> int:
+    """The odd integer nearest to ``size``, at least 1 (a centred window needs an odd side)."""
+    return max(1, 2 * int(math.floor((size - 1.0) / 2.0 + 0.5)) + 1)
 
 
 def relevance(features: torch.Tensor, query: torch.Tensor, canon: torch.Tensor,
@@ -140,11 +166,21 @@ def query_levels(level_features: torch.Tensor, query: torch.Tensor, canon: torch
     """
     cfg = cfg or RelevanceConfig()
     rel = relevance(level_features, query, canon, cfg.temperature)  # [L, H, W]
-    sm = smooth(rel, cfg.smoothing_kernel)
+    return answer_from_relevance(rel, cfg)
+
+
+def answer_from_relevance(rel: torch.Tensor, cfg: RelevanceConfig) -> AgnosticResult:
+    """Steps 3-6 (smoothing, level choice, threshold, majority filter) on per-level relevance.
+
+    Args:
+        rel: [L, H, W] relevance of each level (step 2).
+    """
+    smoothing_kernel, majority_kernel = cfg.kernels_for(*rel.shape[-2:])
+    sm = smooth(rel, smoothing_kernel)
     peaks = sm.flatten(1).amax(1)
     level = int(torch.argmax(peaks))
     raw_mask = threshold_mask(sm[level], cfg)
-    mask = majority_filter(raw_mask, cfg.majority_kernel, cfg.majority_fraction)
+    mask = majority_filter(raw_mask, majority_kernel, cfg.majority_fraction)
     return AgnosticResult(mask=mask, mask_unfiltered=raw_mask, relevance=sm[level], level=level,
                           level_peaks=peaks)
 

@@ -86,6 +86,10 @@ class LanguageMethodConfig:
     """Majority filter window on the binary mask (release: 7)."""
     majority_fraction: float = 0.5
     """A pixel stays when more than this fraction of its window is set (release: 0.5)."""
+    kernel_scaling: str = "resolution"
+    """``"resolution"`` (default): the smoothing and majority windows scale with the rendered image from
+    their sizes at the paper's 960x536 (:attr:`methods.fields.relevance.RelevanceConfig.kernel_scaling`);
+    ``"fixed"``: the pixel sizes as given (the release's code)."""
     decode_chunk: int = 65536
     """Pixels decoded at once (bounds query memory at any image size; no effect on results)."""
 
@@ -115,3 +119,5 @@ class LanguageMethodConfig:
                 raise ValueError(f"{name} must be >= 0")
         if self.smoothing_kernel % 2 == 0 or self.majority_kernel % 2 == 0:
             raise ValueError("smoothing_kernel and majority_kernel must be odd (centred windows)")
+        if self.kernel_scaling not in ("resolution", "fixed"):
+            raise ValueError(f"kernel_scaling must be 'resolution' or 'fixed', got {self.kernel_scaling!r}")

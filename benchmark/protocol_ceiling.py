@@ -1,0 +1,103 @@
+"""The time-agnostic query's ceiling: the protocol run on *perfect* language features.
+
+For every evaluated frame of a generated scene, each pixel of each level gets exactly the feature a
+perfect oracle-track field would render there: the text encoder's passage embedding of the ground-truth
+name at that level (``background_text`` where no part is), as :mod:`methods.supervision.oracle_text`
+supervises it. The protocol's query (:mod:`methods.fields.relevance`) then answers every time-agnostic
+query and the IoU against the annotation is what no method on that track can beat with that text
+encoder and those query constants.
+
+This is an analysis of the protocol, not a method: it reads the truth of evaluated frames, which no
+method ever sees. It separates what a method gets wrong from what the query rule (LERF relevance
+against canonical phrases, min-max threshold, window sizes) and the encoder's geometry make impossible.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from typing import Any, Mapping
+
+import numpy as np
+import torch
+
+from .errors import InputError
+from .metrics.masks import iou
+from .scene import Scene
+
+TRUTH_LEVELS = ("subpart", "part", "whole")
+"""The truth's level names, small to large (the SAM levels' order)."""
+
+
+def protocol_ceiling(scene: Scene, annotations, text_encoder, configs: Mapping[str, Any], *,
+                     background_text: str = "background") -> dict[str, Any]:
+    """Per-query mean IoU (over annotated evaluated frames) of the query on perfect features.
+
+    Args:
+        scene: a generated scene (its truth is read for evaluated frames).
+        annotations: the scene's :class:`annotations.model.AnnotationSet`.
+        text_encoder: encodes names (passages), queries and canonical phrases.
+        configs: variant name -> :class:`methods.fields.relevance.RelevanceConfig`.
+    Returns:
+        ``{"variants": {name: {"mIoU": float, "per_query": {text: iou}, "config": {...}}}, "frames": n}``.
+    """
+    from methods.fields.relevance import answer_from_relevance
+
+    from .synthetic.truth import load_truth
+
+    try:
+        truth = load_truth(scene.root)
+    except (FileNotFoundError, OSError) as err:
+        raise InputError(scene.root, "truth", f"the protocol ceiling needs a generated scene's truth ({err})")
+    frame_of = {f.name: f for f in scene.frames}
+    queries = [q for q in annotations.queries if q.kind == "agnostic"]
+    if not queries:
+        raise InputError(None, "annotations", "no time-agnostic queries to answer")
+    # one embedding per distinct name; relevance is then a lookup per (level, id)
+    names: dict[tuple[int, int], str] = {}
+    for level, level_name in enumerate(TRUTH_LEVELS):
+        for id_ in truth.names(level_name):
+            names[(level, int(id_))] = truth.name(level_name, int(id_)) or background_text
+    texts = sorted(set(names.values()) | {background_text})
+    passages = torch.as_tensor(np.asarray(text_encoder.encode(texts, kind="passage")), dtype=torch.float32)
+    row = {t: i for i, t in enumerate(texts)}
+    canon_cache: dict[tuple, torch.Tensor] = {}
+    per_variant: dict[str, dict[str, list[float]]] = {v: {} for v in configs}
+    frames_used = set()
+    for q in queries:
+        zq = torch.as_tensor(np.asarray(text_encoder.encode([q.text], kind="query")[0]), dtype=torch.float32)
+        for af in annotations.annotated_frames(q.id):
+            frame = frame_of.get(af.name)
+            if frame is None or frame.split == "train":
+                continue  # evaluated frames only, as the runner scores them
+            gt = annotations.get_mask(q.id, af.id)
+            if gt is None:
+                continue
+            frames_used.add(frame.name)
+            ids = truth.id_maps(frame, allow_eval=True)  # (3, H, W); 0 = background
+            lookup = []
+            for level in range(ids.shape[0]):
+                present = np.unique(ids[level])
+                table = np.zeros(int(present.max()) + 1, dtype=np.int64)
+                for id_ in present:
+                    table[id_] = row[background_text if id_ == 0 else names.get((level, int(id_)), background_text)]
+                lookup.append(torch.as_tensor(table[ids[level]]))
+            index = torch.stack(lookup)  # [3, H, W] rows of ``texts``
+            for variant, cfg in configs.items():
+                key = tuple(cfg.canonical_phrases)
+                if key not in canon_cache:
+                    canon_cache[key] = torch.as_tensor(np.asarray(text_encoder.encode(list(key), kind="query")),
+                                                       dtype=torch.float32)
+                canon = canon_cache[key]
+                sim_q = passages @ zq / (passages.norm(dim=1) * zq.norm()).clamp_min(1e-12)
+                sim_c = (passages @ canon.T / (passages.norm(dim=1)[:, None] * canon.norm(dim=1)[None]).clamp_min(1e-12))
+                rel_table = torch.sigmoid(cfg.temperature * (sim_q - sim_c.amax(dim=1)))  # [names]
+                answer = answer_from_relevance(rel_table[index], cfg)
+                score = float(iou(answer.mask.numpy(), np.asarray(gt, dtype=bool)))
+                per_variant[variant].setdefault(q.text, []).append(score)
+    out: dict[str, Any] = {"frames": len(frames_used), "text_encoder": text_encoder.config(),
+                           "background_text": background_text, "variants": {}}
+    for variant, per_query in per_variant.items():
+        means = {text: float(np.mean(v)) for text, v in per_query.items()}
+        out["variants"][variant] = {"mIoU": float(np.mean(list(means.values()))) if means else float("nan"),
+                                    "per_query": means, "config": asdict(configs[variant])}
+    return out
