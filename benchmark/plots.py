@@ -138,12 +138,9 @@ def _intervals(times: np.ndarray, labels: np.ndarray) -> list[tuple[float, float
     return spans
 
 
-def timeline(method: str, scene: str, query: str, *, results_dir: str | Path = "results",
-             reports_dir: str | Path = "reports", track: str = "oracle", seed: int = 0,
-             dataset: Optional[str] = None) -> list[Path]:
-    """Write ``reports/timeline_<scene>_<method>_<query slug>.{png,pdf}`` for one time-sensitive query."""
-    from .predictions import query_slug
-
+def _timeline_doc(method: str, scene: str, query: str, *, results_dir, track: str, seed: int,
+                  dataset: Optional[str]) -> tuple[dict, dict, list]:
+    """(results doc, the query's score row, its per-frame records sorted by time) of one method's run."""
     candidates = [p for p in find_results(results_dir)
                   if p.parent.name == track and p.parent.parent.name == method and p.parent.parent.parent.name == scene
                   and p.name == f"seed{seed}.json" and (dataset is None or p.parents[3].name == dataset)]
@@ -166,35 +163,53 @@ def timeline(method: str, scene: str, query: str, *, results_dir: str | Path = "
                     key=lambda f: (f["time_index"], f.get("camera_id", ""), f["frame"]))
     if not frames:
         raise InputError(path, "scores.frames", f"no per-frame records for {query!r}")
-    t = np.array([f["time_index"] for f in frames], dtype=float)
-    s = np.array([np.nan if f.get("score") is None else f["score"] for f in frames], dtype=float)
-    sm = np.array([np.nan if f.get("smoothed") is None else f["smoothed"] for f in frames], dtype=float)
-    labels = np.array([bool(f.get("label")) for f in frames])
-    decisions = np.array([bool(f.get("decision")) for f in frames])
-    tau = row.get("threshold")
+    return doc, row, frames
 
+
+def timeline(method: str | Sequence[str], scene: str, query: str, *, results_dir: str | Path = "results",
+             reports_dir: str | Path = "reports", track: str = "oracle", seed: int = 0,
+             dataset: Optional[str] = None) -> list[Path]:
+    """Write ``reports/timeline_<scene>_<methods>_<query slug>.{png,pdf}`` for one time-sensitive query:
+    one panel per method (stacked, shared time axis: methods score on different scales, e.g. relevance
+    vs caption cosine), each with its scores, smoothed scores, threshold, decisions and the truth."""
+    from .predictions import query_slug
+
+    methods = [method] if isinstance(method, str) else list(method)
+    if not methods:
+        raise InputError(None, "--method", "give at least one method")
+    runs = [_timeline_doc(m, scene, query, results_dir=results_dir, track=track, seed=seed, dataset=dataset)
+            for m in methods]
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(9, 3.2), layout="constrained")
-    for i, (a, b) in enumerate(_intervals(t, labels)):
-        ax.axvspan(a, b, color="tab:green", alpha=0.15, label="ground truth holds" if i == 0 else None)
-    ax.plot(t, s, "o-", color="tab:blue", markersize=3, linewidth=1, label="score $s_t$")
-    if np.isfinite(sm).any():
-        ax.plot(t, sm, "-", color="tab:orange", linewidth=1.5, label="smoothed $\\tilde s_t$")
-    if tau is not None and math.isfinite(tau):
-        ax.axhline(tau, color="tab:red", linestyle="--", linewidth=1, label=f"threshold τ = {tau:.3f}")
-    # decisions as a strip along the bottom edge (axes coordinates), clear of the curves
-    ax.scatter(t[decisions], np.full(decisions.sum(), 0.04), marker="|", color="black", s=80,
-               transform=ax.get_xaxis_transform(), label="predicted: holds")
-    ax.set_xlabel("time index (evaluated frames)")
-    ax.set_ylabel("similarity")
-    viou, acc = row.get("vIoU"), row.get("Acc")
-    acc_txt = "–" if acc is None else f"{acc:.1f}"
-    viou_txt = "–" if viou is None else f"{viou:.1f}"
-    ax.set_title(f"{doc['method']} on {doc['dataset']}/{doc['scene']} ({doc['track']}, seed {doc['seed']}): "
-                 f"“{query}”  Acc {acc_txt}%, vIoU {viou_txt}%", fontsize=9)
-    ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=7, loc="best")
-    stem = Path(reports_dir) / f"timeline_{doc['scene']}_{doc['method']}_{query_slug(query)}"
+    fig, axes = plt.subplots(len(runs), 1, figsize=(9, 2.9 * len(runs)), layout="constrained", sharex=True,
+                             squeeze=False)
+    for ax, (doc, row, frames) in zip(axes[:, 0], runs):
+        t = np.array([f["time_index"] for f in frames], dtype=float)
+        s = np.array([np.nan if f.get("score") is None else f["score"] for f in frames], dtype=float)
+        sm = np.array([np.nan if f.get("smoothed") is None else f["smoothed"] for f in frames], dtype=float)
+        labels = np.array([bool(f.get("label")) for f in frames])
+        decisions = np.array([bool(f.get("decision")) for f in frames])
+        tau = row.get("threshold")
+        for i, (a, b) in enumerate(_intervals(t, labels)):
+            ax.axvspan(a, b, color="tab:green", alpha=0.15, label="ground truth holds" if i == 0 else None)
+        ax.plot(t, s, "o-", color="tab:blue", markersize=3, linewidth=1, label="score $s_t$")
+        if np.isfinite(sm).any():
+            ax.plot(t, sm, "-", color="tab:orange", linewidth=1.5, label="smoothed $\\tilde s_t$")
+        if tau is not None and math.isfinite(tau):
+            ax.axhline(tau, color="tab:red", linestyle="--", linewidth=1, label=f"threshold τ = {tau:.3f}")
+        # decisions as a strip along the bottom edge (axes coordinates), clear of the curves
+        ax.scatter(t[decisions], np.full(decisions.sum(), 0.04), marker="|", color="black", s=80,
+                   transform=ax.get_xaxis_transform(), label="predicted: holds")
+        ax.set_ylabel("similarity")
+        viou, acc = row.get("vIoU"), row.get("Acc")
+        acc_txt = "–" if acc is None else f"{acc:.1f}"
+        viou_txt = "–" if viou is None else f"{viou:.1f}"
+        ax.set_title(f"{doc['method']} on {doc['dataset']}/{doc['scene']} ({doc['track']}, seed {doc['seed']}): "
+                     f"“{query}”  Acc {acc_txt}%, vIoU {viou_txt}%", fontsize=9)
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=7, loc="best")
+    axes[-1, 0].set_xlabel("time index (evaluated frames)")
+    doc = runs[0][0]
+    stem = Path(reports_dir) / f"timeline_{doc['scene']}_{'-vs-'.join(methods)}_{query_slug(query)}"
     written = _save(fig, stem)
     plt.close(fig)
     return written

@@ -481,7 +481,8 @@ def evaluate(options: EvalOptions) -> RunOutcome:
                    "note": "CPU peaks are the process's getrusage maxrss up to that point (fit peak: "
                            "measured right after the fit; a cached fit reports its original peak)"},
         "method_config": _config_dict(config),
-        "fit": {"key": fit.key, "cached": fit.cached},
+        "fit": {"key": fit.key, "cached": fit.cached,
+                "info": _jsonable(model.describe()) if hasattr(model, "describe") else None},
         "supervision": supervision.describe(),
         "environment": {"packages": package_versions(), "git": git_state(), **device_description(options.device)},
         "scene_info": {"root": str(root), "summary": scene.summary(), "annotations": aset.info.get("source"),
@@ -494,6 +495,17 @@ def evaluate(options: EvalOptions) -> RunOutcome:
     }
     write_results(out_path, results)
     return RunOutcome(out_path, results)
+
+
+def _jsonable(obj: Any) -> Any:
+    """``obj`` with numpy / torch scalars and arrays made JSON-serialisable (lists of numbers)."""
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    return obj
 
 
 def to_size(mask, size: tuple[int, int]):

@@ -458,6 +458,20 @@ class LanguageFieldModel(Model):
         self._prepared: Optional[tuple[tuple[str, ...], torch.Tensor]] = None  # (texts, [D, k] shared basis)
         self._reduced_cache: dict[str, torch.Tensor] = {}  # frame name -> [L, H, W, k + 1]
 
+    def describe(self) -> dict:
+        """What the fit did (geometry, autoencoder, field, and the time-varying head when there is one:
+        stage seconds, Gaussian counts, memory per Gaussian), for the results file."""
+        info = {k: v for k, v in self.fit_info.items() if k != "field"}
+        if "field" in self.fit_info:
+            info["field"] = {k: v for k, v in self.fit_info["field"].items() if k != "losses"}
+        field = getattr(self.head, "field", None)
+        if field is not None:
+            tv = {k: v for k, v in getattr(field, "info", {}).items() if k not in ("losses",)}
+            if hasattr(field, "memory"):
+                tv["memory"] = field.memory()
+            info["time_varying"] = tv
+        return info
+
     # -- evaluation-wide sharing --------------------------------------------------------------------------
     MAX_CACHE_BYTES: ClassVar[int] = 1 << 30
     """Memory for reduced decoded frames kept between queries (each is [3, H, W, k + 1] floats with
@@ -581,6 +595,26 @@ class LanguageFieldModel(Model):
             self.head.save(directory / HEAD_DIR)
 
 
+def _wants_head(config, scene: Scene, track: str, progress: Progress) -> bool:
+    """Whether to fit the time-varying head (``config.time_varying``, "auto" resolved on this scene)."""
+    choice = getattr(config, "time_varying", "on")
+    if choice != "auto":
+        return choice == "on"
+    from .fields.time_varying import resolve_captioning
+
+    captioner, tracks = resolve_captioning(config, track)
+    if captioner == "template" or tracks == "truth":
+        from .supervision.truth_access import open_truth
+
+        try:
+            open_truth(scene)
+        except InputError:
+            progress.log(f"time-varying head: off (scene {scene.name!r} has no generator truth to caption on the "
+                         f"{track} track); time-sensitive queries stay unanswered")
+            return False
+    return True
+
+
 class LanguageFieldMethod(Method):
     """Base of the language-field methods; subclasses set :attr:`geometry_kind` and :attr:`sensitive`."""
 
@@ -602,7 +636,7 @@ class LanguageFieldMethod(Method):
         shared = fit_language_field(scene, supervision, config, kind=cls.geometry_kind, seed=seed, device=device,
                                     progress=progress, cache_root=cache_root)
         head = None
-        if cls.time_varying_head is not None:
+        if cls.time_varying_head is not None and _wants_head(config, scene, supervision.track, progress):
             ctx = FitContext(scene, supervision, config, seed, device, progress, shared, cache_root, work_dir)
             head = cls.time_varying_head.fit(ctx)
         return LanguageFieldModel(cls.name, config, supervision.text_encoder, shared, sensitive=cls.sensitive,

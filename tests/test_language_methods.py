@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from benchmark.errors import InputError
 from benchmark.runner import EvalOptions, evaluate
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -161,3 +162,30 @@ def test_unmasked_pixels_become_one_background_mask_per_level(smoke):
     f0, _ = distinct_features(sup)
     f1, _ = distinct_features(filled)
     assert f1.shape[0] == f0.shape[0] + 1
+
+
+def test_results_record_what_the_fit_did(smoke):
+    doc = _eval(smoke, "4d-langsplat").results
+    info = doc["fit"]["info"]
+    assert info["geometry"]["kind"] == "4dgs" and info["geometry"]["gaussians"] > 0
+    assert info["autoencoder"]["reconstruction_cosine"] > 0.0 and "seconds" in info["field"]
+    tv = info["time_varying"]
+    assert tv["memory"]["bytes_per_gaussian"] > 0 and tv["num_states"] >= 1
+    json.dumps(doc)  # everything recorded is plain JSON
+
+
+def test_4d_langsplat_on_a_dnerf_folder_answers_agnostic_queries_without_a_head(tmp_path):
+    """Oracle track on D-NeRF: alpha supervision, no states to caption, so the head is off (auto)."""
+    from tests.test_gaussian_training import write_dnerf_folder
+
+    scene_dir = write_dnerf_folder(tmp_path / "toy", size=16)
+    out = evaluate(EvalOptions(method="4d-langsplat", scene=str(scene_dir), results_dir=tmp_path / "r",
+                               cache_dir=tmp_path / "c", quiet=True, timing_frames=1, timing_repeats=1,
+                               method_options={**TINY, **TINY_STATUS}))
+    doc = out.results
+    assert doc["supervision"]["sources"]["segmenter"] == "alpha"
+    assert "time_varying" not in doc["fit"]["info"] and doc["metrics"]["agnostic_queries"] == 1
+    with pytest.raises(InputError, match="truth"):
+        evaluate(EvalOptions(method="4d-langsplat", scene=str(scene_dir), results_dir=tmp_path / "r2",
+                             cache_dir=tmp_path / "c", quiet=True, timing_frames=1, timing_repeats=1,
+                             method_options={**TINY, **TINY_STATUS, "time_varying": "on"}))

@@ -132,6 +132,11 @@ def test_charts_are_written_as_png_and_pdf(tmp_path):
     assert all(p.stat().st_size > 1000 for p in written)
     tl = timeline("beta", "s1", "cracked cookie", results_dir=tmp_path / "results", reports_dir=tmp_path / "reports")
     assert {p.suffix for p in tl} == {".png", ".pdf"}
+    both = timeline(["alpha", "beta"], "s1", "cracked cookie", results_dir=tmp_path / "results",
+                    reports_dir=tmp_path / "reports")
+    assert sorted(p.name for p in both) == ["timeline_s1_alpha-vs-beta_cracked-cookie.pdf",
+                                            "timeline_s1_alpha-vs-beta_cracked-cookie.png"]
+    assert both[0].stat().st_size > tl[0].stat().st_size * 0.9  # two panels
     with pytest.raises(InputError, match="time-sensitive queries"):
         timeline("beta", "s1", "no such query", results_dir=tmp_path / "results", reports_dir=tmp_path / "reports")
     with pytest.raises(InputError, match="no results file"):

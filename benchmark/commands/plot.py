@@ -1,7 +1,7 @@
 """``bench4d plot``: charts into ``reports/`` (PNG and PDF).
 
     bench4d plot pareto   [--results-dir results] [--reports-dir reports]
-    bench4d plot timeline --method M --scene S --query Q [--track oracle] [--seed 0]
+    bench4d plot timeline --method M [M ...] --scene S --query Q [--track oracle] [--seed 0]
 """
 
 from __future__ import annotations
@@ -16,7 +16,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     _common(p)
     t = sub.add_parser("timeline", help="one time-sensitive query's similarity over time (paper Fig. 4 analogue)")
     _common(t)
-    t.add_argument("--method", required=True)
+    t.add_argument("--method", required=True, nargs="+",
+                   help="one or more methods: one panel each (e.g. deformable-clip 4d-langsplat)")
     t.add_argument("--scene", required=True, help="scene name (as in the results folder)")
     t.add_argument("--query", required=True, help="time-sensitive query text")
     t.add_argument("--track", default="oracle")

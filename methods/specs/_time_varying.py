@@ -19,6 +19,12 @@ class TimeVaryingOptions:
     """Captions, autoencoder, status field and its training (paper values by default; CPU-scale
     iteration counts with the release's in the docstring)."""
 
+    time_varying: str = "auto"
+    """Fit the time-varying head: ``"on"``; ``"off"`` (time-agnostic answers only); ``"auto"`` (default):
+    on wherever the track can caption the scene, off (logged; the scene's time-sensitive queries are
+    then listed as unanswered) on the oracle track of a scene without generator truth, such as a
+    D-NeRF folder, whose states nobody has captioned."""
+
     # --- captions -------------------------------------------------------------------------------
     captioner: str = "auto"
     """``"template"`` (oracle: the scene's states), ``"qwen2-vl"``, ``"file"``; ``"auto"`` = template on
@@ -106,6 +112,8 @@ class TimeVaryingOptions:
     def check_time_varying(self) -> None:
         """Raise ``ValueError`` on inconsistent options (called by the configs' ``__post_init__``)."""
         self.tv_ae_hidden_dims = tuple(int(x) for x in self.tv_ae_hidden_dims)
+        if self.time_varying not in ("auto", "on", "off"):
+            raise ValueError(f"time_varying must be 'auto', 'on' or 'off', got {self.time_varying!r}")
         if self.captioner not in CAPTIONER_CHOICES:
             raise ValueError(f"captioner must be one of {CAPTIONER_CHOICES}, got {self.captioner!r}")
         if self.object_tracks not in TRACK_CHOICES:

