@@ -186,6 +186,19 @@ def test_status_field_answers_when_the_box_is_open(world, status_field):
     assert ball.max() - ball.min() < 0.05 and ball.min() > 0.5
 
 
+def test_caption_autoencoder_trains_at_least_its_minimum_steps(world):
+    """Few distinct captions make 100 epochs a few hundred steps; the states' margins need more."""
+    from methods.fields.time_varying import fit_time_varying_field as fit
+
+    opts = _options(tv_ae_max_steps=900, tv_ae_min_steps=700, tv_static_iterations=2, status_iterations=2)
+    tv = fit(world.geometry, world.scene, world.sup, opts, kind="non-status", seed=0, backend="torch")
+    assert tv.info["autoencoder"]["steps"] == 700
+    capped = fit(world.geometry, world.scene, world.sup, _options(tv_ae_max_steps=300, tv_static_iterations=2,
+                                                                  status_iterations=2),
+                 kind="non-status", seed=0, backend="torch")
+    assert capped.info["autoencoder"]["steps"] == 300
+
+
 def test_score_empty_mask_is_nan_and_shape_checked(world, status_field):
     frame = world.scene.frames[0]
     q = world.encoder.encode(["box open"], kind="query")[0]

@@ -759,8 +759,11 @@ def fit_time_varying_field(geometry: FrozenGeometry, scene: Scene, sup: CaptionS
     log(f"time-varying field: {sum(s.dynamic for s in sem.values())} of {len(sem)} objects change; K = {k}")
 
     # 3. autoencoder D -> d, targets
+    steps_per_epoch = -(-len(sup.texts) // AutoencoderConfig.batch_size)
+    min_steps = min(getattr(options, "tv_ae_min_steps", 0), options.tv_ae_max_steps)
     ae_cfg = AutoencoderConfig(hidden_dims=tuple(options.tv_ae_hidden_dims), latent_dim=options.tv_latent_dim,
-                               max_steps=options.tv_ae_max_steps)
+                               max_steps=options.tv_ae_max_steps,
+                               epochs=max(AutoencoderConfig.epochs, -(-min_steps // steps_per_epoch)))
     ae, ae_report = train_autoencoder(sup.embeddings, ae_cfg, seed=seed, weights=np.maximum(sup.areas(), 1.0),
                                       device=device)
     ae.eval().requires_grad_(False)
