@@ -50,6 +50,7 @@ from typing import Any, ClassVar, Optional, Sequence
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from benchmark.atomic import atomic_path, write_json
 from benchmark.errors import InputError
@@ -58,8 +59,8 @@ from benchmark.scene import Frame, Scene
 from .api import AgnosticAnswer, Method, Model, Progress, SensitiveAnswer
 from .fields.autoencoder import AutoencoderConfig, FeatureAutoencoder, train_autoencoder
 from .fields.language_field import (FieldTarget, FrozenGeometry, LanguageField, LanguageFieldConfig,
-                                    decode_for_relevance, make_target, project_phrases, relevance_basis,
-                                    train_language_field)
+                                    camera_tensors, decode_for_relevance, make_target, project_phrases,
+                                    relevance_basis, train_language_field)
 from .fields.relevance import AgnosticResult, RelevanceConfig, encode_canonical, query_levels
 from .specs._language import LanguageMethodConfig
 from .supervision.base import LEVELS, Supervision, TextEncoder
@@ -455,6 +456,7 @@ class LanguageFieldModel(Model):
         self._canon: Optional[torch.Tensor] = None
         self._phrases: dict[str, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
         self._query_vectors: dict[str, torch.Tensor] = {}
+        self._background: dict[str, torch.Tensor] = {}
         self._prepared: Optional[tuple[tuple[str, ...], torch.Tensor]] = None  # (texts, [D, k] shared basis)
         self._reduced_cache: dict[str, torch.Tensor] = {}  # frame name -> [L, H, W, k + 1]
 
@@ -492,23 +494,55 @@ class LanguageFieldModel(Model):
 
     def _reduced(self, text: str, frame: Frame) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Reduced decoded features of ``frame`` and the query / canonical phrases in their coordinates."""
-        if self._prepared is not None and text in self._prepared[0]:
+        prepared = self._prepared is not None and text in self._prepared[0]
+        if prepared:
             basis = self._prepared[1]
             reduced = self._reduced_cache.get(frame.name)
-            if reduced is None:
-                reduced = decode_for_relevance(self.render_latents(frame), self.autoencoder.decoder, basis,
-                                               self.config.decode_chunk)
+        else:
+            basis = self._reduced_phrases(text)[0]
+            reduced = None
+        if reduced is None:
+            latents, alpha = self.render_latents_and_alpha(frame)
+            reduced = decode_for_relevance(latents, self.autoencoder.decoder, basis, self.config.decode_chunk)
+            reduced = self._uncovered_as_background(reduced, alpha, basis)
+            if prepared:
                 size = reduced.numel() * reduced.element_size()
                 while self._reduced_cache and size * (len(self._reduced_cache) + 1) > self.MAX_CACHE_BYTES:
                     self._reduced_cache.pop(next(iter(self._reduced_cache)))
                 if size <= self.MAX_CACHE_BYTES:
                     self._reduced_cache[frame.name] = reduced
-            zq, zc = project_phrases(basis, self.query_embedding_cached(text), self.canonical())
-            return reduced, zq, zc
-        basis, zq, zc = self._reduced_phrases(text)
-        reduced = decode_for_relevance(self.render_latents(frame), self.autoencoder.decoder, basis,
-                                       self.config.decode_chunk)
+        zq, zc = project_phrases(basis, self.query_embedding_cached(text), self.canonical())
         return reduced, zq, zc
+
+    def _uncovered_as_background(self, reduced: torch.Tensor, alpha: torch.Tensor, basis: torch.Tensor) -> torch.Tensor:
+        """``reduced`` [L, H, W, k + 1] with pixels of ``alpha`` [H, W] below ``config.uncovered_alpha``
+        set to the reduced ``unmasked_text`` embedding (see the config field)."""
+        text = self.config.unmasked_text
+        uncovered = alpha < self.config.uncovered_alpha
+        if not text or not bool(uncovered.any()):
+            return reduced
+        if text not in self._background:
+            self._background[text] = F.normalize(torch.as_tensor(
+                self.text_encoder.encode([text], kind="passage")[0], dtype=torch.float32, device=self.device), dim=0)
+        e = self._background[text]
+        par = e @ basis  # [k]
+        g = torch.cat([par, (1.0 - (par * par).sum()).clamp_min(0.0).sqrt()[None]])
+        reduced = reduced.clone()
+        reduced[:, uncovered] = g.to(reduced.dtype)
+        return reduced
+
+    @torch.no_grad()
+    def render_latents_and_alpha(self, frame: Frame) -> tuple[torch.Tensor, torch.Tensor]:
+        """([L, H, W, d] latent maps, [H, W] accumulated opacity) at the frame's camera and time."""
+        from methods.gaussians.rasterize import rasterize
+
+        fld = self.field
+        state = self.geometry.at(frame.time)
+        viewmat, K, w, h = camera_tensors(frame.camera, fld.features.device)
+        out = rasterize(state.means, state.quats, state.scales, state.opacities, fld.features, viewmat, K, w, h,
+                        near=fld.cfg.near, backend=fld.cfg.render_backend, channel_chunk=fld.cfg.channels)
+        latents = out.image.view(h, w, fld.cfg.num_levels, fld.cfg.latent_dim).permute(2, 0, 1, 3)
+        return latents, out.alpha.reshape(h, w)
 
     def query_embedding_cached(self, text: str) -> torch.Tensor:
         if text not in self._phrases:

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import torch
 import pytest
 
 from benchmark.errors import InputError
@@ -189,3 +190,30 @@ def test_4d_langsplat_on_a_dnerf_folder_answers_agnostic_queries_without_a_head(
         evaluate(EvalOptions(method="4d-langsplat", scene=str(scene_dir), results_dir=tmp_path / "r2",
                              cache_dir=tmp_path / "c", quiet=True, timing_frames=1, timing_repeats=1,
                              method_options={**TINY, **TINY_STATUS, "time_varying": "on"}))
+
+
+def test_pixels_no_gaussian_covers_show_the_background_text(smoke):
+    """Zero latents decode to an arbitrary feature; an uncovered pixel must read as ``unmasked_text``."""
+    from methods import registry
+    from methods.api import Progress
+    from methods.language_methods import LanguageFieldModel, fit_language_field
+
+    cfg = registry.get("deformable-clip").make_config(dict(TINY))
+    shared = fit_language_field(smoke["scene"], smoke["supervision"], cfg, kind="4dgs", seed=0, device="cpu",
+                                progress=Progress(True), cache_root=smoke["cache"])
+    model = LanguageFieldModel("deformable-clip", cfg, smoke["supervision"].text_encoder, shared, sensitive="relevance")
+    frame = smoke["scene"].test_frames[0]
+    latents, alpha = model.render_latents_and_alpha(frame)
+    assert alpha.shape == (frame.camera.height, frame.camera.width)
+    basis = model._reduced_phrases("box")[0]
+    reduced = torch.zeros(3, *alpha.shape, basis.shape[1] + 1)
+    holes = torch.zeros_like(alpha)  # nothing covered
+    out = model._uncovered_as_background(reduced, holes, basis)
+    e = torch.nn.functional.normalize(torch.as_tensor(model.text_encoder.encode(["background"], kind="passage")[0]), dim=0)
+    q = torch.nn.functional.normalize(model.query_embedding("box"), dim=0)
+    zq = torch.cat([q @ basis, q.new_zeros(1)])
+    # the reduced background feature has the background embedding's norm and its dot product with the query
+    assert torch.allclose(out[0, 0, 0].norm(), torch.tensor(1.0), atol=1e-5)
+    assert float(out[1, 3, 4] @ zq) == pytest.approx(float(e @ q), abs=1e-5)
+    covered = torch.ones_like(alpha)
+    assert torch.equal(model._uncovered_as_background(reduced, covered, basis), reduced)

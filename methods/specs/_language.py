@@ -60,6 +60,11 @@ class LanguageMethodConfig:
     tower). The paper's SAM masks cover (nearly) every pixel, background included; the oracle
     segmenter leaves the surroundings unmasked, and unsupervised Gaussians decode to arbitrary
     features that the min-max threshold then selects. ``None`` = leave them unsupervised (release)."""
+    uncovered_alpha: float = 0.5
+    """At query time a pixel whose accumulated opacity is below this shows no Gaussian: its feature is
+    the ``unmasked_text`` embedding (the feature-space analogue of compositing RGB over a known
+    background). Object-centric scenes (D-NeRF) leave most pixels uncovered, and the decoder's output
+    for an empty (zero) latent is arbitrary; scenes covered wall to wall are unaffected."""
 
     # --- language field (per-Gaussian latents of the three levels, geometry frozen) ---------------
     field_iterations: int = 1200
