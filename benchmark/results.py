@@ -135,13 +135,20 @@ def load_results(path: str | Path) -> dict:
     return doc
 
 
+ABLATIONS_DIR = "ablations"
+"""Folder under a results directory that holds ablation runs (not leaderboard entries)."""
+
+
 def find_results(results_dir: str | Path) -> list[Path]:
-    """Every results file under ``results_dir``, sorted (hidden temp files are ignored)."""
+    """Every results file under ``results_dir``, sorted (hidden temp files are ignored, and so is
+    ``results_dir/ablations/``: ablation runs such as ``bench4d ablate states`` change a method's
+    config on purpose and are reported by their ablation, never ranked on the leaderboard)."""
     root = Path(results_dir)
     if not root.is_dir():
         return []
     return sorted(p for p in root.rglob("seed*.json")
                   if not any(part.startswith(".") for part in p.relative_to(root).parts)
+                  and p.relative_to(root).parts[0] != ABLATIONS_DIR
                   and not any(part.endswith(".predictions") for part in p.relative_to(root).parts))
 
 

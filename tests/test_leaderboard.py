@@ -52,6 +52,9 @@ def _write_all(root: Path, order_seed: int) -> None:
 
 def test_summary_means_stds_and_dataset_mean_per_seed(tmp_path):
     _write_all(tmp_path / "results", 0)
+    # an ablation run (config changed on purpose) is never a leaderboard entry
+    write_results(results_path(tmp_path / "results" / "ablations" / "states-k2", "synthetic", "s1", "alpha", "oracle", 0),
+                  _doc("alpha", "s1", 0, 99.0))
     runs = runs_table(find_results(tmp_path / "results"))
     assert len(runs) == 12
     summary = seed_summary(runs)
