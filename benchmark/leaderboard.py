@@ -146,7 +146,8 @@ def render_markdown(runs: pd.DataFrame, results_dir_label: str) -> str:
            "  The dataset mean averages the scenes of each seed first, then over seeds.",
            "* ↑ higher is better, ↓ lower is better; the best of our runs in each column is **bold**.",
            "* Query FPS = 1 / median per-frame query time (warm-up excluded) on the device the run recorded;",
-           "  fit time in seconds (a cached fit reports the time of the original fit).",
+           "  fit time in seconds of every stage of the fit (geometry, autoencoder, field, time-varying head),",
+           "  including stages reused from a cache (a method sharing another's geometry is charged for it).",
            "* Rows marked _paper, reported_ are the published numbers of 4D LangSplat (CVPR 2025); they",
            "  were not produced here, are on other hardware, and are never ranked with our runs.", ""]
     if not len(runs):

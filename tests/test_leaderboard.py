@@ -144,3 +144,15 @@ def test_charts_are_written_as_png_and_pdf(tmp_path):
         timeline("beta", "s1", "no such query", results_dir=tmp_path / "results", reports_dir=tmp_path / "reports")
     with pytest.raises(InputError, match="no results file"):
         timeline("gamma", "s1", "cracked cookie", results_dir=tmp_path / "results", reports_dir=tmp_path / "reports")
+
+
+def test_fit_time_charges_shared_stages_a_run_reused():
+    from benchmark.results import fit_seconds_with_shared
+
+    reused = {"timing": {"fit_seconds": 0.2}, "fit": {"info": {"geometry": {"seconds": 600.0},
+                                                               "autoencoder": {"seconds": 50.0},
+                                                               "field": {"seconds": 250.0, "iterations": 1200}}}}
+    assert fit_seconds_with_shared(reused) == pytest.approx(900.0)
+    reused["fit"]["info"]["time_varying"] = {"seconds": 100.0}
+    assert fit_seconds_with_shared(reused) == pytest.approx(1000.0)
+    assert fit_seconds_with_shared({"timing": {"fit_seconds": 3.5}, "fit": {"key": "k"}}) == pytest.approx(3.5)
