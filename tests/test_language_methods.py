@@ -121,15 +121,21 @@ def test_methods_share_one_4dgs_fit_answer_every_query_and_reload(smoke):
     assert preds["method"] == "deformable-clip"
 
 
-def test_time_sensitive_score_is_mean_relevance_inside_the_spatial_mask(smoke):
+def _deformable_clip_model(smoke):
+    """(config, shared fit, model) of a tiny deformable-clip on the smoke scene (fits cached per module)."""
     from methods import registry
-    from methods.language_methods import fit_language_field, LanguageFieldModel
     from methods.api import Progress
+    from methods.language_methods import LanguageFieldModel, fit_language_field
 
     cfg = registry.get("deformable-clip").make_config(dict(TINY))
     shared = fit_language_field(smoke["scene"], smoke["supervision"], cfg, kind="4dgs", seed=0, device="cpu",
                                 progress=Progress(True), cache_root=smoke["cache"])
-    model = LanguageFieldModel("deformable-clip", cfg, smoke["supervision"].text_encoder, shared, sensitive="relevance")
+    return cfg, shared, LanguageFieldModel("deformable-clip", cfg, smoke["supervision"].text_encoder, shared,
+                                           sensitive="relevance")
+
+
+def test_time_sensitive_score_is_mean_relevance_inside_the_spatial_mask(smoke):
+    cfg, shared, model = _deformable_clip_model(smoke)
     frame = smoke["scene"].test_frames[0]
     res = model.agnostic("open box", frame)
     want = float(res.relevance[res.mask_unfiltered].mean())
@@ -138,6 +144,8 @@ def test_time_sensitive_score_is_mean_relevance_inside_the_spatial_mask(smoke):
     assert np.array_equal(got.mask, res.mask.numpy())
     res.mask_unfiltered[:] = False
     assert np.isnan(model.relevance_score(res))
+    from methods.language_methods import LanguageFieldModel
+
     no_head = LanguageFieldModel("4d-langsplat", cfg, smoke["supervision"].text_encoder, shared, sensitive=None)
     with pytest.raises(NotImplementedError):
         no_head.query_sensitive("open box", [frame])
@@ -194,14 +202,7 @@ def test_4d_langsplat_on_a_dnerf_folder_answers_agnostic_queries_without_a_head(
 
 def test_pixels_no_gaussian_covers_show_the_background_text(smoke):
     """Zero latents decode to an arbitrary feature; an uncovered pixel must read as ``unmasked_text``."""
-    from methods import registry
-    from methods.api import Progress
-    from methods.language_methods import LanguageFieldModel, fit_language_field
-
-    cfg = registry.get("deformable-clip").make_config(dict(TINY))
-    shared = fit_language_field(smoke["scene"], smoke["supervision"], cfg, kind="4dgs", seed=0, device="cpu",
-                                progress=Progress(True), cache_root=smoke["cache"])
-    model = LanguageFieldModel("deformable-clip", cfg, smoke["supervision"].text_encoder, shared, sensitive="relevance")
+    model = _deformable_clip_model(smoke)[2]
     frame = smoke["scene"].test_frames[0]
     latents, alpha = model.render_latents_and_alpha(frame)
     assert alpha.shape == (frame.camera.height, frame.camera.width)
