@@ -59,7 +59,7 @@ from benchmark.scene import Frame, Scene
 from .api import AgnosticAnswer, Method, Model, Progress, SensitiveAnswer
 from .fields.autoencoder import AutoencoderConfig, FeatureAutoencoder, train_autoencoder
 from .fields.language_field import (FieldTarget, FrozenGeometry, LanguageField, LanguageFieldConfig,
-                                    camera_tensors, decode_for_relevance, make_target, project_phrases,
+                                    decode_for_relevance, make_target, project_phrases,
                                     relevance_basis, train_language_field)
 from .fields.relevance import AgnosticResult, RelevanceConfig, encode_canonical, query_levels
 from .specs._language import LanguageMethodConfig
@@ -534,19 +534,12 @@ class LanguageFieldModel(Model):
     @torch.no_grad()
     def render_latents_and_alpha(self, frame: Frame) -> tuple[torch.Tensor, torch.Tensor]:
         """([L, H, W, d] latent maps, [H, W] accumulated opacity) at the frame's camera and time."""
-        from methods.gaussians.rasterize import rasterize
-
-        fld = self.field
-        state = self.geometry.at(frame.time)
-        viewmat, K, w, h = camera_tensors(frame.camera, fld.features.device)
-        out = rasterize(state.means, state.quats, state.scales, state.opacities, fld.features, viewmat, K, w, h,
-                        near=fld.cfg.near, backend=fld.cfg.render_backend, channel_chunk=fld.cfg.channels)
-        latents = out.image.view(h, w, fld.cfg.num_levels, fld.cfg.latent_dim).permute(2, 0, 1, 3)
-        return latents, out.alpha.reshape(h, w)
+        return self.field.render_with_alpha(self.geometry.at(frame.time), frame.camera)
 
     def query_embedding_cached(self, text: str) -> torch.Tensor:
-        if text not in self._phrases:
-            self._reduced_phrases(text)
+        """:meth:`query_embedding`, encoded once per text."""
+        if text not in self._query_vectors:
+            self._query_vectors[text] = self.query_embedding(text)
         return self._query_vectors[text]
 
     # -- query pieces ---------------------------------------------------------------------------------
@@ -562,8 +555,7 @@ class LanguageFieldModel(Model):
 
     def _reduced_phrases(self, text: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         if text not in self._phrases:
-            q = self.query_embedding(text)
-            self._query_vectors[text] = q
+            q = self.query_embedding_cached(text)
             canon = self.canonical()
             basis = relevance_basis(q, canon)
             zq, zc = project_phrases(basis, q, canon)

@@ -178,9 +178,7 @@ class FrozenGeometry:
 
     @staticmethod
     def from_state_dict(state: dict, device: torch.device | str = "cpu") -> "FrozenGeometry":
-        from methods.gaussians.config import DeformationConfig, HexPlaneConfig
-        from methods.gaussians.hexplane import DeformationField
-        from methods.gaussians.model import DeformableGaussians, GaussianModel
+        from methods.gaussians.model import DeformableGaussians, GaussianModel, deformation_field_from_state
 
         shape = {k: v.to(device) for k, v in state["shape"].items()}
         n = shape["means"].shape[0]
@@ -189,14 +187,7 @@ class FrozenGeometry:
         if state["kind"] == "3dgs":
             return FrozenGeometry(gm)
         d = state["deformation"]
-        cfg_dict = dict(d["config"])
-        hp = dict(cfg_dict.pop("hexplane"))
-        hp["multires"] = tuple(hp["multires"])
-        cfg = DeformationConfig(hexplane=HexPlaneConfig(**hp), **cfg_dict)
-        box_min = d["state"]["hexplane.box_min"]
-        bounds = torch.stack([box_min, box_min + d["state"]["hexplane.box_size"]])
-        fld = DeformationField(cfg, bounds, d["time_resolution"])
-        fld.load_state_dict(d["state"])
+        fld = deformation_field_from_state(d["config"], d["state"], d["time_resolution"])
         deformable = DeformableGaussians(gm, fld.to(device))
         deformable.dynamic_mask = None if d["dynamic_mask"] is None else d["dynamic_mask"].to(device)
         return FrozenGeometry(deformable)
@@ -232,12 +223,17 @@ class LanguageField(nn.Module):
 
         Differentiable in :attr:`features` only (``state`` is frozen); background 0.
         """
+        return self.render_with_alpha(state, camera)[0]
+
+    def render_with_alpha(self, state: GaussianState, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
+        """(:meth:`render`'s [L, H, W, d] latent maps, [H, W] accumulated opacity) from one rasterizer call."""
         from methods.gaussians.rasterize import rasterize
 
         viewmat, K, w, h = camera_tensors(camera, self.features.device)
         out = rasterize(state.means, state.quats, state.scales, state.opacities, self.features, viewmat, K, w, h,
                         near=self.cfg.near, backend=self.cfg.render_backend, channel_chunk=self.cfg.channels)
-        return out.image.view(h, w, self.cfg.num_levels, self.cfg.latent_dim).permute(2, 0, 1, 3)
+        latents = out.image.view(h, w, self.cfg.num_levels, self.cfg.latent_dim).permute(2, 0, 1, 3)
+        return latents, out.alpha.reshape(h, w)
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -155,6 +155,21 @@ def knn_mean_distance(points: torch.Tensor, k: int) -> torch.Tensor:
     return torch.as_tensor(np.maximum(mean, floor), dtype=torch.float32, device=points.device)
 
 
+def deformation_field_from_state(config: dict, weights: dict, time_resolution: int) -> DeformationField:
+    """Rebuild a saved :class:`DeformationField` from its config as a plain dict (``hexplane`` nested),
+    its ``state_dict`` and its time resolution (the HexPlane bounds are read from the weights)."""
+    from .config import HexPlaneConfig
+
+    cfg_dict = dict(config)
+    hp = dict(cfg_dict.pop("hexplane"))
+    hp["multires"] = tuple(hp["multires"])
+    cfg = DeformationConfig(hexplane=HexPlaneConfig(**hp), **cfg_dict)
+    box_min = weights["hexplane.box_min"]
+    field = DeformationField(cfg, torch.stack([box_min, box_min + weights["hexplane.box_size"]]), time_resolution)
+    field.load_state_dict(weights)
+    return field
+
+
 class DeformableGaussians:
     """4D-GS: canonical :class:`GaussianModel` + :class:`DeformationField` evaluated at time t.
 
@@ -284,16 +299,7 @@ class DeformableGaussians:
 
     @staticmethod
     def from_state_dict(state: dict, device: torch.device | str = "cpu") -> "DeformableGaussians":
-        from .config import HexPlaneConfig
-
-        cfg_dict = dict(state["field_config"])
-        hp = dict(cfg_dict.pop("hexplane"))
-        hp["multires"] = tuple(hp["multires"])
-        cfg = DeformationConfig(hexplane=HexPlaneConfig(**hp), **cfg_dict)
-        box_min = state["field"]["hexplane.box_min"]
-        bounds = torch.stack([box_min, box_min + state["field"]["hexplane.box_size"]])
-        field = DeformationField(cfg, bounds, state["time_resolution"])
-        field.load_state_dict(state["field"])
+        field = deformation_field_from_state(state["field_config"], state["field"], state["time_resolution"])
         model = DeformableGaussians(GaussianModel.from_state_dict(state["gaussians"], device), field.to(device))
         mask = state.get("dynamic_mask")
         model.dynamic_mask = None if mask is None else mask.to(device)
