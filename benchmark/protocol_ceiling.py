@@ -7,6 +7,11 @@ supervises it. The protocol's query (:mod:`methods.fields.relevance`) then answe
 query and the IoU against the annotation is what no method on that track can beat with that text
 encoder and those query constants.
 
+Time-sensitive queries get the same treatment for their spatial half: the protocol's mask for the
+query text against the base label's ground truth, on the evaluated frames where the query holds. Its
+mean is the vIoU a method would reach with perfect temporal decisions on perfect features: vIoU
+averages IoU_t over frames predicted or labelled positive, so no method on the track exceeds it.
+
 This is an analysis of the protocol, not a method: it reads the truth of evaluated frames, which no
 method ever sees. It separates what a method gets wrong from what the query rule (LERF relevance
 against canonical phrases, min-max threshold, window sizes) and the encoder's geometry make impossible.
@@ -38,7 +43,9 @@ def protocol_ceiling(scene: Scene, annotations, text_encoder, configs: Mapping[s
         text_encoder: encodes names (passages), queries and canonical phrases.
         configs: variant name -> :class:`methods.fields.relevance.RelevanceConfig`.
     Returns:
-        ``{"variants": {name: {"mIoU": float, "per_query": {text: iou}, "config": {...}}}, "frames": n}``.
+        ``{"variants": {name: {"mIoU": float, "per_query": {text: iou}, "vIoU": float,
+        "per_sensitive_query": {text: iou}, "config": {...}}}, "frames": n}`` (``vIoU`` NaN without
+        time-sensitive queries).
     """
     from methods.fields.relevance import answer_from_relevance
 
@@ -49,9 +56,9 @@ def protocol_ceiling(scene: Scene, annotations, text_encoder, configs: Mapping[s
     except (FileNotFoundError, OSError) as err:
         raise InputError(scene.root, "truth", f"the protocol ceiling needs a generated scene's truth ({err})")
     frame_of = {f.name: f for f in scene.frames}
-    queries = [q for q in annotations.queries if q.kind == "agnostic"]
-    if not queries:
+    if not any(q.kind == "agnostic" for q in annotations.queries):
         raise InputError(None, "annotations", "no time-agnostic queries to answer")
+    queries = list(annotations.queries)
     # one embedding per distinct name; relevance is then a lookup per (level, id)
     names: dict[tuple[int, int], str] = {}
     for level, level_name in enumerate(TRUTH_LEVELS):
@@ -62,6 +69,7 @@ def protocol_ceiling(scene: Scene, annotations, text_encoder, configs: Mapping[s
     row = {t: i for i, t in enumerate(texts)}
     canon_cache: dict[tuple, torch.Tensor] = {}
     per_variant: dict[str, dict[str, list[float]]] = {v: {} for v in configs}
+    per_variant_sensitive: dict[str, dict[str, list[float]]] = {v: {} for v in configs}
     frames_used = set()
     for q in queries:
         zq = torch.as_tensor(np.asarray(text_encoder.encode([q.text], kind="query")[0]), dtype=torch.float32)
@@ -69,6 +77,8 @@ def protocol_ceiling(scene: Scene, annotations, text_encoder, configs: Mapping[s
             frame = frame_of.get(af.name)
             if frame is None or frame.split == "train":
                 continue  # evaluated frames only, as the runner scores them
+            if q.kind == "sensitive" and not annotations.label(q.id, af.time_index):
+                continue  # the spatial half counts where the query holds
             gt = annotations.get_mask(q.id, af.id)
             if gt is None:
                 continue
@@ -93,11 +103,15 @@ def protocol_ceiling(scene: Scene, annotations, text_encoder, configs: Mapping[s
                 rel_table = torch.sigmoid(cfg.temperature * (sim_q - sim_c.amax(dim=1)))  # [names]
                 answer = answer_from_relevance(rel_table[index], cfg)
                 score = float(iou(answer.mask.numpy(), np.asarray(gt, dtype=bool)))
-                per_variant[variant].setdefault(q.text, []).append(score)
+                into = per_variant if q.kind == "agnostic" else per_variant_sensitive
+                into[variant].setdefault(q.text, []).append(score)
     out: dict[str, Any] = {"frames": len(frames_used), "text_encoder": text_encoder.config(),
                            "background_text": background_text, "variants": {}}
     for variant, per_query in per_variant.items():
         means = {text: float(np.mean(v)) for text, v in per_query.items()}
+        sens = {text: float(np.mean(v)) for text, v in per_variant_sensitive[variant].items()}
         out["variants"][variant] = {"mIoU": float(np.mean(list(means.values()))) if means else float("nan"),
-                                    "per_query": means, "config": asdict(configs[variant])}
+                                    "per_query": means,
+                                    "vIoU": float(np.mean(list(sens.values()))) if sens else float("nan"),
+                                    "per_sensitive_query": sens, "config": asdict(configs[variant])}
     return out

@@ -221,16 +221,27 @@ def seed_summary(runs: pd.DataFrame) -> pd.DataFrame:
     """Mean, std (sample, ddof=1; NaN for one seed) and seed count per (dataset, track, method, scene).
 
     The extra scene :data:`MEAN_SCENE` per (dataset, track, method) first averages the scenes of each
-    seed (the dataset-level number of that seed), then summarises over seeds. Columns:
-    ``<value>_mean``, ``<value>_std`` for every :data:`VALUE_COLUMNS`, ``seeds``, ``scenes``.
+    seed (the dataset-level number of that seed), then summarises over seeds. Only *complete* seeds
+    enter it: seeds that ran every scene the method has in that (dataset, track); a seed that ran
+    fewer would average a different scene set into the same number. Those are counted in
+    ``partial_seeds`` and left out (if no seed is complete, the mean is NaN). Columns:
+    ``<value>_mean``, ``<value>_std`` for every :data:`VALUE_COLUMNS`, ``seeds``, ``partial_seeds``,
+    ``scenes``.
     """
     keys = ["dataset", "track", "method", "scene"]
+    columns = keys + [f"{v}_{s}" for v in VALUE_COLUMNS for s in ("mean", "std")] + ["seeds", "partial_seeds", "scenes"]
     if not len(runs):
-        return pd.DataFrame(columns=keys + [f"{v}_{s}" for v in VALUE_COLUMNS for s in ("mean", "std")] + ["seeds", "scenes"])
-    per_seed_dataset = (runs.groupby(["dataset", "track", "method", "seed"], sort=True)[VALUE_COLUMNS]
-                        .mean().reset_index())
+        return pd.DataFrame(columns=columns)
+    group_keys = ["dataset", "track", "method"]
+    scene_sets = runs.groupby(group_keys)["scene"].agg(lambda s: frozenset(s))
+    seed_sets = runs.groupby(group_keys + ["seed"])["scene"].agg(lambda s: frozenset(s)).reset_index()
+    seed_sets["complete"] = [scenes == scene_sets[tuple(k)] for k, scenes in
+                             zip(seed_sets[group_keys].itertuples(index=False), seed_sets["scene"])]
+    complete = seed_sets[seed_sets["complete"]][group_keys + ["seed"]]
+    partial = seed_sets[~seed_sets["complete"]].groupby(group_keys)["seed"].nunique()
+    per_seed_dataset = (runs.merge(complete, on=group_keys + ["seed"])
+                        .groupby(group_keys + ["seed"], sort=True)[VALUE_COLUMNS].mean().reset_index())
     per_seed_dataset["scene"] = MEAN_SCENE
-    scene_counts = runs.groupby(["dataset", "track", "method"])["scene"].nunique()
     rows = []
     for source, with_scene in ((runs, True), (per_seed_dataset, False)):
         for key, group in source.groupby(keys, sort=True):
@@ -240,7 +251,15 @@ def seed_summary(runs: pd.DataFrame) -> pd.DataFrame:
                 row[f"{v}_mean"] = float(col.mean()) if col.notna().any() else math.nan
                 row[f"{v}_std"] = _std(col)
             row["seeds"] = int(group["seed"].nunique())
-            row["scenes"] = 1 if with_scene else int(scene_counts[key[:3]])
+            row["partial_seeds"] = 0 if with_scene else int(partial.get(key[:3], 0))
+            row["scenes"] = 1 if with_scene else len(scene_sets[key[:3]])
+            rows.append(row)
+    # a method none of whose seeds is complete still gets its (empty) mean row
+    for key, scenes in scene_sets.items():
+        if not any((r["dataset"], r["track"], r["method"], r["scene"]) == (*key, MEAN_SCENE) for r in rows):
+            row = dict(zip(keys, (*key, MEAN_SCENE)))
+            row.update({f"{v}_{s}": math.nan for v in VALUE_COLUMNS for s in ("mean", "std")})
+            row.update({"seeds": 0, "partial_seeds": int(partial.get(key, 0)), "scenes": len(scenes)})
             rows.append(row)
     table = pd.DataFrame(rows)
     table["_order"] = (table["scene"] == MEAN_SCENE).astype(int)

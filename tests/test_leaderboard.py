@@ -18,8 +18,8 @@ from benchmark.results import MEAN_SCENE, find_results, load_results, results_pa
 # (method, scene, seed) -> mIoU; Acc = mIoU - 10; fps and fit time per method
 MIOU = {("alpha", "s1"): [50.0, 52.0, 54.0], ("alpha", "s2"): [60.0, 60.0, 60.0],
         ("beta", "s1"): [70.0, 71.0, 72.0], ("beta", "s2"): [40.0, 44.0, 48.0]}
-FPS = {"alpha": 100.0, "beta": 2.0}
-FIT = {"alpha": 0.5, "beta": 300.0}
+FPS = {"alpha": 100.0, "beta": 2.0, "gamma": 1.0, "delta": 1.0}
+FIT = {"alpha": 0.5, "beta": 300.0, "gamma": 10.0, "delta": 10.0}
 
 
 def _doc(method: str, scene: str, seed: int, miou: float) -> dict:
@@ -65,6 +65,32 @@ def test_summary_means_stds_and_dataset_mean_per_seed(tmp_path):
     assert mean["mIoU_mean"] == pytest.approx(np.mean(per_seed))
     assert mean["mIoU_std"] == pytest.approx(np.std(per_seed, ddof=1))
     assert mean["seeds"] == 3 and mean["scenes"] == 2
+
+
+def test_dataset_mean_counts_only_seeds_that_ran_every_scene(tmp_path):
+    # gamma: s1 with seeds 0-2, s2 with seed 0 only -> seeds 1 and 2 would average s1 alone
+    root = tmp_path / "results"
+    for seed, v in enumerate([50.0, 60.0, 70.0]):
+        write_results(results_path(root, "synthetic", "s1", "gamma", "oracle", seed), _doc("gamma", "s1", seed, v))
+    write_results(results_path(root, "synthetic", "s2", "gamma", "oracle", 0), _doc("gamma", "s2", 0, 90.0))
+    # delta: one scene only, complete seeds
+    for seed in (0, 1):
+        write_results(results_path(root, "synthetic", "s1", "delta", "oracle", seed), _doc("delta", "s1", seed, 99.0))
+    summary = seed_summary(runs_table(find_results(root)))
+    mean = summary[(summary.method == "gamma") & (summary.scene == MEAN_SCENE)].iloc[0]
+    assert mean["mIoU_mean"] == pytest.approx((50 + 90) / 2)  # seed 0 only, not mean(70, 60, 70)
+    assert mean["seeds"] == 1 and mean["partial_seeds"] == 2 and mean["scenes"] == 2
+    s1 = summary[(summary.method == "gamma") & (summary.scene == "s1")].iloc[0]
+    assert s1["mIoU_mean"] == pytest.approx(60.0) and s1["seeds"] == 3  # the scene column keeps every seed
+    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
+    table = (tmp_path / "lb.md").read_text().split("### Time-agnostic queries")[1].split("###")[0]
+    gamma = next(line for line in table.splitlines() if line.startswith("| gamma |"))
+    delta = next(line for line in table.splitlines() if line.startswith("| delta |"))
+    assert gamma.endswith("| 2/2 | 1 (+2 partial) |") and delta.endswith("| 1/2 | 2 |")
+    # delta's mean (99, one scene) is higher but not comparable with gamma's two-scene 70: nobody ranks
+    # first in the mean column (columns: method, s1, s2, mean, ...)
+    assert gamma.split("|")[4].strip() == "70.00" and delta.split("|")[4].strip() == "99.00 ± 0.00"
+    assert "**99.00 ± 0.00**" in delta.split("|")[2]  # the per-scene column still ranks s1
 
 
 def test_leaderboard_is_deterministic_marks_best_and_separates_paper_numbers(tmp_path):

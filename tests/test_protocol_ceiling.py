@@ -39,11 +39,13 @@ def test_ceiling_lookup_equals_the_query_on_full_feature_images(smoke):
     truth = load_truth(scene.root)
     canon = torch.as_tensor(encoder.encode(list(RelevanceConfig().canonical_phrases), kind="query"))
     want: dict[str, dict[str, list[float]]] = {v: {} for v in configs}
-    for q in [q for q in aset.queries if q.kind == "agnostic"]:
+    want_sensitive: dict[str, dict[str, list[float]]] = {v: {} for v in configs}
+    assert any(q.kind == "sensitive" for q in aset.queries)
+    for q in aset.queries:
         zq = torch.as_tensor(encoder.encode([q.text], kind="query")[0])
         for af in aset.annotated_frames(q.id):
             frame = scene.frame(af.name)
-            if frame.split == "train":
+            if frame.split == "train" or (q.kind == "sensitive" and not q.holds_at(af.time_index)):
                 continue
             ids = truth.id_maps(frame, allow_eval=True)
             feats = np.zeros(ids.shape + (canon.shape[1],), np.float32)
@@ -55,10 +57,16 @@ def test_ceiling_lookup_equals_the_query_on_full_feature_images(smoke):
             for v, cfg in configs.items():
                 m = query_levels(torch.as_tensor(feats), zq, canon, cfg).mask.numpy()
                 union = (m | gt).sum()
-                want[v].setdefault(q.text, []).append(1.0 if union == 0 else (m & gt).sum() / union)
+                into = want if q.kind == "agnostic" else want_sensitive
+                into[v].setdefault(q.text, []).append(1.0 if union == 0 else (m & gt).sum() / union)
     for v in configs:
         for text, scores in want[v].items():
             assert got["variants"][v]["per_query"][text] == pytest.approx(np.mean(scores), abs=1e-6)
+        assert set(got["variants"][v]["per_sensitive_query"]) == set(want_sensitive[v])
+        for text, scores in want_sensitive[v].items():
+            assert got["variants"][v]["per_sensitive_query"][text] == pytest.approx(np.mean(scores), abs=1e-6)
+        assert got["variants"][v]["vIoU"] == pytest.approx(
+            np.mean([np.mean(x) for x in want_sensitive[v].values()]), abs=1e-6)
     assert 0.0 <= got["variants"]["paper"]["mIoU"] <= 1.0
 
 
@@ -82,4 +90,5 @@ def test_ablate_ceiling_command_writes_a_table(smoke, tmp_path, capsys):
     assert main(["ablate", "ceiling", "--scenes", str(scene.root), "--out", str(tmp_path), "--quiet"]) == 0
     doc = json.loads((tmp_path / "protocol-ceiling.json").read_text())
     assert list(doc["scenes"]) == [scene.name] and len(doc["scenes"][scene.name]["variants"]) == 4
-    assert "| smoke |" in (tmp_path / "protocol-ceiling.md").read_text()
+    md = (tmp_path / "protocol-ceiling.md").read_text()
+    assert "| smoke |" in md and "vIoU ceiling" in md

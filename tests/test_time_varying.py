@@ -315,3 +315,31 @@ def test_object_weights_from_operators_match_rendering(world):
     assert torch.allclose(fast, slow, atol=1e-4)
     views[0].op = None
     assert object_weights_from_operators(views, world.tracks, [0, 1]) is None
+
+
+def test_adjacent_times_groups_cameras_sharing_a_time():
+    from methods.fields.time_varying import adjacent_times
+
+    views = [SimpleNamespace(target=SimpleNamespace(time=t)) for t in (0.5, 0.0, 0.5, 1.0)]
+    assert adjacent_times(views) == [[1, 3], [0, 2], [1, 3], [0, 2]]
+
+
+def _latent_variation(tv) -> tuple[float, float]:
+    """(sum over consecutive training times of mean |latent change| of the state-carrying Gaussians,
+    mean weight entropy) of a fitted status field."""
+    rows = tv.module.dynamic_index
+    lat = [tv.latents_at(float(t))[rows] for t in TRAIN_T]
+    total = sum(float((b - a).abs().mean()) for a, b in zip(lat, lat[1:]))
+    ent = float(np.mean([float(tv.module.weight_entropy(tv.hexplane_input(float(t)))) for t in TRAIN_T]))
+    return total, ent
+
+
+def test_time_tv_and_entropy_terms_act_on_the_status_field(world, status_field):
+    regular = fit_time_varying_field(world.geometry, world.scene, world.sup,
+                                     _options(status_time_tv_weight=5.0, status_entropy_weight=0.5),
+                                     kind="status", seed=0, backend="torch")
+    tv_plain, ent_plain = _latent_variation(status_field)
+    tv_reg, ent_reg = _latent_variation(regular)
+    assert tv_reg < 0.8 * tv_plain and ent_reg < 0.8 * ent_plain
+    with pytest.raises(ValueError, match="status_time_tv_weight"):
+        _options(status_time_tv_weight=-1.0).check_time_varying()

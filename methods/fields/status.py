@@ -72,6 +72,14 @@ class StatusField(nn.Module):
         logits = self.weight_mlp(hexplane_features)
         return torch.softmax(logits, dim=-1) if self.cfg.weight_mode == "softmax" else logits
 
+    def weight_entropy(self, hexplane_features: torch.Tensor) -> torch.Tensor:
+        """Mean entropy (nats) of the softmax weights of the dynamic Gaussians at (x, t): 0 when each
+        Gaussian is in exactly one state, ln K for an even mix. Softmax mode only."""
+        if self.cfg.weight_mode != "softmax" or hexplane_features.shape[0] == 0:
+            return hexplane_features.new_zeros(())
+        logp = torch.log_softmax(self.weight_mlp(hexplane_features), dim=-1)
+        return -(logp.exp() * logp).sum(-1).mean()
+
     def forward(self, hexplane_features: torch.Tensor) -> torch.Tensor:
         """[N_dyn, F] HexPlane features at (x, t) of the dynamic Gaussians -> [N, D] features at t."""
         w = self.weights(hexplane_features)  # [N_dyn, K]

@@ -674,15 +674,35 @@ def prepare_views(geometry: FrozenGeometry, targets: Sequence[ViewTarget], *, bu
                    "unreadable": bool(failed)}
 
 
+def adjacent_times(views: Sequence[_View]) -> list[list[int]]:
+    """For each view, the views at the training times just before and after its own (several
+    cameras may share a time)."""
+    times = sorted({float(v.target.time) for v in views})
+    at: dict[float, list[int]] = {}
+    for i, v in enumerate(views):
+        at.setdefault(float(v.target.time), []).append(i)
+    out = []
+    for v in views:
+        k = times.index(float(v.target.time))
+        out.append([j for kk in (k - 1, k + 1) if 0 <= kk < len(times) for j in at[times[kk]]])
+    return out
+
+
 def _optimise(module: nn.Module, views: Sequence[_View], geometry: FrozenGeometry, *, iterations: int,
               per_gaussian_lr: float, network_lr: float, loss_weight: float, seed: int,
               hexplane_fn: Optional[Callable[[float], torch.Tensor]], backend: str, near: float,
-              progress: Optional[Callable], desc: str) -> dict[str, Any]:
+              progress: Optional[Callable], desc: str, time_tv_weight: float = 0.0,
+              entropy_weight: float = 0.0) -> dict[str, Any]:
     """L1 between predicted and target latents on the supervised pixels, one random view per step.
 
     ``hexplane_fn(t)`` gives the module's input (None: the module takes none). Views with a recorded
     operator predict by a sparse product; the others rasterize (identical up to float rounding).
+    ``time_tv_weight`` > 0 adds ``w * mean |render_v(f(t_v)) - render_v(f(t'))|`` over the view's
+    supervised pixels, ``t'`` an adjacent training time drawn at random (a temporal total variation
+    measured where the language loss is, so both share units). ``entropy_weight`` > 0 adds that
+    times the mean entropy of a status field's state weights at the view's time.
     """
+    neighbours = adjacent_times(views) if time_tv_weight > 0 and hexplane_fn is not None else None
     per_gaussian = [p for n, p in module.named_parameters() if n in ("states", "fixed", "static")]
     network = [p for n, p in module.named_parameters() if n not in ("states", "fixed", "static")]
     groups = [{"params": per_gaussian, "lr": per_gaussian_lr}]
@@ -700,7 +720,8 @@ def _optimise(module: nn.Module, views: Sequence[_View], geometry: FrozenGeometr
     for step in steps:
         if not order:
             order = rng.permutation(len(views)).tolist()
-        view = views[order.pop()]
+        order_index = order.pop()
+        view = views[order_index]
         t = view.target
         if t.pixels.numel() == 0:
             continue
@@ -714,6 +735,18 @@ def _optimise(module: nn.Module, views: Sequence[_View], geometry: FrozenGeometr
             image = render_channels(geometry.at(t.time), latents, t.camera, backend=backend, near=near)
             pred = image.reshape(-1, image.shape[-1])[t.pixels]
         loss = loss_weight * (pred - t.latents).abs().mean()
+        if neighbours is not None and neighbours[order_index]:
+            other = views[neighbours[order_index][int(rng.integers(len(neighbours[order_index])))]]
+            h_other = other.hexplane if other.hexplane is not None else hexplane_fn(other.target.time)
+            change = latents - module(h_other)  # [N, D]; rows that never vary are exactly 0
+            if view.op is not None:
+                change_px = view.op(change)
+            else:
+                image = render_channels(geometry.at(t.time), change, t.camera, backend=backend, near=near)
+                change_px = image.reshape(-1, image.shape[-1])[t.pixels]
+            loss = loss + time_tv_weight * change_px.abs().mean()
+        if entropy_weight > 0 and isinstance(module, StatusField):
+            loss = loss + entropy_weight * module.weight_entropy(h)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -829,7 +862,9 @@ def fit_time_varying_field(geometry: FrozenGeometry, scene: Scene, sup: CaptionS
     info["train"] = _optimise(module, views, geometry, iterations=options.status_iterations,
                               per_gaussian_lr=options.tv_learning_rate, network_lr=options.status_mlp_learning_rate,
                               loss_weight=options.status_loss_weight, seed=seed, hexplane_fn=tv.hexplane_input,
-                              backend=backend, near=near, progress=progress, desc=f"{kind} field")
+                              backend=backend, near=near, progress=progress, desc=f"{kind} field",
+                              time_tv_weight=getattr(options, "status_time_tv_weight", 0.0),
+                              entropy_weight=getattr(options, "status_entropy_weight", 0.0))
     info["memory"] = tv.memory()
     info["seconds"] = time.perf_counter() - t0
     info["cpu_seconds"] = time.process_time() - cpu0  # all threads; independent of a shared machine's load
