@@ -254,13 +254,26 @@ def _config_dict(config: Any) -> dict[str, Any]:
     return json.loads(json.dumps(dataclasses.asdict(config), default=str))
 
 
+def fit_config_dict(config: Any) -> dict[str, Any]:
+    """The config as the fit sees it: fields the config class lists in ``ANSWER_OPTIONS`` (read only
+    when answering) take their defaults, so runs that differ only in how they answer share one fit
+    (and keys of default runs are what they were before the distinction existed)."""
+    values = _config_dict(config)
+    answer = getattr(type(config), "ANSWER_OPTIONS", frozenset())
+    if answer and dataclasses.is_dataclass(config):
+        defaults = _config_dict(type(config)())
+        values = {k: (defaults[k] if k in answer else v) for k, v in values.items()}
+    return values
+
+
 def fit_cache_key(spec, config, *, seed: int, device: str, supervision, scene: Scene) -> str:
-    """Hash of everything a fit depends on: method code + config + seed + device kind + data."""
+    """Hash of everything a fit depends on: method code + config (less its answer options) + seed +
+    device kind + data."""
     from methods.supervision.cache import scene_fingerprint, stable_hash
 
     method_cls = spec.load()
     return stable_hash({
-        "method": spec.name, "config": _config_dict(config), "seed": seed,
+        "method": spec.name, "config": fit_config_dict(config), "seed": seed,
         "device": "cuda" if _cuda(device) else "cpu",
         "supervision": supervision.fingerprint, "scene": scene_fingerprint(scene, scene.train_frames),
         "code": {"method": getattr(method_cls, "code_version", "1"), "source": _file_hash(spec.source_files())},
@@ -291,6 +304,8 @@ def fit_or_load(spec, config, scene: Scene, supervision, *, seed: int, device: s
     if info_path.is_file() and not refit:
         info = read_json(info_path)
         model = method_cls.load(final / "model", supervision=supervision, device=device)
+        if hasattr(model, "use_answer_options"):
+            model.use_answer_options(config)  # the fit may have been made with other answer options
         return FitRecord(model, key, True, float(info["fit_seconds"]), float(info["peak_cpu_mib"]),
                          info.get("peak_gpu_mib"), final)
 

@@ -460,6 +460,18 @@ class LanguageFieldModel(Model):
         self._prepared: Optional[tuple[tuple[str, ...], torch.Tensor]] = None  # (texts, [D, k] shared basis)
         self._reduced_cache: dict[str, torch.Tensor] = {}  # frame name -> [L, H, W, k + 1]
 
+    def use_answer_options(self, config: LanguageMethodConfig) -> None:
+        """Answer with ``config``'s answer options (:attr:`LanguageMethodConfig.ANSWER_OPTIONS`), the
+        fitted state unchanged; memoised query state is dropped."""
+        answer = {k: getattr(config, k) for k in type(config).ANSWER_OPTIONS}
+        self.config = dataclasses.replace(self.config, **answer)
+        self.relevance_cfg = relevance_config(self.config)
+        self._canon = None
+        self._phrases.clear()
+        self._background.clear()
+        self._prepared = None
+        self._reduced_cache.clear()
+
     def describe(self) -> dict:
         """What the fit did (geometry, autoencoder, field, and the time-varying head when there is one:
         stage seconds, Gaussian counts, memory per Gaussian), for the results file."""

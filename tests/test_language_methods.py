@@ -218,3 +218,26 @@ def test_pixels_no_gaussian_covers_show_the_background_text(smoke):
     assert float(out[1, 3, 4] @ zq) == pytest.approx(float(e @ q), abs=1e-5)
     covered = torch.ones_like(alpha)
     assert torch.equal(model._uncovered_as_background(reduced, covered, basis), reduced)
+
+
+def test_answer_options_reuse_the_fit_and_change_the_answers(smoke, tmp_path):
+    """A run that changes only how the query is answered (threshold rule) reuses the cached fit, and
+    the reloaded model answers with the run's rule, not the one it was fitted with."""
+    from benchmark.runner import fit_config_dict
+    from methods.specs.deformable_clip import DeformableCLIPConfig
+
+    default, release = DeformableCLIPConfig(), DeformableCLIPConfig(threshold_variant="release")
+    assert fit_config_dict(default) == fit_config_dict(release)
+    assert fit_config_dict(default) != fit_config_dict(DeformableCLIPConfig(field_iterations=7))
+    base = _eval(smoke, "deformable-clip")
+    options = {**TINY, "threshold_variant": "release"}
+    other = evaluate(EvalOptions(method="deformable-clip", scene=str(smoke["scene_dir"]), results_dir=tmp_path / "r",
+                                 cache_dir=smoke["cache"], quiet=True, timing_frames=1, timing_repeats=1,
+                                 method_options=options))
+    assert other.results["timing"]["fit_cached"] is True
+    assert other.results["fit"]["key"] == base.results["fit"]["key"]
+    assert other.results["method_config"]["threshold_variant"] == "release"
+    # the release rule keeps only the top 30 % of the rescaled range (paper: 60 %): fewer pixels
+    pixels = [sum(int(r["pred_pixels"]) for r in doc.results["scores"]["frames"] if r["kind"] == "agnostic")
+              for doc in (base, other)]
+    assert pixels[1] < pixels[0]

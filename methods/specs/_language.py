@@ -7,7 +7,7 @@ nothing heavy, so ``bench4d methods`` lists the methods without loading torch.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import ClassVar, Optional
 
 CANONICAL_PHRASES: tuple[str, ...] = ("object", "things", "stuff", "texture")
 """LERF's canonical negative phrases, as used by LangSplat and 4D LangSplat."""
@@ -17,6 +17,14 @@ CANONICAL_PHRASES: tuple[str, ...] = ("object", "things", "stuff", "texture")
 class LanguageMethodConfig:
     """Every constant of geometry, autoencoder, field and query (paper values by default where the
     recipe fixes one; CPU-scale iteration counts, with the paper's in the docstring)."""
+
+    ANSWER_OPTIONS: ClassVar[frozenset[str]] = frozenset({
+        "uncovered_alpha", "canonical_phrases", "temperature", "smoothing_kernel", "threshold",
+        "threshold_variant", "majority_kernel", "majority_fraction", "kernel_scaling", "decode_chunk",
+        "sensitive_mask"})
+    """Fields read only when answering, never when fitting: the runner's fit cache key ignores them
+    (they hash as their defaults) and a cached fit answers with the run's values, so comparing query
+    rules (``--set threshold_variant=release``) reuses the fit."""
 
     # --- geometry (fitted once per scene, geometry options and seed; then frozen) ----------------
     static_iterations: int = 1000
