@@ -239,9 +239,29 @@ def test_delta_sim_scene_and_mean():
     row = table.set_index("query").loc["cracked cookie"]
     # positives t=2,3 have cos 1, negatives t=0,1 cos 0 -> 100 percent
     assert (row["positives"], row["negatives"], row["delta_sim"]) == (2, 2, pytest.approx(100.0))
+    assert row["auc"] == pytest.approx(100.0) and math.isnan(row["replay_acc"])  # no annotated frames to replay on
     assert math.isnan(table.set_index("query").loc["whole cookie", "delta_sim"])   # no negatives
     assert mean_delta_sim(table) == pytest.approx(100.0)                            # NaN left out
     assert math.isnan(mean_delta_sim(table.iloc[1:]))
+
+
+def test_caption_auc_and_replay_accuracy():
+    from benchmark.metrics import caption_auc, caption_replay_accuracy
+
+    q = np.array([1.0, 0.0])
+    # positives at cos 0.9 and 0.2, negatives at 0.5 and 0.0: 3 of 4 pairs ordered right
+    caps = np.array([[0.9, math.sqrt(1 - 0.81)], [0.2, math.sqrt(1 - 0.04)], [0.5, math.sqrt(0.75)], [0.0, 1.0]])
+    assert caption_auc(q, caps, np.array([True, True, False, False])) == pytest.approx(0.75)
+    assert caption_auc(q, caps[:2], np.array([True, True])) != caption_auc(q, caps[:2], np.array([True, True]))  # NaN
+    assert caption_auc(q, caps[[0, 0]], np.array([True, False])) == pytest.approx(0.5)  # a tie counts half
+    # captions at t = 0..7: the query holds (cos 1) from t = 4 on, except a misleading caption at t = 5
+    times = np.arange(8)
+    emb = np.array([[0.0, 1.0]] * 4 + [[1.0, 0.0], [0.0, 1.0], [1.0, 0.0], [1.0, 0.0]])
+    eval_t, labels = np.array([1, 5, 6]), np.array([False, True, True])
+    assert caption_replay_accuracy(q, times, emb, eval_t, labels) == pytest.approx(100 * 2 / 3)  # t = 5 copies the bad one
+    # between captions (t = 4.5 has neighbours 4 and 5): their mean, cos 1/sqrt(2)
+    assert caption_replay_accuracy(q, times, emb, np.array([1.0, 4.5, 6.0]), labels) == pytest.approx(100.0)
+    assert math.isnan(caption_replay_accuracy(q, times[:0], emb[:0], eval_t, labels))
 
 
 # -- aggregation -----------------------------------------------------------------------------------------------

@@ -220,13 +220,19 @@ def _delta_sim(args) -> int:
         by_key = caption_embeddings_by_base(aset, caps, tracks, encoder, time_of, truth)
         table = delta_sim_scene(aset, queries, by_key)
         value = mean_delta_sim(table)
-        rows.append([visual, text, f"{value:.2f}"] + [f"{v:.2f}" for v in table["delta_sim"]])
+        rows.append([visual, text, f"{value:.2f}"]
+                    + [f"{d:.2f} / {a:.0f} / {r:.1f}" for d, a, r in zip(table["delta_sim"], table["auc"], table["replay_acc"])])
         doc_rows.append({"visual_prompt": visual, "text_prompt": text, "delta_sim": value,
                          "queries": table.to_dict(orient="records")})
         _log(args, f"{visual:>18} / {text:<12} Delta-sim {value:.2f}")
     qnames = [q.text for q in aset.sensitive_queries]
     md = (f"Delta-sim (percent) on {scene.name}, captioner {captioner.name} ({captioner.track} track), "
-          f"text encoder {encoder.name}\n\n" + _markdown(["visual prompt", "text prompt", "Delta-sim"] + qnames, rows))
+          f"text encoder {encoder.name}. Per query: Delta-sim / caption AUC (percent of positive-negative caption "
+          "pairs ordered right by the cosine to the query: 100 = every caption alone separates the states, 50 = "
+          "chance) / caption-replay Acc (temporal Acc when each evaluated frame is answered with the nearest "
+          "training caption: what a field reproducing its captions exactly would score); "
+          "`benchmark/metrics/captions.py`.\n\n"
+          + _markdown(["visual prompt", "text prompt", "Delta-sim"] + [f"{q} (Δ / AUC / replay Acc)" for q in qnames], rows))
     doc = {"ablation": "delta-sim", "scene": scene.name, "captioner": captioner.name, "track": captioner.track,
            "captioner_config": captioner.config(), "text_encoder": encoder.config(), "tracks": tracks.source,
            "rows": doc_rows}

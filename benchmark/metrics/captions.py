@@ -14,6 +14,17 @@ definition here is ours:
   is left out of the mean.
 * Dataset: mean over queries with a defined value (pooled over scenes), times 100 (percent);
   NaN if none is defined.
+
+Delta-sim compares state *means*. Two companions say whether single captions separate the states,
+which is what a field fitted frame by frame sees:
+
+* :func:`caption_auc`: the probability that a positive caption is nearer the query than a negative
+  one (ties half), i.e. the ROC AUC of the cosine as a detector of the state; 1 = every caption alone
+  tells the states apart, 0.5 = chance. Same empty rule.
+* :func:`caption_replay_accuracy`: the temporal Acc (shared rule of :mod:`.temporal`) of answering
+  each evaluated frame with the query's cosine to the caption of the nearest captioned frame (the
+  mean of both neighbours on a tie): what a time-varying field that reproduced every training
+  caption exactly, and nothing else, would score.
 """
 
 from __future__ import annotations
@@ -54,6 +65,44 @@ def delta_sim(query_embedding: np.ndarray, caption_embeddings: np.ndarray, posit
     return float(cos[pos].mean() - cos[~pos].mean())
 
 
+def caption_auc(query_embedding: np.ndarray, caption_embeddings: np.ndarray, positive: np.ndarray) -> float:
+    """ROC AUC (a fraction) of the caption cosine to the query as a detector of ``positive``.
+
+    Shapes as :func:`delta_sim`; no positive or no negative sample -> NaN.
+    """
+    pos = np.asarray(positive, dtype=bool)
+    delta_sim(query_embedding, caption_embeddings, pos)  # shape checks
+    if not pos.any() or pos.all():
+        return float("nan")
+    cos = cosine_similarity(np.asarray(caption_embeddings, dtype=np.float64),
+                            np.asarray(query_embedding, dtype=np.float64)[None, :])
+    diff = cos[pos][:, None] - cos[~pos][None, :]
+    return float(((diff > 0).sum() + 0.5 * (diff == 0).sum()) / diff.size)
+
+
+def caption_replay_accuracy(query_embedding: np.ndarray, caption_times: np.ndarray, caption_embeddings: np.ndarray,
+                            eval_times: np.ndarray, labels: np.ndarray, config=None) -> float:
+    """Temporal Acc (percent) of the caption-replay answer (module docstring).
+
+    ``caption_times`` (N,) time indices of ``caption_embeddings`` (N, D); ``eval_times`` (T,) and
+    ``labels`` (T,) bool of the evaluated frames, in time order. No caption or no evaluated frame -> NaN.
+    """
+    from .temporal import TemporalRuleConfig, apply_temporal_rule, temporal_accuracy
+
+    times = np.asarray(caption_times, dtype=np.float64)
+    emb = np.asarray(caption_embeddings, dtype=np.float64)
+    if times.size == 0 or len(eval_times) == 0:
+        return float("nan")
+    q = np.asarray(query_embedding, dtype=np.float64)
+    scores = []
+    for t in np.asarray(eval_times, dtype=np.float64):
+        gap = np.abs(times - t)
+        nearest = emb[gap == gap.min()].mean(0)
+        scores.append(float(cosine_similarity(nearest, q)))
+    decision = apply_temporal_rule(np.asarray(scores), config or TemporalRuleConfig())
+    return 100.0 * temporal_accuracy(decision.decisions, np.asarray(labels, dtype=bool))
+
+
 def delta_sim_scene(aset: AnnotationSet, query_embeddings: Mapping[str, np.ndarray],
                     caption_embeddings: Mapping[tuple[str, int], np.ndarray]) -> pd.DataFrame:
     """Delta-sim of every time-sensitive query of ``aset`` (percent, one row per query).
@@ -61,21 +110,27 @@ def delta_sim_scene(aset: AnnotationSet, query_embeddings: Mapping[str, np.ndarr
     ``query_embeddings``: query text -> (D,). ``caption_embeddings``: (base object's query text,
     time_index) -> (D,) caption embedding of that object at that frame. A sensitive query missing
     from ``query_embeddings`` raises ``KeyError``. Columns: scene, query, positives, negatives,
-    delta_sim (percent; NaN under the empty rule).
+    delta_sim, auc (:func:`caption_auc`), replay_acc (:func:`caption_replay_accuracy` on the query's
+    annotated frames), all percent, NaN under the empty rules.
     """
     rows = []
     for q in aset.sensitive_queries:
         base = aset.mask_owner(q).text
         keys = sorted(k for k in caption_embeddings if k[0] == base)
+        eval_times = np.array(sorted({f.time_index for f in aset.annotated_frames(q.id)}))
         if keys:
             emb = np.stack([np.asarray(caption_embeddings[k], dtype=np.float64) for k in keys])
             pos = np.array([q.holds_at(t) for _, t in keys])
             value = delta_sim(query_embeddings[q.text], emb, pos)
+            auc = caption_auc(query_embeddings[q.text], emb, pos)
+            replay = caption_replay_accuracy(query_embeddings[q.text], np.array([t for _, t in keys]), emb, eval_times,
+                                             np.array([q.holds_at(int(t)) for t in eval_times], dtype=bool))
         else:
-            pos, value = np.zeros(0, bool), float("nan")
+            pos, value, auc, replay = np.zeros(0, bool), float("nan"), float("nan"), float("nan")
         rows.append({"scene": aset.scene, "query": q.text, "positives": int(pos.sum()),
-                     "negatives": int((~pos).sum()), "delta_sim": 100.0 * value})
-    return pd.DataFrame(rows, columns=["scene", "query", "positives", "negatives", "delta_sim"])
+                     "negatives": int((~pos).sum()), "delta_sim": 100.0 * value, "auc": 100.0 * auc,
+                     "replay_acc": replay})
+    return pd.DataFrame(rows, columns=["scene", "query", "positives", "negatives", "delta_sim", "auc", "replay_acc"])
 
 
 def mean_delta_sim(table: pd.DataFrame) -> float:
