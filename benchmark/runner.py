@@ -254,7 +254,8 @@ def _file_hash(paths: Sequence[Path]) -> str:
     return digest.hexdigest()[:16]
 
 
-def _config_dict(config: Any) -> dict[str, Any]:
+def config_dict(config: Any) -> dict[str, Any]:
+    """A config dataclass as plain JSON values (the form results and fit records store it in)."""
     return json.loads(json.dumps(dataclasses.asdict(config), default=str))
 
 
@@ -262,10 +263,10 @@ def fit_config_dict(config: Any) -> dict[str, Any]:
     """The config as the fit sees it: fields the config class lists in ``ANSWER_OPTIONS`` (read only
     when answering) take their defaults, so runs that differ only in how they answer share one fit
     (and keys of default runs are what they were before the distinction existed)."""
-    values = _config_dict(config)
+    values = config_dict(config)
     answer = getattr(type(config), "ANSWER_OPTIONS", frozenset())
     if answer and dataclasses.is_dataclass(config):
-        defaults = _config_dict(type(config)())
+        defaults = config_dict(type(config)())
         values = {k: (defaults[k] if k in answer else v) for k, v in values.items()}
     return values
 
@@ -340,7 +341,7 @@ def fit_or_load(spec, config, scene: Scene, supervision, *, seed: int, device: s
     (tmp / "model").mkdir(parents=True)
     try:
         model.save(tmp / "model")
-        info = {"method": spec.name, "key": key, "config": _config_dict(config), "seed": seed, "device": device,
+        info = {"method": spec.name, "key": key, "config": config_dict(config), "seed": seed, "device": device,
                 "fit_seconds": fit_seconds, "peak_cpu_mib": peak_cpu, "peak_gpu_mib": peak_gpu,
                 "created": datetime.now(timezone.utc).isoformat(timespec="seconds")}
         write_json(tmp / "fit.json", info)
@@ -503,7 +504,7 @@ def evaluate(options: EvalOptions) -> RunOutcome:
                    "peak_gpu_mib": peak_gpu_total, "peak_gpu_fit_mib": fit.peak_gpu_mib,
                    "note": "CPU peaks are the process's getrusage maxrss up to that point (fit peak: "
                            "measured right after the fit; a cached fit reports its original peak)"},
-        "method_config": _config_dict(config),
+        "method_config": config_dict(config),
         "fit": {"key": fit.key, "cached": fit.cached,
                 "info": _jsonable(model.describe()) if hasattr(model, "describe") else None},
         "supervision": supervision.describe(),

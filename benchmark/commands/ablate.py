@@ -391,12 +391,10 @@ RESCORE_METRICS = ("mIoU", "mAcc", "Acc", "vIoU")
 
 
 def _rescore(args) -> int:
-    import dataclasses
-
     from methods import registry
 
     from ..results import ABLATIONS_DIR, find_results, load_results, results_path
-    from ..runner import EvalOptions, evaluate
+    from ..runner import EvalOptions, config_dict, evaluate
 
     overrides: dict[str, str] = {}
     for item in args.set:
@@ -420,8 +418,8 @@ def _rescore(args) -> int:
                                  f"needed: bench4d eval --set); answer options: {sorted(answer)}")
             continue
         recorded = doc.get("method_config") or {}
-        defaults = dataclasses.asdict(spec.config())
-        options = {k: v for k, v in recorded.items() if k in defaults and v != _jsonable_default(defaults[k])}
+        defaults = config_dict(spec.config())  # the form results files record configs in
+        options = {k: v for k, v in recorded.items() if k in defaults and v != defaults[k]}
         options.update(overrides)
         info = doc.get("scene_info") or {}
         target = results_path(out_dir, doc["dataset"], doc["scene"], method, doc["track"], int(doc["seed"]))
@@ -448,12 +446,6 @@ def _rescore(args) -> int:
         _log(args, f"wrote {path}")
     print(table)
     return 0
-
-
-def _jsonable_default(value):
-    import json
-
-    return json.loads(json.dumps(value, default=str))
 
 
 def _rescore_table(rows: list[dict], overrides: dict, name: str) -> str:
