@@ -69,12 +69,20 @@ def protocol_ceiling(scene: Scene, annotations, text_encoder, configs: Mapping[s
     texts = sorted(set(names.values()) | {background_text})
     passages = torch.as_tensor(np.asarray(text_encoder.encode(texts, kind="passage")), dtype=torch.float32)
     row = {t: i for i, t in enumerate(texts)}
-    canon_cache: dict[tuple, torch.Tensor] = {}
+    unit_passages = passages / passages.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    canon_max: dict[str, torch.Tensor] = {}  # variant -> [names] max cosine to its canonical phrases
+    for variant, cfg in configs.items():
+        canon = torch.as_tensor(np.asarray(text_encoder.encode(list(cfg.canonical_phrases), kind="query")),
+                                dtype=torch.float32)
+        canon = canon / canon.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        canon_max[variant] = (unit_passages @ canon.T).amax(dim=1)
+    index_of: dict[str, torch.Tensor] = {}  # frame name -> [3, H, W] rows of ``texts`` (read once per frame)
     per_variant: dict[str, dict[str, list[float]]] = {v: {} for v in configs}
     per_variant_sensitive: dict[str, dict[str, list[float]]] = {v: {} for v in configs}
-    frames_used = set()
     for q in queries:
         zq = torch.as_tensor(np.asarray(text_encoder.encode([q.text], kind="query")[0]), dtype=torch.float32)
+        sim_q = unit_passages @ zq / zq.norm().clamp_min(1e-12)  # [names]
+        rel_tables = {v: torch.sigmoid(cfg.temperature * (sim_q - canon_max[v])) for v, cfg in configs.items()}
         for af in annotations.annotated_frames(q.id):
             frame = frame_of.get(af.name)
             if frame is None or frame.split == "train":
@@ -84,30 +92,23 @@ def protocol_ceiling(scene: Scene, annotations, text_encoder, configs: Mapping[s
             gt = annotations.get_mask(q.id, af.id)
             if gt is None:
                 continue
-            frames_used.add(frame.name)
-            ids = truth.id_maps(frame, allow_eval=True)  # (3, H, W); 0 = background
-            lookup = []
-            for level in range(ids.shape[0]):
-                present = np.unique(ids[level])
-                table = np.zeros(int(present.max()) + 1, dtype=np.int64)
-                for id_ in present:
-                    table[id_] = row[background_text if id_ == 0 else names.get((level, int(id_)), background_text)]
-                lookup.append(torch.as_tensor(table[ids[level]]))
-            index = torch.stack(lookup)  # [3, H, W] rows of ``texts``
+            if frame.name not in index_of:
+                ids = truth.id_maps(frame, allow_eval=True)  # (3, H, W); 0 = background
+                lookup = []
+                for level in range(ids.shape[0]):
+                    present = np.unique(ids[level])
+                    table = np.zeros(int(present.max()) + 1, dtype=np.int64)
+                    for id_ in present:
+                        table[id_] = row[background_text if id_ == 0 else names.get((level, int(id_)), background_text)]
+                    lookup.append(torch.as_tensor(table[ids[level]]))
+                index_of[frame.name] = torch.stack(lookup)
+            index = index_of[frame.name]
+            into = per_variant if q.kind == "agnostic" else per_variant_sensitive
             for variant, cfg in configs.items():
-                key = tuple(cfg.canonical_phrases)
-                if key not in canon_cache:
-                    canon_cache[key] = torch.as_tensor(np.asarray(text_encoder.encode(list(key), kind="query")),
-                                                       dtype=torch.float32)
-                canon = canon_cache[key]
-                sim_q = passages @ zq / (passages.norm(dim=1) * zq.norm()).clamp_min(1e-12)
-                sim_c = (passages @ canon.T / (passages.norm(dim=1)[:, None] * canon.norm(dim=1)[None]).clamp_min(1e-12))
-                rel_table = torch.sigmoid(cfg.temperature * (sim_q - sim_c.amax(dim=1)))  # [names]
-                answer = answer_from_relevance(rel_table[index], cfg)
+                answer = answer_from_relevance(rel_tables[variant][index], cfg)
                 score = float(iou(answer.mask.numpy(), np.asarray(gt, dtype=bool)))
-                into = per_variant if q.kind == "agnostic" else per_variant_sensitive
                 into[variant].setdefault(q.text, []).append(score)
-    out: dict[str, Any] = {"frames": len(frames_used), "text_encoder": text_encoder.config(),
+    out: dict[str, Any] = {"frames": len(index_of), "text_encoder": text_encoder.config(),
                            "background_text": background_text, "variants": {}}
     for variant, per_query in per_variant.items():
         means = {text: float(np.mean(v)) for text, v in per_query.items()}

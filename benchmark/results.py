@@ -255,8 +255,9 @@ def seed_summary(runs: pd.DataFrame) -> pd.DataFrame:
             row["scenes"] = 1 if with_scene else len(scene_sets[key[:3]])
             rows.append(row)
     # a method none of whose seeds is complete still gets its (empty) mean row
+    with_mean = {(r["dataset"], r["track"], r["method"]) for r in rows if r["scene"] == MEAN_SCENE}
     for key, scenes in scene_sets.items():
-        if not any((r["dataset"], r["track"], r["method"], r["scene"]) == (*key, MEAN_SCENE) for r in rows):
+        if key not in with_mean:
             row = dict(zip(keys, (*key, MEAN_SCENE)))
             row.update({f"{v}_{s}": math.nan for v in VALUE_COLUMNS for s in ("mean", "std")})
             row.update({"seeds": 0, "partial_seeds": int(partial.get(key, 0)), "scenes": len(scenes)})

@@ -466,9 +466,8 @@ class LanguageFieldModel(Model):
         answer = {k: getattr(config, k) for k in type(config).ANSWER_OPTIONS}
         self.config = dataclasses.replace(self.config, **answer)
         self.relevance_cfg = relevance_config(self.config)
-        self._canon = None
+        self._canon = None  # canonical phrases are an answer option; bases and projections follow them
         self._phrases.clear()
-        self._background.clear()
         self._prepared = None
         self._reduced_cache.clear()
 
@@ -511,7 +510,7 @@ class LanguageFieldModel(Model):
             basis = self._prepared[1]
             reduced = self._reduced_cache.get(frame.name)
         else:
-            basis = self._reduced_phrases(text)[0]
+            basis, zq, zc = self._reduced_phrases(text)
             reduced = None
         if reduced is None:
             latents, alpha = self.render_latents_and_alpha(frame)
@@ -523,7 +522,8 @@ class LanguageFieldModel(Model):
                     self._reduced_cache.pop(next(iter(self._reduced_cache)))
                 if size <= self.MAX_CACHE_BYTES:
                     self._reduced_cache[frame.name] = reduced
-        zq, zc = project_phrases(basis, self.query_embedding_cached(text), self.canonical())
+        if prepared:  # unprepared texts got their coordinates with their own basis above
+            zq, zc = project_phrases(basis, self.query_embedding_cached(text), self.canonical())
         return reduced, zq, zc
 
     def _uncovered_as_background(self, reduced: torch.Tensor, alpha: torch.Tensor, basis: torch.Tensor) -> torch.Tensor:

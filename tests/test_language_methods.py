@@ -258,5 +258,9 @@ def test_ablate_rescore_reanswers_recorded_fits(smoke, tmp_path, capsys):
     rel = json.loads((tmp_path / "rescore-rel.json").read_text())["runs"]
     assert any(r["mIoU_before"] != pytest.approx(r["mIoU_after"]) for r in rel)
     assert (smoke["results"] / "ablations" / "rel").is_dir()
+    # resuming under the same name with other options re-answers instead of keeping the stale files
+    assert main(common + ["--name", "same", "--set", "threshold_variant=release"]) == 0
+    again = json.loads((tmp_path / "rescore-same.json").read_text())["runs"]
+    assert [r["mIoU_after"] for r in again] == pytest.approx([r["mIoU_after"] for r in rel])
     assert main(common + ["--name", "bad", "--set", "field_iterations=5"]) != 0
     assert "'field_iterations'] are not answer options" in capsys.readouterr().err

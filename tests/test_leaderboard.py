@@ -18,8 +18,8 @@ from benchmark.results import MEAN_SCENE, find_results, load_results, results_pa
 # (method, scene, seed) -> mIoU; Acc = mIoU - 10; fps and fit time per method
 MIOU = {("alpha", "s1"): [50.0, 52.0, 54.0], ("alpha", "s2"): [60.0, 60.0, 60.0],
         ("beta", "s1"): [70.0, 71.0, 72.0], ("beta", "s2"): [40.0, 44.0, 48.0]}
-FPS = {"alpha": 100.0, "beta": 2.0, "gamma": 1.0, "delta": 1.0}
-FIT = {"alpha": 0.5, "beta": 300.0, "gamma": 10.0, "delta": 10.0}
+FPS = {"alpha": 100.0, "beta": 2.0, "gamma": 1.0, "delta": 1.0, "epsilon": 1.0}
+FIT = {"alpha": 0.5, "beta": 300.0, "gamma": 10.0, "delta": 10.0, "epsilon": 10.0}
 
 
 def _doc(method: str, scene: str, seed: int, miou: float) -> dict:
@@ -80,6 +80,12 @@ def test_dataset_mean_counts_only_seeds_that_ran_every_scene(tmp_path):
     mean = summary[(summary.method == "gamma") & (summary.scene == MEAN_SCENE)].iloc[0]
     assert mean["mIoU_mean"] == pytest.approx((50 + 90) / 2)  # seed 0 only, not mean(70, 60, 70)
     assert mean["seeds"] == 1 and mean["partial_seeds"] == 2 and mean["scenes"] == 2
+    # epsilon: s1 on seed 0 only, s2 on seed 1 only -> no complete seed, an empty mean row
+    for seed, scene in ((0, "s1"), (1, "s2")):
+        write_results(results_path(root, "synthetic", scene, "epsilon", "oracle", seed), _doc("epsilon", scene, seed, 50.0))
+    summary = seed_summary(runs_table(find_results(root)))
+    eps = summary[(summary.method == "epsilon") & (summary.scene == MEAN_SCENE)].iloc[0]
+    assert math.isnan(eps["mIoU_mean"]) and eps["seeds"] == 0 and eps["partial_seeds"] == 2
     s1 = summary[(summary.method == "gamma") & (summary.scene == "s1")].iloc[0]
     assert s1["mIoU_mean"] == pytest.approx(60.0) and s1["seeds"] == 3  # the scene column keeps every seed
     build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
@@ -87,6 +93,8 @@ def test_dataset_mean_counts_only_seeds_that_ran_every_scene(tmp_path):
     gamma = next(line for line in table.splitlines() if line.startswith("| gamma |"))
     delta = next(line for line in table.splitlines() if line.startswith("| delta |"))
     assert gamma.endswith("| 2/2 | 1 (+2 partial) |") and delta.endswith("| 1/2 | 2 |")
+    epsilon = next(line for line in table.splitlines() if line.startswith("| epsilon |"))
+    assert epsilon.endswith("| 2/2 | 0 (+2 partial) |")  # listed, with no mean
     # delta's mean (99, one scene) is higher but not comparable with gamma's two-scene 70: nobody ranks
     # first in the mean column (columns: method, s1, s2, mean, ...)
     assert gamma.split("|")[4].strip() == "70.00" and delta.split("|")[4].strip() == "99.00 ± 0.00"

@@ -425,8 +425,10 @@ def _rescore(args) -> int:
         options.update(overrides)
         info = doc.get("scene_info") or {}
         target = results_path(out_dir, doc["dataset"], doc["scene"], method, doc["track"], int(doc["seed"]))
-        if target.is_file() and not args.force:
-            new = load_results(target)
+        new = load_results(target) if target.is_file() and not args.force else None
+        if new is not None and not _rescored_from(new, doc, options):
+            new = None  # the recorded run was redone, or other options asked: the kept file is stale
+        if new is not None:
             _log(args, f"rescore: kept {target}")
         else:
             _log(args, f"rescore: {method} on {doc['scene']} seed {doc['seed']} (fit {doc['fit']['key']})")
@@ -448,6 +450,13 @@ def _rescore(args) -> int:
         _log(args, f"wrote {path}")
     print(table)
     return 0
+
+
+def _rescored_from(rescored: dict, recorded: dict, options: dict) -> bool:
+    """``rescored`` answered on ``recorded``'s fit with ``options`` (as strings, as ``--set`` gives them)."""
+    cfg = rescored.get("method_config") or {}
+    return ((rescored.get("fit") or {}).get("key") == recorded["fit"]["key"]
+            and all(str(cfg.get(k)) == str(v) or cfg.get(k) == v for k, v in options.items()))
 
 
 def _rescore_table(rows: list[dict], overrides: dict, name: str) -> str:

@@ -48,20 +48,26 @@ def cosine_similarity(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return (a * b).sum(axis=-1) / (na * nb)
 
 
+def _caption_cosines(query_embedding: np.ndarray, caption_embeddings: np.ndarray,
+                     positive: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """((N,) cosine of each caption to the query, (N,) bool ``positive``), shapes checked."""
+    q = np.asarray(query_embedding, dtype=np.float64)
+    c = np.asarray(caption_embeddings, dtype=np.float64)
+    pos = np.asarray(positive, dtype=bool)
+    if q.ndim != 1 or c.ndim != 2 or c.shape[1] != q.shape[0] or pos.shape != (c.shape[0],):
+        raise ValueError(f"shapes: query {q.shape}, captions {c.shape}, positive {pos.shape} do not fit (D,), (N, D), (N,)")
+    return cosine_similarity(c, q[None, :]), pos
+
+
 def delta_sim(query_embedding: np.ndarray, caption_embeddings: np.ndarray, positive: np.ndarray) -> float:
     """Mean cosine over positive samples minus over negative samples (a fraction, not percent).
 
     ``query_embedding`` (D,); ``caption_embeddings`` (N, D); ``positive`` (N,) bool.
     No positive or no negative sample -> NaN.
     """
-    q = np.asarray(query_embedding, dtype=np.float64)
-    c = np.asarray(caption_embeddings, dtype=np.float64)
-    pos = np.asarray(positive, dtype=bool)
-    if q.ndim != 1 or c.ndim != 2 or c.shape[1] != q.shape[0] or pos.shape != (c.shape[0],):
-        raise ValueError(f"shapes: query {q.shape}, captions {c.shape}, positive {pos.shape} do not fit (D,), (N, D), (N,)")
+    cos, pos = _caption_cosines(query_embedding, caption_embeddings, positive)
     if not pos.any() or pos.all():
         return float("nan")
-    cos = cosine_similarity(c, q[None, :])
     return float(cos[pos].mean() - cos[~pos].mean())
 
 
@@ -70,12 +76,9 @@ def caption_auc(query_embedding: np.ndarray, caption_embeddings: np.ndarray, pos
 
     Shapes as :func:`delta_sim`; no positive or no negative sample -> NaN.
     """
-    pos = np.asarray(positive, dtype=bool)
-    delta_sim(query_embedding, caption_embeddings, pos)  # shape checks
+    cos, pos = _caption_cosines(query_embedding, caption_embeddings, positive)
     if not pos.any() or pos.all():
         return float("nan")
-    cos = cosine_similarity(np.asarray(caption_embeddings, dtype=np.float64),
-                            np.asarray(query_embedding, dtype=np.float64)[None, :])
     diff = cos[pos][:, None] - cos[~pos][None, :]
     return float(((diff > 0).sum() + 0.5 * (diff == 0).sum()) / diff.size)
 
