@@ -17,7 +17,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from .errors import InputError
-from .results import ACCURACY_METRICS, MEAN_SCENE, find_results, load_results, results_path, runs_table, seed_summary
+from .results import ACCURACY_METRICS, MEAN_SCENE, comparable_runs, find_results, load_results, results_path, runs_table, seed_summary
 
 
 def _pyplot():
@@ -76,7 +76,7 @@ def pareto_front(x: Sequence[float], y: Sequence[float], *, x_higher_better: boo
 def pareto(results_dir: str | Path = "results", reports_dir: str | Path = "reports") -> list[Path]:
     """Write ``reports/pareto_<dataset>_<track>.{png,pdf}``; returns the files written."""
     plt = _pyplot()
-    runs = runs_table(find_results(results_dir), relative_to=Path(results_dir))
+    runs = comparable_runs(runs_table(find_results(results_dir), relative_to=Path(results_dir)))[0]
     if not len(runs):
         raise InputError(results_dir, None, "no results files to plot (run bench4d run-all first)")
     summary = seed_summary(runs)

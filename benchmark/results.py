@@ -40,7 +40,7 @@ ACCURACY_METRICS: dict[str, tuple[str, str]] = {"agnostic": ("mIoU", "mAcc"), "s
 """Query kind -> its two reported metrics (percent, higher is better)."""
 RUN_COLUMNS = ["dataset", "track", "method", "scene", "seed", "mIoU", "mAcc", "Acc", "vIoU",
                "fps_agnostic", "fps_sensitive", "fit_seconds", "peak_cpu_mib", "peak_gpu_mib", "device",
-               "git_commit", "git_dirty", "path"]
+               "git_commit", "git_dirty", "scene_digest", "scene_current", "path"]
 VALUE_COLUMNS = ["mIoU", "mAcc", "Acc", "vIoU", "fps_agnostic", "fps_sensitive", "fit_seconds", "peak_cpu_mib",
                  "peak_gpu_mib"]
 MEAN_SCENE = "mean"
@@ -137,18 +137,22 @@ def load_results(path: str | Path) -> dict:
 
 ABLATIONS_DIR = "ablations"
 """Folder under a results directory that holds ablation runs (not leaderboard entries)."""
+ARCHIVE_DIR = "archive"
+"""Folder under a results directory that keeps runs no longer comparable (e.g. measured on a synthetic
+scene version the committed generator does not make): kept, never read by the leaderboard."""
 
 
 def find_results(results_dir: str | Path) -> list[Path]:
     """Every results file under ``results_dir``, sorted (hidden temp files are ignored, and so is
     ``results_dir/ablations/``: ablation runs such as ``bench4d ablate states`` change a method's
-    config on purpose and are reported by their ablation, never ranked on the leaderboard)."""
+    config on purpose and are reported by their ablation, never ranked on the leaderboard; and
+    ``results_dir/archive/``: runs kept for the record only)."""
     root = Path(results_dir)
     if not root.is_dir():
         return []
     return sorted(p for p in root.rglob("seed*.json")
                   if not any(part.startswith(".") for part in p.relative_to(root).parts)
-                  and p.relative_to(root).parts[0] != ABLATIONS_DIR
+                  and p.relative_to(root).parts[0] not in (ABLATIONS_DIR, ARCHIVE_DIR)
                   and not any(part.endswith(".predictions") for part in p.relative_to(root).parts))
 
 
@@ -173,7 +177,29 @@ def fit_seconds_with_shared(doc: dict) -> float:
     return _number((doc.get("timing") or {}).get("fit_seconds"))
 
 
+def scene_status(doc: dict) -> tuple[str, Optional[bool]]:
+    """(digest, current) of the scene a run measured: ``current`` is True when a synthetic preset's
+    recorded digest is the committed one (:mod:`benchmark.synthetic.digest`), False when it differs or
+    a synthetic run recorded none (made before scenes were versioned), None for other scenes."""
+    from .synthetic.digest import expected_digest
+
+    generated = (doc.get("scene_info") or {}).get("generated")
+    if not generated:
+        return "", (False if doc.get("dataset") == "synthetic" else None)
+    digest = str(generated.get("digest") or "")
+    expected = expected_digest(str(generated.get("preset")), int(generated.get("size") or 0),
+                               int(generated.get("seed") or 0))
+    return digest, (None if expected is None else digest == expected)
+
+
+def comparable_runs(runs: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """(runs that may be compared, runs on a scene version other than the committed one)."""
+    stale = runs["scene_current"].map(lambda v: v is not None and not pd.isna(v) and not bool(v)).astype(bool)
+    return runs[~stale].reset_index(drop=True), runs[stale].reset_index(drop=True)
+
+
 def run_row(doc: dict, path: Optional[Path] = None) -> dict[str, Any]:
+    digest, current = scene_status(doc)
     metrics = doc.get("metrics", {})
     timing = doc.get("timing", {})
     memory = doc.get("memory", {})
@@ -191,6 +217,7 @@ def run_row(doc: dict, path: Optional[Path] = None) -> dict[str, Any]:
         "device": env.get("device", ""),
         "git_commit": (git.get("commit") or "")[:12],
         "git_dirty": git.get("dirty"),
+        "scene_digest": digest, "scene_current": current,
         "path": "" if path is None else str(path),
     }
 

@@ -127,13 +127,28 @@ def resolve_scene(spec: str | Path, cache_dir: Path, *, size: int = DEFAULT_PRES
                          f"presets: {', '.join(sorted(presets)) or 'none'}")
     # the folder is named after the preset: loaders name scenes after their folder
     target = Path(cache_dir) / "scenes" / f"{size}px" / name
+    from .synthetic.digest import expected_digest, scene_digest
+
+    expected = expected_digest(name, size)
     if (target / "annotations.json").is_file() and (target / "truth").is_dir():
-        return target
+        if expected is None:
+            return target
+        found = scene_digest(target)
+        if found == expected:
+            return target
+        # a scene cached by other generator code would be measured under the preset's name: remake it
+        log(f"cached preset {name!r} at {target} is not the committed scene version "
+            f"(digest {found}, committed {expected}): regenerating")
     from .synthetic.generate import generate
 
     log(f"generating synthetic preset {name!r} at {size}px into {target}")
     # generate() builds in a staging folder and publishes atomically: never a half-written scene
-    return Path(generate(name, target, size=size, overwrite=True))
+    out = Path(generate(name, target, size=size, overwrite=True))
+    if expected is not None and scene_digest(out) != expected:
+        log(f"WARNING: the generator made preset {name!r} at {size}px differently from the committed version "
+            f"(benchmark/synthetic/digests.json): its runs are not comparable with the leaderboard's until "
+            f"`bench4d data digests --write` records the change")
+    return out
 
 
 def dataset_label(scene: Scene) -> str:
@@ -406,6 +421,7 @@ def evaluate(options: EvalOptions) -> RunOutcome:
     from .loaders import load_scene
     from .metrics import ScoreConfig, aggregate_scenes, score_scene
     from .predictions import QueryPrediction, ScenePredictions, write_predictions
+    from .synthetic.digest import scene_version
 
     progress = Progress(options.quiet)
     spec = registry.get(options.method)
@@ -510,7 +526,7 @@ def evaluate(options: EvalOptions) -> RunOutcome:
         "supervision": supervision.describe(),
         "environment": {"packages": package_versions(), "git": git_state(), **device_description(options.device)},
         "scene_info": {"root": str(root), "summary": scene.summary(), "annotations": aset.info.get("source"),
-                       "scale": options.scale},
+                       "scale": options.scale, "generated": scene_version(root)},
         "score_config": score_config.to_dict(),
         "scores": {"queries": score_doc["queries"], "skipped": score_doc["skipped"], "frames": score_doc["frames"]},
         "predictions": str(pred_dir.relative_to(out_path.parent) / "predictions.json"),

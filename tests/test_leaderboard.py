@@ -38,6 +38,8 @@ def _doc(method: str, scene: str, seed: int, miou: float) -> dict:
                        "query_sensitive": {"seconds_per_frame": 1 / FPS[method], "fps": FPS[method]}},
             "memory": {"peak_cpu_mib": 100.0, "peak_gpu_mib": None},
             "environment": {"device": "cpu", "git": {"commit": "abc", "dirty": False}},
+            # a versioned generated scene (no committed digest for these names: comparable)
+            "scene_info": {"generated": {"preset": scene, "size": 128, "seed": 0, "digest": "d" * 24}},
             "scores": {"queries": [{"scene": scene, "query": "cracked cookie", "kind": "sensitive", "frames": 10,
                                     "Acc": miou - 10.0, "vIoU": miou / 2, "threshold": 0.2}],
                        "frames": frames, "skipped": []}}

@@ -6,6 +6,7 @@
     bench4d data validate DIR [--annotations FILE]         # scene + annotations (+ generator truth)
     bench4d data show DIR [--out sheet.png] [--frames 4]   # contact sheet: frames with GT masks
     bench4d data timing [--size 128] [--out reports/synthetic_generation.md]
+    bench4d data digests [--presets a,b] [--sizes 128] [--write]  # scene versions (synthetic/digests.json)
 """
 
 from __future__ import annotations
@@ -57,10 +58,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     tm.add_argument("--presets", default=None, help="comma-separated presets (default: all)")
     tm.add_argument("--out", type=Path, default=Path("reports/synthetic_generation.md"))
 
+    dg = sub.add_parser("digests", help="regenerate presets and compare (or --write) their content digests "
+                                        "with the committed ones (benchmark/synthetic/digests.json)")
+    dg.add_argument("--presets", default=None, help="comma-separated presets (default: all)")
+    dg.add_argument("--sizes", type=int, nargs="+", default=[128], help="image widths (default: 128, the runner's)")
+    dg.add_argument("--seed", type=int, default=0)
+    dg.add_argument("--write", action="store_true",
+                    help="record the digests as the committed scene versions (after a deliberate generator change)")
+
 
 def run(args: argparse.Namespace) -> int:
     return {"presets": _presets, "make-synthetic": _make, "validate": _validate, "show": _show,
-            "timing": _timing}[args.data_command](args)
+            "timing": _timing, "digests": _digests}[args.data_command](args)
 
 
 # -- presets / make-synthetic -------------------------------------------------------------------------
@@ -256,3 +265,39 @@ def _timing(args: argparse.Namespace) -> int:
     write_report(rows, args.out)
     print(f"wrote {args.out}")
     return 0
+
+
+# -- digests: which scene each preset is --------------------------------------------------------------
+def _digests(args: argparse.Namespace) -> int:
+    import tempfile
+
+    from ..atomic import write_json
+    from ..synthetic import PRESETS, generate
+    from ..synthetic.digest import DIGESTS_FILE, digest_key, load_digests, scene_digest
+
+    names = args.presets.split(",") if args.presets else list(PRESETS)
+    unknown = [n for n in names if n not in PRESETS]
+    if unknown:
+        raise InputError(None, "--presets", f"unknown preset(s) {unknown}; presets: {', '.join(PRESETS)}")
+    committed = load_digests()
+    changed = 0
+    with tempfile.TemporaryDirectory(prefix="bench4d-digests-") as tmp:
+        for name in names:
+            for size in args.sizes:
+                folder = generate(name, Path(tmp) / f"{name}-{size}", size=size, seed=args.seed)
+                digest = scene_digest(folder)
+                key = digest_key(size, args.seed)
+                before = committed.get(name, {}).get(key)
+                status = "same" if before == digest else ("new" if before is None else f"CHANGED (was {before})")
+                changed += before != digest
+                print(f"{name:14s} {key:14s} {digest}  {status}")
+                committed.setdefault(name, {})[key] = digest
+    if args.write:
+        write_json(DIGESTS_FILE, {"format": "bench4d-scene-digests", "version": 1,
+                                  "note": "content digests of the presets the committed generator makes "
+                                          "(benchmark/synthetic/digest.py); refresh with `bench4d data digests "
+                                          "--write` after a deliberate generator change",
+                                  "presets": {k: dict(sorted(v.items())) for k, v in sorted(committed.items())}})
+        print(f"wrote {DIGESTS_FILE}")
+        return 0
+    return 1 if changed else 0
