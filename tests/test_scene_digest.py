@@ -101,3 +101,18 @@ def test_leaderboard_leaves_out_runs_on_another_scene_version(tmp_path):
     md = render_markdown(runs, "results")
     assert "2 result file(s) left out" in md and "synthetic/americano/m/oracle/seed0.json" in md
     assert "| m | 40.00 |" in md and "91.23" not in md and "81.23" not in md
+
+
+def test_data_digests_command_compares_with_the_committed_versions(capsys, monkeypatch, tmp_path):
+    from benchmark.cli import main
+    from benchmark.synthetic import digest
+
+    assert main(["data", "digests", "--presets", "smoke", "--sizes", "48"]) == 0
+    assert "same" in capsys.readouterr().out
+    # against a manifest that records another version, the command reports the change and fails
+    other = tmp_path / "digests.json"
+    other.write_text(json.dumps({"presets": {"smoke": {"48px-seed0": "0" * 24}}}))
+    monkeypatch.setattr(digest, "DIGESTS_FILE", other)
+    assert main(["data", "digests", "--presets", "smoke", "--sizes", "48"]) == 1
+    assert "CHANGED" in capsys.readouterr().out
+    assert main(["data", "digests", "--presets", "nope"]) == 2

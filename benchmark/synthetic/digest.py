@@ -107,9 +107,11 @@ def digest_key(size: int, seed: int) -> str:
     return f"{int(size)}px-seed{int(seed)}"
 
 
-def load_digests(path: Path = DIGESTS_FILE) -> dict[str, dict[str, str]]:
-    """``{preset: {"<size>px-seed<seed>": digest}}`` (empty when the file does not exist)."""
-    if not Path(path).is_file():
+def load_digests(path: Optional[Path] = None) -> dict[str, dict[str, str]]:
+    """``{preset: {"<size>px-seed<seed>": digest}}`` from ``path`` (default :data:`DIGESTS_FILE`;
+    empty when the file does not exist)."""
+    path = DIGESTS_FILE if path is None else Path(path)
+    if not path.is_file():
         return {}
     doc = read_json(path)
     presets = doc.get("presets") if isinstance(doc, dict) else None
@@ -118,7 +120,7 @@ def load_digests(path: Path = DIGESTS_FILE) -> dict[str, dict[str, str]]:
     return presets
 
 
-def expected_digest(preset: str, size: int, seed: int = 0, *, path: Path = DIGESTS_FILE) -> Optional[str]:
+def expected_digest(preset: str, size: int, seed: int = 0, *, path: Optional[Path] = None) -> Optional[str]:
     """The committed digest of ``preset`` at ``size`` px and ``seed``, or None if not recorded."""
     return load_digests(path).get(preset, {}).get(digest_key(size, seed))
 
