@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 from typing import Any, Iterable, Optional
 
@@ -196,6 +197,21 @@ def comparable_runs(runs: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
     """(runs that may be compared, runs on a scene version other than the committed one)."""
     stale = runs["scene_current"].map(lambda v: v is not None and not pd.isna(v) and not bool(v)).astype(bool)
     return runs[~stale].reset_index(drop=True), runs[stale].reset_index(drop=True)
+
+
+def archive_results(path: str | Path, results_dir: str | Path, label: str) -> Path:
+    """Move a results file and its predictions folder to ``results_dir/archive/<label>/`` (same
+    relative path), so a rerun never overwrites what was measured; returns the new file's path."""
+    path, root = Path(path), Path(results_dir)
+    target = root / ARCHIVE_DIR / label / path.relative_to(root)
+    if target.exists():
+        raise InputError(target, None, "an archived results file of that name exists already")
+    target.parent.mkdir(parents=True, exist_ok=True)
+    predictions = path.with_suffix(".predictions")
+    if predictions.is_dir():
+        os.replace(predictions, target.with_suffix(".predictions"))
+    os.replace(path, target)
+    return target
 
 
 def run_row(doc: dict, path: Optional[Path] = None) -> dict[str, Any]:

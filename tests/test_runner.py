@@ -301,6 +301,20 @@ def test_run_all_runs_each_seed_once_and_resumes(env, capsys):
     assert "2 run(s) (0 reused)" in first and "MEAN" in first
     assert main(argv) == 0
     assert "2 run(s) (2 reused)" in capsys.readouterr().out
+    # a results file measured on another version of the preset is archived and rerun, not reused
+    from benchmark.results import find_results, load_results, scene_status, write_results
+
+    path = env["results"] / "synthetic" / "smoke" / "nearest-frame" / "oracle" / "seed1.json"
+    doc = load_results(path)
+    assert scene_status(doc)[1] is True
+    doc["scene_info"]["generated"]["digest"] = "0" * 24
+    write_results(path, doc)
+    assert main(argv) == 0
+    captured = capsys.readouterr()
+    assert "2 run(s) (1 reused)" in captured.out and "another scene version" in captured.err
+    archived = env["results"] / "archive" / f"scene-{'0' * 24}" / "synthetic" / "smoke" / "nearest-frame" / "oracle"
+    assert (archived / "seed1.json").is_file() and (archived / "seed1.predictions").is_dir()
+    assert scene_status(load_results(path))[1] is True and len(find_results(env["results"])) == 2
     assert main(["run-all", "--methods", "nearest-frme", "--scenes", str(env["scene"])]) == 2
 
 

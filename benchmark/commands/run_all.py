@@ -41,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
 
     from ..errors import InputError
     from ..loaders import load_scene
-    from ..results import results_path, runs_table, seed_summary
+    from ..results import archive_results, load_results, results_path, runs_table, scene_status, seed_summary
     from ..runner import EvalOptions, dataset_label, evaluate, resolve_scene
     from ._common import fmt
 
@@ -67,9 +67,15 @@ def run(args: argparse.Namespace) -> int:
             for seed in args.seeds:
                 path = results_path(args.results_dir, dataset_label(scene), scene.name, method, args.track, seed)
                 if path.is_file() and not args.force:
-                    done.append(path)
-                    skipped += 1
-                    continue
+                    digest, current = scene_status(load_results(path))
+                    if current is not False:
+                        done.append(path)
+                        skipped += 1
+                        continue
+                    # measured on another version of this preset: rerun, keeping the old file in the archive
+                    moved = archive_results(path, args.results_dir, f"scene-{digest or 'unversioned'}")
+                    print(f"{path}: measured on another scene version; moved to {moved}, rerunning",
+                          file=sys.stderr)
                 options = EvalOptions(method=method, scene=str(root), seed=seed, track=args.track,
                                       results_dir=args.results_dir, cache_dir=args.cache_dir, splits=splits(args),
                                       device=args.device, text_encoder=args.text_encoder,
