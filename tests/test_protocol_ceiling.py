@@ -90,5 +90,6 @@ def test_ablate_ceiling_command_writes_a_table(smoke, tmp_path, capsys):
     assert main(["ablate", "ceiling", "--scenes", str(scene.root), "--out", str(tmp_path), "--quiet"]) == 0
     doc = json.loads((tmp_path / "protocol-ceiling.json").read_text())
     assert list(doc["scenes"]) == [scene.name] and len(doc["scenes"][scene.name]["variants"]) == 4
+    assert doc["scenes"][scene.name]["scene_version"]["current"] is True  # the committed smoke at 48 px
     md = (tmp_path / "protocol-ceiling.md").read_text()
     assert "| smoke |" in md and "vIoU ceiling" in md

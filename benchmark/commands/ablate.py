@@ -334,6 +334,7 @@ CEILING_VARIANTS = {"paper threshold, scaled windows (default)": {},
 
 def _ceiling(args) -> int:
     from benchmark.protocol_ceiling import protocol_ceiling
+    from benchmark.synthetic.digest import scene_version
     from methods.fields.relevance import RelevanceConfig
     from methods.text_encoders import get_text_encoder
 
@@ -350,6 +351,7 @@ def _ceiling(args) -> int:
         scene = load_scene(root)
         _log(args, f"ceiling: {scene.name}")
         doc["scenes"][scene.name] = protocol_ceiling(scene, find_annotations(scene), encoder, configs)
+        doc["scenes"][scene.name]["scene_version"] = scene_version(root)  # which scene (digest) it measured
     names = list(CEILING_VARIANTS)
     rows = [[scene] + [f"{100 * r['variants'][v]['mIoU']:.1f}" for v in names] for scene, r in doc["scenes"].items()]
     rows.append(["**mean**"] + [f"{100 * float(np.mean([r['variants'][v]['mIoU'] for r in doc['scenes'].values()])):.1f}"
