@@ -7,7 +7,8 @@ supervises it. The protocol's query (:mod:`methods.fields.relevance`) then answe
 query and the IoU against the annotation is what a field that fitted its oracle supervision exactly
 would score with that text encoder and those query constants. It is a reference, not a strict upper
 bound: features that differ from the supervision can fall on the threshold differently and score
-higher on a query (measured: espresso's time-sensitive masks, 4d-langsplat vIoU 14.2 vs 6.2 here).
+higher on a query (measured on the archived draft version of espresso: 4d-langsplat's time-sensitive
+masks scored vIoU 14.2 vs 6.2 here).
 
 Time-sensitive queries get the same treatment for their spatial half: the protocol's mask for the
 query text against the base label's ground truth, on the evaluated frames where the query holds. Its
