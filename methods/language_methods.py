@@ -256,12 +256,20 @@ def fit_geometry(scene: Scene, kind: str, config: LanguageMethodConfig, *, seed:
 # ---------------------------------------------------------------------------------------------------
 # 2. autoencoder
 # ---------------------------------------------------------------------------------------------------
-def distinct_features(supervision: Supervision) -> tuple[np.ndarray, np.ndarray]:
-    """The distinct mask features of all training frames and levels, with their total areas.
+AE_WEIGHTINGS = ("pixels", "masks", "uniform")
 
-    Returns ((M, D) float32 features, (M,) float64 pixel counts). Features equal up to 1e-6 (the
-    oracle track gives one vector per object name) are merged.
+
+def distinct_features(supervision: Supervision, weighting: str = "pixels") -> tuple[np.ndarray, np.ndarray]:
+    """The distinct mask features of all training frames and levels, with their weights.
+
+    ``weighting``: ``"pixels"`` = total pixel area of the masks carrying each feature; ``"masks"`` =
+    number of masks (frame x level) carrying it, the release's autoencoder data (one vector per mask
+    and image, its ``*_f.npy`` files); ``"uniform"`` = 1 each. Returns ((M, D) float32 features, (M,)
+    float64 weights). Features equal up to 1e-6 (the oracle track gives one vector per object name)
+    are merged; features no pixel carries are dropped.
     """
+    if weighting not in AE_WEIGHTINGS:
+        raise ValueError(f"weighting must be one of {AE_WEIGHTINGS}, got {weighting!r}")
     rows, areas = [], []
     for fs in supervision.frames:
         for level in range(len(LEVELS)):
@@ -280,7 +288,13 @@ def distinct_features(supervision: Supervision) -> tuple[np.ndarray, np.ndarray]
     _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
     total = np.bincount(inverse.ravel(), weights=area, minlength=first.size)
     keep = total > 0
-    return feats[first][keep], total[keep]
+    if weighting == "masks":
+        weight = np.bincount(inverse.ravel(), weights=(area > 0).astype(np.float64), minlength=first.size)
+    elif weighting == "uniform":
+        weight = np.ones(first.size)
+    else:
+        weight = total
+    return feats[first][keep], weight[keep]
 
 
 def with_unmasked_as(supervision: Supervision, text: Optional[str]) -> Supervision:
@@ -342,11 +356,13 @@ def fit_language_field(scene: Scene, supervision: Supervision, config: LanguageM
     """Geometry, autoencoder and field of ``scene`` (each cached when ``cache_root`` is given)."""
     geo = fit_geometry(scene, kind, config, seed=seed, device=device, progress=progress, cache_root=cache_root)
     supervision = with_unmasked_as(supervision, config.unmasked_text)
-    feats, areas = distinct_features(supervision)
+    feats, areas = distinct_features(supervision, config.ae_sample_weighting)
     ae_cfg = autoencoder_config(config, feats.shape[0])
     f_cfg = field_config(config)
     key = _stable_hash({"geometry": geo.key, "supervision": supervision.fingerprint,
                         "unmasked_text": config.unmasked_text, "autoencoder": config_to_dict(ae_cfg),
+                        **({} if config.ae_sample_weighting == "pixels" else  # keys of earlier fits kept
+                           {"ae_sample_weighting": config.ae_sample_weighting}),
                         "field": config_to_dict(f_cfg), "seed": seed, "device": _device_kind(device),
                         "code": [source_hash(FIELD_FIT_SOURCES), FIELD_FIT_VERSION]})
     path = None if cache_root is None else _scene_folder(cache_root, scene) / f"field-{kind}-{key}.pt"

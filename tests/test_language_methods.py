@@ -173,6 +173,30 @@ def test_unmasked_pixels_become_one_background_mask_per_level(smoke):
     assert f1.shape[0] == f0.shape[0] + 1
 
 
+def test_autoencoder_sample_weights_count_pixels_masks_or_nothing(smoke):
+    from methods.language_methods import distinct_features
+
+    sup = smoke["supervision"]
+    feats, pixels = distinct_features(sup, "pixels")
+    _, masks = distinct_features(sup, "masks")
+    _, uniform = distinct_features(sup, "uniform")
+    # recount by hand: per distinct feature, its pixels and the masks (frame x level x id) carrying it
+    keys = {tuple(np.round(f * 1e6).astype(np.int64)): i for i, f in enumerate(feats)}
+    want_pixels, want_masks = np.zeros(len(feats)), np.zeros(len(feats))
+    for fs in sup.frames:
+        for level in range(3):
+            for id_, f in enumerate(fs.features[level]):
+                n = int((fs.levels[level] == id_).sum())
+                if n:
+                    i = keys[tuple(np.round(np.asarray(f, np.float32) * 1e6).astype(np.int64))]
+                    want_pixels[i] += n
+                    want_masks[i] += 1
+    assert np.allclose(pixels, want_pixels) and np.allclose(masks, want_masks) and np.all(uniform == 1)
+    assert not np.allclose(pixels / pixels.sum(), masks / masks.sum())  # they do weight differently
+    with pytest.raises(ValueError, match="weighting"):
+        distinct_features(sup, "area")
+
+
 def test_results_record_what_the_fit_did(smoke):
     doc = _eval(smoke, "4d-langsplat").results
     info = doc["fit"]["info"]
