@@ -162,8 +162,7 @@ def render_markdown(runs: pd.DataFrame, results_dir_label: str) -> str:
     if len(stale):
         out += [f"**{len(stale)} result file(s) left out**: measured on a synthetic scene other than the version the",
                 "committed generator makes (`benchmark/synthetic/digests.json`), so not comparable with these tables:",
-                *[f"`{p}`" + ("," if i + 1 < min(len(stale), 10) else "") for i, p in enumerate(stale["path"][:10])],
-                *(["and more."] if len(stale) > 10 else []), ""]
+                ", ".join(f"`{p}`" for p in stale["path"][:10]) + (" and more." if len(stale) > 10 else ""), ""]
     if not len(runs):
         out += ["_No results yet: run `bench4d run-all` (or `bench4d eval`)._", ""]
     datasets_done = set()

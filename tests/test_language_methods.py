@@ -195,6 +195,10 @@ def test_autoencoder_sample_weights_count_pixels_masks_or_nothing(smoke):
     assert not np.allclose(pixels / pixels.sum(), masks / masks.sum())  # they do weight differently
     with pytest.raises(ValueError, match="weighting"):
         distinct_features(sup, "area")
+    from methods.specs.deformable_clip import DeformableCLIPConfig
+
+    with pytest.raises(ValueError, match="ae_sample_weighting"):  # refused before any fitting starts
+        DeformableCLIPConfig(ae_sample_weighting="area")
 
 
 def test_results_record_what_the_fit_did(smoke):

@@ -23,6 +23,7 @@ committed one (``benchmark.results``).
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 from pathlib import Path
@@ -113,6 +114,13 @@ def load_digests(path: Optional[Path] = None) -> dict[str, dict[str, str]]:
     path = DIGESTS_FILE if path is None else Path(path)
     if not path.is_file():
         return {}
+    # a copy: callers (``bench4d data digests``) add to it, the cached parse stays as read
+    return {preset: dict(sizes) for preset, sizes in _read_digests(str(path), path.stat().st_mtime_ns).items()}
+
+
+@functools.lru_cache(maxsize=4)
+def _read_digests(path: str, mtime_ns: int) -> dict[str, dict[str, str]]:
+    """Parsed digests file, read once per (path, modification time): the leaderboard asks per run."""
     doc = read_json(path)
     presets = doc.get("presets") if isinstance(doc, dict) else None
     if not isinstance(presets, dict):

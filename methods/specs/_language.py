@@ -131,6 +131,9 @@ class LanguageMethodConfig:
             raise ValueError(f"threshold_variant must be 'paper' or 'release', got {self.threshold_variant!r}")
         if self.sensitive_mask not in ("unfiltered", "filtered"):
             raise ValueError(f"sensitive_mask must be 'unfiltered' or 'filtered', got {self.sensitive_mask!r}")
+        if self.ae_sample_weighting not in ("pixels", "masks", "uniform"):
+            raise ValueError("ae_sample_weighting must be 'pixels', 'masks' or 'uniform', "
+                             f"got {self.ae_sample_weighting!r}")
         if self.render_backend not in ("auto", "torch", "gsplat"):
             raise ValueError(f"render_backend must be 'auto', 'torch' or 'gsplat', got {self.render_backend!r}")
         for name in ("static_iterations", "deformation_iterations", "field_iterations", "ae_max_steps", "ae_min_steps"):
