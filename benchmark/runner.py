@@ -508,6 +508,9 @@ def evaluate(options: EvalOptions) -> RunOutcome:
     dataset = dataset_label(scene)
     out_path = results_path(options.results_dir, dataset, scene.name, spec.name, options.track, options.seed)
     pred_dir = out_path.with_name(out_path.stem + ".predictions")
+    if out_path.is_file():  # a rerun never destroys what was measured before
+        moved = keep_replaced(out_path, options.results_dir)
+        progress.log(f"{out_path}: an earlier run of this method, scene, track and seed moved to {moved}")
     write_predictions(pred_dir, predictions, overwrite=True)
 
     results = {
@@ -535,6 +538,25 @@ def evaluate(options: EvalOptions) -> RunOutcome:
     }
     write_results(out_path, results)
     return RunOutcome(out_path, results)
+
+
+def keep_replaced(path: Path, results_dir: str | Path) -> Path:
+    """Move the results file ``path`` (and its predictions) that a new run is about to replace to
+    ``results_dir/archive/replaced-<its creation time>/``; returns where it went."""
+    from .results import ARCHIVE_DIR, archive_results
+
+    try:
+        created = str(read_json(path).get("created") or "")
+    except Exception:  # noqa: BLE001 - an unreadable file is kept all the same, labelled by its mtime
+        created = ""
+    if not created:
+        created = datetime.fromtimestamp(path.stat().st_mtime, timezone.utc).isoformat(timespec="seconds")
+    stamp = created.replace("+00:00", "Z").replace(":", "").replace("-", "")
+    label, n = f"replaced-{stamp}", 1
+    while (Path(results_dir) / ARCHIVE_DIR / label / path.relative_to(results_dir)).exists():
+        n += 1
+        label = f"replaced-{stamp}-{n}"
+    return archive_results(path, results_dir, label)
 
 
 def _jsonable(obj: Any) -> Any:

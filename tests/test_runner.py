@@ -97,9 +97,20 @@ def test_rerun_reuses_the_cached_fit_and_a_new_config_refits(env, monkeypatch):
     assert second.results["timing"]["fit_cached"] is True
     assert second.results["fit"]["key"] == first.results["fit"]["key"]
     assert second.results["metrics"] == first.results["metrics"]
+    # the replaced file is kept, with its predictions, under archive/replaced-<its creation time>/
+    kept = [p for p in _files(env["results"]) if p.startswith("archive/")]
+    stamp = first.results["created"].replace("+00:00", "Z").replace(":", "").replace("-", "")
+    rel = "synthetic/smoke/nearest-frame/oracle/seed0"
+    assert kept == [f"archive/replaced-{stamp}/{rel}.json", f"archive/replaced-{stamp}/{rel}.predictions/predictions.json"]
+    from benchmark.results import load_results
+    assert load_results(env["results"] / kept[0])["created"] == first.results["created"]
     evaluate(_options(env, method_options={"camera_weight": "0"}))
     evaluate(_options(env, seed=1))
     assert calls == [0, 0, 1]
+    # seed 0 has now been replaced twice (possibly within one second): both earlier files kept
+    assert len([p for p in _files(env["results"] / "archive") if p.endswith("seed0.json")]) == 2
+    from benchmark.results import find_results
+    assert len(find_results(env["results"])) == 2  # the archive is never read as results
 
 
 def test_interrupted_runs_leave_no_results_file_and_a_rerun_completes(env, monkeypatch):

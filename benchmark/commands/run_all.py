@@ -4,7 +4,7 @@
 
 Defaults: every registered method, every synthetic preset (except the tiny test preset ``smoke``),
 seeds 0 1 2. Runs whose results file exists are skipped (so an interrupted sweep resumes) unless
-``--force``.
+``--force``; a rerun moves the file it replaces to ``results/archive/`` (never overwritten).
 """
 
 from __future__ import annotations
