@@ -29,39 +29,11 @@ import torch
 
 from .errors import InputError
 from .metrics.masks import iou
+from .protocol_ceiling import TRUTH_LEVELS, NameTable
 from .scene import Scene
 
-TRUTH_LEVELS = ("subpart", "part", "whole")
-"""The truth's level names, small to large: the fields' level order."""
 RUNGS = ("perfect", "autoencoder", "fitted")
 """Feature rungs, best to worst (module docstring)."""
-
-
-class NameTable:
-    """The scene's ground-truth names per level, one row per distinct text, and per-frame row maps."""
-
-    def __init__(self, truth, background_text: str):
-        self.truth = truth
-        self.background_text = background_text
-        self.names: dict[tuple[int, int], str] = {}
-        for level, level_name in enumerate(TRUTH_LEVELS):
-            for id_ in truth.names(level_name):
-                self.names[(level, int(id_))] = truth.name(level_name, int(id_)) or background_text
-        self.texts = sorted(set(self.names.values()) | {background_text})
-        self.row = {t: i for i, t in enumerate(self.texts)}
-
-    def rows(self, frame) -> torch.Tensor:
-        """[3, H, W] int64: the row of ``texts`` each pixel's ground-truth name has at each level."""
-        ids = self.truth.id_maps(frame, allow_eval=True)  # (3, H, W); 0 = no part at that level
-        out = []
-        for level in range(ids.shape[0]):
-            present = np.unique(ids[level])
-            table = np.zeros(int(present.max()) + 1, dtype=np.int64)
-            for id_ in present:
-                name = self.background_text if id_ == 0 else self.names.get((level, int(id_)), self.background_text)
-                table[id_] = self.row[name]
-            out.append(torch.as_tensor(table[ids[level]]))
-        return torch.stack(out)
 
 
 def field_gap(model, scene: Scene, annotations, eval_frames: Iterable[str], *,

@@ -36,6 +36,33 @@ TRUTH_LEVELS = ("subpart", "part", "whole")
 """The truth's level names, small to large (the SAM levels' order)."""
 
 
+class NameTable:
+    """The scene's ground-truth names per level, one row per distinct text, and per-frame row maps."""
+
+    def __init__(self, truth, background_text: str):
+        self.truth = truth
+        self.background_text = background_text
+        self.names: dict[tuple[int, int], str] = {}
+        for level, level_name in enumerate(TRUTH_LEVELS):
+            for id_ in truth.names(level_name):
+                self.names[(level, int(id_))] = truth.name(level_name, int(id_)) or background_text
+        self.texts = sorted(set(self.names.values()) | {background_text})
+        self.row = {t: i for i, t in enumerate(self.texts)}
+
+    def rows(self, frame) -> torch.Tensor:
+        """[3, H, W] int64: the row of ``texts`` each pixel's ground-truth name has at each level."""
+        ids = self.truth.id_maps(frame, allow_eval=True)  # (3, H, W); 0 = no part at that level
+        out = []
+        for level in range(ids.shape[0]):
+            present = np.unique(ids[level])
+            table = np.zeros(int(present.max()) + 1, dtype=np.int64)
+            for id_ in present:
+                name = self.background_text if id_ == 0 else self.names.get((level, int(id_)), self.background_text)
+                table[id_] = self.row[name]
+            out.append(torch.as_tensor(table[ids[level]]))
+        return torch.stack(out)
+
+
 def protocol_ceiling(scene: Scene, annotations, text_encoder, configs: Mapping[str, Any], *,
                      background_text: str = "background") -> dict[str, Any]:
     """Per-query mean IoU (over annotated evaluated frames) of the query on perfect features.
@@ -63,13 +90,8 @@ def protocol_ceiling(scene: Scene, annotations, text_encoder, configs: Mapping[s
         raise InputError(None, "annotations", "no time-agnostic queries to answer")
     queries = list(annotations.queries)
     # one embedding per distinct name; relevance is then a lookup per (level, id)
-    names: dict[tuple[int, int], str] = {}
-    for level, level_name in enumerate(TRUTH_LEVELS):
-        for id_ in truth.names(level_name):
-            names[(level, int(id_))] = truth.name(level_name, int(id_)) or background_text
-    texts = sorted(set(names.values()) | {background_text})
-    passages = torch.as_tensor(np.asarray(text_encoder.encode(texts, kind="passage")), dtype=torch.float32)
-    row = {t: i for i, t in enumerate(texts)}
+    table = NameTable(truth, background_text)
+    passages = torch.as_tensor(np.asarray(text_encoder.encode(table.texts, kind="passage")), dtype=torch.float32)
     unit_passages = passages / passages.norm(dim=1, keepdim=True).clamp_min(1e-12)
     canon_max: dict[str, torch.Tensor] = {}  # variant -> [names] max cosine to its canonical phrases
     for variant, cfg in configs.items():
@@ -94,15 +116,7 @@ def protocol_ceiling(scene: Scene, annotations, text_encoder, configs: Mapping[s
             if gt is None:
                 continue
             if frame.name not in index_of:
-                ids = truth.id_maps(frame, allow_eval=True)  # (3, H, W); 0 = background
-                lookup = []
-                for level in range(ids.shape[0]):
-                    present = np.unique(ids[level])
-                    table = np.zeros(int(present.max()) + 1, dtype=np.int64)
-                    for id_ in present:
-                        table[id_] = row[background_text if id_ == 0 else names.get((level, int(id_)), background_text)]
-                    lookup.append(torch.as_tensor(table[ids[level]]))
-                index_of[frame.name] = torch.stack(lookup)
+                index_of[frame.name] = table.rows(frame)
             index = index_of[frame.name]
             into = per_variant if q.kind == "agnostic" else per_variant_sensitive
             for variant, cfg in configs.items():
