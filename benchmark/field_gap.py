@@ -17,6 +17,13 @@ windows, threshold), so they differ only in the features. It also counts, per le
 name, the pixels whose rendered latent lies nearer another name's code than its own: where the
 field's share is spent (moving objects, small parts).
 
+Time-sensitive queries get the same split for their temporal half. The method's per-frame state score
+(4D LangSplat's status field, the Non-Status field, or the baselines' mean relevance) is taken inside
+the method's own spatial mask (``fitted``: the recorded Acc and vIoU) and inside the annotated object
+mask (``object mask``): if the score decides better there, the spatial mask costs the temporal answer;
+if not, the state score itself does. The ROC AUC of each score against the labels says whether the
+scores separate the states at all, whatever the temporal rule's threshold then does with them.
+
 This reads the truth of evaluated frames: an analysis of a fitted model, never part of a method.
 """
 
@@ -37,7 +44,7 @@ RUNGS = ("perfect", "autoencoder", "fitted")
 
 
 def field_gap(model, scene: Scene, annotations, eval_frames: Iterable[str], *,
-              background_text: Optional[str] = None) -> dict[str, Any]:
+              background_text: Optional[str] = None, temporal=None) -> dict[str, Any]:
     """Per-query mean IoU on each rung, and the latent confusion per (level, name).
 
     Args:
@@ -48,10 +55,12 @@ def field_gap(model, scene: Scene, annotations, eval_frames: Iterable[str], *,
         eval_frames: names of the frames the run was scored on (a results file's ``score_config``).
         background_text: the name of pixels without a part at a level (default: the model's
             ``unmasked_text``, else ``"background"``): what its oracle supervision used there.
+        temporal: the run's :class:`benchmark.metrics.TemporalRuleConfig` (default: the paper's rule).
     Returns:
-        ``{"rungs": {rung: {"mIoU", "per_query": {text: iou}}}, "frames": n, "confusion": [rows]}``
-        (IoU as fractions; confusion rows: level, name, pixels, nearer_other (fraction), latent_error
-        (mean distance to the name's code), uncovered (fraction below the model's ``uncovered_alpha``)).
+        ``{"rungs": {rung: {"mIoU", "per_query": {text: iou}}}, "frames": n, "confusion": [rows],
+        "sensitive": {text: {...}}}`` (IoU as fractions; confusion rows: level, name, pixels,
+        nearer_other (fraction), latent_error (mean distance to the name's code), uncovered (fraction
+        below the model's ``uncovered_alpha``); ``sensitive``: see :func:`temporal_gap`).
     """
     from methods.fields.relevance import answer_from_relevance, relevance
 
@@ -106,6 +115,49 @@ def field_gap(model, scene: Scene, annotations, eval_frames: Iterable[str], *,
         out["rungs"][rung] = {"mIoU": float(np.mean(list(means.values()))) if means else float("nan"),
                               "per_query": means}
     out["confusion"] = latent_confusion(model, table, codes, [frame_of[n] for n in sorted(rows_of)], rows_of)
+    out["sensitive"] = temporal_gap(model, annotations, frame_of, temporal)
+    return out
+
+
+def temporal_gap(model, annotations, frame_of: dict, temporal=None) -> dict[str, dict[str, Any]]:
+    """Per time-sensitive query the model answers, over its evaluated frames in time order: temporal
+    Acc and the scores' ROC AUC with the state score taken inside the model's spatial mask
+    (``fitted``, plus its vIoU: the recorded values) and inside the annotated object mask
+    (``object_mask``); fractions. Empty for a model without time-sensitive answers."""
+    from .metrics import TemporalRuleConfig, score_auc, score_sensitive
+
+    temporal = temporal or TemporalRuleConfig()
+    if "sensitive" not in getattr(model, "supports", ()):
+        return {}
+    head = getattr(model, "head", None)
+    out: dict[str, dict[str, Any]] = {}
+    for q in annotations.queries:
+        if q.kind != "sensitive":
+            continue
+        frames = [af for af in annotations.annotated_frames(q.id) if af.name in frame_of]
+        if not frames:
+            continue
+        labels = np.array([q.holds_at(af.time_index) for af in frames])
+        fitted, inside, ious = [], [], []
+        for af in frames:
+            frame = frame_of[af.name]
+            gt = np.asarray(annotations.get_mask(q.id, af.id), dtype=bool)
+            spatial = model.agnostic(q.text, frame)
+            ious.append(float(iou(spatial.mask.cpu().numpy(), gt)))
+            if head is not None:  # the status / non-status field's mean cosine inside a mask
+                fitted.append(head.score(q.text, frame, spatial, model))
+                inside.append(head.field.score(frame, gt, head.query_embedding(q.text)) if gt.any()
+                              else float("nan"))
+            else:  # the baselines' score: mean smoothed relevance inside a mask
+                fitted.append(model.relevance_score(spatial))
+                mask = torch.as_tensor(gt, device=spatial.relevance.device)
+                inside.append(float(spatial.relevance[mask].mean()) if gt.any() else float("nan"))
+        fitted_s, inside_s = np.array(fitted, dtype=np.float64), np.array(inside, dtype=np.float64)
+        rung = score_sensitive(labels, np.array(ious), scores=fitted_s, config=temporal)
+        oracle = score_sensitive(labels, np.ones(len(frames)), scores=inside_s, config=temporal)
+        out[q.text] = {"frames": len(frames), "positives": int(labels.sum()),
+                       "fitted": {"Acc": rung.accuracy, "vIoU": rung.viou, "AUC": score_auc(fitted_s, labels)},
+                       "object_mask": {"Acc": oracle.accuracy, "AUC": score_auc(inside_s, labels)}}
     return out
 
 

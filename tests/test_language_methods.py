@@ -304,12 +304,21 @@ def test_ablate_gap_reproduces_the_recorded_answers_and_the_ceiling(smoke, tmp_p
     from benchmark.runner import find_annotations
 
     outcome = _eval(smoke, "deformable-clip")
+    status = load_results(_eval(smoke, "4d-langsplat").path)
     assert main(["ablate", "gap", "--results-dir", str(smoke["results"]), "--cache-dir", str(smoke["cache"]),
-                 "--methods", "deformable-clip", "--out", str(tmp_path), "--quiet"]) == 0
-    assert "| yes |" in capsys.readouterr().out
+                 "--methods", "deformable-clip", "4d-langsplat", "--out", str(tmp_path), "--quiet"]) == 0
+    assert "| no |" not in capsys.readouterr().out
     doc = json.loads((tmp_path / "field-gap.json").read_text())
-    (run,) = doc["runs"]
+    run = next(r for r in doc["runs"] if r["method"] == "deformable-clip")
     recorded = load_results(outcome.path)
+    # time-sensitive: the fitted rung is the recorded Acc / vIoU, for the relevance score and the status field
+    for r, rec in ((run, recorded), (next(r for r in doc["runs"] if r["method"] == "4d-langsplat"), status)):
+        sens = {q["query"]: q for q in rec["scores"]["queries"] if q["kind"] == "sensitive"}
+        assert set(r["sensitive"]) == set(sens) and sens
+        for text, q in r["sensitive"].items():
+            assert 100 * q["fitted"]["Acc"] == pytest.approx(sens[text]["Acc"], abs=1e-9)
+            assert 100 * q["fitted"]["vIoU"] == pytest.approx(sens[text]["vIoU"], abs=1e-9)
+            assert 0.0 <= q["object_mask"]["Acc"] <= 1.0
     fitted = run["rungs"]["fitted"]["per_query"]
     for q in recorded["scores"]["queries"]:
         if q["kind"] == "agnostic":

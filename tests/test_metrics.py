@@ -295,3 +295,16 @@ def test_aggregation_skips_nan_and_ignores_row_order():
         aggregate(t, ["iou"], start="scene", to="query")
     with pytest.raises(ValueError, match="lacks"):
         aggregate(t, ["acc"])
+
+
+def test_score_auc_counts_ordered_pairs_ties_half_and_leaves_out_undefined_scores():
+    from benchmark.metrics import score_auc
+
+    labels = np.array([False, False, True, True])
+    assert score_auc(np.array([0.1, 0.2, 0.3, 0.4]), labels) == 1.0
+    assert score_auc(np.array([0.4, 0.3, 0.2, 0.1]), labels) == 0.0  # inverted: the states swapped
+    assert score_auc(np.array([0.1, 0.3, 0.3, 0.4]), labels) == pytest.approx(0.875)  # one tie of four pairs
+    assert score_auc(np.array([0.1, np.nan, 0.3, 0.0]), labels) == pytest.approx(0.5)  # NaN frame left out
+    assert np.isnan(score_auc(np.array([0.1, 0.2, np.nan, np.nan]), labels))  # no positive left
+    with pytest.raises(ValueError, match="same"):
+        score_auc(np.zeros(3), labels)

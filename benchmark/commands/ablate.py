@@ -55,6 +55,8 @@ from pathlib import Path
 from ..errors import InputError
 
 VISUAL = ("blur", "blur+gray", "blur+gray+contour")
+GAP_METHODS = ("langsplat", "deformable-clip", "non-status-field", "4d-langsplat")
+"""Default methods of ``ablate gap``: every registered method with an autoencoded language field."""
 TEXT = ("none", "video", "video+image")
 
 
@@ -106,9 +108,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     r.add_argument("--quiet", action="store_true")
     g = sub.add_parser("gap", help="split a fitted field's distance to the ceiling into autoencoder and "
                                    "rendered-field shares (recorded runs on generated scenes)")
-    g.add_argument("--methods", nargs="+", default=["langsplat", "deformable-clip"],
-                   help="methods (default: the two distinct time-agnostic fields; the 4D methods share "
-                        "deformable-clip's)")
+    g.add_argument("--methods", nargs="+", default=list(GAP_METHODS),
+                   help="methods (default: the language-field methods; the 4D ones share one time-agnostic field)")
     g.add_argument("--scenes", nargs="+", default=None, help="scene names (default: every generated scene)")
     g.add_argument("--seeds", nargs="+", type=int, default=None, help="seeds (default: all recorded)")
     g.add_argument("--name", default="field-gap", help="output file stem under --out")
@@ -515,6 +516,7 @@ def _gap(args) -> int:
 
     from ..field_gap import field_gap
     from ..loaders import load_scene
+    from ..metrics import TemporalRuleConfig
     from ..results import find_results, load_results, scene_status
     from ..runner import (DEFAULT_PRESET_SIZE, config_dict, default_sources, find_annotations, fit_or_load,
                           resolve_scene)
@@ -556,9 +558,13 @@ def _gap(args) -> int:
             skipped.append(f"{path} ({doc['method']} has no autoencoded language field)")
             continue
         _log(args, f"gap: {doc['method']} on {doc['scene']} seed {doc['seed']}")
-        gap = field_gap(fit.model, scene, find_annotations(scene), doc["score_config"]["eval_frames"])
+        temporal = TemporalRuleConfig(**(doc["score_config"].get("temporal") or {}))
+        gap = field_gap(fit.model, scene, find_annotations(scene), doc["score_config"]["eval_frames"],
+                        temporal=temporal)
         gap.update({"method": doc["method"], "scene": doc["scene"], "seed": int(doc["seed"]), "results": str(path),
-                    "recorded_mIoU": doc["metrics"].get("mIoU")})
+                    "recorded_mIoU": doc["metrics"].get("mIoU"),
+                    "recorded_sensitive": {q["query"]: {"Acc": q["Acc"], "vIoU": q["vIoU"]}
+                                           for q in doc["scores"]["queries"] if q["kind"] == "sensitive"}})
         runs.append(gap)
     if not runs:
         raise InputError(args.results_dir, "results", "no recorded run of a language field on a generated scene "
@@ -611,6 +617,24 @@ def _gap_table(runs: list[dict], skipped: list[str]) -> str:
                         [[r["scene"], r["method"], str(r["seed"]), c["level"], c["name"], str(c["pixels"]),
                           f"{100 * v:.1f}", f"{c['latent_error']:.3f}", f"{100 * c['uncovered']:.1f}"]
                          for v, r, c in worst[:20]]))
+    sens_rows = []
+    for r in sorted(runs, key=lambda r: (r["scene"], r["method"], r["seed"])):
+        for text_, q in r.get("sensitive", {}).items():
+            f, o = q["fitted"], q["object_mask"]
+            rec = r.get("recorded_sensitive", {}).get(text_) or {}
+            same = all(rec.get(k) is not None and abs(100 * f[k] - rec[k]) < 1e-6 for k in ("Acc", "vIoU"))
+            sens_rows.append([r["scene"], r["method"], str(r["seed"]), text_, f"{q['positives']}/{q['frames']}",
+                              pct(f["Acc"]), pct(f["AUC"]), pct(f["vIoU"]), pct(o["Acc"]), pct(o["AUC"]),
+                              "yes" if same else "no"])
+    if sens_rows:
+        text += ("\n## Time-sensitive queries: spatial mask or state score?\n\n"
+                 "Each run's per-frame state score (status / non-status field: mean cosine of the decoded time-varying "
+                 "feature to the query; the baselines: mean relevance) taken inside its own spatial mask (**fitted**: "
+                 "the recorded Acc and vIoU) and inside the annotated object mask (**object mask**), through the run's "
+                 "temporal rule. AUC: ROC AUC of the scores against the labels (50 = no separation, below 50 = "
+                 "inverted), whatever the rule's threshold does with them.\n\n"
+                 + _markdown(["scene", "method", "seed", "query", "positive frames", "Acc", "AUC", "vIoU",
+                              "object-mask Acc", "object-mask AUC", "reproduced"], sens_rows))
     if skipped:
         text += "\nSkipped: " + "; ".join(skipped) + "\n"
     return text

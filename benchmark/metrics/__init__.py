@@ -16,7 +16,8 @@ from .masks import EMPTY_IOU, accuracy_from_confusion, confusion, iou, iou_from_
 from .scoring import (REPORT_METRICS, AgnosticScore, DatasetScore, QueryScore, SceneScore, ScoreConfig,
                       SensitiveScore, aggregate_scenes, score_agnostic, score_scene, score_sensitive)
 from .temporal import (EMPTY_UNION_VIOU, TemporalDecision, TemporalRuleConfig, apply_temporal_rule,
-                       decide_temporal, smooth_scores, temporal_accuracy, temporal_threshold, video_iou)
+                       decide_temporal, score_auc, smooth_scores, temporal_accuracy, temporal_threshold,
+                       video_iou)
 
 __all__ = [
     "LEVELS", "FrameRecord", "aggregate", "records_table",
@@ -25,5 +26,5 @@ __all__ = [
     "REPORT_METRICS", "AgnosticScore", "DatasetScore", "QueryScore", "SceneScore", "ScoreConfig",
     "SensitiveScore", "aggregate_scenes", "score_agnostic", "score_scene", "score_sensitive",
     "EMPTY_UNION_VIOU", "TemporalDecision", "TemporalRuleConfig", "apply_temporal_rule",
-    "decide_temporal", "smooth_scores", "temporal_accuracy", "temporal_threshold", "video_iou",
+    "decide_temporal", "score_auc", "smooth_scores", "temporal_accuracy", "temporal_threshold", "video_iou",
 ]

@@ -36,6 +36,8 @@ import pandas as pd
 
 from annotations.model import AnnotationSet
 
+from .temporal import score_auc
+
 
 def cosine_similarity(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Cosine similarity of ``a`` (..., D) and ``b`` (..., D), broadcast -> (...). Zero vectors raise."""
@@ -77,10 +79,7 @@ def caption_auc(query_embedding: np.ndarray, caption_embeddings: np.ndarray, pos
     Shapes as :func:`delta_sim`; no positive or no negative sample -> NaN.
     """
     cos, pos = _caption_cosines(query_embedding, caption_embeddings, positive)
-    if not pos.any() or pos.all():
-        return float("nan")
-    diff = cos[pos][:, None] - cos[~pos][None, :]
-    return float(((diff > 0).sum() + 0.5 * (diff == 0).sum()) / diff.size)
+    return score_auc(cos, pos)
 
 
 def caption_replay_accuracy(query_embedding: np.ndarray, caption_times: np.ndarray, caption_embeddings: np.ndarray,

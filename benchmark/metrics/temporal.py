@@ -199,3 +199,20 @@ def video_iou(decisions: np.ndarray, labels: np.ndarray, frame_iou: np.ndarray) 
     if np.isnan(v[both]).any():
         raise ValueError("frame_iou is NaN on a frame predicted and labelled positive")
     return float(v[both].sum() / union.sum())
+
+
+def score_auc(scores: np.ndarray, positive: np.ndarray) -> float:
+    """ROC AUC (a fraction) of ``scores`` (N,) as a detector of ``positive`` (N,) bool: the fraction of
+    (positive, negative) pairs the scores order right, ties counting half. Threshold-free, so it says
+    whether scores separate the states at all, whatever a decision rule then does with them. NaN
+    scores are left out; no positive or no negative sample left -> NaN."""
+    s = np.asarray(scores, dtype=np.float64)
+    pos = np.asarray(positive, dtype=bool)
+    if s.shape != pos.shape or s.ndim != 1:
+        raise ValueError(f"scores {s.shape} and positive {pos.shape} must be the same (N,) shape")
+    keep = np.isfinite(s)
+    s, pos = s[keep], pos[keep]
+    if not pos.any() or pos.all():
+        return float("nan")
+    diff = s[pos][:, None] - s[~pos][None, :]
+    return float(((diff > 0).sum() + 0.5 * (diff == 0).sum()) / diff.size)
