@@ -163,10 +163,14 @@ def temporal_gap(model, annotations, frame_of: dict, temporal=None) -> dict[str,
 
 def latent_confusion(model, table: NameTable, codes: torch.Tensor, frames, rows_of: dict) -> list[dict]:
     """Per (level, ground-truth name) over ``frames``: pixels, the fraction whose rendered latent is
-    nearer another name's code than its own, the mean latent distance to its own code, and the
-    fraction of pixels no Gaussian covers (alpha below the model's ``uncovered_alpha``)."""
+    nearer another name's code than its own, the mean latent distance to its own code, the distance
+    from its code to the nearest other name's (``margin``: a rendered latent off by more than half of
+    it can decode as another name), and the fraction of pixels no Gaussian covers (alpha below the
+    model's ``uncovered_alpha``)."""
     threshold = float(getattr(getattr(model, "config", None), "uncovered_alpha", 0.0) or 0.0)
     num = len(table.texts)
+    pairwise = torch.cdist(codes, codes) + torch.diag(torch.full((num,), float("inf"), device=codes.device))
+    margin = pairwise.amin(dim=1).cpu().numpy() if num > 1 else np.full(num, np.inf)  # to the nearest other code
     pixels = np.zeros((3, num), dtype=np.int64)
     wrong = np.zeros((3, num), dtype=np.int64)
     error = np.zeros((3, num))
@@ -192,5 +196,5 @@ def latent_confusion(model, table: NameTable, codes: torch.Tensor, frames, rows_
                 n = int(pixels[level, i])
                 out.append({"level": TRUTH_LEVELS[level], "name": text, "pixels": n,
                             "nearer_other": wrong[level, i] / n, "latent_error": error[level, i] / n,
-                            "uncovered": uncovered[level, i] / n})
+                            "margin": float(margin[i]), "uncovered": uncovered[level, i] / n})
     return out

@@ -611,12 +611,13 @@ def _gap_table(runs: list[dict], skipped: list[str]) -> str:
             + "\nMean over runs:\n\n"
             + _markdown(["method", "runs", *RUNGS, "autoencoder share", "field share"], mean_rows)
             + "\nGround-truth names whose rendered latent is most often nearer another name's code (at least 200 "
-              "evaluated pixels; `uncovered`: no Gaussian covers the pixel):\n\n"
+              "evaluated pixels; latent error: mean distance of its rendered latents to its code; code margin: "
+              "distance from its code to the nearest other name's; `uncovered`: no Gaussian covers the pixel):\n\n"
             + _markdown(["scene", "method", "seed", "level", "name", "pixels", "nearer another code %", "latent error",
-                         "uncovered %"],
+                         "code margin", "uncovered %"],
                         [[r["scene"], r["method"], str(r["seed"]), c["level"], c["name"], str(c["pixels"]),
-                          f"{100 * v:.1f}", f"{c['latent_error']:.3f}", f"{100 * c['uncovered']:.1f}"]
-                         for v, r, c in worst[:20]]))
+                          f"{100 * v:.1f}", f"{c['latent_error']:.3f}", f"{c['margin']:.3f}",
+                          f"{100 * c['uncovered']:.1f}"] for v, r, c in worst[:20]]))
     sens_rows = []
     for r in sorted(runs, key=lambda r: (r["scene"], r["method"], r["seed"])):
         for text_, q in r.get("sensitive", {}).items():
