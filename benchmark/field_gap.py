@@ -41,6 +41,9 @@ from .scene import Scene
 
 RUNGS = ("perfect", "autoencoder", "fitted")
 """Feature rungs, best to worst (module docstring)."""
+GAP_VERSION = 1
+"""Version of what :func:`field_gap` measures; ``bench4d ablate gap`` reuses earlier analyses of the same
+run only when it matches (raise it when the measurement changes)."""
 
 
 def field_gap(model, scene: Scene, annotations, eval_frames: Iterable[str], *,

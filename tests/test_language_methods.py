@@ -294,7 +294,7 @@ def test_ablate_rescore_reanswers_recorded_fits(smoke, tmp_path, capsys):
     assert "'field_iterations'] are not answer options" in capsys.readouterr().err
 
 
-def test_ablate_gap_reproduces_the_recorded_answers_and_the_ceiling(smoke, tmp_path, capsys):
+def test_ablate_gap_reproduces_the_recorded_answers_and_the_ceiling(smoke, tmp_path, capsys, monkeypatch):
     """``bench4d ablate gap``: the fitted rung is the run's own recorded mIoU, the perfect rung is the
     protocol ceiling under the run's query options, and every evaluated pixel of every level is counted
     once in the latent confusion table."""
@@ -342,5 +342,12 @@ def test_ablate_gap_reproduces_the_recorded_answers_and_the_ceiling(smoke, tmp_p
         rows = [c for c in run["confusion"] if c["level"] == level]
         assert sum(c["pixels"] for c in rows) == pixels
         assert all(0.0 <= c["nearer_other"] <= 1.0 and 0.0 <= c["uncovered"] <= 1.0 for c in rows)
+    # a second sweep reuses the analyses of unchanged runs instead of loading their fits again
+    import benchmark.field_gap as field_gap_module
+
+    monkeypatch.setattr(field_gap_module, "field_gap", lambda *a, **k: pytest.fail("analysed again"))
+    assert main(["ablate", "gap", "--results-dir", str(smoke["results"]), "--cache-dir", str(smoke["cache"]),
+                 "--methods", "deformable-clip", "4d-langsplat", "--out", str(tmp_path), "--quiet"]) == 0
+    assert json.loads((tmp_path / "field-gap.json").read_text())["runs"] == doc["runs"]
     assert main(["ablate", "gap", "--results-dir", str(smoke["results"]), "--methods", "nearest-frame",
                  "--out", str(tmp_path), "--quiet"]) == 2  # no language field among the matched runs

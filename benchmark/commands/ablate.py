@@ -116,6 +116,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--results-dir", type=Path, default=Path("results"))
     g.add_argument("--cache-dir", type=Path, default=Path("cache"))
     g.add_argument("--out", type=Path, default=Path("reports/ablations"))
+    g.add_argument("--force", action="store_true", help="analyse again the runs the previous output already holds")
     g.add_argument("--quiet", action="store_true")
     s = sub.add_parser("states", help="accuracy vs number of states K of the status field (paper Table 5)")
     _common(s)
@@ -514,7 +515,8 @@ def _gap(args) -> int:
     from methods.api import Progress
     from methods.supervision.cache import build_supervision
 
-    from ..field_gap import field_gap
+    from ..atomic import read_json
+    from ..field_gap import GAP_VERSION, field_gap
     from ..loaders import load_scene
     from ..metrics import TemporalRuleConfig
     from ..results import find_results, load_results, scene_status
@@ -523,6 +525,11 @@ def _gap(args) -> int:
 
     for m in args.methods:
         registry.get(m)  # unknown names fail first, with a "did you mean"
+    previous = args.out / f"{args.name}.json"
+    kept = {}  # runs analysed before, reused while their results file is the same run (resumes a sweep)
+    if previous.is_file() and not args.force:
+        kept = {(r.get("results"), r.get("created"), r.get("fit_key")): r
+                for r in (read_json(previous).get("runs") or []) if r.get("version") == GAP_VERSION}
     runs, skipped = [], []
     for path in find_results(args.results_dir):
         doc = load_results(path)
@@ -535,6 +542,11 @@ def _gap(args) -> int:
             continue
         if scene_status(doc)[1] is False:
             skipped.append(f"{path} (measured on another scene version)")
+            continue
+        again = kept.get((str(path), doc.get("created"), doc["fit"]["key"]))
+        if again is not None:
+            _log(args, f"gap: kept {doc['method']} on {doc['scene']} seed {doc['seed']}")
+            runs.append(again)
             continue
         spec = registry.get(doc["method"])
         recorded = doc.get("method_config") or {}
@@ -562,6 +574,7 @@ def _gap(args) -> int:
         gap = field_gap(fit.model, scene, find_annotations(scene), doc["score_config"]["eval_frames"],
                         temporal=temporal)
         gap.update({"method": doc["method"], "scene": doc["scene"], "seed": int(doc["seed"]), "results": str(path),
+                    "created": doc.get("created"), "fit_key": doc["fit"]["key"], "version": GAP_VERSION,
                     "recorded_mIoU": doc["metrics"].get("mIoU"),
                     "recorded_sensitive": {q["query"]: {"Acc": q["Acc"], "vIoU": q["vIoU"]}
                                            for q in doc["scores"]["queries"] if q["kind"] == "sensitive"}})
