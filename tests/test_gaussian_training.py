@@ -366,6 +366,24 @@ def test_tiny_3dgs_fit_static_scene():
     assert ev["psnr"] > 24.0, (ev["psnr"], baseline)
     assert ev["psnr"] > baseline + 8.0
     assert result.model.num_gaussians <= result.cap
+    assert np.isnan(ev["region_psnr"]) and np.isnan(ev["region_fraction"])  # no masks asked for
+    # region PSNR pools squared errors: the whole image as the region gives the PSNR of the mean MSE
+    # (frames of one size), and any split of it gives back the same total squared error
+    mse = np.array([10 ** (-f["psnr"] / 10) for f in ev["per_frame"]])
+    everything = {f.name: np.ones((f.camera.height, f.camera.width), bool) for f in scene.test_frames}
+    whole = evaluate(result.model, scene.test_frames, scene.background, RAST, region_masks=everything)
+    assert whole["region_psnr"] == pytest.approx(-10 * np.log10(mse.mean()), abs=1e-6)
+    assert np.isnan(whole["rest_psnr"]) and whole["region_fraction"] == 1.0
+    rng = np.random.default_rng(0)
+    half = {k: rng.random(v.shape) < 0.5 for k, v in everything.items()}
+    split = evaluate(result.model, scene.test_frames, scene.background, RAST, region_masks=half)
+    frac = split["region_fraction"]
+    assert frac == pytest.approx(np.mean([m.mean() for m in half.values()]))
+    total = frac * 10 ** (-split["region_psnr"] / 10) + (1 - frac) * 10 ** (-split["rest_psnr"] / 10)
+    assert total == pytest.approx(mse.mean(), rel=1e-6)
+    with pytest.raises(ValueError, match="region mask"):
+        evaluate(result.model, scene.test_frames[:1], scene.background, RAST,
+                 region_masks={scene.test_frames[0].name: np.ones((3, 3), bool)})
 
 
 def test_tiny_4dgs_beats_3dgs_on_motion(moving_scene):
@@ -442,9 +460,31 @@ def test_recon_command_end_to_end(tmp_path):
     skip = report["models"]["4dgs"]["static_skip"]
     for key in ("step_cpu_ms_skip", "step_cpu_ms_full", "deform_saved_mib_skip", "deform_saved_mib_full"):
         assert key in skip
+    assert all("moving" not in e for e in report["models"].values())  # no generator truth: no moving parts
     assert main(["recon", "--summarize", str(tmp_path)]) == 0
     summary = (tmp_path / "summary.md").read_text()
-    assert "| toy-dnerf | 12x12 | 24 |" in summary
+    (row,) = [line for line in summary.splitlines() if line.startswith("| toy-dnerf | 12x12 | 24 |")]
+    assert row.endswith("| - |")
+
+
+def test_recon_scores_the_moving_parts_of_a_generated_scene(tmp_path):
+    from benchmark.cli import main
+    from benchmark.synthetic.generate import generate
+
+    scene_dir = generate("smoke", tmp_path / "smoke", size=32)
+    out = tmp_path / "reports" / "smoke"
+    assert main(["recon", "--scene", str(scene_dir), "--iters", "12", "--no-isolate", "--renders", "0",
+                 "--out", str(out), "--set", "deformation.hexplane.spatial_resolution=8"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    for entry in report["models"].values():
+        moving = entry["moving"]
+        assert moving["parts"] == ["ball", "bar half", "lid knob", "lid panel"]
+        assert 0.0 < moving["pixel_fraction"] < 0.5
+        assert np.isfinite(moving["psnr"]) and np.isfinite(moving["static_psnr"])
+    assert main(["recon", "--summarize", str(tmp_path / "reports")]) == 0
+    (row,) = [line for line in (tmp_path / "reports" / "summary.md").read_text().splitlines()
+              if line.startswith("| smoke |")]
+    assert " %, " in row.split("|")[-2]
 
 
 def test_recon_command_rejects_bad_input(tmp_path, capsys):

@@ -458,3 +458,30 @@ def test_cli_make_validate_show(tmp_path, capsys):
     bad.write_text(json.dumps(doc))
     assert main(["data", "validate", str(out), "--annotations", str(bad)]) == 2
     assert "99" in capsys.readouterr().err
+
+
+def test_dynamic_parts_are_the_ones_the_preset_animates(scene_dirs, tmp_path):
+    from benchmark.errors import InputError
+    from benchmark.synthetic.dynamic import dynamic_masks, dynamic_parts
+
+    # smoke: the lid opens on its hinge (panel and knob), the ball rolls, the bar breaks; the box base stays
+    root = scene_dirs("smoke", "neu3d")
+    assert sorted(dynamic_parts(root).values()) == ["ball", "bar half", "bar half", "lid knob", "lid panel"]
+    truth = load_truth(root)
+    names = sorted(truth.frames)
+    masks = dynamic_masks(root, names)
+    for name in names:
+        assert not (masks[name] & truth.mask("box base", name, allow_eval=True)).any()
+        assert (masks[name] >= truth.mask("ball", name, allow_eval=True)).all()
+    # a fixed rig camera sees the box base at the same pixels all video long wherever nothing moves over it
+    by_cam = [n for n in names if truth.frames[n].camera_id == truth.frames[names[0]].camera_id]
+    first, last = by_cam[0], by_cam[-1]
+    base = [truth.mask("box base", n, allow_eval=True) for n in (first, last)]
+    free = ~(masks[first] | masks[last])
+    assert np.array_equal(base[0] & free, base[1] & free)
+    # the moving parts do move: their pixels differ between the first and last frame of that camera
+    assert not np.array_equal(masks[first], masks[last])
+    # espresso: the coffee stream and the coffee appear; the machine around them does not move
+    assert set(dynamic_parts(scene_dirs("espresso", "hypernerf")).values()) == {"coffee stream", "espresso"}
+    with pytest.raises(InputError, match="not a generated scene"):
+        dynamic_parts(tmp_path)
