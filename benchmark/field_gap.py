@@ -47,7 +47,8 @@ run only when it matches (raise it when the measurement changes)."""
 
 
 def field_gap(model, scene: Scene, annotations, eval_frames: Iterable[str], *,
-              background_text: Optional[str] = None, temporal=None) -> dict[str, Any]:
+              background_text: Optional[str] = None, temporal=None,
+              agnostic: Optional[dict[str, Any]] = None) -> dict[str, Any]:
     """Per-query mean IoU on each rung, and the latent confusion per (level, name).
 
     Args:
@@ -59,12 +60,26 @@ def field_gap(model, scene: Scene, annotations, eval_frames: Iterable[str], *,
         background_text: the name of pixels without a part at a level (default: the model's
             ``unmasked_text``, else ``"background"``): what its oracle supervision used there.
         temporal: the run's :class:`benchmark.metrics.TemporalRuleConfig` (default: the paper's rule).
+        agnostic: the time-agnostic part of an earlier result (``frames``, ``background_text``,
+            ``rungs``, ``confusion``) of a model with the same field and answer options (the 4D methods
+            share one field): reused as it is, only the time-sensitive half is measured.
     Returns:
         ``{"rungs": {rung: {"mIoU", "per_query": {text: iou}}}, "frames": n, "confusion": [rows],
         "sensitive": {text: {...}}}`` (IoU as fractions; confusion rows: level, name, pixels,
         nearer_other (fraction), latent_error (mean distance to the name's code), uncovered (fraction
         below the model's ``uncovered_alpha``); ``sensitive``: see :func:`temporal_gap`).
     """
+    evaluated = set(eval_frames)
+    frame_of = {f.name: f for f in scene.frames if f.name in evaluated}
+    if agnostic is None:
+        agnostic = agnostic_gap(model, scene, annotations, frame_of, background_text=background_text)
+    keep = ("frames", "background_text", "rungs", "confusion")
+    return {**{k: agnostic[k] for k in keep}, "sensitive": temporal_gap(model, annotations, frame_of, temporal)}
+
+
+def agnostic_gap(model, scene: Scene, annotations, frame_of: dict, *,
+                 background_text: Optional[str] = None) -> dict[str, Any]:
+    """The time-agnostic part of :func:`field_gap` on the evaluated frames ``frame_of`` (name -> frame)."""
     from methods.fields.relevance import answer_from_relevance, relevance
 
     from .synthetic.truth import load_truth
@@ -82,8 +97,6 @@ def field_gap(model, scene: Scene, annotations, eval_frames: Iterable[str], *,
                                    device=model.device)
         codes = model.autoencoder.encode(passages)  # [T, d]: each name's latent code
         features = {"perfect": passages, "autoencoder": model.autoencoder.decode(codes)}  # [T, D] per rung
-    evaluated = set(eval_frames)
-    frame_of = {f.name: f for f in scene.frames if f.name in evaluated}
     queries = [q for q in annotations.queries if q.kind == "agnostic"]
     if not queries:
         raise InputError(None, "annotations", "no time-agnostic queries to answer")
@@ -118,7 +131,6 @@ def field_gap(model, scene: Scene, annotations, eval_frames: Iterable[str], *,
         out["rungs"][rung] = {"mIoU": float(np.mean(list(means.values()))) if means else float("nan"),
                               "per_query": means}
     out["confusion"] = latent_confusion(model, table, codes, [frame_of[n] for n in sorted(rows_of)], rows_of)
-    out["sensitive"] = temporal_gap(model, annotations, frame_of, temporal)
     return out
 
 

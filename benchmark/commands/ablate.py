@@ -531,6 +531,7 @@ def _gap(args) -> int:
         kept = {(r.get("results"), r.get("created"), r.get("fit_key")): r
                 for r in (read_json(previous).get("runs") or []) if r.get("version") == GAP_VERSION}
     runs, skipped = [], []
+    shared: dict[tuple, dict] = {}  # (scene, field, answer options, frames) -> time-agnostic part, measured once
     for path in find_results(args.results_dir):
         doc = load_results(path)
         if (doc["method"] not in args.methods or (args.scenes and doc["scene"] not in args.scenes)
@@ -571,8 +572,14 @@ def _gap(args) -> int:
             continue
         _log(args, f"gap: {doc['method']} on {doc['scene']} seed {doc['seed']}")
         temporal = TemporalRuleConfig(**(doc["score_config"].get("temporal") or {}))
-        gap = field_gap(fit.model, scene, find_annotations(scene), doc["score_config"]["eval_frames"],
-                        temporal=temporal)
+        model = fit.model
+        same_field = (str(root), (doc["fit"].get("info") or {}).get("key"), repr(model.relevance_cfg),
+                      model.config.unmasked_text, model.config.uncovered_alpha,
+                      tuple(doc["score_config"]["eval_frames"]))
+        gap = field_gap(model, scene, find_annotations(scene), doc["score_config"]["eval_frames"],
+                        temporal=temporal, agnostic=shared.get(same_field) if same_field[1] else None)
+        if same_field[1]:
+            shared.setdefault(same_field, gap)
         gap.update({"method": doc["method"], "scene": doc["scene"], "seed": int(doc["seed"]), "results": str(path),
                     "created": doc.get("created"), "fit_key": doc["fit"]["key"], "version": GAP_VERSION,
                     "recorded_mIoU": doc["metrics"].get("mIoU"),
