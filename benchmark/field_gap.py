@@ -41,14 +41,14 @@ from .scene import Scene
 
 RUNGS = ("perfect", "autoencoder", "fitted")
 """Feature rungs, best to worst (module docstring)."""
-GAP_VERSION = 1
+GAP_VERSION = 2
 """Version of what :func:`field_gap` measures; ``bench4d ablate gap`` reuses earlier analyses of the same
 run only when it matches (raise it when the measurement changes)."""
 
 
 def field_gap(model, scene: Scene, annotations, eval_frames: Iterable[str], *,
               background_text: Optional[str] = None, temporal=None,
-              agnostic: Optional[dict[str, Any]] = None) -> dict[str, Any]:
+              agnostic: Optional[dict[str, Any]] = None, captions: Optional[dict] = None) -> dict[str, Any]:
     """Per-query mean IoU on each rung, and the latent confusion per (level, name).
 
     Args:
@@ -63,6 +63,8 @@ def field_gap(model, scene: Scene, annotations, eval_frames: Iterable[str], *,
         agnostic: the time-agnostic part of an earlier result (``frames``, ``background_text``,
             ``rungs``, ``confusion``) of a model with the same field and answer options (the 4D methods
             share one field): reused as it is, only the time-sensitive half is measured.
+        captions: object name -> ((N,) time indices, (N, D) caption embeddings) of the training frames
+            the model's time-varying field was fitted on (:func:`caption_targets`): adds the caption rungs.
     Returns:
         ``{"rungs": {rung: {"mIoU", "per_query": {text: iou}}}, "frames": n, "confusion": [rows],
         "sensitive": {text: {...}}}`` (IoU as fractions; confusion rows: level, name, pixels,
@@ -74,7 +76,8 @@ def field_gap(model, scene: Scene, annotations, eval_frames: Iterable[str], *,
     if agnostic is None:
         agnostic = agnostic_gap(model, scene, annotations, frame_of, background_text=background_text)
     keep = ("frames", "background_text", "rungs", "confusion")
-    return {**{k: agnostic[k] for k in keep}, "sensitive": temporal_gap(model, annotations, frame_of, temporal)}
+    return {**{k: agnostic[k] for k in keep},
+            "sensitive": temporal_gap(model, annotations, frame_of, temporal, captions=captions)}
 
 
 def agnostic_gap(model, scene: Scene, annotations, frame_of: dict, *,
@@ -134,12 +137,39 @@ def agnostic_gap(model, scene: Scene, annotations, frame_of: dict, *,
     return out
 
 
-def temporal_gap(model, annotations, frame_of: dict, temporal=None) -> dict[str, dict[str, Any]]:
+def caption_targets(model, scene: Scene, track: str,
+                    cache_root) -> Optional[dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """Object name -> ((N,) time indices, (N, D) caption embeddings) of the captions the model's
+    time-varying field was fitted on (from the caption cache; tracks named by their labels), or
+    ``None`` for a model without a caption field."""
+    field = getattr(getattr(model, "head", None), "field", None)
+    if field is None or not hasattr(field, "autoencoder"):
+        return None
+    from methods.fields.time_varying import build_captions, embed_captions
+
+    captions, tracks = build_captions(scene, track, model.config, cache_root=cache_root)
+    sup = embed_captions(captions, tracks, model.text_encoder)
+    time_of = {f.name: f.time_index for f in scene.frames}
+    out: dict[str, tuple[list, list]] = {}
+    for (frame_name, obj), row in sup.text_index.items():
+        label = tracks.labels.get(obj)
+        if label is not None:
+            times, rows = out.setdefault(label, ([], []))
+            times.append(time_of[frame_name])
+            rows.append(sup.embeddings[row])
+    return {k: (np.asarray(t), np.asarray(e, dtype=np.float32)) for k, (t, e) in out.items()}
+
+
+def temporal_gap(model, annotations, frame_of: dict, temporal=None,
+                 captions: Optional[dict] = None) -> dict[str, dict[str, Any]]:
     """Per time-sensitive query the model answers, over its evaluated frames in time order: temporal
     Acc and the scores' ROC AUC with the state score taken inside the model's spatial mask
     (``fitted``, plus its vIoU: the recorded values) and inside the annotated object mask
-    (``object_mask``); fractions. Empty for a model without time-sensitive answers."""
-    from .metrics import TemporalRuleConfig, score_auc, score_sensitive
+    (``object_mask``); with ``captions`` (:func:`caption_targets`) also ``captions`` (each evaluated
+    frame scored by the base object's caption at the nearest training time: a field reproducing its
+    targets exactly) and ``caption_autoencoder`` (the same captions through the field's autoencoder);
+    fractions. Empty for a model without time-sensitive answers."""
+    from .metrics import TemporalRuleConfig, caption_replay_scores, score_auc, score_sensitive
 
     temporal = temporal or TemporalRuleConfig()
     if "sensitive" not in getattr(model, "supports", ()):
@@ -173,6 +203,19 @@ def temporal_gap(model, annotations, frame_of: dict, temporal=None) -> dict[str,
         out[q.text] = {"frames": len(frames), "positives": int(labels.sum()),
                        "fitted": {"Acc": rung.accuracy, "vIoU": rung.viou, "AUC": score_auc(fitted_s, labels)},
                        "object_mask": {"Acc": oracle.accuracy, "AUC": score_auc(inside_s, labels)}}
+        base = annotations.mask_owner(q).text
+        if captions and base in captions and head is not None:
+            times, emb = captions[base]
+            with torch.no_grad():
+                auto = head.field.autoencoder
+                e = torch.as_tensor(emb, device=model.device)
+                through = auto.decode(auto.encode(e)).float().cpu().numpy()
+            zq = np.asarray(head.query_embedding(q.text), dtype=np.float64)
+            eval_times = np.array([af.time_index for af in frames], dtype=np.float64)
+            for name, table in (("captions", emb), ("caption_autoencoder", through)):
+                scores = caption_replay_scores(zq, times, table, eval_times)
+                res = score_sensitive(labels, np.ones(len(frames)), scores=scores, config=temporal)
+                out[q.text][name] = {"Acc": res.accuracy, "AUC": score_auc(scores, labels)}
     return out
 
 

@@ -322,6 +322,10 @@ def test_ablate_gap_reproduces_the_recorded_answers_and_the_ceiling(smoke, tmp_p
             assert 100 * q["fitted"]["Acc"] == pytest.approx(sens[text]["Acc"], abs=1e-9)
             assert 100 * q["fitted"]["vIoU"] == pytest.approx(sens[text]["vIoU"], abs=1e-9)
             assert 0.0 <= q["object_mask"]["Acc"] <= 1.0
+            if r is not run:  # the status field: its caption targets, raw and through its autoencoder
+                assert 0.0 <= q["captions"]["Acc"] <= 1.0 and 0.0 <= q["caption_autoencoder"]["Acc"] <= 1.0
+            else:
+                assert "captions" not in q  # relevance scores have no caption targets
     fitted = run["rungs"]["fitted"]["per_query"]
     for q in recorded["scores"]["queries"]:
         if q["kind"] == "agnostic":

@@ -516,7 +516,7 @@ def _gap(args) -> int:
     from methods.supervision.cache import build_supervision
 
     from ..atomic import read_json
-    from ..field_gap import GAP_VERSION, field_gap
+    from ..field_gap import GAP_VERSION, caption_targets, field_gap
     from ..loaders import load_scene
     from ..metrics import TemporalRuleConfig
     from ..results import find_results, load_results, scene_status
@@ -577,7 +577,8 @@ def _gap(args) -> int:
                       model.config.unmasked_text, model.config.uncovered_alpha,
                       tuple(doc["score_config"]["eval_frames"]))
         gap = field_gap(model, scene, find_annotations(scene), doc["score_config"]["eval_frames"],
-                        temporal=temporal, agnostic=shared.get(same_field) if same_field[1] else None)
+                        temporal=temporal, agnostic=shared.get(same_field) if same_field[1] else None,
+                        captions=caption_targets(model, scene, doc["track"], args.cache_dir))
         if same_field[1]:
             shared.setdefault(same_field, gap)
         gap.update({"method": doc["method"], "scene": doc["scene"], "seed": int(doc["seed"]), "results": str(path),
@@ -638,24 +639,30 @@ def _gap_table(runs: list[dict], skipped: list[str]) -> str:
                         [[r["scene"], r["method"], str(r["seed"]), c["level"], c["name"], str(c["pixels"]),
                           f"{100 * v:.1f}", f"{c['latent_error']:.3f}", f"{c['margin']:.3f}",
                           f"{100 * c['uncovered']:.1f}"] for v, r, c in worst[:20]]))
+    def pair(rung: Optional[dict]) -> str:
+        return "–" if not rung else f"{pct(rung['Acc'])} / {pct(rung['AUC'])}"
+
     sens_rows = []
     for r in sorted(runs, key=lambda r: (r["scene"], r["method"], r["seed"])):
         for text_, q in r.get("sensitive", {}).items():
-            f, o = q["fitted"], q["object_mask"]
+            f = q["fitted"]
             rec = r.get("recorded_sensitive", {}).get(text_) or {}
             same = all(rec.get(k) is not None and abs(100 * f[k] - rec[k]) < 1e-6 for k in ("Acc", "vIoU"))
             sens_rows.append([r["scene"], r["method"], str(r["seed"]), text_, f"{q['positives']}/{q['frames']}",
-                              pct(f["Acc"]), pct(f["AUC"]), pct(f["vIoU"]), pct(o["Acc"]), pct(o["AUC"]),
-                              "yes" if same else "no"])
+                              pct(f["vIoU"]), pair(f), pair(q["object_mask"]), pair(q.get("captions")),
+                              pair(q.get("caption_autoencoder")), "yes" if same else "no"])
     if sens_rows:
         text += ("\n## Time-sensitive queries: spatial mask or state score?\n\n"
                  "Each run's per-frame state score (status / non-status field: mean cosine of the decoded time-varying "
                  "feature to the query; the baselines: mean relevance) taken inside its own spatial mask (**fitted**: "
-                 "the recorded Acc and vIoU) and inside the annotated object mask (**object mask**), through the run's "
-                 "temporal rule. AUC: ROC AUC of the scores against the labels (50 = no separation, below 50 = "
-                 "inverted), whatever the rule's threshold does with them.\n\n"
-                 + _markdown(["scene", "method", "seed", "query", "positive frames", "Acc", "AUC", "vIoU",
-                              "object-mask Acc", "object-mask AUC", "reproduced"], sens_rows))
+                 "the recorded Acc and vIoU) and inside the annotated object mask (**object mask**); for the caption "
+                 "fields also each evaluated frame scored by the base object's caption at the nearest training time "
+                 "(**captions**: a field reproducing its targets exactly) and by the same captions through the field's "
+                 "autoencoder. All through the run's temporal rule. Cells: Acc / AUC, the ROC AUC of the scores "
+                 "against the labels (50 = no separation, below 50 = inverted), whatever the rule's threshold does "
+                 "with them.\n\n"
+                 + _markdown(["scene", "method", "seed", "query", "positive frames", "vIoU", "fitted", "object mask",
+                              "captions", "captions via autoencoder", "reproduced"], sens_rows))
     if skipped:
         text += "\nSkipped: " + "; ".join(skipped) + "\n"
     return text

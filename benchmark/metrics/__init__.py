@@ -10,8 +10,8 @@
 """
 
 from .aggregate import LEVELS, FrameRecord, aggregate, records_table
-from .captions import (caption_auc, caption_replay_accuracy, cosine_similarity, delta_sim, delta_sim_scene,
-                       mean_delta_sim)
+from .captions import (caption_auc, caption_replay_accuracy, caption_replay_scores, cosine_similarity, delta_sim,
+                       delta_sim_scene, mean_delta_sim)
 from .masks import EMPTY_IOU, accuracy_from_confusion, confusion, iou, iou_from_confusion, pixel_accuracy
 from .scoring import (REPORT_METRICS, AgnosticScore, DatasetScore, QueryScore, SceneScore, ScoreConfig,
                       SensitiveScore, aggregate_scenes, score_agnostic, score_scene, score_sensitive)
@@ -21,7 +21,8 @@ from .temporal import (EMPTY_UNION_VIOU, TemporalDecision, TemporalRuleConfig, a
 
 __all__ = [
     "LEVELS", "FrameRecord", "aggregate", "records_table",
-    "caption_auc", "caption_replay_accuracy", "cosine_similarity", "delta_sim", "delta_sim_scene", "mean_delta_sim",
+    "caption_auc", "caption_replay_accuracy", "caption_replay_scores", "cosine_similarity", "delta_sim",
+    "delta_sim_scene", "mean_delta_sim",
     "EMPTY_IOU", "accuracy_from_confusion", "confusion", "iou", "iou_from_confusion", "pixel_accuracy",
     "REPORT_METRICS", "AgnosticScore", "DatasetScore", "QueryScore", "SceneScore", "ScoreConfig",
     "SensitiveScore", "aggregate_scenes", "score_agnostic", "score_scene", "score_sensitive",

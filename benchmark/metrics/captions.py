@@ -91,18 +91,25 @@ def caption_replay_accuracy(query_embedding: np.ndarray, caption_times: np.ndarr
     """
     from .temporal import TemporalRuleConfig, apply_temporal_rule, temporal_accuracy
 
+    if np.asarray(caption_times).size == 0 or len(eval_times) == 0:
+        return float("nan")
+    scores = caption_replay_scores(query_embedding, caption_times, caption_embeddings, eval_times)
+    decision = apply_temporal_rule(scores, config or TemporalRuleConfig())
+    return 100.0 * temporal_accuracy(decision.decisions, np.asarray(labels, dtype=bool))
+
+
+def caption_replay_scores(query_embedding: np.ndarray, caption_times: np.ndarray, caption_embeddings: np.ndarray,
+                          eval_times: np.ndarray) -> np.ndarray:
+    """(T,) cosine of the query (D,) to the mean embedding of the captions (N, D) at the training time
+    nearest each of ``eval_times`` (T,) (ties: their mean): the per-frame scores of the caption replay."""
     times = np.asarray(caption_times, dtype=np.float64)
     emb = np.asarray(caption_embeddings, dtype=np.float64)
-    if times.size == 0 or len(eval_times) == 0:
-        return float("nan")
     q = np.asarray(query_embedding, dtype=np.float64)
-    scores = []
-    for t in np.asarray(eval_times, dtype=np.float64):
+    scores = np.empty(len(eval_times))
+    for i, t in enumerate(np.asarray(eval_times, dtype=np.float64)):
         gap = np.abs(times - t)
-        nearest = emb[gap == gap.min()].mean(0)
-        scores.append(float(cosine_similarity(nearest, q)))
-    decision = apply_temporal_rule(np.asarray(scores), config or TemporalRuleConfig())
-    return 100.0 * temporal_accuracy(decision.decisions, np.asarray(labels, dtype=bool))
+        scores[i] = float(cosine_similarity(emb[gap == gap.min()].mean(0), q))
+    return scores
 
 
 def delta_sim_scene(aset: AnnotationSet, query_embeddings: Mapping[str, np.ndarray],
