@@ -37,8 +37,10 @@ Only answer options may change: anything else would need a new fit (``bench4d ev
 ``gap``: for recorded runs on generated scenes, the time-agnostic query on perfect features, on
 perfect latents through the run's own autoencoder, and on its rendered field (:mod:`benchmark.field_gap`):
 how much of the distance to the ceiling the autoencoder costs and how much the rendered field, and
-per ground-truth name the pixels whose rendered latent is nearer another name's code. Reads the truth
-of evaluated frames: an analysis of fitted models.
+per ground-truth name the pixels whose rendered latent is nearer another name's code; for time-sensitive
+queries, the state score inside the run's own mask, inside the object mask and on its caption targets.
+Reads the truth of evaluated frames: an analysis of fitted models. Analyses of unchanged runs are
+reused from the previous output (``--force`` redoes them).
 
 All write a JSON and a Markdown table to ``--out`` (default ``reports/ablations``) and print the table.
 """
