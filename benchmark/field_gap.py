@@ -41,7 +41,7 @@ from .scene import Scene
 
 RUNGS = ("perfect", "autoencoder", "fitted")
 """Feature rungs, best to worst (module docstring)."""
-GAP_VERSION = 2
+GAP_VERSION = 3
 """Version of what :func:`field_gap` measures; ``bench4d ablate gap`` reuses earlier analyses of the same
 run only when it matches (raise it when the measurement changes)."""
 
@@ -137,27 +137,39 @@ def agnostic_gap(model, scene: Scene, annotations, frame_of: dict, *,
     return out
 
 
-def caption_targets(model, scene: Scene, track: str,
-                    cache_root) -> Optional[dict[str, tuple[np.ndarray, np.ndarray]]]:
+def caption_targets(model, scene: Scene, track: str, cache_root,
+                    names: Iterable[str]) -> Optional[dict[str, tuple[np.ndarray, np.ndarray]]]:
     """Object name -> ((N,) time indices, (N, D) caption embeddings) of the captions the model's
-    time-varying field was fitted on (from the caption cache; tracks named by their labels), or
-    ``None`` for a model without a caption field."""
+    time-varying field was fitted on (from the caption cache), for each of ``names`` (the time-sensitive
+    queries' base objects: a part such as ``"liquid"`` gets the captions of the tracked object it lies
+    in); ``None`` for a model without a caption field."""
     field = getattr(getattr(model, "head", None), "field", None)
     if field is None or not hasattr(field, "autoencoder"):
         return None
+    from methods.captioners.tracks import objects_named
     from methods.fields.time_varying import build_captions, embed_captions
+
+    from .synthetic.truth import load_truth
 
     captions, tracks = build_captions(scene, track, model.config, cache_root=cache_root)
     sup = embed_captions(captions, tracks, model.text_encoder)
+    try:
+        truth = load_truth(scene.root)
+    except (FileNotFoundError, OSError):
+        truth = None
     time_of = {f.name: f.time_index for f in scene.frames}
-    out: dict[str, tuple[list, list]] = {}
-    for (frame_name, obj), row in sup.text_index.items():
-        label = tracks.labels.get(obj)
-        if label is not None:
-            times, rows = out.setdefault(label, ([], []))
-            times.append(time_of[frame_name])
-            rows.append(sup.embeddings[row])
-    return {k: (np.asarray(t), np.asarray(e, dtype=np.float32)) for k, (t, e) in out.items()}
+    out = {}
+    for name in dict.fromkeys(names):
+        try:
+            objects = objects_named(tracks, name, truth)
+        except KeyError:
+            objects = []
+        if not objects:
+            continue
+        rows = [(time_of[f], sup.embeddings[r]) for (f, obj), r in sorted(sup.text_index.items()) if obj == objects[0]]
+        if rows:
+            out[name] = (np.array([t for t, _ in rows]), np.stack([e for _, e in rows]).astype(np.float32))
+    return out
 
 
 def temporal_gap(model, annotations, frame_of: dict, temporal=None,

@@ -578,9 +578,11 @@ def _gap(args) -> int:
         same_field = (str(root), (doc["fit"].get("info") or {}).get("key"), repr(model.relevance_cfg),
                       model.config.unmasked_text, model.config.uncovered_alpha,
                       tuple(doc["score_config"]["eval_frames"]))
-        gap = field_gap(model, scene, find_annotations(scene), doc["score_config"]["eval_frames"],
+        aset = find_annotations(scene)
+        gap = field_gap(model, scene, aset, doc["score_config"]["eval_frames"],
                         temporal=temporal, agnostic=shared.get(same_field) if same_field[1] else None,
-                        captions=caption_targets(model, scene, doc["track"], args.cache_dir))
+                        captions=caption_targets(model, scene, doc["track"], args.cache_dir,
+                                                 [aset.mask_owner(q).text for q in aset.sensitive_queries]))
         if same_field[1]:
             shared.setdefault(same_field, gap)
         gap.update({"method": doc["method"], "scene": doc["scene"], "seed": int(doc["seed"]), "results": str(path),
