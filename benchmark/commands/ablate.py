@@ -615,10 +615,15 @@ def _gap_table(runs: list[dict], skipped: list[str]) -> str:
         rows.append([r["scene"], r["method"], str(r["seed"]), *[pct(m[k]) for k in RUNGS],
                      pct(m["perfect"] - m["autoencoder"]), pct(m["autoencoder"] - m["fitted"]),
                      "yes" if same else f"no ({recorded:.2f})" if recorded is not None else "–"])
-        means.setdefault(r["method"], []).append(m)
-    mean_rows = [[method, str(len(ms)), *[pct(np.mean([x[k] for x in ms])) for k in RUNGS],
-                  pct(np.mean([x["perfect"] - x["autoencoder"] for x in ms])),
-                  pct(np.mean([x["autoencoder"] - x["fitted"] for x in ms]))] for method, ms in sorted(means.items())]
+        means.setdefault(r["method"], {}).setdefault(r["scene"], []).append(m)
+    mean_rows = []
+    for method, by_scene in sorted(means.items()):  # seeds averaged within a scene first, then scenes
+        per_scene = [{k: np.mean([x[k] for x in ms]) for k in RUNGS} for ms in by_scene.values()]
+        runs_count = sum(len(ms) for ms in by_scene.values())
+        mean_rows.append([method, f"{len(by_scene)} ({runs_count})",
+                          *[pct(np.mean([x[k] for x in per_scene])) for k in RUNGS],
+                          pct(np.mean([x["perfect"] - x["autoencoder"] for x in per_scene])),
+                          pct(np.mean([x["autoencoder"] - x["fitted"] for x in per_scene]))])
     worst = []
     for r in runs:
         for c in r["confusion"]:
@@ -633,8 +638,8 @@ def _gap_table(runs: list[dict], skipped: list[str]) -> str:
             "the rendered field's (geometry, deformation, field training) autoencoder - fitted. A share can be "
             "negative: the query's threshold can favour features unlike the supervision.\n\n"
             + _markdown(["scene", "method", "seed", *RUNGS, "autoencoder share", "field share", "reproduced"], rows)
-            + "\nMean over runs:\n\n"
-            + _markdown(["method", "runs", *RUNGS, "autoencoder share", "field share"], mean_rows)
+            + "\nMean over scenes (the seeds of a scene averaged first):\n\n"
+            + _markdown(["method", "scenes (runs)", *RUNGS, "autoencoder share", "field share"], mean_rows)
             + "\nGround-truth names whose rendered latent is most often nearer another name's code (at least 200 "
               "evaluated pixels; latent error: mean distance of its rendered latents to its code; code margin: "
               "distance from its code to the nearest other name's; `uncovered`: no Gaussian covers the pixel):\n\n"
