@@ -138,38 +138,36 @@ def agnostic_gap(model, scene: Scene, annotations, frame_of: dict, *,
 
 
 def caption_targets(model, scene: Scene, track: str, cache_root,
-                    names: Iterable[str]) -> Optional[dict[str, tuple[np.ndarray, np.ndarray]]]:
-    """Object name -> ((N,) time indices, (N, D) caption embeddings) of the captions the model's
-    time-varying field was fitted on (from the caption cache), for each of ``names`` (the time-sensitive
-    queries' base objects: a part such as ``"liquid"`` gets the captions of the tracked object it lies
-    in); ``None`` for a model without a caption field."""
+                    annotations) -> Optional[dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """Base object's name -> ((N,) time indices, (N, D) caption embeddings) of the captions the model's
+    time-varying field was fitted on (from the caption cache), for each time-sensitive query of
+    ``annotations`` (a part such as ``"liquid"`` gets the captions of the tracked object it lies in:
+    :func:`methods.captioners.tracks.caption_embeddings_by_base`, as the Delta-sim ablation reads them);
+    ``None`` for a model without a caption field or a base no tracked object carries."""
     field = getattr(getattr(model, "head", None), "field", None)
     if field is None or not hasattr(field, "autoencoder"):
         return None
-    from methods.captioners.tracks import objects_named
-    from methods.fields.time_varying import build_captions, embed_captions
+    from methods.captioners.tracks import caption_embeddings_by_base
+    from methods.fields.time_varying import build_captions
 
     from .synthetic.truth import load_truth
 
     captions, tracks = build_captions(scene, track, model.config, cache_root=cache_root)
-    sup = embed_captions(captions, tracks, model.text_encoder)
     try:
         truth = load_truth(scene.root)
     except (FileNotFoundError, OSError):
         truth = None
     time_of = {f.name: f.time_index for f in scene.frames}
-    out = {}
-    for name in dict.fromkeys(names):
-        try:
-            objects = objects_named(tracks, name, truth)
-        except KeyError:
-            objects = []
-        if not objects:
-            continue
-        rows = [(time_of[f], sup.embeddings[r]) for (f, obj), r in sorted(sup.text_index.items()) if obj == objects[0]]
-        if rows:
-            out[name] = (np.array([t for t, _ in rows]), np.stack([e for _, e in rows]).astype(np.float32))
-    return out
+    try:
+        by_key = caption_embeddings_by_base(annotations, captions, tracks, model.text_encoder, time_of, truth)
+    except InputError:
+        return None
+    out: dict[str, tuple[list, list]] = {}
+    for (base, time_index), embedding in sorted(by_key.items()):
+        times, rows = out.setdefault(base, ([], []))
+        times.append(time_index)
+        rows.append(embedding)
+    return {base: (np.asarray(t), np.asarray(e, dtype=np.float32)) for base, (t, e) in out.items()}
 
 
 def temporal_gap(model, annotations, frame_of: dict, temporal=None,

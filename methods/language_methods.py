@@ -62,7 +62,7 @@ from .fields.language_field import (FieldTarget, FrozenGeometry, LanguageField, 
                                     decode_for_relevance, make_target, project_phrases,
                                     relevance_basis, train_language_field)
 from .fields.relevance import AgnosticResult, RelevanceConfig, encode_canonical, query_levels
-from .specs._language import LanguageMethodConfig
+from .specs._language import AE_SAMPLE_WEIGHTINGS, LanguageMethodConfig
 from .supervision.base import LEVELS, Supervision, TextEncoder
 
 MODEL_FILE = "language_model.pt"
@@ -256,9 +256,6 @@ def fit_geometry(scene: Scene, kind: str, config: LanguageMethodConfig, *, seed:
 # ---------------------------------------------------------------------------------------------------
 # 2. autoencoder
 # ---------------------------------------------------------------------------------------------------
-AE_WEIGHTINGS = ("pixels", "masks", "uniform")
-
-
 def distinct_features(supervision: Supervision, weighting: str = "pixels") -> tuple[np.ndarray, np.ndarray]:
     """The distinct mask features of all training frames and levels, with their weights.
 
@@ -268,8 +265,8 @@ def distinct_features(supervision: Supervision, weighting: str = "pixels") -> tu
     float64 weights). Features equal up to 1e-6 (the oracle track gives one vector per object name)
     are merged; features no pixel carries are dropped.
     """
-    if weighting not in AE_WEIGHTINGS:
-        raise ValueError(f"weighting must be one of {AE_WEIGHTINGS}, got {weighting!r}")
+    if weighting not in AE_SAMPLE_WEIGHTINGS:
+        raise ValueError(f"weighting must be one of {AE_SAMPLE_WEIGHTINGS}, got {weighting!r}")
     rows, areas = [], []
     for fs in supervision.frames:
         for level in range(len(LEVELS)):

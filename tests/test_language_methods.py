@@ -307,8 +307,11 @@ def test_ablate_gap_reproduces_the_recorded_answers_and_the_ceiling(smoke, tmp_p
     status = load_results(_eval(smoke, "4d-langsplat").path)
     assert main(["ablate", "gap", "--results-dir", str(smoke["results"]), "--cache-dir", str(smoke["cache"]),
                  "--methods", "deformable-clip", "4d-langsplat", "--out", str(tmp_path), "--quiet"]) == 0
-    assert "| no |" not in capsys.readouterr().out
+    table = capsys.readouterr().out
     doc = json.loads((tmp_path / "field-gap.json").read_text())
+    # every row, time-agnostic (one per run) and time-sensitive (one per query), reproduces its recorded run
+    assert table.count("| yes |") == len(doc["runs"]) + sum(len(r["sensitive"]) for r in doc["runs"])
+    assert "Supervision track: **oracle**" in table and {r["track"] for r in doc["runs"]} == {"oracle"}
     run = next(r for r in doc["runs"] if r["method"] == "deformable-clip")
     recorded = load_results(outcome.path)
     # 4d-langsplat shares deformable-clip's field: its time-agnostic part is measured once and still is its own

@@ -4,7 +4,6 @@ exact ground truth, the training-frames-only guard, and the ``bench4d data`` com
 from __future__ import annotations
 
 import json
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +13,7 @@ from benchmark.errors import InputError
 from benchmark.scene import Camera
 from benchmark.synthetic import PRESETS, TruthAccessError, generate, list_presets, load_truth
 from benchmark.synthetic import csg
+from benchmark.synthetic.generate import preset_rng
 from benchmark.synthetic.layouts import LAYOUTS
 from benchmark.synthetic.model import Catalogue, FrameContext, Piece, State, Timeline, part, subpart, whole
 from benchmark.synthetic.objects import CupGeometry, ring
@@ -53,8 +53,7 @@ def _unproject(cam: Camera, depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 def _scene_def(preset: str, frames: int, seed: int = 0):
     """Rebuild the generator's scene definition (same seeding as generate())."""
-    rng = np.random.default_rng([seed, zlib.crc32(preset.encode())])
-    scene = PRESETS[preset].build(rng, frames)
+    scene = PRESETS[preset].build(preset_rng(preset, seed), frames)
     return scene, Catalogue.build(scene.wholes)
 
 

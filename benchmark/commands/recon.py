@@ -137,9 +137,9 @@ def moving_regions(scene, frames) -> Optional[tuple[dict[int, str], dict[str, An
 
     if scene.root is None or not (Path(scene.root) / META_FILE).is_file():
         return None
-    masks = dynamic_masks(scene.root, frames)
-    return dynamic_parts(scene.root), {f.name: to_size(masks[f.name], (f.camera.height, f.camera.width))
-                                       for f in frames}
+    parts = dynamic_parts(scene.root)
+    masks = dynamic_masks(scene.root, frames, parts)
+    return parts, {f.name: to_size(masks[f.name], (f.camera.height, f.camera.width)) for f in frames}
 
 
 def fit_and_evaluate(job: dict) -> dict:

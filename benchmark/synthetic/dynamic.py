@@ -15,9 +15,8 @@ frames scored: analysis only, never a method's input.
 
 from __future__ import annotations
 
-import zlib
 from pathlib import Path
-from typing import Iterable
+from typing import Iterable, Optional
 
 import numpy as np
 
@@ -39,6 +38,7 @@ def _leaf_changes(leaf: Leaf) -> bool:
 def dynamic_parts(root: str | Path) -> dict[int, str]:
     """Subpart-level truth id -> name of every dynamic leaf of the generated scene at ``root`` (the
     finest level: a coffee stream that starts and stops is dynamic, the machine around it is not)."""
+    from .generate import preset_rng
     from .presets import PRESETS
     from .truth import load_truth
 
@@ -54,8 +54,8 @@ def dynamic_parts(root: str | Path) -> dict[int, str]:
     for key in ("seed", "num_frames"):
         if not isinstance(meta.get(key), int):
             raise InputError(meta_path, key, f"expected an integer, got {meta.get(key)!r}")
-    rng = np.random.default_rng([meta["seed"], zlib.crc32(preset.encode())])  # as the generator seeds it
-    catalogue = Catalogue.build(PRESETS[preset].build(rng, meta["num_frames"]).wholes)
+    scene_def = PRESETS[preset].build(preset_rng(preset, meta["seed"]), meta["num_frames"])  # as generated
+    catalogue = Catalogue.build(scene_def.wholes)
     truth = load_truth(root)
     for level in ("whole", "subpart"):
         if {e.id: e.name for e in catalogue.entries[level]} != truth.names(level):
@@ -65,12 +65,13 @@ def dynamic_parts(root: str | Path) -> dict[int, str]:
     return {leaf.ids[0]: names[leaf.ids[0]] for leaf in catalogue.leaves if _leaf_changes(leaf)}
 
 
-def dynamic_masks(root: str | Path, frames: Iterable) -> dict[str, np.ndarray]:
+def dynamic_masks(root: str | Path, frames: Iterable, parts: Optional[dict[int, str]] = None) -> dict[str, np.ndarray]:
     """Frame name -> (H, W) bool pixels showing a dynamic part, for ``frames`` (names or frames; truth
-    of evaluated frames included: for scoring only)."""
+    of evaluated frames included: for scoring only). ``parts``: :func:`dynamic_parts` of ``root`` when
+    the caller has it already (it rebuilds the preset)."""
     from .truth import load_truth
 
-    ids = np.array(sorted(dynamic_parts(root)), dtype=np.int64)
+    ids = np.array(sorted(dynamic_parts(root) if parts is None else parts), dtype=np.int64)
     truth = load_truth(root)
     out = {}
     for frame in frames:

@@ -88,6 +88,12 @@ def resolve_settings(preset: str, size: Optional[int], frames: Optional[int], vi
     return spec, size, frames, views, layout
 
 
+def preset_rng(preset: str, seed: int) -> np.random.Generator:
+    """The generator's random stream for ``preset`` and ``seed``: ``PRESETS[preset].build(rng, frames)`` on
+    it rebuilds the scene definition a generated folder was made from (the layout plan draws from it next)."""
+    return np.random.default_rng([int(seed), zlib.crc32(preset.encode())])
+
+
 def generate(preset: str, out_dir: str | Path, *, size: Optional[int] = None, frames: Optional[int] = None,
              views: Optional[int] = None, layout: Optional[str] = None, seed: int = 0, overwrite: bool = False,
              shadows: bool = True) -> Path:
@@ -102,7 +108,7 @@ def generate(preset: str, out_dir: str | Path, *, size: Optional[int] = None, fr
     _check_target(out, overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
 
-    rng = np.random.default_rng([int(seed), zlib.crc32(preset.encode())])
+    rng = preset_rng(preset, seed)
     scene = spec.build(rng, frames)
     catalogue = Catalogue.build(scene.wholes)
     records = layouts.plan(layout, scene, size, frames, views, rng)

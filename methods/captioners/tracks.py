@@ -15,6 +15,7 @@ from typing import Optional
 
 import numpy as np
 
+from benchmark.errors import InputError
 from benchmark.scene import Frame, Scene
 
 from .base import ObjectTracks
@@ -65,3 +66,26 @@ def objects_named(tracks: ObjectTracks, name: str, truth=None) -> list[int]:
         wholes = sorted({whole_of(truth, level, i) for i in ids})
         return [w for w in wholes if w in set(tracks.objects())]
     return sorted(o for o, label in tracks.labels.items() if label == name)
+
+
+def caption_embeddings_by_base(aset, captions, tracks, encoder, time_of: dict, truth=None) -> dict:
+    """(base object's query text, time_index) -> caption embedding, for every sensitive query's base.
+
+    Captions belong to tracked objects; a query's base (``"liquid"``) is mapped to the tracked object
+    it lies in (:func:`objects_named`). With several cameras at one time
+    index the first frame's caption (by name) is used.
+    """
+    emb_of = dict(zip(captions.texts(), encoder.encode(captions.texts(), kind="passage")))
+    out = {}
+    for q in aset.sensitive_queries:
+        base = aset.mask_owner(q).text
+        try:
+            objs = objects_named(tracks, base, truth)
+        except KeyError:
+            objs = []
+        if not objs:
+            raise InputError(None, "tracks", f"no tracked object for {base!r} (base of query {q.text!r})")
+        for (frame, obj), text in sorted(captions.frames.items()):
+            if obj == objs[0]:
+                out.setdefault((base, int(time_of[frame])), emb_of[text])
+    return out

@@ -13,6 +13,10 @@ CANONICAL_PHRASES: tuple[str, ...] = ("object", "things", "stuff", "texture")
 """LERF's canonical negative phrases, as used by LangSplat and 4D LangSplat."""
 
 
+AE_SAMPLE_WEIGHTINGS = ("pixels", "masks", "uniform")
+"""Values of :attr:`LanguageMethodConfig.ae_sample_weighting`."""
+
+
 @dataclass
 class LanguageMethodConfig:
     """Every constant of geometry, autoencoder, field and query (paper values by default where the
@@ -131,8 +135,8 @@ class LanguageMethodConfig:
             raise ValueError(f"threshold_variant must be 'paper' or 'release', got {self.threshold_variant!r}")
         if self.sensitive_mask not in ("unfiltered", "filtered"):
             raise ValueError(f"sensitive_mask must be 'unfiltered' or 'filtered', got {self.sensitive_mask!r}")
-        if self.ae_sample_weighting not in ("pixels", "masks", "uniform"):
-            raise ValueError("ae_sample_weighting must be 'pixels', 'masks' or 'uniform', "
+        if self.ae_sample_weighting not in AE_SAMPLE_WEIGHTINGS:
+            raise ValueError(f"ae_sample_weighting must be one of {AE_SAMPLE_WEIGHTINGS}, "
                              f"got {self.ae_sample_weighting!r}")
         if self.render_backend not in ("auto", "torch", "gsplat"):
             raise ValueError(f"render_backend must be 'auto', 'torch' or 'gsplat', got {self.render_backend!r}")
