@@ -292,6 +292,18 @@ def test_ablate_rescore_reanswers_recorded_fits(smoke, tmp_path, capsys):
     assert [r["mIoU_after"] for r in again] == pytest.approx([r["mIoU_after"] for r in rel])
     assert main(common + ["--name", "bad", "--set", "field_iterations=5"]) != 0
     assert "'field_iterations'] are not answer options" in capsys.readouterr().err
+    # --refit: a fit option refits (the recorded run's other options kept); a name no method has is refused
+    assert main(common + ["--name", "refit", "--refit", "--set", "field_iterations=5"]) == 0
+    (row,) = json.loads((tmp_path / "rescore-refit.json").read_text())["runs"]
+    (path,) = (smoke["results"] / "ablations" / "refit").rglob("seed*.json")
+    refitted, (recorded,) = json.loads(path.read_text()), [
+        json.loads(p.read_text()) for p in smoke["results"].glob("synthetic/*/deformable-clip/*/seed0.json")]
+    assert refitted["method_config"]["field_iterations"] == 5 and refitted["fit"]["key"] != recorded["fit"]["key"]
+    assert row["mIoU_before"] == pytest.approx(recorded["metrics"]["mIoU"])
+    assert row["mIoU_after"] == pytest.approx(refitted["metrics"]["mIoU"])
+    assert "refitted" in (tmp_path / "rescore-refit.md").read_text()
+    assert main(common + ["--name", "refit2", "--refit", "--set", "no_such_option=1"]) != 0
+    assert "no_such_option" in capsys.readouterr().err
 
 
 def test_ablate_gap_reproduces_the_recorded_answers_and_the_ceiling(smoke, tmp_path, capsys, monkeypatch):

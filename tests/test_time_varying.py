@@ -20,6 +20,7 @@ from methods.captioners.base import Captions, ObjectTracks
 from methods.fields.language_field import FrozenGeometry
 from methods.fields.status import StatusField
 from methods.fields.time_varying import (choose_num_states, embed_captions, fit_time_varying_field,
+                                          smooth_caption_embeddings,
                                          load_time_varying_field, object_blend_weights, object_semantics,
                                          render_channels)
 from methods.specs._time_varying import TimeVaryingOptions
@@ -153,6 +154,37 @@ def test_object_semantics_counts_states_not_paraphrases():
     y /= np.linalg.norm(y, axis=1, keepdims=True)
     sem = object_semantics(_sup_from(y), tolerance=0.02, max_states=4, min_state_run=4.0)[0]
     assert sem.dynamic and sem.states == 2
+
+
+def test_caption_window_averages_wording_within_a_state(world):
+    """Each frame's target becomes the mean of the object's captions within the window: wording that
+    alternates frame to frame averages out, the state stays, an unchanging object keeps one vector."""
+    train = [f for f in world.scene.frames if f.split == "train"]  # time_index 0, 2, ..., 16
+    wording = {True: ("the box is open", "lid up wide"), False: ("the box is closed", "lid down tight")}
+    captions = Captions("toy", "test", "oracle", {})
+    for i, f in enumerate(train):
+        captions.frames[(f.name, 0)] = wording[f.time >= 0.5][i % 2]
+        captions.frames[(f.name, 1)] = "a striped ball"
+    sup = embed_captions(captions, world.tracks, world.encoder)
+    assert smooth_caption_embeddings(world.scene, sup, 0) is sup
+    smooth = smooth_caption_embeddings(world.scene, sup, 2)  # this frame and its two neighbours
+    assert set(smooth.text_index) == set(sup.text_index)
+    assert len({smooth.text_index[(f.name, 1)] for f in train}) == 1
+    np.testing.assert_allclose(smooth.embeddings[smooth.text_index[(train[0].name, 1)]],
+                               sup.embeddings[sup.text_index[(train[0].name, 1)]], atol=1e-6)
+    def row(s, i):
+        return s.embeddings[s.text_index[(train[i].name, 0)]]
+    for i in range(1, len(train) - 1):
+        want = np.mean([row(sup, j) for j in (i - 1, i, i + 1)], axis=0)
+        np.testing.assert_allclose(row(smooth, i), want / np.linalg.norm(want), atol=1e-5)
+    np.testing.assert_allclose(row(smooth, 0), (row(sup, 0) + row(sup, 1)) / np.linalg.norm(row(sup, 0) + row(sup, 1)),
+                               atol=1e-5)
+    # inside a state, consecutive targets agree better than the raw alternating wordings did
+    raw = [float(row(sup, i) @ row(sup, i + 1)) for i in (1, 6)]
+    smoothed = [float(row(smooth, i) @ row(smooth, i + 1)) for i in (1, 6)]
+    assert min(smoothed) > max(raw) + 0.5
+    with pytest.raises(ValueError, match="caption_window"):
+        _options(caption_window=-1)
 
 
 def test_blend_weights_assign_gaussians_to_their_objects(world):

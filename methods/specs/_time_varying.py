@@ -44,6 +44,11 @@ class TimeVaryingOptions:
     """Seed of the template captioner's paraphrase draw (fixed, so every method and seed sees the
     same captions)."""
 
+    caption_window: int = 0
+    """Average each object's caption embeddings over the training frames within this many time steps
+    before they become targets (:func:`methods.fields.time_varying.smooth_caption_embeddings`; not in
+    the paper: 0)."""
+
     # --- caption autoencoder ------------------------------------------------------------------------
     tv_latent_dim: int = 6
     """Latent channels of the caption autoencoder (paper: 4096 -> 6)."""
@@ -157,6 +162,8 @@ class TimeVaryingOptions:
             raise ValueError("dynamic_weight_share must be in [0, 1]")
         if self.semantic_change_tolerance < 0:
             raise ValueError("semantic_change_tolerance must be >= 0")
+        if self.caption_window < 0:
+            raise ValueError("caption_window must be >= 0 (time steps)")
 
     def __post_init__(self) -> None:
         self.check_time_varying()
