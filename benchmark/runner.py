@@ -100,6 +100,10 @@ class EvalOptions:
     """Answer with the cached fit of this key (a results file's ``fit.key``) instead of the one the
     current code and config hash to: an answer-rule ablation on the very fits a results file was
     scored with, after code changes that moved the keys. Missing fit = error, never a refit."""
+    head_from: Optional[str] = None
+    """Fit only the method's time-varying head anew (under this run's config) on the cached fit of this
+    key, keeping its geometry, time-agnostic field and autoencoder: an ablation of head options on the
+    very geometry a results file used, after code changes that moved the geometry keys."""
     quiet: bool = False
 
 
@@ -312,12 +316,26 @@ class FitRecord:
 
 
 def fit_or_load(spec, config, scene: Scene, supervision, *, seed: int, device: str, cache_dir: Path,
-                progress, refit: bool = False, reuse_key: Optional[str] = None) -> FitRecord:
+                progress, refit: bool = False, reuse_key: Optional[str] = None,
+                head_from: Optional[str] = None) -> FitRecord:
     """Load the cached fit of this (method, config, seed, data, code), or fit and cache it
-    (``reuse_key``: load that cached fit, whatever the key would be now; never fit)."""
+    (``reuse_key``: load that cached fit, whatever the key would be now; never fit. ``head_from``: the
+    cached fit of that key with only its time-varying head fitted anew, :attr:`EvalOptions.head_from`)."""
+    from methods.supervision.cache import stable_hash
+
     method_cls = spec.load()
-    key = reuse_key or fit_cache_key(spec, config, seed=seed, device=device, supervision=supervision, scene=scene)
     folder = Path(cache_dir) / "fits" / spec.name / f"{scene.dataset}-{scene.name}"
+    base_model = None
+    if head_from is not None:
+        if reuse_key is not None:
+            raise InputError(None, "head_from", "give reuse_fit or head_from, not both")
+        base_info = folder / head_from / "fit.json"
+        if not base_info.is_file():
+            raise InputError(base_info, "head_from", f"no cached fit {head_from!r} of {spec.name} on {scene.name}")
+        key = stable_hash({"head_of": head_from, "config": fit_config_dict(config), "seed": seed,
+                           "code": _file_hash(spec.source_files())}, 24)
+    else:
+        key = reuse_key or fit_cache_key(spec, config, seed=seed, device=device, supervision=supervision, scene=scene)
     final = folder / key
     info_path = final / "fit.json"
     if reuse_key is not None and not info_path.is_file():
@@ -341,7 +359,12 @@ def fit_or_load(spec, config, scene: Scene, supervision, *, seed: int, device: s
         torch.cuda.reset_peak_memory_stats(torch.device(device))
     _synchronize(device)
     start = time.perf_counter()
-    model = method_cls.fit(scene, supervision, config, seed=seed, device=device, progress=progress, work_dir=work)
+    if head_from is not None:
+        base_model = method_cls.load(folder / head_from / "model", supervision=supervision, device=device)
+        model = method_cls.refit_head(base_model, scene, supervision, config, seed=seed, device=device,
+                                      progress=progress, work_dir=work)
+    else:
+        model = method_cls.fit(scene, supervision, config, seed=seed, device=device, progress=progress, work_dir=work)
     _synchronize(device)
     fit_seconds = time.perf_counter() - start
     peak_cpu = peak_rss_mib()
@@ -359,6 +382,8 @@ def fit_or_load(spec, config, scene: Scene, supervision, *, seed: int, device: s
         info = {"method": spec.name, "key": key, "config": config_dict(config), "seed": seed, "device": device,
                 "fit_seconds": fit_seconds, "peak_cpu_mib": peak_cpu, "peak_gpu_mib": peak_gpu,
                 "created": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+        if head_from is not None:
+            info["head_refit_of"] = head_from  # geometry, field and autoencoder are that fit's
         write_json(tmp / "fit.json", info)
         if final.exists():
             shutil.rmtree(final)
@@ -446,7 +471,7 @@ def evaluate(options: EvalOptions) -> RunOutcome:
                                     progress=progress)
     fit = fit_or_load(spec, config, scene, supervision, seed=options.seed, device=options.device,
                       cache_dir=Path(options.cache_dir), progress=progress, refit=options.refit,
-                      reuse_key=options.reuse_fit)
+                      reuse_key=options.reuse_fit, head_from=options.head_from)
     progress.log(f"{spec.name}: {'loaded cached fit' if fit.cached else 'fitted'} in {fit.fit_seconds:.2f} s")
     model = fit.model
     supported = set(spec.queries) & set(getattr(model, "supports", spec.queries))
@@ -524,7 +549,7 @@ def evaluate(options: EvalOptions) -> RunOutcome:
                    "note": "CPU peaks are the process's getrusage maxrss up to that point (fit peak: "
                            "measured right after the fit; a cached fit reports its original peak)"},
         "method_config": config_dict(config),
-        "fit": {"key": fit.key, "cached": fit.cached,
+        "fit": {"key": fit.key, "cached": fit.cached, **({"head_refit_of": options.head_from} if options.head_from else {}),
                 "info": _jsonable(model.describe()) if hasattr(model, "describe") else None},
         "supervision": supervision.describe(),
         "environment": {"packages": package_versions(), "git": git_state(), **device_description(options.device)},

