@@ -109,7 +109,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     r.add_argument("--scenes", nargs="+", default=None, help="scene names (default: all)")
     r.add_argument("--seeds", nargs="+", type=int, default=None, help="seeds (default: all recorded)")
     r.add_argument("--refit", action="store_true",
-                   help="allow options that change the fit: each run is fitted anew (unchanged stages cached)")
+                   help="allow options that change the fit: options of the time-varying head alone refit only the "
+                        "head on the recorded fit; other options fit each run anew")
     r.add_argument("--results-dir", type=Path, default=Path("results"))
     r.add_argument("--cache-dir", type=Path, default=Path("cache"))
     r.add_argument("--force", action="store_true", help="re-answer runs that already have a rescored file")
