@@ -331,10 +331,9 @@ def fit_or_load(spec, config, scene: Scene, supervision, *, seed: int, device: s
         base_info = folder / head_from / "fit.json"
         if not base_info.is_file():
             raise InputError(base_info, "head_from", f"no cached fit {head_from!r} of {spec.name} on {scene.name}")
-        key = stable_hash({"head_of": head_from, "config": fit_config_dict(config), "seed": seed,
-                           "code": _file_hash(spec.source_files())}, 24)
-    else:
-        key = reuse_key or fit_cache_key(spec, config, seed=seed, device=device, supervision=supervision, scene=scene)
+    key = reuse_key or fit_cache_key(spec, config, seed=seed, device=device, supervision=supervision, scene=scene)
+    if head_from is not None:  # what this config's own fit would be, on that fit's time-agnostic half
+        key = stable_hash({"head_of": head_from, "fit": key}, 24)
     final = folder / key
     info_path = final / "fit.json"
     if reuse_key is not None and not info_path.is_file():

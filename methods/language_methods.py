@@ -683,15 +683,10 @@ class LanguageFieldMethod(Method):
     @classmethod
     def fit(cls, scene: Scene, supervision: Supervision, config: LanguageMethodConfig, *, seed: int, device: str,
             progress: Progress, work_dir: Optional[Path] = None) -> LanguageFieldModel:
-        cache_root = shared_cache_root(config, work_dir)
         shared = fit_language_field(scene, supervision, config, kind=cls.geometry_kind, seed=seed, device=device,
-                                    progress=progress, cache_root=cache_root)
-        head = None
-        if cls.time_varying_head is not None and _wants_head(config, scene, supervision.track, progress):
-            ctx = FitContext(scene, supervision, config, seed, device, progress, shared, cache_root, work_dir)
-            head = cls.time_varying_head.fit(ctx)
-        return LanguageFieldModel(cls.name, config, supervision.text_encoder, shared, sensitive=cls.sensitive,
-                                  head=head, device=device)
+                                    progress=progress, cache_root=shared_cache_root(config, work_dir))
+        return cls._with_head(shared, scene, supervision, config, seed=seed, device=device, progress=progress,
+                              work_dir=work_dir)
 
     @classmethod
     def refit_head(cls, base: LanguageFieldModel, scene: Scene, supervision: Supervision, config: LanguageMethodConfig,
@@ -702,9 +697,19 @@ class LanguageFieldMethod(Method):
         if cls.time_varying_head is None:
             raise ValueError(f"{cls.name} has no time-varying head to refit")
         shared = SharedField(base.geometry, base.field, base.autoencoder, base.fit_info)
-        ctx = FitContext(scene, supervision, config, seed, device, progress, shared,
-                         shared_cache_root(config, work_dir), work_dir)
-        head = cls.time_varying_head.fit(ctx) if _wants_head(config, scene, supervision.track, progress) else None
+        return cls._with_head(shared, scene, supervision, config, seed=seed, device=device, progress=progress,
+                              work_dir=work_dir)
+
+    @classmethod
+    def _with_head(cls, shared: SharedField, scene: Scene, supervision: Supervision, config: LanguageMethodConfig,
+                   *, seed: int, device: str, progress: Progress, work_dir: Optional[Path]) -> LanguageFieldModel:
+        """The model on the fitted time-agnostic half ``shared``, with its time-varying head fitted when
+        the method has one and the scene asks for it."""
+        head = None
+        if cls.time_varying_head is not None and _wants_head(config, scene, supervision.track, progress):
+            ctx = FitContext(scene, supervision, config, seed, device, progress, shared,
+                             shared_cache_root(config, work_dir), work_dir)
+            head = cls.time_varying_head.fit(ctx)
         return LanguageFieldModel(cls.name, config, supervision.text_encoder, shared, sensitive=cls.sensitive,
                                   head=head, device=device)
 

@@ -282,6 +282,8 @@ def test_ablate_rescore_reanswers_recorded_fits(smoke, tmp_path, capsys):
     assert main(common + ["--name", "same", "--set", "threshold_variant=paper"]) == 0
     same = json.loads((tmp_path / "rescore-same.json").read_text())["runs"]
     assert same and all(r[f"{m}_before"] == pytest.approx(r[f"{m}_after"]) for r in same for m in ("mIoU", "Acc"))
+    assert all(r["track"] == "oracle" for r in same)  # every row names its supervision track
+    assert "| oracle |" in (tmp_path / "rescore-same.md").read_text()
     assert main(common + ["--name", "rel", "--set", "threshold_variant=release"]) == 0
     rel = json.loads((tmp_path / "rescore-rel.json").read_text())["runs"]
     assert any(r["mIoU_before"] != pytest.approx(r["mIoU_after"]) for r in rel)
