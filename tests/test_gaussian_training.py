@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 
+from benchmark.commands import recon
 from benchmark.scene import Camera, Frame, Scene
 from methods.gaussians.config import (DeformationConfig, GaussianConfig, HexPlaneConfig, ReconConfig, Schedule)
 from methods.gaussians.hexplane import DeformationField, HexPlane
@@ -386,6 +387,37 @@ def test_tiny_3dgs_fit_static_scene():
                  region_masks={scene.test_frames[0].name: np.ones((3, 3), bool)})
 
 
+def test_motion_l1_counts_offsets_in_units_of_the_static_tolerances():
+    from methods.gaussians.train import motion_l1
+
+    d = DeformationConfig(static_pixel_tol=2.0, static_scale_tol=0.1, static_rotation_tol=0.05)
+    quats = torch.tensor([[2.0, 0, 0, 0], [1.0, 0, 0, 0], [1.0, 0, 0, 0]])
+    ppu = torch.tensor([10.0, 100.0, 1.0])
+    dx = torch.tensor([[0.1, 0.0, -0.1], [0.0, 0.0, 0.0]], requires_grad=True)
+    ds = torch.tensor([[0.0, 0.05, 0.0], [0.0, 0.0, 0.0]])
+    dq = torch.tensor([[0.0, 0.0, 0.0, 0.0], [0.0, 0.1, 0.0, 0.0]])
+    rows = torch.tensor([0, 2])  # the second Gaussian is static (skipped): it counts as zero
+    value = motion_l1((rows, dx, ds, dq), ppu, quats, d)
+    # Gaussian 0: 0.2 units x 10 px / 2 px + 0.05 / 0.1; Gaussian 2: 0.1 / (0.05 x 1); mean over all 3
+    assert float(value.detach()) == pytest.approx((1.0 + 0.5 + 2.0) / 3)
+    value.backward()
+    assert torch.allclose(dx.grad[0], torch.tensor([1.0, 0.0, -1.0]) * 10 / 2 / 3)
+
+
+def test_motion_prior_keeps_a_static_monocular_scene_still():
+    """One view per time (monocular): without the prior the field moves static blobs to fit each view."""
+    scene = toy_scene(size=16, times=30, views_per_time=1, motion=0.0, test_every=4)
+    times = torch.linspace(0, 1, 16)
+    spread = {}
+    for weight in (0.0, 0.01):
+        cfg = small_recon_config(100, 300, static_skip=False, motion_l1_weight=weight)
+        trainer = Trainer(scene, cfg, rasterize_fn=RAST)
+        model = trainer.fit_4dgs().model
+        px = model.deformation_variation(times)["position"] * trainer.pixels_per_unit(model.gaussians.means.detach())
+        spread[weight] = float(px.median())
+    assert spread[0.01] < 0.5 * spread[0.0], spread
+
+
 def test_tiny_4dgs_beats_3dgs_on_motion(moving_scene):
     """Same budget (900 iterations): 3D-GS cannot represent the motion, 4D-GS must."""
     cfg = small_recon_config(150, 750)
@@ -484,7 +516,48 @@ def test_recon_scores_the_moving_parts_of_a_generated_scene(tmp_path):
     assert main(["recon", "--summarize", str(tmp_path / "reports")]) == 0
     (row,) = [line for line in (tmp_path / "reports" / "summary.md").read_text().splitlines()
               if line.startswith("| smoke |")]
-    assert " %, " in row.split("|")[-2]
+    cells = [c.strip() for c in row.split("|")]
+    assert " %, " in cells[-4] and " / " in cells[-3]  # moving parts; elsewhere
+    m3 = report["models"]["3dgs"]["moving"]
+    assert float(cells[-2]) == pytest.approx(recon.moving_gain_bound(m3), abs=0.006)
+
+
+def test_moving_gain_bound_counts_what_perfect_moving_parts_would_gain():
+    # half the pixels move, rendered as badly as the rest: perfect moving pixels halve the error (+3.01 dB)
+    assert recon.moving_gain_bound({"psnr": 20.0, "static_psnr": 20.0, "pixel_fraction": 0.5}) == \
+        pytest.approx(10 * np.log10(2.0))
+    # a moving part 10x worse on 1 % of the pixels: (0.01 * 10 + 0.99) / 0.99
+    assert recon.moving_gain_bound({"psnr": 20.0, "static_psnr": 30.0, "pixel_fraction": 0.01}) == \
+        pytest.approx(10 * np.log10(1.09 / 0.99))
+    assert recon.moving_gain_bound(None) is None
+    assert recon.moving_gain_bound({"psnr": None, "static_psnr": 30.0, "pixel_fraction": 0.1}) is None
+
+
+def test_recon_time_range_trains_and_scores_only_those_frames(tmp_path, capsys):
+    from benchmark.cli import main
+    from benchmark.loaders import load_scene
+    from benchmark.synthetic.generate import generate
+
+    scene_dir = generate("smoke", tmp_path / "smoke", size=24)
+    scene = load_scene(scene_dir)
+    last = scene.num_time_steps // 2
+    want_train = sum(f.time_index <= last for f in scene.train_frames)
+    want_test = [f.name for f in scene.test_frames if f.time_index <= last]
+    assert 0 < want_train < len(scene.train_frames) and 0 < len(want_test) < len(scene.test_frames)
+    out = tmp_path / "reports" / "smoke-start"
+    assert main(["recon", "--scene", str(scene_dir), "--iters", "6", "--no-isolate", "--renders", "0",
+                 "--model", "3dgs", "--time-range", f"0:{last}", "--out", str(out),
+                 "--set", "deformation.hexplane.spatial_resolution=8"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["scene"]["time_range"] == [0, last]
+    assert (report["scene"]["train_frames"], report["scene"]["test_frames"]) == (want_train, len(want_test))
+    assert [p["frame"] for p in report["models"]["3dgs"]["per_frame"]] == want_test
+    assert main(["recon", "--summarize", str(tmp_path / "reports")]) == 0
+    assert f"| smoke (frames 0-{last}) |" in (tmp_path / "reports" / "summary.md").read_text()
+    capsys.readouterr()
+    for bad in ("5:2", "a:b", "7", f"{scene.num_time_steps + 5}:{scene.num_time_steps + 9}"):
+        assert main(["recon", "--scene", str(scene_dir), "--time-range", bad, "--out", str(tmp_path / "o")]) == 2
+        assert "--time-range" in capsys.readouterr().err
 
 
 def test_recon_command_rejects_bad_input(tmp_path, capsys):

@@ -62,6 +62,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-isolate", action="store_true",
                         help="train in this process (peak memory then covers everything before it)")
     parser.add_argument("--log-every", type=int, default=0, help="print training progress every N iterations")
+    parser.add_argument("--time-range", default=None, metavar="FIRST:LAST",
+                        help="train and score only the frames whose video frame number is in FIRST..LAST "
+                             "(inclusive), e.g. the frames before a change: what the same recipe reaches on "
+                             "a stretch where nothing moves")
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -129,6 +133,30 @@ def load_for_recon(scene_dir: str, scale: Optional[float]):
     return load_scene(scene_dir, scale=scale) if scale is not None else load_scene(scene_dir)
 
 
+def parse_time_range(text: Optional[str]) -> Optional[tuple[int, int]]:
+    """``"FIRST:LAST"`` -> (first, last) inclusive video frame numbers, or ``None`` for no restriction."""
+    if text is None:
+        return None
+    first, sep, last = str(text).partition(":")
+    try:
+        if not sep:
+            raise ValueError
+        lo, hi = int(first), int(last)
+    except ValueError:
+        raise InputError(None, "--time-range", f"expected FIRST:LAST frame numbers, e.g. 0:38, got {text!r}") from None
+    if lo < 0 or hi < lo:
+        raise InputError(None, "--time-range", f"needs 0 <= FIRST <= LAST, got {text!r}")
+    return lo, hi
+
+
+def frames_in_range(frames, time_range: Optional[tuple[int, int]]) -> list:
+    """The frames whose ``time_index`` lies in the inclusive ``time_range`` (all of them for ``None``)."""
+    if time_range is None:
+        return list(frames)
+    lo, hi = time_range
+    return [f for f in frames if lo <= f.time_index <= hi]
+
+
 def moving_regions(scene, frames) -> Optional[tuple[dict[int, str], dict[str, Any]]]:
     """(dynamic part id -> name, frame name -> (H, W) bool pixels of moving parts) of a generated scene at
     the frames' resolution, or ``None`` for a scene without generator truth (D-NeRF, HyperNeRF...)."""
@@ -162,16 +190,19 @@ def fit_and_evaluate(job: dict) -> dict:
     cfg = job["config"]
     rast = functools.partial(rasterize, backend="auto")
     rss_before = _maxrss_mib(resource)
-    trainer = Trainer(scene, cfg, device=device, rasterize_fn=rast)
+    time_range = job.get("time_range")
+    trainer = Trainer(scene, cfg, device=device, rasterize_fn=rast,
+                      train_frames=frames_in_range(scene.train_frames, time_range))
     rss_loaded = _maxrss_mib(resource)
     if cuda:
         torch.cuda.reset_peak_memory_stats(torch.device(device))
     kind = job["model"]
     result = trainer.fit_3dgs() if kind == "3dgs" else trainer.fit_4dgs()
     rss_trained = _maxrss_mib(resource)
-    test_frames = scene.test_frames or scene.split("val")
+    test_frames = frames_in_range(scene.test_frames or scene.split("val"), time_range)
     if not test_frames:
-        raise InputError(scene.root, "frames", "the scene has no test or val frames to evaluate on")
+        raise InputError(scene.root, "frames", "the scene has no test or val frames to evaluate on"
+                         + ("" if time_range is None else f" in frames {time_range[0]}..{time_range[1]}"))
     moving = moving_regions(scene, test_frames)
     ev = evaluate(result.model, test_frames, scene.background, rast, device=device, keep_renders=job["renders"],
                   region_masks=None if moving is None else moving[1])
@@ -298,10 +329,19 @@ def run(args: argparse.Namespace) -> int:
     if threads < 1:
         raise InputError(None, "--threads", f"must be >= 1, got {threads}")
     cfg = build_config(args)
+    time_range = parse_time_range(args.time_range)
     scene_dir = resolve_scene(args.scene, args.cache_dir, size=args.size, log=print)
     scene = load_for_recon(str(scene_dir), args.scale)  # validate early, and for the summary
     print(f"bench4d recon: {scene.summary()}")
-    out_dir = args.out or Path("reports") / "recon" / scene.name
+    if time_range is not None:
+        kept = (len(frames_in_range(scene.train_frames, time_range)),
+                len(frames_in_range(scene.test_frames or scene.split("val"), time_range)))
+        if not all(kept):
+            raise InputError(scene_dir, "--time-range", f"frames {time_range[0]}..{time_range[1]} keep {kept[0]} "
+                             f"training and {kept[1]} test frames; both must be at least 1")
+        print(f"  frames {time_range[0]}..{time_range[1]} only: {kept[0]} training, {kept[1]} test")
+    suffix = "" if time_range is None else f"-frames-{time_range[0]}-{time_range[1]}"
+    out_dir = args.out or Path("reports") / "recon" / (scene.name + suffix)
     out_dir.mkdir(parents=True, exist_ok=True)
 
     wanted = ["4dgs", "3dgs"] if args.model == "both" else [args.model]
@@ -315,7 +355,9 @@ def run(args: argparse.Namespace) -> int:
     report: dict[str, Any] = {
         "command": "bench4d recon " + " ".join(sys.argv[2:] if sys.argv[1:2] == ["recon"] else sys.argv[1:]),
         "scene": {"name": scene.name, "dataset": scene.dataset, "folder": str(scene_dir), "scale": args.scale,
-                  "train_frames": len(scene.train_frames), "test_frames": len(scene.test_frames),
+                  "train_frames": len(frames_in_range(scene.train_frames, time_range)),
+                  "test_frames": len(frames_in_range(scene.test_frames, time_range)),
+                  "time_range": None if time_range is None else list(time_range),
                   "time_steps": scene.num_time_steps,
                   "image_size": None if not scene.frames else [scene.frames[0].camera.width,
                                                                scene.frames[0].camera.height]},
@@ -325,7 +367,7 @@ def run(args: argparse.Namespace) -> int:
     }
     started = time.perf_counter()
     for job in jobs:
-        job.update({"scene_dir": str(scene_dir), "scale": args.scale, "device": args.device, "threads": threads,
+        job.update({"scene_dir": str(scene_dir), "scale": args.scale, "time_range": time_range, "device": args.device, "threads": threads,
                     "renders": args.renders, "out_dir": str(out_dir), "save_model": args.save_models})
         print(f"  training {job['label']} ...", flush=True)
         entry = run_job(job, isolate=not args.no_isolate)
@@ -379,11 +421,16 @@ def summarize(folder: Path) -> Path:
              "PSNR / SSIM on the scenes' test frames (scikit-image, data range 1); CPU = training CPU "
              "seconds of the process (what a shared machine does not inflate); wall = elapsed seconds; "
              "peak = the training process' maxrss. Moving parts (generated scenes): PSNR pooled over the pixels "
-             "of parts the preset animates (`benchmark/synthetic/dynamic.py`), what static 3D-GS cannot fit.", "",
+             "of parts the preset animates (`benchmark/synthetic/dynamic.py`), what static 3D-GS cannot fit, "
+             "and over all other pixels (elsewhere). *Gain if moving parts perfect*: the pooled PSNR gain over "
+             "3D-GS of a model that renders the moving parts exactly and everything else as 3D-GS does, "
+             "10 log10(MSE_3D / ((1 - f) MSE_3D,elsewhere)) with f the moving pixel fraction: how much of a gain "
+             "the motion alone can explain (more needs a better fit of what does not move).", "",
              "| scene | size | iterations | 4D-GS PSNR | 3D-GS PSNR | gain dB | 4D-GS SSIM | 3D-GS SSIM "
              "| 4D-GS CPU s (wall) | 3D-GS CPU s (wall) | Gaussians 4D / 3D (cap) | render FPS 4D / 3D "
-             "| peak MiB 4D / 3D | dynamic Gaussians | moving parts: pixels %, PSNR 4D / 3D |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---|---|---|---|"]
+             "| peak MiB 4D / 3D | dynamic Gaussians | moving parts: pixels %, PSNR 4D / 3D "
+             "| elsewhere PSNR 4D / 3D | gain if moving parts perfect dB |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---|---|---|---|---|---:|"]
     for path in reports:
         r = read_json(path)
         m = r.get("models", {})
@@ -391,21 +438,45 @@ def summarize(folder: Path) -> Path:
         size = r.get("scene", {}).get("image_size") or ["?", "?"]
         gain = (g4["psnr"] - g3["psnr"]) if ("psnr" in g4 and "psnr" in g3) else None
         dyn = g4.get("dynamic_gaussians")
+        span = r.get("scene", {}).get("time_range")
+        name = r["scene"]["name"] + ("" if not span else f" (frames {span[0]}-{span[1]})")
         lines.append(
-            f"| {r['scene']['name']} | {size[0]}x{size[1]} | {g4.get('iterations', g3.get('iterations', '-'))} "
+            f"| {name} | {size[0]}x{size[1]} | {g4.get('iterations', g3.get('iterations', '-'))} "
             f"| {num(g4.get('psnr'))} | {num(g3.get('psnr'))} | {num(gain)} | {num(g4.get('ssim'), 4)} "
             f"| {num(g3.get('ssim'), 4)} | {num(g4.get('fit_cpu_seconds'), 0)} ({num(g4.get('fit_seconds'), 0)}) "
             f"| {num(g3.get('fit_cpu_seconds'), 0)} ({num(g3.get('fit_seconds'), 0)}) "
             f"| {g4.get('gaussians', '-')} / {g3.get('gaussians', '-')} ({g4.get('cap', g3.get('cap', '-'))}) "
             f"| {num(g4.get('render_fps'), 1)} / {num(g3.get('render_fps'), 1)} "
             f"| {num(g4.get('peak_rss_mib'), 0)} / {num(g3.get('peak_rss_mib'), 0)} "
-            f"| {'-' if dyn is None else dyn} | {_moving_cell(g4, g3)} |")
+            f"| {'-' if dyn is None else dyn} | {_moving_cell(g4, g3)} | {_elsewhere_cell(g4, g3)} "
+            f"| {num(moving_gain_bound(g3.get('moving')))} |")
     lines += ["", "Commands:", ""]
     for path in reports:
         lines.append(f"- `{read_json(path).get('command', '?')}`")
     out = Path(folder) / "summary.md"
     write_text(out, "\n".join(lines) + "\n")
     return out
+
+
+def moving_gain_bound(moving: Optional[dict]) -> Optional[float]:
+    """PSNR gain over a model with these ``moving`` scores (3D-GS: pooled ``psnr`` over the moving pixels,
+    ``static_psnr`` elsewhere, ``pixel_fraction`` f) of one that renders the moving pixels exactly and the
+    rest as that model: 10 log10(MSE / ((1 - f) MSE_elsewhere)). ``None`` without scores."""
+    if not moving or any(moving.get(k) is None for k in ("psnr", "static_psnr", "pixel_fraction")):
+        return None
+    f = float(moving["pixel_fraction"])
+    mse_moving, mse_rest = 10 ** (-moving["psnr"] / 10), 10 ** (-moving["static_psnr"] / 10)
+    if f >= 1.0:
+        return float("inf")
+    return 10 * math.log10((f * mse_moving + (1 - f) * mse_rest) / ((1 - f) * mse_rest))
+
+
+def _elsewhere_cell(g4: dict, g3: dict) -> str:
+    """``PSNR 4D / 3D`` over the pixels outside the moving parts, ``-`` without generator truth."""
+    m4, m3 = g4.get("moving") or {}, g3.get("moving") or {}
+    if not m4 and not m3:
+        return "-"
+    return f"{m4.get('static_psnr', float('nan')):.2f} / {m3.get('static_psnr', float('nan')):.2f}"
 
 
 def _moving_cell(g4: dict, g3: dict) -> str:

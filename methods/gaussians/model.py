@@ -196,20 +196,35 @@ class DeformableGaussians:
         With ``skip_static`` the field is evaluated only on ``dynamic_mask``; static Gaussians keep
         their canonical parameters.
         """
+        return self.apply_offsets(self.offsets(t, skip_static))
+
+    def offsets(self, t: TimeLike, skip_static: bool = True) -> Optional[tuple]:
+        """The field's offsets at time ``t``: ``(rows, dx, ds, dq)`` with ``rows`` (M,) the Gaussians they
+        belong to (``None``: all N) and (M, 3) position, (M, 3) log-scale, (M, 4) raw quaternion offsets;
+        ``None`` when ``skip_static`` leaves no dynamic Gaussian."""
+        mask = self.dynamic_mask if skip_static else None
+        means = self.gaussians.params["means"]
+        if mask is None:
+            return (None, *self.field(means, t))
+        if not bool(mask.any()):
+            return None
+        rows = mask.nonzero().squeeze(1)
+        return (rows, *self.field(means[rows], t))
+
+    def apply_offsets(self, offsets: Optional[tuple]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Canonical Gaussians plus :meth:`offsets` -> ((N, 3) means, (N, 4) unit quats, (N, 3) scales)."""
         p = self.gaussians.params
         means, log_scales, quats = p["means"], p["log_scales"], p["quats"]
-        mask = self.dynamic_mask if skip_static else None
-        if mask is None:
-            dx, ds, dq = self.field(means, t)
-            means, log_scales, quats = means + dx, log_scales + ds, quats + dq
-        elif bool(mask.any()):
-            idx = mask.nonzero().squeeze(1)
-            dx, ds, dq = self.field(means[idx], t)
-            # Out-of-place index_add: canonical + offsets on the dynamic rows only; gradients reach the
-            # canonical tensors everywhere and the field only through the dynamic rows.
-            means = means.index_add(0, idx, dx)
-            log_scales = log_scales.index_add(0, idx, ds)
-            quats = quats.index_add(0, idx, dq)
+        if offsets is not None:
+            rows, dx, ds, dq = offsets
+            if rows is None:
+                means, log_scales, quats = means + dx, log_scales + ds, quats + dq
+            else:
+                # Out-of-place index_add: canonical + offsets on the dynamic rows only; gradients reach the
+                # canonical tensors everywhere and the field only through the dynamic rows.
+                means = means.index_add(0, rows, dx)
+                log_scales = log_scales.index_add(0, rows, ds)
+                quats = quats.index_add(0, rows, dq)
         return means, F.normalize(quats, dim=-1), torch.exp(log_scales)
 
     def hexplane_features(self, t: TimeLike, means: Optional[torch.Tensor] = None) -> torch.Tensor:

@@ -578,6 +578,7 @@ class Trainer:
             return int(start_count + (self.cap - start_count) * min(1.0, it / window))
 
         last_loss = first_loss = float("nan")
+        px_per_unit: Optional[torch.Tensor] = None  # (N,) for the motion prior; refreshed when N changes
         cpu_start = time.process_time()
         for it in range(1, iterations + 1):
             t_start = time.perf_counter()
@@ -598,7 +599,8 @@ class Trainer:
                 means, quats, scales = model.means, model.quats, model.scales
             else:
                 t_def = time.perf_counter()
-                means, quats, scales = deformable.deform(view.time, skip_static=d.static_skip)
+                offsets = deformable.offsets(view.time, skip_static=d.static_skip)
+                means, quats, scales = deformable.apply_offsets(offsets)
                 deform_seconds[it - 1] = time.perf_counter() - t_def
             colors = model.colors(view.center, means)
             out = self.rasterize(means, quats, scales, model.opacities, colors, view.viewmat, view.K,
@@ -610,6 +612,10 @@ class Trainer:
             if deformable is not None:
                 regs = deformable.field.hexplane.regularisers()
                 loss = loss + sum(reg_weights[k] * v for k, v in regs.items())
+                if d.motion_l1_weight > 0 and offsets is not None:
+                    if px_per_unit is None or px_per_unit.shape[0] != model.num_gaussians:
+                        px_per_unit = self.pixels_per_unit(model.means.detach())
+                    loss = loss + d.motion_l1_weight * motion_l1(offsets, px_per_unit, model.params["quats"], d)
             loss.backward()
             with torch.no_grad():
                 if means2d.grad is not None:
@@ -619,6 +625,7 @@ class Trainer:
                     net_opt.step()
                     net_opt.zero_grad(set_to_none=True)
                 if sched.densify_now(it):
+                    px_per_unit = None
                     source, counts = densify_and_prune(model, opt, stats, g, self.extent, budget(it),
                                                        sched.screen_pruning_active(it), g.max_screen_px,
                                                        self.generator)
@@ -657,6 +664,21 @@ class Trainer:
                 if iterations > 1 else 1000 * float(deform_seconds.mean())
             summary["dynamic_gaussians"] = deformable.num_dynamic()
         result.stages.append(summary)
+
+
+def motion_l1(offsets: tuple, px_per_unit: torch.Tensor, quats: torch.Tensor, d: DeformationConfig) -> torch.Tensor:
+    """Mean L1 size, over all N Gaussians, of the deformation ``offsets`` (``(rows, dx, ds, dq)`` of
+    :meth:`DeformableGaussians.offsets`) in units of the static tolerances: position offsets in pixels
+    (``px_per_unit``: (N,) pixels per world unit) over ``static_pixel_tol``, log-scale offsets over
+    ``static_scale_tol``, quaternion offsets over ``static_rotation_tol`` x the (N, 4) ``quats``' norm."""
+    rows, dx, ds, dq = offsets
+    ppu = px_per_unit if rows is None else px_per_unit[rows]
+    qnorm = (quats if rows is None else quats[rows]).detach().norm(dim=1).clamp_min(1e-8)
+    per_gaussian = (dx.abs().sum(1) * ppu / d.static_pixel_tol + ds.abs().sum(1) / d.static_scale_tol
+                    + dq.abs().sum(1) / (d.static_rotation_tol * qnorm))
+    # summed over the deformed Gaussians and divided by all of them: a Gaussian found static (skipped)
+    # counts as zero, so the prior's weight does not grow as the dynamic set shrinks
+    return per_gaussian.sum() / quats.shape[0]
 
 
 # ---------------------------------------------------------------------------------------------------
