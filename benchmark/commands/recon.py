@@ -367,7 +367,8 @@ def run(args: argparse.Namespace) -> int:
     }
     started = time.perf_counter()
     for job in jobs:
-        job.update({"scene_dir": str(scene_dir), "scale": args.scale, "time_range": time_range, "device": args.device, "threads": threads,
+        job.update({"scene_dir": str(scene_dir), "scale": args.scale, "time_range": time_range,
+                    "device": args.device, "threads": threads,
                     "renders": args.renders, "out_dir": str(out_dir), "save_model": args.save_models})
         print(f"  training {job['label']} ...", flush=True)
         entry = run_job(job, isolate=not args.no_isolate)
