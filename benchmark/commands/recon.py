@@ -477,7 +477,12 @@ def _elsewhere_cell(g4: dict, g3: dict) -> str:
     m4, m3 = g4.get("moving") or {}, g3.get("moving") or {}
     if not m4 and not m3:
         return "-"
-    return f"{m4.get('static_psnr', float('nan')):.2f} / {m3.get('static_psnr', float('nan')):.2f}"
+    return f"{_db(m4.get('static_psnr'))} / {_db(m3.get('static_psnr'))}"
+
+
+def _db(value: Optional[float]) -> str:
+    """A PSNR cell: two decimals, ``-`` when the model was not run or has no such score."""
+    return "-" if value is None or not math.isfinite(value) else f"{value:.2f}"
 
 
 def _moving_cell(g4: dict, g3: dict) -> str:
@@ -487,4 +492,4 @@ def _moving_cell(g4: dict, g3: dict) -> str:
         return "-"
     frac = (m4 or m3).get("pixel_fraction")
     return (f"{100 * frac:.1f} %, " if frac is not None else "") + \
-        f"{m4.get('psnr', float('nan')):.2f} / {m3.get('psnr', float('nan')):.2f}"
+        f"{_db(m4.get('psnr'))} / {_db(m3.get('psnr'))}"

@@ -238,7 +238,7 @@ class DeformationConfig:
     static tolerance (position in pixels of the nearest training view / ``static_pixel_tol``, log-scale /
     ``static_scale_tol``, quaternion / (``static_rotation_tol`` x norm)). On monocular video every time has
     one view, so without it the field moves static content a few pixels to fit each view's residual
-    (split-cookie frames 0-38, where nothing moves: median 3 px, 83 % of the Gaussians flagged dynamic,
+    (split-cookie frames 0-38, where only the cookie moves, in the last four: median 3 px, 83 % of the Gaussians flagged dynamic,
     test PSNR 0.7 dB below a static 3D-GS). At 0.01 (with ``static_warmup_fraction`` 0.25) split-cookie
     128 px ends with 3 077 of 21 691 Gaussians dynamic instead of 15 786, at 27.64 instead of 27.43 dB
     and 14 % less CPU; 0.003 left 6 758 dynamic. It is off by default because its cost grows with the
