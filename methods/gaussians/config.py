@@ -238,14 +238,16 @@ class DeformationConfig:
     static tolerance (position in pixels of the nearest training view / ``static_pixel_tol``, log-scale /
     ``static_scale_tol``, quaternion / (``static_rotation_tol`` x norm)). On monocular video every time has
     one view, so without it the field moves static content a few pixels to fit each view's residual
-    (split-cookie frames 0-38, where only the cookie moves, in the last four: median 3 px, 83 % of the Gaussians flagged dynamic,
-    test PSNR 0.7 dB below a static 3D-GS). At 0.01 (with ``static_warmup_fraction`` 0.25) split-cookie
-    128 px ends with 3 077 of 21 691 Gaussians dynamic instead of 15 786, at 27.64 instead of 27.43 dB
-    and 14 % less CPU; 0.003 left 6 758 dynamic. It is off by default because its cost grows with the
-    size of the motion while what the motion earns does not: on D-NeRF at 200 px, 0.01 (warm-up 0.25) froze every
-    Gaussian (standup 30.58 -> 19.22 dB, the static 3D-GS level; lego 25.00 -> 23.64 dB), and on the test
-    suite's toy scene (blobs sliding ~2 px) it stops the field learning the motion (27.4 vs 34.3 dB;
-    0.001: 33.8 dB). A scene-independent weight would need a penalty that saturates with the offset."""
+    (split-cookie frames 0-38, where only the cookie moves, in the last four: median 3 px, 83 % of the
+    Gaussians flagged dynamic; frames 0-34, where nothing moves: 17 332 of 21 693 flagged, and the cookie
+    3 dB below a static 3D-GS, 22.79 vs 25.85 dB). At 0.01 (with ``static_warmup_fraction`` 0.25)
+    split-cookie 128 px ends with 3 077 of 21 691 Gaussians dynamic instead of 15 786, at 27.64 instead of
+    27.43 dB and 14 % less CPU; 0.003 left 6 758 dynamic. It is off by default because its cost grows with
+    the size of the motion while what the motion earns does not: on D-NeRF at 200 px, 0.01 (warm-up 0.25)
+    froze every Gaussian (standup 30.58 -> 19.22 dB, the static 3D-GS level; lego 25.00 -> 23.64 dB), and
+    on the test suite's toy scene (blobs sliding ~2 px) it stops the field learning the motion (27.4 vs
+    34.3 dB; 0.001: 33.8 dB). A scene-independent weight would need a penalty that saturates with the
+    offset."""
 
     # --- schedule (paper iterations of the deformation stage) -----------------------------------
     paper_iterations: int = 10_000
