@@ -157,6 +157,11 @@ def frames_in_range(frames, time_range: Optional[tuple[int, int]]) -> list:
     return [f for f in frames if lo <= f.time_index <= hi]
 
 
+def evaluation_frames(scene) -> list:
+    """The frames a reconstruction is scored on: the test split, else the val split."""
+    return list(scene.test_frames or scene.split("val"))
+
+
 def moving_regions(scene, frames) -> Optional[tuple[dict[int, str], dict[str, Any]]]:
     """(dynamic part id -> name, frame name -> (H, W) bool pixels of moving parts) of a generated scene at
     the frames' resolution, or ``None`` for a scene without generator truth (D-NeRF, HyperNeRF...)."""
@@ -199,7 +204,7 @@ def fit_and_evaluate(job: dict) -> dict:
     kind = job["model"]
     result = trainer.fit_3dgs() if kind == "3dgs" else trainer.fit_4dgs()
     rss_trained = _maxrss_mib(resource)
-    test_frames = frames_in_range(scene.test_frames or scene.split("val"), time_range)
+    test_frames = frames_in_range(evaluation_frames(scene), time_range)
     if not test_frames:
         raise InputError(scene.root, "frames", "the scene has no test or val frames to evaluate on"
                          + ("" if time_range is None else f" in frames {time_range[0]}..{time_range[1]}"))
@@ -333,9 +338,9 @@ def run(args: argparse.Namespace) -> int:
     scene_dir = resolve_scene(args.scene, args.cache_dir, size=args.size, log=print)
     scene = load_for_recon(str(scene_dir), args.scale)  # validate early, and for the summary
     print(f"bench4d recon: {scene.summary()}")
+    kept = (len(frames_in_range(scene.train_frames, time_range)),
+            len(frames_in_range(evaluation_frames(scene), time_range)))  # (training, scored) frames
     if time_range is not None:
-        kept = (len(frames_in_range(scene.train_frames, time_range)),
-                len(frames_in_range(scene.test_frames or scene.split("val"), time_range)))
         if not all(kept):
             raise InputError(scene_dir, "--time-range", f"frames {time_range[0]}..{time_range[1]} keep {kept[0]} "
                              f"training and {kept[1]} test frames; both must be at least 1")
@@ -355,8 +360,7 @@ def run(args: argparse.Namespace) -> int:
     report: dict[str, Any] = {
         "command": "bench4d recon " + " ".join(sys.argv[2:] if sys.argv[1:2] == ["recon"] else sys.argv[1:]),
         "scene": {"name": scene.name, "dataset": scene.dataset, "folder": str(scene_dir), "scale": args.scale,
-                  "train_frames": len(frames_in_range(scene.train_frames, time_range)),
-                  "test_frames": len(frames_in_range(scene.test_frames, time_range)),
+                  "train_frames": kept[0], "test_frames": kept[1],
                   "time_range": None if time_range is None else list(time_range),
                   "time_steps": scene.num_time_steps,
                   "image_size": None if not scene.frames else [scene.frames[0].camera.width,
