@@ -453,7 +453,7 @@ def summarize(folder: Path) -> Path:
             f"| {g4.get('gaussians', '-')} / {g3.get('gaussians', '-')} ({g4.get('cap', g3.get('cap', '-'))}) "
             f"| {num(g4.get('render_fps'), 1)} / {num(g3.get('render_fps'), 1)} "
             f"| {num(g4.get('peak_rss_mib'), 0)} / {num(g3.get('peak_rss_mib'), 0)} "
-            f"| {'-' if dyn is None else dyn} | {_moving_cell(g4, g3)} | {_elsewhere_cell(g4, g3)} "
+            f"| {'-' if dyn is None else dyn} | {_moving_cell(g4, g3)} | {_scores_cell(g4, g3, 'static_psnr')} "
             f"| {num(moving_gain_bound(g3.get('moving')))} |")
     lines += ["", "Commands:", ""]
     for path in reports:
@@ -476,24 +476,21 @@ def moving_gain_bound(moving: Optional[dict]) -> Optional[float]:
     return 10 * math.log10((f * mse_moving + (1 - f) * mse_rest) / ((1 - f) * mse_rest))
 
 
-def _elsewhere_cell(g4: dict, g3: dict) -> str:
-    """``PSNR 4D / 3D`` over the pixels outside the moving parts, ``-`` without generator truth."""
-    m4, m3 = g4.get("moving") or {}, g3.get("moving") or {}
-    if not m4 and not m3:
-        return "-"
-    return f"{_db(m4.get('static_psnr'))} / {_db(m3.get('static_psnr'))}"
-
-
 def _db(value: Optional[float]) -> str:
     """A PSNR cell: two decimals, ``-`` when the model was not run or has no such score."""
     return "-" if value is None or not math.isfinite(value) else f"{value:.2f}"
 
 
-def _moving_cell(g4: dict, g3: dict) -> str:
-    """``pixels %, PSNR 4D / 3D`` of the moving parts, ``-`` for a scene without generator truth."""
+def _scores_cell(g4: dict, g3: dict, key: str) -> str:
+    """``PSNR 4D / 3D`` of the ``moving`` score ``key`` (``psnr``: the moving parts, ``static_psnr``: the
+    other pixels), ``-`` for a scene without generator truth."""
     m4, m3 = g4.get("moving") or {}, g3.get("moving") or {}
     if not m4 and not m3:
         return "-"
-    frac = (m4 or m3).get("pixel_fraction")
-    return (f"{100 * frac:.1f} %, " if frac is not None else "") + \
-        f"{_db(m4.get('psnr'))} / {_db(m3.get('psnr'))}"
+    return f"{_db(m4.get(key))} / {_db(m3.get(key))}"
+
+
+def _moving_cell(g4: dict, g3: dict) -> str:
+    """``pixels %, PSNR 4D / 3D`` of the moving parts, ``-`` for a scene without generator truth."""
+    frac = ((g4.get("moving") or g3.get("moving")) or {}).get("pixel_fraction")
+    return (f"{100 * frac:.1f} %, " if frac is not None else "") + _scores_cell(g4, g3, "psnr")

@@ -578,7 +578,7 @@ class Trainer:
             return int(start_count + (self.cap - start_count) * min(1.0, it / window))
 
         last_loss = first_loss = float("nan")
-        px_per_unit: Optional[torch.Tensor] = None  # (N,) for the motion prior; refreshed when N changes
+        px_per_unit: Optional[torch.Tensor] = None  # (N,) for the motion prior; dropped at each densification
         cpu_start = time.process_time()
         for it in range(1, iterations + 1):
             t_start = time.perf_counter()
@@ -613,7 +613,7 @@ class Trainer:
                 regs = deformable.field.hexplane.regularisers()
                 loss = loss + sum(reg_weights[k] * v for k, v in regs.items())
                 if d.motion_l1_weight > 0 and offsets is not None:
-                    if px_per_unit is None or px_per_unit.shape[0] != model.num_gaussians:
+                    if px_per_unit is None:
                         px_per_unit = self.pixels_per_unit(model.means.detach())
                     loss = loss + d.motion_l1_weight * motion_l1(offsets, px_per_unit, model.params["quats"], d)
             loss.backward()
