@@ -731,3 +731,96 @@ class LanguageFieldMethod(Method):
             model.head = cls.time_varying_head.load(directory / HEAD_DIR, model=model, device=device)
             model.supports = frozenset(model.supports | {"sensitive"})
         return model
+
+
+# ---------------------------------------------------------------------------------------------------
+# Query speed at a chosen scale
+# ---------------------------------------------------------------------------------------------------
+class SeededTextEncoder(TextEncoder):
+    """Pseudo-random unit vectors seeded by each text's hash: a stand-in of a chosen dimension (CLIP's
+    512) for timing the query path, where what the vectors mean does not matter. Never for scores."""
+
+    name = "seeded-random"
+
+    def __init__(self, dim: int = 512) -> None:
+        super().__init__()
+        self._dim = int(dim)
+
+    @property
+    def dim(self) -> int:
+        return self._dim
+
+    def _encode(self, texts: list[str], kind: str) -> np.ndarray:
+        rows = []
+        for text in texts:
+            seed = int.from_bytes(hashlib.sha256(f"{kind}:{text}".encode()).digest()[:8], "little")
+            rows.append(np.random.default_rng(seed).standard_normal(self._dim))
+        return np.asarray(rows, dtype=np.float32)
+
+
+def measure_query_speed(num_gaussians: int, width: int, height: int, *, frames: int = 10, warmup: int = 2,
+                        queries: int = 1, feature_dim: int = 512, device: str | torch.device = "cpu",
+                        config: Optional[LanguageMethodConfig] = None, seed: int = 0) -> dict[str, Any]:
+    """Frames per second of the time-agnostic query of a 4D language field on random Gaussians.
+
+    The timed path is the method's own (:meth:`LanguageFieldModel.query_agnostic`): deform the
+    geometry to the frame's time, render every level's latents in one rasterizer call, decode them
+    through the autoencoder (``feature_dim``: CLIP ViT-B/16's 512), relevance against the canonical
+    phrases, smoothing, threshold, majority filter, level choice, and the mask copied to the host --
+    per frame and per query, as the paper's FPS counts it. Geometry, features and decoder are random
+    (:func:`methods.fields.language_field.random_geometry`, :class:`SeededTextEncoder`): the work does not
+    depend on what they mean. With ``queries > 1`` the frames are also answered for that many queries
+    after one :meth:`LanguageFieldModel.prepare` (render and decode once per frame, shared by the
+    queries), as the evaluation runner does.
+    """
+    from .fields.language_field import random_geometry
+
+    dev = torch.device(device)
+    cfg = config or LanguageMethodConfig()
+    geometry, camera = random_geometry(num_gaussians, width, height, seed=seed, device=dev)
+    gen = torch.Generator().manual_seed(seed + 2)
+    fcfg = field_config(cfg)
+    field_ = LanguageField(geometry.num_gaussians, dataclasses.replace(fcfg, init_std=1.0), generator=gen, device=dev)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        autoencoder = FeatureAutoencoder(feature_dim, autoencoder_config(cfg)).to(dev)
+    shared = SharedField(geometry, field_, autoencoder, {})
+    model = LanguageFieldModel("4d-langsplat", cfg, SeededTextEncoder(feature_dim), shared, sensitive=None,
+                               device=str(dev))
+    frame_list = [Frame(name=f"t{i:04d}", camera=camera, time=(i + 0.5) / (frames + warmup), time_index=i,
+                        split="test") for i in range(frames + warmup)]
+    texts = [f"query {i}" for i in range(max(1, int(queries)))]
+
+    def sync() -> None:
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
+
+    if dev.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(dev)
+    for frame in frame_list[:warmup]:
+        model.query_agnostic(texts[0], [frame])
+    sync()
+    t0 = time.perf_counter()
+    answers = [model.query_agnostic(texts[0], [frame])[0] for frame in frame_list[warmup:]]
+    sync()
+    seconds = (time.perf_counter() - t0) / frames
+    out: dict[str, Any] = {
+        "gaussians": geometry.num_gaussians, "width": width, "height": height, "device": str(dev),
+        "levels": fcfg.num_levels, "latent_dim": fcfg.latent_dim, "feature_dim": feature_dim,
+        "frames": frames, "seconds_per_frame": seconds, "fps": 1.0 / seconds,
+        "mask_shape": list(answers[0].mask.shape),
+    }
+    if len(texts) > 1:
+        model.prepare(texts)
+        sync()
+        t0 = time.perf_counter()
+        for frame in frame_list[warmup:]:
+            for text in texts:
+                model.query_agnostic(text, [frame])
+        sync()
+        per_answer = (time.perf_counter() - t0) / (frames * len(texts))
+        out.update({"queries": len(texts), "prepared_seconds_per_answer": per_answer,
+                    "prepared_answers_per_second": 1.0 / per_answer})
+    if dev.type == "cuda":
+        out["peak_gpu_mib"] = torch.cuda.max_memory_allocated(dev) / 2 ** 20
+    return out

@@ -435,6 +435,21 @@ def test_tiny_4dgs_beats_3dgs_on_motion(moving_scene):
     assert r4.model.dynamic_mask is not None and r4.model.num_dynamic() > 0
 
 
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_tiny_4dgs_on_cuda_reaches_the_cpu_quality(moving_scene):
+    """The same fits on CUDA with the default rasterizer (gsplat where importable): the training loop,
+    densification (gsplat's screen-space gradients) and deformation run on the GPU to the CPU's quality."""
+    cfg = small_recon_config(150, 750)
+    r3 = Trainer(moving_scene, cfg, device="cuda").fit_3dgs()
+    r4 = Trainer(moving_scene, cfg, device="cuda").fit_4dgs()
+    assert r4.model.gaussians.means.is_cuda
+    p3 = evaluate(r3.model, moving_scene.test_frames, moving_scene.background, device="cuda")["psnr"]
+    p4 = evaluate(r4.model, moving_scene.test_frames, moving_scene.background, device="cuda")["psnr"]
+    assert p4 > 32.0 and p4 > p3 + 4.0, (p3, p4)
+    assert r4.model.num_dynamic() > 0
+
+
 # ---------------------------------------------------------------------------------------------------
 # bench4d recon
 # ---------------------------------------------------------------------------------------------------

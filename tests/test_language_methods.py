@@ -400,3 +400,21 @@ def test_ablate_gap_reproduces_the_recorded_answers_and_the_ceiling(smoke, tmp_p
     assert json.loads((tmp_path / "field-gap.json").read_text())["runs"] == doc["runs"]
     assert main(["ablate", "gap", "--results-dir", str(smoke["results"]), "--methods", "nearest-frame",
                  "--out", str(tmp_path), "--quiet"]) == 2  # no language field among the matched runs
+
+
+def test_query_speed_times_the_method_query_path():
+    from methods.language_methods import measure_query_speed
+
+    out = measure_query_speed(1500, 32, 24, frames=2, warmup=1, queries=3, feature_dim=64)
+    assert out["gaussians"] == 1500 and out["mask_shape"] == [24, 32]
+    assert out["levels"] == 3 and out["latent_dim"] == 3
+    assert out["fps"] == pytest.approx(1.0 / out["seconds_per_frame"])
+    # sharing one render + decode per frame among 3 queries must cost less per answer than answering alone
+    assert 0 < out["prepared_seconds_per_answer"] < out["seconds_per_frame"]
+
+
+def test_query_speed_command_rejects_a_zero_size(capsys):
+    from benchmark.cli import main
+
+    assert main(["ablate", "query-speed", "--gaussians", "0", "--quiet"]) == 2
+    assert "--gaussians" in capsys.readouterr().err

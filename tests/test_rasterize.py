@@ -404,6 +404,10 @@ def test_gsplat_matches_torch_backend_on_cuda():
     assert ((a.depth - b.depth.cpu()).abs()[m] / a.depth[m]).median() < 1e-2
     assert (a.visible == b.visible.cpu()).float().mean() > 0.98
     assert b.means2d.grad is not None and b.means2d.grad.shape == (3000, 2)
+    # densification reads the screen-space gradient: both backends must give it in the same (pixel) units
+    g2a, g2b = a.means2d.grad.flatten(), b.means2d.grad.cpu().flatten()
+    assert torch.nn.functional.cosine_similarity(g2a, g2b, dim=0) > 0.9
+    assert 0.8 < float(g2b.norm() / g2a.norm()) < 1.25
     for p, q in zip(ps_cpu, ps_gpu):
         cos = torch.nn.functional.cosine_similarity(p.grad.flatten(), q.grad.cpu().flatten(), dim=0)
         assert cos > 0.9

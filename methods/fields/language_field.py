@@ -193,6 +193,43 @@ class FrozenGeometry:
         return FrozenGeometry(deformable)
 
 
+def random_geometry(num_gaussians: int, width: int, height: int, *, seed: int = 0,
+                    device: torch.device | str = "cpu") -> tuple[FrozenGeometry, Camera]:
+    """A deformable geometry of random Gaussians filling the view of a ``width x height`` camera, and
+    that camera: what the speed measurements time the query and status stages on at a chosen scale.
+
+    The Gaussians lie in a slab 2 units in front of the camera, sized so that together they cover the
+    image a few times over (like a fitted scene), with random orientations and opacities; the
+    deformation field is a freshly initialised HexPlane (protocol sizes) over the slab.
+    """
+    from methods.gaussians.config import DeformationConfig, HexPlaneConfig
+    from methods.gaussians.hexplane import DeformationField
+    from methods.gaussians.model import DeformableGaussians, GaussianModel
+
+    dev = torch.device(device)
+    gen = torch.Generator().manual_seed(seed)
+    n = int(num_gaussians)
+    focal = float(max(width, height))
+    depth = 2.0
+    half_w, half_h = 0.5 * width / focal * depth, 0.5 * height / focal * depth
+    means = torch.stack([(torch.rand(n, generator=gen) * 2 - 1) * half_w, (torch.rand(n, generator=gen) * 2 - 1) * half_h,
+                         (torch.rand(n, generator=gen) - 0.5) * 0.5], 1)
+    scale = float(np.sqrt(4 * half_w * half_h / n)) * 0.8  # footprints tile the image a few times over
+    params = {"means": means, "sh_dc": torch.zeros(n, 1, 3), "sh_rest": torch.zeros(n, 0, 3),
+              "opacity_logits": torch.randn(n, generator=gen), "log_scales": torch.log(
+                  torch.full((n, 3), scale) * torch.exp(0.3 * torch.randn(n, 3, generator=gen))),
+              "quats": torch.randn(n, 4, generator=gen)}
+    box = torch.tensor([[-half_w, -half_h, -0.5], [half_w, half_h, 0.5]])
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        fld = DeformationField(DeformationConfig(hexplane=HexPlaneConfig()), box, time_resolution=50)
+    geometry = FrozenGeometry(DeformableGaussians(GaussianModel({k: v.to(dev) for k, v in params.items()}, 0),
+                                                  fld.to(dev)))
+    w2c = np.eye(4)
+    w2c[2, 3] = depth
+    return geometry, Camera(width, height, focal, focal, width / 2, height / 2, w2c)
+
+
 # ---------------------------------------------------------------------------------------------------
 # The field
 # ---------------------------------------------------------------------------------------------------

@@ -60,7 +60,7 @@ from benchmark.errors import InputError
 from benchmark.scene import Camera, Frame, Scene
 
 from .autoencoder import AutoencoderConfig, FeatureAutoencoder, train_autoencoder
-from .language_field import FrozenGeometry, GaussianState, camera_tensors
+from .language_field import FrozenGeometry, GaussianState, camera_tensors, random_geometry
 from .status import NonStatusField, StatusField, StatusFieldConfig
 
 KINDS = ("status", "non-status")
@@ -922,34 +922,13 @@ def measure_status_speed(num_gaussians: int, width: int, height: int, *, num_sta
     ``width x height``, L1 and the backward + Adam step: what the release does per iteration (with
     its 4096 -> 6 latents). With ``operator`` also the recorded-blending-operator step (CPU).
     """
-    from methods.gaussians.config import DeformationConfig, HexPlaneConfig
-    from methods.gaussians.hexplane import DeformationField
-    from methods.gaussians.model import DeformableGaussians, GaussianModel
-
     dev = torch.device(device)
-    gen = torch.Generator().manual_seed(seed)
-    n = int(num_gaussians)
-    f = float(max(width, height))
-    depth = 2.0
-    half_w, half_h = 0.5 * width / f * depth, 0.5 * height / f * depth
-    means = torch.stack([(torch.rand(n, generator=gen) * 2 - 1) * half_w, (torch.rand(n, generator=gen) * 2 - 1) * half_h,
-                         (torch.rand(n, generator=gen) - 0.5) * 0.5], 1)
-    # scales so that the Gaussians cover the image a few times over, like a fitted scene
-    area = 4 * half_w * half_h
-    scale = float(np.sqrt(area / n)) * 0.8
-    params = {"means": means, "sh_dc": torch.zeros(n, 1, 3), "sh_rest": torch.zeros(n, 0, 3),
-              "opacity_logits": torch.randn(n, generator=gen), "log_scales": torch.log(
-                  torch.full((n, 3), scale) * torch.exp(0.3 * torch.randn(n, 3, generator=gen))),
-              "quats": torch.randn(n, 4, generator=gen)}
-    box = torch.tensor([[-half_w, -half_h, -0.5], [half_w, half_h, 0.5]])
-    fld = DeformationField(DeformationConfig(hexplane=HexPlaneConfig()), box, time_resolution=50)
-    geometry = FrozenGeometry(DeformableGaussians(GaussianModel({k: v.to(dev) for k, v in params.items()}, 0),
-                                                  fld.to(dev)))
-    w2c = np.eye(4)
-    w2c[2, 3] = depth
-    camera = Camera(width, height, f, f, width / 2, height / 2, w2c)
+    geometry, camera = random_geometry(num_gaussians, width, height, seed=seed, device=dev)
+    gen = torch.Generator().manual_seed(seed + 1)
+    n = geometry.num_gaussians
     dynamic = torch.rand(n, generator=gen) < dynamic_fraction
-    field_ = StatusField(torch.zeros(n, latent_dim), fld.hexplane.feature_dim, semantic_dynamic=dynamic,
+    feature_dim = geometry.deformable.field.hexplane.feature_dim
+    field_ = StatusField(torch.zeros(n, latent_dim), feature_dim, semantic_dynamic=dynamic,
                          cfg=StatusFieldConfig(num_states=num_states), seed=seed).to(dev)
     opt = torch.optim.Adam(field_.parameters(), lr=1e-3)
     target = torch.rand(height * width, latent_dim, generator=gen).to(dev)

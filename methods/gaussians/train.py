@@ -579,7 +579,7 @@ class Trainer:
 
         last_loss = first_loss = float("nan")
         px_per_unit: Optional[torch.Tensor] = None  # (N,) for the motion prior; dropped at each densification
-        cpu_start = time.process_time()
+        cpu_start, wall_start = time.process_time(), time.perf_counter()
         for it in range(1, iterations + 1):
             t_start = time.perf_counter()
             # one band more every scaled interval; never lowered (the deformation stage keeps the static
@@ -650,7 +650,7 @@ class Trainer:
                                        "gaussians": model.num_gaussians,
                                        "dynamic": None if deformable is None else deformable.num_dynamic()})
                 print(f"[{stage}] it {it}/{iterations} loss {last_loss:.4f} N {model.num_gaussians} "
-                      f"cpu {time.process_time() - cpu_start:.0f}s"
+                      f"cpu {time.process_time() - cpu_start:.0f}s wall {time.perf_counter() - wall_start:.0f}s"
                       + ("" if deformable is None else f" dynamic {deformable.num_dynamic()}"), flush=True)
         tail = iter_seconds[iterations // 2:] if iterations > 1 else iter_seconds
         summary = {"stage": stage, "iterations": iterations, "seconds": float(iter_seconds.sum()),
