@@ -810,6 +810,32 @@ def measure_query_speed(num_gaussians: int, width: int, height: int, *, frames: 
         "frames": frames, "seconds_per_frame": seconds, "fps": 1.0 / seconds,
         "mask_shape": list(answers[0].mask.shape),
     }
+    # where the time goes: the same work stage by stage, synchronised between stages (slightly slower
+    # in total than the pipelined run above, which is the number to report)
+    basis, zq, zc = model._reduced_phrases(texts[0])
+    stages = dict.fromkeys(("deform", "render", "decode", "query", "to_host"), 0.0)
+    for frame in frame_list[warmup:]:
+        t_prev = time.perf_counter()
+
+        def lap(name: str) -> None:
+            nonlocal t_prev
+            sync()
+            now = time.perf_counter()
+            stages[name] += (now - t_prev) / frames
+            t_prev = now
+
+        state = model.geometry.at(frame.time)
+        lap("deform")
+        latents, alpha = model.field.render_with_alpha(state, frame.camera)
+        lap("render")
+        reduced = decode_for_relevance(latents, model.autoencoder.decoder, basis, cfg.decode_chunk)
+        reduced = model._uncovered_as_background(reduced, alpha, basis)
+        lap("decode")
+        result = query_levels(reduced, zq, zc, model.relevance_cfg)
+        lap("query")
+        result.mask.cpu().numpy(), result.relevance.float().cpu().numpy()
+        lap("to_host")
+    out["stage_seconds_per_frame"] = stages
     if len(texts) > 1:
         model.prepare(texts)
         sync()

@@ -107,6 +107,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     q.add_argument("--queries", type=int, default=1,
                    help="also time this many queries sharing one render + decode per frame (when > 1)")
     q.add_argument("--feature-dim", type=int, default=512, help="decoded feature size (CLIP ViT-B/16: 512)")
+    q.add_argument("--decode-chunk", type=int, default=None,
+                   help="pixels decoded per batch (default: the method config's decode_chunk)")
     q.add_argument("--device", default="cpu")
     q.add_argument("--out", type=Path, default=Path("reports/ablations"))
     q.add_argument("--quiet", action="store_true")
@@ -358,17 +360,27 @@ def _query_speed(args) -> int:
 
     from ._common import check_device
 
+    from methods.specs._language import LanguageMethodConfig
+
     check_device(args.device)
-    for name in ("gaussians", "width", "height", "frames", "queries", "feature_dim"):
-        if getattr(args, name) < 1:
-            raise InputError(None, f"--{name.replace('_', '-')}", f"must be at least 1, got {getattr(args, name)}")
+    for name in ("gaussians", "width", "height", "frames", "queries", "feature_dim", "decode_chunk"):
+        value = getattr(args, name)
+        if value is not None and value < 1:
+            raise InputError(None, f"--{name.replace('_', '-')}", f"must be at least 1, got {value}")
+    config = LanguageMethodConfig()
+    if args.decode_chunk is not None:
+        config.decode_chunk = args.decode_chunk
     result = measure_query_speed(args.gaussians, args.width, args.height, frames=args.frames, queries=args.queries,
-                                 feature_dim=args.feature_dim, device=args.device)
-    rows = [[k, f"{v:.4f}" if isinstance(v, float) else str(v)] for k, v in result.items()]
+                                 feature_dim=args.feature_dim, device=args.device, config=config)
+    result["decode_chunk"] = config.decode_chunk
+    flat = {k: v for k, v in result.items() if k != "stage_seconds_per_frame"}
+    flat.update({f"stage {k} (s/frame)": v for k, v in result["stage_seconds_per_frame"].items()})
+    rows = [[k, f"{v:.4f}" if isinstance(v, float) else str(v)] for k, v in flat.items()]
     md = ("Time-agnostic query on random Gaussians: deform, render, decode, relevance, mask (paper: 5.24 FPS on "
           "an A100 at 960x536)\n\n" + _markdown(["quantity", "value"], rows))
     print(md)
-    stem = f"query-speed-{args.gaussians}-{args.width}x{args.height}-{args.device.replace(':', '')}"
+    stem = (f"query-speed-{args.gaussians}-{args.width}x{args.height}-{args.device.replace(':', '')}"
+            + ("" if args.decode_chunk is None else f"-chunk{args.decode_chunk}"))
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if not k.startswith("_")}
     for path in _write(args.out, stem, {"ablation": "query-speed", "settings": settings, **result}, md):
         print(path)

@@ -107,7 +107,7 @@ def foreground_fraction(views: Sequence[View], background: Optional[np.ndarray],
         if v.foreground is not None:
             fractions.append(float(v.foreground.mean()))
         elif background is not None:
-            bg = torch.as_tensor(np.asarray(background, dtype=np.float32))
+            bg = torch.as_tensor(np.asarray(background, dtype=np.float32), device=v.image.device)
             fractions.append(float(((v.image - bg).abs().amax(-1) > threshold).float().mean()))
         else:
             fractions.append(1.0)
