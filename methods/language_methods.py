@@ -527,7 +527,8 @@ class LanguageFieldModel(Model):
             reduced = None
         if reduced is None:
             latents, alpha = self.render_latents_and_alpha(frame)
-            reduced = decode_for_relevance(latents, self.autoencoder.decoder, basis, self.config.decode_chunk)
+            reduced = decode_for_relevance(latents, self.autoencoder.decoder, basis,
+                                           self.config.decode_chunk_for(latents.device))
             reduced = self._uncovered_as_background(reduced, alpha, basis)
             if prepared:
                 size = reduced.numel() * reduced.element_size()
@@ -828,7 +829,7 @@ def measure_query_speed(num_gaussians: int, width: int, height: int, *, frames: 
         lap("deform")
         latents, alpha = model.field.render_with_alpha(state, frame.camera)
         lap("render")
-        reduced = decode_for_relevance(latents, model.autoencoder.decoder, basis, cfg.decode_chunk)
+        reduced = decode_for_relevance(latents, model.autoencoder.decoder, basis, cfg.decode_chunk_for(dev))
         reduced = model._uncovered_as_background(reduced, alpha, basis)
         lap("decode")
         result = query_levels(reduced, zq, zc, model.relevance_cfg)

@@ -369,10 +369,10 @@ def _query_speed(args) -> int:
             raise InputError(None, f"--{name.replace('_', '-')}", f"must be at least 1, got {value}")
     config = LanguageMethodConfig()
     if args.decode_chunk is not None:
-        config.decode_chunk = args.decode_chunk
+        config.decode_chunk = config.decode_chunk_cuda = args.decode_chunk
     result = measure_query_speed(args.gaussians, args.width, args.height, frames=args.frames, queries=args.queries,
                                  feature_dim=args.feature_dim, device=args.device, config=config)
-    result["decode_chunk"] = config.decode_chunk
+    result["decode_chunk"] = config.decode_chunk_for(args.device)
     flat = {k: v for k, v in result.items() if k != "stage_seconds_per_frame"}
     flat.update({f"stage {k} (s/frame)": v for k, v in result["stage_seconds_per_frame"].items()})
     rows = [[k, f"{v:.4f}" if isinstance(v, float) else str(v)] for k, v in flat.items()]
