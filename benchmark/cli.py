@@ -50,6 +50,7 @@ def main(argv: list[str] | None = None) -> int:
         hint = f" (did you mean {close[0]!r}?)" if close else ""
         parser.error(f"unknown command {wanted!r}{hint}")
     args = parser.parse_args(argv)
+    args._argv = argv  # the command line as given (``main([...])`` from Python included), for records
     if not getattr(args, "_run", None):
         parser.print_help()
         return 2

@@ -510,7 +510,9 @@ def test_recon_command_end_to_end(tmp_path):
     assert all("moving" not in e for e in report["models"].values())  # no generator truth: no moving parts
     assert main(["recon", "--summarize", str(tmp_path)]) == 0
     summary = (tmp_path / "summary.md").read_text()
-    (row,) = [line for line in summary.splitlines() if line.startswith("| toy-dnerf | 12x12 | 24 |")]
+    # the row names the run's --set overrides and where it trained
+    (row,) = [line for line in summary.splitlines() if line.startswith(
+        "| toy-dnerf [gaussians.sh_degree=1, deformation.hexplane.spatial_resolution=8] | cpu | 12x12 | 24 |")]
     assert row.endswith("| - |")
 
 
@@ -530,7 +532,7 @@ def test_recon_scores_the_moving_parts_of_a_generated_scene(tmp_path):
         assert np.isfinite(moving["psnr"]) and np.isfinite(moving["static_psnr"])
     assert main(["recon", "--summarize", str(tmp_path / "reports")]) == 0
     (row,) = [line for line in (tmp_path / "reports" / "summary.md").read_text().splitlines()
-              if line.startswith("| smoke |")]
+              if line.startswith("| smoke [")]  # the label names the run's --set overrides
     cells = [c.strip() for c in row.split("|")]
     assert " %, " in cells[-4] and " / " in cells[-3]  # moving parts; elsewhere
     m3 = report["models"]["3dgs"]["moving"]
@@ -568,7 +570,7 @@ def test_recon_time_range_trains_and_scores_only_those_frames(tmp_path, capsys):
     assert (report["scene"]["train_frames"], report["scene"]["test_frames"]) == (want_train, len(want_test))
     assert [p["frame"] for p in report["models"]["3dgs"]["per_frame"]] == want_test
     assert main(["recon", "--summarize", str(tmp_path / "reports")]) == 0
-    assert f"| smoke (frames 0-{last}) |" in (tmp_path / "reports" / "summary.md").read_text()
+    assert f"| smoke (frames 0-{last}) [" in (tmp_path / "reports" / "summary.md").read_text()
     capsys.readouterr()
     for bad in ("5:2", "a:b", "7", f"{scene.num_time_steps + 5}:{scene.num_time_steps + 9}"):
         assert main(["recon", "--scene", str(scene_dir), "--time-range", bad, "--out", str(tmp_path / "o")]) == 2

@@ -350,9 +350,17 @@ def _speed(args) -> int:
     print(md)
     stem = f"speed-{args.gaussians}-{args.width}x{args.height}-{args.device.replace(':', '')}"
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if not k.startswith("_")}
-    for path in _write(args.out, stem, {"ablation": "speed", "settings": settings, **result}, md):
+    for path in _write(args.out, stem, {"ablation": "speed", "settings": settings, **result,
+                                        **_provenance(args.device)}, md):
         print(path)
     return 0
+
+
+def _provenance(device: str) -> dict:
+    """Where and with what a timing was taken: device (GPU name), package versions, git commit."""
+    from ..runner import device_description, git_state, package_versions
+
+    return {"environment": device_description(device), "packages": package_versions(), "git": git_state()}
 
 
 def _query_speed(args) -> int:
@@ -382,7 +390,8 @@ def _query_speed(args) -> int:
     stem = (f"query-speed-{args.gaussians}-{args.width}x{args.height}-{args.device.replace(':', '')}"
             + ("" if args.decode_chunk is None else f"-chunk{args.decode_chunk}"))
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if not k.startswith("_")}
-    for path in _write(args.out, stem, {"ablation": "query-speed", "settings": settings, **result}, md):
+    for path in _write(args.out, stem, {"ablation": "query-speed", "settings": settings, **result,
+                                        **_provenance(args.device)}, md):
         print(path)
     return 0
 
