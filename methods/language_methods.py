@@ -527,9 +527,7 @@ class LanguageFieldModel(Model):
             reduced = None
         if reduced is None:
             latents, alpha = self.render_latents_and_alpha(frame)
-            reduced = decode_for_relevance(latents, self.autoencoder.decoder, basis,
-                                           self.config.decode_chunk_for(latents.device))
-            reduced = self._uncovered_as_background(reduced, alpha, basis)
+            reduced = self.decode_reduced(latents, alpha, basis)
             if prepared:
                 size = reduced.numel() * reduced.element_size()
                 while self._reduced_cache and size * (len(self._reduced_cache) + 1) > self.MAX_CACHE_BYTES:
@@ -540,21 +538,26 @@ class LanguageFieldModel(Model):
             zq, zc = project_phrases(basis, self.query_embedding_cached(text), self.canonical())
         return reduced, zq, zc
 
-    def _uncovered_as_background(self, reduced: torch.Tensor, alpha: torch.Tensor, basis: torch.Tensor) -> torch.Tensor:
-        """``reduced`` [L, H, W, k + 1] with pixels of ``alpha`` [H, W] below ``config.uncovered_alpha``
-        set to the reduced ``unmasked_text`` embedding (see the config field)."""
+    def decode_reduced(self, latents: torch.Tensor, alpha: torch.Tensor, basis: torch.Tensor) -> torch.Tensor:
+        """[L, H, W, k + 1] reduced decoded features (:func:`decode_for_relevance`) of the latent maps
+        ``latents`` [L, H, W, d], with the pixels of ``alpha`` [H, W] below ``config.uncovered_alpha`` set to the
+        reduced ``unmasked_text`` embedding (see the config field). Only covered pixels are decoded: the
+        others would be overwritten (object-centric scenes such as D-NeRF are mostly uncovered)."""
+        chunk = self.config.decode_chunk_for(latents.device)
         text = self.config.unmasked_text
         uncovered = alpha < self.config.uncovered_alpha
         if not text or not bool(uncovered.any()):
-            return reduced
+            return decode_for_relevance(latents, self.autoencoder.decoder, basis, chunk)
         if text not in self._background:
             self._background[text] = F.normalize(torch.as_tensor(
                 self.text_encoder.encode([text], kind="passage")[0], dtype=torch.float32, device=self.device), dim=0)
         e = self._background[text]
         par = e @ basis  # [k]
         g = torch.cat([par, (1.0 - (par * par).sum()).clamp_min(0.0).sqrt()[None]])
-        reduced = reduced.clone()
-        reduced[:, uncovered] = g.to(reduced.dtype)
+        reduced = g.to(latents.dtype).expand(*latents.shape[:-1], g.shape[0]).clone()
+        covered = ~uncovered
+        if bool(covered.any()):
+            reduced[:, covered] = decode_for_relevance(latents[:, covered], self.autoencoder.decoder, basis, chunk)
         return reduced
 
     @torch.no_grad()
@@ -829,8 +832,7 @@ def measure_query_speed(num_gaussians: int, width: int, height: int, *, frames: 
         lap("deform")
         latents, alpha = model.field.render_with_alpha(state, frame.camera)
         lap("render")
-        reduced = decode_for_relevance(latents, model.autoencoder.decoder, basis, cfg.decode_chunk_for(dev))
-        reduced = model._uncovered_as_background(reduced, alpha, basis)
+        reduced = model.decode_reduced(latents, alpha, basis)
         lap("decode")
         result = query_levels(reduced, zq, zc, model.relevance_cfg)
         lap("query")

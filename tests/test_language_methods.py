@@ -16,6 +16,7 @@ import pytest
 
 from benchmark.errors import InputError
 from benchmark.runner import EvalOptions, evaluate
+from methods.fields.language_field import decode_for_relevance
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = {"static_iterations": 20, "deformation_iterations": 20, "field_iterations": 30, "ae_max_steps": 60,
@@ -228,24 +229,38 @@ def test_4d_langsplat_on_a_dnerf_folder_answers_agnostic_queries_without_a_head(
                              method_options={**TINY, **TINY_STATUS, "time_varying": "on"}))
 
 
-def test_pixels_no_gaussian_covers_show_the_background_text(smoke):
+def test_pixels_no_gaussian_covers_show_the_background_text(smoke, monkeypatch):
     """Zero latents decode to an arbitrary feature; an uncovered pixel must read as ``unmasked_text``."""
     model = _deformable_clip_model(smoke)[2]
     frame = smoke["scene"].test_frames[0]
     latents, alpha = model.render_latents_and_alpha(frame)
     assert alpha.shape == (frame.camera.height, frame.camera.width)
     basis = model._reduced_phrases("box")[0]
-    reduced = torch.zeros(3, *alpha.shape, basis.shape[1] + 1)
     holes = torch.zeros_like(alpha)  # nothing covered
-    out = model._uncovered_as_background(reduced, holes, basis)
+    out = model.decode_reduced(latents, holes, basis)
+    assert out.shape == (3, *alpha.shape, basis.shape[1] + 1)
     e = torch.nn.functional.normalize(torch.as_tensor(model.text_encoder.encode(["background"], kind="passage")[0]), dim=0)
     q = torch.nn.functional.normalize(model.query_embedding("box"), dim=0)
     zq = torch.cat([q @ basis, q.new_zeros(1)])
     # the reduced background feature has the background embedding's norm and its dot product with the query
     assert torch.allclose(out[0, 0, 0].norm(), torch.tensor(1.0), atol=1e-5)
     assert float(out[1, 3, 4] @ zq) == pytest.approx(float(e @ q), abs=1e-5)
+    full = decode_for_relevance(latents, model.autoencoder.decoder, basis)
     covered = torch.ones_like(alpha)
-    assert torch.equal(model._uncovered_as_background(reduced, covered, basis), reduced)
+    assert torch.allclose(model.decode_reduced(latents, covered, basis), full, atol=1e-6)
+    # partly covered: covered pixels decode exactly as in the full decode, the others read as background
+    half = (torch.rand(alpha.shape, generator=torch.Generator().manual_seed(0)) < 0.5).float()
+    mixed = model.decode_reduced(latents, half, basis)
+    assert torch.allclose(mixed[:, half > 0.5], full[:, half > 0.5], atol=1e-6)
+    assert torch.allclose(mixed[:, half < 0.5], out[:, half < 0.5])
+    # and only the covered pixels go through the decoder
+    import methods.language_methods as lm
+
+    seen = []
+    monkeypatch.setattr(lm, "decode_for_relevance", lambda x, *a, **k: seen.append(x.shape[:-1]) or
+                        decode_for_relevance(x, *a, **k))
+    model.decode_reduced(latents, half, basis)
+    assert seen == [(3, int((half > 0.5).sum()))]
 
 
 def test_answer_options_reuse_the_fit_and_change_the_answers(smoke, tmp_path):
