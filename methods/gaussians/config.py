@@ -192,6 +192,12 @@ class DeformationConfig:
     """Predict log-scale offsets (release: on)."""
     deform_rotation: bool = True
     """Predict quaternion offsets, added to the raw quaternion (release: on)."""
+    deform_color: bool = False
+    """Also predict an RGB offset of each Gaussian's base colour (added to the view-dependent colour, its
+    head's last layer zero-initialised so the deformation stage starts from the static colours). Not in
+    4D-GS (off by default = the recipe): appearance that changes over time -- a liquid darkening,
+    chocolate melting, content appearing -- is outside a position / scale / rotation deformation, which
+    fits it with floaters or not at all (measured in reports/recon)."""
     zero_init_heads: bool = False
     """Initialise the heads' last layers to zero, so the deformation stage starts exactly at the static
     stage's result. Off by default, as the release (Xavier init: a small random initial deformation):
@@ -210,6 +216,12 @@ class DeformationConfig:
     """HexPlane learning rate x extent at the start (release: 1.6e-3)."""
     grid_lr_final: float = 1.6e-4
     """HexPlane learning rate x extent at the end (release default / HyperNeRF: 1.6e-4; D-NeRF: 1.6e-5)."""
+    color_lr_init: float = 1.6e-2
+    """Learning rate of the colour head's output layer at the start (``deform_color``; RGB units, so not
+    scaled by the extent). Not in the release. On the darkening toy of the tests the MLP's 1.6e-4 x extent
+    leaves the colour offsets at a fifth of the change after 750 iterations."""
+    color_lr_final: float = 1.6e-3
+    """... and at the end (exponential decay over the deformation stage, as the MLP's)."""
 
     densify_until_iter: int = 7000
     """Densification stops after this many paper iterations of the deformation stage (4D-GS HyperNeRF
@@ -281,6 +293,8 @@ class DeformationConfig:
     """... and the log-scale offset by less than this (10% size change: the same jitter shows in scales)."""
     static_rotation_tol: float = 0.05
     """... and the quaternion offset by less than this fraction of the quaternion's norm."""
+    static_color_tol: float = 0.02
+    """... and (``deform_color``) the RGB offset by less than this (about 5 of 255 levels)."""
 
 
 @dataclass

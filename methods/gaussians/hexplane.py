@@ -105,7 +105,8 @@ class HexPlane(nn.Module):
 
 
 class DeformationField(nn.Module):
-    """HexPlane + MLP trunk + heads: (x, t) -> offsets of position, log-scale and raw quaternion."""
+    """HexPlane + MLP trunk + heads: (x, t) -> offsets of position, log-scale and raw quaternion (and, with
+    ``deform_color``, of the RGB colour)."""
 
     def __init__(self, cfg: DeformationConfig, bounds: torch.Tensor, time_resolution: int):
         """``bounds``: (2, 3) world box of the HexPlane; ``time_resolution``: rows of the time planes."""
@@ -120,8 +121,9 @@ class DeformationField(nn.Module):
         # The heads' hidden layers (ReLU, Linear(W, W), ReLU) of all heads as one Linear(W, 3W):
         # mathematically three independent heads, one matmul instead of three.
         self.head_names = [name for name, on in (("position", cfg.deform_position), ("scale", cfg.deform_scale),
-                                                 ("rotation", cfg.deform_rotation)) if on]
-        self.head_dims = {"position": 3, "scale": 3, "rotation": 4}
+                                                 ("rotation", cfg.deform_rotation),
+                                                 ("color", cfg.deform_color)) if on]
+        self.head_dims = {"position": 3, "scale": 3, "rotation": 4, "color": 3}
         self.heads_hidden = nn.Linear(w, w * max(1, len(self.head_names)))
         self.heads_out = nn.ModuleDict({name: nn.Linear(w, self.head_dims[name]) for name in self.head_names})
         for m in self.modules():
@@ -131,6 +133,8 @@ class DeformationField(nn.Module):
         if cfg.zero_init_heads:
             for head in self.heads_out.values():
                 nn.init.zeros_(head.weight)
+        if "color" in self.heads_out:  # start the deformation stage from the static stage's colours
+            nn.init.zeros_(self.heads_out["color"].weight)
 
     def features(self, xyz: torch.Tensor, t: TimeLike) -> torch.Tensor:
         """(N, 3) points at time t -> (N, F) HexPlane features."""
@@ -141,16 +145,27 @@ class DeformationField(nn.Module):
 
         Disabled heads return zeros.
         """
+        return self.forward_all(xyz, t)[:3]
+
+    def forward_all(self, xyz: torch.Tensor, t: TimeLike) -> tuple:
+        """:meth:`forward`'s three offsets and the (N, 3) RGB offset of the colour head (``None`` when
+        ``deform_color`` is off), from one evaluation."""
         n = xyz.shape[0]
         h = self.trunk(self.hexplane(xyz, t))
         hidden = torch.relu(self.heads_hidden(torch.relu(h)))
         chunks = hidden.chunk(max(1, len(self.head_names)), dim=1)
         out = {name: self.heads_out[name](chunk) for name, chunk in zip(self.head_names, chunks)}
-        return tuple(out[name] if name in out else xyz.new_zeros(n, self.head_dims[name])
-                     for name in ("position", "scale", "rotation"))
+        return (*(out[name] if name in out else xyz.new_zeros(n, self.head_dims[name])
+                  for name in ("position", "scale", "rotation")), out.get("color"))
 
     def mlp_parameters(self) -> list[nn.Parameter]:
-        return [p for name, p in self.named_parameters() if not name.startswith("hexplane.")]
+        """The trunk's and heads' weights, the colour head's output layer excepted."""
+        return [p for name, p in self.named_parameters()
+                if not name.startswith("hexplane.") and not name.startswith("heads_out.color.")]
+
+    def color_parameters(self) -> list[nn.Parameter]:
+        """The colour head's output layer (its own learning rate: RGB units, not scene units); [] without."""
+        return list(self.heads_out["color"].parameters()) if "color" in self.heads_out else []
 
     def grid_parameters(self) -> list[nn.Parameter]:
         return list(self.hexplane.parameters())

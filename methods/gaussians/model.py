@@ -199,24 +199,42 @@ class DeformableGaussians:
         return self.apply_offsets(self.offsets(t, skip_static))
 
     def offsets(self, t: TimeLike, skip_static: bool = True) -> Optional[tuple]:
-        """The field's offsets at time ``t``: ``(rows, dx, ds, dq)`` with ``rows`` (M,) the Gaussians they
-        belong to (``None``: all N) and (M, 3) position, (M, 3) log-scale, (M, 4) raw quaternion offsets;
-        ``None`` when ``skip_static`` leaves no dynamic Gaussian."""
+        """The field's offsets at time ``t``: ``(rows, dx, ds, dq, dc)`` with ``rows`` (M,) the Gaussians they
+        belong to (``None``: all N) and (M, 3) position, (M, 3) log-scale, (M, 4) raw quaternion and (M, 3)
+        RGB offsets (``dc`` is ``None`` without a colour head); ``None`` when ``skip_static`` leaves no
+        dynamic Gaussian."""
         mask = self.dynamic_mask if skip_static else None
         means = self.gaussians.params["means"]
         if mask is None:
-            return (None, *self.field(means, t))
+            return (None, *self.field.forward_all(means, t))
         if not bool(mask.any()):
             return None
         rows = mask.nonzero().squeeze(1)
-        return (rows, *self.field(means[rows], t))
+        return (rows, *self.field.forward_all(means[rows], t))
+
+    def colors(self, camera_center: torch.Tensor, means: torch.Tensor, offsets: Optional[tuple]) -> torch.Tensor:
+        """(N, 3) RGB seen from ``camera_center`` with the Gaussians at ``means``, plus the colour offsets of
+        :meth:`offsets` (when the field has a colour head)."""
+        rgb = self.gaussians.colors(camera_center, means)
+        dc = None if offsets is None else offsets[4]
+        if dc is None:
+            return rgb
+        rows = offsets[0]
+        return (rgb + dc if rows is None else rgb.index_add(0, rows, dc)).clamp_min(0.0)
+
+    def deform_with_colors(self, t: TimeLike, camera_center: torch.Tensor, skip_static: bool = True
+                           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`deform` and the (N, 3) colours seen from ``camera_center`` at time ``t``."""
+        offsets = self.offsets(t, skip_static)
+        means, quats, scales = self.apply_offsets(offsets)
+        return means, quats, scales, self.colors(camera_center, means, offsets)
 
     def apply_offsets(self, offsets: Optional[tuple]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Canonical Gaussians plus :meth:`offsets` -> ((N, 3) means, (N, 4) unit quats, (N, 3) scales)."""
         p = self.gaussians.params
         means, log_scales, quats = p["means"], p["log_scales"], p["quats"]
         if offsets is not None:
-            rows, dx, ds, dq = offsets
+            rows, dx, ds, dq = offsets[:4]
             if rows is None:
                 means, log_scales, quats = means + dx, log_scales + ds, quats + dq
             else:
@@ -239,31 +257,30 @@ class DeformableGaussians:
     def deformation_variation(self, times: torch.Tensor, chunk: int = 65536) -> dict[str, torch.Tensor]:
         """Per Gaussian, over the (K,) ``times``: the range (max - min) and mean of each offset.
 
-        Returns ``{"position", "scale", "rotation"}`` -> (N,) largest per-component range, and
-        ``{"mean_position", "mean_scale", "mean_rotation"}`` -> (N, 3|3|4) offsets averaged over times.
-        The field is evaluated on every Gaussian (static ones included), in chunks.
+        Returns ``{"position", "scale", "rotation", "color"}`` -> (N,) largest per-component range, and
+        ``{"mean_position", "mean_scale", "mean_rotation", "mean_color"}`` -> (N, 3|3|4|3) offsets averaged
+        over times (colour: zeros without a colour head). The field is evaluated on every Gaussian (static
+        ones included), in chunks.
         """
         p = self.gaussians.params
         n = self.num_gaussians
-        result = {k: torch.zeros(n, device=p["means"].device) for k in ("position", "scale", "rotation")}
         dev = p["means"].device
-        means_out = {"position": torch.zeros(n, 3, device=dev), "scale": torch.zeros(n, 3, device=dev),
-                     "rotation": torch.zeros(n, 4, device=dev)}
+        parts = {"position": slice(0, 3), "scale": slice(3, 6), "rotation": slice(6, 10), "color": slice(10, 13)}
+        result = {k: torch.zeros(n, device=dev) for k in parts}
+        means_out = {k: torch.zeros(n, s.stop - s.start, device=dev) for k, s in parts.items()}
         for start in range(0, n, chunk):
             xyz = p["means"][start:start + chunk]
             lo = hi = total = None
             for t in times.tolist():
-                off = torch.cat(self.field(xyz, t), dim=1)  # (n_chunk, 10)
+                dx, ds, dq, dc = self.field.forward_all(xyz, t)
+                off = torch.cat([dx, ds, dq, torch.zeros_like(dx) if dc is None else dc], dim=1)  # (n_chunk, 13)
                 lo = off if lo is None else torch.minimum(lo, off)
                 hi = off if hi is None else torch.maximum(hi, off)
                 total = off if total is None else total + off
             rng, mean = hi - lo, total / len(times)
-            result["position"][start:start + chunk] = rng[:, 0:3].amax(1)
-            result["scale"][start:start + chunk] = rng[:, 3:6].amax(1)
-            result["rotation"][start:start + chunk] = rng[:, 6:10].amax(1)
-            means_out["position"][start:start + chunk] = mean[:, 0:3]
-            means_out["scale"][start:start + chunk] = mean[:, 3:6]
-            means_out["rotation"][start:start + chunk] = mean[:, 6:10]
+            for name, cols in parts.items():
+                result[name][start:start + chunk] = rng[:, cols].amax(1)
+                means_out[name][start:start + chunk] = mean[:, cols]
         result.update({f"mean_{k}": v for k, v in means_out.items()})
         return result
 
@@ -275,7 +292,8 @@ class DeformableGaussians:
         A Gaussian is static when, over ``cfg.static_time_samples`` times, its position offset varies by
         less than ``static_pixel_tol`` pixels (``px_per_unit``: (N,) pixels per world unit at its nearest
         training camera; without it, less than ``static_position_tol x extent``), its log-scale offset by
-        less than ``static_scale_tol`` and its quaternion offset by less than ``static_rotation_tol x |q|``.
+        less than ``static_scale_tol``, its quaternion offset by less than ``static_rotation_tol x |q|`` and its
+        RGB offset (colour head) by less than ``static_color_tol``.
         Newly static Gaussians get their time-mean offset folded into the canonical parameters, so what
         is rendered does not jump; Gaussians that became dynamic again get it taken back out.
         Returns counts: ``{"static", "dynamic", "newly_static", "newly_dynamic"}``.
@@ -291,7 +309,8 @@ class DeformableGaussians:
             still = var["position"] < cfg.static_position_tol * extent
         static = (still
                   & (var["scale"] < cfg.static_scale_tol)
-                  & (var["rotation"] < cfg.static_rotation_tol * qnorm))
+                  & (var["rotation"] < cfg.static_rotation_tol * qnorm)
+                  & (var["color"] < cfg.static_color_tol))
         was_dynamic = (torch.ones_like(static) if self.dynamic_mask is None else self.dynamic_mask)
         newly_static = static & was_dynamic
         newly_dynamic = ~static & ~was_dynamic
@@ -299,6 +318,7 @@ class DeformableGaussians:
         p["means"].add_(sign[:, None] * var["mean_position"])
         p["log_scales"].add_(sign[:, None] * var["mean_scale"])
         p["quats"].add_(sign[:, None] * var["mean_rotation"])
+        p["sh_dc"][:, 0].add_(sign[:, None] * var["mean_color"] / SH_C0)  # RGB = SH_C0 x DC + ...
         self.dynamic_mask = ~static
         return {"static": int(static.sum()), "dynamic": int((~static).sum()),
                 "newly_static": int(newly_static.sum()), "newly_dynamic": int(newly_dynamic.sum())}

@@ -502,7 +502,8 @@ class Trainer:
         net_opt = torch.optim.Adam([
             {"params": field_.mlp_parameters(), "lr": d.deformation_lr_init * self.extent, "name": "mlp"},
             {"params": field_.grid_parameters(), "lr": d.grid_lr_init * self.extent, "name": "grid"},
-        ], lr=0.0, eps=c.gaussians.adam_eps)
+        ] + ([{"params": field_.color_parameters(), "lr": d.color_lr_init, "name": "color"}]
+             if field_.color_parameters() else []), lr=0.0, eps=c.gaussians.adam_eps)
         if c.deformation_iterations > 0:
             sched = Schedule(c.gaussians, c.deformation_stage_scale(), densify_until=d.densify_until_iter,
                              opacity_resets=d.opacity_reset_interval is not None,
@@ -591,9 +592,10 @@ class Trainer:
                 opt.set_lr("means", self.extent * exponential_lr(it - 1, g.position_lr_init, g.position_lr_final,
                                                                    decay_steps))
                 for group in net_opt.param_groups:
-                    lo, hi = ((d.deformation_lr_final, d.deformation_lr_init) if group["name"] == "mlp"
-                              else (d.grid_lr_final, d.grid_lr_init))
-                    group["lr"] = self.extent * exponential_lr(it - 1, hi, lo, decay_steps, 0, d.deformation_lr_delay_mult)
+                    lo, hi, unit = {"mlp": (d.deformation_lr_final, d.deformation_lr_init, self.extent),
+                                    "grid": (d.grid_lr_final, d.grid_lr_init, self.extent),
+                                    "color": (d.color_lr_final, d.color_lr_init, 1.0)}[group["name"]]
+                    group["lr"] = unit * exponential_lr(it - 1, hi, lo, decay_steps, 0, d.deformation_lr_delay_mult)
             view = self._next_view()
             if deformable is None:
                 means, quats, scales = model.means, model.quats, model.scales
@@ -602,7 +604,8 @@ class Trainer:
                 offsets = deformable.offsets(view.time, skip_static=d.static_skip)
                 means, quats, scales = deformable.apply_offsets(offsets)
                 deform_seconds[it - 1] = time.perf_counter() - t_def
-            colors = model.colors(view.center, means)
+            colors = (model.colors(view.center, means) if deformable is None
+                      else deformable.colors(view.center, means, offsets))
             out = self.rasterize(means, quats, scales, model.opacities, colors, view.viewmat, view.K,
                                  view.width, view.height, background=self.background, near=g.near)
             means2d = out.means2d
@@ -671,7 +674,7 @@ def motion_l1(offsets: tuple, px_per_unit: torch.Tensor, quats: torch.Tensor, d:
     :meth:`DeformableGaussians.offsets`) in units of the static tolerances: position offsets in pixels
     (``px_per_unit``: (N,) pixels per world unit) over ``static_pixel_tol``, log-scale offsets over
     ``static_scale_tol``, quaternion offsets over ``static_rotation_tol`` x the (N, 4) ``quats``' norm."""
-    rows, dx, ds, dq = offsets
+    rows, dx, ds, dq = offsets[:4]  # the colour offset is not motion
     ppu = px_per_unit if rows is None else px_per_unit[rows]
     qnorm = (quats if rows is None else quats[rows]).detach().norm(dim=1).clamp_min(1e-8)
     per_gaussian = (dx.abs().sum(1) * ppu / d.static_pixel_tol + ds.abs().sum(1) / d.static_scale_tol
@@ -690,11 +693,11 @@ def render_view(model: object, view: View, background: torch.Tensor, rasterize_f
     """(H, W, 3) render of ``model`` (:class:`GaussianModel` or :class:`DeformableGaussians`) at ``view``."""
     if isinstance(model, DeformableGaussians):
         gm = model.gaussians
-        means, quats, scales = model.deform(view.time, skip_static=skip_static)
+        means, quats, scales, colors = model.deform_with_colors(view.time, view.center, skip_static=skip_static)
     else:
         gm = model
         means, quats, scales = gm.means, gm.quats, gm.scales
-    colors = gm.colors(view.center, means)
+        colors = gm.colors(view.center, means)
     out = rasterize_fn(means, quats, scales, gm.opacities, colors, view.viewmat, view.K, view.width,
                        view.height, background=background, near=near)
     return out.image.clamp(0.0, 1.0)
@@ -776,8 +779,8 @@ def measure_static_skip(deformable: DeformableGaussians, views: Sequence[View], 
         return means.sum() + quats.sum() + scales.sum()
 
     def full_step(view: View, skip: bool) -> torch.Tensor:
-        means, quats, scales = deformable.deform(view.time, skip_static=skip)
-        out = rasterize_fn(means, quats, scales, gm.opacities, gm.colors(view.center, means), view.viewmat,
+        means, quats, scales, colors = deformable.deform_with_colors(view.time, view.center, skip_static=skip)
+        out = rasterize_fn(means, quats, scales, gm.opacities, colors, view.viewmat,
                            view.K, view.width, view.height, background=background)
         return photometric_loss(out.image, view.image, lambda_dssim, window)
 
