@@ -200,7 +200,8 @@ class DeformationConfig:
     fits it with floaters or not at all. On the tests' darkening toy (8 views per time) it gains 8 dB; on
     the monocular presets it does not help (128 px, 3000 iterations, seed 0, with / without: americano 27.32
     / 27.24 dB, torchocolate 28.00 / 28.48, espresso 30.72 / 30.61, split-cookie 27.46 / 27.43;
-    reports/recon/*-deform-color): with one view per time a colour offset also fits each view's residual."""
+    reports/recon/*-deform-color; with a 10x lower colour learning rate americano 27.19, torchocolate 28.39):
+    with one view per time a colour offset also fits each view's residual."""
     zero_init_heads: bool = False
     """Initialise the heads' last layers to zero, so the deformation stage starts exactly at the static
     stage's result. Off by default, as the release (Xavier init: a small random initial deformation):
