@@ -348,7 +348,8 @@ def _speed(args) -> int:
     md = ("Status-field training step on random Gaussians (release reference: 7-8 s per iteration on an "
           "80 GB GPU)\n\n" + _markdown(["quantity", "value"], rows))
     print(md)
-    stem = f"speed-{args.gaussians}-{args.width}x{args.height}-{args.device.replace(':', '')}"
+    stem = (f"speed-{args.gaussians}-{args.width}x{args.height}-{args.device.replace(':', '')}"
+            + ("" if args.dynamic_fraction == 1.0 else f"-dynamic{args.dynamic_fraction:g}"))
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if not k.startswith("_")}
     for path in _write(args.out, stem, {"ablation": "speed", "settings": settings, **result,
                                         **_provenance(args.device)}, md):
