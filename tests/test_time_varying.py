@@ -375,3 +375,22 @@ def test_time_tv_and_entropy_terms_act_on_the_status_field(world, status_field):
     assert tv_reg < 0.8 * tv_plain and ent_reg < 0.8 * ent_plain
     with pytest.raises(ValueError, match="status_time_tv_weight"):
         _options(status_time_tv_weight=-1.0).check_time_varying()
+
+
+def test_speed_command_records_where_it_ran_and_rejects_bad_sizes(tmp_path, capsys):
+    import json
+
+    from benchmark.cli import main
+
+    args = ["ablate", "speed", "--gaussians", "300", "--width", "16", "--height", "12", "--iterations", "1",
+            "--quiet", "--out", str(tmp_path)]
+    assert main(args + ["--dynamic-fraction", "0.5"]) == 0
+    doc = json.loads((tmp_path / "speed-300-16x12-cpu-dynamic0.5.json").read_text())
+    assert doc["ablation"] == "speed" and doc["environment"]["device"] == "cpu"
+    assert "torch" in doc["packages"] and "commit" in doc["git"]
+    assert 100 < doc["dynamic_gaussians"] < 200
+    capsys.readouterr()
+    assert main(args + ["--dynamic-fraction", "2"]) == 2
+    assert "--dynamic-fraction" in capsys.readouterr().err
+    assert main(args[:2] + ["--gaussians", "0", "--quiet"]) == 2
+    assert "--gaussians" in capsys.readouterr().err

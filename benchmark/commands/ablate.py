@@ -60,6 +60,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import sys
+from typing import Sequence
 
 import numpy as np
 from pathlib import Path
@@ -338,44 +339,24 @@ def _states(args) -> int:
 def _speed(args) -> int:
     from methods.fields.time_varying import measure_status_speed
 
-    from ._common import check_device
-
-    check_device(args.device)
+    _check_timing_args(args, ("gaussians", "width", "height", "k", "iterations"))
+    if not 0.0 <= args.dynamic_fraction <= 1.0:
+        raise InputError(None, "--dynamic-fraction", f"must be in [0, 1], got {args.dynamic_fraction}")
     result = measure_status_speed(args.gaussians, args.width, args.height, num_states=args.k,
                                   dynamic_fraction=args.dynamic_fraction, iterations=args.iterations,
                                   device=args.device, operator=args.operator)
     rows = [[k, f"{v:.4f}" if isinstance(v, float) else str(v)] for k, v in result.items()]
     md = ("Status-field training step on random Gaussians (release reference: 7-8 s per iteration on an "
           "80 GB GPU)\n\n" + _markdown(["quantity", "value"], rows))
-    print(md)
-    stem = (f"speed-{args.gaussians}-{args.width}x{args.height}-{args.device.replace(':', '')}"
-            + ("" if args.dynamic_fraction == 1.0 else f"-dynamic{args.dynamic_fraction:g}"))
-    settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if not k.startswith("_")}
-    for path in _write(args.out, stem, {"ablation": "speed", "settings": settings, **result,
-                                        **_provenance(args.device)}, md):
-        print(path)
-    return 0
-
-
-def _provenance(device: str) -> dict:
-    """Where and with what a timing was taken: device (GPU name), package versions, git commit."""
-    from ..runner import device_description, git_state, package_versions
-
-    return {"environment": device_description(device), "packages": package_versions(), "git": git_state()}
+    suffix = "" if args.dynamic_fraction == 1.0 else f"-dynamic{args.dynamic_fraction:g}"
+    return _write_timing(args, "speed", suffix, result, md)
 
 
 def _query_speed(args) -> int:
     from methods.language_methods import measure_query_speed
-
-    from ._common import check_device
-
     from methods.specs._language import LanguageMethodConfig
 
-    check_device(args.device)
-    for name in ("gaussians", "width", "height", "frames", "queries", "feature_dim", "decode_chunk"):
-        value = getattr(args, name)
-        if value is not None and value < 1:
-            raise InputError(None, f"--{name.replace('_', '-')}", f"must be at least 1, got {value}")
+    _check_timing_args(args, ("gaussians", "width", "height", "frames", "queries", "feature_dim", "decode_chunk"))
     config = LanguageMethodConfig()
     if args.decode_chunk is not None:
         config.decode_chunk = config.decode_chunk_cuda = args.decode_chunk
@@ -387,12 +368,32 @@ def _query_speed(args) -> int:
     rows = [[k, f"{v:.4f}" if isinstance(v, float) else str(v)] for k, v in flat.items()]
     md = ("Time-agnostic query on random Gaussians: deform, render, decode, relevance, mask (paper: 5.24 FPS on "
           "an A100 at 960x536)\n\n" + _markdown(["quantity", "value"], rows))
+    suffix = "" if args.decode_chunk is None else f"-chunk{args.decode_chunk}"
+    return _write_timing(args, "query-speed", suffix, result, md)
+
+
+def _check_timing_args(args, names: Sequence[str]) -> None:
+    """The device exists and every size option in ``names`` (given or defaulted) is at least 1."""
+    from ._common import check_device
+
+    check_device(args.device)
+    for name in names:
+        value = getattr(args, name)
+        if value is not None and value < 1:
+            raise InputError(None, f"--{name.replace('_', '-')}", f"must be at least 1, got {value}")
+
+
+def _write_timing(args, kind: str, suffix: str, result: dict, md: str) -> int:
+    """Print ``md`` and write ``<kind>-<gaussians>-<W>x<H>-<device><suffix>.{json,md}`` with the settings and
+    where and with what the timing was taken (device and GPU name, package versions, git commit)."""
+    from ..runner import device_description, git_state, package_versions
+
     print(md)
-    stem = (f"query-speed-{args.gaussians}-{args.width}x{args.height}-{args.device.replace(':', '')}"
-            + ("" if args.decode_chunk is None else f"-chunk{args.decode_chunk}"))
+    stem = f"{kind}-{args.gaussians}-{args.width}x{args.height}-{args.device.replace(':', '')}{suffix}"
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if not k.startswith("_")}
-    for path in _write(args.out, stem, {"ablation": "query-speed", "settings": settings, **result,
-                                        **_provenance(args.device)}, md):
+    doc = {"ablation": kind, "settings": settings, **result, "environment": device_description(args.device),
+           "packages": package_versions(), "git": git_state()}
+    for path in _write(args.out, stem, doc, md):
         print(path)
     return 0
 

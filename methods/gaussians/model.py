@@ -15,7 +15,7 @@ All per-Gaussian state lives in ``params`` (leaf tensors the trainer optimises a
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import numpy as np
 import torch
@@ -170,6 +170,21 @@ def deformation_field_from_state(config: dict, weights: dict, time_resolution: i
     return field
 
 
+class DeformationOffsets(NamedTuple):
+    """The deformation field's output for the Gaussians of ``rows`` at one time."""
+
+    rows: Optional[torch.Tensor]
+    """(M,) indices of the deformed Gaussians; ``None``: all N, in order."""
+    position: torch.Tensor
+    """(M, 3) position offsets."""
+    scale: torch.Tensor
+    """(M, 3) log-scale offsets."""
+    rotation: torch.Tensor
+    """(M, 4) raw quaternion offsets."""
+    color: Optional[torch.Tensor]
+    """(M, 3) RGB offsets; ``None`` without a colour head (``DeformationConfig.deform_color``)."""
+
+
 class DeformableGaussians:
     """4D-GS: canonical :class:`GaussianModel` + :class:`DeformationField` evaluated at time t.
 
@@ -198,29 +213,27 @@ class DeformableGaussians:
         """
         return self.apply_offsets(self.offsets(t, skip_static))
 
-    def offsets(self, t: TimeLike, skip_static: bool = True) -> Optional[tuple]:
-        """The field's offsets at time ``t``: ``(rows, dx, ds, dq, dc)`` with ``rows`` (M,) the Gaussians they
-        belong to (``None``: all N) and (M, 3) position, (M, 3) log-scale, (M, 4) raw quaternion and (M, 3)
-        RGB offsets (``dc`` is ``None`` without a colour head); ``None`` when ``skip_static`` leaves no
-        dynamic Gaussian."""
+    def offsets(self, t: TimeLike, skip_static: bool = True) -> Optional[DeformationOffsets]:
+        """The field's :class:`DeformationOffsets` at time ``t`` (all Gaussians, or with ``skip_static`` those of
+        ``dynamic_mask``); ``None`` when ``skip_static`` leaves no dynamic Gaussian."""
         mask = self.dynamic_mask if skip_static else None
         means = self.gaussians.params["means"]
         if mask is None:
-            return (None, *self.field.forward_all(means, t))
+            return DeformationOffsets(None, *self.field.forward_all(means, t))
         if not bool(mask.any()):
             return None
         rows = mask.nonzero().squeeze(1)
-        return (rows, *self.field.forward_all(means[rows], t))
+        return DeformationOffsets(rows, *self.field.forward_all(means[rows], t))
 
-    def colors(self, camera_center: torch.Tensor, means: torch.Tensor, offsets: Optional[tuple]) -> torch.Tensor:
+    def colors(self, camera_center: torch.Tensor, means: torch.Tensor,
+               offsets: Optional[DeformationOffsets]) -> torch.Tensor:
         """(N, 3) RGB seen from ``camera_center`` with the Gaussians at ``means``, plus the colour offsets of
         :meth:`offsets` (when the field has a colour head)."""
         rgb = self.gaussians.colors(camera_center, means)
-        dc = None if offsets is None else offsets[4]
-        if dc is None:
+        if offsets is None or offsets.color is None:
             return rgb
-        rows = offsets[0]
-        return (rgb + dc if rows is None else rgb.index_add(0, rows, dc)).clamp_min(0.0)
+        dc = offsets.color
+        return (rgb + dc if offsets.rows is None else rgb.index_add(0, offsets.rows, dc)).clamp_min(0.0)
 
     def deform_with_colors(self, t: TimeLike, camera_center: torch.Tensor, skip_static: bool = True
                            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -229,12 +242,12 @@ class DeformableGaussians:
         means, quats, scales = self.apply_offsets(offsets)
         return means, quats, scales, self.colors(camera_center, means, offsets)
 
-    def apply_offsets(self, offsets: Optional[tuple]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def apply_offsets(self, offsets: Optional[DeformationOffsets]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Canonical Gaussians plus :meth:`offsets` -> ((N, 3) means, (N, 4) unit quats, (N, 3) scales)."""
         p = self.gaussians.params
         means, log_scales, quats = p["means"], p["log_scales"], p["quats"]
         if offsets is not None:
-            rows, dx, ds, dq = offsets[:4]
+            rows, dx, ds, dq, _ = offsets
             if rows is None:
                 means, log_scales, quats = means + dx, log_scales + ds, quats + dq
             else:

@@ -499,11 +499,11 @@ class Trainer:
             field_ = DeformationField(d, self.hexplane_bounds(model), self.time_resolution()).to(self.device)
         deformable = DeformableGaussians(model, field_)
         result.model = deformable
-        net_opt = torch.optim.Adam([
-            {"params": field_.mlp_parameters(), "lr": d.deformation_lr_init * self.extent, "name": "mlp"},
-            {"params": field_.grid_parameters(), "lr": d.grid_lr_init * self.extent, "name": "grid"},
-        ] + ([{"params": field_.color_parameters(), "lr": d.color_lr_init, "name": "color"}]
-             if field_.color_parameters() else []), lr=0.0, eps=c.gaussians.adam_eps)
+        groups = [{"params": field_.mlp_parameters(), "lr": d.deformation_lr_init * self.extent, "name": "mlp"},
+                  {"params": field_.grid_parameters(), "lr": d.grid_lr_init * self.extent, "name": "grid"}]
+        if field_.color_parameters():
+            groups.append({"params": field_.color_parameters(), "lr": d.color_lr_init, "name": "color"})
+        net_opt = torch.optim.Adam(groups, lr=0.0, eps=c.gaussians.adam_eps)
         if c.deformation_iterations > 0:
             sched = Schedule(c.gaussians, c.deformation_stage_scale(), densify_until=d.densify_until_iter,
                              opacity_resets=d.opacity_reset_interval is not None,
@@ -670,8 +670,8 @@ class Trainer:
 
 
 def motion_l1(offsets: tuple, px_per_unit: torch.Tensor, quats: torch.Tensor, d: DeformationConfig) -> torch.Tensor:
-    """Mean L1 size, over all N Gaussians, of the deformation ``offsets`` (``(rows, dx, ds, dq)`` of
-    :meth:`DeformableGaussians.offsets`) in units of the static tolerances: position offsets in pixels
+    """Mean L1 size, over all N Gaussians, of the motion in ``offsets`` (:class:`~methods.gaussians.model.DeformationOffsets`, or any
+    sequence starting ``(rows, dx, ds, dq)``) in units of the static tolerances: position offsets in pixels
     (``px_per_unit``: (N,) pixels per world unit) over ``static_pixel_tol``, log-scale offsets over
     ``static_scale_tol``, quaternion offsets over ``static_rotation_tol`` x the (N, 4) ``quats``' norm."""
     rows, dx, ds, dq = offsets[:4]  # the colour offset is not motion
