@@ -581,7 +581,18 @@ def test_recon_command_end_to_end(tmp_path):
     # the row names the run's --set overrides and where it trained
     (row,) = [line for line in summary.splitlines() if line.startswith(
         "| toy-dnerf [gaussians.sh_degree=1, deformation.hexplane.spatial_resolution=8] | cpu | 12x12 | 24 |")]
-    assert row.endswith("| - |")
+    cells = [c.strip() for c in row.split("|")]
+    assert cells[-3] == "-"  # no generator truth: no gain bound
+    assert cells[-2] == recon._commit_cell(report["git"])  # the commit that ran
+    # another seed is its own row, named by its seed
+    report["config"]["seed"] = 3
+    report["git"] = {"commit": "0123456789abcdef", "dirty": True}
+    (tmp_path / "seed3").mkdir()
+    (tmp_path / "seed3" / "report.json").write_text(json.dumps(report))
+    assert main(["recon", "--summarize", str(tmp_path)]) == 0
+    (row,) = [line for line in (tmp_path / "summary.md").read_text().splitlines()
+              if line.startswith("| toy-dnerf (seed 3) [gaussians.sh_degree=1")]
+    assert row.endswith("| - | 0123456+ |")
 
 
 def test_recon_scores_the_moving_parts_of_a_generated_scene(tmp_path):
@@ -602,9 +613,9 @@ def test_recon_scores_the_moving_parts_of_a_generated_scene(tmp_path):
     (row,) = [line for line in (tmp_path / "reports" / "summary.md").read_text().splitlines()
               if line.startswith("| smoke [")]  # the label names the run's --set overrides
     cells = [c.strip() for c in row.split("|")]
-    assert " %, " in cells[-4] and " / " in cells[-3]  # moving parts; elsewhere
+    assert " %, " in cells[-5] and " / " in cells[-4]  # moving parts; elsewhere
     m3 = report["models"]["3dgs"]["moving"]
-    assert float(cells[-2]) == pytest.approx(recon.moving_gain_bound(m3), abs=0.006)
+    assert float(cells[-3]) == pytest.approx(recon.moving_gain_bound(m3), abs=0.006)
 
 
 def test_moving_gain_bound_counts_what_perfect_moving_parts_would_gain():

@@ -433,12 +433,14 @@ def summarize(folder: Path) -> Path:
              "and over all other pixels (elsewhere). *Gain if moving parts perfect*: the pooled PSNR gain over "
              "3D-GS of a model that renders the moving parts exactly and everything else as 3D-GS does, "
              "10 log10(MSE_3D / ((1 - f) MSE_3D,elsewhere)) with f the moving pixel fraction: how much of a gain "
-             "the motion alone can explain (more needs a better fit of what does not move).", "",
+             "the motion alone can explain (more needs a better fit of what does not move). "
+             "git = the commit that ran (+: with uncommitted changes); runs of different commits can differ "
+             "by float-order changes alone (seeds of one commit: see the README).", "",
              "| scene | device | size | iterations | 4D-GS PSNR | 3D-GS PSNR | gain dB | 4D-GS SSIM | 3D-GS SSIM "
              "| 4D-GS CPU s (wall) | 3D-GS CPU s (wall) | Gaussians 4D / 3D (cap) | render FPS 4D / 3D "
              "| peak MiB 4D / 3D | dynamic Gaussians | moving parts: pixels %, PSNR 4D / 3D "
-             "| elsewhere PSNR 4D / 3D | gain if moving parts perfect dB |",
-             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---|---|---|---|---|---:|"]
+             "| elsewhere PSNR 4D / 3D | gain if moving parts perfect dB | git |",
+             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---|---|---|---|---|---:|---|"]
     for path in reports:
         r = read_json(path)
         m = r.get("models", {})
@@ -448,7 +450,9 @@ def summarize(folder: Path) -> Path:
         dyn = g4.get("dynamic_gaussians")
         span = r.get("scene", {}).get("time_range")
         overrides = r["overrides"] if "overrides" in r else _overrides(r.get("command", ""))
-        name = (r["scene"]["name"] + ("" if not span else f" (frames {span[0]}-{span[1]})")
+        seed = r.get("config", {}).get("seed", 0)
+        parts = ([f"frames {span[0]}-{span[1]}"] if span else []) + ([f"seed {seed}"] if seed else [])
+        name = (r["scene"]["name"] + ("" if not parts else f" ({', '.join(parts)})")
                 + ("" if not overrides else f" [{', '.join(overrides)}]"))
         env = r.get("environment", {})
         device = (env.get("gpu") or env.get("device", "?")) if str(env.get("device", "")).startswith("cuda") else "cpu"
@@ -461,13 +465,20 @@ def summarize(folder: Path) -> Path:
             f"| {num(g4.get('render_fps'), 1)} / {num(g3.get('render_fps'), 1)} "
             f"| {num(g4.get('peak_rss_mib'), 0)} / {num(g3.get('peak_rss_mib'), 0)} "
             f"| {'-' if dyn is None else dyn} | {_moving_cell(g4, g3)} | {_scores_cell(g4, g3, 'static_psnr')} "
-            f"| {num(moving_gain_bound(g3.get('moving')))} |")
+            f"| {num(moving_gain_bound(g3.get('moving')))} | {_commit_cell(r.get('git'))} |")
     lines += ["", "Commands:", ""]
     for path in reports:
         lines.append(f"- `{read_json(path).get('command', '?')}`")
     out = Path(folder) / "summary.md"
     write_text(out, "\n".join(lines) + "\n")
     return out
+
+
+def _commit_cell(git: Optional[dict]) -> str:
+    """Short commit of a report's ``git`` record, ``+`` when the tree had uncommitted changes."""
+    if not git or not git.get("commit"):
+        return "-"
+    return str(git["commit"])[:7] + ("+" if git.get("dirty") else "")
 
 
 def _overrides(command: str) -> list[str]:
