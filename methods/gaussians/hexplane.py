@@ -153,14 +153,14 @@ class DeformationField(nn.Module):
         ``deform_color`` is off), from one evaluation."""
         n = xyz.shape[0]
         h = self.trunk(self.hexplane(xyz, t))
-        # In place: neither Linear's backward needs its output, and each (N, 3W) temporary costs
-        # milliseconds on the CPU.
+        # ReLU in place on the heads' hidden layer: a Linear's backward does not need its output, and each
+        # (N, heads x W) temporary costs milliseconds on the CPU.
         hidden = torch.relu_(self.heads_hidden(torch.relu(h)))
         if not self.head_names:
             out = {}
         else:
-            # The heads' output layers as one block-diagonal Linear(len(heads) W, sum of head dims): the same
-            # three independent maps, one matmul, and no split and re-join of the hidden (N, 3W) tensor.
+            # The heads' output layers as one block-diagonal Linear(heads x W -> sum of head dims): the same
+            # independent maps, one matmul, and no split and re-join of the hidden tensor.
             heads = [self.heads_out[name] for name in self.head_names]
             joined = F.linear(hidden, torch.block_diag(*(head.weight for head in heads)),
                               torch.cat([head.bias for head in heads]))
