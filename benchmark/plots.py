@@ -1,8 +1,8 @@
 """Charts from results files (matplotlib, Agg backend; PNG and PDF side by side).
 
-* :func:`pareto`: accuracy against query FPS and against fit time (log x), mean over scenes and
-  seeds with the seed std as error bars, and the Pareto front (no method both more accurate and
-  faster) drawn as a step line. One figure per (dataset, track).
+* :func:`pareto`: accuracy against query FPS and against fit time (log x), mean over the scenes every
+  method ran and over seeds with the seed std as error bars, and the Pareto front (no method both
+  more accurate and faster) drawn as a step line. One figure per (dataset, track).
 * :func:`timeline`: one time-sensitive query over time: the method's raw score ``s_t``, the smoothed
   score, the decision threshold ``tau`` and the ground-truth intervals shaded (the paper's Figure 4
   analogue), read from the per-frame records a results file keeps.
@@ -11,12 +11,16 @@
 from __future__ import annotations
 
 import math
+import textwrap
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import TYPE_CHECKING, Optional, Sequence
 
 import numpy as np
 
 from .errors import InputError
+if TYPE_CHECKING:  # pragma: no cover
+    import pandas as pd
+
 from .results import ACCURACY_METRICS, MEAN_SCENE, comparable_runs, find_results, load_results, results_path, runs_table, seed_summary
 
 
@@ -73,22 +77,94 @@ def pareto_front(x: Sequence[float], y: Sequence[float], *, x_higher_better: boo
     return sorted(front, key=lambda i: float(x[i]))
 
 
+def chart_points(runs: "pd.DataFrame", kind: str) -> tuple["pd.DataFrame", list[str], bool]:
+    """Per-method points of one chart row: ``(means, scenes, common)``.
+
+    ``runs`` are the runs of one (dataset, track) (:func:`~benchmark.results.runs_table`); ``kind`` is
+    ``"agnostic"`` or ``"sensitive"``. Only runs with that kind's metric count, and only on the scenes
+    that *every* such method ran: a mean over seven scenes beside a mean over four would compare scene
+    sets, not methods. ``means`` are the :data:`~benchmark.results.MEAN_SCENE` rows of
+    :func:`~benchmark.results.seed_summary` over those scenes (one per method, sorted by name);
+    ``scenes`` the scene names; ``common`` is False when no scene is common to all methods, and each
+    method is then averaged over its own scenes (the chart says so).
+    """
+    metric = ACCURACY_METRICS[kind][0]
+    have = runs[runs[metric].notna()]
+    scene_sets = [set(g["scene"]) for _, g in have.groupby("method")]
+    scenes = set.intersection(*scene_sets) if scene_sets else set()
+    common = bool(scenes)
+    if common:
+        have = have[have["scene"].isin(scenes)]
+    else:
+        scenes = set(have["scene"])
+    summary = seed_summary(have)
+    means = summary[summary["scene"] == MEAN_SCENE].sort_values("method").reset_index(drop=True)
+    return means, sorted(scenes), common
+
+
+def label_groups(x: Sequence[float], y: Sequence[float], *, x_log: bool, tolerance: float = 0.06,
+                 spans: Optional[tuple[float, float]] = None) -> list[list[int]]:
+    """Indices of points that sit on top of each other, grouped (each group gets one stacked label).
+
+    Positions are compared as fractions of each axis' span: ``spans`` = (x span, y span) of the
+    drawn axes (x in decades when ``x_log``), by default the data's own. Two points closer than
+    ``tolerance`` on both axes share a group, transitively. Non-finite points are left out. Members
+    are listed top to bottom (highest y first, ties by index) so that a stacked label reads in the
+    order the points are drawn; groups are in order of their first index.
+    """
+    xs = np.asarray(x, dtype=float)
+    ys = np.asarray(y, dtype=float)
+    ok = np.isfinite(xs) & np.isfinite(ys) & ((xs > 0) if x_log else True)
+    idx = [int(i) for i in np.flatnonzero(ok)]
+    if not idx:
+        return []
+    px = np.log10(xs[idx]) if x_log else xs[idx]
+    py = ys[idx]
+    span_x, span_y = spans if spans is not None else (float(np.ptp(px)), float(np.ptp(py)))
+    span_x, span_y = max(span_x, 1e-12), max(span_y, 1e-12)
+    parent = list(range(len(idx)))
+
+    def root(a: int) -> int:
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    for a in range(len(idx)):
+        for b in range(a + 1, len(idx)):
+            if abs(px[a] - px[b]) / span_x < tolerance and abs(py[a] - py[b]) / span_y < tolerance:
+                parent[root(b)] = root(a)
+    groups: dict[int, list[int]] = {}
+    for a in range(len(idx)):
+        groups.setdefault(root(a), []).append(idx[a])
+    ordered = [sorted(g, key=lambda i: (-ys[i], i)) for g in groups.values()]
+    return sorted(ordered, key=min)
+
+
 def pareto(results_dir: str | Path = "results", reports_dir: str | Path = "reports") -> list[Path]:
-    """Write ``reports/pareto_<dataset>_<track>.{png,pdf}``; returns the files written."""
+    """Write ``reports/pareto_<dataset>_<track>.{png,pdf}``; returns the files written.
+
+    Each row of panels compares the methods on the scenes all of them ran (:func:`chart_points`),
+    named in the row's title line; points that coincide share one stacked label."""
     plt = _pyplot()
     runs = comparable_runs(runs_table(find_results(results_dir), relative_to=Path(results_dir)))[0]
     if not len(runs):
         raise InputError(results_dir, None, "no results files to plot (run bench4d run-all first)")
-    summary = seed_summary(runs)
     written: list[Path] = []
-    for (dataset, track), group in summary.groupby(["dataset", "track"], sort=True):
-        means = group[group["scene"] == MEAN_SCENE].sort_values("method")
-        kinds = [k for k in ("agnostic", "sensitive") if means[f"{ACCURACY_METRICS[k][0]}_mean"].notna().any()]
-        fig, axes = plt.subplots(len(kinds), 2, figsize=(10, 4 * len(kinds)), squeeze=False, layout="constrained")
+    for (dataset, track), group_runs in runs.groupby(["dataset", "track"], sort=True):
+        kinds = [k for k in ("agnostic", "sensitive") if group_runs[ACCURACY_METRICS[k][0]].notna().any()]
+        fig, axes = plt.subplots(len(kinds), 2, figsize=(10, 4.4 * len(kinds)), squeeze=False, layout="constrained")
+        palette = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+        colour = {m: palette[i % len(palette)] for i, m in enumerate(sorted(group_runs["method"].unique()))}
         for row, kind in enumerate(kinds):
             metric = ACCURACY_METRICS[kind][0]
+            means, scenes, common = chart_points(group_runs, kind)
+            names = means["method"].tolist()
             y = means[f"{metric}_mean"].to_numpy(float)
             yerr = np.nan_to_num(means[f"{metric}_std"].to_numpy(float))
+            where = textwrap.fill(f"mean over the {len(scenes)} scene(s) every method ran: {', '.join(scenes)}"
+                                  if common else "no scene common to all methods: each method's mean over its "
+                                                 "own scenes", width=64)
             for col, (xcol, label, higher) in enumerate(
                     ((f"fps_{kind}", f"query FPS ({kind}) →", True), ("fit_seconds", "← fit time (s)", False))):
                 ax = axes[row][col]
@@ -97,9 +173,7 @@ def pareto(results_dir: str | Path = "results", reports_dir: str | Path = "repor
                 ok = np.isfinite(x) & np.isfinite(y) & (x > 0)
                 for i in np.flatnonzero(ok):
                     ax.errorbar(x[i], y[i], xerr=[[min(xerr[i], x[i] * 0.999)], [xerr[i]]], yerr=yerr[i],
-                                fmt="o", capsize=3, label=means["method"].iloc[i])
-                    ax.annotate(means["method"].iloc[i], (x[i], y[i]), textcoords="offset points", xytext=(5, 5),
-                                fontsize=8)
+                                fmt="o", capsize=3, label=names[i], color=colour[names[i]])
                 front = pareto_front(np.where(ok, x, np.nan), y, x_higher_better=higher)
                 if len(front) >= 1:
                     fx, fy = x[front], y[front]
@@ -109,14 +183,25 @@ def pareto(results_dir: str | Path = "results", reports_dir: str | Path = "repor
                 if ok.any():  # at least a decade each side of the data, labels on powers of ten only
                     lo, hi = float(np.min(x[ok] - xerr[ok] * 0.999)), float(np.max(x[ok] + xerr[ok]))
                     ax.set_xlim(10 ** np.floor(np.log10(lo) - 0.5), 10 ** np.ceil(np.log10(hi) + 0.5))
+                ax.margins(y=0.12)
+                # one label per spot, placed after the limits are final: methods sharing a fit coincide
+                x_lo, x_hi = ax.get_xlim()
+                y_lo, y_hi = ax.get_ylim()
+                for members in label_groups(np.where(ok, x, np.nan), y, x_log=True,
+                                            spans=(math.log10(x_hi / x_lo), y_hi - y_lo)):
+                    right = max(members, key=lambda i: x[i])  # the label starts right of every member
+                    middle = (max(y[i] for i in members) + min(y[i] for i in members)) / 2
+                    ax.annotate("\n".join(names[i] for i in members), (x[right], middle),
+                                textcoords="offset points", xytext=(7, 0), fontsize=8, va="center")
                 ax.xaxis.set_minor_formatter(NullFormatter())
                 ax.set_xlabel(label)
                 ax.set_ylabel(f"{metric} (%) ↑")
-                ax.set_title(f"{dataset} / {track}: {metric} vs {'query speed' if col == 0 else 'fit time'}")
+                ax.set_title(f"{dataset} / {track}: {metric} vs {'query speed' if col == 0 else 'fit time'}\n"
+                             f"{where}", fontsize=9)
                 ax.grid(True, which="both", alpha=0.3)
                 if col == 0:
                     ax.legend(fontsize=7, loc="best")
-        fig.suptitle("mean over scenes; error bars: std over seeds", fontsize=9)
+        fig.suptitle("error bars: std over seeds (seeds that ran all the scenes named)", fontsize=9)
         written += _save(fig, Path(reports_dir) / f"pareto_{dataset}_{track}")
         plt.close(fig)
     return written

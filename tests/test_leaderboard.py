@@ -12,7 +12,7 @@ import pytest
 
 from benchmark.errors import InputError
 from benchmark.leaderboard import build_leaderboard
-from benchmark.plots import pareto, pareto_front, timeline
+from benchmark.plots import chart_points, label_groups, pareto, pareto_front, timeline
 from benchmark.results import MEAN_SCENE, find_results, load_results, results_path, runs_table, seed_summary, write_results
 
 # (method, scene, seed) -> mIoU; Acc = mIoU - 10; fps and fit time per method
@@ -180,6 +180,46 @@ def test_charts_are_written_as_png_and_pdf(tmp_path):
         timeline("beta", "s1", "no such query", results_dir=tmp_path / "results", reports_dir=tmp_path / "reports")
     with pytest.raises(InputError, match="no results file"):
         timeline("gamma", "s1", "cracked cookie", results_dir=tmp_path / "results", reports_dir=tmp_path / "reports")
+
+
+def test_chart_compares_methods_on_the_scenes_all_of_them_ran(tmp_path):
+    _write_all(tmp_path / "results", 0)
+    # gamma ran s1 only: the chart's means for everyone are then over s1, not over each one's own scenes
+    for seed in range(2):
+        write_results(results_path(tmp_path / "results", "synthetic", "s1", "gamma", "oracle", seed),
+                      _doc("gamma", "s1", seed, 30.0 + seed))
+    runs = runs_table(find_results(tmp_path / "results"))
+    means, scenes, common = chart_points(runs, "agnostic")
+    assert common and scenes == ["s1"]
+    by = means.set_index("method")
+    assert by.loc["alpha", "mIoU_mean"] == pytest.approx(52.0)  # s1 seeds 50, 52, 54 (s2 would give 56)
+    assert by.loc["beta", "mIoU_mean"] == pytest.approx(71.0)
+    assert by.loc["gamma", "mIoU_mean"] == pytest.approx(30.5)
+    assert by.loc["gamma", "seeds"] == 2
+    # without gamma the two methods share both scenes: the dataset means of the leaderboard
+    means, scenes, common = chart_points(runs[runs["method"] != "gamma"], "agnostic")
+    assert scenes == ["s1", "s2"]
+    assert means.set_index("method").loc["alpha", "mIoU_mean"] == pytest.approx(56.0)
+    # no common scene: each method over its own, and the chart says so
+    only = runs[((runs["method"] == "alpha") & (runs["scene"] == "s2")) | (runs["method"] == "gamma")]
+    means, scenes, common = chart_points(only, "agnostic")
+    assert not common and scenes == ["s1", "s2"]
+    assert means.set_index("method").loc["alpha", "mIoU_mean"] == pytest.approx(60.0)
+
+
+def test_coinciding_chart_points_share_one_label():
+    # three methods sharing one field land on one spot; a fourth is clearly apart, one is not plotted
+    fps = [1.30, 1.58, 1.37, 3858.0, math.nan]
+    miou = [47.54, 47.54, 47.54, 64.66, 50.0]
+    assert label_groups(fps, miou, x_log=True) == [[0, 1, 2], [3]]
+    assert label_groups([1.3, 1.3], [45.6, 47.5], x_log=True) == [[0], [1]]  # same speed, different accuracy
+    # on drawn axes spanning 35 points the two share a stacked label, listed top to bottom
+    assert label_groups([1.3, 1.3, 1.3], [45.6, 47.5, 47.5], x_log=True, spans=(2.0, 35.0)) == [[1, 2, 0]]
+    assert label_groups([10.0, 20.0, 1000.0], [50.0, 50.0, 60.0], x_log=False) == [[0, 1], [2]]
+    assert label_groups([], [], x_log=True) == []
+    # on the drawn axes (2 decades, 5 points of mIoU) 0.80 and 0.99 FPS at one mIoU are one spot
+    assert label_groups([0.80, 0.99, 1.03], [59.4, 59.4, 54.7], x_log=True) == [[0], [1], [2]]
+    assert label_groups([0.80, 0.99, 1.03], [59.4, 59.4, 54.7], x_log=True, spans=(2.0, 5.0)) == [[0, 1], [2]]
 
 
 def test_fit_time_charges_shared_stages_a_run_reused():

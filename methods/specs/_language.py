@@ -114,8 +114,12 @@ class LanguageMethodConfig:
     """``"resolution"`` (default): the smoothing and majority windows scale with the rendered image from
     their sizes at the paper's 960x536 (:attr:`methods.fields.relevance.RelevanceConfig.kernel_scaling`);
     ``"fixed"``: the pixel sizes as given (the release's code)."""
-    decode_chunk: int = 65536
-    """Pixels decoded at once (bounds query memory at any image size; no effect on results)."""
+    decode_chunk: int = 2048
+    """Pixels decoded at once on the CPU (bounds query memory at any image size; no effect on results).
+    Small enough that the decoder's [chunk, 256] temporaries (2 MiB) stay near the cache: decoding the
+    3 levels of a 128x170 frame (384-d features; best / median of 4 on an idle 2-core machine) took
+    399 / 429 ms at 65 536 pixels a chunk, 287 / 293 at 8 192 and 241 / 256 at 2 048 on one thread,
+    250 / 341, 169 / 240 and 152 / 158 ms on two; 1 024 and 512 gained nothing more."""
     decode_chunk_cuda: int = 1 << 20
     """Pixels decoded at once on a CUDA device: fewer, larger matrix products. Measured on an H100 at
     536x960 with 200k Gaussians (``bench4d ablate query-speed --device cuda``): 65 536 gives 46.7 FPS
