@@ -403,3 +403,24 @@ def test_dnerf_oracle_runs_on_alpha_at_reduced_scale_and_scores_at_annotation_si
     small[1, 2] = True
     big = to_size(small, (4, 6))
     assert big.sum() == 4 and big[2:, 4:].all()
+
+
+def test_progress_bars_update_rarely_when_writing_to_a_log_file(tmp_path):
+    import io
+
+    from methods.api import LOG_FILE_PROGRESS_SECONDS, Progress, progress_bar
+
+    log = io.StringIO()  # not a terminal: a batch job's log
+    bar = progress_bar(range(1000), stream=log, desc="fit")
+    assert bar.mininterval == LOG_FILE_PROGRESS_SECONDS
+    assert sum(1 for _ in bar) == 1000
+    bar.close()
+    assert log.getvalue().count("fit:") <= 3  # first draw, maybe one update, the close
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    assert progress_bar(range(3), stream=Terminal()).mininterval < 1.0
+    assert progress_bar(range(3), stream=log, mininterval=0.5).mininterval == 0.5  # a caller's choice wins
+    assert Progress(True)(range(3)).disable  # --quiet still silences it

@@ -276,9 +276,9 @@ def _delta_sim(args) -> int:
 
 
 def _tqdm(iterable=None, **kwargs):
-    from tqdm.auto import tqdm
+    from methods.api import progress_bar
 
-    return tqdm(iterable, leave=False, file=sys.stderr, dynamic_ncols=True, **kwargs)
+    return progress_bar(iterable, leave=False, **kwargs)
 
 
 # -- K ablation ----------------------------------------------------------------------------------------
