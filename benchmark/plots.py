@@ -102,7 +102,7 @@ def chart_points(runs: "pd.DataFrame", kind: str) -> tuple["pd.DataFrame", list[
     return means, sorted(scenes), common
 
 
-def label_groups(x: Sequence[float], y: Sequence[float], *, x_log: bool, tolerance: float = 0.06,
+def label_groups(x: Sequence[float], y: Sequence[float], *, x_log: bool, tolerance: float = 0.08,
                  spans: Optional[tuple[float, float]] = None) -> list[list[int]]:
     """Indices of points that sit on top of each other, grouped (each group gets one stacked label).
 

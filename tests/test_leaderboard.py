@@ -213,6 +213,8 @@ def test_coinciding_chart_points_share_one_label():
     miou = [47.54, 47.54, 47.54, 64.66, 50.0]
     assert label_groups(fps, miou, x_log=True) == [[0, 1, 2], [3]]
     assert label_groups([1.3, 1.3], [45.6, 47.5], x_log=True) == [[0], [1]]  # same speed, different accuracy
+    # a 3-line label centred on 43.8 would run into one at 41.9 on axes spanning 29 points: one stack
+    assert label_groups([1.6, 1.6, 1.9], [43.8, 43.8, 41.9], x_log=True, spans=(6.0, 29.0)) == [[0, 1, 2]]
     # on drawn axes spanning 35 points the two share a stacked label, listed top to bottom
     assert label_groups([1.3, 1.3, 1.3], [45.6, 47.5, 47.5], x_log=True, spans=(2.0, 35.0)) == [[1, 2, 0]]
     assert label_groups([10.0, 20.0, 1000.0], [50.0, 50.0, 60.0], x_log=False) == [[0, 1], [2]]
