@@ -18,10 +18,10 @@ from typing import TYPE_CHECKING, Optional, Sequence
 import numpy as np
 
 from .errors import InputError
+from .results import ACCURACY_METRICS, MEAN_SCENE, comparable_runs, find_results, load_results, results_path, runs_table, seed_summary
+
 if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd
-
-from .results import ACCURACY_METRICS, MEAN_SCENE, comparable_runs, find_results, load_results, results_path, runs_table, seed_summary
 
 
 def _pyplot():
