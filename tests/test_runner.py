@@ -405,7 +405,7 @@ def test_dnerf_oracle_runs_on_alpha_at_reduced_scale_and_scores_at_annotation_si
     assert big.sum() == 4 and big[2:, 4:].all()
 
 
-def test_progress_bars_update_rarely_when_writing_to_a_log_file(tmp_path):
+def test_progress_bars_update_rarely_when_writing_to_a_log_file():
     import io
 
     from methods.api import LOG_FILE_PROGRESS_SECONDS, Progress, progress_bar
@@ -421,6 +421,10 @@ def test_progress_bars_update_rarely_when_writing_to_a_log_file(tmp_path):
         def isatty(self) -> bool:
             return True
 
-    assert progress_bar(range(3), stream=Terminal()).mininterval < 1.0
-    assert progress_bar(range(3), stream=log, mininterval=0.5).mininterval == 0.5  # a caller's choice wins
-    assert Progress(True)(range(3)).disable  # --quiet still silences it
+    bars = [progress_bar(range(3), stream=Terminal()), progress_bar(range(3), stream=log, mininterval=0.5),
+            Progress(True)(range(3))]
+    assert bars[0].mininterval < 1.0
+    assert bars[1].mininterval == 0.5  # a caller's choice wins
+    assert bars[2].disable  # --quiet still silences it
+    for open_bar in bars:
+        open_bar.close()
