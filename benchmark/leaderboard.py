@@ -105,6 +105,28 @@ def _table(summary: pd.DataFrame, kind: str) -> Optional[list[str]]:
     return lines
 
 
+def _absent_note(summary: pd.DataFrame, kind: str) -> list[str]:
+    """Methods that ran scenes of a (dataset, track) table yet have no ``kind`` number on any of them.
+
+    A method that declines a query kind (e.g. no time-varying head on a scene without state
+    captions) lists those queries in its results file's ``unanswered_queries``; its runs are still
+    there, so the table says so rather than drop the method silently.
+    """
+    primary = ACCURACY_METRICS[kind][0]
+    scenes = summary[summary["scene"] != MEAN_SCENE]
+    in_table = scenes[scenes[f"{primary}_mean"].notna()]
+    table_scenes = set(in_table["scene"])
+    absent = []
+    for method in sorted(set(scenes["method"]) - set(in_table["method"])):
+        ran = sorted(set(scenes[scenes["method"] == method]["scene"]) & table_scenes)
+        if ran:
+            absent.append(f"{method} ({', '.join(ran)})")
+    if not absent:
+        return []
+    return ["", f"_Not in this table: {'; '.join(absent)}: ran these scenes but answered none of their "
+                f"{KIND_TITLE[kind].lower()} (each results file lists them under `unanswered_queries`)._"]
+
+
 def _paper_tables(dataset: str) -> list[str]:
     """Markdown of the paper's own numbers on ``dataset`` (empty if the paper has none)."""
     from methods.registry import paper_numbers
@@ -173,7 +195,7 @@ def render_markdown(runs: pd.DataFrame, results_dir_label: str) -> str:
             lines = _table(group, kind)
             if lines is None:
                 continue
-            out += [f"### {KIND_TITLE[kind]}", "", *lines, ""]
+            out += [f"### {KIND_TITLE[kind]}", "", *lines, *_absent_note(group, kind), ""]
         paper = _paper_tables(dataset)
         if paper:
             out += paper + [""]

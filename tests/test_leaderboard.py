@@ -18,8 +18,8 @@ from benchmark.results import MEAN_SCENE, find_results, load_results, results_pa
 # (method, scene, seed) -> mIoU; Acc = mIoU - 10; fps and fit time per method
 MIOU = {("alpha", "s1"): [50.0, 52.0, 54.0], ("alpha", "s2"): [60.0, 60.0, 60.0],
         ("beta", "s1"): [70.0, 71.0, 72.0], ("beta", "s2"): [40.0, 44.0, 48.0]}
-FPS = {"alpha": 100.0, "beta": 2.0, "gamma": 1.0, "delta": 1.0, "epsilon": 1.0}
-FIT = {"alpha": 0.5, "beta": 300.0, "gamma": 10.0, "delta": 10.0, "epsilon": 10.0}
+FPS = {"alpha": 100.0, "beta": 2.0, "gamma": 1.0, "delta": 1.0, "epsilon": 1.0, "zeta": 1.0}
+FIT = {"alpha": 0.5, "beta": 300.0, "gamma": 10.0, "delta": 10.0, "epsilon": 10.0, "zeta": 10.0}
 
 
 def _doc(method: str, scene: str, seed: int, miou: float) -> dict:
@@ -234,3 +234,21 @@ def test_fit_time_charges_shared_stages_a_run_reused():
     reused["fit"]["info"]["time_varying"] = {"seconds": 100.0}
     assert fit_seconds_with_shared(reused) == pytest.approx(1000.0)
     assert fit_seconds_with_shared({"timing": {"fit_seconds": 3.5}, "fit": {"key": "k"}}) == pytest.approx(3.5)
+
+
+def test_a_method_that_declines_a_query_kind_is_named_under_that_table(tmp_path):
+    root = tmp_path / "results"
+    _write_all(root, 0)
+    # zeta answers the time-agnostic queries of s1 but leaves its time-sensitive one unanswered
+    doc = _doc("zeta", "s1", 0, 65.0)
+    doc["metrics"].update({"Acc": None, "vIoU": None, "sensitive_queries": 0})
+    doc["unanswered_queries"] = ["cracked cookie"]
+    write_results(results_path(root, "synthetic", "s1", "zeta", "oracle", 0), doc)
+    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
+    md = (tmp_path / "lb.md").read_text()
+    agnostic = md.split("### Time-agnostic queries")[1].split("###")[0]
+    sensitive = md.split("### Time-sensitive queries")[1].split("##")[0]
+    assert any(line.startswith("| zeta |") for line in agnostic.splitlines())
+    assert not any(line.startswith("| zeta |") for line in sensitive.splitlines())
+    assert "_Not in this table: zeta (s1): ran these scenes but answered none" in sensitive
+    assert "Not in this table" not in agnostic  # every method that ran has a time-agnostic number
