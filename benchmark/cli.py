@@ -28,6 +28,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "ablate": ("ablate", "ablations of the time-varying field: delta-sim (caption prompts), states (K), speed"),
 }
 
+RECORDING_COMMANDS = frozenset({"eval", "run-all", "recon", "ablate", "demo"})
+"""Commands whose outputs record the git state of the code that produced them."""
+
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -54,6 +57,10 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "_run", None):
         parser.print_help()
         return 2
+    if args.command in RECORDING_COMMANDS:
+        from .runner import git_state
+
+        git_state()  # records name the commit a command started on, however long it runs
     try:
         return int(args._run(args) or 0)
     except InputError as err:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import functools
 import hashlib
 import json
 import os
@@ -209,7 +210,14 @@ def package_versions(names: Sequence[str] = PACKAGES) -> dict[str, str]:
 
 
 def git_state() -> dict[str, Any]:
-    """``{"commit", "dirty"}`` of the checkout holding this code (``None`` outside a git checkout)."""
+    """``{"commit", "dirty"}`` of the checkout holding this code (``None`` outside a git checkout), as it
+    was at this process's first call: a run of hours records the code it started with, not a commit
+    made, or a file edited, while it ran (``bench4d`` calls this once at startup)."""
+    return dict(_git_state_at_first_call())
+
+
+@functools.lru_cache(maxsize=1)
+def _git_state_at_first_call() -> dict[str, Any]:
     root = Path(__file__).resolve().parents[1]
     try:
         commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
@@ -261,6 +269,14 @@ def seed_everything(seed: int) -> None:
 
 # -- fitting with a cache -----------------------------------------------------------------------------
 def _file_hash(paths: Sequence[Path]) -> str:
+    """Short hash of the files ``paths`` (names relative to the checkout), read once per process: the
+    code a process runs is the code it imported, so a file edited while a long ``run-all`` goes on
+    neither moves the keys of its later fits nor makes it refit what it has just cached."""
+    return _file_hash_once(tuple(Path(p) for p in paths))
+
+
+@functools.lru_cache(maxsize=None)
+def _file_hash_once(paths: tuple[Path, ...]) -> str:
     digest = hashlib.sha256()
     root = Path(__file__).resolve().parents[1]
     for path in paths:
@@ -452,6 +468,7 @@ def evaluate(options: EvalOptions) -> RunOutcome:
         raise InputError(None, "track", f"method {spec.name!r} runs on tracks {list(spec.tracks)}, not {options.track!r}")
     config = spec.make_config(options.method_options)
     wall_start = time.perf_counter()
+    git_state()  # the checkout as the run starts (a no-op after the process's first call)
 
     root = resolve_scene(options.scene, Path(options.cache_dir), size=options.preset_size, log=progress.log)
     scene = load_scene(root) if options.scale is None else load_scene(root, scale=options.scale)

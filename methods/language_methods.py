@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import abc
 import dataclasses
+import functools
 import hashlib
 import json
 import time
@@ -87,7 +88,13 @@ FIELD_FIT_VERSION = "1"
 
 
 def source_hash(paths: Sequence[Path]) -> str:
-    """Short hash of the content of ``paths`` (missing files hash as absent)."""
+    """Short hash of the content of ``paths`` (missing files hash as absent), read once per process (see
+    :func:`benchmark.runner._file_hash`: an edit made while a run goes on must not move its cache keys)."""
+    return _source_hash_once(tuple(Path(p) for p in paths))
+
+
+@functools.lru_cache(maxsize=None)
+def _source_hash_once(paths: tuple[Path, ...]) -> str:
     digest = hashlib.sha256()
     for path in paths:
         digest.update(path.name.encode())
@@ -230,14 +237,12 @@ def fit_geometry(scene: Scene, kind: str, config: LanguageMethodConfig, *, seed:
             progress.log(f"geometry: cached {kind} fit {path.name}")
             return GeometryFit(FrozenGeometry.from_state_dict(saved["geometry"], device), key,
                                json.loads(saved["info"]), True)
-    import functools
-
     from methods.gaussians.rasterize import rasterize
     from methods.gaussians.train import Trainer
 
     recon = recon_config(config, seed)
     trainer = Trainer(scene, recon, device=device,
-                      rasterize_fn=functools.partial(rasterize, backend=config.render_backend))
+                      rasterize_fn=functools.partial(rasterize, backend=config.render_backend), progress=progress)
     progress.log(f"geometry: fitting {kind} on {len(trainer.views)} training views (cap {trainer.cap} Gaussians)")
     start = time.perf_counter()
     result = trainer.fit_3dgs() if kind == "3dgs" else trainer.fit_4dgs()

@@ -667,3 +667,15 @@ def test_recon_command_rejects_bad_input(tmp_path, capsys):
                  "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert "no_such_field" in err and "sh_degree" in err
+
+
+def test_each_stage_reports_its_iterations_through_the_progress_wrapper(moving_scene):
+    bars: list[tuple[str, int, int]] = []
+
+    def progress(iterable, desc=None, total=None):
+        steps = list(iterable)
+        bars.append((desc, total, len(steps)))
+        return steps
+
+    Trainer(moving_scene, small_recon_config(5, 7), rasterize_fn=RAST, progress=progress).fit_4dgs()
+    assert bars == [("geometry (static)", 5, 5), ("geometry (deformation)", 7, 7)]

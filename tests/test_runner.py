@@ -428,3 +428,48 @@ def test_progress_bars_update_rarely_when_writing_to_a_log_file():
     assert bars[2].disable  # --quiet still silences it
     for open_bar in bars:
         open_bar.close()
+
+
+def test_a_run_records_the_commit_it_started_on_not_one_made_while_it_ran(env, monkeypatch):
+    import subprocess
+
+    import benchmark.runner as runner
+
+    checkout = {"commit": "1" * 40}
+
+    def fake_git(cmd, **kw):
+        out = checkout["commit"] if "rev-parse" in cmd else ""
+        return subprocess.CompletedProcess(cmd, 0, stdout=out + "\n", stderr="")
+
+    real_find = runner.find_annotations
+
+    def find_then_commit(*args, **kw):  # someone commits while the run fits and answers
+        checkout["commit"] = "2" * 40
+        return real_find(*args, **kw)
+
+    runner._git_state_at_first_call.cache_clear()
+    monkeypatch.setattr(runner.subprocess, "run", fake_git)
+    monkeypatch.setattr(runner, "find_annotations", find_then_commit)
+    try:
+        outcome = evaluate(_options(env))
+        assert outcome.results["environment"]["git"] == {"commit": "1" * 40, "dirty": False}
+        assert runner.git_state()["commit"] == "1" * 40  # the process keeps its first answer
+    finally:
+        runner._git_state_at_first_call.cache_clear()
+
+
+def test_code_hashes_of_cache_keys_are_read_once_per_process(tmp_path):
+    # a file edited while a long run goes on must not move the keys of the fits that run makes later
+    # (the second method of a scene would otherwise refit the geometry the first one just cached)
+    from benchmark.runner import _file_hash
+    from methods.language_methods import source_hash
+
+    code = tmp_path / "code.py"
+    code.write_text("A = 1\n")
+    before = (_file_hash([code]), source_hash([code]))
+    code.write_text("A = 2\n")
+    assert (_file_hash([code]), source_hash([code])) == before
+    (tmp_path / "b").mkdir()
+    edited = tmp_path / "b" / "code.py"  # same name, the edited content, first read now
+    edited.write_text("A = 2\n")
+    assert (_file_hash([edited]), source_hash([edited])) != before

@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Optional, Sequence
+from typing import Callable, Iterable, Optional, Sequence
 
 import numpy as np
 import torch
@@ -441,8 +441,12 @@ class Trainer:
     """Trains 3D-GS / 4D-GS on a scene's training frames, one random training view per iteration."""
 
     def __init__(self, scene: Scene, cfg: Optional[ReconConfig] = None, device: torch.device | str = "cpu",
-                 rasterize_fn: Optional[RasterizeFn] = None, train_frames: Optional[Sequence[Frame]] = None):
+                 rasterize_fn: Optional[RasterizeFn] = None, train_frames: Optional[Sequence[Frame]] = None,
+                 progress: Optional[Callable[..., Iterable]] = None):
+        """``progress``: ``progress(iterable, desc=..., total=...)`` wrapper (tqdm-like) over each stage's
+        iterations, or ``None``: a geometry fit is the longest silent stretch of a run."""
         self.scene = scene
+        self.progress = progress
         self.cfg = cfg or ReconConfig()
         self.device = torch.device(device)
         self.rasterize = rasterize_fn or default_rasterize()
@@ -581,7 +585,10 @@ class Trainer:
         last_loss = first_loss = float("nan")
         px_per_unit: Optional[torch.Tensor] = None  # (N,) for the motion prior; dropped at each densification
         cpu_start, wall_start = time.process_time(), time.perf_counter()
-        for it in range(1, iterations + 1):
+        steps: Iterable[int] = range(1, iterations + 1)
+        if self.progress is not None:
+            steps = self.progress(steps, desc=f"geometry ({stage})", total=iterations)
+        for it in steps:
             t_start = time.perf_counter()
             # one band more every scaled interval; never lowered (the deformation stage keeps the static
             # stage's degree, as the release's oneupSHdegree does)
