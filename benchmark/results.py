@@ -10,7 +10,8 @@ memory in MiB; ``null`` = not applicable)::
     metrics        {"mIoU", "mAcc", "Acc", "vIoU", "agnostic_queries", "sensitive_queries", "frames_scored"}
     timing         {"fit_seconds", "fit_cached", "answer_all_seconds",
                     "query_agnostic": {"seconds_per_frame", "fps", ...}, "query_sensitive": {...}}
-    memory         {"peak_cpu_mib", "peak_cpu_fit_mib", "peak_gpu_mib", "peak_gpu_fit_mib"}
+    memory         {"peak_cpu_mib", "peak_cpu_fit_mib", "peak_gpu_mib", "peak_gpu_fit_mib",
+                    "peak_window": "run" (peaks of this run alone) or "process" (the process's so far)}
     method_config, fit {"key", "cached"}, supervision {"track", "sources", ...},
     environment    {"packages", "git": {"commit", "dirty"}, "device", ...}
     score_config   (the temporal rule used), scores {"queries", "frames", "skipped"}

@@ -241,8 +241,31 @@ def device_description(device: str) -> dict[str, Any]:
     return info
 
 
+_PROC_STATUS = Path("/proc/self/status")
+_PROC_CLEAR_REFS = Path("/proc/self/clear_refs")
+
+
+def reset_peak_rss() -> bool:
+    """Start a new peak-memory window: a ``run-all`` evaluates many runs in one process, and a
+    process-wide peak would charge a small method with the peak of the large one before it. Linux
+    resets the high-water RSS when ``"5"`` is written to ``/proc/self/clear_refs``; returns False
+    where that is not possible (then :func:`peak_rss_mib` is the process's peak so far)."""
+    try:
+        _PROC_CLEAR_REFS.write_text("5")
+        return True
+    except OSError:
+        return False
+
+
 def peak_rss_mib() -> float:
-    """Peak resident memory of this process so far, MiB (``getrusage`` maxrss)."""
+    """Peak resident memory, MiB, since the last :func:`reset_peak_rss` (Linux ``VmHWM``; elsewhere
+    ``getrusage`` maxrss, the process's peak)."""
+    try:
+        for line in _PROC_STATUS.read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0  # kB
+    except (OSError, ValueError, IndexError):
+        pass
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return rss / 1024.0 if sys.platform != "darwin" else rss / (1024.0 * 1024.0)
 
@@ -469,6 +492,11 @@ def evaluate(options: EvalOptions) -> RunOutcome:
     config = spec.make_config(options.method_options)
     wall_start = time.perf_counter()
     git_state()  # the checkout as the run starts (a no-op after the process's first call)
+    peak_window = "run" if reset_peak_rss() else "process"
+    if _cuda(options.device):
+        import torch
+
+        torch.cuda.reset_peak_memory_stats(torch.device(options.device))  # a cached fit resets nothing
 
     root = resolve_scene(options.scene, Path(options.cache_dir), size=options.preset_size, log=progress.log)
     scene = load_scene(root) if options.scale is None else load_scene(root, scale=options.scale)
@@ -561,8 +589,11 @@ def evaluate(options: EvalOptions) -> RunOutcome:
         "timing": timing,
         "memory": {"peak_cpu_mib": peak_rss_mib(), "peak_cpu_fit_mib": fit.peak_cpu_mib,
                    "peak_gpu_mib": peak_gpu_total, "peak_gpu_fit_mib": fit.peak_gpu_mib,
-                   "note": "CPU peaks are the process's getrusage maxrss up to that point (fit peak: "
-                           "measured right after the fit; a cached fit reports its original peak)"},
+                   "peak_window": peak_window,
+                   "note": "CPU peaks: high-water resident memory from the start of this run (peak_window "
+                           "'run'; 'process': the OS could not reset it, the process's peak so far) up to "
+                           "that point (fit peak: measured right after the fit; a cached fit reports its "
+                           "original peak)"},
         "method_config": config_dict(config),
         "fit": {"key": fit.key, "cached": fit.cached, **({"head_refit_of": options.head_from} if options.head_from else {}),
                 "info": _jsonable(model.describe()) if hasattr(model, "describe") else None},

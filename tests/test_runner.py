@@ -473,3 +473,26 @@ def test_code_hashes_of_cache_keys_are_read_once_per_process(tmp_path):
     edited = tmp_path / "b" / "code.py"  # same name, the edited content, first read now
     edited.write_text("A = 2\n")
     assert (_file_hash([edited]), source_hash([edited])) != before
+
+
+def test_each_run_of_a_sweep_reports_its_own_peak_memory(env, monkeypatch):
+    # run-all evaluates many runs in one process: a small run after a large one must not inherit its peak
+    import benchmark.runner as runner
+
+    real_find = runner.find_annotations
+    held = {}
+
+    def find_with_a_large_allocation(*args, **kw):
+        block = np.ones(48 * 2 ** 20 // 2, dtype=np.float64)  # 192 MiB, every page touched
+        held["sum"] = float(block.sum())
+        del block
+        return real_find(*args, **kw)
+
+    monkeypatch.setattr(runner, "find_annotations", find_with_a_large_allocation)
+    large = evaluate(_options(env, seed=0)).results["memory"]
+    monkeypatch.setattr(runner, "find_annotations", real_find)
+    small = evaluate(_options(env, seed=1)).results["memory"]
+    assert sys.platform != "linux" or (large["peak_window"] == "run" and small["peak_window"] == "run")
+    if small["peak_window"] == "run":
+        assert large["peak_cpu_mib"] - small["peak_cpu_mib"] > 150, (large, small)
+    assert small["peak_cpu_mib"] > 0 and small["peak_cpu_fit_mib"] <= small["peak_cpu_mib"] + 1e-6
