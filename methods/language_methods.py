@@ -238,17 +238,23 @@ def fit_geometry(scene: Scene, kind: str, config: LanguageMethodConfig, *, seed:
             return GeometryFit(FrozenGeometry.from_state_dict(saved["geometry"], device), key,
                                json.loads(saved["info"]), True)
     from methods.gaussians.rasterize import rasterize
-    from methods.gaussians.train import Trainer
+    from methods.gaussians.train import Checkpointing, Trainer
 
     recon = recon_config(config, seed)
+    # an interrupted geometry fit (the longest stage of a run on the CPU) resumes from its checkpoint
+    checkpoint = None if path is None else Checkpointing(path.with_name(path.stem + ".partial.pt"), key)
     trainer = Trainer(scene, recon, device=device,
-                      rasterize_fn=functools.partial(rasterize, backend=config.render_backend), progress=progress)
-    progress.log(f"geometry: fitting {kind} on {len(trainer.views)} training views (cap {trainer.cap} Gaussians)")
+                      rasterize_fn=functools.partial(rasterize, backend=config.render_backend), progress=progress,
+                      checkpoint=checkpoint)
+    resuming = checkpoint is not None and checkpoint.path.is_file()
+    progress.log(f"geometry: fitting {kind} on {len(trainer.views)} training views (cap {trainer.cap} Gaussians)"
+                 + (f"; resuming from {checkpoint.path.name} if it is this fit's" if resuming else ""))
     start = time.perf_counter()
     result = trainer.fit_3dgs() if kind == "3dgs" else trainer.fit_4dgs()
     seconds = time.perf_counter() - start
     geometry = FrozenGeometry(result.model)
-    info = {"kind": kind, "key": key, "seconds": seconds, "gaussians": geometry.num_gaussians,
+    info = {"kind": kind, "key": key, "seconds": result.fit_seconds, "session_seconds": seconds,
+            "resumed_at": result.resumed_at, "gaussians": geometry.num_gaussians,
             "cap": result.cap, "extent": result.extent,
             "stages": [{k: v for k, v in s.items() if k != "events"} for s in result.stages]}
     if geometry.deformable is not None:

@@ -21,7 +21,7 @@ from methods.gaussians.config import (DeformationConfig, GaussianConfig, HexPlan
 from methods.gaussians.hexplane import DeformationField, HexPlane
 from methods.gaussians.model import DeformableGaussians, GaussianModel
 from methods.gaussians.rasterize import rasterize
-from methods.gaussians.train import (DensifyStats, GaussianOptimizer, Trainer, densify_and_prune, evaluate,
+from methods.gaussians.train import (Checkpointing, DensifyStats, GaussianOptimizer, Trainer, densify_and_prune, evaluate,
                                      gaussian_cap, gaussian_window, make_views, reset_opacity, ssim)
 
 RAST = functools.partial(rasterize, backend="torch")
@@ -679,3 +679,57 @@ def test_each_stage_reports_its_iterations_through_the_progress_wrapper(moving_s
 
     Trainer(moving_scene, small_recon_config(5, 7), rasterize_fn=RAST, progress=progress).fit_4dgs()
     assert bars == [("geometry (static)", 5, 5), ("geometry (deformation)", 7, 7)]
+
+
+def _interrupting(after_calls: int):
+    """The test rasterizer, raising KeyboardInterrupt on its ``after_calls + 1``-th call (one per iteration)."""
+    calls = {"n": 0}
+
+    def rast(*args, **kw):
+        calls["n"] += 1
+        if calls["n"] > after_calls:
+            raise KeyboardInterrupt
+        return RAST(*args, **kw)
+
+    return rast
+
+
+def test_an_interrupted_4dgs_fit_resumes_to_exactly_the_uninterrupted_model(moving_scene, tmp_path):
+    # long enough for densification in both stages and for static checks before the deformation-stage stop
+    cfg = small_recon_config(40, 60)
+    reference = Trainer(moving_scene, cfg, rasterize_fn=RAST).fit_4dgs()
+    ref_events = [[e for e in s["events"]] for s in reference.stages]
+    assert any(e["event"] == "densify" for e in ref_events[0]) and any(e["event"] == "densify" for e in ref_events[1])
+    for stop_after, resumed_at in ((23, {"stage": "static", "iteration": 23}),
+                                   (40, {"stage": "static", "iteration": 40}),
+                                   (40 + 37, {"stage": "deformation", "iteration": 37})):
+        ck = Checkpointing(tmp_path / f"fit-{stop_after}.pt", key="this fit", every_seconds=0.0)  # every iteration
+        with pytest.raises(KeyboardInterrupt):
+            Trainer(moving_scene, cfg, rasterize_fn=_interrupting(stop_after), checkpoint=ck).fit_4dgs()
+        assert ck.path.is_file()
+        resumed = Trainer(moving_scene, cfg, rasterize_fn=RAST, checkpoint=ck).fit_4dgs()
+        assert resumed.resumed_at == resumed_at
+        assert not ck.path.exists()  # a completed fit removes its checkpoint
+        for name, value in reference.model.gaussians.params.items():
+            assert torch.equal(resumed.model.gaussians.params[name], value), (stop_after, name)
+        for name, value in reference.model.field.state_dict().items():
+            assert torch.equal(resumed.model.field.state_dict()[name], value), (stop_after, name)
+        assert torch.equal(resumed.model.dynamic_mask, reference.model.dynamic_mask)
+        assert [s["events"] for s in resumed.stages] == ref_events
+        assert [s["final_loss"] for s in resumed.stages] == [s["final_loss"] for s in reference.stages]
+        assert resumed.fit_seconds > 0 and len(resumed.stages) == 2
+
+
+def test_a_checkpoint_of_another_fit_is_not_resumed(moving_scene, tmp_path):
+    cfg = small_recon_config(6, 0)
+    ck = Checkpointing(tmp_path / "fit.pt", key="fit A", every_seconds=0.0)
+    with pytest.raises(KeyboardInterrupt):
+        Trainer(moving_scene, cfg, rasterize_fn=_interrupting(4), checkpoint=ck).fit_3dgs(6)
+    other = Trainer(moving_scene, cfg, rasterize_fn=RAST,
+                    checkpoint=Checkpointing(ck.path, key="fit B", every_seconds=1e9)).fit_3dgs(6)
+    assert other.resumed_at is None and other.stages[0]["iterations"] == 6
+    reference = Trainer(moving_scene, cfg, rasterize_fn=RAST).fit_3dgs(6)
+    for name, value in reference.model.params.items():
+        assert torch.equal(other.model.params[name], value)
+    ck.path.write_bytes(b"not a checkpoint")  # unreadable: the fit starts over, never fails on it
+    assert Trainer(moving_scene, cfg, rasterize_fn=RAST, checkpoint=ck).fit_3dgs(6).resumed_at is None

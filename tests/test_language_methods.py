@@ -433,3 +433,51 @@ def test_query_speed_command_rejects_a_zero_size(capsys):
 
     assert main(["ablate", "query-speed", "--gaussians", "0", "--quiet"]) == 2
     assert "--gaussians" in capsys.readouterr().err
+
+
+def test_an_interrupted_geometry_fit_resumes_from_its_checkpoint(smoke, tmp_path):
+    from methods import registry
+    from methods.api import Progress
+    from methods.language_methods import fit_geometry
+
+    config = registry.get("deformable-clip").make_config(TINY)
+
+    class StopAt(Progress):
+        """Interrupts the fit after ``steps`` iterations of its deformation stage, as Ctrl-C would."""
+
+        def __init__(self, steps: int):
+            super().__init__(quiet=True)
+            self.steps = steps
+
+        def __call__(self, iterable=None, *, desc=None, total=None, **kw):
+            if desc != "geometry (deformation)":
+                return iterable
+            return self._stop(iterable)
+
+        def _stop(self, iterable):
+            for i, item in enumerate(iterable):
+                if i == self.steps:
+                    raise KeyboardInterrupt
+                yield item
+
+    cache = tmp_path / "cache"
+    with pytest.raises(KeyboardInterrupt):
+        fit_geometry(smoke["scene"], "4dgs", config, seed=0, device="cpu", progress=StopAt(7), cache_root=cache)
+    partial = list(cache.rglob("geometry-4dgs-*.partial.pt"))
+    assert len(partial) == 1  # saved as the static stage ended, at least
+    fit = fit_geometry(smoke["scene"], "4dgs", config, seed=0, device="cpu", progress=Progress(quiet=True),
+                       cache_root=cache)
+    assert not fit.cached and fit.info["resumed_at"]["stage"] in ("static", "deformation")
+    assert not partial[0].exists() and len(list(cache.rglob("geometry-4dgs-*.pt"))) == 1
+    fresh = fit_geometry(smoke["scene"], "4dgs", config, seed=0, device="cpu", progress=Progress(quiet=True),
+                         cache_root=tmp_path / "other")
+    assert fresh.info["resumed_at"] is None
+
+    def same(a, b) -> bool:
+        if isinstance(a, torch.Tensor):
+            return isinstance(b, torch.Tensor) and torch.equal(a, b)
+        if isinstance(a, dict):
+            return isinstance(b, dict) and a.keys() == b.keys() and all(same(a[k], b[k]) for k in a)
+        return a == b
+
+    assert same(fresh.geometry.state_dict(), fit.geometry.state_dict())  # resumed = uninterrupted, exactly

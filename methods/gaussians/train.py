@@ -16,12 +16,14 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Callable, Iterable, Optional, Sequence
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
+from benchmark.atomic import atomic_path
 from benchmark.errors import InputError
 from benchmark.scene import Camera, Frame, Scene
 
@@ -252,6 +254,11 @@ class GaussianOptimizer:
     def set_lr(self, name: str, lr: float) -> None:
         self.groups[name]["lr"] = lr
 
+    def load_state_dict(self, state: dict) -> None:
+        """Moments and learning rates as saved (torch replaces the group dicts: ``groups`` follows)."""
+        self.optim.load_state_dict(state)
+        self.groups = {g["name"]: g for g in self.optim.param_groups}
+
     def step(self) -> None:
         self.optim.step()
         self.optim.zero_grad(set_to_none=True)
@@ -435,6 +442,25 @@ class FitResult:
     """Sparse log: iteration, stage, loss, Gaussian count."""
     extent: float = 0.0
     cap: int = 0
+    resumed_at: Optional[dict] = None
+    """``{"stage", "iteration"}`` of the checkpoint this fit resumed from (None: it ran in one go)."""
+
+
+@dataclass
+class Checkpointing:
+    """Where and how often a fit saves its whole training state, so that an interrupted fit resumes.
+
+    A resumed fit ends exactly as an uninterrupted one (the state includes every random generator, the
+    Adam moments, the densification statistics and the loop's bookkeeping); its ``fit_seconds`` add the
+    time spent before the interruption. The file is removed when the fit completes."""
+
+    path: Path
+    """The checkpoint file (written atomically: temp file + rename)."""
+    key: str
+    """What the fit is (e.g. the geometry cache key): a checkpoint of another fit is ignored."""
+    every_seconds: float = 120.0
+    """Wall seconds between saves, and a save at the end of each stage; saving reads the state and
+    never changes it."""
 
 
 class Trainer:
@@ -442,11 +468,13 @@ class Trainer:
 
     def __init__(self, scene: Scene, cfg: Optional[ReconConfig] = None, device: torch.device | str = "cpu",
                  rasterize_fn: Optional[RasterizeFn] = None, train_frames: Optional[Sequence[Frame]] = None,
-                 progress: Optional[Callable[..., Iterable]] = None):
+                 progress: Optional[Callable[..., Iterable]] = None, checkpoint: Optional[Checkpointing] = None):
         """``progress``: ``progress(iterable, desc=..., total=...)`` wrapper (tqdm-like) over each stage's
-        iterations, or ``None``: a geometry fit is the longest silent stretch of a run."""
+        iterations, or ``None``: a geometry fit is the longest silent stretch of a run. ``checkpoint``:
+        save the training state as it goes and resume from it (:class:`Checkpointing`)."""
         self.scene = scene
         self.progress = progress
+        self.checkpoint = checkpoint
         self.cfg = cfg or ReconConfig()
         self.device = torch.device(device)
         self.rasterize = rasterize_fn or default_rasterize()
@@ -477,13 +505,14 @@ class Trainer:
         iterations = iterations or c.reference_iterations or (c.static_iterations + c.deformation_iterations)
         self._reset_random()
         model = initial_gaussians(self.scene, c.gaussians, self.cap, self.generator, self.device, self.views)
-        opt = GaussianOptimizer(model, c.gaussians, self.extent)
-        t0, c0 = time.perf_counter(), time.process_time()
+        self._total_iterations = iterations
+        resume = self._load_checkpoint("3dgs", iterations)
+        opt = self._gaussians_from(resume, model)
+        self._start_clock(resume)
         result = FitResult("3dgs", model, 0.0, extent=self.extent, cap=self.cap)
         sched = Schedule(c.gaussians, c.reference_scale(iterations))
-        self._run_stage("static", model, opt, None, None, sched, iterations, result)
-        result.fit_seconds = time.perf_counter() - t0
-        result.fit_cpu_seconds = time.process_time() - c0
+        self._run_stage("static", model, opt, None, None, sched, iterations, result, resume)
+        self._finish(result, resume)
         return result
 
     def fit_4dgs(self) -> FitResult:
@@ -491,16 +520,22 @@ class Trainer:
         c = self.cfg
         self._reset_random()
         model = initial_gaussians(self.scene, c.gaussians, self.cap, self.generator, self.device, self.views)
-        opt = GaussianOptimizer(model, c.gaussians, self.extent)
+        self._total_iterations = c.static_iterations + c.deformation_iterations
+        resume = self._load_checkpoint("4dgs", self._total_iterations)
+        opt = self._gaussians_from(resume, model)
         result = FitResult("4dgs", model, 0.0, extent=self.extent, cap=self.cap)
-        t0, c0 = time.perf_counter(), time.process_time()
-        if c.static_iterations > 0:
+        self._start_clock(resume)
+        in_deformation = resume is not None and resume["stage"] == "deformation"
+        if c.static_iterations > 0 and not in_deformation:
             self._run_stage("static", model, opt, None, None, Schedule(c.gaussians, c.static_stage_scale()),
-                            c.static_iterations, result)
+                            c.static_iterations, result, resume)
         d = c.deformation
+        # the box is read from the Gaussians as the static stage ends (a resumed fit has moved them since)
+        bounds = resume["field_bounds"] if in_deformation else self.hexplane_bounds(model)
         with torch.random.fork_rng(devices=[]):  # the field's random init follows the run's seed only
             torch.manual_seed(c.seed)
-            field_ = DeformationField(d, self.hexplane_bounds(model), self.time_resolution()).to(self.device)
+            field_ = DeformationField(d, bounds, self.time_resolution()).to(self.device)
+        self._field_bounds = bounds
         deformable = DeformableGaussians(model, field_)
         result.model = deformable
         groups = [{"params": field_.mlp_parameters(), "lr": d.deformation_lr_init * self.extent, "name": "mlp"},
@@ -508,15 +543,63 @@ class Trainer:
         if field_.color_parameters():
             groups.append({"params": field_.color_parameters(), "lr": d.color_lr_init, "name": "color"})
         net_opt = torch.optim.Adam(groups, lr=0.0, eps=c.gaussians.adam_eps)
+        if in_deformation:
+            field_.load_state_dict(resume["field"])
+            net_opt.load_state_dict(resume["net_opt"])
+            mask = resume["dynamic_mask"]
+            deformable.dynamic_mask = None if mask is None else mask.to(self.device)
         if c.deformation_iterations > 0:
             sched = Schedule(c.gaussians, c.deformation_stage_scale(), densify_until=d.densify_until_iter,
                              opacity_resets=d.opacity_reset_interval is not None,
                              reset_interval=d.opacity_reset_interval)
             self._run_stage("deformation", model, opt, deformable, net_opt, sched, c.deformation_iterations,
-                            result)
-        result.fit_seconds = time.perf_counter() - t0
-        result.fit_cpu_seconds = time.process_time() - c0
+                            result, resume if in_deformation else None)
+        self._finish(result, resume)
         return result
+
+    # -- checkpoints --------------------------------------------------------------------------------
+    def _load_checkpoint(self, kind: str, total_iterations: int) -> Optional[dict]:
+        """The saved state of this very fit, or None (no checkpointing, no file, another fit's, unreadable)."""
+        ck = self.checkpoint
+        if ck is None or not Path(ck.path).is_file():
+            return None
+        try:
+            state = torch.load(ck.path, map_location=self.device, weights_only=True)
+        except Exception:  # a corrupt or incompatible checkpoint is never trusted: the fit starts over
+            return None
+        if (not isinstance(state, dict) or state.get("key") != ck.key or state.get("kind") != kind
+                or state.get("total_iterations") != total_iterations):
+            return None
+        return state
+
+    def _gaussians_from(self, resume: Optional[dict], model: GaussianModel) -> GaussianOptimizer:
+        """The Gaussians' optimiser; with a checkpoint, the Gaussians, their moments and every random
+        generator as saved."""
+        if resume is not None:
+            model.params = {k: v.detach().to(self.device).requires_grad_(True) for k, v in resume["params"].items()}
+            model.active_sh_degree = int(resume["active_sh_degree"])
+        opt = GaussianOptimizer(model, self.cfg.gaussians, self.extent)
+        if resume is not None:
+            opt.load_state_dict(resume["opt"])
+            self.generator.set_state(resume["generator"])
+            self.rng.bit_generator.state = resume["numpy_rng"]
+            self._order = list(resume["view_order"])
+            torch.set_rng_state(resume["torch_rng"])
+        return opt
+
+    def _start_clock(self, resume: Optional[dict]) -> None:
+        """Fit time counts from the fit's start, the time spent before an interruption included."""
+        before_wall = 0.0 if resume is None else float(resume["fit_seconds"])
+        before_cpu = 0.0 if resume is None else float(resume["fit_cpu_seconds"])
+        self._fit_start = (time.perf_counter() - before_wall, time.process_time() - before_cpu)
+
+    def _finish(self, result: FitResult, resume: Optional[dict]) -> None:
+        result.fit_seconds = time.perf_counter() - self._fit_start[0]
+        result.fit_cpu_seconds = time.process_time() - self._fit_start[1]
+        if resume is not None:
+            result.resumed_at = {"stage": resume["stage"], "iteration": int(resume["iteration"])}
+        if self.checkpoint is not None:
+            Path(self.checkpoint.path).unlink(missing_ok=True)  # the caller keeps the fitted model
 
     def hexplane_bounds(self, model: GaussianModel) -> torch.Tensor:
         """(2, 3) HexPlane box: robust box of the static Gaussians, widened by ``bounds_margin``."""
@@ -558,7 +641,7 @@ class Trainer:
 
     def _run_stage(self, stage: str, model: GaussianModel, opt: GaussianOptimizer,
                    deformable: Optional[DeformableGaussians], net_opt: Optional[torch.optim.Optimizer],
-                   sched: Schedule, iterations: int, result: FitResult) -> None:
+                   sched: Schedule, iterations: int, result: FitResult, resume: Optional[dict] = None) -> None:
         c = self.cfg
         g = c.gaussians
         d: DeformationConfig = c.deformation
@@ -584,10 +667,52 @@ class Trainer:
 
         last_loss = first_loss = float("nan")
         px_per_unit: Optional[torch.Tensor] = None  # (N,) for the motion prior; dropped at each densification
-        cpu_start, wall_start = time.process_time(), time.perf_counter()
-        steps: Iterable[int] = range(1, iterations + 1)
+        first_iteration, cpu_before, wall_before = 1, 0.0, 0.0
+        if resume is not None and resume["stage"] == stage:
+            loop = resume["loop"]
+            stats = DensifyStats(*(loop[k].to(self.device) for k in ("grad_sum", "count", "max_radius")))
+            events = list(loop["events"])
+            iter_seconds = loop["iter_seconds"].cpu().numpy().astype(np.float64)
+            deform_seconds = loop["deform_seconds"].cpu().numpy().astype(np.float64)
+            start_count = int(loop["start_count"])
+            last_loss, first_loss = float(loop["last_loss"]), float(loop["first_loss"])
+            px_per_unit = None if loop["px_per_unit"] is None else loop["px_per_unit"].to(self.device)
+            cpu_before, wall_before = float(loop["cpu_seconds"]), float(loop["wall_seconds"])
+            result.stages, result.history = list(resume["stages"]), list(resume["history"])
+            first_iteration = int(resume["iteration"]) + 1
+        cpu_start, wall_start = time.process_time() - cpu_before, time.perf_counter() - wall_before
+        last_save = time.perf_counter()
+
+        def save(it: int) -> None:
+            """The whole training state after iteration ``it`` (see :class:`Checkpointing`)."""
+            ck = self.checkpoint
+            state: dict = {
+                "key": ck.key, "kind": result.kind, "total_iterations": self._total_iterations,
+                "stage": stage, "iteration": it,
+                "params": {k: v.detach() for k, v in model.params.items()},
+                "active_sh_degree": model.active_sh_degree, "opt": opt.optim.state_dict(),
+                "generator": self.generator.get_state(), "numpy_rng": self.rng.bit_generator.state,
+                "view_order": list(self._order), "torch_rng": torch.get_rng_state(),
+                "fit_seconds": time.perf_counter() - self._fit_start[0],
+                "fit_cpu_seconds": time.process_time() - self._fit_start[1],
+                "stages": list(result.stages), "history": list(result.history),
+                "loop": {"grad_sum": stats.grad_sum, "count": stats.count, "max_radius": stats.max_radius,
+                         "events": events, "iter_seconds": torch.from_numpy(iter_seconds.copy()),
+                         "deform_seconds": torch.from_numpy(deform_seconds.copy()), "start_count": start_count,
+                         "last_loss": last_loss, "first_loss": first_loss, "px_per_unit": px_per_unit,
+                         "cpu_seconds": time.process_time() - cpu_start,
+                         "wall_seconds": time.perf_counter() - wall_start}}
+            if deformable is not None:
+                mask = deformable.dynamic_mask
+                state.update({"field": deformable.field.state_dict(), "net_opt": net_opt.state_dict(),
+                              "dynamic_mask": None if mask is None else mask.detach(),
+                              "field_bounds": self._field_bounds})
+            with atomic_path(ck.path) as tmp:
+                torch.save(state, tmp)
+
+        steps: Iterable[int] = range(first_iteration, iterations + 1)
         if self.progress is not None:
-            steps = self.progress(steps, desc=f"geometry ({stage})", total=iterations)
+            steps = self.progress(steps, desc=f"geometry ({stage})", total=len(steps))
         for it in steps:
             t_start = time.perf_counter()
             # one band more every scaled interval; never lowered (the deformation stage keeps the static
@@ -662,6 +787,10 @@ class Trainer:
                 print(f"[{stage}] it {it}/{iterations} loss {last_loss:.4f} N {model.num_gaussians} "
                       f"cpu {time.process_time() - cpu_start:.0f}s wall {time.perf_counter() - wall_start:.0f}s"
                       + ("" if deformable is None else f" dynamic {deformable.num_dynamic()}"), flush=True)
+            if self.checkpoint is not None and (it == iterations
+                                                or time.perf_counter() - last_save >= self.checkpoint.every_seconds):
+                save(it)
+                last_save = time.perf_counter()
         tail = iter_seconds[iterations // 2:] if iterations > 1 else iter_seconds
         summary = {"stage": stage, "iterations": iterations, "seconds": float(iter_seconds.sum()),
                    "cpu_seconds": time.process_time() - cpu_start,
