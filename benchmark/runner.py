@@ -249,7 +249,20 @@ def reset_peak_rss() -> bool:
     """Start a new peak-memory window: a ``run-all`` evaluates many runs in one process, and a
     process-wide peak would charge a small method with the peak of the large one before it. Linux
     resets the high-water RSS when ``"5"`` is written to ``/proc/self/clear_refs``; returns False
-    where that is not possible (then :func:`peak_rss_mib` is the process's peak so far)."""
+    where that is not possible (then :func:`peak_rss_mib` is the process's peak so far).
+
+    The window starts at the current resident size, so memory the earlier runs freed is first handed
+    back to the OS (a garbage collection, then glibc's ``malloc_trim``): freed heap that the allocator
+    keeps would otherwise count as this run's."""
+    import gc
+
+    gc.collect()
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):  # not glibc: nothing to trim
+        pass
     try:
         _PROC_CLEAR_REFS.write_text("5")
         return True

@@ -483,9 +483,10 @@ def test_each_run_of_a_sweep_reports_its_own_peak_memory(env, monkeypatch):
     held = {}
 
     def find_with_a_large_allocation(*args, **kw):
-        block = np.ones(48 * 2 ** 20 // 2, dtype=np.float64)  # 192 MiB, every page touched
-        held["sum"] = float(block.sum())
-        del block
+        # 240 MiB in 120 kB heap blocks, every 20th kept: the freed ones are holes the allocator keeps
+        blocks = [np.ones(15_000, dtype=np.float64) for _ in range(2_000)]
+        held["kept"] = blocks[::20]
+        del blocks
         return real_find(*args, **kw)
 
     monkeypatch.setattr(runner, "find_annotations", find_with_a_large_allocation)
