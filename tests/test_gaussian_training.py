@@ -570,6 +570,8 @@ def test_recon_command_end_to_end(tmp_path):
         assert 0 < entry["gaussians"] <= entry["cap"]
         assert all(Path(p).is_file() for p in entry["renders"])
     assert report["models"]["3dgs"]["iterations"] == report["models"]["4dgs"]["iterations"] == 24
+    # each fit checkpointed into the output folder and removed its checkpoint when it completed
+    assert all(e["resumed_at"] is None for e in report["models"].values()) and not list(out.glob(".*.partial.pt"))
     assert report["config"]["gaussians"]["sh_degree"] == 1
     assert "psnr_gain_4dgs_over_3dgs" in report["comparison"]
     skip = report["models"]["4dgs"]["static_skip"]

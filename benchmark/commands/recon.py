@@ -183,7 +183,7 @@ def fit_and_evaluate(job: dict) -> dict:
     import torch
 
     from methods.gaussians.rasterize import rasterize
-    from methods.gaussians.train import Trainer, evaluate, measure_static_skip
+    from methods.gaussians.train import Checkpointing, Trainer, evaluate, measure_static_skip
 
     from ..imageio import write_image
 
@@ -197,7 +197,8 @@ def fit_and_evaluate(job: dict) -> dict:
     rss_before = _maxrss_mib(resource)
     time_range = job.get("time_range")
     trainer = Trainer(scene, cfg, device=device, rasterize_fn=rast,
-                      train_frames=frames_in_range(scene.train_frames, time_range))
+                      train_frames=frames_in_range(scene.train_frames, time_range),
+                      checkpoint=_checkpointing(job, scene, Checkpointing))
     rss_loaded = _maxrss_mib(resource)
     if cuda:
         torch.cuda.reset_peak_memory_stats(torch.device(device))
@@ -219,7 +220,7 @@ def fit_and_evaluate(job: dict) -> dict:
         "render_fps": ev["render_fps"],
         "gaussians": result.model.num_gaussians, "cap": result.cap, "extent": result.extent,
         "peak_rss_mib": rss_trained, "rss_after_loading_mib": rss_loaded, "rss_at_start_mib": rss_before,
-        "stages": result.stages, "per_frame": ev["per_frame"],
+        "stages": result.stages, "per_frame": ev["per_frame"], "resumed_at": result.resumed_at,
     }
     if moving is not None:
         entry["moving"] = {"parts": sorted(set(moving[0].values())), "pixel_fraction": ev["region_fraction"],
@@ -251,6 +252,21 @@ def fit_and_evaluate(job: dict) -> dict:
     entry["renders"] = saved
     del ev, result, trainer
     return _jsonable(entry)
+
+
+def _checkpointing(job: dict, scene, checkpointing_cls):
+    """An interrupted fit of this job resumes from ``.<label>.partial.pt`` in the output folder; the key
+    names the scene, frames, model, config and the Gaussian core's code, so another job's file is ignored."""
+    import hashlib
+
+    from ..runner import _file_hash
+
+    code = sorted((Path(__file__).resolve().parents[2] / "methods" / "gaussians").rglob("*.py"))
+    what = {"scene": scene.summary(), "folder": job.get("scene_dir"), "scale": job.get("scale"),
+            "time_range": job.get("time_range"), "model": job["model"],
+            "device": str(job.get("device", "cpu")).split(":")[0], "config": dataclasses.asdict(job["config"]), "code": _file_hash(code)}
+    key = hashlib.sha256(json.dumps(what, sort_keys=True, default=str).encode()).hexdigest()[:24]
+    return checkpointing_cls(Path(job["out_dir"]) / f".{job.get('label', job['model'])}.partial.pt", key)
 
 
 def _maxrss_mib(resource) -> float:
