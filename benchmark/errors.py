@@ -22,6 +22,9 @@ class InputError(ValueError):
         parts = [p for p in (self.file, field) if p]
         super().__init__(": ".join(parts + [message]))
 
+    def __reduce__(self):  # survives pickling: a run in a worker process reports it to its parent
+        return (type(self), (self.file, self.field, self.message))
+
 
 def require(condition: bool, file: str | Path | None, field: str | None, message: str) -> None:
     """Raise :class:`InputError` unless ``condition`` holds."""

@@ -106,6 +106,9 @@ class EvalOptions:
     key, keeping its geometry, time-agnostic field and autoencoder: an ablation of head options on the
     very geometry a results file used, after code changes that moved the geometry keys."""
     quiet: bool = False
+    concurrent_runs: int = 1
+    """Runs sharing this machine at the same time (``run-all --jobs``): recorded beside the timings,
+    which it inflates."""
 
 
 # -- scenes and ground truth -------------------------------------------------------------------------
@@ -268,6 +271,12 @@ def reset_peak_rss() -> bool:
         return True
     except OSError:
         return False
+
+
+def _torch_threads() -> Optional[int]:
+    """torch's intra-op threads in this process (CPU timings depend on it), None where torch is not loaded."""
+    torch = sys.modules.get("torch")
+    return None if torch is None else int(torch.get_num_threads())
 
 
 def peak_rss_mib() -> float:
@@ -611,7 +620,8 @@ def evaluate(options: EvalOptions) -> RunOutcome:
         "fit": {"key": fit.key, "cached": fit.cached, **({"head_refit_of": options.head_from} if options.head_from else {}),
                 "info": _jsonable(model.describe()) if hasattr(model, "describe") else None},
         "supervision": supervision.describe(),
-        "environment": {"packages": package_versions(), "git": git_state(), **device_description(options.device)},
+        "environment": {"packages": package_versions(), "git": git_state(), **device_description(options.device),
+                        "torch_threads": _torch_threads(), "concurrent_runs": options.concurrent_runs},
         "scene_info": {"root": str(root), "summary": scene.summary(), "annotations": aset.info.get("source"),
                        "scale": options.scale, "generated": scene_version(root)},
         "score_config": score_config.to_dict(),

@@ -497,3 +497,24 @@ def test_each_run_of_a_sweep_reports_its_own_peak_memory(env, monkeypatch):
     if small["peak_window"] == "run":
         assert large["peak_cpu_mib"] - small["peak_cpu_mib"] > 150, (large, small)
     assert small["peak_cpu_mib"] > 0 and small["peak_cpu_fit_mib"] <= small["peak_cpu_mib"] + 1e-6
+
+
+def test_run_all_jobs_run_scene_seed_groups_in_worker_processes(env, capsys):
+    from benchmark.cli import main
+    from benchmark.results import find_results, load_results
+
+    common = ["--methods", "nearest-frame", "--scenes", str(env["scene"]), "--seeds", "0", "1",
+              "--cache-dir", str(env["cache"]), "--quiet"]
+    assert main(["run-all", *common, "--results-dir", str(env["results"] / "one")]) == 0
+    assert main(["run-all", *common, "--results-dir", str(env["results"] / "two"), "--jobs", "2",
+                 "--threads-per-job", "1"]) == 0
+    assert "2 run(s) (0 reused)" in capsys.readouterr().out
+    one = {p.name: load_results(p) for p in find_results(env["results"] / "one")}
+    two = {p.name: load_results(p) for p in find_results(env["results"] / "two")}
+    assert sorted(two) == ["seed0.json", "seed1.json"]
+    for name, doc in two.items():
+        assert doc["metrics"] == one[name]["metrics"]  # the same answers, made in a worker
+        assert doc["environment"]["concurrent_runs"] == 2 and doc["environment"]["torch_threads"] == 1
+        assert doc["environment"]["git"] == one[name]["environment"]["git"]
+    assert one["seed0.json"]["environment"]["concurrent_runs"] == 1
+    assert main(["run-all", *common, "--results-dir", str(env["results"] / "two"), "--jobs", "0"]) == 2
