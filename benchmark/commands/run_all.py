@@ -8,9 +8,8 @@ seeds 0 1 2. Runs whose results file exists are skipped (so an interrupted sweep
 
 ``--jobs N`` runs N (scene, seed) groups at once, each in a worker process with
 ``--threads-per-job`` torch threads (default: cores / N); the methods of a group run in order in
-one worker, so the 4D methods share one geometry and field fit as they do sequentially. On 2 CPU
-cores two single-threaded workers finish a sweep sooner than one two-threaded process (a run's
-small tensor operations do not keep two threads busy); every results file records
+one worker, so the 4D methods share one geometry and field fit as they do sequentially. (The
+committed sweeps ran as two single-threaded processes on 2 CPU cores.) Every results file records
 ``concurrent_runs`` and ``torch_threads`` beside its timings, which sharing the machine inflates.
 """
 
