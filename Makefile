@@ -31,5 +31,8 @@ test:
 	bash tests/browser_setup.sh
 	$(TEST_VENV)/bin/python -m pytest $(PYTEST_ARGS)
 
+lint: setup
+	$(VENV)/bin/python -m ruff check benchmark methods annotations tests
+
 clean:
 	rm -rf $(VENV) $(TEST_VENV) .pytest_cache

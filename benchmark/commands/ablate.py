@@ -60,7 +60,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import sys
-from typing import Sequence
+from typing import Optional, Sequence
 
 import numpy as np
 from pathlib import Path

@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from ..atomic import write_json
-from ..imageio import write_image
+from ..imageio import write_image as write_image_file
 from ..scene import Camera
 from . import cameras as cams
 from .model import SceneDef
@@ -142,7 +142,7 @@ def _imwrite_fast(path: Path, image: np.ndarray) -> None:
     code = cv2.COLOR_RGBA2BGRA if img.shape[2] == 4 else cv2.COLOR_RGB2BGR
     ok, buf = cv2.imencode(".png", cv2.cvtColor(img, code), [cv2.IMWRITE_PNG_COMPRESSION, 1])
     if not ok:  # pragma: no cover - cv2 encodes any uint8 image
-        write_image(path, image)
+        write_image_file(path, image)
         return
     path.write_bytes(buf.tobytes())  # inside the generator's staging folder: published atomically
 

@@ -10,7 +10,6 @@ Writes ``reports/rasterizer_cpu.md`` atomically.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import platform

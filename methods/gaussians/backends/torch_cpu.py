@@ -563,7 +563,6 @@ def render(
     proj = project_gaussians(means, quats, scales, opacities, viewmat, K, width, height, near, far, eps2d, rule)
     lay = tile_layout(proj, width, height, config)
     ts, npix = lay.tile_size, lay.tile_size ** 2
-    n_tiles = lay.tiles_x * lay.tiles_y
     params_t = torch.stack([proj.means2d[:, 0], proj.means2d[:, 1], *proj.conics.unbind(1), opacities])  # [6, N]
     feat = torch.cat([colors, proj.depths[:, None]], 1)  # [N, C + 1]: depth rides as a last channel
     stats: dict = {"pairs": 0}
