@@ -450,8 +450,9 @@ class FitResult:
 class Checkpointing:
     """Where and how often a fit saves its whole training state, so that an interrupted fit resumes.
 
-    A resumed fit ends exactly as an uninterrupted one (the state includes every random generator, the
-    Adam moments, the densification statistics and the loop's bookkeeping); its ``fit_seconds`` add the
+    A resumed fit ends exactly as an uninterrupted one on the CPU (the state includes every random
+    generator, the Adam moments, the densification statistics and the loop's bookkeeping; on CUDA the
+    rasterizer's atomic adds make any two runs differ in the last bits); its ``fit_seconds`` add the
     time spent before the interruption. The file is removed when the fit completes."""
 
     path: Path
