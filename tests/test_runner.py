@@ -518,3 +518,37 @@ def test_run_all_jobs_run_scene_seed_groups_in_worker_processes(env, capsys):
         assert doc["environment"]["git"] == one[name]["environment"]["git"]
     assert one["seed0.json"]["environment"]["concurrent_runs"] == 1
     assert main(["run-all", *common, "--results-dir", str(env["results"] / "two"), "--jobs", "0"]) == 2
+
+
+def test_run_all_jobs_report_a_killed_worker_and_keep_what_finished(env, capsys, monkeypatch):
+    import concurrent.futures as cf
+
+    from benchmark.cli import main
+
+    class KilledPool:
+        """A pool whose workers are killed (as by the OOM killer) before they report."""
+
+        def __init__(self, *args, **kw):
+            pass
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def submit(self, fn, *args, **kw):
+            future = cf.Future()
+            future.set_exception(cf.process.BrokenProcessPool("a worker died"))
+            return future
+
+        def shutdown(self, wait=True, cancel_futures=False):
+            pass
+
+    monkeypatch.setattr(cf, "ProcessPoolExecutor", KilledPool)
+    argv = ["run-all", "--methods", "nearest-frame", "--scenes", str(env["scene"]), "--seeds", "0", "1",
+            "--cache-dir", str(env["cache"]), "--results-dir", str(env["results"]), "--jobs", "2", "--quiet"]
+    assert main(argv) == 1  # no traceback: reported, exit status 1
+    captured = capsys.readouterr()
+    assert "worker process died" in captured.err and "rerun the same command to resume" in captured.err
+    assert "0 run(s) (0 reused), 1 failed" in captured.out  # the first group reported; the pool stopped

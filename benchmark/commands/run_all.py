@@ -179,9 +179,23 @@ def run(args: argparse.Namespace) -> int:
                   f"{jobs} at a time, {threads} torch thread(s) each", file=sys.stderr)
         with cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
                                     initializer=_start_worker, initargs=(threads,)) as pool:
-            futures = [pool.submit(_run_group, group, args.keep_going) for group in groups]
+            futures = {pool.submit(_run_group, group, args.keep_going): group for group in groups}
             for future in cf.as_completed(futures):
-                report(future.result())
+                try:
+                    items = future.result()
+                except cf.process.BrokenProcessPool:
+                    # a worker was killed (out of memory, a signal): the pool cannot go on; what finished is
+                    # kept, and a rerun resumes the rest (results, cached fits, geometry checkpoints)
+                    group = futures[future]
+                    err = RuntimeError("a run-all worker process died (killed: out of memory?); rerun the same "
+                                       "command to resume")
+                    items = [{"method": o.method, "scene": Path(o.scene).name, "seed": o.seed, "error": err}
+                             for o in group]
+                    report(items)
+                    pool.shutdown(wait=False, cancel_futures=True)
+                    print(f"run-all: {err}", file=sys.stderr)
+                    break
+                report(items)
                 if failed and not args.keep_going:
                     pool.shutdown(wait=True, cancel_futures=True)
                     raise failed[0][3]
