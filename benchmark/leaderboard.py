@@ -57,6 +57,16 @@ def _sig(value: float) -> str:
     return f"{value:.3g}"
 
 
+def _as_shown(value: float, metric: str) -> float:
+    """``value`` rounded as its cell prints it: methods whose cells read the same are bolded alike (two
+    methods sharing one fit can differ in the fifth digit, e.g. by float rounding of another query set)."""
+    if value is None or math.isnan(value):
+        return math.nan
+    if metric in ("fit_seconds",) or metric.startswith("fps_"):
+        return float(_sig(value))
+    return round(value, 2)
+
+
 def _best(values: dict[str, float], higher: bool) -> set[str]:
     finite = {k: v for k, v in values.items() if v is not None and not math.isnan(v)}
     if len(finite) < 2:
@@ -88,7 +98,7 @@ def _table(summary: pd.DataFrame, kind: str) -> Optional[list[str]]:
     for scene, metric, _ in columns:
         # a mean over fewer scenes is not comparable with one over more: rank only full coverage
         ranked = methods if scene != MEAN_SCENE else [m for m in methods if covered[m] == full]
-        values = {m: lookup.get((m, scene), {}).get(f"{metric}_mean", math.nan) for m in ranked}
+        values = {m: _as_shown(lookup.get((m, scene), {}).get(f"{metric}_mean", math.nan), metric) for m in ranked}
         bold[(scene, metric)] = _best(values, HIGHER_IS_BETTER[metric])
     for m in methods:
         cells = []

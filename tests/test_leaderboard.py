@@ -252,3 +252,16 @@ def test_a_method_that_declines_a_query_kind_is_named_under_that_table(tmp_path)
     assert not any(line.startswith("| zeta |") for line in sensitive.splitlines())
     assert "_Not in this table: zeta (s1): ran these scenes but answered none" in sensitive
     assert "Not in this table" not in agnostic  # every method that ran has a time-agnostic number
+
+
+def test_cells_that_read_the_same_are_bolded_alike(tmp_path):
+    root = tmp_path / "results"
+    # two methods sharing one fit can differ past the printed digits (float rounding)
+    write_results(results_path(root, "synthetic", "s1", "alpha", "oracle", 0), _doc("alpha", "s1", 0, 70.001))
+    write_results(results_path(root, "synthetic", "s1", "beta", "oracle", 0), _doc("beta", "s1", 0, 70.004))
+    write_results(results_path(root, "synthetic", "s1", "gamma", "oracle", 0), _doc("gamma", "s1", 0, 69.99))
+    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
+    table = (tmp_path / "lb.md").read_text().split("### Time-agnostic queries")[1].split("###")[0]
+    rows = {line.split("|")[1].strip(): line.split("|")[2].strip() for line in table.splitlines()
+            if line.startswith("| ") and not line.startswith("| method")}
+    assert rows == {"alpha": "**70.00**", "beta": "**70.00**", "gamma": "69.99"}
