@@ -552,3 +552,19 @@ def test_run_all_jobs_report_a_killed_worker_and_keep_what_finished(env, capsys,
     captured = capsys.readouterr()
     assert "worker process died" in captured.err and "rerun the same command to resume" in captured.err
     assert "0 run(s) (0 reused), 1 failed" in captured.out  # the first group reported; the pool stopped
+
+
+def test_run_all_errors_cross_the_worker_boundary():
+    import pickle
+
+    from benchmark.commands.run_all import _portable
+    from benchmark.errors import InputError
+
+    class Unpicklable(Exception):
+        def __init__(self, a, b):
+            super().__init__(f"{a}/{b}")
+
+    err = InputError("scene.json", "frames", "missing required key")
+    assert _portable(err) is err and str(pickle.loads(pickle.dumps(err))) == str(err)
+    other = _portable(Unpicklable(1, 2))
+    assert isinstance(other, RuntimeError) and str(other) == "Unpicklable: 1/2"

@@ -66,13 +66,25 @@ def _run_group(group: list, keep_going: bool) -> list[dict]:
         try:
             outcome = evaluate(options)
         except Exception as err:  # noqa: BLE001 - reported by the caller
-            items.append({**item, "error": err})
+            items.append({**item, "error": _portable(err)})
             if not keep_going:
                 break
             continue
         items.append({**item, "scene": outcome.results["scene"], "path": outcome.path,
                       "metrics": outcome.results["metrics"], "fit_seconds": outcome.results["timing"]["fit_seconds"]})
     return items
+
+
+def _portable(err: Exception) -> Exception:
+    """``err`` itself if it survives pickling (a worker returns it to the parent), else a RuntimeError
+    with its type and message."""
+    import pickle
+
+    try:
+        pickle.loads(pickle.dumps(err))
+        return err
+    except Exception:  # noqa: BLE001 - any failure to round-trip
+        return RuntimeError(f"{type(err).__name__}: {err}")
 
 
 def _start_worker(threads: int) -> None:
