@@ -337,6 +337,10 @@ def test_demo_and_eval_commands_end_to_end(env, capsys, tmp_path):
     assert main(["demo", "--scene", str(env["scene"]), *common]) == 0
     out = capsys.readouterr().out
     assert "nearest-frame on synthetic/smoke" in out and "mIoU" in out and "FPS" in out
+    # without --results-dir the demo writes inside its cache, never into a checkout's committed results/
+    assert main(["demo", "--scene", str(env["scene"]), "--cache-dir", str(env["cache"]), "--quiet"]) == 0
+    assert (env["cache"] / "demo-results" / "synthetic" / "smoke" / "nearest-frame" / "oracle" / "seed0.json").is_file()
+    capsys.readouterr()
     assert main(["eval", "--method", "nearest-frame", "--scene", str(env["scene"]), "--seed", "3", "--set",
                  "match_rule=best", *common]) == 0
     assert "(cached)" not in capsys.readouterr().out  # another seed and config: a new fit

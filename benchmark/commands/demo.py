@@ -16,7 +16,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--method", default=None, help="method (default: the registry's default method)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--size", type=int, default=128)
-    parser.add_argument("--results-dir", type=Path, default=Path("results"))
+    parser.add_argument("--results-dir", type=Path, default=None,
+                        help="where the demo's results file goes (default: CACHE_DIR/demo-results, so that a demo "
+                             "in a fresh clone leaves the committed results/ untouched)")
     parser.add_argument("--cache-dir", type=Path, default=Path("cache"))
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--quiet", action="store_true")
@@ -46,9 +48,10 @@ def run(args: argparse.Namespace) -> int:
     scene = args.scene or default_preset()
     start = time.perf_counter()
     print(f"bench4d demo: {method} on synthetic preset {scene!r} at {args.size}px (oracle track, seed {args.seed})")
-    outcome = evaluate(EvalOptions(method=method, scene=scene, seed=args.seed, track="oracle",
-                                   results_dir=args.results_dir, cache_dir=args.cache_dir, device=args.device,
-                                   preset_size=args.size, quiet=args.quiet))
+    results_dir = args.results_dir or Path(args.cache_dir) / "demo-results"
+    outcome = evaluate(EvalOptions(method=method, scene=scene, seed=args.seed, track="oracle", results_dir=results_dir,
+                                   cache_dir=args.cache_dir, device=args.device, preset_size=args.size,
+                                   quiet=args.quiet))
     print_run(outcome.results, outcome.path)
     sup = outcome.results["supervision"]
     print(f"  supervision: {sup['track']} track, sources {sup['sources']}")
