@@ -259,12 +259,11 @@ def _checkpointing(job: dict, scene, checkpointing_cls):
     names the scene, frames, model, config and the Gaussian core's code, so another job's file is ignored."""
     import hashlib
 
-    from ..runner import _file_hash
+    from methods.language_methods import GEOMETRY_SOURCES, source_hash
 
-    code = sorted((Path(__file__).resolve().parents[2] / "methods" / "gaussians").rglob("*.py"))
     what = {"scene": scene.summary(), "folder": job.get("scene_dir"), "scale": job.get("scale"),
             "time_range": job.get("time_range"), "model": job["model"],
-            "device": str(job.get("device", "cpu")).split(":")[0], "config": dataclasses.asdict(job["config"]), "code": _file_hash(code)}
+            "device": str(job.get("device", "cpu")).split(":")[0], "config": dataclasses.asdict(job["config"]), "code": source_hash(GEOMETRY_SOURCES)}
     key = hashlib.sha256(json.dumps(what, sort_keys=True, default=str).encode()).hexdigest()[:24]
     return checkpointing_cls(Path(job["out_dir"]) / f".{job.get('label', job['model'])}.partial.pt", key)
 
