@@ -57,14 +57,17 @@ def _sig(value: float) -> str:
     return f"{value:.3g}"
 
 
+def _is_speed(metric: str) -> bool:
+    """Fit time and query FPS print with significant digits (:func:`_fmt_speed`), accuracy with two decimals."""
+    return metric == "fit_seconds" or metric.startswith("fps_")
+
+
 def _as_shown(value: float, metric: str) -> float:
-    """``value`` rounded as its cell prints it: methods whose cells read the same are bolded alike (two
-    methods sharing one fit can differ in the fifth digit, e.g. by float rounding of another query set)."""
+    """``value`` as its cell prints it: methods whose cells read the same are bolded alike (two methods
+    sharing one fit can differ in the fifth digit, e.g. by float rounding of another query set)."""
     if value is None or math.isnan(value):
         return math.nan
-    if metric in ("fit_seconds",) or metric.startswith("fps_"):
-        return float(_sig(value))
-    return round(value, 2)
+    return float(_sig(value)) if _is_speed(metric) else float(_fmt(value, None))
 
 
 def _best(values: dict[str, float], higher: bool) -> set[str]:
@@ -105,7 +108,7 @@ def _table(summary: pd.DataFrame, kind: str) -> Optional[list[str]]:
         for scene, metric, _ in columns:
             row = lookup.get((m, scene), {})
             mean, std = row.get(f"{metric}_mean", math.nan), row.get(f"{metric}_std", math.nan)
-            cell = _fmt_speed(mean, std) if metric in ("fit_seconds", fps) else _fmt(mean, std)
+            cell = _fmt_speed(mean, std) if _is_speed(metric) else _fmt(mean, std)
             cells.append(f"**{cell}**" if m in bold[(scene, metric)] else cell)
         mean_row = lookup.get((m, MEAN_SCENE), {})
         seeds = f"{mean_row.get('seeds', 0)}"

@@ -735,3 +735,16 @@ def test_a_checkpoint_of_another_fit_is_not_resumed(moving_scene, tmp_path):
         assert torch.equal(other.model.params[name], value)
     ck.path.write_bytes(b"not a checkpoint")  # unreadable: the fit starts over, never fails on it
     assert Trainer(moving_scene, cfg, rasterize_fn=RAST, checkpoint=ck).fit_3dgs(6).resumed_at is None
+
+
+def test_a_fit_checkpoints_between_stages_but_not_as_it_completes(moving_scene, tmp_path, monkeypatch):
+    saved = []
+    real_save = torch.save
+    monkeypatch.setattr(torch, "save", lambda obj, f, *a, **kw: (saved.append((obj["stage"], obj["iteration"])),
+                                                                  real_save(obj, f, *a, **kw))[1])
+    ck = Checkpointing(tmp_path / "fit.pt", key="k", every_seconds=1e9)  # no timed saves
+    Trainer(moving_scene, small_recon_config(5, 6), rasterize_fn=RAST, checkpoint=ck).fit_4dgs()
+    assert saved == [("static", 5)] and not ck.path.exists()  # the completed fit's last stage writes nothing
+    saved.clear()
+    Trainer(moving_scene, small_recon_config(5, 0), rasterize_fn=RAST, checkpoint=ck).fit_3dgs(5)
+    assert saved == []

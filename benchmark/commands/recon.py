@@ -183,7 +183,7 @@ def fit_and_evaluate(job: dict) -> dict:
     import torch
 
     from methods.gaussians.rasterize import rasterize
-    from methods.gaussians.train import Checkpointing, Trainer, evaluate, measure_static_skip
+    from methods.gaussians.train import Trainer, evaluate, measure_static_skip
 
     from ..imageio import write_image
 
@@ -198,7 +198,7 @@ def fit_and_evaluate(job: dict) -> dict:
     time_range = job.get("time_range")
     trainer = Trainer(scene, cfg, device=device, rasterize_fn=rast,
                       train_frames=frames_in_range(scene.train_frames, time_range),
-                      checkpoint=_checkpointing(job, scene, Checkpointing))
+                      checkpoint=_checkpointing(job, scene))
     rss_loaded = _maxrss_mib(resource)
     if cuda:
         torch.cuda.reset_peak_memory_stats(torch.device(device))
@@ -254,18 +254,20 @@ def fit_and_evaluate(job: dict) -> dict:
     return _jsonable(entry)
 
 
-def _checkpointing(job: dict, scene, checkpointing_cls):
+def _checkpointing(job: dict, scene):
     """An interrupted fit of this job resumes from ``.<label>.partial.pt`` in the output folder; the key
     names the scene, frames, model, config and the Gaussian core's code, so another job's file is ignored."""
     import hashlib
 
+    from methods.gaussians.train import Checkpointing
     from methods.language_methods import GEOMETRY_SOURCES, source_hash
 
     what = {"scene": scene.summary(), "folder": job.get("scene_dir"), "scale": job.get("scale"),
             "time_range": job.get("time_range"), "model": job["model"],
-            "device": str(job.get("device", "cpu")).split(":")[0], "config": dataclasses.asdict(job["config"]), "code": source_hash(GEOMETRY_SOURCES)}
+            "device": str(job.get("device", "cpu")).split(":")[0], "config": dataclasses.asdict(job["config"]),
+            "code": source_hash(GEOMETRY_SOURCES)}
     key = hashlib.sha256(json.dumps(what, sort_keys=True, default=str).encode()).hexdigest()[:24]
-    return checkpointing_cls(Path(job["out_dir"]) / f".{job.get('label', job['model'])}.partial.pt", key)
+    return Checkpointing(Path(job["out_dir"]) / f".{job.get('label', job['model'])}.partial.pt", key)
 
 
 def _maxrss_mib(resource) -> float:

@@ -460,8 +460,8 @@ class Checkpointing:
     key: str
     """What the fit is (e.g. the geometry cache key): a checkpoint of another fit is ignored."""
     every_seconds: float = 120.0
-    """Wall seconds between saves, and a save at the end of each stage; saving reads the state and
-    never changes it."""
+    """Wall seconds between saves, plus a save where one stage ends and another begins; saving reads
+    the state and never changes it."""
 
 
 class Trainer:
@@ -529,7 +529,7 @@ class Trainer:
         in_deformation = resume is not None and resume["stage"] == "deformation"
         if c.static_iterations > 0 and not in_deformation:
             self._run_stage("static", model, opt, None, None, Schedule(c.gaussians, c.static_stage_scale()),
-                            c.static_iterations, result, resume)
+                            c.static_iterations, result, resume, stage_follows=c.deformation_iterations > 0)
         d = c.deformation
         # the box is read from the Gaussians as the static stage ends (a resumed fit has moved them since)
         bounds = resume["field_bounds"] if in_deformation else self.hexplane_bounds(model)
@@ -642,7 +642,11 @@ class Trainer:
 
     def _run_stage(self, stage: str, model: GaussianModel, opt: GaussianOptimizer,
                    deformable: Optional[DeformableGaussians], net_opt: Optional[torch.optim.Optimizer],
-                   sched: Schedule, iterations: int, result: FitResult, resume: Optional[dict] = None) -> None:
+                   sched: Schedule, iterations: int, result: FitResult, resume: Optional[dict] = None,
+                   stage_follows: bool = False) -> None:
+        """One training stage. ``resume``: a checkpoint taken inside this stage to go on from;
+        ``stage_follows``: another stage comes after this one, so its end is checkpointed (the end of a
+        fit's last stage is not: the fit completes and removes its checkpoint right after)."""
         c = self.cfg
         g = c.gaussians
         d: DeformationConfig = c.deformation
@@ -788,10 +792,11 @@ class Trainer:
                 print(f"[{stage}] it {it}/{iterations} loss {last_loss:.4f} N {model.num_gaussians} "
                       f"cpu {time.process_time() - cpu_start:.0f}s wall {time.perf_counter() - wall_start:.0f}s"
                       + ("" if deformable is None else f" dynamic {deformable.num_dynamic()}"), flush=True)
-            if self.checkpoint is not None and (it == iterations
-                                                or time.perf_counter() - last_save >= self.checkpoint.every_seconds):
-                save(it)
-                last_save = time.perf_counter()
+            if self.checkpoint is not None:
+                due = time.perf_counter() - last_save >= self.checkpoint.every_seconds
+                if (due and it < iterations) or (it == iterations and stage_follows):
+                    save(it)
+                    last_save = time.perf_counter()
         tail = iter_seconds[iterations // 2:] if iterations > 1 else iter_seconds
         summary = {"stage": stage, "iterations": iterations, "seconds": float(iter_seconds.sum()),
                    "cpu_seconds": time.process_time() - cpu_start,
