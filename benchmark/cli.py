@@ -25,6 +25,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "plot": ("plot", "charts: pareto (accuracy vs speed), timeline (similarity over time)"),
     "annotate": ("annotate", "local web app to annotate query masks and time segments"),
     "demo": ("demo", "the main job: a synthetic scene end to end, printing metrics and timings"),
+    "cache": ("cache", "what the cache folder holds; prune leftovers of interrupted runs or unreferenced fits"),
     "ablate": ("ablate", "ablations of the time-varying field: delta-sim (caption prompts), states (K), speed"),
 }
 

@@ -41,10 +41,11 @@ RESULTS_VERSION = 1
 ACCURACY_METRICS: dict[str, tuple[str, str]] = {"agnostic": ("mIoU", "mAcc"), "sensitive": ("Acc", "vIoU")}
 """Query kind -> its two reported metrics (percent, higher is better)."""
 RUN_COLUMNS = ["dataset", "track", "method", "scene", "seed", "mIoU", "mAcc", "Acc", "vIoU",
-               "fps_agnostic", "fps_sensitive", "fit_seconds", "peak_cpu_mib", "peak_gpu_mib", "device",
+               "fps_agnostic", "fps_sensitive", "fit_seconds", "peak_cpu_mib", "peak_gpu_mib",
+               "peak_cpu_needed_mib", "peak_gpu_needed_mib", "peak_measured", "device",
                "git_commit", "git_dirty", "scene_digest", "scene_current", "path"]
 VALUE_COLUMNS = ["mIoU", "mAcc", "Acc", "vIoU", "fps_agnostic", "fps_sensitive", "fit_seconds", "peak_cpu_mib",
-                 "peak_gpu_mib"]
+                 "peak_gpu_mib", "peak_cpu_needed_mib", "peak_gpu_needed_mib"]
 MEAN_SCENE = "mean"
 """Scene label of the dataset-level row in :func:`seed_summary`."""
 
@@ -179,6 +180,35 @@ def fit_seconds_with_shared(doc: dict) -> float:
     return _number((doc.get("timing") or {}).get("fit_seconds"))
 
 
+def peak_memory_with_shared(doc: dict) -> tuple[float, float, bool]:
+    """``(cpu_mib, gpu_mib, measured)``: the most memory the run needed, MiB: the largest of its own
+    peak, its fit's and the peak every stage of its fit record recorded (:data:`FIT_STAGES`), so a method
+    reusing a cached geometry and field is charged for the memory they took, as for their seconds
+    (:mod:`benchmark.memory`). GPU: NaN when nothing ran on one. ``measured`` is False when the number
+    may be wrong: a peak over the process rather than the run (``memory.peak_window``; every results
+    file made before per-run peaks), or a stage of the fit record that recorded its seconds but no peak
+    (made before stage peaks: a run reusing it would be charged too little)."""
+    memory = doc.get("memory") or {}
+    info = (doc.get("fit") or {}).get("info") or {}
+    cpu = [_number(memory.get("peak_cpu_mib")), _number(memory.get("peak_cpu_fit_mib"))]
+    gpu = [_number(memory.get("peak_gpu_mib")), _number(memory.get("peak_gpu_fit_mib"))]
+    measured = memory.get("peak_window") == "run"
+    for stage, key in FIT_STAGES:
+        record = info.get(stage)
+        if not isinstance(record, dict) or math.isnan(_number(record.get(key))):
+            continue
+        if math.isnan(_number(record.get("peak_cpu_mib"))) or record.get("peak_window") != "run":
+            measured = False
+        cpu.append(_number(record.get("peak_cpu_mib")))
+        gpu.append(_number(record.get("peak_gpu_mib")))
+
+    def largest(values: list[float]) -> float:
+        finite = [v for v in values if not math.isnan(v)]
+        return max(finite) if finite else math.nan
+
+    return largest(cpu), largest(gpu), measured
+
+
 def scene_status(doc: dict) -> tuple[str, Optional[bool]]:
     """(digest, current) of the scene a run measured: ``current`` is True when a synthetic preset's
     recorded digest is the committed one (:mod:`benchmark.synthetic.digest`), False when it differs or
@@ -231,6 +261,7 @@ def run_row(doc: dict, path: Optional[Path] = None) -> dict[str, Any]:
         "fit_seconds": fit_seconds_with_shared(doc),
         "peak_cpu_mib": _number(memory.get("peak_cpu_mib")),
         "peak_gpu_mib": _number(memory.get("peak_gpu_mib")),
+        **dict(zip(("peak_cpu_needed_mib", "peak_gpu_needed_mib", "peak_measured"), peak_memory_with_shared(doc))),
         "device": env.get("device", ""),
         "git_commit": (git.get("commit") or "")[:12],
         "git_dirty": git.get("dirty"),
@@ -270,10 +301,12 @@ def seed_summary(runs: pd.DataFrame) -> pd.DataFrame:
     fewer would average a different scene set into the same number. Those are counted in
     ``partial_seeds`` and left out (if no seed is complete, the mean is NaN). Columns:
     ``<value>_mean``, ``<value>_std`` for every :data:`VALUE_COLUMNS`, ``seeds``, ``partial_seeds``,
-    ``scenes``.
+    ``scenes``, ``peak_measured`` (every run's peak memory is its own and charges its reused stages:
+    :func:`peak_memory_with_shared`).
     """
     keys = ["dataset", "track", "method", "scene"]
-    columns = keys + [f"{v}_{s}" for v in VALUE_COLUMNS for s in ("mean", "std")] + ["seeds", "partial_seeds", "scenes"]
+    columns = (keys + [f"{v}_{s}" for v in VALUE_COLUMNS for s in ("mean", "std")]
+               + ["seeds", "partial_seeds", "scenes", "peak_measured"])
     if not len(runs):
         return pd.DataFrame(columns=columns)
     group_keys = ["dataset", "track", "method"]
@@ -283,9 +316,11 @@ def seed_summary(runs: pd.DataFrame) -> pd.DataFrame:
                              zip(seed_sets[group_keys].itertuples(index=False), seed_sets["scene"])]
     complete = seed_sets[seed_sets["complete"]][group_keys + ["seed"]]
     partial = seed_sets[~seed_sets["complete"]].groupby(group_keys)["seed"].nunique()
-    per_seed_dataset = (runs.merge(complete, on=group_keys + ["seed"])
-                        .groupby(group_keys + ["seed"], sort=True)[VALUE_COLUMNS].mean().reset_index())
+    complete_runs = runs.merge(complete, on=group_keys + ["seed"])
+    per_seed_dataset = complete_runs.groupby(group_keys + ["seed"], sort=True)[VALUE_COLUMNS].mean().reset_index()
     per_seed_dataset["scene"] = MEAN_SCENE
+    measured = {**{tuple(k): bool(v.all()) for k, v in runs.groupby(keys, sort=True)["peak_measured"]},
+                **{(*k, MEAN_SCENE): bool(v.all()) for k, v in complete_runs.groupby(group_keys)["peak_measured"]}}
     rows = []
     for source, with_scene in ((runs, True), (per_seed_dataset, False)):
         for key, group in source.groupby(keys, sort=True):
@@ -297,6 +332,7 @@ def seed_summary(runs: pd.DataFrame) -> pd.DataFrame:
             row["seeds"] = int(group["seed"].nunique())
             row["partial_seeds"] = 0 if with_scene else int(partial.get(key[:3], 0))
             row["scenes"] = 1 if with_scene else len(scene_sets[key[:3]])
+            row["peak_measured"] = measured.get(tuple(key), False)
             rows.append(row)
     # a method none of whose seeds is complete still gets its (empty) mean row
     with_mean = {(r["dataset"], r["track"], r["method"]) for r in rows if r["scene"] == MEAN_SCENE}
@@ -304,7 +340,8 @@ def seed_summary(runs: pd.DataFrame) -> pd.DataFrame:
         if key not in with_mean:
             row = dict(zip(keys, (*key, MEAN_SCENE)))
             row.update({f"{v}_{s}": math.nan for v in VALUE_COLUMNS for s in ("mean", "std")})
-            row.update({"seeds": 0, "partial_seeds": int(partial.get(key, 0)), "scenes": len(scenes)})
+            row.update({"seeds": 0, "partial_seeds": int(partial.get(key, 0)), "scenes": len(scenes),
+                        "peak_measured": False})
             rows.append(row)
     table = pd.DataFrame(rows)
     table["_order"] = (table["scene"] == MEAN_SCENE).astype(int)

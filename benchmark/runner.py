@@ -29,7 +29,6 @@ import json
 import os
 import platform
 import random
-import resource
 import shutil
 import statistics
 import subprocess
@@ -42,6 +41,7 @@ from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 
+from . import memory
 from .atomic import read_json, write_json
 from .errors import InputError
 from .results import results_path, write_results
@@ -244,52 +244,10 @@ def device_description(device: str) -> dict[str, Any]:
     return info
 
 
-_PROC_STATUS = Path("/proc/self/status")
-_PROC_CLEAR_REFS = Path("/proc/self/clear_refs")
-
-
-def reset_peak_rss() -> bool:
-    """Start a new peak-memory window: a ``run-all`` evaluates many runs in one process, and a
-    process-wide peak would charge a small method with the peak of the large one before it. Linux
-    resets the high-water RSS when ``"5"`` is written to ``/proc/self/clear_refs``; returns False
-    where that is not possible (then :func:`peak_rss_mib` is the process's peak so far).
-
-    The window starts at the current resident size, so memory the earlier runs freed is first handed
-    back to the OS (a garbage collection, then glibc's ``malloc_trim``): freed heap that the allocator
-    keeps would otherwise count as this run's."""
-    import gc
-
-    gc.collect()
-    try:
-        import ctypes
-
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):  # not glibc: nothing to trim
-        pass
-    try:
-        _PROC_CLEAR_REFS.write_text("5")
-        return True
-    except OSError:
-        return False
-
-
 def _torch_threads() -> Optional[int]:
     """torch's intra-op threads in this process (CPU timings depend on it), None where torch is not loaded."""
     torch = sys.modules.get("torch")
     return None if torch is None else int(torch.get_num_threads())
-
-
-def peak_rss_mib() -> float:
-    """Peak resident memory, MiB, since the last :func:`reset_peak_rss` (Linux ``VmHWM``; elsewhere
-    ``getrusage`` maxrss, the process's peak)."""
-    try:
-        for line in _PROC_STATUS.read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024.0  # kB
-    except (OSError, ValueError, IndexError):
-        pass
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return rss / 1024.0 if sys.platform != "darwin" else rss / (1024.0 * 1024.0)
 
 
 def _cuda(device: str) -> bool:
@@ -412,26 +370,19 @@ def fit_or_load(spec, config, scene: Scene, supervision, *, seed: int, device: s
     work = folder / f"{key}.work"
     work.mkdir(parents=True, exist_ok=True)
     seed_everything(seed)
-    if _cuda(device):
-        import torch
-
-        torch.cuda.reset_peak_memory_stats(torch.device(device))
     _synchronize(device)
-    start = time.perf_counter()
-    if head_from is not None:
-        base = method_cls.load(folder / head_from / "model", supervision=supervision, device=device)
-        model = method_cls.refit_head(base, scene, supervision, config, seed=seed, device=device,
-                                      progress=progress, work_dir=work)
-    else:
-        model = method_cls.fit(scene, supervision, config, seed=seed, device=device, progress=progress, work_dir=work)
-    _synchronize(device)
-    fit_seconds = time.perf_counter() - start
-    peak_cpu = peak_rss_mib()
-    peak_gpu = None
-    if _cuda(device):
-        import torch
-
-        peak_gpu = torch.cuda.max_memory_allocated(torch.device(device)) / 2 ** 20
+    with memory.StagePeak(device) as peak:  # the fit's own peak (the run's still includes it)
+        start = time.perf_counter()
+        if head_from is not None:
+            base = method_cls.load(folder / head_from / "model", supervision=supervision, device=device)
+            model = method_cls.refit_head(base, scene, supervision, config, seed=seed, device=device,
+                                          progress=progress, work_dir=work)
+        else:
+            model = method_cls.fit(scene, supervision, config, seed=seed, device=device, progress=progress,
+                                   work_dir=work)
+        _synchronize(device)
+        fit_seconds = time.perf_counter() - start
+    peak_cpu, peak_gpu = peak.cpu_mib, peak.gpu_mib
 
     tmp = folder / f".{key}.partial-{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
@@ -514,11 +465,7 @@ def evaluate(options: EvalOptions) -> RunOutcome:
     config = spec.make_config(options.method_options)
     wall_start = time.perf_counter()
     git_state()  # the checkout as the run starts (a no-op after the process's first call)
-    peak_window = "run" if reset_peak_rss() else "process"
-    if _cuda(options.device):
-        import torch
-
-        torch.cuda.reset_peak_memory_stats(torch.device(options.device))  # a cached fit resets nothing
+    peak_window = "run" if memory.reset_peak() else "process"
 
     root = resolve_scene(options.scene, Path(options.cache_dir), size=options.preset_size, log=progress.log)
     scene = load_scene(root) if options.scale is None else load_scene(root, scale=options.scale)
@@ -589,11 +536,7 @@ def evaluate(options: EvalOptions) -> RunOutcome:
             frames = [frame_of[n] for n in _query_frames(aset, first, frame_of)]
             timing[f"query_{kind}"] = time_queries(model, kind, first.text, frames, device=options.device,
                                                    num_frames=options.timing_frames, repeats=options.timing_repeats)
-    peak_gpu_total = None
-    if _cuda(options.device):
-        import torch
-
-        peak_gpu_total = torch.cuda.max_memory_allocated(torch.device(options.device)) / 2 ** 20
+    peak_gpu_total = memory.peak_gpu_mib(options.device)
 
     dataset = dataset_label(scene)
     out_path = results_path(options.results_dir, dataset, scene.name, spec.name, options.track, options.seed)
@@ -609,13 +552,13 @@ def evaluate(options: EvalOptions) -> RunOutcome:
         "metrics": score_doc["metrics"]["dataset"],
         "unanswered_queries": unanswered,
         "timing": timing,
-        "memory": {"peak_cpu_mib": peak_rss_mib(), "peak_cpu_fit_mib": fit.peak_cpu_mib,
+        "memory": {"peak_cpu_mib": memory.peak_cpu_mib(), "peak_cpu_fit_mib": fit.peak_cpu_mib,
                    "peak_gpu_mib": peak_gpu_total, "peak_gpu_fit_mib": fit.peak_gpu_mib,
                    "peak_window": peak_window,
-                   "note": "CPU peaks: high-water resident memory from the start of this run (peak_window "
-                           "'run'; 'process': the OS could not reset it, the process's peak so far) up to "
-                           "that point (fit peak: measured right after the fit; a cached fit reports its "
-                           "original peak)"},
+                   "note": "CPU peaks: high-water resident memory of this run (peak_window 'run'; "
+                           "'process': the OS could not reset it, the process's peak so far); fit peak: the "
+                           "fit's own (a cached fit reports its original peak); stages reused from the shared "
+                           "cache record theirs in fit.info (benchmark/memory.py)"},
         "method_config": config_dict(config),
         "fit": {"key": fit.key, "cached": fit.cached, **({"head_refit_of": options.head_from} if options.head_from else {}),
                 "info": _jsonable(model.describe()) if hasattr(model, "describe") else None},

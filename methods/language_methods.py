@@ -55,6 +55,7 @@ import torch.nn.functional as F
 
 from benchmark.atomic import atomic_path, write_json
 from benchmark.errors import InputError
+from benchmark.memory import StagePeak
 from benchmark.scene import Frame, Scene
 
 from .api import AgnosticAnswer, Method, Model, Progress, SensitiveAnswer
@@ -250,10 +251,11 @@ def fit_geometry(scene: Scene, kind: str, config: LanguageMethodConfig, *, seed:
     progress.log(f"geometry: fitting {kind} on {len(trainer.views)} training views (cap {trainer.cap} Gaussians)"
                  + (f"; resuming from {checkpoint.path.name} if it is this fit's" if resuming else ""))
     start = time.perf_counter()
-    result = trainer.fit_3dgs() if kind == "3dgs" else trainer.fit_4dgs()
+    with StagePeak(device) as peak:  # reused from the cache by other runs, which are charged this peak
+        result = trainer.fit_3dgs() if kind == "3dgs" else trainer.fit_4dgs()
     seconds = time.perf_counter() - start
     geometry = FrozenGeometry(result.model)
-    info = {"kind": kind, "key": key, "seconds": result.fit_seconds, "session_seconds": seconds,
+    info = {"kind": kind, "key": key, "seconds": result.fit_seconds, "session_seconds": seconds, **peak.record(),
             "resumed_at": result.resumed_at, "gaussians": geometry.num_gaussians,
             "cap": result.cap, "extent": result.extent,
             "stages": [{k: v for k, v in s.items() if k != "events"} for s in result.stages]}
@@ -388,18 +390,20 @@ def fit_language_field(scene: Scene, supervision: Supervision, config: LanguageM
             return SharedField(geo.geometry, fld.requires_grad_(False), ae.eval(), info)
 
     progress.log(f"autoencoder: {feats.shape[0]} distinct features of dimension {feats.shape[1]}")
-    ae, ae_report = train_autoencoder(feats, ae_cfg, seed=seed, weights=areas, device=device)
+    with StagePeak(device) as ae_peak:
+        ae, ae_report = train_autoencoder(feats, ae_cfg, seed=seed, weights=areas, device=device)
     ae.eval().requires_grad_(False)
-    targets = field_targets(scene, supervision, ae, device)
-    fld, report = train_language_field(geo.geometry, targets, f_cfg, seed=seed, progress=progress)
+    with StagePeak(device) as field_peak:
+        targets = field_targets(scene, supervision, ae, device)
+        fld, report = train_language_field(geo.geometry, targets, f_cfg, seed=seed, progress=progress)
     fld.requires_grad_(False)
     info = {"key": key,
             "autoencoder": {"distinct_features": int(feats.shape[0]), "feature_dim": int(feats.shape[1]),
                             "reconstruction_cosine": ae_report.reconstruction_cosine, "steps": ae_report.steps,
-                            "seconds": ae_report.seconds},
+                            "seconds": ae_report.seconds, **ae_peak.record()},
             "field": {"iterations": report.iterations, "seconds": report.seconds, "final_loss": report.final_loss,
                       "losses": report.losses, "supervised_fraction": report.supervised_fraction,
-                      "views": len(targets)}}
+                      "views": len(targets), **field_peak.record()}}
     if path is not None:
         _torch_save(path, {"key": key, "input_dim": int(feats.shape[1]), "autoencoder": ae.state_dict(),
                            "features": fld.features.detach().cpu(), "info": json.dumps(info)})

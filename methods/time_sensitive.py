@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from benchmark.atomic import atomic_path, write_json
+from benchmark.memory import StagePeak
 from benchmark.scene import Frame
 
 from .fields.relevance import AgnosticResult
@@ -54,9 +55,11 @@ class _FieldHead(TimeVaryingHead):
                                           cache_root=context.cache_root, device=context.device,
                                           progress=context.progress)
         sup = embed_captions(captions, tracks, context.supervision.text_encoder)
-        field = fit_time_varying_field(context.shared.geometry, context.scene, sup, cfg, kind=cls.kind,
-                                       seed=context.seed, device=context.device, progress=context.progress,
-                                       log=context.progress.log, backend=cfg.render_backend)
+        with StagePeak(context.device) as peak:
+            field = fit_time_varying_field(context.shared.geometry, context.scene, sup, cfg, kind=cls.kind,
+                                           seed=context.seed, device=context.device, progress=context.progress,
+                                           log=context.progress.log, backend=cfg.render_backend)
+        field.info.update(peak.record())
         mem = field.memory()
         context.progress.log(f"{cls.name}: K = {field.info['num_states']}, {field.info['dynamic_gaussians']} of "
                              f"{mem['gaussians']} Gaussians carry states, {mem['bytes_per_gaussian']:.1f} B/Gaussian, "

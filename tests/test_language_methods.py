@@ -86,6 +86,16 @@ def test_methods_share_one_4dgs_fit_answer_every_query_and_reload(smoke):
     assert second.results["unanswered_queries"] == []  # the status field answers the time-sensitive ones
     assert second.results["metrics"]["sensitive_queries"] == 4
     assert second.results["metrics"]["mIoU"] == pytest.approx(doc["metrics"]["mIoU"])  # identical time-agnostic half
+    # each shared stage recorded its own peak memory, and the run that reused it is charged that peak
+    from benchmark.results import peak_memory_with_shared
+
+    reused = second.results["fit"]["info"]
+    for stage in ("geometry", "autoencoder", "field"):
+        assert reused[stage]["peak_cpu_mib"] == doc["fit"]["info"][stage]["peak_cpu_mib"] > 0
+    assert reused["time_varying"]["peak_cpu_mib"] > 0  # this run's own stage
+    needed, _, measured = peak_memory_with_shared(second.results)
+    assert needed >= max(reused[s]["peak_cpu_mib"] for s in ("geometry", "autoencoder", "field", "time_varying"))
+    assert measured == (sys.platform == "linux")
 
     # langsplat fits its own static 3D-GS
     third = _eval(smoke, "langsplat")
