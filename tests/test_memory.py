@@ -144,3 +144,14 @@ def test_stage_and_run_gpu_peaks_on_cuda():
     assert large.gpu_mib - small.gpu_mib > 200, (large.gpu_mib, small.gpu_mib)
     assert memory.peak_gpu_mib(device) >= large.gpu_mib - 1e-6
     assert memory.peak_gpu_mib("cpu") is None and memory.StagePeak("cpu").gpu_mib is None
+
+
+def test_eval_output_names_the_memory_of_reused_stages(capsys):
+    from benchmark.commands._common import print_run
+
+    doc = {**_doc(stages={"geometry": 900.0}), "metrics": {"mIoU": 1.0},
+           "timing": {"fit_seconds": 1.0, "fit_cached": True}}
+    print_run(doc, "out.json")
+    assert "peak CPU memory 500 MiB (with the cached stages it reused: 900 MiB)" in capsys.readouterr().out
+    print_run({**_doc(stages={"geometry": 100.0}), "metrics": {}, "timing": {"fit_seconds": 1.0}}, "out.json")
+    assert "reused" not in capsys.readouterr().out

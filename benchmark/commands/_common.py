@@ -73,8 +73,16 @@ def print_run(results: dict, path) -> None:
         if q:
             speed.append(f"{kind} {fmt(q['fps'], 1)} FPS ({1000 * q['seconds_per_frame']:.1f} ms/frame)")
     parts.append(f"fit {fmt(t['fit_seconds'], 2)} s{' (cached)' if t.get('fit_cached') else ''}; query " + ", ".join(speed))
+    import math
+
+    from ..results import peak_memory_with_shared
+
     mem = results.get("memory", {})
+    needed_cpu, needed_gpu, _ = peak_memory_with_shared(results)
+    reused = needed_cpu > (mem.get("peak_cpu_mib") or 0.0) + 0.5  # a stage from the cache needed more
     parts.append(f"peak CPU memory {fmt(mem.get('peak_cpu_mib'), 0)} MiB"
-                 + (f", GPU {fmt(mem.get('peak_gpu_mib'), 0)} MiB" if mem.get("peak_gpu_mib") else ""))
+                 + (f", GPU {fmt(mem.get('peak_gpu_mib'), 0)} MiB" if mem.get("peak_gpu_mib") else "")
+                 + (f" (with the cached stages it reused: {fmt(needed_cpu, 0)} MiB"
+                    + ("" if math.isnan(needed_gpu) else f", GPU {fmt(needed_gpu, 0)} MiB") + ")" if reused else ""))
     parts.append(f"-> {path}")
     print("\n  ".join(parts))
