@@ -11,7 +11,8 @@ memory in MiB; ``null`` = not applicable)::
     timing         {"fit_seconds", "fit_cached", "answer_all_seconds",
                     "query_agnostic": {"seconds_per_frame", "fps", ...}, "query_sensitive": {...}}
     memory         {"peak_cpu_mib", "peak_cpu_fit_mib", "peak_gpu_mib", "peak_gpu_fit_mib",
-                    "peak_window": "run" (peaks of this run alone) or "process" (the process's so far)}
+                    "peak_window": "run" (peaks of this run alone) or "process" (the process's so far),
+                    "peak_fit_window": the same for the fit (a cached fit: as it recorded)}
     method_config, fit {"key", "cached"}, supervision {"track", "sources", ...},
     environment    {"packages", "git": {"commit", "dirty"}, "device", ...}
     score_config   (the temporal rule used), scores {"queries", "frames", "skipped"}
@@ -186,13 +187,15 @@ def peak_memory_with_shared(doc: dict) -> tuple[float, float, bool]:
     reusing a cached geometry and field is charged for the memory they took, as for their seconds
     (:mod:`benchmark.memory`). GPU: NaN when nothing ran on one. ``measured`` is False when the number
     may be wrong: a peak over the process rather than the run (``memory.peak_window``; every results
-    file made before per-run peaks), or a stage of the fit record that recorded its seconds but no peak
+    file made before per-run peaks), a cached fit that did not record its window
+    (``memory.peak_fit_window``), or a stage of the fit record that recorded its seconds but no peak
     (made before stage peaks: a run reusing it would be charged too little)."""
     memory = doc.get("memory") or {}
     info = (doc.get("fit") or {}).get("info") or {}
     cpu = [_number(memory.get("peak_cpu_mib")), _number(memory.get("peak_cpu_fit_mib"))]
     gpu = [_number(memory.get("peak_gpu_mib")), _number(memory.get("peak_gpu_fit_mib"))]
-    measured = memory.get("peak_window") == "run"
+    # no peak_fit_window: written before fits recorded it (those with stage peaks all fitted afresh)
+    measured = memory.get("peak_window") == "run" and memory.get("peak_fit_window", "run") == "run"
     for stage, key in FIT_STAGES:
         record = info.get(stage)
         if not isinstance(record, dict) or math.isnan(_number(record.get(key))):

@@ -332,6 +332,9 @@ class FitRecord:
     peak_cpu_mib: float
     peak_gpu_mib: Optional[float]
     directory: Path
+    peak_window: str = "run"
+    """Whether the fit's peaks are its own (``"run"``) or may include what the process held before
+    (``"process"``: the OS kept one mark, or a cached fit that did not record its window)."""
 
 
 def fit_or_load(spec, config, scene: Scene, supervision, *, seed: int, device: str, cache_dir: Path,
@@ -365,7 +368,7 @@ def fit_or_load(spec, config, scene: Scene, supervision, *, seed: int, device: s
         if hasattr(model, "use_answer_options"):
             model.use_answer_options(config)  # the fit may have been made with other answer options
         return FitRecord(model, key, True, float(info["fit_seconds"]), float(info["peak_cpu_mib"]),
-                         info.get("peak_gpu_mib"), final)
+                         info.get("peak_gpu_mib"), final, info.get("peak_window", "process"))
 
     work = folder / f"{key}.work"
     work.mkdir(parents=True, exist_ok=True)
@@ -391,6 +394,7 @@ def fit_or_load(spec, config, scene: Scene, supervision, *, seed: int, device: s
         model.save(tmp / "model")
         info = {"method": spec.name, "key": key, "config": config_dict(config), "seed": seed, "device": device,
                 "fit_seconds": fit_seconds, "peak_cpu_mib": peak_cpu, "peak_gpu_mib": peak_gpu,
+                "peak_window": memory.window(),
                 "created": datetime.now(timezone.utc).isoformat(timespec="seconds")}
         if head_from is not None:
             info["head_refit_of"] = head_from  # geometry, field and autoencoder are that fit's
@@ -401,7 +405,7 @@ def fit_or_load(spec, config, scene: Scene, supervision, *, seed: int, device: s
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     shutil.rmtree(work, ignore_errors=True)
-    return FitRecord(model, key, False, fit_seconds, peak_cpu, peak_gpu, final)
+    return FitRecord(model, key, False, fit_seconds, peak_cpu, peak_gpu, final, memory.window())
 
 
 # -- answering and timing ------------------------------------------------------------------------------
@@ -554,7 +558,7 @@ def evaluate(options: EvalOptions) -> RunOutcome:
         "timing": timing,
         "memory": {"peak_cpu_mib": memory.peak_cpu_mib(), "peak_cpu_fit_mib": fit.peak_cpu_mib,
                    "peak_gpu_mib": peak_gpu_total, "peak_gpu_fit_mib": fit.peak_gpu_mib,
-                   "peak_window": peak_window,
+                   "peak_window": peak_window, "peak_fit_window": fit.peak_window,
                    "note": "CPU peaks: high-water resident memory of this run (peak_window 'run'; "
                            "'process': the OS could not reset it, the process's peak so far); fit peak: the "
                            "fit's own (a cached fit reports its original peak); stages reused from the shared "

@@ -3,6 +3,7 @@ oracle supervision guards and the ``nearest-frame`` floor."""
 
 from __future__ import annotations
 
+import json
 import shutil
 import sys
 from pathlib import Path
@@ -503,6 +504,23 @@ def test_each_run_of_a_sweep_reports_its_own_peak_memory(env, monkeypatch):
     else:  # no resettable high-water mark: the record says the peak is the process's
         assert large["peak_window"] == small["peak_window"] == "process"
     assert small["peak_cpu_mib"] > 0 and small["peak_cpu_fit_mib"] <= small["peak_cpu_mib"] + 1e-6
+
+
+def test_a_cached_fit_passes_on_whether_its_peak_was_its_own(env):
+    from benchmark.results import peak_memory_with_shared
+
+    first = evaluate(_options(env, seed=7)).results
+    assert first["memory"]["peak_fit_window"] == first["memory"]["peak_window"]
+    again = evaluate(_options(env, seed=7)).results  # the cached fit, as it recorded its window
+    assert again["timing"]["fit_cached"] and again["memory"]["peak_fit_window"] == first["memory"]["peak_fit_window"]
+    # a fit cached before fits recorded their window: its peak may include what the process held before
+    (info_path,) = [p for p in (env["cache"] / "fits" / "nearest-frame").rglob("fit.json")
+                    if json.loads(p.read_text())["seed"] == 7]
+    info = json.loads(info_path.read_text())
+    del info["peak_window"]
+    info_path.write_text(json.dumps(info))
+    old = evaluate(_options(env, seed=7)).results
+    assert old["memory"]["peak_fit_window"] == "process" and peak_memory_with_shared(old)[2] is False
 
 
 def test_run_all_jobs_run_scene_seed_groups_in_worker_processes(env, capsys):
