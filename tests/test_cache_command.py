@@ -51,8 +51,9 @@ def test_report_lists_kinds_and_leftovers(tmp_path, capsys):
     cache, _ = _cache(tmp_path)
     assert main(["cache", "--cache-dir", str(cache)]) == 0
     out = capsys.readouterr().out
-    for kind in ("scenes", "captions", "fits", "language/geometry", "language/field", "supervision"):
+    for kind in ("scenes", "captions", "fits", "language/geometry", "language/field", "supervision", "leftovers"):
         assert kind in out
+    assert "language/other" not in out  # a geometry checkpoint is a leftover, not a model
     assert "geometry-4dgs-eee5.partial.pt" in out and "fitgone.work" in out and "fff6" in out
 
 

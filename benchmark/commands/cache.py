@@ -24,6 +24,7 @@ work except two kinds of file, which pruning never touches unless asked:
 from __future__ import annotations
 
 import argparse
+import fnmatch
 import json
 import re
 import shutil
@@ -112,6 +113,8 @@ def referenced_keys(results_dirs: Iterable[Path]) -> set[str]:
 
 def _kind(cache_dir: Path, path: Path) -> str:
     parts = path.relative_to(cache_dir).parts
+    if any(fnmatch.fnmatch(part, pattern) for part in parts for pattern in LEFTOVER_PATTERNS):
+        return "leftovers"
     if parts[0] == "language" and len(parts) > 2:
         match = _MODEL_FILE.match(parts[-1])
         return f"language/{match.group(1)}" if match else "language/other"
