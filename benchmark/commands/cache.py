@@ -38,10 +38,12 @@ _MODEL_FILE = re.compile(r"^(geometry|field)-(3dgs|4dgs)-([0-9a-f]+)\.pt$")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--cache-dir", type=Path, default=Path("cache"))
+    parser.add_argument("--cache-dir", type=Path, default=Path("cache"), help="the cache folder (default: cache)")
     parser.add_argument("--results-dir", type=Path, default=Path("results"),
                         help="results whose fits count as referenced (--prune unreferenced)")
-    parser.add_argument("--prune", choices=("leftovers", "unreferenced"), default=None)
+    parser.add_argument("--prune", choices=("leftovers", "unreferenced"), default=None,
+                        help="leftovers: checkpoints and working folders of interrupted runs; unreferenced: "
+                             "fitted models no results file names (default: only report)")
     parser.add_argument("--older-than", type=float, default=24.0,
                         help="hours: prune only what was last written longer ago than this")
     parser.add_argument("--dry-run", action="store_true", help="list what would be deleted, delete nothing")
