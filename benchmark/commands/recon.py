@@ -2,7 +2,7 @@
 
 SCENE is a scene folder (any layout :func:`benchmark.loaders.load_scene` reads) or a synthetic preset
 name (generated once into ``--cache-dir``). Each model is trained in its own child process, so that its
-peak memory (``getrusage`` maxrss; ``torch.cuda.max_memory_allocated`` on CUDA) is its own, and is then
+peak memory (the process's high-water resident size; ``torch.cuda.max_memory_allocated`` on CUDA) is its own, and is then
 scored on the scene's test frames: PSNR and SSIM (scikit-image, data range 1), fit time (wall and CPU),
 render FPS, Gaussian count. A few renders are saved as PNG beside ``report.json`` (written atomically).
 
@@ -178,13 +178,13 @@ def moving_regions(scene, frames) -> Optional[tuple[dict[int, str], dict[str, An
 def fit_and_evaluate(job: dict) -> dict:
     """Train one model as ``job`` says and return its report entry (also used in-process by tests)."""
     import functools
-    import resource
 
     import torch
 
     from methods.gaussians.rasterize import rasterize
     from methods.gaussians.train import Trainer, evaluate, measure_static_skip
 
+    from .. import memory
     from ..imageio import write_image
 
     torch.set_num_threads(job["threads"])
@@ -194,17 +194,17 @@ def fit_and_evaluate(job: dict) -> dict:
     scene = job.get("scene_object") or load_for_recon(job["scene_dir"], job["scale"])
     cfg = job["config"]
     rast = functools.partial(rasterize, backend="auto")
-    rss_before = _maxrss_mib(resource)
+    rss_before = memory.peak_cpu_mib()
     time_range = job.get("time_range")
     trainer = Trainer(scene, cfg, device=device, rasterize_fn=rast,
                       train_frames=frames_in_range(scene.train_frames, time_range),
                       checkpoint=_checkpointing(job, scene))
-    rss_loaded = _maxrss_mib(resource)
+    rss_loaded = memory.peak_cpu_mib()
     if cuda:
         torch.cuda.reset_peak_memory_stats(torch.device(device))
     kind = job["model"]
     result = trainer.fit_3dgs() if kind == "3dgs" else trainer.fit_4dgs()
-    rss_trained = _maxrss_mib(resource)
+    rss_trained = memory.peak_cpu_mib()
     test_frames = frames_in_range(evaluation_frames(scene), time_range)
     if not test_frames:
         raise InputError(scene.root, "frames", "the scene has no test or val frames to evaluate on"
@@ -268,11 +268,6 @@ def _checkpointing(job: dict, scene):
             "code": source_hash(GEOMETRY_SOURCES)}
     key = hashlib.sha256(json.dumps(what, sort_keys=True, default=str).encode()).hexdigest()[:24]
     return Checkpointing(Path(job["out_dir"]) / f".{job.get('label', job['model'])}.partial.pt", key)
-
-
-def _maxrss_mib(resource) -> float:
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return rss / 1024.0 if sys.platform != "darwin" else rss / 2 ** 20
 
 
 def _jsonable(obj: Any) -> Any:
