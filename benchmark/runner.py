@@ -212,11 +212,24 @@ def package_versions(names: Sequence[str] = PACKAGES) -> dict[str, str]:
     return out
 
 
+_ADOPTED_GIT_STATE: Optional[dict[str, Any]] = None
+
+
 def git_state() -> dict[str, Any]:
     """``{"commit", "dirty"}`` of the checkout holding this code (``None`` outside a git checkout), as it
     was at this process's first call: a run of hours records the code it started with, not a commit
-    made, or a file edited, while it ran (``bench4d`` calls this once at startup)."""
+    made, or a file edited, while it ran (``bench4d`` calls this once at startup). A worker process
+    records its parent command's state instead (:func:`adopt_git_state`)."""
+    if _ADOPTED_GIT_STATE is not None:
+        return dict(_ADOPTED_GIT_STATE)
     return dict(_git_state_at_first_call())
+
+
+def adopt_git_state(state: Optional[dict[str, Any]]) -> None:
+    """Make :func:`git_state` answer ``state`` in this process (a ``run-all --jobs`` worker: the
+    commit its parent command started on, however late the worker starts); None reads it again."""
+    global _ADOPTED_GIT_STATE
+    _ADOPTED_GIT_STATE = None if state is None else dict(state)
 
 
 @functools.lru_cache(maxsize=1)

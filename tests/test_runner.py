@@ -463,6 +463,25 @@ def test_a_run_records_the_commit_it_started_on_not_one_made_while_it_ran(env, m
         runner._git_state_at_first_call.cache_clear()
 
 
+def test_a_run_all_worker_records_its_parent_commands_git_state(env, monkeypatch):
+    # workers start after the parent read its checkout: they must record that, not a later commit
+    import benchmark.runner as runner
+    from benchmark.commands.run_all import _start_worker
+
+    import torch
+
+    threads = torch.get_num_threads()
+    for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):  # restored after the test (the worker sets them)
+        monkeypatch.setenv(name, "0")
+    monkeypatch.setattr(runner.subprocess, "run", lambda *a, **k: (_ for _ in ()).throw(AssertionError("git read")))
+    try:
+        _start_worker(1, {"commit": "3" * 40, "dirty": True})
+        assert evaluate(_options(env, seed=5)).results["environment"]["git"] == {"commit": "3" * 40, "dirty": True}
+    finally:
+        runner.adopt_git_state(None)
+        torch.set_num_threads(threads)
+
+
 def test_code_hashes_of_cache_keys_are_read_once_per_process(tmp_path):
     # a file edited while a long run goes on must not move the keys of the fits that run makes later
     # (the second method of a scene would otherwise refit the geometry the first one just cached)

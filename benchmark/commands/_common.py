@@ -63,6 +63,10 @@ def fmt(value, digits: int = 2) -> str:
 
 
 def print_run(results: dict, path) -> None:
+    import math
+
+    from ..results import peak_memory_with_shared
+
     m = results["metrics"]
     t = results["timing"]
     parts = [f"{results['method']} on {results['dataset']}/{results['scene']} ({results['track']}, seed {results['seed']}):"]
@@ -73,10 +77,6 @@ def print_run(results: dict, path) -> None:
         if q:
             speed.append(f"{kind} {fmt(q['fps'], 1)} FPS ({1000 * q['seconds_per_frame']:.1f} ms/frame)")
     parts.append(f"fit {fmt(t['fit_seconds'], 2)} s{' (cached)' if t.get('fit_cached') else ''}; query " + ", ".join(speed))
-    import math
-
-    from ..results import peak_memory_with_shared
-
     mem = results.get("memory", {})
     needed_cpu, needed_gpu, _ = peak_memory_with_shared(results)
     reused = needed_cpu > (mem.get("peak_cpu_mib") or 0.0) + 0.5  # a stage from the cache needed more

@@ -131,9 +131,9 @@ def _report(cache_dir: Path) -> None:
     totals: dict[str, list[int]] = {}
     for path in sorted(cache_dir.rglob("*")):
         if path.is_file() and not path.is_symlink():
-            totals.setdefault(_kind(cache_dir, path), [0, 0])
-            totals[_kind(cache_dir, path)][0] += 1
-            totals[_kind(cache_dir, path)][1] += path.lstat().st_size
+            entry = totals.setdefault(_kind(cache_dir, path), [0, 0])
+            entry[0] += 1
+            entry[1] += path.lstat().st_size
     print(f"{cache_dir}: {_mib(sum(v[1] for v in totals.values()))} MiB in {sum(v[0] for v in totals.values())} files")
     for kind, (count, size) in sorted(totals.items()):
         print(f"  {kind:<22} {count:>6} files  {_mib(size):>10} MiB")

@@ -87,8 +87,9 @@ def _portable(err: Exception) -> Exception:
         return RuntimeError(f"{type(err).__name__}: {err}")
 
 
-def _start_worker(threads: int) -> None:
-    """A ``--jobs`` worker: its torch threads, and the commit it records read as it starts."""
+def _start_worker(threads: int, git: dict) -> None:
+    """A ``--jobs`` worker: its torch threads, and the commit it records: the parent command's (read as
+    ``bench4d`` started), not the checkout's when the worker happens to start."""
     import os
 
     for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -96,9 +97,9 @@ def _start_worker(threads: int) -> None:
     import torch
 
     torch.set_num_threads(threads)
-    from ..runner import git_state
+    from ..runner import adopt_git_state
 
-    git_state()
+    adopt_git_state(git)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -108,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
     from ..errors import InputError
     from ..loaders import load_scene
     from ..results import archive_results, load_results, results_path, runs_table, scene_status, seed_summary
-    from ..runner import EvalOptions, dataset_label, resolve_scene
+    from ..runner import EvalOptions, dataset_label, git_state, resolve_scene
 
     check_device(args.device)
     if args.jobs < 1:
@@ -190,7 +191,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"run-all: {sum(len(g) for g in groups)} run(s) in {len(groups)} (scene, seed) group(s), "
                   f"{jobs} at a time, {threads} torch thread(s) each", file=sys.stderr)
         with cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
-                                    initializer=_start_worker, initargs=(threads,)) as pool:
+                                    initializer=_start_worker, initargs=(threads, git_state())) as pool:
             futures = {pool.submit(_run_group, group, args.keep_going): group for group in groups}
             for future in cf.as_completed(futures):
                 try:
