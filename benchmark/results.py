@@ -7,7 +7,9 @@ Schema (``"format": "bench4d-run"``, ``"version": 1``; metrics in percent, times
 memory in MiB; ``null`` = not applicable)::
 
     method, dataset, scene, track, seed, splits
-    metrics        {"mIoU", "mAcc", "Acc", "vIoU", "agnostic_queries", "sensitive_queries", "frames_scored"}
+    metrics        {"mIoU", "mAcc", "Acc", "vIoU", "AUC", "nearTau", "agnostic_queries", "sensitive_queries",
+                    "frames_scored"} (AUC / nearTau: diagnostics of the time-sensitive decisions; files
+                    written before they existed get them from their recorded frames, :func:`temporal_diagnostics`)
     timing         {"fit_seconds", "fit_cached", "answer_all_seconds",
                     "query_agnostic": {"seconds_per_frame", "fps", ...}, "query_sensitive": {...}}
     memory         {"peak_cpu_mib", "peak_cpu_fit_mib", "peak_gpu_mib", "peak_gpu_fit_mib",
@@ -41,11 +43,14 @@ RESULTS_FORMAT = "bench4d-run"
 RESULTS_VERSION = 1
 ACCURACY_METRICS: dict[str, tuple[str, str]] = {"agnostic": ("mIoU", "mAcc"), "sensitive": ("Acc", "vIoU")}
 """Query kind -> its two reported metrics (percent, higher is better)."""
-RUN_COLUMNS = ["dataset", "track", "method", "scene", "seed", "mIoU", "mAcc", "Acc", "vIoU",
+DIAGNOSTIC_METRICS = ("AUC", "nearTau")
+"""Diagnostics of the time-sensitive decisions (percent; :mod:`benchmark.metrics.temporal`): the
+scores' ROC AUC against the labels, and the share of decisions near the threshold."""
+RUN_COLUMNS = ["dataset", "track", "method", "scene", "seed", "mIoU", "mAcc", "Acc", "vIoU", *DIAGNOSTIC_METRICS,
                "fps_agnostic", "fps_sensitive", "fit_seconds", "peak_cpu_mib", "peak_gpu_mib",
                "peak_cpu_needed_mib", "peak_gpu_needed_mib", "peak_measured", "device",
                "git_commit", "git_dirty", "scene_digest", "scene_current", "path"]
-VALUE_COLUMNS = ["mIoU", "mAcc", "Acc", "vIoU", "fps_agnostic", "fps_sensitive", "fit_seconds", "peak_cpu_mib",
+VALUE_COLUMNS = ["mIoU", "mAcc", "Acc", "vIoU", *DIAGNOSTIC_METRICS, "fps_agnostic", "fps_sensitive", "fit_seconds", "peak_cpu_mib",
                  "peak_gpu_mib", "peak_cpu_needed_mib", "peak_gpu_needed_mib"]
 MEAN_SCENE = "mean"
 """Scene label of the dataset-level row in :func:`seed_summary`."""
@@ -131,7 +136,7 @@ def load_results(path: str | Path) -> dict:
             raise InputError(path, key, "missing required key")
         if not isinstance(doc[key], kind) or isinstance(doc[key], bool):
             raise InputError(path, key, f"expected {kind.__name__}, got {type(doc[key]).__name__}")
-    for name in ("mIoU", "mAcc", "Acc", "vIoU"):
+    for name in ("mIoU", "mAcc", "Acc", "vIoU", *DIAGNOSTIC_METRICS):
         value = doc["metrics"].get(name)
         if value is not None and not isinstance(value, (int, float)):
             raise InputError(path, f"metrics.{name}", f"expected a number or null, got {value!r}")
@@ -248,6 +253,35 @@ def archive_results(path: str | Path, results_dir: str | Path, label: str) -> Pa
     return target
 
 
+def temporal_diagnostics(doc: dict) -> dict[str, float]:
+    """``{"AUC", "nearTau"}`` (percent, NaN where undefined) of one run: its recorded metrics when it
+    has them, else computed from its recorded per-frame smoothed scores, labels and each query's
+    ``tau`` (files written before the diagnostics existed), averaged over its time-sensitive queries
+    as the scorer averages them (NaN skipped)."""
+    from .metrics import near_threshold_fraction, score_auc
+
+    metrics = doc.get("metrics", {})
+    if all(name in metrics for name in DIAGNOSTIC_METRICS):
+        return {name: _number(metrics.get(name)) for name in DIAGNOSTIC_METRICS}
+    scores = doc.get("scores") or {}
+    frames = [f for f in scores.get("frames") or [] if isinstance(f, dict) and f.get("kind") == "sensitive"]
+    per_query: dict[str, list[float]] = {name: [] for name in DIAGNOSTIC_METRICS}
+    for query in scores.get("queries") or []:
+        if query.get("kind") != "sensitive" or query.get("decision_source") == "decisions":
+            continue  # a method that gave decisions has no scores to diagnose
+        rows = [f for f in frames if f.get("query") == query.get("query")]  # recorded in time order
+        smoothed = np.array([_number(f.get("smoothed")) for f in rows], dtype=np.float64)
+        labels = np.array([bool(f.get("label")) for f in rows])
+        tau = _number(query.get("threshold"))
+        per_query["AUC"].append(100.0 * score_auc(smoothed, labels))
+        per_query["nearTau"].append(100.0 * near_threshold_fraction(smoothed, tau))
+    out = {}
+    for name, values in per_query.items():
+        v = np.array(values, dtype=np.float64)
+        out[name] = float(np.nanmean(v)) if np.isfinite(v).any() else math.nan
+    return out
+
+
 def run_row(doc: dict, path: Optional[Path] = None) -> dict[str, Any]:
     digest, current = scene_status(doc)
     metrics = doc.get("metrics", {})
@@ -259,6 +293,7 @@ def run_row(doc: dict, path: Optional[Path] = None) -> dict[str, Any]:
         "dataset": doc["dataset"], "track": doc["track"], "method": doc["method"], "scene": doc["scene"],
         "seed": int(doc["seed"]),
         **{m: _number(metrics.get(m)) for m in ("mIoU", "mAcc", "Acc", "vIoU")},
+        **temporal_diagnostics(doc),
         "fps_agnostic": _number((timing.get("query_agnostic") or {}).get("fps")),
         "fps_sensitive": _number((timing.get("query_sensitive") or {}).get("fps")),
         "fit_seconds": fit_seconds_with_shared(doc),

@@ -265,3 +265,37 @@ def test_cells_that_read_the_same_are_bolded_alike(tmp_path):
     rows = {line.split("|")[1].strip(): line.split("|")[2].strip() for line in table.splitlines()
             if line.startswith("| ") and not line.startswith("| method")}
     assert rows == {"alpha": "**70.00**", "beta": "**70.00**", "gamma": "69.99"}
+
+
+def test_time_sensitive_table_shows_score_auc_ranked_and_near_threshold_share_unranked(tmp_path):
+    from benchmark.metrics import near_threshold_fraction, score_auc
+
+    root = tmp_path / "results"
+    alpha, beta = _doc("alpha", "s1", 0, 70.0), _doc("beta", "s1", 0, 60.0)
+    # beta's scores order the states perfectly; its decisions all sit near the threshold
+    for f in beta["scores"]["frames"]:
+        f["smoothed"] = 0.2 + (0.005 if f["label"] else -0.005)
+    beta["scores"]["frames"][0]["smoothed"] = 0.0  # a negative far below widens the range
+    write_results(results_path(root, "synthetic", "s1", "alpha", "oracle", 0), alpha)
+    write_results(results_path(root, "synthetic", "s1", "beta", "oracle", 0), beta)
+    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
+    table = (tmp_path / "lb.md").read_text().split("### Time-sensitive queries")[1].split("###")[0]
+    header = next(line for line in table.splitlines() if line.startswith("| method"))
+    names = [c.strip() for c in header.split("|")[1:-1]]
+    assert "mean AUC ↑" in names and "near τ (%)" in names
+    rows = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[1:-1]] for line in table.splitlines()
+            if line.startswith("| ") and not line.startswith("| method")}
+
+    def expected(doc):
+        frames = doc["scores"]["frames"]
+        smoothed = np.array([f["smoothed"] for f in frames])
+        labels = np.array([f["label"] for f in frames])
+        return 100 * score_auc(smoothed, labels), 100 * near_threshold_fraction(smoothed, 0.2)
+
+    auc_col, near_col = names.index("mean AUC ↑"), names.index("near τ (%)")
+    for name, doc in (("alpha", alpha), ("beta", beta)):
+        auc, near = expected(doc)
+        assert rows[name][auc_col].strip("*") == f"{auc:.2f}"
+        assert rows[name][near_col] == f"{near:.2f}"  # never bold
+    assert rows["beta"][auc_col] == "**100.00**" and not rows["alpha"][auc_col].startswith("**")
+    assert expected(beta)[1] == 90.0  # 9 of 10 decisions within 5 % of the range (0.205 - 0 = 0.205)

@@ -308,3 +308,54 @@ def test_score_auc_counts_ordered_pairs_ties_half_and_leaves_out_undefined_score
     assert np.isnan(score_auc(np.array([0.1, 0.2, np.nan, np.nan]), labels))  # no positive left
     with pytest.raises(ValueError, match="same"):
         score_auc(np.zeros(3), labels)
+
+
+def test_threshold_margins_and_near_threshold_fraction_by_hand():
+    from benchmark.metrics import NEAR_THRESHOLD_FRACTION, near_threshold_fraction, threshold_margins
+
+    smoothed = np.array([0.0, 0.1, 0.9, 0.9, 0.1, 0.0])
+    tau = 1 / 3
+    # range 0.9: margins (s - 1/3) / 0.9
+    assert threshold_margins(smoothed, tau) == pytest.approx([-1 / 2.7, -0.7 / 2.7, 1.7 / 2.7, 1.7 / 2.7, -0.7 / 2.7, -1 / 2.7])
+    assert near_threshold_fraction(smoothed, tau) == 0.0  # nothing within 5 % of the range
+    assert near_threshold_fraction(smoothed, tau, 0.3) == pytest.approx(2 / 6)  # the two 0.1s: |-0.259| < 0.3
+    assert near_threshold_fraction(smoothed, tau, 0.0) == 0.0
+    # constant scores: every decision rests on the tie rule alone
+    assert near_threshold_fraction(np.full(4, 0.88), 0.88) == 1.0
+    # an undefined score is decided by convention: not near, but still one of the T frames
+    assert near_threshold_fraction(np.array([0.0, 0.5, np.nan, 1.0]), 0.5) == pytest.approx(1 / 4)
+    assert np.isnan(threshold_margins(np.array([0.0, np.nan]), 0.0)[1])
+    assert near_threshold_fraction(np.array([np.nan, np.nan]), float("nan")) == 0.0
+    assert np.isnan(near_threshold_fraction(np.array([]), 0.0))
+    assert NEAR_THRESHOLD_FRACTION == 0.05
+    with pytest.raises(ValueError, match="fraction"):
+        near_threshold_fraction(smoothed, tau, -0.1)
+
+
+def test_score_sensitive_reports_auc_and_near_threshold_only_with_scores():
+    labels = np.array([False, False, True, True, True, False])
+    frame_iou = np.ones(6)
+    res = score_sensitive(labels, frame_iou, scores=np.array([0, 0, 1, 1, 0, 0], float))
+    # smoothed [0, .1, .9, .9, .1, 0]; positives {.9, .9, .1} vs negatives {0, .1, 0}:
+    # each .9 beats 3 (6), the .1 beats the two 0s (2) and ties the .1 (0.5) -> 8.5 / 9
+    assert res.auc == pytest.approx(8.5 / 9)
+    assert res.near_threshold == 0.0
+    given = score_sensitive(labels, frame_iou, decisions=labels)
+    assert np.isnan(given.auc) and np.isnan(given.near_threshold)
+
+
+def test_accuracy_at_threshold_and_best_cut_by_hand():
+    from benchmark.metrics import accuracy_at_threshold, best_cut_accuracy
+
+    labels = np.array([False, True, False, True, True])
+    scores = np.array([0.1, 0.4, 0.3, 0.2, np.nan])
+    # cut 0.25: decisions [F, T, T, F, F(undefined)] -> right on frames 0, 1 -> 2/5
+    assert accuracy_at_threshold(scores, labels, 0.25) == pytest.approx(2 / 5)
+    assert accuracy_at_threshold(scores, labels, 0.25, undefined_decision=True) == pytest.approx(3 / 5)
+    # cuts: 0.1 -> [T,T,T,T,F] 2/5; 0.2 -> [F,T,T,T,F] 3/5; 0.3 -> [F,T,T,F,F] 2/5; 0.4 -> [F,T,F,F,F] 3/5;
+    # above all -> all negative 2/5: best 3/5, below what a perfect order gives
+    assert best_cut_accuracy(scores, labels) == pytest.approx(3 / 5)
+    assert best_cut_accuracy(np.array([0.1, 0.9, 0.2, 0.8, 0.7]), labels) == 1.0
+    assert best_cut_accuracy(np.array([0.5, 0.5]), np.array([False, False])) == 1.0  # all negative is a cut
+    with pytest.raises(ValueError, match="shape"):
+        accuracy_at_threshold(scores, labels[:3], 0.2)

@@ -323,3 +323,36 @@ def test_cli_reports_input_errors_without_traceback(tmp_path, capsys):
     assert main(["score", "--gt", str(gt), "--pred", str(tmp_path / "p"), "--smoothing-weights", "0.5,0.5"]) == 2
     assert "--smoothing-weights" in capsys.readouterr().err
     assert main(["score", "--gt", str(gt), "--pred", str(tmp_path / "missing")]) == 2
+
+
+def test_time_sensitive_diagnostics_are_recorded_and_derivable_from_the_recorded_frames():
+    """AUC / nearTau of a query row; a results file written before they existed gets the same values
+    from its recorded frames (the leaderboard reads every file through one path)."""
+    from benchmark.results import temporal_diagnostics
+
+    aset = make_gt()
+    preds = hand_predictions(aset)
+    # scores [.2, .3, .9, .8, .6, .1]: the two middle-low frames sit near the threshold
+    preds.queries["cracked cookie"].scores = {f"f{t:03d}": s for t, s in enumerate([0.2, 0.3, 0.9, 0.8, 0.6, 0.1])}
+    score = aggregate_scenes([score_scene(aset, preds)])
+    row = score.query_table().set_index("query").loc["cracked cookie"]
+    assert 0.9 < row["auc"] <= 1.0 and 0.0 <= row["near_threshold"] <= 1.0
+    assert math.isnan(score.query_table().set_index("query").loc["cookie", "auc"])
+    doc = score.to_json()
+    assert doc["metrics"]["dataset"]["AUC"] == pytest.approx(100 * row["auc"])
+    assert doc["metrics"]["dataset"]["nearTau"] == pytest.approx(100 * row["near_threshold"])
+    run = {"metrics": doc["metrics"]["dataset"], "scores": {"queries": doc["queries"], "frames": doc["frames"]}}
+    assert temporal_diagnostics(run) == pytest.approx({"AUC": 100 * row["auc"], "nearTau": 100 * row["near_threshold"]})
+    old = copy.deepcopy(run)
+    for name in ("AUC", "nearTau"):
+        del old["metrics"][name]
+    assert temporal_diagnostics(old) == pytest.approx(temporal_diagnostics(run))
+    # the derivation reads the frames: change one recorded score and it follows
+    for f in old["scores"]["frames"]:
+        if f["query"] == "cracked cookie" and f["frame"] == "f004":
+            f["smoothed"] = 0.0
+    assert temporal_diagnostics(old)["AUC"] < temporal_diagnostics(run)["AUC"]
+    # a method that gave decisions has nothing to diagnose
+    for q in old["scores"]["queries"]:
+        q["decision_source"] = "decisions" if q["kind"] == "sensitive" else q["decision_source"]
+    assert all(math.isnan(v) for v in temporal_diagnostics(old).values())

@@ -71,6 +71,9 @@ def print_run(results: dict, path) -> None:
     t = results["timing"]
     parts = [f"{results['method']} on {results['dataset']}/{results['scene']} ({results['track']}, seed {results['seed']}):"]
     parts.append(f"mIoU {fmt(m.get('mIoU'))}  mAcc {fmt(m.get('mAcc'))}  Acc {fmt(m.get('Acc'))}  vIoU {fmt(m.get('vIoU'))}")
+    if m.get("AUC") is not None or m.get("nearTau") is not None:
+        parts.append(f"time-sensitive scores: AUC {fmt(m.get('AUC'))}, decisions near the threshold "
+                     f"{fmt(m.get('nearTau'), 1)} %")
     speed = []
     for kind in ("agnostic", "sensitive"):
         q = t.get(f"query_{kind}")

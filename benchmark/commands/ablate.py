@@ -10,6 +10,7 @@
     bench4d ablate rescore --name NAME --set KEY=VALUE [--set ...] [--methods M ...] [--scenes S ...]
                            [--seeds N ...] [--refit]
     bench4d ablate gap [--methods langsplat deformable-clip] [--scenes S ...] [--seeds N ...]
+    bench4d ablate decisions [--methods M ...] [--datasets D ...] [--scenes S ...] [--results-dir results]
 
 ``delta-sim`` (Tables 3-4): captions every tracked object of the training frames with each visual /
 text prompt combination and reports Delta-sim (:func:`benchmark.metrics.delta_sim_scene`: mean cosine
@@ -51,6 +52,11 @@ per ground-truth name the pixels whose rendered latent is nearer another name's 
 queries, the state score inside the run's own mask, inside the object mask and on its caption targets.
 Reads the truth of evaluated frames: an analysis of fitted models. Analyses of unchanged runs are
 reused from the previous output (``--force`` redoes them).
+
+``decisions``: from what the leaderboard's results files record (no fit), how far each method's
+time-sensitive Acc can be trusted and what the mean-threshold rule costs (:mod:`benchmark.time_decisions`):
+the Acc span when tau moves by 5 % of the score range, the scores' AUC, the share of decisions near tau,
+and Acc at the best single cut (an oracle) beside the same oracle on shuffled labels.
 
 All write a JSON and a Markdown table to ``--out`` (default ``reports/ablations``) and print the table.
 """
@@ -139,6 +145,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--out", type=Path, default=Path("reports/ablations"))
     g.add_argument("--force", action="store_true", help="analyse again the runs the previous output already holds")
     g.add_argument("--quiet", action="store_true")
+    dc = sub.add_parser("decisions", help="how far the recorded time-sensitive Acc can be trusted: Acc span near "
+                                          "the threshold, score AUC, Acc at the best cut (recorded runs, no fit)")
+    dc.add_argument("--methods", nargs="+", default=None, help="methods (default: every method with time answers)")
+    dc.add_argument("--datasets", nargs="+", default=None, help="datasets (default: all)")
+    dc.add_argument("--scenes", nargs="+", default=None, help="scene names (default: all)")
+    dc.add_argument("--name", default="time-decisions", help="output file stem under --out")
+    dc.add_argument("--results-dir", type=Path, default=Path("results"))
+    dc.add_argument("--out", type=Path, default=Path("reports/ablations"))
+    dc.add_argument("--quiet", action="store_true")
     s = sub.add_parser("states", help="accuracy vs number of states K of the status field (paper Table 5)")
     _common(s)
     s.add_argument("--k", nargs="+", type=int, default=[2, 3, 4, 5, 6])
@@ -182,6 +197,8 @@ def run(args: argparse.Namespace) -> int:
         return _rescore(args)
     if args.ablation == "gap":
         return _gap(args)
+    if args.ablation == "decisions":
+        return _decisions(args)
     return _states(args)
 
 
@@ -758,3 +775,38 @@ def _gap_table(runs: list[dict], skipped: list[str]) -> str:
     if skipped:
         text += "\nSkipped: " + "; ".join(skipped) + "\n"
     return text
+
+
+# -- decisions ---------------------------------------------------------------------------------------
+def _decisions(args) -> int:
+    from ..results import comparable_runs, find_results, load_results, runs_table
+    from ..time_decisions import markdown, query_rows, summarise
+
+    if not args.results_dir.is_dir():
+        raise InputError(args.results_dir, None, "results folder not found")
+    paths = find_results(args.results_dir)
+    runs = comparable_runs(runs_table(paths))[0]  # the leaderboard's runs: current scene versions only
+    if args.methods:
+        runs = runs[runs["method"].isin(args.methods)]
+    if args.datasets:
+        runs = runs[runs["dataset"].isin(args.datasets)]
+    if args.scenes:
+        runs = runs[runs["scene"].isin(args.scenes)]
+    rows = []
+    for path in runs["path"]:
+        doc = load_results(path)
+        rows += [{**r, "dataset": doc["dataset"], "track": doc["track"]} for r in query_rows(doc, path=Path(path))]
+    if not rows:
+        raise InputError(args.results_dir, None, "no recorded run answers a time-sensitive query from scores "
+                                                 "(with these filters)")
+    for r in rows:  # a method on two datasets or tracks: keep them apart
+        r["method"] = f"{r['method']} ({r['dataset']}, {r['track']})"
+    per_scene, per_method = summarise(rows)
+    table = markdown(per_scene, per_method, sources=f"`{args.results_dir.as_posix()}/`")
+    doc = {"per_method": per_method.to_dict(orient="records"), "per_scene": per_scene.to_dict(orient="records"),
+           "queries": rows}
+    written = _write(args.out, args.name, doc, table)
+    if not args.quiet:
+        print(table)
+    _log(args, "wrote " + ", ".join(str(p) for p in written))
+    return 0

@@ -12,8 +12,8 @@ Layers (per-scene scoring is separate from combining, as in TrackEval):
 Which frames are scored: for a query, every frame where it (a time-sensitive query: its base) has
 a GT mask, optionally restricted to :attr:`ScoreConfig.eval_frames`, in time order
 ``(time_index, camera_id)``. A query with no such frame is not scored (listed in
-:attr:`SceneScore.skipped`). mIoU / mAcc average time-agnostic queries only; Acc / vIoU average
-time-sensitive queries only.
+:attr:`SceneScore.skipped`). mIoU / mAcc average time-agnostic queries only; Acc / vIoU (and the
+diagnostics AUC / nearTau, which need per-frame scores) average time-sensitive queries only.
 
 Units: array functions, records and query rows hold fractions in [0, 1]; summaries and the results
 document are in percent.
@@ -35,10 +35,13 @@ from ..errors import InputError
 from ..predictions import QueryPrediction, ScenePredictions, field_name, query_slug
 from .aggregate import FrameRecord, aggregate, records_table
 from .masks import accuracy_from_confusion, confusion, iou, iou_from_confusion, pixel_accuracy
-from .temporal import TemporalDecision, TemporalRuleConfig, apply_temporal_rule, temporal_accuracy, video_iou
+from .temporal import (TemporalDecision, TemporalRuleConfig, apply_temporal_rule, near_threshold_fraction, score_auc,
+                       temporal_accuracy, video_iou)
 
-REPORT_METRICS = {"mIoU": "miou", "mAcc": "macc", "Acc": "acc", "vIoU": "viou"}
-"""Reported name (percent) -> query-row column (fraction)."""
+REPORT_METRICS = {"mIoU": "miou", "mAcc": "macc", "Acc": "acc", "vIoU": "viou", "AUC": "auc",
+                  "nearTau": "near_threshold"}
+"""Reported name (percent) -> query-row column (fraction). ``AUC`` and ``nearTau`` are diagnostics of
+the time-sensitive decisions (:mod:`benchmark.metrics.temporal`), not paper metrics."""
 
 
 @dataclass(frozen=True)
@@ -103,6 +106,12 @@ class SensitiveScore:
     """vIoU (fraction)."""
     rule: Optional[TemporalDecision]
     """The rule's intermediate values, or ``None`` when the method gave decisions."""
+    auc: float = float("nan")
+    """ROC AUC (fraction) of the smoothed scores against the labels; NaN without scores or
+    without both a positive and a negative frame."""
+    near_threshold: float = float("nan")
+    """Fraction of the frames decided within :data:`~benchmark.metrics.temporal.NEAR_THRESHOLD_FRACTION`
+    of the score range of ``tau``; NaN without scores."""
 
     @property
     def decision_source(self) -> str:
@@ -126,8 +135,10 @@ def score_sensitive(labels: np.ndarray, frame_iou: np.ndarray, *, scores: Option
         rule, d = None, np.asarray(decisions, dtype=bool)
     else:
         raise ValueError("score_sensitive needs scores or decisions")
+    diagnostics = {} if rule is None else {
+        "auc": score_auc(rule.smoothed, y), "near_threshold": near_threshold_fraction(rule.smoothed, rule.threshold)}
     return SensitiveScore(decisions=d, labels=y, accuracy=temporal_accuracy(d, y),
-                          viou=video_iou(d, y, frame_iou), rule=rule)
+                          viou=video_iou(d, y, frame_iou), rule=rule, **diagnostics)
 
 
 # -- one scene ---------------------------------------------------------------------------------------
@@ -156,6 +167,10 @@ class QueryScore:
     """Sensitive: frames predicted positive."""
     decision_source: str = ""
     """Sensitive: ``"rule"`` (from scores) or ``"decisions"`` (given by the method)."""
+    auc: float = float("nan")
+    """Sensitive diagnostic: ROC AUC of the smoothed scores against the labels (threshold-free)."""
+    near_threshold: float = float("nan")
+    """Sensitive diagnostic: fraction of decisions near ``tau`` (see :mod:`benchmark.metrics.temporal`)."""
 
 
 QUERY_COLUMNS = [f.name for f in fields(QueryScore)]
@@ -417,7 +432,8 @@ def score_scene(aset: AnnotationSet, predictions: ScenePredictions,
         rows.append(QueryScore(**base, frames=len(frames), acc=result.accuracy, viou=result.viou,
                                threshold=float("nan") if rule is None else rule.threshold,
                                positives=int(labels.sum()), predicted=int(result.decisions.sum()),
-                               decision_source=result.decision_source))
+                               decision_source=result.decision_source, auc=result.auc,
+                               near_threshold=result.near_threshold))
         nan = float("nan")
         records.extend(FrameRecord(**base, frame=f.name, time_index=f.time_index, camera_id=f.camera_id,
                                    iou=float(ious[i]), acc=float(accs[i]), pred_pixels=int(pred_px[i]),

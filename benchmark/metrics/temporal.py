@@ -20,10 +20,18 @@ Metrics (fractions in [0, 1]):
 * :func:`temporal_accuracy`: fraction of evaluated frames with ``pred_t == label_t``.
 * :func:`video_iou`: ``vIoU = (1 / |S_u|) sum_{t in S_i} IoU_t`` with ``S_u`` the frames predicted
   or labelled positive and ``S_i`` the frames both; empty ``S_u`` -> :data:`EMPTY_UNION_VIOU`.
+
+Diagnostics beside them (not in the paper; they say how far Acc can be trusted):
+* :func:`score_auc`: ROC AUC of the smoothed scores against the labels, threshold-free: whether
+  the scores order the states at all, whatever the mean threshold then does with them.
+* :func:`near_threshold_fraction`: fraction of the frames whose decision would flip if ``tau``
+  moved by :data:`NEAR_THRESHOLD_FRACTION` of the query's smoothed score range: how many of the
+  Acc's decisions are coin flips of the fitted model.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 from typing import Literal
 
@@ -37,6 +45,12 @@ EMPTY_UNION_VIOU = 1.0
 """vIoU when no frame is predicted positive and none is labelled positive (``S_u`` empty): the
 method correctly says "never", the temporal analogue of the both-empty IoU rule. (The release
 returns 0 here; with its annotations the case never arises because every time query holds somewhere.)"""
+
+NEAR_THRESHOLD_FRACTION = 0.05
+"""A decision is *near the threshold* when ``|s~_t - tau| < 0.05 (max s~ - min s~)`` over the query's
+defined frames (:func:`near_threshold_fraction`). Not a paper constant: a diagnostic of how fragile
+the mean-threshold decisions are (on 15 evaluated frames one flipped decision moves Acc by 6.7
+points)."""
 
 
 @dataclass(frozen=True)
@@ -199,6 +213,61 @@ def video_iou(decisions: np.ndarray, labels: np.ndarray, frame_iou: np.ndarray) 
     if np.isnan(v[both]).any():
         raise ValueError("frame_iou is NaN on a frame predicted and labelled positive")
     return float(v[both].sum() / union.sum())
+
+
+def threshold_margins(smoothed: np.ndarray, threshold: float) -> np.ndarray:
+    """Signed margin of each decision, ``(s~_t - tau) / (max s~ - min s~)`` (T,) float64, for the
+    smoothed scores ``smoothed`` (T,) (NaN = undefined) and ``tau`` ``threshold``.
+
+    NaN where ``s~_t`` is undefined or ``tau`` is NaN. Constant scores (zero range) give margin 0
+    everywhere: every decision then rests on the tie rule alone."""
+    s = _scores_array(smoothed)
+    out = np.full(s.shape, np.nan)
+    defined = ~np.isnan(s)
+    if not defined.any() or math.isnan(threshold):
+        return out
+    span = float(s[defined].max() - s[defined].min())
+    out[defined] = 0.0 if span == 0.0 else (s[defined] - threshold) / span
+    return out
+
+
+def near_threshold_fraction(smoothed: np.ndarray, threshold: float,
+                            fraction: float = NEAR_THRESHOLD_FRACTION) -> float:
+    """Fraction of the T frames whose decision lies within ``fraction`` of the score range of
+    ``tau`` (``|margin| < fraction``, see :func:`threshold_margins`). A frame with an undefined score
+    is decided by convention (not by ``tau``) and counts as not near. T = 0 -> NaN."""
+    if not fraction >= 0:
+        raise ValueError(f"fraction must be >= 0, got {fraction}")
+    margins = threshold_margins(smoothed, threshold)
+    if margins.size == 0:
+        return float("nan")
+    near = np.abs(margins[~np.isnan(margins)]) < fraction
+    return float(near.sum() / margins.size)
+
+
+def accuracy_at_threshold(smoothed: np.ndarray, labels: np.ndarray, threshold: float,
+                          undefined_decision: bool = False) -> float:
+    """Acc of the decisions ``s~_t >= threshold`` against ``labels`` (T,) bool; an undefined score
+    is decided ``undefined_decision``. T = 0 -> NaN. (The rule's own Acc uses its ``tau`` and tie
+    tolerance: :func:`apply_temporal_rule`.)"""
+    s = _scores_array(smoothed)
+    y = np.asarray(labels, dtype=bool)
+    if s.shape != y.shape:
+        raise ValueError(f"smoothed {s.shape} and labels {y.shape} must be the same (T,) shape")
+    defined = ~np.isnan(s)
+    decisions = np.where(defined, s >= threshold, bool(undefined_decision))  # NaN >= x is False, replaced
+    return temporal_accuracy(decisions, y)
+
+
+def best_cut_accuracy(smoothed: np.ndarray, labels: np.ndarray, undefined_decision: bool = False) -> float:
+    """The largest Acc any single threshold on ``smoothed`` (T,) reaches against ``labels`` (T,):
+    an *oracle* that picks the cut knowing the labels, so it is optimistic (scores unrelated to the
+    labels reach well above 50 % on a few frames); it bounds what a better threshold rule could gain
+    from these scores. Candidate cuts: every defined value, and above all of them (all negative)."""
+    s = _scores_array(smoothed)
+    cuts = np.unique(s[~np.isnan(s)])
+    candidates = [*cuts, np.inf]
+    return max(accuracy_at_threshold(s, labels, float(c), undefined_decision) for c in candidates)
 
 
 def score_auc(scores: np.ndarray, positive: np.ndarray) -> float:
