@@ -215,7 +215,7 @@ def render_markdown(runs: pd.DataFrame, results_dir_label: str) -> str:
            "* Time-sensitive diagnostics (not paper metrics): AUC = ROC AUC of a query's smoothed per-frame",
            "  scores against its labels, threshold-free (50 = the scores do not order the states);",
            "  near τ = share of decisions within 5 % of the query's score range of the mean threshold, each a",
-           "  coin flip of the fitted model (one of 15 frames moves Acc by 6.7 points). Not ranked.",
+           "  coin flip of the fitted model (one of 15 frames moves Acc by 6.7 points; not ranked).",
            "* Query FPS = 1 / median per-frame query time (warm-up excluded) on the device the run recorded;",
            "  fit time in seconds of every stage of the fit (geometry, autoencoder, field, time-varying head),",
            "  including stages reused from a cache (a method sharing another's geometry is charged for it).",

@@ -31,7 +31,7 @@ import json
 import math
 import os
 from pathlib import Path
-from typing import Any, Iterable, Optional
+from typing import Any, Iterable, Iterator, Optional
 
 import numpy as np
 import pandas as pd
@@ -253,6 +253,22 @@ def archive_results(path: str | Path, results_dir: str | Path, label: str) -> Pa
     return target
 
 
+def sensitive_query_records(doc: dict) -> Iterator[tuple[dict, np.ndarray, np.ndarray, np.ndarray, float]]:
+    """For each time-sensitive query a run decided from scores (not one whose method gave decisions):
+    (its query row, smoothed scores (T,) float64 with NaN = undefined, labels (T,) bool, decisions (T,)
+    bool, tau), from the recorded per-frame records in time order."""
+    scores = doc.get("scores") or {}
+    frames = [f for f in scores.get("frames") or [] if isinstance(f, dict) and f.get("kind") == "sensitive"]
+    for query in scores.get("queries") or []:
+        if query.get("kind") != "sensitive" or query.get("decision_source") == "decisions":
+            continue  # a method that gave decisions has no scores to diagnose
+        rows = sorted((f for f in frames if f.get("query") == query.get("query")),
+                      key=lambda f: (_number(f.get("time_index")), str(f.get("camera_id")), str(f.get("frame"))))
+        yield (query, np.array([_number(f.get("smoothed")) for f in rows], dtype=np.float64),
+               np.array([bool(f.get("label")) for f in rows]), np.array([bool(f.get("decision")) for f in rows]),
+               _number(query.get("threshold")))
+
+
 def temporal_diagnostics(doc: dict) -> dict[str, float]:
     """``{"AUC", "nearTau"}`` (percent, NaN where undefined) of one run: its recorded metrics when it
     has them, else computed from its recorded per-frame smoothed scores, labels and each query's
@@ -263,16 +279,8 @@ def temporal_diagnostics(doc: dict) -> dict[str, float]:
     metrics = doc.get("metrics", {})
     if all(name in metrics for name in DIAGNOSTIC_METRICS):
         return {name: _number(metrics.get(name)) for name in DIAGNOSTIC_METRICS}
-    scores = doc.get("scores") or {}
-    frames = [f for f in scores.get("frames") or [] if isinstance(f, dict) and f.get("kind") == "sensitive"]
     per_query: dict[str, list[float]] = {name: [] for name in DIAGNOSTIC_METRICS}
-    for query in scores.get("queries") or []:
-        if query.get("kind") != "sensitive" or query.get("decision_source") == "decisions":
-            continue  # a method that gave decisions has no scores to diagnose
-        rows = [f for f in frames if f.get("query") == query.get("query")]  # recorded in time order
-        smoothed = np.array([_number(f.get("smoothed")) for f in rows], dtype=np.float64)
-        labels = np.array([bool(f.get("label")) for f in rows])
-        tau = _number(query.get("threshold"))
+    for _, smoothed, labels, _, tau in sensitive_query_records(doc):
         per_query["AUC"].append(100.0 * score_auc(smoothed, labels))
         per_query["nearTau"].append(100.0 * near_threshold_fraction(smoothed, tau))
     out = {}

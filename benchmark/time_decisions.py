@@ -28,6 +28,7 @@ import pandas as pd
 
 from .metrics.temporal import (NEAR_THRESHOLD_FRACTION, accuracy_at_threshold, best_cut_accuracy,
                                near_threshold_fraction, score_auc)
+from .results import sensitive_query_records
 
 CHANCE_PERMUTATIONS = 200
 """Label shuffles behind ``chance_best_cut`` (seeded, so the report is deterministic)."""
@@ -52,29 +53,19 @@ def accuracy_span(smoothed: np.ndarray, labels: np.ndarray, tau: float, shift: f
 
 def query_rows(doc: dict, *, path: Optional[Path] = None) -> list[dict]:
     """One row per time-sensitive query the run decided from scores (percent values)."""
-    scores = doc.get("scores") or {}
-    frames = [f for f in scores.get("frames") or [] if isinstance(f, dict) and f.get("kind") == "sensitive"]
     rows = []
-    for query in scores.get("queries") or []:
-        if query.get("kind") != "sensitive" or query.get("decision_source") == "decisions":
+    for query, smoothed, labels, decisions, tau in sensitive_query_records(doc):
+        if not smoothed.size:
             continue
-        recorded = [f for f in frames if f.get("query") == query.get("query")]
-        if not recorded:
-            continue
-        recorded.sort(key=lambda f: (f.get("time_index", 0), str(f.get("camera_id", "")), str(f.get("frame", ""))))
-        smoothed = np.array([np.nan if f.get("smoothed") is None else float(f["smoothed"]) for f in recorded])
-        labels = np.array([bool(f.get("label")) for f in recorded])
-        tau = math.nan if query.get("threshold") is None else float(query["threshold"])
         defined = smoothed[~np.isnan(smoothed)]
         span = float(defined.max() - defined.min()) if defined.size else 0.0
         shift = NEAR_THRESHOLD_FRACTION * span
         rng = np.random.default_rng(CHANCE_SEED)
         chance = np.mean([best_cut_accuracy(smoothed, rng.permutation(labels)) for _ in range(CHANCE_PERMUTATIONS)])
-        decisions = np.array([bool(f.get("decision")) for f in recorded])
         low, high = accuracy_span(smoothed, labels, tau, shift)
         rows.append({
             "method": doc["method"], "scene": doc["scene"], "seed": int(doc["seed"]), "query": query.get("query"),
-            "frames": len(recorded), "positives": int(labels.sum()),
+            "frames": int(smoothed.size), "positives": int(labels.sum()),
             "acc": 100.0 * float((decisions == labels).mean()),
             "acc_low": 100.0 * low, "acc_high": 100.0 * high,
             "auc": 100.0 * score_auc(smoothed, labels),
