@@ -50,8 +50,8 @@ RUN_COLUMNS = ["dataset", "track", "method", "scene", "seed", "mIoU", "mAcc", "A
                "fps_agnostic", "fps_sensitive", "fit_seconds", "peak_cpu_mib", "peak_gpu_mib",
                "peak_cpu_needed_mib", "peak_gpu_needed_mib", "peak_measured", "device",
                "git_commit", "git_dirty", "scene_digest", "scene_current", "path"]
-VALUE_COLUMNS = ["mIoU", "mAcc", "Acc", "vIoU", *DIAGNOSTIC_METRICS, "fps_agnostic", "fps_sensitive", "fit_seconds", "peak_cpu_mib",
-                 "peak_gpu_mib", "peak_cpu_needed_mib", "peak_gpu_needed_mib"]
+VALUE_COLUMNS = ["mIoU", "mAcc", "Acc", "vIoU", *DIAGNOSTIC_METRICS, "fps_agnostic", "fps_sensitive", "fit_seconds",
+                 "peak_cpu_mib", "peak_gpu_mib", "peak_cpu_needed_mib", "peak_gpu_needed_mib"]
 MEAN_SCENE = "mean"
 """Scene label of the dataset-level row in :func:`seed_summary`."""
 

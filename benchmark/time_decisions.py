@@ -7,7 +7,7 @@ it needs no fit and no scene. Per time-sensitive query of a run:
 * ``acc_low`` / ``acc_high``: the lowest and highest Acc of any threshold within
   :data:`~benchmark.metrics.temporal.NEAR_THRESHOLD_FRACTION` of the query's score range of ``tau``
   (:func:`accuracy_span`): the span a small change of the fit can move it through.
-* ``auc``, ``near``: the recorded diagnostics (:func:`benchmark.results.temporal_diagnostics`).
+* ``auc``, ``near``: the query's diagnostics, as the scorer records them (``metrics.AUC`` / ``nearTau``).
 * ``best_cut``: Acc at the best single threshold (:func:`~benchmark.metrics.temporal.best_cut_accuracy`),
   an oracle choice, and ``chance_best_cut``: the same oracle on scores unrelated to the labels (the
   mean over :data:`CHANCE_PERMUTATIONS` seeded shuffles of the labels), its optimism on so few frames.

@@ -779,23 +779,20 @@ def _gap_table(runs: list[dict], skipped: list[str]) -> str:
 
 # -- decisions ---------------------------------------------------------------------------------------
 def _decisions(args) -> int:
-    from ..results import comparable_runs, find_results, load_results, runs_table
+    from ..results import find_results, load_results, scene_status
     from ..time_decisions import markdown, query_rows, summarise
 
     if not args.results_dir.is_dir():
         raise InputError(args.results_dir, None, "results folder not found")
-    paths = find_results(args.results_dir)
-    runs = comparable_runs(runs_table(paths))[0]  # the leaderboard's runs: current scene versions only
-    if args.methods:
-        runs = runs[runs["method"].isin(args.methods)]
-    if args.datasets:
-        runs = runs[runs["dataset"].isin(args.datasets)]
-    if args.scenes:
-        runs = runs[runs["scene"].isin(args.scenes)]
     rows = []
-    for path in runs["path"]:
+    for path in find_results(args.results_dir):
         doc = load_results(path)
-        rows += [{**r, "dataset": doc["dataset"], "track": doc["track"]} for r in query_rows(doc, path=Path(path))]
+        if scene_status(doc)[1] is False:
+            continue  # measured on another scene version: the leaderboard leaves it out too
+        if ((args.methods and doc["method"] not in args.methods) or (args.datasets and doc["dataset"] not in args.datasets)
+                or (args.scenes and doc["scene"] not in args.scenes)):
+            continue
+        rows += [{**r, "dataset": doc["dataset"], "track": doc["track"]} for r in query_rows(doc, path=path)]
     if not rows:
         raise InputError(args.results_dir, None, "no recorded run answers a time-sensitive query from scores "
                                                  "(with these filters)")

@@ -18,8 +18,9 @@ from .masks import EMPTY_IOU, accuracy_from_confusion, confusion, iou, iou_from_
 from .scoring import (REPORT_METRICS, AgnosticScore, DatasetScore, QueryScore, SceneScore, ScoreConfig,
                       SensitiveScore, aggregate_scenes, score_agnostic, score_scene, score_sensitive)
 from .temporal import (EMPTY_UNION_VIOU, NEAR_THRESHOLD_FRACTION, TemporalDecision, TemporalRuleConfig,
-                       accuracy_at_threshold, apply_temporal_rule, best_cut_accuracy, decide_temporal, near_threshold_fraction, score_auc, smooth_scores,
-                       temporal_accuracy, temporal_threshold, threshold_margins, video_iou)
+                       accuracy_at_threshold, apply_temporal_rule, best_cut_accuracy, decide_temporal,
+                       near_threshold_fraction, score_auc, smooth_scores, temporal_accuracy, temporal_threshold,
+                       threshold_margins, video_iou)
 
 __all__ = [
     "LEVELS", "FrameRecord", "aggregate", "records_table",
