@@ -16,7 +16,9 @@ memory in MiB; ``null`` = not applicable)::
                     "peak_window": "run" (peaks of this run alone) or "process" (the process's so far),
                     "peak_fit_window": the same for the fit (a cached fit: as it recorded)}
     method_config, fit {"key", "cached"}, supervision {"track", "sources", ...},
-    environment    {"packages", "git": {"commit", "dirty"}, "device", ...}
+    environment    {"packages", "git": {"commit", "dirty"} (as the command started),
+                    "code_changed_during_run" (the code differed at the run's end: the commit may not be
+                    all the code it ran; null: unknown), "device", ...}
     score_config   (the temporal rule used), scores {"queries", "frames", "skipped"}
     predictions    (path of predictions.json relative to this file), created, wall_seconds
 

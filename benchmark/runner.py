@@ -213,6 +213,9 @@ def package_versions(names: Sequence[str] = PACKAGES) -> dict[str, str]:
 
 
 _ADOPTED_GIT_STATE: Optional[dict[str, Any]] = None
+CODE_PATHS = ("benchmark", "methods", "annotations", "pyproject.toml")
+"""What a run executes or scores with (the fingerprint of :func:`code_changed_since_start`); results
+files, reports and caches change during a sweep by design and are left out."""
 
 
 def git_state() -> dict[str, Any]:
@@ -220,9 +223,14 @@ def git_state() -> dict[str, Any]:
     was at this process's first call: a run of hours records the code it started with, not a commit
     made, or a file edited, while it ran (``bench4d`` calls this once at startup). A worker process
     records its parent command's state instead (:func:`adopt_git_state`)."""
-    if _ADOPTED_GIT_STATE is not None:
-        return dict(_ADOPTED_GIT_STATE)
-    return dict(_git_state_at_first_call())
+    state = checkout_at_start()
+    return {"commit": state.get("commit"), "dirty": state.get("dirty")}
+
+
+def checkout_at_start() -> dict[str, Any]:
+    """:func:`git_state` plus ``"code"``, the fingerprint of :data:`CODE_PATHS` then (what a worker
+    is handed, :func:`adopt_git_state`)."""
+    return dict(_ADOPTED_GIT_STATE if _ADOPTED_GIT_STATE is not None else _git_state_at_first_call())
 
 
 def adopt_git_state(state: Optional[dict[str, Any]]) -> None:
@@ -232,6 +240,33 @@ def adopt_git_state(state: Optional[dict[str, Any]]) -> None:
     _ADOPTED_GIT_STATE = None if state is None else dict(state)
 
 
+def code_changed_since_start() -> Optional[bool]:
+    """Whether the code of the checkout (:data:`CODE_PATHS`: HEAD and the tracked changes against it)
+    differs from what it was when the command started: modules a long run imports late (a ``--jobs``
+    worker, a scorer loaded after a fit of hours) may then be newer than the recorded commit. None when
+    unknown (outside a git checkout, or a start that recorded no fingerprint). Untracked files are not
+    seen."""
+    start = checkout_at_start().get("code")
+    if start is None:
+        return None
+    now = _code_fingerprint()
+    return None if now is None else now != start
+
+
+def _code_fingerprint() -> Optional[str]:
+    root = Path(__file__).resolve().parents[1]
+    try:
+        head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
+                              timeout=10)
+        diff = subprocess.run(["git", "-C", str(root), "diff", "HEAD", "--binary", "--", *CODE_PATHS],
+                              capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    if head.returncode != 0 or diff.returncode != 0:
+        return None
+    return hashlib.sha1((head.stdout + diff.stdout).encode()).hexdigest()
+
+
 @functools.lru_cache(maxsize=1)
 def _git_state_at_first_call() -> dict[str, Any]:
     root = Path(__file__).resolve().parents[1]
@@ -239,12 +274,12 @@ def _git_state_at_first_call() -> dict[str, Any]:
         commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
                                 timeout=10)
         if commit.returncode != 0:
-            return {"commit": None, "dirty": None}
+            return {"commit": None, "dirty": None, "code": None}
         status = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
                                 capture_output=True, text=True, timeout=10)
-        return {"commit": commit.stdout.strip(), "dirty": bool(status.stdout.strip())}
+        return {"commit": commit.stdout.strip(), "dirty": bool(status.stdout.strip()), "code": _code_fingerprint()}
     except (OSError, subprocess.SubprocessError):
-        return {"commit": None, "dirty": None}
+        return {"commit": None, "dirty": None, "code": None}
 
 
 def device_description(device: str) -> dict[str, Any]:
@@ -580,7 +615,8 @@ def evaluate(options: EvalOptions) -> RunOutcome:
         "fit": {"key": fit.key, "cached": fit.cached, **({"head_refit_of": options.head_from} if options.head_from else {}),
                 "info": _jsonable(model.describe()) if hasattr(model, "describe") else None},
         "supervision": supervision.describe(),
-        "environment": {"packages": package_versions(), "git": git_state(), **device_description(options.device),
+        "environment": {"packages": package_versions(), "git": git_state(),
+                        "code_changed_during_run": code_changed_since_start(), **device_description(options.device),
                         "torch_threads": _torch_threads(), "concurrent_runs": options.concurrent_runs},
         "scene_info": {"root": str(root), "summary": scene.summary(), "annotations": aset.info.get("source"),
                        "scale": options.scale, "generated": scene_version(root)},

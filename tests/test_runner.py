@@ -459,6 +459,8 @@ def test_a_run_records_the_commit_it_started_on_not_one_made_while_it_ran(env, m
         outcome = evaluate(_options(env))
         assert outcome.results["environment"]["git"] == {"commit": "1" * 40, "dirty": False}
         assert runner.git_state()["commit"] == "1" * 40  # the process keeps its first answer
+        # ... and says that the code it ran may not be all that commit's
+        assert outcome.results["environment"]["code_changed_during_run"] is True
     finally:
         runner._git_state_at_first_call.cache_clear()
 
@@ -473,10 +475,51 @@ def test_a_run_all_worker_records_its_parent_commands_git_state(env, monkeypatch
     threads = torch.get_num_threads()
     for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):  # restored after the test (the worker sets them)
         monkeypatch.setenv(name, "0")
+    runner.device_description("cpu")  # platform caches its own `uname -p` call: not a git read, made first
     monkeypatch.setattr(runner.subprocess, "run", lambda *a, **k: (_ for _ in ()).throw(AssertionError("git read")))
     try:
         _start_worker(1, {"commit": "3" * 40, "dirty": True})
         assert evaluate(_options(env, seed=5)).results["environment"]["git"] == {"commit": "3" * 40, "dirty": True}
+    finally:
+        runner.adopt_git_state(None)
+        torch.set_num_threads(threads)
+
+
+def test_a_run_says_whether_the_code_changed_since_its_command_started(env, monkeypatch):
+    # a --jobs worker compares the checkout at the run's end with its parent's fingerprint: a file of
+    # benchmark/ edited meanwhile shows in the diff; results files written meanwhile do not count
+    import subprocess
+
+    import benchmark.runner as runner
+    from benchmark.commands.run_all import _start_worker
+
+    import torch
+
+    threads = torch.get_num_threads()
+    for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        monkeypatch.setenv(name, "0")
+    checkout = {"diff": ""}
+    diffs = []
+    runner.device_description("cpu")  # platform's cached `uname -p`, before subprocess.run is faked
+
+    def fake_git(cmd, **kw):
+        if "diff" in cmd:
+            diffs.append(cmd)
+            return subprocess.CompletedProcess(cmd, 0, stdout=checkout["diff"], stderr="")
+        return subprocess.CompletedProcess(cmd, 0, stdout="4" * 40 + "\n", stderr="")
+
+    monkeypatch.setattr(runner.subprocess, "run", fake_git)
+    try:
+        start = {"commit": "4" * 40, "dirty": False, "code": runner._code_fingerprint()}
+        _start_worker(1, start)
+        same = evaluate(_options(env, seed=6)).results["environment"]
+        assert same["git"] == {"commit": "4" * 40, "dirty": False} and same["code_changed_during_run"] is False
+        checkout["diff"] = "diff --git a/benchmark/metrics/scoring.py b/benchmark/metrics/scoring.py\n+changed\n"
+        changed = evaluate(_options(env, seed=7)).results["environment"]
+        assert changed["git"] == {"commit": "4" * 40, "dirty": False} and changed["code_changed_during_run"] is True
+        assert all(cmd[-len(runner.CODE_PATHS):] == list(runner.CODE_PATHS) for cmd in diffs)  # code paths only
+        _start_worker(1, {"commit": "4" * 40, "dirty": False})  # a start without a fingerprint: unknown
+        assert evaluate(_options(env, seed=8)).results["environment"]["code_changed_during_run"] is None
     finally:
         runner.adopt_git_state(None)
         torch.set_num_threads(threads)

@@ -87,5 +87,8 @@ def print_run(results: dict, path) -> None:
                  + (f", GPU {fmt(mem.get('peak_gpu_mib'), 0)} MiB" if mem.get("peak_gpu_mib") else "")
                  + (f" (with the cached stages it reused: {fmt(needed_cpu, 0)} MiB"
                     + ("" if math.isnan(needed_gpu) else f", GPU {fmt(needed_gpu, 0)} MiB") + ")" if reused else ""))
+    if (results.get("environment") or {}).get("code_changed_during_run"):
+        parts.append("warning: the checkout's code changed while this ran; the recorded commit may not be all the "
+                     "code it ran (commit, then rerun with --force for a clean record)")
     parts.append(f"-> {path}")
     print("\n  ".join(parts))

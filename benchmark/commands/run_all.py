@@ -89,7 +89,8 @@ def _portable(err: Exception) -> Exception:
 
 def _start_worker(threads: int, git: dict) -> None:
     """A ``--jobs`` worker: its torch threads, and the commit it records: the parent command's (read as
-    ``bench4d`` started), not the checkout's when the worker happens to start."""
+    ``bench4d`` started, with its code fingerprint, so a run can tell that the code changed since),
+    not the checkout's when the worker happens to start."""
     import os
 
     for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -109,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
     from ..errors import InputError
     from ..loaders import load_scene
     from ..results import archive_results, load_results, results_path, runs_table, scene_status, seed_summary
-    from ..runner import EvalOptions, dataset_label, git_state, resolve_scene
+    from ..runner import EvalOptions, checkout_at_start, dataset_label, resolve_scene
 
     check_device(args.device)
     if args.jobs < 1:
@@ -191,7 +192,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"run-all: {sum(len(g) for g in groups)} run(s) in {len(groups)} (scene, seed) group(s), "
                   f"{jobs} at a time, {threads} torch thread(s) each", file=sys.stderr)
         with cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
-                                    initializer=_start_worker, initargs=(threads, git_state())) as pool:
+                                    initializer=_start_worker, initargs=(threads, checkout_at_start())) as pool:
             futures = {pool.submit(_run_group, group, args.keep_going): group for group in groups}
             for future in cf.as_completed(futures):
                 try:
