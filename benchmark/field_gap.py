@@ -29,12 +29,14 @@ This reads the truth of evaluated frames: an analysis of a fitted model, never p
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any, Iterable, Optional
 
 import numpy as np
 import torch
 
 from .errors import InputError
+from .metrics.captions import fitted_caption_targets
 from .metrics.masks import iou
 from .protocol_ceiling import TRUTH_LEVELS, NameTable
 from .scene import Scene
@@ -140,7 +142,9 @@ def agnostic_gap(model, scene: Scene, annotations, frame_of: dict, *,
 def caption_targets(model, scene: Scene, track: str, cache_root,
                     annotations) -> Optional[dict[str, tuple[np.ndarray, np.ndarray]]]:
     """Base object's name -> ((N,) time indices, (N, D) caption embeddings) of the captions the model's
-    time-varying field was fitted on (from the caption cache), for each time-sensitive query of
+    time-varying field was fitted on (from the caption cache; averaged over the model's
+    ``caption_window`` or over its ``caption_segments`` when it has one, as its targets were), for each
+    time-sensitive query of
     ``annotations`` (a part such as ``"liquid"`` gets the captions of the tracked object it lies in:
     :func:`methods.captioners.tracks.caption_embeddings_by_base`, as the Delta-sim ablation reads them);
     ``None`` for a model without a caption field or a base no tracked object carries."""
@@ -148,15 +152,15 @@ def caption_targets(model, scene: Scene, track: str, cache_root,
     if field is None or not hasattr(field, "autoencoder"):
         return None
     from methods.captioners.tracks import caption_embeddings_by_base
-    from methods.fields.time_varying import build_captions
+    from methods.fields.time_varying import build_captions, segment_min_length
 
-    from .synthetic.truth import load_truth
+    from .synthetic.truth import TRUTH_DIR, TRUTH_FILE, load_truth
 
     captions, tracks = build_captions(scene, track, model.config, cache_root=cache_root)
-    try:
-        truth = load_truth(scene.root)
-    except (FileNotFoundError, OSError):
-        truth = None
+    root = None if scene.root is None else Path(scene.root)
+    # a scene without generator truth (captions from a file) maps bases by track label; a broken truth file raises
+    has_truth = root is not None and ((root / TRUTH_DIR / TRUTH_FILE).is_file() or (root / TRUTH_FILE).is_file())
+    truth = load_truth(root) if has_truth else None
     time_of = {f.name: f.time_index for f in scene.frames}
     try:
         by_key = caption_embeddings_by_base(annotations, captions, tracks, model.text_encoder, time_of, truth)
@@ -167,6 +171,13 @@ def caption_targets(model, scene: Scene, track: str, cache_root,
         times, rows = out.setdefault(base, ([], []))
         times.append(time_index)
         rows.append(embedding)
+    config = model.config
+    window = int(getattr(config, "caption_window", 0) or 0)
+    segments = segment_min_length(config) if getattr(config, "caption_segments", False) else 0
+    if window or segments:  # the targets the field was fitted on, not the raw captions
+        out = {base: (t, list(fitted_caption_targets(np.asarray(t), np.asarray(e), window=window,
+                                                     segment_min_length=segments, seed=getattr(config, "caption_seed", 0))))
+               for base, (t, e) in out.items()}
     return {base: (np.asarray(t), np.asarray(e, dtype=np.float32)) for base, (t, e) in out.items()}
 
 

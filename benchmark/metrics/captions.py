@@ -29,6 +29,7 @@ which is what a field fitted frame by frame sees:
 
 from __future__ import annotations
 
+import math
 from typing import Mapping
 
 import numpy as np
@@ -96,6 +97,129 @@ def caption_replay_accuracy(query_embedding: np.ndarray, caption_times: np.ndarr
     scores = caption_replay_scores(query_embedding, caption_times, caption_embeddings, eval_times)
     decision = apply_temporal_rule(scores, config or TemporalRuleConfig())
     return 100.0 * temporal_accuracy(decision.decisions, np.asarray(labels, dtype=bool))
+
+
+def window_caption_embeddings(caption_times: np.ndarray, caption_embeddings: np.ndarray, window: int) -> np.ndarray:
+    """(N, D) float64 unit vectors: each caption embedding (N, D) replaced by the renormalised mean of
+    the embeddings whose time index (N,) lies within ``window`` steps of its own (itself included,
+    and every caption at its own time: several cameras at one time are averaged even at window 0).
+    The targets a field fitted with the ``caption_window`` option sees
+    (:func:`methods.fields.time_varying.smooth_caption_embeddings` calls this per object). ``window``
+    below 0 raises; a mean of zero length (opposite embeddings) stays zero."""
+    if int(window) < 0:
+        raise ValueError(f"window must be >= 0 time steps, got {window}")
+    times = np.asarray(caption_times, dtype=np.float64)
+    emb = np.asarray(caption_embeddings, dtype=np.float64)
+    if emb.ndim != 2 or times.shape != (emb.shape[0],):
+        raise ValueError(f"shapes: times {times.shape}, embeddings {emb.shape} do not fit (N,), (N, D)")
+    near = np.abs(times[:, None] - times[None, :]) <= int(window)  # [N, N]
+    mean = (near @ emb) / near.sum(1, keepdims=True)
+    return mean / np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
+
+
+SEGMENT_PERMUTATIONS = 999
+"""Shuffles of a segment's captions a change point is tested against (:func:`caption_change_points`)."""
+SEGMENT_SIGNIFICANCE = 0.01
+"""Level of that one-sided permutation test: a change point is kept when at most this share of the
+shuffles (counting the observed order itself) split as well."""
+
+
+def _best_split(gram: np.ndarray, min_length: int) -> tuple[float, int, int]:
+    """The best circular split of a sequence from its Gram matrix ``gram`` (n, n) of rows x_t:
+    (drop of the within-group squared error when rows [i, j) form one group and the rest another,
+    i, j), the pieces [0, i), [i, j), [j, n) that are not empty each at least ``min_length`` long;
+    (-inf, 0, 0) when no split is allowed. ``i = 0`` or ``j = n`` is an ordinary split into two."""
+    n = len(gram)
+    cum = np.zeros((n + 1, n + 1))
+    cum[1:, 1:] = gram.cumsum(0).cumsum(1)  # cum[a, b] = C_a . C_b, C_k = sum of the first k rows
+    first, last = np.triu_indices(n + 1, 1)
+    inside = last - first
+    ok = ((inside >= min_length) & (n - inside >= min_length) & ((first == 0) | (first >= min_length))
+          & ((last == n) | (n - last >= min_length)))
+    first, last, inside = first[ok], last[ok], inside[ok]
+    if first.size == 0:
+        return -math.inf, 0, 0
+    total = cum[n, n]
+    in_sq = cum[last, last] + cum[first, first] - 2.0 * cum[first, last]  # |sum of rows in [i, j)|^2
+    out_sq = total + in_sq - 2.0 * (cum[n, last] - cum[n, first])
+    # the rows' own squared norms cancel: gain = |S_in|^2 / m + |S_out|^2 / (n - m) - |S|^2 / n
+    gain = in_sq / inside + out_sq / (n - inside) - total / n
+    best = int(np.argmax(gain))
+    return float(gain[best]), int(first[best]), int(last[best])
+
+
+def caption_change_points(caption_times: np.ndarray, caption_embeddings: np.ndarray, *, min_length: int,
+                          permutations: int = SEGMENT_PERMUTATIONS, significance: float = SEGMENT_SIGNIFICANCE,
+                          seed: int = 0) -> list[float]:
+    """Time indices where an object's captions (N,) times, (N, D) embeddings change state, by circular
+    binary segmentation (Olshen et al., 2004): the captions of each distinct time are averaged
+    (several cameras); the best split of a segment into an inner run and the rest (or into two), every
+    piece at least ``min_length`` distinct times, is kept when its permutation p-value (the share of
+    ``permutations`` seeded shuffles of that segment, and the observed order, whose best split gains
+    at least as much) is at most ``significance``; the pieces are split again. Paraphrases of one state
+    drawn frame by frame are exchangeable in time, so splitting them gains no more than a shuffle
+    does, while a held state does; the inner run finds a state that comes and goes (closed, open,
+    closed), which one split at a time can miss. Each returned time starts a new segment; [] = one state."""
+    times = np.asarray(caption_times, dtype=np.float64)
+    emb = np.asarray(caption_embeddings, dtype=np.float64)
+    if emb.ndim != 2 or times.shape != (emb.shape[0],):
+        raise ValueError(f"shapes: times {times.shape}, embeddings {emb.shape} do not fit (N,), (N, D)")
+    if min_length < 1 or permutations < 1 or not 0 < significance < 1:
+        raise ValueError("min_length and permutations must be >= 1, significance in (0, 1)")
+    unique, inverse = np.unique(times, return_inverse=True)
+    x = np.zeros((len(unique), emb.shape[1]))
+    np.add.at(x, inverse, emb)
+    x /= np.bincount(inverse, minlength=len(unique))[:, None]
+    gram = x @ x.T
+    rng = np.random.default_rng(seed)
+    cuts: list[int] = []
+    pending = [(0, len(unique))]
+    while pending:
+        start, stop = pending.pop()
+        block = gram[start:stop, start:stop]
+        gain, i, j = _best_split(block, min_length)
+        if gain == -math.inf:
+            continue
+        as_good = 0
+        for _ in range(permutations):
+            order = rng.permutation(stop - start)
+            as_good += _best_split(block[order][:, order], min_length)[0] >= gain
+        if (1 + as_good) / (1 + permutations) > significance:
+            continue
+        bounds = sorted({start, start + i, start + j, stop})
+        cuts += [b for b in bounds[1:-1]]
+        pending += [(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
+    return sorted(float(unique[c]) for c in cuts)
+
+
+def segment_caption_embeddings(caption_times: np.ndarray, caption_embeddings: np.ndarray, change_points) -> np.ndarray:
+    """(N, D) float64 unit vectors: each caption embedding replaced by the renormalised mean of the
+    embeddings of its segment, the segments starting at the times ``change_points`` (sorted)."""
+    times = np.asarray(caption_times, dtype=np.float64)
+    emb = np.asarray(caption_embeddings, dtype=np.float64)
+    segment = np.searchsorted(np.asarray(sorted(change_points), dtype=np.float64), times, side="right")
+    out = np.empty_like(emb)
+    for s in np.unique(segment):
+        mean = emb[segment == s].mean(0)
+        out[segment == s] = mean / max(float(np.linalg.norm(mean)), 1e-12)
+    return out
+
+
+def fitted_caption_targets(caption_times: np.ndarray, caption_embeddings: np.ndarray, *, window: int = 0,
+                           segment_min_length: int = 0, seed: int = 0) -> np.ndarray:
+    """(N, D) float64: one object's caption embeddings (N, D) at times (N,) as a time-varying field's
+    targets are made from them: as they are (both options 0), averaged over ``window`` time steps
+    (:func:`window_caption_embeddings`; option ``caption_window``), or replaced by their segment's
+    mean (``segment_min_length`` > 0: :func:`caption_change_points` then
+    :func:`segment_caption_embeddings`; option ``caption_segments``). Both at once raise."""
+    if window and segment_min_length:
+        raise ValueError("a caption window and caption segments are alternatives: give one")
+    if segment_min_length:
+        cuts = caption_change_points(caption_times, caption_embeddings, min_length=segment_min_length, seed=seed)
+        return segment_caption_embeddings(caption_times, caption_embeddings, cuts)
+    if window:
+        return window_caption_embeddings(caption_times, caption_embeddings, window)
+    return np.asarray(caption_embeddings, dtype=np.float64)
 
 
 def caption_replay_scores(query_embedding: np.ndarray, caption_times: np.ndarray, caption_embeddings: np.ndarray,

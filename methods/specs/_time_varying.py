@@ -49,6 +49,12 @@ class TimeVaryingOptions:
     before they become targets (:func:`methods.fields.time_varying.smooth_caption_embeddings`; not in
     the paper: 0)."""
 
+    caption_segments: bool = False
+    """Replace each object's caption embeddings by the mean of their temporal segment before they
+    become targets (:func:`methods.fields.time_varying.segment_caption_targets`: change points by
+    circular binary segmentation with a permutation test, segments at least ``min_state_run`` time
+    steps; not in the paper: off). Excludes ``caption_window``."""
+
     # --- caption autoencoder ------------------------------------------------------------------------
     tv_latent_dim: int = 6
     """Latent channels of the caption autoencoder (paper: 4096 -> 6)."""
@@ -164,6 +170,8 @@ class TimeVaryingOptions:
             raise ValueError("semantic_change_tolerance must be >= 0")
         if self.caption_window < 0:
             raise ValueError("caption_window must be >= 0 (time steps)")
+        if self.caption_segments and self.caption_window:
+            raise ValueError("caption_segments and caption_window are alternatives: set one of them")
 
     def __post_init__(self) -> None:
         self.check_time_varying()
