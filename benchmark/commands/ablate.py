@@ -304,7 +304,7 @@ def _delta_sim(args) -> int:
           f"text encoder {encoder.name}.{windowed} Per query: Delta-sim / caption AUC (percent of positive-negative caption "
           "pairs ordered right by the cosine to the query: 100 = every caption alone separates the states, 50 = "
           "chance) / caption-replay Acc (temporal Acc when each evaluated frame is answered with the nearest "
-          "training caption: what a field reproducing its captions exactly would score); "
+          "training caption (or target): what a field reproducing them exactly would score); "
           "`benchmark/metrics/captions.py`.\n\n"
           + _markdown(["visual prompt", "text prompt", "Delta-sim"] + [f"{q} (Δ / AUC / replay Acc)" for q in qnames], rows))
     doc = {"ablation": "delta-sim", "scene": scene.name, "captioner": captioner.name, "track": captioner.track,
@@ -809,8 +809,9 @@ def _gap_table(runs: list[dict], skipped: list[str]) -> str:
                  "Each run's per-frame state score (status / non-status field: mean cosine of the decoded time-varying "
                  "feature to the query; the baselines: mean relevance) taken inside its own spatial mask (**fitted**: "
                  "the recorded Acc and vIoU) and inside the annotated object mask (**object mask**); for the caption "
-                 "fields also each evaluated frame scored by the base object's caption at the nearest training time "
-                 "(**captions**: a field reproducing its targets exactly) and by the same captions through the field's "
+                 "fields also each evaluated frame scored by the base object's caption target at the nearest training "
+                 "time (after the run's caption window or segments, if any; **captions**: a field reproducing its "
+                 "targets exactly) and by the same captions through the field's "
                  "autoencoder. All through the run's temporal rule. Cells: Acc / AUC, the ROC AUC of the scores "
                  "against the labels (50 = no separation, below 50 = inverted), whatever the rule's threshold does "
                  "with them.\n\n"
