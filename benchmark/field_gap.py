@@ -29,7 +29,6 @@ This reads the truth of evaluated frames: an analysis of a fitted model, never p
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any, Iterable, Optional
 
 import numpy as np
@@ -152,15 +151,13 @@ def caption_targets(model, scene: Scene, track: str, cache_root,
     if field is None or not hasattr(field, "autoencoder"):
         return None
     from methods.captioners.tracks import caption_embeddings_by_base
-    from methods.fields.time_varying import build_captions, segment_min_length
+    from methods.fields.time_varying import build_captions, caption_target_options
 
-    from .synthetic.truth import TRUTH_DIR, TRUTH_FILE, load_truth
+    from .synthetic.truth import has_truth, load_truth
 
     captions, tracks = build_captions(scene, track, model.config, cache_root=cache_root)
-    root = None if scene.root is None else Path(scene.root)
     # a scene without generator truth (captions from a file) maps bases by track label; a broken truth file raises
-    has_truth = root is not None and ((root / TRUTH_DIR / TRUTH_FILE).is_file() or (root / TRUTH_FILE).is_file())
-    truth = load_truth(root) if has_truth else None
+    truth = load_truth(scene.root) if has_truth(scene.root) else None
     time_of = {f.name: f.time_index for f in scene.frames}
     try:
         by_key = caption_embeddings_by_base(annotations, captions, tracks, model.text_encoder, time_of, truth)
@@ -171,14 +168,9 @@ def caption_targets(model, scene: Scene, track: str, cache_root,
         times, rows = out.setdefault(base, ([], []))
         times.append(time_index)
         rows.append(embedding)
-    config = model.config
-    window = int(getattr(config, "caption_window", 0) or 0)
-    segments = segment_min_length(config) if getattr(config, "caption_segments", False) else 0
-    if window or segments:  # the targets the field was fitted on, not the raw captions
-        out = {base: (t, list(fitted_caption_targets(np.asarray(t), np.asarray(e), window=window,
-                                                     segment_min_length=segments, seed=getattr(config, "caption_seed", 0))))
-               for base, (t, e) in out.items()}
-    return {base: (np.asarray(t), np.asarray(e, dtype=np.float32)) for base, (t, e) in out.items()}
+    shaping = caption_target_options(model.config)  # the targets the field was fitted on, not the raw captions
+    return {base: (np.asarray(t), fitted_caption_targets(np.asarray(t), np.asarray(e), **shaping).astype(np.float32))
+            for base, (t, e) in out.items()}
 
 
 def temporal_gap(model, annotations, frame_of: dict, temporal=None,

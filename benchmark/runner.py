@@ -677,10 +677,9 @@ def default_sources(scene: Scene, track: str) -> dict[str, str]:
     but RGBA frames (D-NeRF) is supervised by its training alphas (``alpha`` + ``object-name``)."""
     if track != "oracle" or scene.dataset != "dnerf" or scene.root is None:
         return {}
-    from .synthetic.truth import TRUTH_DIR, TRUTH_FILE
+    from .synthetic.truth import has_truth
 
-    root = Path(scene.root)
-    if (root / TRUTH_DIR / TRUTH_FILE).is_file() or (root / TRUTH_FILE).is_file():
+    if has_truth(scene.root):
         return {}
     return {"segmenter": "alpha", "image_text": "object-name"}
 

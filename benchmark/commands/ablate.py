@@ -323,16 +323,15 @@ def _as_targets(by_key: dict, window: int, segments: bool) -> dict:
     targets of a field fitted with ``caption_window=window`` or ``caption_segments`` (the method
     defaults' segment length and caption seed): :func:`benchmark.metrics.fitted_caption_targets`."""
     from benchmark.metrics import fitted_caption_targets
-    from methods.fields.time_varying import segment_min_length
+    from methods.fields.time_varying import caption_target_options
     from methods.specs._time_varying import TimeVaryingOptions
 
-    defaults = TimeVaryingOptions()
+    shaping = caption_target_options(TimeVaryingOptions(caption_window=window, caption_segments=segments))
     out = {}
     for base in sorted({b for b, _ in by_key}):
         keys = sorted(k for k in by_key if k[0] == base)
-        out.update(zip(keys, fitted_caption_targets(
-            np.array([t for _, t in keys]), np.stack([by_key[k] for k in keys]), window=window,
-            segment_min_length=segment_min_length(defaults) if segments else 0, seed=defaults.caption_seed)))
+        out.update(zip(keys, fitted_caption_targets(np.array([t for _, t in keys]),
+                                                    np.stack([by_key[k] for k in keys]), **shaping)))
     return out
 
 

@@ -29,7 +29,6 @@ which is what a field fitted frame by frame sees:
 
 from __future__ import annotations
 
-import math
 from typing import Mapping
 
 import numpy as np
@@ -124,28 +123,29 @@ SEGMENT_SIGNIFICANCE = 0.01
 shuffles (counting the observed order itself) split as well."""
 
 
-def _best_split(gram: np.ndarray, min_length: int) -> tuple[float, int, int]:
-    """The best circular split of a sequence from its Gram matrix ``gram`` (n, n) of rows x_t:
-    (drop of the within-group squared error when rows [i, j) form one group and the rest another,
-    i, j), the pieces [0, i), [i, j), [j, n) that are not empty each at least ``min_length`` long;
-    (-inf, 0, 0) when no split is allowed. ``i = 0`` or ``j = n`` is an ordinary split into two."""
-    n = len(gram)
-    cum = np.zeros((n + 1, n + 1))
-    cum[1:, 1:] = gram.cumsum(0).cumsum(1)  # cum[a, b] = C_a . C_b, C_k = sum of the first k rows
+def _split_candidates(n: int, min_length: int) -> tuple[np.ndarray, np.ndarray]:
+    """(first, last) of every circular split of a sequence of ``n`` rows: rows [first, last) form one
+    group and the rest another, the pieces [0, first), [first, last), [last, n) that are not empty each
+    at least ``min_length`` long (``first = 0`` or ``last = n`` is an ordinary split into two)."""
     first, last = np.triu_indices(n + 1, 1)
     inside = last - first
     ok = ((inside >= min_length) & (n - inside >= min_length) & ((first == 0) | (first >= min_length))
           & ((last == n) | (n - last >= min_length)))
-    first, last, inside = first[ok], last[ok], inside[ok]
-    if first.size == 0:
-        return -math.inf, 0, 0
+    return first[ok], last[ok]
+
+
+def _split_gains(gram: np.ndarray, first: np.ndarray, last: np.ndarray) -> np.ndarray:
+    """Drop of the within-group squared error of each split (:func:`_split_candidates`) of the rows
+    x_t whose Gram matrix is ``gram`` (n, n)."""
+    n = len(gram)
+    cum = np.zeros((n + 1, n + 1))
+    cum[1:, 1:] = gram.cumsum(0).cumsum(1)  # cum[a, b] = C_a . C_b, C_k = sum of the first k rows
     total = cum[n, n]
+    inside = last - first
     in_sq = cum[last, last] + cum[first, first] - 2.0 * cum[first, last]  # |sum of rows in [i, j)|^2
     out_sq = total + in_sq - 2.0 * (cum[n, last] - cum[n, first])
     # the rows' own squared norms cancel: gain = |S_in|^2 / m + |S_out|^2 / (n - m) - |S|^2 / n
-    gain = in_sq / inside + out_sq / (n - inside) - total / n
-    best = int(np.argmax(gain))
-    return float(gain[best]), int(first[best]), int(last[best])
+    return in_sq / inside + out_sq / (n - inside) - total / n
 
 
 def caption_change_points(caption_times: np.ndarray, caption_embeddings: np.ndarray, *, min_length: int,
@@ -174,19 +174,24 @@ def caption_change_points(caption_times: np.ndarray, caption_embeddings: np.ndar
     rng = np.random.default_rng(seed)
     cuts: list[int] = []
     pending = [(0, len(unique))]
+    allowed = significance * (1 + permutations) - 1  # shuffles that may split as well for a kept change
     while pending:
         start, stop = pending.pop()
+        first, last = _split_candidates(stop - start, min_length)
+        if first.size == 0:
+            continue
         block = gram[start:stop, start:stop]
-        gain, i, j = _best_split(block, min_length)
-        if gain == -math.inf:
-            continue
+        gains = _split_gains(block, first, last)
+        best = int(np.argmax(gains))
         as_good = 0
-        for _ in range(permutations):
+        for _ in range(permutations):  # stops as soon as the change can no longer be kept
             order = rng.permutation(stop - start)
-            as_good += _best_split(block[order][:, order], min_length)[0] >= gain
-        if (1 + as_good) / (1 + permutations) > significance:
+            as_good += _split_gains(block[order][:, order], first, last).max() >= gains[best]
+            if as_good > allowed:
+                break
+        if as_good > allowed:
             continue
-        bounds = sorted({start, start + i, start + j, stop})
+        bounds = sorted({start, start + int(first[best]), start + int(last[best]), stop})
         cuts += [b for b in bounds[1:-1]]
         pending += [(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
     return sorted(float(unique[c]) for c in cuts)

@@ -221,6 +221,15 @@ class SceneTruth:
         return self.doc["states"]
 
 
+def has_truth(path: Optional[str | Path]) -> bool:
+    """Whether ``path`` (a scene folder or its ``truth/``; None for an in-memory scene) holds a
+    generated scene's truth file."""
+    if path is None:
+        return False
+    root = Path(path)
+    return (root / TRUTH_DIR / TRUTH_FILE).is_file() or (root / TRUTH_FILE).is_file()
+
+
 def load_truth(path: str | Path) -> SceneTruth:
     """Open the truth of a generated scene (``path`` = the scene folder or its ``truth/``)."""
     root = Path(path)

@@ -168,6 +168,16 @@ def segment_min_length(options) -> int:
     return max(1, int(np.ceil(float(options.min_state_run))))
 
 
+def caption_target_options(options) -> dict[str, int]:
+    """Keyword arguments of :func:`benchmark.metrics.fitted_caption_targets` that make one object's
+    captions into the targets a field fitted under ``options`` sees (its ``caption_window`` or
+    ``caption_segments``; none for a config without these options): for analyses that replay them."""
+    segments = bool(getattr(options, "caption_segments", False))
+    return {"window": int(getattr(options, "caption_window", 0) or 0),
+            "segment_min_length": segment_min_length(options) if segments else 0,
+            "seed": int(getattr(options, "caption_seed", 0))}
+
+
 def smooth_caption_embeddings(scene: Scene, sup: CaptionSupervision, window: int) -> CaptionSupervision:
     """``sup`` with each object's caption embedding at a frame replaced by the (renormalised) mean of
     that object's caption embeddings at the training frames within ``window`` time steps (every
@@ -845,14 +855,14 @@ def fit_time_varying_field(geometry: FrozenGeometry, scene: Scene, sup: CaptionS
     info: dict[str, Any] = {"kind": kind, "captioner": sup.captions.captioner, "captions_track": sup.captions.track,
                             "objects": len(sup.captions.objects()), "distinct_captions": len(sup.texts),
                             "caption_dim": sup.dim}
-    window = int(getattr(options, "caption_window", 0))
-    if window > 0:
-        sup = smooth_caption_embeddings(scene, sup, window)
-        info["caption_window"] = window
+    shaping = caption_target_options(options)
+    if shaping["window"] > 0:
+        sup = smooth_caption_embeddings(scene, sup, shaping["window"])
+        info["caption_window"] = shaping["window"]
         info["distinct_targets"] = len(sup.texts)
-    if getattr(options, "caption_segments", False):
-        sup, change_points = segment_caption_targets(scene, sup, min_length=segment_min_length(options),
-                                                     seed=options.caption_seed)
+    if shaping["segment_min_length"]:
+        sup, change_points = segment_caption_targets(scene, sup, min_length=shaping["segment_min_length"],
+                                                     seed=shaping["seed"])
         info["caption_segments"] = {str(o): c for o, c in sorted(change_points.items())}
         info["distinct_targets"] = len(sup.texts)
 

@@ -18,10 +18,10 @@ class EvaluatedFrameTruthError(PermissionError):
 
 def open_truth(scene: Scene):
     """The :class:`benchmark.synthetic.truth.SceneTruth` of ``scene`` (InputError if it has none)."""
-    from benchmark.synthetic.truth import TRUTH_DIR, TRUTH_FILE, load_truth
+    from benchmark.synthetic.truth import has_truth, load_truth
 
     root = None if scene.root is None else Path(scene.root)
-    if root is None or not ((root / TRUTH_DIR / TRUTH_FILE).is_file() or (root / TRUTH_FILE).is_file()):
+    if not has_truth(root):
         raise InputError(root, "truth", f"scene {scene.name!r} has no generator truth: the oracle track runs on "
                                         "generated (synthetic) scenes only; use --track real for other scenes")
     return load_truth(root)
