@@ -11,9 +11,10 @@ Pipeline (:func:`fit_time_varying_field`):
    neighbouring training times (``caption_window`` > 0, :func:`smooth_caption_embeddings`) or
    replaced by the mean of their temporal segment (``caption_segments``, :func:`segment_caption_targets`).
 2. **Semantics per object** (:func:`object_semantics`): an object whose caption embeddings all lie
-   within ``semantic_change_tolerance`` of their mean never changes; for the others the number of
-   distinct caption states is the largest k (2..cap) whose k-means clusters each persist over
-   consecutive frames (paraphrases alternate frame to frame, states hold). ``K`` per scene is the
+   within ``semantic_change_tolerance`` of their mean (with ``caption_segments``: whose captions have
+   no change point) never changes; for the others the number of distinct caption states is the
+   largest k (2..cap) whose k-means clusters each persist over consecutive frames (paraphrases
+   alternate frame to frame, states hold). ``K`` per scene is the
    largest count (capped by ``num_states``), unless fixed (the K ablation).
 3. **Autoencoder** D -> 6 on the distinct caption embeddings, weighted by their pixel areas.
 4. **Semantically static Gaussians**: each Gaussian's accumulated alpha-blending weight over the
