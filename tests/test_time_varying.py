@@ -230,6 +230,32 @@ def test_caption_window_averages_wording_within_a_state(world):
         _options(caption_window=-1)
 
 
+def test_caption_segments_decide_which_objects_carry_states(world, monkeypatch):
+    """With ``caption_segments`` the fit takes an object's change points, not the spread tolerance, as
+    the test of change: a tolerance no caption spread reaches still leaves the box with 2 states."""
+    import methods.fields.time_varying as tv_module
+
+    cuts = {}
+
+    def fake_change_points(times, emb, *, min_length, seed=0):
+        # the box (two distinct captions) changes half way; the ball (one caption) never does
+        change = len(np.unique(np.round(emb, 6), axis=0)) > 1
+        cuts[len(cuts)] = [float(np.median(times))] if change else []
+        return cuts[len(cuts) - 1]
+
+    monkeypatch.setattr(tv_module, "caption_change_points", fake_change_points)
+    opts = _options(caption_segments=True, semantic_change_tolerance=2.0, status_iterations=20, tv_static_iterations=10)
+    field = fit_time_varying_field(world.geometry, world.scene, world.sup, opts, kind="status", seed=0, backend="torch")
+    sem = field.info["objects_semantics"]
+    assert sem["0"]["dynamic"] and sem["0"]["states"] == 2 and not sem["1"]["dynamic"]
+    assert field.info["num_states"] == 2 and field.info["dynamic_gaussians"] > 0
+    # without segments the same tolerance freezes the box: the spread test is what decides there
+    plain = fit_time_varying_field(world.geometry, world.scene, world.sup,
+                                   _options(semantic_change_tolerance=2.0, status_iterations=20, tv_static_iterations=10),
+                                   kind="status", seed=0, backend="torch")
+    assert not plain.info["objects_semantics"]["0"]["dynamic"] and plain.info["num_states"] == 1
+
+
 def test_blend_weights_assign_gaussians_to_their_objects(world):
     w = object_blend_weights(world.geometry, world.scene, world.tracks, [0, 1], backend="torch").numpy()
     assert w.shape == (2 * N_PER, 3) and (w >= 0).all()
