@@ -356,6 +356,15 @@ def test_ablate_rescore_refit_of_a_head_option_keeps_the_recorded_geometry(smoke
     # same geometry and time-agnostic field: the time-agnostic answers are the recorded ones exactly
     assert new["metrics"]["mIoU"] == pytest.approx(recorded["metrics"]["mIoU"])
     assert new["fit"]["info"]["geometry"] == recorded["fit"]["info"]["geometry"]
+    # a head option beside an answer option: the same head (its cache key ignores answer options), re-answered
+    assert main(["ablate", "rescore", "--results-dir", str(smoke["results"]), "--cache-dir", str(smoke["cache"]),
+                 "--methods", "4d-langsplat", "--out", str(tmp_path), "--quiet", "--refit", "--name", "window-release",
+                 "--set", "caption_window=2", "--set", "threshold_variant=release"]) == 0
+    assert not calls
+    (path,) = (smoke["results"] / "ablations" / "window-release").rglob("seed0.json")
+    both = json.loads(path.read_text())
+    assert both["fit"]["head_refit_of"] == recorded["fit"]["key"] and both["fit"]["key"] == new["fit"]["key"]
+    assert both["fit"]["cached"] and both["method_config"]["threshold_variant"] == "release"
 
 
 def test_ablate_gap_reproduces_the_recorded_answers_and_the_ceiling(smoke, tmp_path, capsys, monkeypatch):

@@ -597,14 +597,17 @@ def _rescore(args) -> int:
 
 
 def _head_options_only(spec, overrides: dict) -> bool:
-    """The method has a time-varying head and ``overrides`` are all options of that head: refitting
-    the head alone on the recorded fit is the whole change (:attr:`benchmark.runner.EvalOptions.head_from`)."""
+    """The method has a time-varying head and ``overrides`` are options of that head (at least one),
+    possibly beside answer options: refitting the head alone on the recorded fit and answering under
+    those options is the whole change (:attr:`benchmark.runner.EvalOptions.head_from`)."""
     import dataclasses
 
     from methods.specs._time_varying import TimeVaryingOptions
 
     head_options = {f.name for f in dataclasses.fields(TimeVaryingOptions)}
-    return getattr(spec.load(), "time_varying_head", None) is not None and set(overrides) <= head_options
+    answer = getattr(spec.config, "ANSWER_OPTIONS", frozenset())
+    return (getattr(spec.load(), "time_varying_head", None) is not None and bool(set(overrides) & head_options)
+            and set(overrides) <= head_options | answer)
 
 
 def _rescored_from(rescored: dict, recorded: dict, options: dict, *, refit: bool = False) -> bool:
