@@ -365,6 +365,15 @@ def test_ablate_rescore_refit_of_a_head_option_keeps_the_recorded_geometry(smoke
     both = json.loads(path.read_text())
     assert both["fit"]["head_refit_of"] == recorded["fit"]["key"] and both["fit"]["key"] == new["fit"]["key"]
     assert both["fit"]["cached"] and both["method_config"]["threshold_variant"] == "release"
+    # a boolean option given as text is the recorded True: asked again, the run is kept, not answered anew
+    seg = ["ablate", "rescore", "--results-dir", str(smoke["results"]), "--cache-dir", str(smoke["cache"]),
+           "--methods", "4d-langsplat", "--out", str(tmp_path), "--quiet", "--refit", "--name", "segments",
+           "--set", "caption_segments=true"]
+    assert main(seg) == 0
+    (path,) = (smoke["results"] / "ablations" / "segments").rglob("seed0.json")
+    first = path.read_bytes()
+    assert json.loads(first)["method_config"]["caption_segments"] is True
+    assert main(seg) == 0 and path.read_bytes() == first
 
 
 def test_ablate_gap_reproduces_the_recorded_answers_and_the_ceiling(smoke, tmp_path, capsys, monkeypatch):

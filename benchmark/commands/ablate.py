@@ -569,7 +569,8 @@ def _rescore(args) -> int:
         info = doc.get("scene_info") or {}
         target = results_path(out_dir, doc["dataset"], doc["scene"], method, doc["track"], int(doc["seed"]))
         new = load_results(target) if target.is_file() and not args.force else None
-        if new is not None and not _rescored_from(new, doc, options, refit=args.refit):
+        wanted = {k: v for k, v in config_dict(spec.make_config(options)).items() if k in options}
+        if new is not None and not _rescored_from(new, doc, wanted, refit=args.refit):
             new = None  # the recorded run was redone, or other options asked: the kept file is stale
         if new is not None:
             _log(args, f"rescore: kept {target}")
@@ -612,7 +613,8 @@ def _head_options_only(spec, overrides: dict) -> bool:
 
 def _rescored_from(rescored: dict, recorded: dict, options: dict, *, refit: bool = False) -> bool:
     """``rescored`` answered on ``recorded``'s fit (``refit``: on the same scene version, made after
-    it) with ``options`` (as strings, as ``--set`` gives them)."""
+    it) with ``options`` (parsed by the method's config and in the JSON form results record configs
+    in: ``--set caption_segments=true`` is the recorded ``True``, not the string)."""
     from ..results import scene_status
 
     cfg = rescored.get("method_config") or {}
@@ -623,7 +625,7 @@ def _rescored_from(rescored: dict, recorded: dict, options: dict, *, refit: bool
                     and str(rescored.get("created", "")) >= str(recorded.get("created", "")))
     else:
         same_run = (rescored.get("fit") or {}).get("key") == recorded["fit"]["key"]
-    return same_run and all(str(cfg.get(k)) == str(v) or cfg.get(k) == v for k, v in options.items())
+    return same_run and all(k in cfg and cfg[k] == v for k, v in options.items())
 
 
 def _rescore_table(rows: list[dict], overrides: dict, name: str, *, refit: bool = False) -> str:
