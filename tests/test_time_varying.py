@@ -235,13 +235,9 @@ def test_caption_segments_decide_which_objects_carry_states(world, monkeypatch):
     the test of change: a tolerance no caption spread reaches still leaves the box with 2 states."""
     import methods.fields.time_varying as tv_module
 
-    cuts = {}
-
     def fake_change_points(times, emb, *, min_length, seed=0):
         # the box (two distinct captions) changes half way; the ball (one caption) never does
-        change = len(np.unique(np.round(emb, 6), axis=0)) > 1
-        cuts[len(cuts)] = [float(np.median(times))] if change else []
-        return cuts[len(cuts) - 1]
+        return [float(np.median(times))] if len(np.unique(np.round(emb, 6), axis=0)) > 1 else []
 
     monkeypatch.setattr(tv_module, "caption_change_points", fake_change_points)
     opts = _options(caption_segments=True, semantic_change_tolerance=2.0, status_iterations=20, tv_static_iterations=10)
