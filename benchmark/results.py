@@ -16,7 +16,8 @@ memory in MiB; ``null`` = not applicable)::
                     "peak_window": "run" (peaks of this run alone) or "process" (the process's so far),
                     "peak_fit_window": the same for the fit (a cached fit: as it recorded)}
     method_config, fit {"key", "cached"}, supervision {"track", "sources", ...},
-    environment    {"packages", "git": {"commit", "dirty"} (as the command started),
+    environment    {"packages", "git": {"commit", "dirty"} (as the command started; dirty: tracked
+                    changes of the code, not of results or reports),
                     "code_changed_during_run" (the code differed at the run's end: the commit may not be
                     all the code it ran; null: unknown), "device", ...}
     score_config   (the temporal rule used), scores {"queries", "frames", "skipped"}

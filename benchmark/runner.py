@@ -214,12 +214,13 @@ def package_versions(names: Sequence[str] = PACKAGES) -> dict[str, str]:
 
 _ADOPTED_GIT_STATE: Optional[dict[str, Any]] = None
 CODE_PATHS = ("benchmark", "methods", "annotations", "pyproject.toml")
-"""What a run executes or scores with (the fingerprint of :func:`code_changed_since_start`); results
-files, reports and caches change during a sweep by design and are left out."""
+"""What a run executes or scores with (what ``dirty`` and the fingerprint of :func:`code_changed_since_start`
+look at); results files, reports and caches change during a sweep by design and are left out."""
 
 
 def git_state() -> dict[str, Any]:
-    """``{"commit", "dirty"}`` of the checkout holding this code (``None`` outside a git checkout), as it
+    """``{"commit", "dirty"}`` of the checkout holding this code (``None`` outside a git checkout; ``dirty``:
+    tracked changes under :data:`CODE_PATHS`, so results a concurrent sweep writes do not count), as it
     was at this process's first call: a run of hours records the code it started with, not a commit
     made, or a file edited, while it ran (``bench4d`` calls this once at startup). A worker process
     records its parent command's state instead (:func:`adopt_git_state`)."""
@@ -253,8 +254,8 @@ def code_changed_since_start() -> Optional[bool]:
     return None if now is None else now != start
 
 
-def _code_fingerprint() -> Optional[str]:
-    root = Path(__file__).resolve().parents[1]
+def _code_fingerprint(root: Optional[Path] = None) -> Optional[str]:
+    root = Path(__file__).resolve().parents[1] if root is None else Path(root)
     try:
         head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
                               timeout=10)
@@ -269,15 +270,20 @@ def _code_fingerprint() -> Optional[str]:
 
 @functools.lru_cache(maxsize=1)
 def _git_state_at_first_call() -> dict[str, Any]:
-    root = Path(__file__).resolve().parents[1]
+    return checkout_state(Path(__file__).resolve().parents[1])
+
+
+def checkout_state(root: Path) -> dict[str, Any]:
+    """``{"commit", "dirty", "code"}`` of the git checkout at ``root`` now (all None outside one)."""
     try:
         commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
                                 timeout=10)
         if commit.returncode != 0:
             return {"commit": None, "dirty": None, "code": None}
-        status = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-                                capture_output=True, text=True, timeout=10)
-        return {"commit": commit.stdout.strip(), "dirty": bool(status.stdout.strip()), "code": _code_fingerprint()}
+        status = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no", "--",
+                                 *CODE_PATHS], capture_output=True, text=True, timeout=10)
+        return {"commit": commit.stdout.strip(), "dirty": bool(status.stdout.strip()),
+                "code": _code_fingerprint(root)}
     except (OSError, subprocess.SubprocessError):
         return {"commit": None, "dirty": None, "code": None}
 

@@ -654,3 +654,33 @@ def test_run_all_errors_cross_the_worker_boundary():
     assert _portable(err) is err and str(pickle.loads(pickle.dumps(err))) == str(err)
     other = _portable(Unpicklable(1, 2))
     assert isinstance(other, RuntimeError) and str(other) == "Unpicklable: 1/2"
+
+
+def test_checkout_dirty_counts_code_not_results(tmp_path):
+    """``dirty`` and the code fingerprint look at the code only: results and reports that a concurrent
+    sweep writes leave a run's record clean; an edit under benchmark/ makes it dirty and moves the
+    fingerprint."""
+    import subprocess
+
+    from benchmark.runner import checkout_state
+
+    def git(*args):
+        subprocess.run(["git", "-C", str(tmp_path), "-c", "user.name=t", "-c", "user.email=t@t", *args],
+                       check=True, capture_output=True)
+
+    (tmp_path / "benchmark").mkdir()
+    (tmp_path / "results").mkdir()
+    (tmp_path / "benchmark" / "metric.py").write_text("X = 1\n")
+    (tmp_path / "results" / "run.json").write_text("{}\n")
+    git("init", "-q")
+    git("add", ".")
+    git("commit", "-qm", "start")
+    clean = checkout_state(tmp_path)
+    assert clean["dirty"] is False and len(clean["commit"]) == 40 and clean["code"]
+    (tmp_path / "results" / "run.json").write_text('{"Acc": 1}\n')  # a sweep writing its results
+    after_results = checkout_state(tmp_path)
+    assert after_results["dirty"] is False and after_results["code"] == clean["code"]
+    (tmp_path / "benchmark" / "metric.py").write_text("X = 2\n")
+    edited = checkout_state(tmp_path)
+    assert edited["dirty"] is True and edited["code"] != clean["code"]
+    assert checkout_state(tmp_path / "benchmark" / "no-such-dir") == {"commit": None, "dirty": None, "code": None}
