@@ -103,7 +103,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "captions as they are, the paper's Delta-sim)")
     d.add_argument("--caption-segments", action="store_true",
                    help="score the targets of option caption_segments instead: each caption embedding replaced by "
-                        "the mean of its temporal segment (change points by circular binary segmentation)")
+                        "the mean of its state (change points by circular binary segmentation; segments a "
+                        "permutation test cannot tell apart, such as a state that comes back, are one state)")
     sp = sub.add_parser("speed", help="seconds per status-field iteration on random Gaussians (paper scale: "
                                       "--gaussians 360000 --width 536 --height 960 --device cuda)")
     _scale_arguments(sp, 360_000, "Gaussians (protocol: up to 360k)")
@@ -297,7 +298,8 @@ def _delta_sim(args) -> int:
                 f"{args.caption_window} time steps (`--caption-window {args.caption_window}`: the targets of a field "
                 f"fitted with `caption_window={args.caption_window}`, not the paper's Delta-sim)."
                 if args.caption_window else
-                " Every caption embedding is first replaced by the mean of its temporal segment "
+                " Every caption embedding is first replaced by the mean of its state (its temporal "
+                "segment, or every segment of a state that comes back) "
                 "(`--caption-segments`: the targets of a field fitted with `caption_segments=true`, not the paper's "
                 "Delta-sim)." if args.caption_segments else "")
     md = (f"Delta-sim (percent) on {scene.name}, captioner {captioner.name} ({captioner.track} track), "
