@@ -351,6 +351,8 @@ def test_caption_segment_states_merge_only_what_comes_back():
     assert caption_segment_states(times, same, []) == [0]
     with pytest.raises(ValueError, match="state labels"):
         segment_caption_embeddings(times, same, [20.0], [0])
+    with pytest.raises(ValueError, match="shapes"):
+        caption_segment_states(times[:-1], same, [20.0])
 
 
 # -- aggregation -----------------------------------------------------------------------------------------------

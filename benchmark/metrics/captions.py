@@ -228,6 +228,8 @@ def caption_segment_states(caption_times: np.ndarray, caption_embeddings: np.nda
     change point between them was found significant already)."""
     times = np.asarray(caption_times, dtype=np.float64)
     emb = np.asarray(caption_embeddings, dtype=np.float64)
+    if emb.ndim != 2 or times.shape != (emb.shape[0],):
+        raise ValueError(f"shapes: times {times.shape}, embeddings {emb.shape} do not fit (N,), (N, D)")
     cuts = np.asarray(sorted(change_points), dtype=np.float64)
     unique, _, x = _time_means(times, emb)
     segment_of_time = np.searchsorted(cuts, unique, side="right")  # (U,)
