@@ -618,7 +618,8 @@ def evaluate(options: EvalOptions) -> RunOutcome:
                            "fit's own (a cached fit reports its original peak); stages reused from the shared "
                            "cache record theirs in fit.info (benchmark/memory.py)"},
         "method_config": config_dict(config),
-        "fit": {"key": fit.key, "cached": fit.cached, **({"head_refit_of": options.head_from} if options.head_from else {}),
+        "fit": {"key": fit.key, "cached": fit.cached, "code_version": str(getattr(spec.load(), "code_version", "1")),
+                **({"head_refit_of": options.head_from} if options.head_from else {}),
                 "info": _jsonable(model.describe()) if hasattr(model, "describe") else None},
         "supervision": supervision.describe(),
         "environment": {"packages": package_versions(), "git": git_state(),

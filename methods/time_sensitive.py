@@ -31,9 +31,11 @@ from .language_methods import FitContext, LanguageFieldModel, TimeVaryingHead, s
 
 _HERE = Path(__file__).resolve().parent
 TIME_VARYING_SOURCES = (Path(__file__).resolve(), _HERE / "fields" / "time_varying.py", _HERE / "fields" / "status.py",
-                        *sorted((_HERE / "captioners").glob("*.py")))
+                        *sorted((_HERE / "captioners").glob("*.py")),
+                        _HERE.parent / "benchmark" / "metrics" / "captions.py")
 """Files whose content defines a time-varying fit (part of the methods' ``code_version``: the runner
-hashes only each method's entry-point module)."""
+hashes only each method's entry-point module). ``benchmark/metrics/captions.py`` makes the targets of
+the ``caption_window`` and ``caption_segments`` options (change points, states)."""
 TIME_VARYING_CODE = source_hash(TIME_VARYING_SOURCES)
 
 STATE_FILE = "time_varying.pt"

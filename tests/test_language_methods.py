@@ -374,6 +374,16 @@ def test_ablate_rescore_refit_of_a_head_option_keeps_the_recorded_geometry(smoke
     first = path.read_bytes()
     assert json.loads(first)["method_config"]["caption_segments"] is True
     assert main(seg) == 0 and path.read_bytes() == first
+    # the head's code has changed since: the kept file is stale, the head is refitted under the new code
+    from methods.four_d_langsplat import FourDLangSplat
+
+    assert json.loads(first)["fit"]["code_version"] == FourDLangSplat.code_version
+    monkeypatch.setattr(FourDLangSplat, "code_version", "head code changed since")
+    assert main(seg) == 0
+    again = json.loads(path.read_text())
+    assert again["fit"]["code_version"] == "head code changed since"
+    assert again["fit"]["key"] != json.loads(first)["fit"]["key"] and not again["fit"]["cached"]
+    assert not calls
 
 
 def test_ablate_gap_reproduces_the_recorded_answers_and_the_ceiling(smoke, tmp_path, capsys, monkeypatch):

@@ -331,6 +331,30 @@ def test_caption_change_points_find_held_states_not_paraphrases():
         caption_change_points(times, emb, min_length=4, significance=1.5)
 
 
+def test_caption_segment_states_merge_only_what_comes_back():
+    from benchmark.metrics import caption_segment_states, caption_segments, segment_caption_embeddings
+
+    times = np.arange(40)
+    for seed in range(4):
+        back = _paraphrases([0] * 13 + [1] * 14 + [0] * 13, seed=seed)
+        cuts, states, targets = caption_segments(times, back, min_length=4)
+        assert (cuts, states) == ([13.0, 27.0], [0, 1, 0])
+        closed = np.r_[0:13, 27:40]
+        mean = back[closed].mean(0)
+        np.testing.assert_allclose(targets[closed], np.tile(mean / np.linalg.norm(mean), (26, 1)), atol=1e-12)
+        onward = _paraphrases([0] * 13 + [1] * 14 + [2] * 13, seed=seed)
+        assert caption_segment_states(times, onward, [13.0, 27.0]) == [0, 1, 2]
+    # neighbours never merge, even when their captions agree (their change point was kept already)
+    same = _paraphrases([0] * 40)
+    assert caption_segment_states(times, same, [20.0]) == [0, 1]
+    assert caption_segment_states(times, same, [10.0, 20.0, 30.0]) == [0, 1, 0, 1]
+    assert caption_segment_states(times, same, []) == [0]
+    with pytest.raises(ValueError, match="state labels"):
+        segment_caption_embeddings(times, same, [20.0], [0])
+    with pytest.raises(ValueError, match="shapes"):
+        caption_segment_states(times[:-1], same, [20.0])
+
+
 # -- aggregation -----------------------------------------------------------------------------------------------
 def _frames_table() -> pd.DataFrame:
     return pd.DataFrame([

@@ -8,6 +8,7 @@ its features vary with t (as a trained 4D-GS's do where things move); nothing mo
 from __future__ import annotations
 
 import hashlib
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -176,8 +177,8 @@ def test_caption_segments_make_one_target_per_held_state():
         index[(name, 0)] = 2 * int(t >= 16) + t % 2  # the wording alternates frame to frame
         index[(name, 1)] = 4
     sup = CaptionSupervision(SimpleNamespace(frame_names=names), None, texts, emb, index)
-    seg, cuts = segment_caption_targets(scene, sup, min_length=4)
-    assert cuts == {0: [16.0], 1: []}
+    seg, cuts, states = segment_caption_targets(scene, sup, min_length=4)
+    assert cuts == {0: [16.0], 1: []} and states == {0: [0, 1], 1: [0]}
     for state in (False, True):
         rows = {seg.text_index[(n, 0)] for t, n in enumerate(names) if (t >= 16) == state}
         assert len(rows) == 1  # one target per state
@@ -197,6 +198,43 @@ def test_caption_segments_make_one_target_per_held_state():
                                 change_points={0: []})[0].dynamic  # no change point: one target, static
     with pytest.raises(ValueError, match="alternatives"):
         TimeVaryingOptions(caption_window=3, caption_segments=True)
+
+
+def test_caption_segments_merge_a_state_that_comes_back():
+    """Closed, open, closed again: three segments but two states. The two closed runs share one target
+    (the mean of all closed captions) and the object needs K = 2, not 3; a third state that differs
+    (closed, open, broken) stays its own target."""
+    from methods.fields.time_varying import CaptionSupervision, segment_caption_targets
+
+    names = [f"f{t:02d}" for t in range(36)]
+    scene = SimpleNamespace(frame=lambda name: SimpleNamespace(time_index=int(name[1:])))
+    rng = np.random.default_rng(1)
+    state, wording = rng.standard_normal((3, 16)), 0.6 * rng.standard_normal((6, 16))
+    emb = state[[0, 0, 1, 1, 2, 2]] + wording  # two paraphrases each of closed, open, broken
+    emb = (emb / np.linalg.norm(emb, axis=1, keepdims=True)).astype(np.float32)
+    texts = ["closed 1", "closed 2", "open 1", "open 2", "broken 1", "broken 2"]
+
+    def segmented(last_state: int):
+        held = [0] * 12 + [1] * 12 + [last_state] * 12
+        index = {(name, 0): 2 * held[t] + t % 2 for t, name in enumerate(names)}
+        sup = CaptionSupervision(SimpleNamespace(frame_names=names), None, texts, emb, index)
+        seg, cuts, states = segment_caption_targets(scene, sup, min_length=4)
+        rows = [seg.text_index[(n, 0)] for n in names]
+        return held, seg, rows, cuts[0], states[0]
+
+    held, seg, rows, cuts, states = segmented(0)
+    assert cuts == [12.0, 24.0] and states == [0, 1, 0]
+    assert len(set(rows)) == 2 and rows[0] == rows[-1] != rows[12]
+    closed = [emb[t % 2] for t in range(36) if held[t] == 0]
+    want = np.mean(closed, 0)
+    np.testing.assert_allclose(seg.embeddings[rows[0]], want / np.linalg.norm(want), atol=1e-5)
+    sem = object_semantics(_sup_from(seg.embeddings[rows]), tolerance=0.0, max_states=3, min_state_run=4.0,
+                           change_points={0: cuts})[0]
+    assert sem.dynamic and sem.states == 2
+    held, seg, rows, cuts, states = segmented(2)
+    assert cuts == [12.0, 24.0] and states == [0, 1, 2] and len(set(rows)) == 3
+    assert object_semantics(_sup_from(seg.embeddings[rows]), tolerance=0.0, max_states=3, min_state_run=4.0,
+                            change_points={0: cuts})[0].states == 3
 
 
 def test_caption_window_averages_wording_within_a_state(world):
@@ -233,13 +271,13 @@ def test_caption_window_averages_wording_within_a_state(world):
 def test_caption_segments_decide_which_objects_carry_states(world, monkeypatch):
     """With ``caption_segments`` the fit takes an object's change points, not the spread tolerance, as
     the test of change: a tolerance no caption spread reaches still leaves the box with 2 states."""
-    import methods.fields.time_varying as tv_module
+    import benchmark.metrics.captions as captions_module
 
     def fake_change_points(times, emb, *, min_length, seed=0):
         # the box (two distinct captions) changes half way; the ball (one caption) never does
         return [float(np.median(times))] if len(np.unique(np.round(emb, 6), axis=0)) > 1 else []
 
-    monkeypatch.setattr(tv_module, "caption_change_points", fake_change_points)
+    monkeypatch.setattr(captions_module, "caption_change_points", fake_change_points)
     opts = _options(caption_segments=True, semantic_change_tolerance=2.0, status_iterations=20, tv_static_iterations=10)
     field = fit_time_varying_field(world.geometry, world.scene, world.sup, opts, kind="status", seed=0, backend="torch")
     sem = field.info["objects_semantics"]
@@ -459,3 +497,21 @@ def test_speed_command_records_where_it_ran_and_rejects_bad_sizes(tmp_path, caps
     assert "--dynamic-fraction" in capsys.readouterr().err
     assert main(args[:2] + ["--gaussians", "0", "--quiet"]) == 2
     assert "--gaussians" in capsys.readouterr().err
+
+
+def test_time_varying_code_version_covers_the_code_that_makes_its_targets():
+    """The fit cache key of a time-varying method hashes :data:`TIME_VARYING_SOURCES`: every module
+    whose code shapes the fitted head (targets, states, the network) must be among them, or editing it
+    would silently reuse heads fitted by the old code."""
+    import inspect
+
+    from benchmark.metrics.captions import caption_change_points, caption_segment_states, window_caption_embeddings
+    from methods.fields.status import StatusField
+    from methods.fields.time_varying import fit_time_varying_field
+    from methods.time_sensitive import TIME_VARYING_SOURCES
+
+    sources = {Path(p).resolve() for p in TIME_VARYING_SOURCES}
+    assert all(p.is_file() for p in sources)
+    for code in (caption_change_points, caption_segment_states, window_caption_embeddings, StatusField,
+                 fit_time_varying_field):
+        assert Path(inspect.getsourcefile(code)).resolve() in sources, code.__name__

@@ -103,7 +103,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "captions as they are, the paper's Delta-sim)")
     d.add_argument("--caption-segments", action="store_true",
                    help="score the targets of option caption_segments instead: each caption embedding replaced by "
-                        "the mean of its temporal segment (change points by circular binary segmentation)")
+                        "the mean of its state (change points by circular binary segmentation; segments a "
+                        "permutation test cannot tell apart, such as a state that comes back, are one state)")
     sp = sub.add_parser("speed", help="seconds per status-field iteration on random Gaussians (paper scale: "
                                       "--gaussians 360000 --width 536 --height 960 --device cuda)")
     _scale_arguments(sp, 360_000, "Gaussians (protocol: up to 360k)")
@@ -297,7 +298,8 @@ def _delta_sim(args) -> int:
                 f"{args.caption_window} time steps (`--caption-window {args.caption_window}`: the targets of a field "
                 f"fitted with `caption_window={args.caption_window}`, not the paper's Delta-sim)."
                 if args.caption_window else
-                " Every caption embedding is first replaced by the mean of its temporal segment "
+                " Every caption embedding is first replaced by the mean of its state (its temporal "
+                "segment, or every segment of a state that comes back) "
                 "(`--caption-segments`: the targets of a field fitted with `caption_segments=true`, not the paper's "
                 "Delta-sim)." if args.caption_segments else "")
     md = (f"Delta-sim (percent) on {scene.name}, captioner {captioner.name} ({captioner.track} track), "
@@ -570,7 +572,8 @@ def _rescore(args) -> int:
         target = results_path(out_dir, doc["dataset"], doc["scene"], method, doc["track"], int(doc["seed"]))
         new = load_results(target) if target.is_file() and not args.force else None
         wanted = {k: v for k, v in config_dict(spec.make_config(options)).items() if k in options}
-        if new is not None and not _rescored_from(new, doc, wanted, refit=args.refit):
+        if new is not None and not _rescored_from(new, doc, wanted, refit=args.refit,
+                                                  code_version=getattr(spec.load(), "code_version", "1")):
             new = None  # the recorded run was redone, or other options asked: the kept file is stale
         if new is not None:
             _log(args, f"rescore: kept {target}")
@@ -611,12 +614,18 @@ def _head_options_only(spec, overrides: dict) -> bool:
             and set(overrides) <= head_options | answer)
 
 
-def _rescored_from(rescored: dict, recorded: dict, options: dict, *, refit: bool = False) -> bool:
+def _rescored_from(rescored: dict, recorded: dict, options: dict, *, refit: bool = False,
+                   code_version: Optional[str] = None) -> bool:
     """``rescored`` answered on ``recorded``'s fit (``refit``: on the same scene version, made after
     it) with ``options`` (parsed by the method's config and in the JSON form results record configs
-    in: ``--set caption_segments=true`` is the recorded ``True``, not the string)."""
+    in: ``--set caption_segments=true`` is the recorded ``True``, not the string), by the method's
+    ``code_version`` of now (a refitted head or the query code may have changed since; a file that
+    records no code version, written before it was recorded, is not checked on this)."""
     from ..results import scene_status
 
+    kept_version = (rescored.get("fit") or {}).get("code_version")
+    if code_version is not None and kept_version is not None and str(kept_version) != str(code_version):
+        return False
     cfg = rescored.get("method_config") or {}
     if refit and (rescored.get("fit") or {}).get("head_refit_of"):
         same_run = rescored["fit"]["head_refit_of"] == recorded["fit"]["key"]

@@ -14,7 +14,7 @@
 from .aggregate import LEVELS, FrameRecord, aggregate, records_table
 from .captions import (caption_auc, caption_replay_accuracy, caption_replay_scores, cosine_similarity, delta_sim,
                        caption_change_points, delta_sim_scene, fitted_caption_targets, mean_delta_sim,
-                       segment_caption_embeddings,
+                       caption_segment_states, caption_segments, segment_caption_embeddings,
                        window_caption_embeddings)
 from .masks import EMPTY_IOU, accuracy_from_confusion, confusion, iou, iou_from_confusion, pixel_accuracy
 from .scoring import (REPORT_METRICS, AgnosticScore, DatasetScore, QueryScore, SceneScore, ScoreConfig,
@@ -28,7 +28,7 @@ __all__ = [
     "LEVELS", "FrameRecord", "aggregate", "records_table",
     "caption_auc", "caption_replay_accuracy", "caption_replay_scores", "cosine_similarity", "delta_sim",
     "caption_change_points", "delta_sim_scene", "fitted_caption_targets", "mean_delta_sim",
-    "segment_caption_embeddings",
+    "caption_segment_states", "caption_segments", "segment_caption_embeddings",
     "window_caption_embeddings",
     "EMPTY_IOU", "accuracy_from_confusion", "confusion", "iou", "iou_from_confusion", "pixel_accuracy",
     "REPORT_METRICS", "AgnosticScore", "DatasetScore", "QueryScore", "SceneScore", "ScoreConfig",

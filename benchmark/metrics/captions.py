@@ -29,7 +29,7 @@ which is what a field fitted frame by frame sees:
 
 from __future__ import annotations
 
-from typing import Mapping
+from typing import Mapping, Optional
 
 import numpy as np
 import pandas as pd
@@ -166,10 +166,7 @@ def caption_change_points(caption_times: np.ndarray, caption_embeddings: np.ndar
         raise ValueError(f"shapes: times {times.shape}, embeddings {emb.shape} do not fit (N,), (N, D)")
     if min_length < 1 or permutations < 1 or not 0 < significance < 1:
         raise ValueError("min_length and permutations must be >= 1, significance in (0, 1)")
-    unique, inverse = np.unique(times, return_inverse=True)
-    x = np.zeros((len(unique), emb.shape[1]))
-    np.add.at(x, inverse, emb)
-    x /= np.bincount(inverse, minlength=len(unique))[:, None]
+    unique, _, x = _time_means(times, emb)
     gram = x @ x.T
     rng = np.random.default_rng(seed)
     cuts: list[int] = []
@@ -197,12 +194,91 @@ def caption_change_points(caption_times: np.ndarray, caption_embeddings: np.ndar
     return sorted(float(unique[c]) for c in cuts)
 
 
-def segment_caption_embeddings(caption_times: np.ndarray, caption_embeddings: np.ndarray, change_points) -> np.ndarray:
+def _time_means(times: np.ndarray, emb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(distinct times (U,), each caption's index into them (N,), (U, D) mean embedding per time)."""
+    unique, inverse = np.unique(times, return_inverse=True)
+    x = np.zeros((len(unique), emb.shape[1]))
+    np.add.at(x, inverse, emb)
+    x /= np.bincount(inverse, minlength=len(unique))[:, None]
+    return unique, inverse, x
+
+
+def _two_group_gains(gram: np.ndarray, members: np.ndarray) -> np.ndarray:
+    """(P,) drop of the within-group squared error when the rows whose Gram matrix is ``gram`` (n, n)
+    are split into each row of ``members`` (P, n) bool and the rest:
+    |S_a|^2 / m + |S_b|^2 / (n - m) - |S|^2 / n."""
+    a = members.astype(np.float64)
+    b = 1.0 - a
+    m = a.sum(1)
+    n = a.shape[1]
+    return ((a @ gram) * a).sum(1) / m + ((b @ gram) * b).sum(1) / (n - m) - gram.sum() / n
+
+
+def caption_segment_states(caption_times: np.ndarray, caption_embeddings: np.ndarray, change_points, *,
+                           permutations: int = SEGMENT_PERMUTATIONS, significance: float = SEGMENT_SIGNIFICANCE,
+                           seed: int = 0) -> list[int]:
+    """State of each segment (``len(change_points) + 1`` labels, numbered in order of first appearance)
+    of an object's captions (N,) times, (N, D) embeddings, cut at the sorted ``change_points``
+    (:func:`caption_change_points`): a state that comes back (an egg closed, opened, closed again) is
+    one state, not a new one. Two groups of segments share a state when a two-sample permutation test
+    on their per-time mean captions cannot tell them apart: the share of ``permutations`` seeded
+    relabellings of their pooled rows (and the observed labelling) whose two-group gain is at least
+    the observed one is above ``significance``; the pair least distinguishable is merged first, then
+    the test is repeated on the merged groups. Groups holding neighbouring segments never merge (the
+    change point between them was found significant already)."""
+    times = np.asarray(caption_times, dtype=np.float64)
+    emb = np.asarray(caption_embeddings, dtype=np.float64)
+    if emb.ndim != 2 or times.shape != (emb.shape[0],):
+        raise ValueError(f"shapes: times {times.shape}, embeddings {emb.shape} do not fit (N,), (N, D)")
+    cuts = np.asarray(sorted(change_points), dtype=np.float64)
+    unique, _, x = _time_means(times, emb)
+    segment_of_time = np.searchsorted(cuts, unique, side="right")  # (U,)
+    groups: list[set[int]] = [{s} for s in range(len(cuts) + 1)]
+    rng = np.random.default_rng(seed)
+    while True:
+        best: Optional[tuple[float, int, int]] = None
+        for i in range(len(groups)):
+            for j in range(i + 1, len(groups)):
+                if any(abs(a - b) == 1 for a in groups[i] for b in groups[j]):
+                    continue
+                in_i = np.isin(segment_of_time, list(groups[i]))
+                rows = np.nonzero(in_i | np.isin(segment_of_time, list(groups[j])))[0]
+                if len(rows) < 3:
+                    continue
+                gram = x[rows] @ x[rows].T
+                member = in_i[rows]
+                observed = _two_group_gains(gram, member[None])[0]
+                shuffled = np.stack([rng.permutation(member) for _ in range(permutations)])
+                as_good = 1 + int((_two_group_gains(gram, shuffled) >= observed - 1e-12).sum())
+                p_value = as_good / (1 + permutations)
+                if p_value > significance and (best is None or p_value > best[0]):
+                    best = (p_value, i, j)
+        if best is None:
+            break
+        _, i, j = best
+        groups[i] |= groups.pop(j)
+    label_of_group: dict[int, int] = {}
+    labels = []
+    for s in range(len(cuts) + 1):
+        g = next(k for k, members in enumerate(groups) if s in members)
+        labels.append(label_of_group.setdefault(g, len(label_of_group)))
+    return labels
+
+
+def segment_caption_embeddings(caption_times: np.ndarray, caption_embeddings: np.ndarray, change_points,
+                               segment_states=None) -> np.ndarray:
     """(N, D) float64 unit vectors: each caption embedding replaced by the renormalised mean of the
-    embeddings of its segment, the segments starting at the times ``change_points`` (sorted)."""
+    embeddings of its segment, the segments starting at the times ``change_points`` (sorted); with
+    ``segment_states`` (a state label per segment, :func:`caption_segment_states`), by the mean of
+    every segment of its state."""
     times = np.asarray(caption_times, dtype=np.float64)
     emb = np.asarray(caption_embeddings, dtype=np.float64)
     segment = np.searchsorted(np.asarray(sorted(change_points), dtype=np.float64), times, side="right")
+    if segment_states is not None:
+        labels = np.asarray(segment_states, dtype=np.int64)
+        if labels.shape != (len(change_points) + 1,):
+            raise ValueError(f"{len(change_points) + 1} segments need as many state labels, got {labels.shape}")
+        segment = labels[segment]
     out = np.empty_like(emb)
     for s in np.unique(segment):
         mean = emb[segment == s].mean(0)
@@ -210,18 +286,28 @@ def segment_caption_embeddings(caption_times: np.ndarray, caption_embeddings: np
     return out
 
 
+def caption_segments(caption_times: np.ndarray, caption_embeddings: np.ndarray, *, min_length: int,
+                     seed: int = 0) -> tuple[list[float], list[int], np.ndarray]:
+    """(change points, state label per segment, (N, D) targets) of one object's captions (N,) times,
+    (N, D) embeddings under the ``caption_segments`` option: :func:`caption_change_points`, then
+    :func:`caption_segment_states` (a state that comes back is one target), then the state means
+    (:func:`segment_caption_embeddings`)."""
+    cuts = caption_change_points(caption_times, caption_embeddings, min_length=min_length, seed=seed)
+    states = caption_segment_states(caption_times, caption_embeddings, cuts, seed=seed)
+    return cuts, states, segment_caption_embeddings(caption_times, caption_embeddings, cuts, states)
+
+
 def fitted_caption_targets(caption_times: np.ndarray, caption_embeddings: np.ndarray, *, window: int = 0,
                            segment_min_length: int = 0, seed: int = 0) -> np.ndarray:
     """(N, D) float64: one object's caption embeddings (N, D) at times (N,) as a time-varying field's
     targets are made from them: as they are (both options 0), averaged over ``window`` time steps
-    (:func:`window_caption_embeddings`; option ``caption_window``), or replaced by their segment's
-    mean (``segment_min_length`` > 0: :func:`caption_change_points` then
-    :func:`segment_caption_embeddings`; option ``caption_segments``). Both at once raise."""
+    (:func:`window_caption_embeddings`; option ``caption_window``), or replaced by the mean of their
+    state (``segment_min_length`` > 0: :func:`caption_segments`; option ``caption_segments``). Both at
+    once raise."""
     if window and segment_min_length:
         raise ValueError("a caption window and caption segments are alternatives: give one")
     if segment_min_length:
-        cuts = caption_change_points(caption_times, caption_embeddings, min_length=segment_min_length, seed=seed)
-        return segment_caption_embeddings(caption_times, caption_embeddings, cuts)
+        return caption_segments(caption_times, caption_embeddings, min_length=segment_min_length, seed=seed)[2]
     if window:
         return window_caption_embeddings(caption_times, caption_embeddings, window)
     return np.asarray(caption_embeddings, dtype=np.float64)

@@ -59,7 +59,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from benchmark.errors import InputError
-from benchmark.metrics.captions import caption_change_points, segment_caption_embeddings, window_caption_embeddings
+from benchmark.metrics.captions import caption_segments, window_caption_embeddings
 from benchmark.scene import Camera, Frame, Scene
 
 from .autoencoder import AutoencoderConfig, FeatureAutoencoder, train_autoencoder
@@ -193,22 +193,25 @@ def smooth_caption_embeddings(scene: Scene, sup: CaptionSupervision, window: int
     return _replace_object_embeddings(scene, sup, lambda obj, times, emb: window_caption_embeddings(times, emb, window))
 
 
-def segment_caption_targets(scene: Scene, sup: CaptionSupervision, *, min_length: int,
-                            seed: int = 0) -> tuple[CaptionSupervision, dict[int, list[float]]]:
+def segment_caption_targets(scene: Scene, sup: CaptionSupervision, *, min_length: int, seed: int = 0
+                            ) -> tuple[CaptionSupervision, dict[int, list[float]], dict[int, list[int]]]:
     """(``sup`` with each object's caption embeddings replaced by the (renormalised) mean of its
-    temporal segment, {object: change-point time indices}). Not in the paper. The segments come from
-    :func:`benchmark.metrics.caption_change_points` (circular binary segmentation of the time-ordered
-    captions with a permutation test, pieces at least ``min_length`` time steps): a state that holds
-    over an interval becomes one target however its paraphrases vary, and the change stays a step,
-    where a window would blur it. An object whose captions show no significant change gets one
-    target, its mean."""
+    state, {object: change-point time indices}, {object: state label of each segment}). Not in the
+    paper. The segments come from :func:`benchmark.metrics.caption_change_points` (circular binary
+    segmentation of the time-ordered captions with a permutation test, pieces at least ``min_length``
+    time steps): a state that holds over an interval becomes one target however its paraphrases vary,
+    and the change stays a step, where a window would blur it. Segments whose captions a permutation
+    test cannot tell apart are one state (:func:`benchmark.metrics.caption_segment_states`: an egg
+    closed, opened and closed again has two states, not three). An object whose captions show no
+    significant change gets one target, its mean."""
     change_points: dict[int, list[float]] = {}
+    states: dict[int, list[int]] = {}
 
     def segment(obj: int, times: np.ndarray, emb: np.ndarray) -> np.ndarray:
-        change_points[obj] = caption_change_points(times, emb, min_length=min_length, seed=seed)
-        return segment_caption_embeddings(times, emb, change_points[obj])
+        change_points[obj], states[obj], targets = caption_segments(times, emb, min_length=min_length, seed=seed)
+        return targets
 
-    return _replace_object_embeddings(scene, sup, segment), change_points
+    return _replace_object_embeddings(scene, sup, segment), change_points, states
 
 
 def _replace_object_embeddings(scene: Scene, sup: CaptionSupervision,
@@ -871,9 +874,10 @@ def fit_time_varying_field(geometry: FrozenGeometry, scene: Scene, sup: CaptionS
         info["caption_window"] = shaping["window"]
         info["distinct_targets"] = len(sup.texts)
     if shaping["segment_min_length"]:
-        sup, change_points = segment_caption_targets(scene, sup, min_length=shaping["segment_min_length"],
-                                                     seed=shaping["seed"])
+        sup, change_points, segment_states = segment_caption_targets(
+            scene, sup, min_length=shaping["segment_min_length"], seed=shaping["seed"])
         info["caption_segments"] = {str(o): c for o, c in sorted(change_points.items())}
+        info["caption_segment_states"] = {str(o): s for o, s in sorted(segment_states.items())}
         info["distinct_targets"] = len(sup.texts)
 
     # 2. semantics per object, K

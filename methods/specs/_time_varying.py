@@ -50,10 +50,11 @@ class TimeVaryingOptions:
     the paper: 0)."""
 
     caption_segments: bool = False
-    """Replace each object's caption embeddings by the mean of their temporal segment before they
-    become targets (:func:`methods.fields.time_varying.segment_caption_targets`: change points by
-    circular binary segmentation with a permutation test, segments at least ``min_state_run`` time
-    steps; not in the paper: off). Excludes ``caption_window``."""
+    """Replace each object's caption embeddings by the mean of their state before they become targets
+    (:func:`methods.fields.time_varying.segment_caption_targets`: change points by circular binary
+    segmentation with a permutation test, segments at least ``min_state_run`` time steps; segments
+    that a permutation test cannot tell apart, such as a state that comes back, are one state; not in
+    the paper: off). Excludes ``caption_window``."""
 
     # --- caption autoencoder ------------------------------------------------------------------------
     tv_latent_dim: int = 6
