@@ -166,7 +166,7 @@ def caption_change_points(caption_times: np.ndarray, caption_embeddings: np.ndar
         raise ValueError(f"shapes: times {times.shape}, embeddings {emb.shape} do not fit (N,), (N, D)")
     if min_length < 1 or permutations < 1 or not 0 < significance < 1:
         raise ValueError("min_length and permutations must be >= 1, significance in (0, 1)")
-    unique, _, x = _time_means(times, emb)
+    unique, x = _time_means(times, emb)
     gram = x @ x.T
     rng = np.random.default_rng(seed)
     cuts: list[int] = []
@@ -194,13 +194,13 @@ def caption_change_points(caption_times: np.ndarray, caption_embeddings: np.ndar
     return sorted(float(unique[c]) for c in cuts)
 
 
-def _time_means(times: np.ndarray, emb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(distinct times (U,), each caption's index into them (N,), (U, D) mean embedding per time)."""
+def _time_means(times: np.ndarray, emb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(distinct times (U,), (U, D) mean embedding of the captions (N, D) at each: several cameras)."""
     unique, inverse = np.unique(times, return_inverse=True)
     x = np.zeros((len(unique), emb.shape[1]))
     np.add.at(x, inverse, emb)
     x /= np.bincount(inverse, minlength=len(unique))[:, None]
-    return unique, inverse, x
+    return unique, x
 
 
 def _two_group_gains(gram: np.ndarray, members: np.ndarray) -> np.ndarray:
@@ -231,7 +231,7 @@ def caption_segment_states(caption_times: np.ndarray, caption_embeddings: np.nda
     if emb.ndim != 2 or times.shape != (emb.shape[0],):
         raise ValueError(f"shapes: times {times.shape}, embeddings {emb.shape} do not fit (N,), (N, D)")
     cuts = np.asarray(sorted(change_points), dtype=np.float64)
-    unique, _, x = _time_means(times, emb)
+    unique, x = _time_means(times, emb)
     segment_of_time = np.searchsorted(cuts, unique, side="right")  # (U,)
     groups: list[set[int]] = [{s} for s in range(len(cuts) + 1)]
     rng = np.random.default_rng(seed)
