@@ -15,7 +15,9 @@ memory in MiB; ``null`` = not applicable)::
     memory         {"peak_cpu_mib", "peak_cpu_fit_mib", "peak_gpu_mib", "peak_gpu_fit_mib",
                     "peak_window": "run" (peaks of this run alone) or "process" (the process's so far),
                     "peak_fit_window": the same for the fit (a cached fit: as it recorded)}
-    method_config, fit {"key", "cached"}, supervision {"track", "sources", ...},
+    method_config, fit {"key", "cached", "code_version" (the method's, at the run; older files lack it),
+                        "head_refit_of" (a head refitted on that recorded fit), "info"},
+    supervision    {"track", "sources", ...},
     environment    {"packages", "git": {"commit", "dirty"} (as the command started; dirty: tracked
                     changes of the code, not of results or reports),
                     "code_changed_during_run" (the code differed at the run's end: the commit may not be

@@ -9,7 +9,8 @@ Pipeline (:func:`fit_time_varying_field`):
    object id map and the caption embedding of each object, i.e. pixel-aligned targets on each
    object's mask. Optionally (not in the paper) each object's embeddings are first averaged over
    neighbouring training times (``caption_window`` > 0, :func:`smooth_caption_embeddings`) or
-   replaced by the mean of their temporal segment (``caption_segments``, :func:`segment_caption_targets`).
+   replaced by the mean of their state (``caption_segments``, :func:`segment_caption_targets`: temporal
+   segments, those a permutation test cannot tell apart merged).
 2. **Semantics per object** (:func:`object_semantics`): an object whose caption embeddings all lie
    within ``semantic_change_tolerance`` of their mean (with ``caption_segments``: whose captions have
    no change point) never changes; for the others the number of distinct caption states is the
