@@ -242,7 +242,7 @@ def adopt_git_state(state: Optional[dict[str, Any]]) -> None:
 
 
 def code_changed_since_start() -> Optional[bool]:
-    """Whether the code of the checkout (:data:`CODE_PATHS`: HEAD and the tracked changes against it)
+    """Whether the code of the checkout (:data:`CODE_PATHS`: their content at HEAD and the tracked changes)
     differs from what it was when the command started: modules a long run imports late (a ``--jobs``
     worker, a scorer loaded after a fit of hours) may then be newer than the recorded commit. None when
     unknown (outside a git checkout, or a start that recorded no fingerprint). Untracked files are not
@@ -255,17 +255,21 @@ def code_changed_since_start() -> Optional[bool]:
 
 
 def _code_fingerprint(root: Optional[Path] = None) -> Optional[str]:
+    """A hash of :data:`CODE_PATHS` as the checkout has them: their tree and blob ids at HEAD plus the
+    tracked changes against HEAD. Content, not the commit: a commit of results, reports or tests made
+    while a sweep runs leaves it unchanged (hashing the commit id flagged every run of a sweep during
+    which only results or tests were committed)."""
     root = Path(__file__).resolve().parents[1] if root is None else Path(root)
     try:
-        head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
-                              timeout=10)
+        trees = subprocess.run(["git", "-C", str(root), "ls-tree", "HEAD", "--", *CODE_PATHS], capture_output=True,
+                               text=True, timeout=10)
         diff = subprocess.run(["git", "-C", str(root), "diff", "HEAD", "--binary", "--", *CODE_PATHS],
                               capture_output=True, text=True, timeout=30)
     except (OSError, subprocess.SubprocessError):
         return None
-    if head.returncode != 0 or diff.returncode != 0:
+    if trees.returncode != 0 or diff.returncode != 0:
         return None
-    return hashlib.sha1((head.stdout + diff.stdout).encode()).hexdigest()
+    return hashlib.sha1((trees.stdout + diff.stdout).encode()).hexdigest()
 
 
 @functools.lru_cache(maxsize=1)

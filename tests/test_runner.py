@@ -4,6 +4,7 @@ oracle supervision guards and the ``nearest-frame`` floor."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import sys
 from pathlib import Path
@@ -440,16 +441,17 @@ def test_a_run_records_the_commit_it_started_on_not_one_made_while_it_ran(env, m
 
     import benchmark.runner as runner
 
-    checkout = {"commit": "1" * 40}
+    checkout = {"commit": "1" * 40, "tree": "a" * 40}
 
     def fake_git(cmd, **kw):
-        out = checkout["commit"] if "rev-parse" in cmd else ""
-        return subprocess.CompletedProcess(cmd, 0, stdout=out + "\n", stderr="")
+        out = {"rev-parse": checkout["commit"], "ls-tree": f"040000 tree {checkout['tree']}\tbenchmark"}
+        return subprocess.CompletedProcess(cmd, 0, stdout=next((v for k, v in out.items() if k in cmd), "") + "\n",
+                                           stderr="")
 
     real_find = runner.find_annotations
 
-    def find_then_commit(*args, **kw):  # someone commits while the run fits and answers
-        checkout["commit"] = "2" * 40
+    def find_then_commit(*args, **kw):  # someone commits a code change while the run fits and answers
+        checkout.update(commit="2" * 40, tree="b" * 40)
         return real_find(*args, **kw)
 
     runner._git_state_at_first_call.cache_clear()
@@ -463,6 +465,38 @@ def test_a_run_records_the_commit_it_started_on_not_one_made_while_it_ran(env, m
         assert outcome.results["environment"]["code_changed_during_run"] is True
     finally:
         runner._git_state_at_first_call.cache_clear()
+
+
+def test_the_code_fingerprint_follows_the_code_not_the_commit(tmp_path):
+    # a sweep commits its results and reports as it goes, and tests get committed beside it: only a
+    # change under CODE_PATHS (committed or not) may say that the code changed during a run
+    import subprocess
+
+    from benchmark.runner import _code_fingerprint
+
+    def git(*args):
+        subprocess.run(["git", "-C", str(tmp_path), *args], check=True, capture_output=True,
+                       env={**os.environ, "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@t", "GIT_COMMITTER_NAME": "t",
+                            "GIT_COMMITTER_EMAIL": "t@t"})
+
+    for rel, text in (("benchmark/a.py", "x = 1\n"), ("reports/r.md", "r\n"), ("tests/test_a.py", "t\n")):
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_text(text)
+    git("init", "-q")
+    git("add", "-A")
+    git("commit", "-qm", "start")
+    start = _code_fingerprint(tmp_path)
+    assert start is not None
+    for rel in ("reports/r.md", "tests/test_a.py"):  # results, reports and tests committed mid-sweep
+        (tmp_path / rel).write_text("changed\n")
+        git("commit", "-qam", f"commit {rel}")
+        assert _code_fingerprint(tmp_path) == start
+    (tmp_path / "benchmark/a.py").write_text("x = 2\n")  # an uncommitted code edit
+    edited = _code_fingerprint(tmp_path)
+    assert edited != start
+    git("commit", "-qam", "code")  # the same edit committed: still other code than at the start
+    assert _code_fingerprint(tmp_path) not in (start, None)
+    assert _code_fingerprint(tmp_path / "nowhere") is None
 
 
 def test_a_run_all_worker_records_its_parent_commands_git_state(env, monkeypatch):

@@ -14,7 +14,7 @@ from benchmark.scene import Camera
 from benchmark.synthetic import PRESETS, TruthAccessError, generate, list_presets, load_truth
 from benchmark.synthetic import csg
 from benchmark.synthetic.generate import preset_rng
-from benchmark.synthetic.layouts import LAYOUTS
+from benchmark.synthetic.layouts import LAYOUTS, NEU3D_RIG_CAMERAS
 from benchmark.synthetic.model import Catalogue, FrameContext, Piece, State, Timeline, part, subpart, whole
 from benchmark.synthetic.objects import CupGeometry, ring
 from benchmark.synthetic.render import background_instances, instances, render, surfaces
@@ -213,6 +213,8 @@ def test_presets_cover_the_paper_scenes():
     assert len(real) >= 6
     assert sum(p.time_sensitive for p in real) >= 4
     assert any(p.default_layout == "neu3d" for p in real)
+    # a Neu3D-like preset has the real rig's cameras: a few cameras make its held-out view a sparse-view problem
+    assert all(p.default_views == NEU3D_RIG_CAMERAS for p in real if p.default_layout == "neu3d")
     for spec in PRESETS.values():
         scene, cat = _scene_def(spec.name, spec.default_frames)
         assert len(scene.wholes) >= 2
