@@ -606,9 +606,7 @@ PRESETS: dict[str, PresetSpec] = {spec.name: spec for spec in (
                "hypernerf/keyboard", "hypernerf", 60, 8, False, build_keyboard),
     PresetSpec("torchocolate", "a blow torch sweeps over a chocolate bar that melts and darkens (time-agnostic queries)",
                "hypernerf/torchocolate", "hypernerf", 60, 8, False, build_torchocolate),
-    # The real rig's camera count: with 6 the held-out view was a sparse-view problem (3D-GS test PSNR
-    # 20.4 dB at 6 cameras, 26.4 at 12, 27.7 at 18, 27.1 at 21; 4D-GS 21.1 -> 29.2 at 21), and every
-    # language field scored floaters instead of its semantics.
+    # the real rig's cameras: with 6 every method scored floaters on the held-out view (NEU3D_RIG_CAMERAS)
     PresetSpec("cook-spinach", "spinach leaves stirred in a pan while a spatula sweeps (21-camera rig, time-agnostic)",
                "neu3d/cook_spinach", "neu3d", 40, NEU3D_RIG_CAMERAS, False, build_cook_spinach),
     PresetSpec("smoke", "tiny test scene: a box lid opens, a bar breaks, a ball rolls",
