@@ -42,7 +42,7 @@ META_FILE = "bench4d_meta.json"
 NEU3D_RIG_CAMERAS = 21
 """Cameras of the real Neu3D / DyNeRF rig (``../shared/docs/protocol.md``: 21 synced cameras); cam00 is
 held out, so 20 train. The Neu3D-like presets use the real count: a rig of a few cameras turns the
-held-out view into a sparse-view problem that no geometry solves (cook-spinach, 3D-GS test PSNR at 6 / 12 /
+held-out view into a sparse-view problem that neither 3D-GS nor 4D-GS solves (cook-spinach, 3D-GS test PSNR at 6 / 12 /
 18 / 21 cameras: 20.4 / 26.4 / 27.7 / 27.1 dB; 4D-GS at 6 / 21: 21.1 / 29.2 dB)."""
 
 
