@@ -229,6 +229,7 @@ def fit_and_evaluate(job: dict) -> dict:
         entry["cuda_max_memory_allocated_mib"] = torch.cuda.max_memory_allocated(torch.device(device)) / 2 ** 20
     if kind == "4dgs":
         entry["dynamic_gaussians"] = result.model.num_dynamic()
+        entry["field_box"] = result.field_box
         if cfg.deformation.static_skip and result.model.dynamic_mask is not None:
             train_views = trainer.views
             # cost of one step with the field on dynamic Gaussians only vs on all (same model, same views);

@@ -17,7 +17,7 @@ trainer to add.
 
 from __future__ import annotations
 
-from typing import Union
+from typing import Optional, Union
 
 import torch
 import torch.nn.functional as F
@@ -32,17 +32,56 @@ TIME_PAIRS = ((0, 3), (1, 3), (2, 3))  # xt, yt, zt (t along the plane's rows)
 TimeLike = Union[float, torch.Tensor]
 
 
+def axis_warp(lo: torch.Tensor, hi: torch.Tensor, focus: Optional[torch.Tensor],
+              share: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Knots of the per-axis piecewise-linear map from the box [``lo``, ``hi``] (each (3,)) to [-1, 1].
+
+    Returns ((3, 4) world knots ``[lo, a, b, hi]``, (3, 4) normalised knots ``[-1, n_a, n_b, 1]``) where
+    [a, b] is the motion box ``focus`` ((2, 3), clipped to the box) on that axis. The interval [a, b] gets
+    ``max(share, (b - a) / (hi - lo))`` of the normalised range, the two outer intervals the rest in
+    proportion to their lengths; ``focus=None`` or ``share <= 0``: uniform (knots at thirds).
+    """
+    lo, hi = lo.float(), hi.float()
+    length = (hi - lo).clamp_min(1e-9)
+    if focus is None or share <= 0:
+        a, b = lo + length / 3.0, lo + 2.0 * length / 3.0
+        inner = torch.full_like(lo, 1.0 / 3.0)
+        before = torch.full_like(lo, 0.5)
+    else:
+        f = torch.as_tensor(focus, dtype=torch.float32).reshape(2, 3)
+        a = torch.minimum(torch.maximum(f[0], lo), hi)
+        b = torch.minimum(torch.maximum(f[1], a), hi)
+        tiny = 1e-6 * length  # a motion box thinner than this on an axis is widened to it
+        b = torch.minimum(torch.maximum(b, a + tiny), hi)
+        a = torch.minimum(a, b - tiny)
+        outer = (a - lo) + (hi - b)
+        inner = torch.where(outer > 1e-9 * length, torch.clamp((b - a) / length, min=min(share, 1.0)),
+                            torch.ones_like(lo))
+        before = torch.where(outer > 1e-9 * length, (a - lo) / outer.clamp_min(1e-12), torch.full_like(lo, 0.5))
+    n_a = -1.0 + 2.0 * (1.0 - inner) * before
+    n_b = n_a + 2.0 * inner
+    knots = torch.stack([lo, a, b, hi], dim=1)
+    knots_n = torch.stack([torch.full_like(lo, -1.0), n_a, n_b, torch.ones_like(lo)], dim=1)
+    return knots, knots_n
+
+
 class HexPlane(nn.Module):
     """Six multi-resolution feature planes over the box ``bounds`` x [0, 1] (time)."""
 
-    def __init__(self, cfg: HexPlaneConfig, bounds: torch.Tensor, time_resolution: int):
-        """``bounds``: (2, 3) [min, max] world box the spatial axes span; ``time_resolution``: T >= 2."""
+    def __init__(self, cfg: HexPlaneConfig, bounds: torch.Tensor, time_resolution: int,
+                 focus: Optional[torch.Tensor] = None):
+        """``bounds``: (2, 3) [min, max] world box the spatial axes span; ``time_resolution``: T >= 2;
+        ``focus``: (2, 3) [min, max] motion box that gets at least ``cfg.motion_cell_share`` of each axis's
+        cells (``None``: cells spread evenly over ``bounds``)."""
         super().__init__()
         self.cfg = cfg
         bounds = torch.as_tensor(bounds, dtype=torch.float32).reshape(2, 3)
         size = (bounds[1] - bounds[0]).clamp_min(1e-6)
         self.register_buffer("box_min", bounds[0].clone())
         self.register_buffer("box_size", size.clone())
+        knots, knots_n = axis_warp(bounds[0], bounds[0] + size, focus, cfg.motion_cell_share)
+        self.register_buffer("warp_knots", knots)
+        self.register_buffer("warp_knots_n", knots_n)
         self.time_resolution = max(2, int(time_resolution))
         self.spatial = nn.ParameterList()
         self.temporal = nn.ParameterList()
@@ -59,8 +98,22 @@ class HexPlane(nn.Module):
         return self.cfg.feature_dim
 
     def normalise(self, xyz: torch.Tensor) -> torch.Tensor:
-        """(N, 3) world points -> (N, 3) in [-1, 1] over the plane box (outside: clamped by sampling)."""
-        return (xyz - self.box_min) * (2.0 / self.box_size) - 1.0
+        """(N, 3) world points -> (N, 3) in [-1, 1] over the plane box (outside: clamped by sampling).
+
+        Per axis piecewise linear through the (3, 4) knots of :func:`axis_warp` (uniform without a motion
+        box: the same map as ``(xyz - box_min) * 2 / box_size - 1``)."""
+        k, kn = self.warp_knots, self.warp_knots_n  # (3, 4) world, (3, 4) normalised
+        slope = (kn[:, 1:] - kn[:, :-1]) / (k[:, 1:] - k[:, :-1]).clamp_min(1e-9)  # (3, 3)
+        lower = kn[:, 0] + (xyz - k[:, 0]) * slope[:, 0]
+        inner = kn[:, 1] + (xyz - k[:, 1]) * slope[:, 1]
+        upper = kn[:, 2] + (xyz - k[:, 2]) * slope[:, 2]
+        return torch.where(xyz < k[:, 1], lower, torch.where(xyz < k[:, 2], inner, upper))
+
+    def cell_size(self) -> torch.Tensor:
+        """(3,) world size of a base-resolution cell inside the motion box (the whole box when uniform)."""
+        k, kn = self.warp_knots, self.warp_knots_n
+        cells_per_unit = (kn[:, 2] - kn[:, 1]) / 2.0 * (self.cfg.spatial_resolution - 1)
+        return (k[:, 2] - k[:, 1]) / cells_per_unit.clamp_min(1e-9)
 
     def forward(self, xyz: torch.Tensor, t: TimeLike) -> torch.Tensor:
         """Features at (N, 3) world points ``xyz`` and time ``t`` (scalar or (N,) in [0, 1]) -> (N, F).
@@ -109,11 +162,13 @@ class DeformationField(nn.Module):
     """HexPlane + MLP trunk + heads: (x, t) -> offsets of position, log-scale and raw quaternion (and, with
     ``deform_color``, of the RGB colour)."""
 
-    def __init__(self, cfg: DeformationConfig, bounds: torch.Tensor, time_resolution: int):
-        """``bounds``: (2, 3) world box of the HexPlane; ``time_resolution``: rows of the time planes."""
+    def __init__(self, cfg: DeformationConfig, bounds: torch.Tensor, time_resolution: int,
+                 focus: Optional[torch.Tensor] = None):
+        """``bounds``: (2, 3) world box of the HexPlane; ``time_resolution``: rows of the time planes;
+        ``focus``: (2, 3) motion box given finer cells (:class:`HexPlane`)."""
         super().__init__()
         self.cfg = cfg
-        self.hexplane = HexPlane(cfg.hexplane, bounds, time_resolution)
+        self.hexplane = HexPlane(cfg.hexplane, bounds, time_resolution, focus)
         w = cfg.net_width
         layers: list[nn.Module] = [nn.Linear(self.hexplane.feature_dim, w)]
         for _ in range(cfg.net_depth):

@@ -166,6 +166,9 @@ def deformation_field_from_state(config: dict, weights: dict, time_resolution: i
     cfg = DeformationConfig(hexplane=HexPlaneConfig(**hp), **cfg_dict)
     box_min = weights["hexplane.box_min"]
     field = DeformationField(cfg, torch.stack([box_min, box_min + weights["hexplane.box_size"]]), time_resolution)
+    weights = dict(weights)
+    for name in ("warp_knots", "warp_knots_n"):  # fields saved before the motion box: uniform cells
+        weights.setdefault(f"hexplane.{name}", getattr(field.hexplane, name))
     field.load_state_dict(weights)
     return field
 

@@ -444,6 +444,9 @@ class FitResult:
     cap: int = 0
     resumed_at: Optional[dict] = None
     """``{"stage", "iteration"}`` of the checkpoint this fit resumed from (None: it ran in one go)."""
+    field_box: Optional[dict] = None
+    """4D-GS: the HexPlane's ``bounds`` and ``motion_box`` ((2, 3) lists; the latter ``None`` when off or
+    not found), ``unexplained_pixels`` it came from, base ``cell_size`` (3,) inside it, ``cpu_seconds``."""
 
 
 @dataclass
@@ -533,10 +536,20 @@ class Trainer:
         d = c.deformation
         # the box is read from the Gaussians as the static stage ends (a resumed fit has moved them since)
         bounds = resume["field_bounds"] if in_deformation else self.hexplane_bounds(model)
+        if in_deformation:
+            focus = resume.get("field_focus")
+        else:
+            clock = time.process_time()
+            focus, focus_pixels = self.motion_box(model)
+            result.field_box = {"bounds": bounds.tolist(), "motion_box": None if focus is None else focus.tolist(),
+                                "unexplained_pixels": focus_pixels,
+                                "cpu_seconds": time.process_time() - clock}
         with torch.random.fork_rng(devices=[]):  # the field's random init follows the run's seed only
             torch.manual_seed(c.seed)
-            field_ = DeformationField(d, bounds, self.time_resolution()).to(self.device)
-        self._field_bounds = bounds
+            field_ = DeformationField(d, bounds, self.time_resolution(), focus).to(self.device)
+        if result.field_box is not None:
+            result.field_box["cell_size"] = field_.hexplane.cell_size().tolist()
+        self._field_bounds, self._field_focus = bounds, focus
         deformable = DeformableGaussians(model, field_)
         result.model = deformable
         groups = [{"params": field_.mlp_parameters(), "lr": d.deformation_lr_init * self.extent, "name": "mlp"},
@@ -612,6 +625,50 @@ class Trainer:
         lo, hi = torch.quantile(means, q, dim=0)
         pad = (hi - lo).clamp_min(1e-3 * self.extent) * h.bounds_margin
         return torch.stack([lo - pad, hi + pad]).cpu()
+
+    @torch.no_grad()
+    def motion_box(self, model: GaussianModel) -> tuple[Optional[torch.Tensor], int]:
+        """((2, 3) box of what the static stage leaves unexplained, or ``None``; the pixel count it came from).
+
+        Renders ``motion_views`` training views evenly spaced over the training frames with the static
+        Gaussians, back-projects (along the rendered expected depth) every pixel whose mean absolute RGB
+        error exceeds ``motion_residual`` where a surface is rendered (alpha > 0.5), and takes the
+        ``motion_percentile`` box of those points widened by ``bounds_margin``. A deterministic pass: no
+        random draw, so the seeded training stream is the same with it on or off.
+        """
+        h = self.cfg.deformation.hexplane
+        if h.motion_cell_share <= 0 or not self.views:
+            return None, 0
+        count = min(max(1, h.motion_views), len(self.views))
+        picks = np.unique(np.linspace(0, len(self.views) - 1, count).round().astype(int))
+        means, quats, scales = model.means.detach(), model.quats.detach(), model.scales.detach()
+        opacities = model.opacities.detach()
+        points = []
+        for i in picks:
+            view = self.views[int(i)]
+            out = self.rasterize(means, quats, scales, opacities, model.colors(view.center, means).detach(),
+                                 view.viewmat, view.K, view.width, view.height, background=self.background,
+                                 near=self.cfg.gaussians.near)
+            error = (out.image.clamp(0.0, 1.0) - view.image).abs().mean(-1)  # (H, W)
+            rows, cols = torch.nonzero((error > h.motion_residual) & (out.alpha > 0.5), as_tuple=True)
+            if rows.numel() == 0:
+                continue
+            z = out.depth[rows, cols]
+            K = view.K
+            cam = torch.stack([((cols.float() + 0.5) - K[0, 2]) / K[0, 0] * z,
+                               ((rows.float() + 0.5) - K[1, 2]) / K[1, 1] * z, z], dim=1)  # (M, 3) camera frame
+            R, t = view.viewmat[:3, :3], view.viewmat[:3, 3]
+            points.append((cam - t) @ R)  # world = R^T (x - t), row-vector form
+        n = int(sum(p.shape[0] for p in points))
+        if n < max(1, h.motion_min_pixels):
+            return None, n
+        pts = torch.cat(points)
+        if pts.shape[0] > 1_000_000:  # quantile's input limit; an even subsample keeps the percentiles
+            pts = pts[torch.linspace(0, pts.shape[0] - 1, 1_000_000, device=pts.device).long()]
+        q = torch.tensor([h.motion_percentile / 100.0, 1.0 - h.motion_percentile / 100.0], device=pts.device)
+        lo, hi = torch.quantile(pts, q, dim=0)
+        pad = (hi - lo).clamp_min(1e-3 * self.extent) * h.bounds_margin
+        return torch.stack([lo - pad, hi + pad]).cpu(), n
 
     def pixels_per_unit(self, points: torch.Tensor, chunk: int = 65536) -> torch.Tensor:
         """(N,) largest pixels-per-world-unit of the (N, 3) ``points`` over the training views: focal / depth
@@ -711,7 +768,7 @@ class Trainer:
                 mask = deformable.dynamic_mask
                 state.update({"field": deformable.field.state_dict(), "net_opt": net_opt.state_dict(),
                               "dynamic_mask": None if mask is None else mask.detach(),
-                              "field_bounds": self._field_bounds})
+                              "field_bounds": self._field_bounds, "field_focus": self._field_focus})
             with atomic_path(ck.path) as tmp:
                 torch.save(state, tmp)
 
