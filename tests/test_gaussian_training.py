@@ -18,8 +18,8 @@ import torch
 from benchmark.commands import recon
 from benchmark.scene import Camera, Frame, Scene
 from methods.gaussians.config import (DeformationConfig, GaussianConfig, HexPlaneConfig, ReconConfig, Schedule)
-from methods.gaussians.hexplane import DeformationField, HexPlane
-from methods.gaussians.model import DeformableGaussians, GaussianModel
+from methods.gaussians.hexplane import DeformationField, HexPlane, axis_warp
+from methods.gaussians.model import DeformableGaussians, GaussianModel, deformation_field_from_state
 from methods.gaussians.rasterize import rasterize
 from methods.gaussians.train import (Checkpointing, DensifyStats, GaussianOptimizer, Trainer, densify_and_prune, evaluate,
                                      gaussian_cap, gaussian_window, make_views, reset_opacity, ssim)
@@ -227,6 +227,77 @@ def test_ssim_matches_convolution_and_scikit_image():
 # ---------------------------------------------------------------------------------------------------
 # HexPlane, regularisers, static detection
 # ---------------------------------------------------------------------------------------------------
+def test_the_motion_box_gets_its_share_of_the_cells_and_nothing_outside_is_lost():
+    lo, hi = torch.tensor([-4.0, -1.0, 0.0]), torch.tensor([4.0, 1.0, 2.0])
+    focus = torch.tensor([[-0.5, -0.9, 1.9], [0.5, 0.9, 2.5]])  # x: 1/8 of the axis; y: 90 %; z: past the top
+    knots, knots_n = axis_warp(lo, hi, focus, 0.75)
+    inner_share = (knots_n[:, 2] - knots_n[:, 1]) / 2.0
+    assert inner_share[0] == pytest.approx(0.75)  # x: widened to the share
+    assert inner_share[1] == pytest.approx(0.9)  # y: already wider than the share: uniform
+    assert knots[2, 2] == pytest.approx(2.0) and inner_share[2] == pytest.approx(0.75)  # clipped to the box
+    # x: the outer cells are split in proportion to the outer lengths (3.5 m each side)
+    assert knots_n[0, 1] + 1.0 == pytest.approx(1.0 - knots_n[0, 2])
+    cfg = HexPlaneConfig(spatial_resolution=8, output_dim=2, multires=(1,))
+    box = torch.stack([lo, hi])
+    uniform, focused = HexPlane(cfg, box, 4), HexPlane(cfg, box, 4, focus)
+    pts = torch.stack([torch.linspace(-5, 5, 101), torch.linspace(-1.5, 1.5, 101), torch.linspace(-1, 3, 101)], 1)
+    assert torch.allclose(uniform.normalise(pts), (pts - lo) * (2.0 / (hi - lo)) - 1.0, atol=1e-6)  # the old map
+    n = focused.normalise(pts)
+    within = (pts >= lo) & (pts <= hi)
+    rising = n[1:] > n[:-1]
+    assert torch.all(rising[within[1:] & within[:-1]])  # strictly monotone in the box: no two places share a cell
+    assert torch.all(n[~within].abs() >= 1.0 - 1e-6)  # outside: at or beyond the border, as before
+    assert torch.allclose(focused.normalise(box), torch.tensor([[-1.0] * 3, [1.0] * 3]), atol=1e-6)  # box ends kept
+    assert torch.allclose(focused.normalise(focus[:, :1].expand(2, 3))[:, 0], torch.tensor([-0.75, 0.75]), atol=1e-6)
+    assert focused.cell_size()[0] == pytest.approx(1.0 / (0.75 * 7), rel=1e-5)  # 1 m over 3/4 of 7 cells
+    assert uniform.cell_size()[0] == pytest.approx(8.0 / 7, rel=1e-5)
+    assert HexPlane(dataclasses.replace(cfg, motion_cell_share=0.0), box, 4, focus).normalise(pts).allclose(
+        uniform.normalise(pts))  # share 0: off
+
+
+def _blob_model(t: float, motion: float, moving: int = 4) -> GaussianModel:
+    """The toy scene's blobs at time ``t`` as a static model (degree-0 colours equal to theirs)."""
+    m, q, s, o, c = truth_gaussians(t, motion, moving)
+    return model_from(m, torch.log(s), o).__class__({
+        "means": m, "sh_dc": ((c - 0.5) / 0.28209479177387814).unsqueeze(1), "sh_rest": torch.zeros(m.shape[0], 0, 3),
+        "opacity_logits": torch.logit(o), "log_scales": torch.log(s), "quats": q}, 0)
+
+
+def test_the_motion_box_is_where_a_static_model_leaves_the_images_unexplained():
+    # the first blob slides 0.8 along x; a model of all blobs at mid-time explains everything else exactly
+    motion = 0.8
+    scene = toy_scene(size=24, times=6, views_per_time=8, motion=motion, moving=1)
+    cfg = small_recon_config(0, 0)
+    cfg.deformation.hexplane.motion_min_pixels = 16  # one blob in 24-px views
+    trainer = Trainer(scene, cfg, rasterize_fn=RAST)
+    model = _blob_model(0.5, motion, moving=1)
+    box, pixels = trainer.motion_box(model)
+    assert box is not None and pixels >= 16, pixels
+    moving, still = model.means[:1].detach(), model.means[1:].detach()
+    assert torch.all((moving >= box[0]) & (moving <= box[1]))  # the moving blob's mid position is inside
+    inside = torch.all((still >= box[0]) & (still <= box[1]), dim=1)
+    assert int(inside.sum()) < still.shape[0] // 2, inside  # most of the static blobs are not
+    # nothing moves: nothing is unexplained, no motion box (uniform cells)
+    still_scene = toy_scene(size=24, times=6, views_per_time=8, motion=0.0, moving=4)
+    assert Trainer(still_scene, small_recon_config(0, 0), rasterize_fn=RAST).motion_box(_blob_model(0.5, 0.0)) == (None, 0)
+    off = small_recon_config(0, 0)
+    off.deformation.hexplane.motion_cell_share = 0.0
+    assert Trainer(scene, off, rasterize_fn=RAST).motion_box(model) == (None, 0)
+
+
+def test_a_saved_field_keeps_its_motion_box_and_one_saved_before_it_loads_uniform():
+    cfg = DeformationConfig(hexplane=HexPlaneConfig(spatial_resolution=8, output_dim=4, multires=(1, 2)), net_width=16)
+    box, focus = torch.tensor([[-2.0] * 3, [2.0] * 3]), torch.tensor([[-0.2] * 3, [0.3] * 3])
+    field_ = DeformationField(cfg, box, 5, focus)
+    state = {k: v.clone() for k, v in field_.state_dict().items()}
+    back = deformation_field_from_state(dataclasses.asdict(cfg), state, 5)
+    pts = torch.rand(50, 3) * 4 - 2
+    assert torch.equal(back.hexplane.normalise(pts), field_.hexplane.normalise(pts))
+    old = {k: v for k, v in state.items() if "warp" not in k}  # written before the motion box existed
+    legacy = deformation_field_from_state(dataclasses.asdict(cfg), old, 5)
+    assert torch.allclose(legacy.hexplane.normalise(pts), (pts + 2.0) / 2.0 - 1.0, atol=1e-6)
+
+
 def test_hexplane_regularisers_nonzero_with_gradients():
     hp = HexPlane(HexPlaneConfig(spatial_resolution=8, output_dim=4, multires=(1, 2)), torch.tensor([[-1.0] * 3, [1.0] * 3]), 6)
     regs = hp.regularisers()
@@ -584,8 +655,12 @@ def test_recon_command_end_to_end(tmp_path):
     (row,) = [line for line in summary.splitlines() if line.startswith(
         "| toy-dnerf [gaussians.sh_degree=1, deformation.hexplane.spatial_resolution=8] | cpu | 12x12 | 24 |")]
     cells = [c.strip() for c in row.split("|")]
-    assert cells[-3] == "-"  # no generator truth: no gain bound
+    assert cells[-4] == "-"  # no generator truth: no gain bound
     assert cells[-2] == recon._commit_cell(report["git"])  # the commit that ran
+    box = report["models"]["4dgs"]["field_box"]  # the HexPlane's box and, where found, its motion box
+    lo, hi = box["bounds"]
+    assert cells[-3].endswith(f"({max(h - l for l, h in zip(lo, hi)) / 7:.3g})")  # uniform: 8 cells per axis
+    assert float(cells[-3].split()[0]) <= max(h - l for l, h in zip(lo, hi)) / 7 + 1e-9
     # another seed is its own row, named by its seed
     report["config"]["seed"] = 3
     report["git"] = {"commit": "0123456789abcdef", "dirty": True}
@@ -594,7 +669,7 @@ def test_recon_command_end_to_end(tmp_path):
     assert main(["recon", "--summarize", str(tmp_path)]) == 0
     (row,) = [line for line in (tmp_path / "summary.md").read_text().splitlines()
               if line.startswith("| toy-dnerf (seed 3) [gaussians.sh_degree=1")]
-    assert row.endswith("| - | 0123456+ |")
+    assert row.endswith(f"| - | {cells[-3]} | 0123456+ |")
 
 
 def test_recon_scores_the_moving_parts_of_a_generated_scene(tmp_path):
@@ -615,9 +690,9 @@ def test_recon_scores_the_moving_parts_of_a_generated_scene(tmp_path):
     (row,) = [line for line in (tmp_path / "reports" / "summary.md").read_text().splitlines()
               if line.startswith("| smoke [")]  # the label names the run's --set overrides
     cells = [c.strip() for c in row.split("|")]
-    assert " %, " in cells[-5] and " / " in cells[-4]  # moving parts; elsewhere
+    assert " %, " in cells[-6] and " / " in cells[-5]  # moving parts; elsewhere
     m3 = report["models"]["3dgs"]["moving"]
-    assert float(cells[-3]) == pytest.approx(recon.moving_gain_bound(m3), abs=0.006)
+    assert float(cells[-4]) == pytest.approx(recon.moving_gain_bound(m3), abs=0.006)
 
 
 def test_moving_gain_bound_counts_what_perfect_moving_parts_would_gain():

@@ -447,13 +447,16 @@ def summarize(folder: Path) -> Path:
              "3D-GS of a model that renders the moving parts exactly and everything else as 3D-GS does, "
              "10 log10(MSE_3D / ((1 - f) MSE_3D,elsewhere)) with f the moving pixel fraction: how much of a gain "
              "the motion alone can explain (more needs a better fit of what does not move). "
+             "HexPlane cell: the deformation field's base cell in the motion box, and in a uniform grid over its "
+             "whole box, in units of the scene (largest axis; `HexPlaneConfig.motion_cell_share`; - = a run "
+             "recorded before the motion box). "
              "git = the commit that ran (+: with uncommitted changes); runs of different commits can differ "
              "by float-order changes alone (seeds of one commit: see the README).", "",
              "| scene | device | size | iterations | 4D-GS PSNR | 3D-GS PSNR | gain dB | 4D-GS SSIM | 3D-GS SSIM "
              "| 4D-GS CPU s (wall) | 3D-GS CPU s (wall) | Gaussians 4D / 3D (cap) | render FPS 4D / 3D "
              "| peak MiB 4D / 3D | dynamic Gaussians | moving parts: pixels %, PSNR 4D / 3D "
-             "| elsewhere PSNR 4D / 3D | gain if moving parts perfect dB | git |",
-             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---|---|---|---|---|---:|---|"]
+             "| elsewhere PSNR 4D / 3D | gain if moving parts perfect dB | HexPlane cell: motion box (uniform) | git |",
+             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---|---|---|---|---|---:|---|---|"]
     for path in reports:
         r = read_json(path)
         m = r.get("models", {})
@@ -478,13 +481,25 @@ def summarize(folder: Path) -> Path:
             f"| {num(g4.get('render_fps'), 1)} / {num(g3.get('render_fps'), 1)} "
             f"| {num(g4.get('peak_rss_mib'), 0)} / {num(g3.get('peak_rss_mib'), 0)} "
             f"| {'-' if dyn is None else dyn} | {_moving_cell(g4, g3)} | {_scores_cell(g4, g3, 'static_psnr')} "
-            f"| {num(moving_gain_bound(g3.get('moving')))} | {_commit_cell(r.get('git'))} |")
+            f"| {num(moving_gain_bound(g3.get('moving')))} | {_cell_cell(g4, r.get('config', {}))} "
+            f"| {_commit_cell(r.get('git'))} |")
     lines += ["", "Commands:", ""]
     for path in reports:
         lines.append(f"- `{read_json(path).get('command', '?')}`")
     out = Path(folder) / "summary.md"
     write_text(out, "\n".join(lines) + "\n")
     return out
+
+
+def _cell_cell(g4: dict, config: dict) -> str:
+    """The 4D-GS HexPlane's base cell inside its motion box and over its whole box (largest axis), or -."""
+    box = g4.get("field_box")
+    resolution = config.get("deformation", {}).get("hexplane", {}).get("spatial_resolution")
+    if not box or not box.get("cell_size") or not resolution:
+        return "-"
+    lo, hi = box["bounds"]
+    uniform = max(h - l for l, h in zip(lo, hi)) / max(1, int(resolution) - 1)
+    return f"{max(box['cell_size']):.3g} ({uniform:.3g})"
 
 
 def _commit_cell(git: Optional[dict]) -> str:
