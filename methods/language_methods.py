@@ -697,7 +697,9 @@ class LanguageFieldMethod(Method):
     time_varying_head: ClassVar[Optional[type[TimeVaryingHead]]] = None
     """The head fitted after the time-agnostic half (4D LangSplat's status field), or ``None``."""
     config_class: ClassVar[type] = LanguageMethodConfig
-    code_version = "lf-" + source_hash(FIELD_SOURCES)
+    code_version = "lf-" + source_hash(FIELD_SOURCES + GEOMETRY_SOURCES)
+    """The runner's whole-fit cache key carries this: the geometry's code is part of it, or a changed
+    Gaussian core would be answered from fits of the old one (until session 18 it was not)."""
 
     @classmethod
     def fit(cls, scene: Scene, supervision: Supervision, config: LanguageMethodConfig, *, seed: int, device: str,

@@ -515,3 +515,20 @@ def test_time_varying_code_version_covers_the_code_that_makes_its_targets():
     for code in (caption_change_points, caption_segment_states, window_caption_embeddings, StatusField,
                  fit_time_varying_field):
         assert Path(inspect.getsourcefile(code)).resolve() in sources, code.__name__
+
+
+def test_the_field_methods_code_version_covers_the_gaussian_core():
+    """The runner's whole-fit cache key holds the methods' ``code_version``: the Gaussian core (rasterizer,
+    trainer, HexPlane) must be in it, or a changed geometry would be answered from fits of the old one
+    (session 18: the HexPlane's motion box changed the 4D-GS fit, and ``bench4d eval`` reloaded the old fit)."""
+    import inspect
+
+    from methods.gaussians.hexplane import HexPlane
+    from methods.gaussians.rasterize import rasterize
+    from methods.gaussians.train import Trainer
+    from methods.language_methods import FIELD_SOURCES, GEOMETRY_SOURCES, LanguageFieldMethod, source_hash
+
+    for code in (HexPlane, rasterize, Trainer):
+        assert Path(inspect.getsourcefile(code)).resolve() in {Path(p).resolve() for p in GEOMETRY_SOURCES}
+    assert LanguageFieldMethod.code_version == "lf-" + source_hash(FIELD_SOURCES + GEOMETRY_SOURCES)
+    assert LanguageFieldMethod.code_version != "lf-" + source_hash(FIELD_SOURCES)
