@@ -237,7 +237,7 @@ def test_the_motion_box_gets_its_share_of_the_cells_and_nothing_outside_is_lost(
     assert knots[2, 2] == pytest.approx(2.0) and inner_share[2] == pytest.approx(0.75)  # clipped to the box
     # x: the outer cells are split in proportion to the outer lengths (3.5 m each side)
     assert knots_n[0, 1] + 1.0 == pytest.approx(1.0 - knots_n[0, 2])
-    cfg = HexPlaneConfig(spatial_resolution=8, output_dim=2, multires=(1,))
+    cfg = HexPlaneConfig(spatial_resolution=8, output_dim=2, multires=(1,), motion_cell_share=0.75)
     box = torch.stack([lo, hi])
     uniform, focused = HexPlane(cfg, box, 4), HexPlane(cfg, box, 4, focus)
     pts = torch.stack([torch.linspace(-5, 5, 101), torch.linspace(-1.5, 1.5, 101), torch.linspace(-1, 3, 101)], 1)
@@ -269,6 +269,7 @@ def test_the_motion_box_is_where_a_static_model_leaves_the_images_unexplained():
     scene = toy_scene(size=24, times=6, views_per_time=8, motion=motion, moving=1)
     cfg = small_recon_config(0, 0)
     cfg.deformation.hexplane.motion_min_pixels = 16  # one blob in 24-px views
+    cfg.deformation.hexplane.motion_cell_share = 0.75  # the measured setting (off by default)
     trainer = Trainer(scene, cfg, rasterize_fn=RAST)
     model = _blob_model(0.5, motion, moving=1)
     box, pixels = trainer.motion_box(model)
@@ -279,14 +280,15 @@ def test_the_motion_box_is_where_a_static_model_leaves_the_images_unexplained():
     assert int(inside.sum()) < still.shape[0] // 2, inside  # most of the static blobs are not
     # nothing moves: nothing is unexplained, no motion box (uniform cells)
     still_scene = toy_scene(size=24, times=6, views_per_time=8, motion=0.0, moving=4)
-    assert Trainer(still_scene, small_recon_config(0, 0), rasterize_fn=RAST).motion_box(_blob_model(0.5, 0.0)) == (None, 0)
+    assert Trainer(still_scene, cfg, rasterize_fn=RAST).motion_box(_blob_model(0.5, 0.0)) == (None, 0)
     off = small_recon_config(0, 0)
     off.deformation.hexplane.motion_cell_share = 0.0
     assert Trainer(scene, off, rasterize_fn=RAST).motion_box(model) == (None, 0)
 
 
 def test_a_saved_field_keeps_its_motion_box_and_one_saved_before_it_loads_uniform():
-    cfg = DeformationConfig(hexplane=HexPlaneConfig(spatial_resolution=8, output_dim=4, multires=(1, 2)), net_width=16)
+    cfg = DeformationConfig(hexplane=HexPlaneConfig(spatial_resolution=8, output_dim=4, multires=(1, 2),
+                                                    motion_cell_share=0.75), net_width=16)
     box, focus = torch.tensor([[-2.0] * 3, [2.0] * 3]), torch.tensor([[-0.2] * 3, [0.3] * 3])
     field_ = DeformationField(cfg, box, 5, focus)
     state = {k: v.clone() for k, v in field_.state_dict().items()}
@@ -774,6 +776,7 @@ def _interrupting(after_calls: int):
 def test_an_interrupted_4dgs_fit_resumes_to_exactly_the_uninterrupted_model(moving_scene, tmp_path):
     # long enough for densification in both stages and for static checks before the deformation-stage stop
     cfg = small_recon_config(40, 60)
+    cfg.deformation.hexplane.motion_cell_share = 0.75  # the motion box is resumed too
     reference = Trainer(moving_scene, cfg, rasterize_fn=RAST).fit_4dgs()
     ref_events = [[e for e in s["events"]] for s in reference.stages]
     assert any(e["event"] == "densify" for e in ref_events[0]) and any(e["event"] == "densify" for e in ref_events[1])
