@@ -82,6 +82,9 @@ class HexPlane(nn.Module):
         knots, knots_n = axis_warp(bounds[0], bounds[0] + size, focus, cfg.motion_cell_share)
         self.register_buffer("warp_knots", knots)
         self.register_buffer("warp_knots_n", knots_n)
+        self._note_warp()
+        # a loaded state brings its own knots: whether they warp is read again from them
+        self.register_load_state_dict_post_hook(lambda module, _keys: module._note_warp())
         self.time_resolution = max(2, int(time_resolution))
         self.spatial = nn.ParameterList()
         self.temporal = nn.ParameterList()
@@ -97,11 +100,18 @@ class HexPlane(nn.Module):
     def feature_dim(self) -> int:
         return self.cfg.feature_dim
 
+    def _note_warp(self) -> None:
+        """Whether the knots differ from the uniform map (host-side flag, so the hot path need not check)."""
+        uniform = torch.tensor([-1.0, -1.0 / 3.0, 1.0 / 3.0, 1.0], device=self.warp_knots_n.device)
+        self.warped = not torch.allclose(self.warp_knots_n, uniform.expand_as(self.warp_knots_n), atol=1e-6)
+
     def normalise(self, xyz: torch.Tensor) -> torch.Tensor:
         """(N, 3) world points -> (N, 3) in [-1, 1] over the plane box (outside: clamped by sampling).
 
-        Per axis piecewise linear through the (3, 4) knots of :func:`axis_warp` (uniform without a motion
-        box: the same map as ``(xyz - box_min) * 2 / box_size - 1``)."""
+        With a motion box, per axis piecewise linear through the (3, 4) knots of :func:`axis_warp`; without
+        one, the affine map of the release (the same numbers as before the motion box existed)."""
+        if not self.warped:
+            return (xyz - self.box_min) * (2.0 / self.box_size) - 1.0
         k, kn = self.warp_knots, self.warp_knots_n  # (3, 4) world, (3, 4) normalised
         slope = (kn[:, 1:] - kn[:, :-1]) / (k[:, 1:] - k[:, :-1]).clamp_min(1e-9)  # (3, 3)
         lower = kn[:, 0] + (xyz - k[:, 0]) * slope[:, 0]
