@@ -270,7 +270,7 @@ def test_the_motion_box_is_where_a_static_model_leaves_the_images_unexplained():
     scene = toy_scene(size=24, times=6, views_per_time=8, motion=motion, moving=1)
     cfg = small_recon_config(0, 0)
     cfg.deformation.hexplane.motion_min_pixels = 16  # one blob in 24-px views
-    cfg.deformation.hexplane.motion_cell_share = 0.75  # the measured setting (off by default)
+    cfg.deformation.hexplane.motion_cell_share = 0.75  # the default, stated: the test is about the box
     trainer = Trainer(scene, cfg, rasterize_fn=RAST)
     model = _blob_model(0.5, motion, moving=1)
     box, pixels = trainer.motion_box(model)
@@ -779,7 +779,7 @@ def _interrupting(after_calls: int):
 def test_an_interrupted_4dgs_fit_resumes_to_exactly_the_uninterrupted_model(moving_scene, tmp_path):
     # long enough for densification in both stages and for static checks before the deformation-stage stop
     cfg = small_recon_config(40, 60)
-    cfg.deformation.hexplane.motion_cell_share = 0.75  # the motion box is resumed too
+    cfg.deformation.hexplane.motion_cell_share = 0.75  # the default, stated: the motion box is resumed too
     reference = Trainer(moving_scene, cfg, rasterize_fn=RAST).fit_4dgs()
     ref_events = [[e for e in s["events"]] for s in reference.stages]
     assert any(e["event"] == "densify" for e in ref_events[0]) and any(e["event"] == "densify" for e in ref_events[1])

