@@ -83,16 +83,13 @@ def field_gap(model, scene: Scene, annotations, eval_frames: Iterable[str], *,
 
 
 def prepare_as_the_runner(model, annotations, frame_of: dict) -> None:
-    """Prepare ``model`` for the very texts the runner prepared it for (every query of a kind it answers
-    with a ground-truth mask in an evaluated frame, in annotation order): the shared basis of
-    :meth:`~methods.language_methods.LanguageFieldMethod.prepare` spans them all, and a basis of other
-    texts gives the same answers only in exact arithmetic, so a mask can move by a pixel at its threshold
-    (found with one thread: a smoke-scene vIoU of 7.1965 re-answered for a recorded 7.1920)."""
-    if not hasattr(model, "prepare"):
-        return
-    supported = getattr(model, "supports", {"agnostic"})
-    model.prepare([q.text for q in annotations.queries if q.kind in supported
-                   and any(af.name in frame_of for af in annotations.annotated_frames(q.id))])
+    """Prepare ``model`` for the very texts the runner prepared it for (:func:`benchmark.runner.prepared_texts`),
+    also when the time-agnostic half is reused and only the time-sensitive one is answered here (without
+    it, one thread re-answered a smoke-scene vIoU of 7.1965 for a recorded 7.1920)."""
+    from .runner import prepared_texts
+
+    if hasattr(model, "prepare"):
+        model.prepare(prepared_texts(annotations, frame_of, getattr(model, "supports", {"agnostic"})))
 
 
 def agnostic_gap(model, scene: Scene, annotations, frame_of: dict, *,

@@ -558,7 +558,7 @@ def evaluate(options: EvalOptions) -> RunOutcome:
     answer_start = time.perf_counter()
     queries = [q for q in aset.queries if _query_frames(aset, q, frame_of)]
     if hasattr(model, "prepare"):
-        model.prepare([q.text for q in queries if q.kind in supported])
+        model.prepare(prepared_texts(aset, frame_of, supported))
     for query in progress(queries, desc=f"queries ({spec.name})", total=len(queries)):
         if query.kind not in supported:
             unanswered.append(query.text)
@@ -708,6 +708,14 @@ def _evaluated_frames(scene: Scene, aset, splits: Sequence[str]):
     if not chosen:
         raise InputError(None, "splits", f"scene {scene.name!r} has no annotated frame in split(s) {list(splits)}")
     return chosen
+
+
+def prepared_texts(aset, frame_of: dict, supported) -> list[str]:
+    """The texts a model is prepared for (``LanguageFieldMethod.prepare``: one decoding basis spans them
+    all) before it answers: every query of a ``supported`` kind with a ground-truth mask in an evaluated
+    frame, in annotation order. A tool that re-answers a run prepares the same texts: another basis gives
+    the same answers only in exact arithmetic, and a mask can move by a pixel at its threshold."""
+    return [q.text for q in aset.queries if q.kind in supported and _query_frames(aset, q, frame_of)]
 
 
 def _query_frames(aset, query, frame_of: dict) -> list[str]:
