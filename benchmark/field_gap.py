@@ -38,6 +38,7 @@ from .errors import InputError
 from .metrics.captions import fitted_caption_targets
 from .metrics.masks import iou
 from .protocol_ceiling import TRUTH_LEVELS, NameTable
+from .runner import prepared_texts
 from .scene import Scene
 
 RUNGS = ("perfect", "autoencoder", "fitted")
@@ -74,7 +75,9 @@ def field_gap(model, scene: Scene, annotations, eval_frames: Iterable[str], *,
     """
     evaluated = set(eval_frames)
     frame_of = {f.name: f for f in scene.frames if f.name in evaluated}
-    prepare_as_the_runner(model, annotations, frame_of)
+    if hasattr(model, "prepare"):  # the runner's very texts, also when the agnostic half is reused: another
+        # basis moves answers at float precision (one thread re-answered a smoke vIoU 7.1965 for 7.1920)
+        model.prepare(prepared_texts(annotations, frame_of, getattr(model, "supports", {"agnostic"})))
     if agnostic is None:
         agnostic = agnostic_gap(model, scene, annotations, frame_of, background_text=background_text)
     keep = ("frames", "background_text", "rungs", "confusion")
@@ -82,20 +85,10 @@ def field_gap(model, scene: Scene, annotations, eval_frames: Iterable[str], *,
             "sensitive": temporal_gap(model, annotations, frame_of, temporal, captions=captions)}
 
 
-def prepare_as_the_runner(model, annotations, frame_of: dict) -> None:
-    """Prepare ``model`` for the very texts the runner prepared it for (:func:`benchmark.runner.prepared_texts`),
-    also when the time-agnostic half is reused and only the time-sensitive one is answered here (without
-    it, one thread re-answered a smoke-scene vIoU of 7.1965 for a recorded 7.1920)."""
-    from .runner import prepared_texts
-
-    if hasattr(model, "prepare"):
-        model.prepare(prepared_texts(annotations, frame_of, getattr(model, "supports", {"agnostic"})))
-
-
 def agnostic_gap(model, scene: Scene, annotations, frame_of: dict, *,
                  background_text: Optional[str] = None) -> dict[str, Any]:
     """The time-agnostic part of :func:`field_gap` on the evaluated frames ``frame_of`` (name -> frame), on
-    a model prepared by :func:`prepare_as_the_runner` (as :func:`field_gap` does)."""
+    a model prepared as the runner prepares it (as :func:`field_gap` does)."""
     from methods.fields.relevance import answer_from_relevance, relevance
 
     from .synthetic.truth import load_truth
