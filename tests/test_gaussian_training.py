@@ -259,7 +259,7 @@ def test_the_motion_box_gets_its_share_of_the_cells_and_nothing_outside_is_lost(
 def _blob_model(t: float, motion: float, moving: int = 4) -> GaussianModel:
     """The toy scene's blobs at time ``t`` as a static model (degree-0 colours equal to theirs)."""
     m, q, s, o, c = truth_gaussians(t, motion, moving)
-    return model_from(m, torch.log(s), o).__class__({
+    return GaussianModel({
         "means": m, "sh_dc": ((c - 0.5) / 0.28209479177387814).unsqueeze(1), "sh_rest": torch.zeros(m.shape[0], 0, 3),
         "opacity_logits": torch.logit(o), "log_scales": torch.log(s), "quats": q}, 0)
 

@@ -481,7 +481,7 @@ def summarize(folder: Path) -> Path:
             f"| {num(g4.get('render_fps'), 1)} / {num(g3.get('render_fps'), 1)} "
             f"| {num(g4.get('peak_rss_mib'), 0)} / {num(g3.get('peak_rss_mib'), 0)} "
             f"| {'-' if dyn is None else dyn} | {_moving_cell(g4, g3)} | {_scores_cell(g4, g3, 'static_psnr')} "
-            f"| {num(moving_gain_bound(g3.get('moving')))} | {_cell_cell(g4, r.get('config', {}))} "
+            f"| {num(moving_gain_bound(g3.get('moving')))} | {_hexplane_cell(g4, r.get('config', {}))} "
             f"| {_commit_cell(r.get('git'))} |")
     lines += ["", "Commands:", ""]
     for path in reports:
@@ -491,7 +491,7 @@ def summarize(folder: Path) -> Path:
     return out
 
 
-def _cell_cell(g4: dict, config: dict) -> str:
+def _hexplane_cell(g4: dict, config: dict) -> str:
     """The 4D-GS HexPlane's base cell inside its motion box and over its whole box (largest axis), or -."""
     box = g4.get("field_box")
     resolution = config.get("deformation", {}).get("hexplane", {}).get("spatial_resolution")

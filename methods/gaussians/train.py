@@ -621,9 +621,16 @@ class Trainer:
         means = model.params["means"].detach()
         if means.shape[0] < 2:
             return torch.as_tensor(self.scene.bounds, dtype=torch.float32)
-        q = torch.tensor([h.bounds_percentile / 100.0, 1.0 - h.bounds_percentile / 100.0], device=means.device)
-        lo, hi = torch.quantile(means, q, dim=0)
-        pad = (hi - lo).clamp_min(1e-3 * self.extent) * h.bounds_margin
+        return self._robust_box(means, h.bounds_percentile)
+
+    def _robust_box(self, points: torch.Tensor, percentile: float) -> torch.Tensor:
+        """(2, 3) box of the (N, 3) ``points`` between their ``percentile`` and ``100 - percentile``
+        percentiles, widened by ``bounds_margin`` of its size on each side (the plane box and the motion box)."""
+        if points.shape[0] > 1_000_000:  # quantile's input limit; an even subsample keeps the percentiles
+            points = points[torch.linspace(0, points.shape[0] - 1, 1_000_000, device=points.device).long()]
+        q = torch.tensor([percentile / 100.0, 1.0 - percentile / 100.0], device=points.device)
+        lo, hi = torch.quantile(points, q, dim=0)
+        pad = (hi - lo).clamp_min(1e-3 * self.extent) * self.cfg.deformation.hexplane.bounds_margin
         return torch.stack([lo - pad, hi + pad]).cpu()
 
     @torch.no_grad()
@@ -662,13 +669,7 @@ class Trainer:
         n = int(sum(p.shape[0] for p in points))
         if n < max(1, h.motion_min_pixels):
             return None, n
-        pts = torch.cat(points)
-        if pts.shape[0] > 1_000_000:  # quantile's input limit; an even subsample keeps the percentiles
-            pts = pts[torch.linspace(0, pts.shape[0] - 1, 1_000_000, device=pts.device).long()]
-        q = torch.tensor([h.motion_percentile / 100.0, 1.0 - h.motion_percentile / 100.0], device=pts.device)
-        lo, hi = torch.quantile(pts, q, dim=0)
-        pad = (hi - lo).clamp_min(1e-3 * self.extent) * h.bounds_margin
-        return torch.stack([lo - pad, hi + pad]).cpu(), n
+        return self._robust_box(torch.cat(points), h.motion_percentile), n
 
     def pixels_per_unit(self, points: torch.Tensor, chunk: int = 65536) -> torch.Tensor:
         """(N,) largest pixels-per-world-unit of the (N, 3) ``points`` over the training views: focal / depth
