@@ -132,7 +132,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     c.add_argument("--out", type=Path, default=Path("reports/ablations"))
     c.add_argument("--quiet", action="store_true")
     ae = sub.add_parser("autoencoder", help="the ceiling's query on perfect latents through the scene's "
-                                            "autoencoder, per sample weighting (no geometry: seconds per scene)")
+                                            "autoencoder, per sample weighting (no geometry: about a minute per autoencoder)")
     ae.add_argument("--scenes", nargs="+", default=None,
                     help="generated scene folders or presets (default: every synthetic preset but smoke)")
     ae.add_argument("--weightings", nargs="+", default=None, metavar="W",
@@ -581,9 +581,10 @@ def _autoencoder(args) -> int:
         supervision = with_unmasked_as(
             build_supervision(scene, "oracle", cache_dir=args.cache_dir, text_encoder=args.text_encoder,
                               device="cpu", progress=None if args.quiet else _tqdm), base.unmasked_text)
-        names = NameTable(load_truth(root), base.unmasked_text or "background").texts
+        background = base.unmasked_text or "background"  # what unmasked pixels carry, in the fit as here
+        names = NameTable(load_truth(root), background).texts
         passages = torch.as_tensor(np.asarray(encoder.encode(names, kind="passage"), dtype=np.float32))
-        perfect = protocol_ceiling(scene, aset, encoder, configs)
+        perfect = protocol_ceiling(scene, aset, encoder, configs, background_text=background)
         entry = {"scene_version": scene_version(root),
                  "perfect": {v: {"mIoU": perfect["variants"][v]["mIoU"], "vIoU": perfect["variants"][v]["vIoU"]}
                              for v in variants}, "weightings": {}}
@@ -597,7 +598,8 @@ def _autoencoder(args) -> int:
                 model.eval()
                 with torch.no_grad():
                     name_cos = torch.nn.functional.cosine_similarity(model(passages), passages, dim=1)  # [names]
-                through = protocol_ceiling(scene, aset, ThroughAutoencoder(encoder, model), configs)
+                through = protocol_ceiling(scene, aset, ThroughAutoencoder(encoder, model), configs,
+                                           background_text=background)
                 worst = int(name_cos.argmin())
                 runs.append({"seed": seed, "reconstruction_cosine": report.reconstruction_cosine,
                              "steps": report.steps, "seconds": report.seconds,
