@@ -6,3 +6,8 @@ the synthetic 4D scene generator (:mod:`benchmark.synthetic`), the metrics core
 """
 
 __version__ = "0.1.0"
+
+from .openblas import pin_before_numpy
+
+# Before anything loads numpy: generated scenes depend on its BLAS kernels (see benchmark.openblas).
+pin_before_numpy()

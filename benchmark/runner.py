@@ -293,8 +293,12 @@ def checkout_state(root: Path) -> dict[str, Any]:
 
 
 def device_description(device: str) -> dict[str, Any]:
+    from .openblas import openblas_core
+
     info: dict[str, Any] = {"device": device, "platform": platform.platform(), "machine": platform.machine(),
-                            "cpu_count": os.cpu_count(), "processor": platform.processor() or None}
+                            "cpu_count": os.cpu_count(), "processor": platform.processor() or None,
+                            # numpy's BLAS kernels in this process: the generator's pixels depend on them
+                            "numpy_blas_core": openblas_core()}
     if device.startswith("cuda"):
         import torch
 

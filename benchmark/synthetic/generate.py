@@ -7,8 +7,11 @@ when asked to and only if it is itself a generated scene.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
+import subprocess
+import sys
 import tempfile
 import time
 import zlib
@@ -18,6 +21,7 @@ from typing import Optional
 
 import numpy as np
 
+from .. import openblas
 from ..errors import InputError
 from . import layouts
 from .gt import build_annotations
@@ -101,12 +105,18 @@ def generate(preset: str, out_dir: str | Path, *, size: Optional[int] = None, fr
 
     ``size`` is the image width in pixels (default: the preset's, 128); ``frames`` the video length;
     ``views`` the rig size in the Neu3D layout; ``layout`` one of ``hypernerf``, ``neu3d``, ``dnerf``
-    (default: the preset's). The same arguments and ``seed`` give identical files.
+    (default: the preset's). The same arguments and ``seed`` give identical files, on any x86-64 CPU with
+    AVX2: where numpy's BLAS runs other kernels than the committed scene versions were made with, the
+    scene is rendered in a child process that runs theirs (:mod:`benchmark.openblas`).
     """
     spec, size, frames, views, layout = resolve_settings(preset, size, frames, views, layout)
     out = Path(out_dir)
     _check_target(out, overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
+    if openblas.generation_needs_pinned_process():
+        _generate_in_pinned_process(dict(preset=preset, out_dir=str(out), size=size, frames=frames, views=views,
+                                         layout=layout, seed=int(seed), overwrite=overwrite, shadows=shadows))
+        return out
 
     rng = preset_rng(preset, seed)
     scene = spec.build(rng, frames)
@@ -167,3 +177,16 @@ def generate(preset: str, out_dir: str | Path, *, size: Optional[int] = None, fr
         if staging.exists():
             shutil.rmtree(staging, ignore_errors=True)
     return out
+
+
+def _generate_in_pinned_process(arguments: dict) -> None:
+    """``generate(**arguments)`` in a child process on the pinned BLAS kernels (its errors re-raised here)."""
+    env = openblas.pinned_environment()
+    package_root = str(Path(__file__).resolve().parents[2])  # importable without an install too
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (package_root, env.get("PYTHONPATH", "")) if p)
+    code = "import json, sys; from benchmark.synthetic.generate import generate; generate(**json.loads(sys.argv[1]))"
+    done = subprocess.run([sys.executable, "-c", code, json.dumps(arguments)], env=env, capture_output=True, text=True)
+    if done.returncode != 0:
+        last = done.stderr.strip().splitlines()[-1:] or [f"exit status {done.returncode}"]
+        raise InputError(arguments["out_dir"], "preset",
+                         f"generating {arguments['preset']!r} on the pinned BLAS kernels failed: {last[0]}")
