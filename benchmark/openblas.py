@@ -44,18 +44,28 @@ _CORENAME_FUNCTIONS = ("scipy_openblas_get_corename64_", "scipy_openblas_get_cor
 """Names of OpenBLAS's ``get_corename`` in the builds numpy ships (64-bit-index scipy-openblas first)."""
 
 
-def cpu_runs_pinned_core(cpuinfo: Path = Path("/proc/cpuinfo")) -> bool:
-    """Whether this is an x86-64 CPU with AVX2 and FMA (read from ``cpuinfo``; False where unreadable)."""
-    if platform.machine().lower() not in ("x86_64", "amd64"):
-        return False
+CPUINFO = Path("/proc/cpuinfo")
+"""Where Linux describes the CPU (elsewhere absent: nothing is pinned)."""
+
+
+def cpuinfo_value(key: str, cpuinfo: Path = CPUINFO) -> Optional[str]:
+    """The value of the first ``key : value`` line of ``cpuinfo`` (the first CPU's), None where absent."""
     try:
         text = cpuinfo.read_text()
     except OSError:
-        return False
+        return None
     for line in text.splitlines():
-        if line.startswith("flags"):
-            return REQUIRED_CPU_FLAGS <= set(line.partition(":")[2].split())
-    return False
+        name, _, value = line.partition(":")
+        if name.strip() == key:
+            return value.strip()
+    return None
+
+
+def cpu_runs_pinned_core(cpuinfo: Path = CPUINFO) -> bool:
+    """Whether this is an x86-64 CPU with AVX2 and FMA (read from ``cpuinfo``; False where unreadable)."""
+    if platform.machine().lower() not in ("x86_64", "amd64"):
+        return False
+    return REQUIRED_CPU_FLAGS <= set((cpuinfo_value("flags", cpuinfo) or "").split())
 
 
 def pin_before_numpy() -> bool:

