@@ -551,6 +551,10 @@ class Trainer:
             result.field_box["cell_size"] = field_.hexplane.cell_size().tolist()
         self._field_bounds, self._field_focus = bounds, focus
         deformable = DeformableGaussians(model, field_)
+        if not in_deformation and d.static_skip and d.static_outside_motion_box and focus is not None:
+            means = model.params["means"].detach()
+            box = focus.to(means.device)
+            deformable.dynamic_mask = ((means >= box[0]) & (means <= box[1])).all(dim=1)
         result.model = deformable
         groups = [{"params": field_.mlp_parameters(), "lr": d.deformation_lr_init * self.extent, "name": "mlp"},
                   {"params": field_.grid_parameters(), "lr": d.grid_lr_init * self.extent, "name": "grid"}]
