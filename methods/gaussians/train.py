@@ -552,9 +552,8 @@ class Trainer:
         self._field_bounds, self._field_focus = bounds, focus
         deformable = DeformableGaussians(model, field_)
         if not in_deformation and d.static_skip and d.static_outside_motion_box and focus is not None:
-            means = model.params["means"].detach()
-            box = focus.to(means.device)
-            deformable.dynamic_mask = ((means >= box[0]) & (means <= box[1])).all(dim=1)
+            deformable.dynamic_mask = inside_box(model.params["means"].detach(), focus)
+            result.field_box["static_at_start"] = int((~deformable.dynamic_mask).sum())
         result.model = deformable
         groups = [{"params": field_.mlp_parameters(), "lr": d.deformation_lr_init * self.extent, "name": "mlp"},
                   {"params": field_.grid_parameters(), "lr": d.grid_lr_init * self.extent, "name": "grid"}]
@@ -871,6 +870,12 @@ class Trainer:
                 if iterations > 1 else 1000 * float(deform_seconds.mean())
             summary["dynamic_gaussians"] = deformable.num_dynamic()
         result.stages.append(summary)
+
+
+def inside_box(points: torch.Tensor, box: torch.Tensor) -> torch.Tensor:
+    """(N,) bool: which of the (N, 3) ``points`` lie in the (2, 3) ``box`` [min; max] (faces included)."""
+    box = box.to(points.device)
+    return ((points >= box[0]) & (points <= box[1])).all(dim=1)
 
 
 def motion_l1(offsets: tuple, px_per_unit: torch.Tensor, quats: torch.Tensor, d: DeformationConfig) -> torch.Tensor:
