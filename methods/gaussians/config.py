@@ -303,6 +303,9 @@ class DeformationConfig:
     moves static content by about a pixel to fit each view's residual, so most of a room is still dynamic
     at the end (keyboard: 16 153 of 21 699 Gaussians, where 0.3 % of the pixels move). No effect where the
     motion box spans the scene (D-NeRF) or none was found."""
+    recheck_outside_motion_box: bool = True
+    """With ``static_outside_motion_box``: the regular checks may mark Gaussians outside the motion box dynamic
+    (True), or keep them static for the whole stage, so that only the motion box deforms (False)."""
     static_warmup_fraction: float = 0.5
     """First detection after this fraction of the deformation stage, once the field has learned the
     motion (a Gaussian marked static gets no deformation gradient, so marking it early could freeze

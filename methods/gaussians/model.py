@@ -302,14 +302,16 @@ class DeformableGaussians:
 
     @torch.no_grad()
     def update_static_mask(self, cfg: DeformationConfig, extent: float, times: Optional[torch.Tensor] = None,
-                           px_per_unit: Optional[torch.Tensor] = None) -> dict[str, int]:
+                           px_per_unit: Optional[torch.Tensor] = None,
+                           may_move: Optional[torch.Tensor] = None) -> dict[str, int]:
         """Mark Gaussians whose deformation does not vary over time as static (and back).
 
         A Gaussian is static when, over ``cfg.static_time_samples`` times, its position offset varies by
         less than ``static_pixel_tol`` pixels (``px_per_unit``: (N,) pixels per world unit at its nearest
         training camera; without it, less than ``static_position_tol x extent``), its log-scale offset by
         less than ``static_scale_tol``, its quaternion offset by less than ``static_rotation_tol x |q|`` and its
-        RGB offset (colour head) by less than ``static_color_tol``.
+        RGB offset (colour head) by less than ``static_color_tol``. ``may_move`` (N,) bool: only these may be
+        dynamic (the others are static whatever their offsets; None: all may).
         Newly static Gaussians get their time-mean offset folded into the canonical parameters, so what
         is rendered does not jump; Gaussians that became dynamic again get it taken back out.
         Returns counts: ``{"static", "dynamic", "newly_static", "newly_dynamic"}``.
@@ -327,6 +329,8 @@ class DeformableGaussians:
                   & (var["scale"] < cfg.static_scale_tol)
                   & (var["rotation"] < cfg.static_rotation_tol * qnorm)
                   & (var["color"] < cfg.static_color_tol))
+        if may_move is not None:
+            static = static | ~may_move
         was_dynamic = (torch.ones_like(static) if self.dynamic_mask is None else self.dynamic_mask)
         newly_static = static & was_dynamic
         newly_dynamic = ~static & ~was_dynamic

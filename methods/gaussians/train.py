@@ -839,8 +839,12 @@ class Trainer:
                     events.append({"iteration": it, "event": "opacity_reset"})
                 if (deformable is not None and d.static_skip and it >= warmup
                         and ((it - warmup) % check_every == 0 or it == iterations)):
-                    counts = deformable.update_static_mask(d, self.extent,
-                                                           px_per_unit=self.pixels_per_unit(model.means.detach()))
+                    means = model.means.detach()
+                    confined = (not d.recheck_outside_motion_box and d.static_outside_motion_box
+                                and self._field_focus is not None)
+                    counts = deformable.update_static_mask(
+                        d, self.extent, px_per_unit=self.pixels_per_unit(means),
+                        may_move=inside_box(means, self._field_focus) if confined else None)
                     events.append({"iteration": it, "event": "static_check", **counts})
             last_loss = float(loss.detach())
             if it == 1:
