@@ -287,7 +287,7 @@ def test_the_motion_box_is_where_a_static_model_leaves_the_images_unexplained():
     assert Trainer(scene, off, rasterize_fn=RAST).motion_box(model) == (None, 0)
 
 
-def test_the_deformation_stage_starts_with_what_lies_outside_the_motion_box_static():
+def test_the_deformation_stage_starts_with_what_lies_outside_the_motion_box_static(monkeypatch):
     """One blob slides, the static stage explains the rest: the field starts on the Gaussians in the motion
     box only (on all of them with the option off), and the fit is no worse for it."""
     box = torch.tensor([[-1.0, -1.0, 0.0], [1.0, 2.0, 0.5]])
@@ -305,6 +305,26 @@ def test_the_deformation_stage_starts_with_what_lies_outside_the_motion_box_stat
     gaussians = result.model.num_gaussians
     assert started[False] == 0 and 0 < started[True] < gaussians, (started, gaussians)
     assert psnr[True] > psnr[False] - 0.5, psnr
+    # recheck_outside_motion_box off: every check is told that only the Gaussians in the box may move
+    allowed = []
+    check = DeformableGaussians.update_static_mask
+
+    def spy(self, cfg, extent, times=None, px_per_unit=None, may_move=None):
+        allowed.append((may_move, inside_box(self.gaussians.means.detach(), torch.tensor(box))))
+        return check(self, cfg, extent, times, px_per_unit, may_move)
+
+    monkeypatch.setattr(DeformableGaussians, "update_static_mask", spy)
+    box = result.field_box["motion_box"]
+    default = small_recon_config(300, 300)
+    default.deformation.hexplane.motion_min_pixels = 16
+    Trainer(scene, default, rasterize_fn=RAST).fit_4dgs()  # the default: rechecked, nothing confined
+    assert allowed and all(may is None for may, _ in allowed)
+    allowed.clear()
+    confined = small_recon_config(300, 300, recheck_outside_motion_box=False)
+    confined.deformation.hexplane.motion_min_pixels = 16
+    result = Trainer(scene, confined, rasterize_fn=RAST).fit_4dgs()
+    box = result.field_box["motion_box"]  # the same static stage: the same box
+    assert allowed and all(may is not None and torch.equal(may, inside) for may, inside in allowed)
 
 
 def test_a_saved_field_keeps_its_motion_box_and_one_saved_before_it_loads_uniform():
@@ -416,6 +436,10 @@ def test_static_detection_marks_static_and_dynamic():
     # and the moving one really moves
     m0, m1 = dg.deform(0.0)[0], dg.deform(1.0)[0]
     assert float((m0[1] - m1[1]).detach().norm()) > 1e-3 and float((m0[0] - m1[0]).detach().norm()) == 0.0
+    # a Gaussian that may not move (outside the motion box, recheck_outside_motion_box off) is static
+    # whatever its offsets, and gets its time-mean offset folded in as any newly static one
+    counts = dg.update_static_mask(DeformationConfig(), extent=1.0, may_move=torch.tensor([True, False]))
+    assert dg.dynamic_mask.tolist() == [False, False] and counts["newly_static"] == 1
 
 
 def test_deformation_field_matches_its_definition():
