@@ -23,6 +23,7 @@ says when a scene came out as another version. Only numpy's BLAS is concerned: t
 from __future__ import annotations
 
 import ctypes
+import functools
 import os
 import platform
 import sys
@@ -42,8 +43,6 @@ CHILD_FLAG = "BENCH4D_PINNED_CHILD"
 _CORENAME_FUNCTIONS = ("scipy_openblas_get_corename64_", "scipy_openblas_get_corename",
                        "openblas_get_corename64_", "openblas_get_corename")
 """Names of OpenBLAS's ``get_corename`` in the builds numpy ships (64-bit-index scipy-openblas first)."""
-
-
 CPUINFO = Path("/proc/cpuinfo")
 """Where Linux describes the CPU (elsewhere absent: nothing is pinned)."""
 
@@ -77,9 +76,11 @@ def pin_before_numpy() -> bool:
     return True
 
 
+@functools.lru_cache(maxsize=1)
 def openblas_core() -> Optional[str]:
     """The core (kernel set) numpy's bundled OpenBLAS runs in this process, lower case; None when numpy
-    uses another BLAS or the name cannot be read."""
+    uses another BLAS or the name cannot be read. Read once: OpenBLAS chooses it when it loads, and every
+    generated scene and every results file asks."""
     import numpy as np
 
     libs = Path(np.__file__).resolve().parent.parent / "numpy.libs"

@@ -44,6 +44,7 @@ import numpy as np
 from . import memory
 from .atomic import read_json, write_json
 from .errors import InputError
+from .openblas import cpuinfo_value, openblas_core
 from .results import results_path, write_results
 from .scene import Frame, Scene
 
@@ -293,8 +294,6 @@ def checkout_state(root: Path) -> dict[str, Any]:
 
 
 def device_description(device: str) -> dict[str, Any]:
-    from .openblas import cpuinfo_value, openblas_core
-
     # platform.processor() is empty on Linux: the CPU's model name from /proc/cpuinfo there
     info: dict[str, Any] = {"device": device, "platform": platform.platform(), "machine": platform.machine(),
                             "cpu_count": os.cpu_count(),

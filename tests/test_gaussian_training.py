@@ -310,11 +310,11 @@ def test_the_deformation_stage_starts_with_what_lies_outside_the_motion_box_stat
     check = DeformableGaussians.update_static_mask
 
     def spy(self, cfg, extent, times=None, px_per_unit=None, may_move=None):
-        allowed.append((may_move, inside_box(self.gaussians.means.detach(), torch.tensor(box))))
+        allowed.append((may_move, inside_box(self.gaussians.means.detach(), torch.tensor(motion_box))))
         return check(self, cfg, extent, times, px_per_unit, may_move)
 
     monkeypatch.setattr(DeformableGaussians, "update_static_mask", spy)
-    box = result.field_box["motion_box"]
+    motion_box = result.field_box["motion_box"]
     default = small_recon_config(300, 300)
     default.deformation.hexplane.motion_min_pixels = 16
     Trainer(scene, default, rasterize_fn=RAST).fit_4dgs()  # the default: rechecked, nothing confined
@@ -323,7 +323,7 @@ def test_the_deformation_stage_starts_with_what_lies_outside_the_motion_box_stat
     confined = small_recon_config(300, 300, recheck_outside_motion_box=False)
     confined.deformation.hexplane.motion_min_pixels = 16
     result = Trainer(scene, confined, rasterize_fn=RAST).fit_4dgs()
-    box = result.field_box["motion_box"]  # the same static stage: the same box
+    motion_box = result.field_box["motion_box"]  # the same static stage: the same box
     assert allowed and all(may is not None and torch.equal(may, inside) for may, inside in allowed)
 
 

@@ -551,8 +551,9 @@ class Trainer:
             result.field_box["cell_size"] = field_.hexplane.cell_size().tolist()
         self._field_bounds, self._field_focus = bounds, focus
         deformable = DeformableGaussians(model, field_)
-        if not in_deformation and d.static_skip and d.static_outside_motion_box and focus is not None:
-            deformable.dynamic_mask = inside_box(model.params["means"].detach(), focus)
+        start_box = self._static_outside_box()
+        if not in_deformation and start_box is not None:
+            deformable.dynamic_mask = inside_box(model.params["means"].detach(), start_box)
             result.field_box["static_at_start"] = int((~deformable.dynamic_mask).sum())
         result.model = deformable
         groups = [{"params": field_.mlp_parameters(), "lr": d.deformation_lr_init * self.extent, "name": "mlp"},
@@ -673,6 +674,12 @@ class Trainer:
         if n < max(1, h.motion_min_pixels):
             return None, n
         return self._robust_box(torch.cat(points), h.motion_percentile), n
+
+    def _static_outside_box(self) -> Optional[torch.Tensor]:
+        """(2, 3) motion box outside which the deformation stage starts static
+        (``DeformationConfig.static_outside_motion_box``), or None where that does not apply."""
+        d = self.cfg.deformation
+        return self._field_focus if d.static_skip and d.static_outside_motion_box else None
 
     def pixels_per_unit(self, points: torch.Tensor, chunk: int = 65536) -> torch.Tensor:
         """(N,) largest pixels-per-world-unit of the (N, 3) ``points`` over the training views: focal / depth
@@ -840,11 +847,10 @@ class Trainer:
                 if (deformable is not None and d.static_skip and it >= warmup
                         and ((it - warmup) % check_every == 0 or it == iterations)):
                     means = model.means.detach()
-                    confined = (not d.recheck_outside_motion_box and d.static_outside_motion_box
-                                and self._field_focus is not None)
+                    confine = None if d.recheck_outside_motion_box else self._static_outside_box()
                     counts = deformable.update_static_mask(
                         d, self.extent, px_per_unit=self.pixels_per_unit(means),
-                        may_move=inside_box(means, self._field_focus) if confined else None)
+                        may_move=None if confine is None else inside_box(means, confine))
                     events.append({"iteration": it, "event": "static_check", **counts})
             last_loss = float(loss.detach())
             if it == 1:
