@@ -61,7 +61,7 @@ def field_gap(model, scene: Scene, annotations, eval_frames: Iterable[str], *,
         eval_frames: names of the frames the run was scored on (a results file's ``score_config``).
         background_text: the name of pixels without a part at a level (default: the model's
             ``unmasked_text``, else ``"background"``): what its oracle supervision used there.
-        temporal: the run's :class:`benchmark.metrics.TemporalRuleConfig` (default: the paper's rule).
+        temporal: the run's :class:`benchmark.metrics.TemporalRule` (default: the paper's rule).
         agnostic: the time-agnostic part of an earlier result (``frames``, ``background_text``,
             ``rungs``, ``confusion``) of a model with the same field and answer options (the 4D methods
             share one field): reused as it is, only the time-sensitive half is measured.
@@ -184,9 +184,9 @@ def temporal_gap(model, annotations, frame_of: dict, temporal=None,
     frame scored by the base object's caption at the nearest training time: a field reproducing its
     targets exactly) and ``caption_autoencoder`` (the same captions through the field's autoencoder);
     fractions. Empty for a model without time-sensitive answers."""
-    from .metrics import TemporalRuleConfig, caption_replay_scores, score_auc, score_sensitive
+    from .metrics import TemporalRule, caption_replay_scores, score_auc, score_sensitive
 
-    temporal = temporal or TemporalRuleConfig()
+    temporal = temporal or TemporalRule()
     if "sensitive" not in getattr(model, "supports", ()):
         return {}
     head = getattr(model, "head", None)

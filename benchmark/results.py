@@ -22,6 +22,9 @@ memory in MiB; ``null`` = not applicable)::
                     changes of the code, not of results or reports),
                     "code_changed_during_run" (the code differed at the run's end: the commit may not be
                     all the code it ran; null: unknown), "device", ...}
+    protocol       the evaluation protocol (:mod:`benchmark.protocol`): its name and every constant; files
+                   written before protocols were named rebuild theirs from what they recorded
+                   (:func:`protocol_of`)
     score_config   (the temporal rule used), scores {"queries", "frames", "skipped"}
     predictions    (path of predictions.json relative to this file), created, wall_seconds
 
@@ -51,7 +54,7 @@ ACCURACY_METRICS: dict[str, tuple[str, str]] = {"agnostic": ("mIoU", "mAcc"), "s
 DIAGNOSTIC_METRICS = ("AUC", "nearTau")
 """Diagnostics of the time-sensitive decisions (percent; :mod:`benchmark.metrics.temporal`): the
 scores' ROC AUC against the labels, and the share of decisions near the threshold."""
-RUN_COLUMNS = ["dataset", "track", "method", "scene", "seed", "mIoU", "mAcc", "Acc", "vIoU", *DIAGNOSTIC_METRICS,
+RUN_COLUMNS = ["dataset", "track", "protocol", "method", "scene", "seed", "mIoU", "mAcc", "Acc", "vIoU", *DIAGNOSTIC_METRICS,
                "fps_agnostic", "fps_sensitive", "fit_seconds", "peak_cpu_mib", "peak_gpu_mib",
                "peak_cpu_needed_mib", "peak_gpu_needed_mib", "peak_measured", "device",
                "git_commit", "git_dirty", "scene_digest", "scene_current", "path"]
@@ -295,6 +298,42 @@ def temporal_diagnostics(doc: dict) -> dict[str, float]:
     return out
 
 
+def protocol_of(doc: dict):
+    """The :class:`~benchmark.protocol.Protocol` a run answered and was scored under. Files written before
+    protocols were named recorded the query rules in their method config (``threshold_variant``,
+    ``sensitive_mask``, ...) and the temporal rule in ``score_config``; their relevance baselines scored a
+    frame by the mean relevance inside the mask. A preset's name is given back where every constant is
+    that preset's, else ``custom``."""
+    import dataclasses
+
+    from .protocol import PROTOCOLS, AgnosticQuery, Protocol, SensitiveQuery, TemporalRule
+
+    if doc.get("protocol"):
+        return Protocol.from_dict(doc["protocol"])
+    cfg = doc.get("method_config") or {}
+    temporal = dict((doc.get("score_config") or {}).get("temporal") or {})
+    default_query = AgnosticQuery()
+    agnostic = AgnosticQuery(
+        canonical_phrases=tuple(cfg.get("canonical_phrases") or default_query.canonical_phrases),
+        temperature=float(cfg.get("temperature", default_query.temperature)),
+        smoothing_kernel=int(cfg.get("smoothing_kernel", default_query.smoothing_kernel)),
+        threshold=float(cfg.get("threshold", default_query.threshold)),
+        threshold_rule="stretched" if cfg.get("threshold_variant") == "release" else "rescaled",
+        majority_kernel=int(cfg.get("majority_kernel", default_query.majority_kernel)),
+        majority_fraction=float(cfg.get("majority_fraction", default_query.majority_fraction)),
+        kernel_scaling=cfg.get("kernel_scaling", default_query.kernel_scaling))
+    sensitive = SensitiveQuery(mask=cfg.get("sensitive_mask", "unfiltered"), relevance_score="mask-mean")
+    rule = TemporalRule(weights=tuple(temporal.get("weights") or (0.1, 0.8, 0.1)),
+                        ends=temporal.get("ends", "renormalise"),
+                        tau_from="raw" if temporal.get("threshold_variant") == "release" else "smoothed",
+                        inclusive=bool(temporal.get("inclusive", True)),
+                        undefined_decision=bool(temporal.get("undefined_decision", False)),
+                        tie_tolerance=float(temporal.get("tie_tolerance", 1e-9)))
+    found = Protocol("custom", agnostic, sensitive, rule)
+    return next((preset for name, preset in PROTOCOLS.items() if dataclasses.replace(found, name=name) == preset),
+                found)
+
+
 def run_row(doc: dict, path: Optional[Path] = None) -> dict[str, Any]:
     digest, current = scene_status(doc)
     metrics = doc.get("metrics", {})
@@ -303,8 +342,8 @@ def run_row(doc: dict, path: Optional[Path] = None) -> dict[str, Any]:
     env = doc.get("environment", {})
     git = env.get("git", {}) or {}
     return {
-        "dataset": doc["dataset"], "track": doc["track"], "method": doc["method"], "scene": doc["scene"],
-        "seed": int(doc["seed"]),
+        "dataset": doc["dataset"], "track": doc["track"], "protocol": protocol_of(doc).name,
+        "method": doc["method"], "scene": doc["scene"], "seed": int(doc["seed"]),
         **{m: _number(metrics.get(m)) for m in ("mIoU", "mAcc", "Acc", "vIoU")},
         **temporal_diagnostics(doc),
         "fps_agnostic": _number((timing.get("query_agnostic") or {}).get("fps")),
@@ -330,12 +369,12 @@ def runs_table(paths: Iterable[Path], *, relative_to: Optional[Path] = None) -> 
         rows.append(run_row(doc, Path(shown).as_posix() if relative_to is not None else path))
     table = pd.DataFrame(rows, columns=RUN_COLUMNS)
     if len(table):
-        dupes = table.duplicated(["dataset", "track", "method", "scene", "seed"], keep=False)
+        dupes = table.duplicated(["dataset", "track", "protocol", "method", "scene", "seed"], keep=False)
         if dupes.any():
             first = table[dupes].iloc[0]
             raise InputError(first["path"], None, f"two results files for {first['method']} on "
                              f"{first['dataset']}/{first['scene']} ({first['track']}, seed {first['seed']})")
-    return table.sort_values(["dataset", "track", "method", "scene", "seed"], kind="stable").reset_index(drop=True)
+    return table.sort_values(["dataset", "track", "protocol", "method", "scene", "seed"], kind="stable").reset_index(drop=True)
 
 
 def _std(values: pd.Series) -> float:
@@ -344,9 +383,9 @@ def _std(values: pd.Series) -> float:
 
 
 def seed_summary(runs: pd.DataFrame) -> pd.DataFrame:
-    """Mean, std (sample, ddof=1; NaN for one seed) and seed count per (dataset, track, method, scene).
+    """Mean, std (sample, ddof=1; NaN for one seed) and seed count per (dataset, track, protocol, method, scene).
 
-    The extra scene :data:`MEAN_SCENE` per (dataset, track, method) first averages the scenes of each
+    The extra scene :data:`MEAN_SCENE` per (dataset, track, protocol, method) first averages the scenes of each
     seed (the dataset-level number of that seed), then summarises over seeds. Only *complete* seeds
     enter it: seeds that ran every scene the method has in that (dataset, track); a seed that ran
     fewer would average a different scene set into the same number. Those are counted in
@@ -355,12 +394,12 @@ def seed_summary(runs: pd.DataFrame) -> pd.DataFrame:
     ``scenes``, ``peak_measured`` (every run's peak memory is its own and charges its reused stages:
     :func:`peak_memory_with_shared`).
     """
-    keys = ["dataset", "track", "method", "scene"]
+    keys = ["dataset", "track", "protocol", "method", "scene"]
     columns = (keys + [f"{v}_{s}" for v in VALUE_COLUMNS for s in ("mean", "std")]
                + ["seeds", "partial_seeds", "scenes", "peak_measured"])
     if not len(runs):
         return pd.DataFrame(columns=columns)
-    group_keys = ["dataset", "track", "method"]
+    group_keys = ["dataset", "track", "protocol", "method"]
     scene_sets = runs.groupby(group_keys)["scene"].agg(lambda s: frozenset(s))
     seed_sets = runs.groupby(group_keys + ["seed"])["scene"].agg(lambda s: frozenset(s)).reset_index()
     seed_sets["complete"] = [scenes == scene_sets[tuple(k)] for k, scenes in
@@ -381,12 +420,12 @@ def seed_summary(runs: pd.DataFrame) -> pd.DataFrame:
                 row[f"{v}_mean"] = float(col.mean()) if col.notna().any() else math.nan
                 row[f"{v}_std"] = _std(col)
             row["seeds"] = int(group["seed"].nunique())
-            row["partial_seeds"] = 0 if with_scene else int(partial.get(key[:3], 0))
-            row["scenes"] = 1 if with_scene else len(scene_sets[key[:3]])
+            row["partial_seeds"] = 0 if with_scene else int(partial.get(key[:-1], 0))
+            row["scenes"] = 1 if with_scene else len(scene_sets[key[:-1]])
             row["peak_measured"] = measured.get(tuple(key), False)
             rows.append(row)
     # a method none of whose seeds is complete still gets its (empty) mean row
-    with_mean = {(r["dataset"], r["track"], r["method"]) for r in rows if r["scene"] == MEAN_SCENE}
+    with_mean = {tuple(r[k] for k in group_keys) for r in rows if r["scene"] == MEAN_SCENE}
     for key, scenes in scene_sets.items():
         if key not in with_mean:
             row = dict(zip(keys, (*key, MEAN_SCENE)))
@@ -396,5 +435,5 @@ def seed_summary(runs: pd.DataFrame) -> pd.DataFrame:
             rows.append(row)
     table = pd.DataFrame(rows)
     table["_order"] = (table["scene"] == MEAN_SCENE).astype(int)
-    return (table.sort_values(["dataset", "track", "method", "_order", "scene"], kind="stable")
+    return (table.sort_values(["dataset", "track", "protocol", "method", "_order", "scene"], kind="stable")
             .drop(columns="_order").reset_index(drop=True))

@@ -45,6 +45,7 @@ from . import memory
 from .atomic import read_json, write_json
 from .errors import InputError
 from .openblas import cpuinfo_value, openblas_core
+from .protocol import DEFAULT_PROTOCOL, get_protocol
 from .results import results_path, write_results
 from .scene import Frame, Scene
 
@@ -82,14 +83,19 @@ class EvalOptions:
     """Overrides of the method's config (name -> value)."""
     annotations: Optional[Path] = None
     """Ground-truth file; default: found beside the scene (see :func:`find_annotations`)."""
+    object_query: Optional[str] = None
+    """What the object of a scene whose only truth is its alpha channel is called (a D-NeRF folder with
+    no annotation file): the whole-object query of its ground truth and the name its oracle supervision
+    carries. Default: the whole-object query of the scene's annotation file."""
     preset_size: int = DEFAULT_PRESET_SIZE
     """Image size of generated synthetic presets."""
     scale: Optional[float] = None
     """Resolution multiplier of a scene folder (the loaders' ``scale``; D-NeRF 400 px x 0.5 = 200 px).
     Answers are upsampled (nearest) to each annotated frame's size before scoring, so scores are always
     taken at the annotations' resolution."""
-    temporal_rule: str = "paper"
-    """``"paper"`` (default) or ``"release"``: the shared temporal decision rule's variant."""
+    protocol: str = DEFAULT_PROTOCOL
+    """Evaluation protocol preset (:mod:`benchmark.protocol`): the query rules the model answers under and
+    the temporal rule its scores are decided by; ``release`` (default) or ``paper-text``."""
     query_batch: int = 16
     """Frames per query call when answering (bounds the memory of full-resolution answers)."""
     timing_frames: int = 3
@@ -169,9 +175,10 @@ def dataset_label(scene: Scene) -> str:
     return scene.dataset
 
 
-def find_annotations(scene: Scene, explicit: Optional[Path] = None):
+def find_annotations(scene: Scene, explicit: Optional[Path] = None, object_query: Optional[str] = None):
     """The ground truth of ``scene``: ``explicit``, else a file beside the scene, else the package's
-    ``annotations/scenes/<dataset>/<scene>.json``, else (D-NeRF) the alpha-channel object masks."""
+    ``annotations/scenes/<dataset>/<scene>.json``, else (D-NeRF, given ``object_query``) the alpha-channel
+    masks as the truth of that one whole-object query."""
     from annotations.format import load_annotations
 
     if explicit is not None:
@@ -186,12 +193,27 @@ def find_annotations(scene: Scene, explicit: Optional[Path] = None):
     for path in candidates:
         if path.is_file():
             return load_annotations(path)
-    if scene.dataset == "dnerf":
+    if scene.dataset == "dnerf" and object_query:
         from .loaders.dnerf import object_annotations
 
-        return object_annotations(scene, split="test")
+        return object_annotations(scene, object_query, split="test")
+    hint = " or, to score its alpha masks, --object-query TEXT" if scene.dataset == "dnerf" else ""
     raise InputError(scene.root, "annotations", "no ground truth found; looked for "
-                     + ", ".join(str(c) for c in candidates) + " (pass --annotations FILE)")
+                     + ", ".join(str(c) for c in candidates) + f" (pass --annotations FILE{hint})")
+
+
+def whole_object_name(aset, explicit: Optional[str] = None) -> str:
+    """The name of a scene's one object (oracle supervision from alpha masks): ``explicit``, else the text
+    of the ground truth's whole-object query (``level == "whole"``); anything else is a one-line error."""
+    if explicit:
+        return explicit
+    names = sorted({q.text for q in aset.queries if q.kind == "agnostic" and q.level == "whole"})
+    if len(names) != 1:
+        found = f"{len(names)} ({', '.join(names)})" if names else "none"
+        raise InputError(aset.info.get("path"), "categories", f"scene {aset.scene!r}: the object of its alpha "
+                         f"masks is named by one whole-object query (level 'whole'), found {found}; pass "
+                         "--object-query TEXT")
+    return names[0]
 
 
 # -- environment --------------------------------------------------------------------------------------
@@ -495,16 +517,6 @@ def time_queries(model, kind: str, text: str, frames: Sequence[Frame], *, device
             "fps": (1.0 / median) if median > 0 else None, "min_seconds": min(samples), "max_seconds": max(samples)}
 
 
-def _temporal_config(variant: str):
-    from .metrics import TemporalRuleConfig
-
-    if variant == "paper":
-        return TemporalRuleConfig()
-    if variant == "release":
-        return TemporalRuleConfig.release()
-    raise InputError(None, "temporal rule", f"must be 'paper' or 'release', got {variant!r}")
-
-
 @dataclass
 class RunOutcome:
     path: Path
@@ -527,6 +539,10 @@ def evaluate(options: EvalOptions) -> RunOutcome:
 
     progress = Progress(options.quiet)
     spec = registry.get(options.method)
+    try:
+        protocol = get_protocol(options.protocol)
+    except ValueError as err:
+        raise InputError(None, "protocol", str(err)) from None
     if options.track not in spec.tracks:
         raise InputError(None, "track", f"method {spec.name!r} runs on tracks {list(spec.tracks)}, not {options.track!r}")
     config = spec.make_config(options.method_options)
@@ -536,23 +552,27 @@ def evaluate(options: EvalOptions) -> RunOutcome:
 
     root = resolve_scene(options.scene, Path(options.cache_dir), size=options.preset_size, log=progress.log)
     scene = load_scene(root) if options.scale is None else load_scene(root, scale=options.scale)
-    aset: AnnotationSet = find_annotations(scene, options.annotations)
+    aset: AnnotationSet = find_annotations(scene, options.annotations, options.object_query)
     eval_frames = _evaluated_frames(scene, aset, options.splits)
     progress.log(f"{scene.summary()}; scoring {len(eval_frames)} annotated frame(s) of split(s) "
                  f"{'+'.join(options.splits)}")
 
     sources = dict(options.sources) or default_sources(scene, options.track)
+    source_options = {kind: dict(opts) for kind, opts in options.source_options.items()}
+    if sources.get("image_text") == "object-name" and "object_name" not in source_options.get("image_text", {}):
+        source_options.setdefault("image_text", {})["object_name"] = whole_object_name(aset, options.object_query)
     if sources:
         progress.log(f"supervision sources: {sources}")
     supervision = build_supervision(scene, options.track, cache_dir=options.cache_dir,
                                     text_encoder=options.text_encoder, sources=sources or None,
-                                    source_options=options.source_options, device=options.device,
+                                    source_options=source_options, device=options.device,
                                     progress=progress)
     fit = fit_or_load(spec, config, scene, supervision, seed=options.seed, device=options.device,
                       cache_dir=Path(options.cache_dir), progress=progress, refit=options.refit,
                       reuse_key=options.reuse_fit, head_from=options.head_from)
     progress.log(f"{spec.name}: {'loaded cached fit' if fit.cached else 'fitted'} in {fit.fit_seconds:.2f} s")
     model = fit.model
+    model.use_protocol(protocol)
     supported = set(spec.queries) & set(getattr(model, "supports", spec.queries))
 
     frame_of = {f.name: scene.frame(f.name) for f in eval_frames}
@@ -587,7 +607,7 @@ def evaluate(options: EvalOptions) -> RunOutcome:
         predictions.add(QueryPrediction(text=query.text, kind=query.kind, masks=masks, scores=scores))
     answer_seconds = time.perf_counter() - answer_start
 
-    score_config = ScoreConfig(temporal=_temporal_config(options.temporal_rule),
+    score_config = ScoreConfig(temporal=protocol.temporal,
                                eval_frames=tuple(sorted(frame_of)), allow_extra=False)
     scored_aset = _without(aset, unanswered)
     scene_score = score_scene(scored_aset, predictions, score_config)
@@ -636,6 +656,7 @@ def evaluate(options: EvalOptions) -> RunOutcome:
                         "torch_threads": _torch_threads(), "concurrent_runs": options.concurrent_runs},
         "scene_info": {"root": str(root), "summary": scene.summary(), "annotations": aset.info.get("source"),
                        "scale": options.scale, "generated": scene_version(root)},
+        "protocol": protocol.to_dict(),
         "score_config": score_config.to_dict(),
         "scores": {"queries": score_doc["queries"], "skipped": score_doc["skipped"], "frames": score_doc["frames"]},
         "predictions": str(pred_dir.relative_to(out_path.parent) / "predictions.json"),

@@ -31,6 +31,7 @@ from typing import Any, ClassVar, Iterable, Literal, Optional, Sequence, TextIO
 
 import numpy as np
 
+from benchmark.protocol import Protocol, default_protocol
 from benchmark.scene import Frame, Scene
 
 from .supervision.base import Supervision
@@ -100,6 +101,18 @@ class Model(abc.ABC):
 
     supports: ClassVar[frozenset[str]] = frozenset(QUERY_KINDS)
     """Query kinds this model answers."""
+
+    @property
+    def protocol(self) -> Protocol:
+        """The evaluation protocol the model answers under (:mod:`benchmark.protocol`; the default preset
+        until the harness hands it one with :meth:`use_protocol`)."""
+        return getattr(self, "_protocol", None) or default_protocol()
+
+    def use_protocol(self, protocol: Protocol) -> None:
+        """Answer with ``protocol``'s query rules from now on. The harness calls this before asking
+        anything; answers may change, the fitted state must not. A model whose answers read no protocol
+        constant needs nothing more; one that memoises query state drops it here."""
+        self._protocol = protocol
 
     def prepare(self, texts: Sequence[str]) -> None:
         """Told the texts an evaluation is about to ask (or, with the texts of one timed call, that the

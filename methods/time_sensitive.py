@@ -5,7 +5,7 @@ baseline, plugged into :class:`methods.language_methods.LanguageFieldModel` as
 Both fit :func:`methods.fields.time_varying.fit_time_varying_field` on the method's frozen 4D-GS
 (shared with the time-agnostic half) and score a time-sensitive query on a frame as the protocol
 says: the spatial mask is the time-agnostic answer of the same text (after the 7x7 majority filter,
-or before it as the release does: the methods' shared ``sensitive_mask`` option), and
+or before it as the release does: the protocol's :attr:`~benchmark.protocol.SensitiveQuery.mask`), and
 ``s_t`` = mean cosine, over that mask, between the decoded time-varying feature and the query's
 text embedding (NaN on an empty mask).
 
@@ -27,7 +27,7 @@ from benchmark.scene import Frame
 
 from .fields.relevance import AgnosticResult
 from .fields.time_varying import build_captions, embed_captions, fit_time_varying_field, load_time_varying_field
-from .language_methods import FitContext, LanguageFieldModel, TimeVaryingHead, source_hash
+from .language_methods import FitContext, LanguageFieldModel, TimeVaryingHead, source_hash, spatial_mask
 
 _HERE = Path(__file__).resolve().parent
 TIME_VARYING_SOURCES = (Path(__file__).resolve(), _HERE / "fields" / "time_varying.py", _HERE / "fields" / "status.py",
@@ -74,8 +74,7 @@ class _FieldHead(TimeVaryingHead):
         return self._queries[text]
 
     def score(self, text: str, frame: Frame, spatial: AgnosticResult, model: LanguageFieldModel) -> float:
-        mask = spatial.mask_unfiltered if model.config.sensitive_mask == "unfiltered" else spatial.mask
-        return self.field.score(frame, mask, self.query_embedding(text))
+        return self.field.score(frame, spatial_mask(spatial, model.protocol.sensitive), self.query_embedding(text))
 
     def save(self, directory: Path) -> None:
         directory = Path(directory)

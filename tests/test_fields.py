@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 
 from methods.fields.autoencoder import AutoencoderConfig, train_autoencoder
-from methods.fields.relevance import (RelevanceConfig, majority_filter, query_levels, relevance,
+from methods.fields.relevance import (AgnosticQuery, majority_filter, query_levels, relevance,
                                       smooth, threshold_mask)
 from methods.fields.status import NonStatusField, StatusField, StatusFieldConfig
 
@@ -38,10 +38,12 @@ def test_smoothing_excludes_padding_from_mean():
     assert out[0, 0].item() == 0.0
 
 
-@pytest.mark.parametrize("variant,cut", [("paper", 0.4), ("release", 0.7)])
-def test_threshold_variants(variant, cut):
+@pytest.mark.parametrize("rule,cut", [("rescaled", 0.4), ("stretched", 0.7)])
+def test_threshold_rules(rule, cut):
     ramp = torch.linspace(0, 1, 101).reshape(1, 101).repeat(3, 1)
-    mask = threshold_mask(ramp, RelevanceConfig(threshold_variant=variant))
+    query = AgnosticQuery(threshold_rule=rule)
+    assert query.rescaled_cut == pytest.approx(cut)
+    mask = threshold_mask(ramp, query)
     first_on = int(torch.nonzero(mask[0])[0])
     assert ramp[0, first_on].item() > cut
     assert ramp[0, first_on - 1].item() <= cut + 1e-6
@@ -65,7 +67,7 @@ def test_query_levels_picks_level_with_highest_peak():
     other = F.normalize(torch.randn(d), dim=0)
     feats = other.expand(3, 32, 32, d).clone()
     feats[1, 10:20, 10:20] = q  # the query object appears at level 1 only
-    res = query_levels(feats, q, canon, RelevanceConfig(smoothing_kernel=5))
+    res = query_levels(feats, q, canon, AgnosticQuery(smoothing_kernel=5))
     assert res.level == 1
     inside = res.mask[12:18, 12:18].float().mean().item()
     outside = res.mask[:8].float().mean().item()
@@ -75,8 +77,8 @@ def test_query_levels_picks_level_with_highest_peak():
 @pytest.mark.parametrize("size,smoothing,majority", [((536, 960), 29, 7), ((1072, 1920), 59, 15),
                                                      ((170, 128), 5, 1), ((400, 400), 17, 3), ((8, 8), 1, 1)])
 def test_windows_scale_with_resolution(size, smoothing, majority):
-    assert RelevanceConfig().kernels_for(*size) == (smoothing, majority)
-    assert RelevanceConfig(kernel_scaling="fixed").kernels_for(*size) == (29, 7)
+    assert AgnosticQuery().kernels_for(*size) == (smoothing, majority)
+    assert AgnosticQuery(kernel_scaling="fixed").kernels_for(*size) == (29, 7)
 
 
 def test_fixed_windows_erase_a_thin_part_that_scaled_windows_keep():
@@ -95,10 +97,10 @@ def test_fixed_windows_erase_a_thin_part_that_scaled_windows_keep():
         m = query_levels(feats, q, canon, cfg).mask
         return float((m & truth).sum()) / max(float((m | truth).sum()), 1.0)
 
-    assert iou(RelevanceConfig()) > 0.9
-    assert iou(RelevanceConfig(kernel_scaling="fixed")) < 0.1
+    assert iou(AgnosticQuery()) > 0.9
+    assert iou(AgnosticQuery(kernel_scaling="fixed")) < 0.1
     # at the paper's resolution the two agree
-    assert RelevanceConfig().kernels_for(536, 960) == RelevanceConfig(kernel_scaling="fixed").kernels_for(536, 960)
+    assert AgnosticQuery().kernels_for(536, 960) == AgnosticQuery(kernel_scaling="fixed").kernels_for(536, 960)
 
 
 def test_autoencoder_reconstructs_distinct_vectors():

@@ -17,7 +17,8 @@ from methods.fields.autoencoder import AutoencoderConfig, FeatureAutoencoder, tr
 from methods.fields.language_field import (FrozenGeometry, GaussianState, LanguageField, LanguageFieldConfig,
                                            decode_for_relevance, make_target, masked_l1, project_phrases,
                                            relevance_basis, train_language_field)
-from methods.fields.relevance import RelevanceConfig, query_levels, relevance
+from benchmark.protocol import AgnosticQuery
+from methods.fields.relevance import query_levels, relevance
 from methods.gaussians.config import DeformationConfig, GaussianConfig
 from methods.gaussians.hexplane import DeformationField
 from methods.gaussians.model import DeformableGaussians, GaussianModel
@@ -223,7 +224,7 @@ def test_reduced_decoding_gives_the_same_relevance_and_query_answer():
     assert torch.allclose(fast, reduced, atol=1e-4)
     zq, zc = project_phrases(basis, q, canon)
     assert torch.allclose(relevance(full, q, canon), relevance(reduced, zq, zc), atol=1e-5)
-    cfg = RelevanceConfig(smoothing_kernel=5, majority_kernel=3)
+    cfg = AgnosticQuery(smoothing_kernel=5, majority_kernel=3)
     a, b = query_levels(full, q, canon, cfg), query_levels(reduced, zq, zc, cfg)
     assert a.level == b.level and torch.equal(a.mask, b.mask)
     assert torch.allclose(a.relevance, b.relevance, atol=1e-5)
@@ -244,7 +245,7 @@ def test_query_finds_each_object_and_follows_motion_with_a_deforming_geometry():
     dynamic = ToyGeometry(toy)
     fld, _ = train_language_field(dynamic, _targets(toy, times, lat, (0, 1, 2)), cfg, seed=0)
     canon = torch.as_tensor(np.stack([fake_embedding(c) for c in ("object", "things", "stuff", "texture")]))
-    rcfg = RelevanceConfig(smoothing_kernel=5, majority_kernel=3)
+    rcfg = AgnosticQuery(smoothing_kernel=5, majority_kernel=3)
 
     def answer(geometry, text, t):
         q = torch.as_tensor(fake_embedding(text))

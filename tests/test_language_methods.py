@@ -15,6 +15,7 @@ import torch
 import pytest
 
 from benchmark.errors import InputError
+from benchmark.protocol import PROTOCOLS
 from benchmark.runner import EvalOptions, evaluate
 from methods.fields.language_field import decode_for_relevance
 
@@ -64,10 +65,11 @@ def test_specs_list_without_torch_and_declare_what_the_classes_support():
         cls = spec.load()
         assert set(spec.queries) == queries and cls.supports == frozenset(queries)
         assert cls.geometry_kind == kind
-    cfg = registry.get("4d-langsplat").make_config({"canonical_phrases": "object,stuff", "threshold_variant": "release"})
-    assert cfg.canonical_phrases == ("object", "stuff")
-    with pytest.raises(ValueError, match="threshold_variant"):
-        registry.get("langsplat").make_config({"threshold_variant": "other"})
+    cfg = registry.get("4d-langsplat").make_config({"ae_sample_weighting": "pixels"})
+    assert cfg.ae_sample_weighting == "pixels"
+    for rule in ("threshold_variant", "canonical_phrases", "sensitive_mask"):  # the protocol's, not a method's
+        with pytest.raises(Exception, match=rule):
+            registry.get("langsplat").make_config({rule: "release"})
 
 
 def test_methods_share_one_4dgs_fit_answer_every_query_and_reload(smoke):
@@ -145,14 +147,18 @@ def _deformable_clip_model(smoke):
                                            sensitive="relevance")
 
 
-def test_time_sensitive_score_is_mean_relevance_inside_the_spatial_mask(smoke):
+def test_time_sensitive_relevance_score_is_the_protocols(smoke):
+    """Release: the chosen level's peak smoothed relevance; paper text: the mean inside the spatial mask."""
     cfg, shared, model = _deformable_clip_model(smoke)
     frame = smoke["scene"].test_frames[0]
     res = model.agnostic("open box", frame)
-    want = float(res.relevance[res.mask_unfiltered].mean())
     got = model.query_sensitive("open box", [frame])[0]
-    assert got.score == pytest.approx(want)
+    assert got.score == pytest.approx(float(res.level_peaks[res.level])) == pytest.approx(float(res.relevance.max()))
     assert np.array_equal(got.mask, res.mask.numpy())
+    model.use_protocol(PROTOCOLS["paper-text"])
+    res = model.agnostic("open box", frame)
+    got = model.query_sensitive("open box", [frame])[0]
+    assert got.score == pytest.approx(float(res.relevance[res.mask_unfiltered].mean()))
     res.mask_unfiltered[:] = False
     assert np.isnan(model.relevance_score(res))
     from methods.language_methods import LanguageFieldModel
@@ -262,14 +268,14 @@ def test_4d_langsplat_on_a_dnerf_folder_answers_agnostic_queries_without_a_head(
     scene_dir = write_dnerf_folder(tmp_path / "toy", size=16)
     out = evaluate(EvalOptions(method="4d-langsplat", scene=str(scene_dir), results_dir=tmp_path / "r",
                                cache_dir=tmp_path / "c", quiet=True, timing_frames=1, timing_repeats=1,
-                               method_options={**TINY, **TINY_STATUS}))
+                               method_options={**TINY, **TINY_STATUS}, object_query="blob"))
     doc = out.results
     assert doc["supervision"]["sources"]["segmenter"] == "alpha"
     assert "time_varying" not in doc["fit"]["info"] and doc["metrics"]["agnostic_queries"] == 1
     with pytest.raises(InputError, match="truth"):
         evaluate(EvalOptions(method="4d-langsplat", scene=str(scene_dir), results_dir=tmp_path / "r2",
                              cache_dir=tmp_path / "c", quiet=True, timing_frames=1, timing_repeats=1,
-                             method_options={**TINY, **TINY_STATUS, "time_varying": "on"}))
+                             method_options={**TINY, **TINY_STATUS, "time_varying": "on"}, object_query="blob"))
 
 
 def test_pixels_no_gaussian_covers_show_the_background_text(smoke, monkeypatch):
@@ -306,27 +312,28 @@ def test_pixels_no_gaussian_covers_show_the_background_text(smoke, monkeypatch):
     assert seen == [(3, int((half > 0.5).sum()))]
 
 
-def test_answer_options_reuse_the_fit_and_change_the_answers(smoke, tmp_path):
-    """A run that changes only how the query is answered (threshold rule) reuses the cached fit, and
-    the reloaded model answers with the run's rule, not the one it was fitted with."""
+def test_another_protocol_or_answer_option_reuses_the_fit_and_changes_the_answers(smoke, tmp_path):
+    """A run under another protocol (query rules) or answer option reuses the cached fit, and the reloaded
+    model answers under the run's rules, not those of the run that fitted it."""
     from benchmark.runner import fit_config_dict
     from methods.specs.deformable_clip import DeformableCLIPConfig
 
-    default, release = DeformableCLIPConfig(), DeformableCLIPConfig(threshold_variant="release")
-    assert fit_config_dict(default) == fit_config_dict(release)
+    default, other_alpha = DeformableCLIPConfig(), DeformableCLIPConfig(uncovered_alpha=0.3)
+    assert fit_config_dict(default) == fit_config_dict(other_alpha)
     assert fit_config_dict(default) != fit_config_dict(DeformableCLIPConfig(field_iterations=7))
     base = _eval(smoke, "deformable-clip")
-    options = {**TINY, "threshold_variant": "release"}
+    assert base.results["protocol"] == PROTOCOLS["release"].to_dict()
     other = evaluate(EvalOptions(method="deformable-clip", scene=str(smoke["scene_dir"]), results_dir=tmp_path / "r",
                                  cache_dir=smoke["cache"], quiet=True, timing_frames=1, timing_repeats=1,
-                                 method_options=options))
+                                 method_options=dict(TINY), protocol="paper-text"))
     assert other.results["timing"]["fit_cached"] is True
     assert other.results["fit"]["key"] == base.results["fit"]["key"]
-    assert other.results["method_config"]["threshold_variant"] == "release"
-    # the release rule keeps only the top 30 % of the rescaled range (paper: 60 %): fewer pixels
+    assert other.results["protocol"]["name"] == "paper-text"
+    assert other.results["score_config"]["temporal"] == PROTOCOLS["paper-text"].temporal.to_dict()
+    # the release rule keeps only the top 30 % of the rescaled range (paper text: 60 %): fewer pixels
     pixels = [sum(int(r["pred_pixels"]) for r in doc.results["scores"]["frames"] if r["kind"] == "agnostic")
               for doc in (base, other)]
-    assert pixels[1] < pixels[0]
+    assert pixels[0] < pixels[1]
 
 
 def test_ablate_rescore_reanswers_recorded_fits(smoke, tmp_path, capsys):
@@ -337,17 +344,17 @@ def test_ablate_rescore_reanswers_recorded_fits(smoke, tmp_path, capsys):
     _eval(smoke, "deformable-clip")
     common = ["ablate", "rescore", "--results-dir", str(smoke["results"]), "--cache-dir", str(smoke["cache"]),
               "--methods", "deformable-clip", "--out", str(tmp_path), "--quiet"]
-    assert main(common + ["--name", "same", "--set", "threshold_variant=paper"]) == 0
+    assert main(common + ["--name", "same", "--protocol", "release"]) == 0
     same = json.loads((tmp_path / "rescore-same.json").read_text())["runs"]
     assert same and all(r[f"{m}_before"] == pytest.approx(r[f"{m}_after"]) for r in same for m in ("mIoU", "Acc"))
     assert all(r["track"] == "oracle" for r in same)  # every row names its supervision track
     assert "| oracle |" in (tmp_path / "rescore-same.md").read_text()
-    assert main(common + ["--name", "rel", "--set", "threshold_variant=release"]) == 0
+    assert main(common + ["--name", "rel", "--protocol", "paper-text"]) == 0
     rel = json.loads((tmp_path / "rescore-rel.json").read_text())["runs"]
     assert any(r["mIoU_before"] != pytest.approx(r["mIoU_after"]) for r in rel)
     assert (smoke["results"] / "ablations" / "rel").is_dir()
-    # resuming under the same name with other options re-answers instead of keeping the stale files
-    assert main(common + ["--name", "same", "--set", "threshold_variant=release"]) == 0
+    # resuming under the same name with other rules re-answers instead of keeping the stale files
+    assert main(common + ["--name", "same", "--protocol", "paper-text"]) == 0
     again = json.loads((tmp_path / "rescore-same.json").read_text())["runs"]
     assert [r["mIoU_after"] for r in again] == pytest.approx([r["mIoU_after"] for r in rel])
     assert main(common + ["--name", "bad", "--set", "field_iterations=5"]) != 0
@@ -392,12 +399,12 @@ def test_ablate_rescore_refit_of_a_head_option_keeps_the_recorded_geometry(smoke
     # a head option beside an answer option: the same head (its cache key ignores answer options), re-answered
     assert main(["ablate", "rescore", "--results-dir", str(smoke["results"]), "--cache-dir", str(smoke["cache"]),
                  "--methods", "4d-langsplat", "--out", str(tmp_path), "--quiet", "--refit", "--name", "window-release",
-                 "--set", "caption_window=2", "--set", "threshold_variant=release"]) == 0
+                 "--set", "caption_window=2", "--protocol", "paper-text"]) == 0
     assert not calls
     (path,) = (smoke["results"] / "ablations" / "window-release").rglob("seed0.json")
     both = json.loads(path.read_text())
     assert both["fit"]["head_refit_of"] == recorded["fit"]["key"] and both["fit"]["key"] == new["fit"]["key"]
-    assert both["fit"]["cached"] and both["method_config"]["threshold_variant"] == "release"
+    assert both["fit"]["cached"] and both["protocol"]["name"] == "paper-text"
     # a boolean option given as text is the recorded True: asked again, the run is kept, not answered anew
     seg = ["ablate", "rescore", "--results-dir", str(smoke["results"]), "--cache-dir", str(smoke["cache"]),
            "--methods", "4d-langsplat", "--out", str(tmp_path), "--quiet", "--refit", "--name", "segments",
@@ -460,12 +467,8 @@ def test_ablate_gap_reproduces_the_recorded_answers_and_the_ceiling(smoke, tmp_p
             assert 100 * fitted[q["query"]] == pytest.approx(q["mIoU"], abs=1e-9)
     assert 100 * run["rungs"]["fitted"]["mIoU"] == pytest.approx(recorded["metrics"]["mIoU"], abs=1e-9)
 
-    from methods import registry
-    from methods.language_methods import relevance_config
-
-    config = registry.get("deformable-clip").make_config({k: str(v) for k, v in TINY.items()})
     ceiling = protocol_ceiling(smoke["scene"], find_annotations(smoke["scene"]), smoke["supervision"].text_encoder,
-                               {"run": relevance_config(config)})["variants"]["run"]
+                               {"run": PROTOCOLS["release"].agnostic})["variants"]["run"]
     assert run["rungs"]["perfect"]["per_query"] == pytest.approx(ceiling["per_query"], abs=1e-9)
     # the autoencoder of a tiny fit is lossy: its rung differs from the perfect one somewhere
     assert run["rungs"]["autoencoder"]["per_query"] != pytest.approx(run["rungs"]["perfect"]["per_query"])

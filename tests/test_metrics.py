@@ -12,7 +12,8 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from annotations.model import AnnotationSet, Query
-from benchmark.metrics import (EMPTY_IOU, EMPTY_UNION_VIOU, TemporalRuleConfig, aggregate, apply_temporal_rule,
+from benchmark.protocol import PROTOCOLS
+from benchmark.metrics import (EMPTY_IOU, EMPTY_UNION_VIOU, TemporalRule, aggregate, apply_temporal_rule,
                                decide_temporal, delta_sim, delta_sim_scene, iou, mean_delta_sim, pixel_accuracy,
                                score_agnostic, score_sensitive, smooth_scores, temporal_accuracy, video_iou)
 
@@ -95,33 +96,42 @@ S = np.array([0.2, 0.6, 0.4, 0.9])
 def test_smoothing_by_hand_each_end_mode():
     # interior: t1 = .1*.2 + .8*.6 + .1*.4 = .54 ; t2 = .1*.6 + .8*.4 + .1*.9 = .47
     # renormalise: t0 = (.8*.2 + .1*.6)/.9 = .22/.9 ; t3 = (.1*.4 + .8*.9)/.9 = .76/.9
-    np.testing.assert_allclose(smooth_scores(S, TemporalRuleConfig()), [0.22 / 0.9, 0.54, 0.47, 0.76 / 0.9])
-    # keep (release): the ends keep their raw score
-    np.testing.assert_allclose(smooth_scores(S, TemporalRuleConfig(ends="keep")), [0.2, 0.54, 0.47, 0.9])
+    np.testing.assert_allclose(smooth_scores(S, TemporalRule(ends="renormalise")), [0.22 / 0.9, 0.54, 0.47, 0.76 / 0.9])
+    # keep (release, the default): the ends keep their raw score
+    np.testing.assert_allclose(smooth_scores(S, TemporalRule()), [0.2, 0.54, 0.47, 0.9])
     # replicate: t0 = .9*.2 + .1*.6 = .24 ; t3 = .1*.4 + .9*.9 = .85
-    np.testing.assert_allclose(smooth_scores(S, TemporalRuleConfig(ends="replicate")), [0.24, 0.54, 0.47, 0.85])
+    np.testing.assert_allclose(smooth_scores(S, TemporalRule(ends="replicate")), [0.24, 0.54, 0.47, 0.85])
     # weights (1,) disable smoothing
-    np.testing.assert_allclose(smooth_scores(S, TemporalRuleConfig(weights=(1.0,))), S)
+    np.testing.assert_allclose(smooth_scores(S, TemporalRule(weights=(1.0,))), S)
 
 
-def test_rule_by_hand_default():
+def test_rule_by_hand_paper_text():
     # smoothed (renormalise) = [.24444, .54, .47, .84444]; tau = 2.09889 / 4 = .524722
-    r = apply_temporal_rule(S)
+    r = apply_temporal_rule(S, PROTOCOLS["paper-text"].temporal)
     assert r.threshold == pytest.approx((0.22 / 0.9 + 0.54 + 0.47 + 0.76 / 0.9) / 4)
     assert r.decisions.tolist() == [False, True, False, True]
-    assert decide_temporal(S).tolist() == r.decisions.tolist()
+    assert decide_temporal(S, PROTOCOLS["paper-text"].temporal).tolist() == r.decisions.tolist()
+
+
+def test_rule_by_hand_default_is_the_release():
+    # smoothed (keep) = [.2, .54, .47, .9]; tau = mean of the raw scores = 2.1 / 4 = .525
+    r = apply_temporal_rule(S)
+    assert r.threshold == pytest.approx(0.525)
+    np.testing.assert_allclose(r.smoothed, [0.2, 0.54, 0.47, 0.9])
+    assert r.decisions.tolist() == [False, True, False, True]
+    assert TemporalRule() == PROTOCOLS["release"].temporal
 
 
 def test_paper_and_release_thresholds_differ_by_hand():
     s = np.array([0.5, 0.2, 0.2, 1.0])
     # ends=keep: smoothed = [.5, .05+.16+.02=.23, .02+.16+.1=.28, 1.0]
     # paper tau = (.5+.23+.28+1)/4 = .5025 -> frame 0 (0.5) negative
-    paper = apply_temporal_rule(s, TemporalRuleConfig(ends="keep"))
+    paper = apply_temporal_rule(s, TemporalRule(ends="keep", tau_from="smoothed"))
     np.testing.assert_allclose(paper.smoothed, [0.5, 0.23, 0.28, 1.0])
     assert paper.threshold == pytest.approx(0.5025)
     assert paper.decisions.tolist() == [False, False, False, True]
     # release tau = mean of raw = 1.9/4 = .475 -> frame 0 positive
-    release = apply_temporal_rule(s, TemporalRuleConfig.release())
+    release = apply_temporal_rule(s, PROTOCOLS["release"].temporal)
     assert release.threshold == pytest.approx(0.475)
     assert release.decisions.tolist() == [True, False, False, True]
 
@@ -130,15 +140,15 @@ def test_undefined_scores_by_hand():
     s = np.array([0.2, np.nan, 0.6, 0.4])
     # renormalise, NaN = missing neighbour: t0 = .8*.2/.8 = .2 ; t2 = (.8*.6 + .1*.4)/.9 = .52/.9 ;
     # t3 = (.1*.6 + .8*.4)/.9 = .38/.9 ; paper tau = (.2 + .52/.9 + .38/.9)/3 = (.2 + 1)/3 = .4
-    r = apply_temporal_rule(s)
+    r = apply_temporal_rule(s, PROTOCOLS["paper-text"].temporal)
     np.testing.assert_allclose(r.smoothed[[0, 2, 3]], [0.2, 0.52 / 0.9, 0.38 / 0.9])
     assert math.isnan(r.smoothed[1])
     assert r.threshold == pytest.approx(0.4)
     assert r.decisions.tolist() == [False, False, True, True]   # the NaN frame is negative
     # keep: every frame next to the NaN keeps its raw value
-    np.testing.assert_allclose(smooth_scores(s, TemporalRuleConfig(ends="keep"))[[0, 2, 3]], [0.2, 0.6, 0.4])
+    np.testing.assert_allclose(smooth_scores(s, TemporalRule(ends="keep"))[[0, 2, 3]], [0.2, 0.6, 0.4])
     # the undefined frame's decision is a named option
-    assert apply_temporal_rule(s, TemporalRuleConfig(undefined_decision=True)).decisions.tolist() == [False, True, True, True]
+    assert apply_temporal_rule(s, TemporalRule(undefined_decision=True)).decisions.tolist() == [False, True, True, True]
     # all undefined: tau NaN, every frame negative
     r = apply_temporal_rule(np.full(3, np.nan))
     assert math.isnan(r.threshold) and not r.decisions.any()
@@ -147,17 +157,17 @@ def test_undefined_scores_by_hand():
 
 def test_rule_config_validation():
     for bad in ({"weights": (0.5, 0.5)}, {"weights": (0.2, 0.7, 0.2)}, {"weights": (-0.1, 1.2, -0.1)},
-                {"weights": (0.5, 0.0, 0.5)}, {"ends": "wrap"}, {"threshold_variant": "mean"},
+                {"weights": (0.5, 0.0, 0.5)}, {"ends": "wrap"}, {"tau_from": "mean"},
                 {"tie_tolerance": -1.0}):
         with pytest.raises(ValueError):
-            TemporalRuleConfig(**bad)
+            TemporalRule(**bad)
     with pytest.raises(ValueError, match="inf"):
         smooth_scores(np.array([0.0, np.inf]))
-    assert TemporalRuleConfig(weights=(0.1, 0.2, 0.4, 0.2, 0.1)).weights == (0.1, 0.2, 0.4, 0.2, 0.1)
+    assert TemporalRule(weights=(0.1, 0.2, 0.4, 0.2, 0.1)).weights == (0.1, 0.2, 0.4, 0.2, 0.1)
 
 
-CONFIGS = [TemporalRuleConfig(ends=e, threshold_variant=v) for e in ("renormalise", "keep", "replicate")
-           for v in ("paper", "release")]
+CONFIGS = [TemporalRule(ends=e, tau_from=v) for e in ("renormalise", "keep", "replicate")
+           for v in ("smoothed", "raw")]
 ten_scores = st.lists(st.integers(0, 10), min_size=1, max_size=12).map(lambda v: np.array(v) / 10)
 
 
@@ -180,10 +190,10 @@ def test_rule_invariant_to_positive_affine_maps(scores, a, b, config):
 
 @FAST
 @given(st.lists(st.booleans(), min_size=2, max_size=12).filter(lambda v: 0 < sum(v) < len(v)),
-       st.sampled_from(["paper", "release"]))
+       st.sampled_from(["smoothed", "raw"]))
 def test_perfect_and_complement_scores_without_smoothing(labels, variant):
     y = np.array(labels)
-    config = TemporalRuleConfig(weights=(1.0,), threshold_variant=variant)
+    config = TemporalRule(weights=(1.0,), tau_from=variant)
     ious = np.ones(y.size)
     perfect = score_sensitive(y, ious, scores=y.astype(float), config=config)
     assert perfect.accuracy == 1.0 and perfect.viou == 1.0

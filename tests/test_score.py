@@ -14,7 +14,8 @@ from annotations.format import save_annotations
 from annotations.model import AnnotatedFrame, AnnotationSet, Query
 from benchmark.cli import main
 from benchmark.errors import InputError
-from benchmark.metrics import ScoreConfig, TemporalRuleConfig, aggregate_scenes, score_scene
+from benchmark.metrics import ScoreConfig, TemporalRule, aggregate_scenes, score_scene
+from benchmark.protocol import PROTOCOLS
 from benchmark.predictions import (JSON_FILE, QueryPrediction, ScenePredictions, query_slug, read_predictions,
                                    write_predictions)
 
@@ -156,8 +157,8 @@ def test_release_rule_changes_only_the_temporal_part():
     aset = make_gt()
     preds = hand_predictions(aset)
     preds.queries["cracked cookie"].scores = {f"f{t:03d}": s for t, s in enumerate([0.2, 1.0, 0.5, 1.0, 1.0, 0.0])}
-    paper = score_scene(aset, preds, ScoreConfig(temporal=TemporalRuleConfig(ends="keep"))).summary()
-    release = score_scene(aset, preds, ScoreConfig(temporal=TemporalRuleConfig.release())).summary()
+    paper = score_scene(aset, preds, ScoreConfig(temporal=TemporalRule(ends="keep", tau_from="smoothed"))).summary()
+    release = score_scene(aset, preds, ScoreConfig(temporal=PROTOCOLS["release"].temporal)).summary()
     assert paper["mIoU"] == release["mIoU"] and paper["mAcc"] == release["mAcc"]
     # keep: smoothed = [.2, .87, .6, .95, .9, 0]; labels t = 2..4; IoU_3 = .8, other IoUs 1
     # paper tau = 3.52/6 = .5867 -> pred t = 1..4: Acc 5/6, vIoU (1 + .8 + 1)/4 = .7
@@ -291,13 +292,19 @@ def test_cli_scores_and_writes_results(tmp_path, capsys):
         gts += ["--gt", str(save_annotations(aset, tmp_path / f"{scene}.json"))]
         write_predictions(root / scene, make(aset))
     out = tmp_path / "results.json"
-    assert main(["score", *gts, "--pred", str(root), "--out", str(out), "--release-rule"]) == 0
+    assert main(["score", *gts, "--pred", str(root), "--out", str(out), "--protocol", "release"]) == 0
     printed = capsys.readouterr().out
     assert "cracked cookie" in printed and "mean over scenes" in printed
     doc = json.loads(out.read_text())
     assert doc["format"] == "bench4d-results"
-    assert doc["config"]["temporal"]["threshold_variant"] == "release"
+    assert doc["config"]["temporal"]["tau_from"] == "raw"
     assert doc["config"]["temporal"]["ends"] == "keep"
+    assert doc["provenance"]["protocol"]["name"] == "release"
+    # a temporal flag that changes the preset makes it a custom protocol, recorded as such
+    assert main(["score", *gts, "--pred", str(root), "--out", str(out), "--tau-from", "smoothed"]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["provenance"]["protocol"]["name"] == "custom"
+    assert doc["provenance"]["protocol"]["temporal"]["tau_from"] == "smoothed"
     assert doc["metrics"]["dataset"]["mIoU"] == pytest.approx((100 * (5 / 6 + 0.75) / 2 + 100) / 2)
     assert doc["metrics"]["scenes"]["b"]["vIoU"] == 100.0
     assert len(doc["queries"]) == 6 and len(doc["frames"]) == 32

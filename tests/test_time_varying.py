@@ -16,6 +16,7 @@ import pytest
 import torch
 
 from benchmark.metrics import apply_temporal_rule
+from benchmark.protocol import PROTOCOLS
 from benchmark.scene import Camera, Frame, Scene
 from methods.captioners.base import Captions, ObjectTracks
 from methods.fields.language_field import FrozenGeometry
@@ -368,8 +369,9 @@ def test_head_scores_inside_the_chosen_spatial_mask(world, status_field, tmp_pat
     box = torch.as_tensor(world.masks[frame.name] == 0)
     spatial = AgnosticResult(mask=box, mask_unfiltered=torch.zeros_like(box), relevance=box.float(), level=0,
                              level_peaks=torch.ones(3))
-    filtered = SimpleNamespace(config=SimpleNamespace(sensitive_mask="filtered"))
-    unfiltered = SimpleNamespace(config=SimpleNamespace(sensitive_mask="unfiltered"))
+    release = PROTOCOLS["release"]
+    filtered = SimpleNamespace(protocol=release.with_changes({"sensitive.mask": "filtered"}))
+    unfiltered = SimpleNamespace(protocol=release)
     assert head.score("box open", frame, spatial, filtered) == pytest.approx(
         _scores(world, status_field, "box open", [frame])[0], abs=1e-6)
     assert np.isnan(head.score("box open", frame, spatial, unfiltered))  # the release's mask is empty here

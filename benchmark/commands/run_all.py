@@ -157,7 +157,7 @@ def run(args: argparse.Namespace) -> int:
                     method=method, scene=str(root), seed=seed, track=args.track, results_dir=args.results_dir,
                     cache_dir=args.cache_dir, splits=splits(args), device=args.device, text_encoder=args.text_encoder,
                     method_options=overrides, preset_size=args.size, scale=args.scale,
-                    temporal_rule=args.temporal_rule, quiet=args.quiet or args.jobs > 1))
+                    protocol=args.protocol, object_query=args.object_query, quiet=args.quiet or args.jobs > 1))
             if group:
                 groups.append(group)
     jobs = min(args.jobs, len(groups)) or 1

@@ -23,6 +23,7 @@ import numpy as np
 
 from ..atomic import write_json
 from ..errors import InputError
+from ._common import add_protocol_argument
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -31,14 +32,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pred", action="append", required=True, metavar="DIR",
                         help="prediction folder, one per --gt; or one folder holding <scene>/ subfolders")
     parser.add_argument("--out", type=Path, default=None, help="write the results JSON here (atomically)")
-    parser.add_argument("--threshold-variant", choices=("paper", "release"), default=None,
-                        help="tau = mean of smoothed scores (paper, default) or of unsmoothed ones (release)")
+    add_protocol_argument(parser)
+    parser.add_argument("--tau-from", choices=("raw", "smoothed"), default=None,
+                        help="tau = mean of the raw scores (release) or of the smoothed ones (paper text); "
+                             "default: the protocol's")
     parser.add_argument("--smoothing-ends", choices=("renormalise", "keep", "replicate"), default=None,
-                        help="missing neighbours in temporal smoothing (default renormalise; release: keep)")
+                        help="missing neighbours in temporal smoothing (default: the protocol's; release: keep)")
     parser.add_argument("--smoothing-weights", default=None, metavar="W,W,W",
                         help="temporal smoothing kernel (default 0.1,0.8,0.1; '1' disables)")
-    parser.add_argument("--release-rule", action="store_true",
-                        help="the release's temporal rule (ends=keep, threshold=release); other flags override")
     parser.add_argument("--eval-frames", default="all", metavar="all|NAME,NAME|@FILE",
                         help="frames to score: all annotated frames (default), a comma list, or @file (one name a line)")
     parser.add_argument("--allow-extra", action="store_true", help="ignore predicted queries unknown to the GT")
@@ -46,24 +47,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="print only the dataset line")
 
 
-def _temporal_config(args: argparse.Namespace):
-    import dataclasses
+def _protocol(args: argparse.Namespace):
+    """The protocol named by ``--protocol`` with the temporal flags applied (named ``custom`` if they change
+    it). Predictions hold masks already: only its temporal rule decides anything here."""
+    from ..protocol import get_protocol
 
-    from ..metrics import TemporalRuleConfig
-
-    base = TemporalRuleConfig.release() if args.release_rule else TemporalRuleConfig()
     changes: dict = {}
-    if args.threshold_variant:
-        changes["threshold_variant"] = args.threshold_variant
+    if args.tau_from:
+        changes["temporal.tau_from"] = args.tau_from
     if args.smoothing_ends:
-        changes["ends"] = args.smoothing_ends
+        changes["temporal.ends"] = args.smoothing_ends
     if args.smoothing_weights:
         try:
-            changes["weights"] = tuple(float(x) for x in args.smoothing_weights.split(","))
+            changes["temporal.weights"] = tuple(float(x) for x in args.smoothing_weights.split(","))
         except ValueError:
             raise InputError(None, "--smoothing-weights", f"not a comma list of numbers: {args.smoothing_weights!r}") from None
     try:
-        return dataclasses.replace(base, **changes)
+        return get_protocol(args.protocol).with_changes(changes)
     except ValueError as err:
         raise InputError(None, "--smoothing-weights", str(err)) from None
 
@@ -145,7 +145,8 @@ def run(args: argparse.Namespace) -> int:
     from ..metrics import ScoreConfig, aggregate_scenes, score_scene
     from ..predictions import read_predictions
 
-    temporal = _temporal_config(args)
+    protocol = _protocol(args)
+    temporal = protocol.temporal
     wanted = _eval_frames(args.eval_frames)
     asets = [load_annotations(Path(p)) for p in args.gt]
     pairs = _pairs(args.gt, args.pred, asets)
@@ -166,8 +167,8 @@ def run(args: argparse.Namespace) -> int:
 
     print(report_text(dataset, quiet=args.quiet))
     records = sum(len(s.records) for s in scenes)
-    print(f"\nscored {records} (query, frame) records in {seconds:.3f} s; rule: {temporal.threshold_variant} "
-          f"threshold, ends={temporal.ends}, weights={list(temporal.weights)}")
+    print(f"\nscored {records} (query, frame) records in {seconds:.3f} s; protocol {protocol.name}: "
+          f"tau from {temporal.tau_from} scores, ends={temporal.ends}, weights={list(temporal.weights)}")
     for s in scenes:
         if s.skipped:
             print(f"note: {s.scene}: not scored (no evaluated frame): {', '.join(s.skipped)}", file=sys.stderr)
@@ -181,6 +182,8 @@ def run(args: argparse.Namespace) -> int:
             "python": platform.python_version(),
             "numpy": np.__version__,
             "score_seconds": round(seconds, 4),
+            "protocol": protocol.to_dict(),
+            "protocol_applied": "temporal rule only: the predictions' masks were made by the method",
         }
         write_json(args.out, dataset.to_json(provenance, include_frames=not args.no_frames))
         print(f"wrote {args.out}")

@@ -44,15 +44,6 @@ LAYOUT = "dnerf"
 SPLITS = ("train", "val", "test")
 SPLIT_RULES = ("dataset",)
 
-OBJECT_QUERIES = {
-    "lego": "lego bulldozer",
-    "jumpingjacks": "person",
-    "standup": "person",
-    "bouncingballs": "balls",
-}
-"""Whole-object query text per D-NeRF scene name (other scenes: the scene name itself)."""
-
-
 @dataclass
 class DNeRFOptions:
     """Options of :func:`load` (pass them as keywords to :func:`benchmark.loaders.load_scene`)."""
@@ -191,19 +182,18 @@ def load(path: str | Path, options: Optional[DNeRFOptions] = None) -> Scene:
                            "num_distinct_times": len(all_times)})
 
 
-def object_annotations(scene: Scene, split: str = "test", query_text: Optional[str] = None):
-    """One time-agnostic whole-object query with the alpha masks as ground truth on every frame of
-    ``split`` (the real-data check for methods). Reads every frame's alpha channel.
-
-    The query text is ``query_text``, else :data:`OBJECT_QUERIES` of the scene name, else the name.
-    """
+def object_annotations(scene: Scene, query_text: str, split: str = "test"):
+    """One time-agnostic whole-object query ``query_text`` (what the object is: the scene's folder name
+    says nothing a query may rely on) with the alpha masks as ground truth on every frame of ``split``
+    (the real-data check for methods). Reads every frame's alpha channel."""
     from annotations.model import AnnotatedFrame, AnnotationSet, Query
 
+    if not query_text or not str(query_text).strip():
+        raise InputError(scene.root, "object query", "name the object the alpha masks show (e.g. 'person')")
     frames = scene.split(split)  # type: ignore[arg-type]
     if not frames:
         raise InputError(scene.root, "split", f"scene {scene.name!r} has no {split!r} frames")
-    text = query_text or OBJECT_QUERIES.get(scene.name, scene.name)
-    query = Query(id=1, text=text, kind="agnostic", level="whole")
+    query = Query(id=1, text=str(query_text).strip(), kind="agnostic", level="whole")
     aset = AnnotationSet(scene=scene.name, queries=[query], num_time_steps=scene.num_time_steps,
                          info={"source": "D-NeRF alpha channel (whole-object mask)", "split": split})
     for image_id, frame in enumerate(frames, start=1):

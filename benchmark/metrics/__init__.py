@@ -1,7 +1,7 @@
 """The metrics core: pure metric functions, the temporal decision rule, aggregation, scoring.
 
 * :mod:`.masks`: :func:`iou`, :func:`pixel_accuracy` (empty-mask rules in their docstrings).
-* :mod:`.temporal`: :class:`TemporalRuleConfig`, :func:`smooth_scores`, :func:`decide_temporal`,
+* :mod:`.temporal`: :class:`TemporalRule`, :func:`smooth_scores`, :func:`decide_temporal`,
   :func:`apply_temporal_rule`, :func:`temporal_accuracy`, :func:`video_iou`; diagnostics
   :func:`score_auc`, :func:`threshold_margins`, :func:`near_threshold_fraction`,
   :func:`accuracy_at_threshold`, :func:`best_cut_accuracy`.
@@ -19,7 +19,7 @@ from .captions import (caption_auc, caption_replay_accuracy, caption_replay_scor
 from .masks import EMPTY_IOU, accuracy_from_confusion, confusion, iou, iou_from_confusion, pixel_accuracy
 from .scoring import (REPORT_METRICS, AgnosticScore, DatasetScore, QueryScore, SceneScore, ScoreConfig,
                       SensitiveScore, aggregate_scenes, score_agnostic, score_scene, score_sensitive)
-from .temporal import (EMPTY_UNION_VIOU, NEAR_THRESHOLD_FRACTION, TemporalDecision, TemporalRuleConfig,
+from .temporal import (EMPTY_UNION_VIOU, NEAR_THRESHOLD_FRACTION, TemporalDecision, TemporalRule,
                        accuracy_at_threshold, apply_temporal_rule, best_cut_accuracy, decide_temporal,
                        near_threshold_fraction, score_auc, smooth_scores, temporal_accuracy, temporal_threshold,
                        threshold_margins, video_iou)
@@ -33,7 +33,7 @@ __all__ = [
     "EMPTY_IOU", "accuracy_from_confusion", "confusion", "iou", "iou_from_confusion", "pixel_accuracy",
     "REPORT_METRICS", "AgnosticScore", "DatasetScore", "QueryScore", "SceneScore", "ScoreConfig",
     "SensitiveScore", "aggregate_scenes", "score_agnostic", "score_scene", "score_sensitive",
-    "EMPTY_UNION_VIOU", "NEAR_THRESHOLD_FRACTION", "TemporalDecision", "TemporalRuleConfig",
+    "EMPTY_UNION_VIOU", "NEAR_THRESHOLD_FRACTION", "TemporalDecision", "TemporalRule",
     "accuracy_at_threshold", "apply_temporal_rule", "best_cut_accuracy",
     "decide_temporal", "near_threshold_fraction", "score_auc", "smooth_scores", "temporal_accuracy",
     "temporal_threshold", "threshold_margins", "video_iou",

@@ -89,12 +89,12 @@ def caption_replay_accuracy(query_embedding: np.ndarray, caption_times: np.ndarr
     ``caption_times`` (N,) time indices of ``caption_embeddings`` (N, D); ``eval_times`` (T,) and
     ``labels`` (T,) bool of the evaluated frames, in time order. No caption or no evaluated frame -> NaN.
     """
-    from .temporal import TemporalRuleConfig, apply_temporal_rule, temporal_accuracy
+    from .temporal import TemporalRule, apply_temporal_rule, temporal_accuracy
 
     if np.asarray(caption_times).size == 0 or len(eval_times) == 0:
         return float("nan")
     scores = caption_replay_scores(query_embedding, caption_times, caption_embeddings, eval_times)
-    decision = apply_temporal_rule(scores, config or TemporalRuleConfig())
+    decision = apply_temporal_rule(scores, config or TemporalRule())
     return 100.0 * temporal_accuracy(decision.decisions, np.asarray(labels, dtype=bool))
 
 

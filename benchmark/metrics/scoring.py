@@ -35,7 +35,7 @@ from ..errors import InputError
 from ..predictions import QueryPrediction, ScenePredictions, field_name, query_slug
 from .aggregate import FrameRecord, aggregate, records_table
 from .masks import accuracy_from_confusion, confusion, iou, iou_from_confusion, pixel_accuracy
-from .temporal import (TemporalDecision, TemporalRuleConfig, apply_temporal_rule, near_threshold_fraction, score_auc,
+from .temporal import (TemporalDecision, TemporalRule, apply_temporal_rule, near_threshold_fraction, score_auc,
                        temporal_accuracy, video_iou)
 
 REPORT_METRICS = {"mIoU": "miou", "mAcc": "macc", "Acc": "acc", "vIoU": "viou", "AUC": "auc",
@@ -48,7 +48,7 @@ the time-sensitive decisions (:mod:`benchmark.metrics.temporal`), not paper metr
 class ScoreConfig:
     """How predictions are scored."""
 
-    temporal: TemporalRuleConfig = field(default_factory=TemporalRuleConfig)
+    temporal: TemporalRule = field(default_factory=TemporalRule)
     """The temporal decision rule for time-sensitive queries."""
     eval_frames: Optional[tuple[str, ...]] = None
     """Frame names to score; ``None`` = every annotated frame (the split is chosen by whoever
@@ -120,7 +120,7 @@ class SensitiveScore:
 
 def score_sensitive(labels: np.ndarray, frame_iou: np.ndarray, *, scores: Optional[np.ndarray] = None,
                     decisions: Optional[np.ndarray] = None,
-                    config: TemporalRuleConfig = TemporalRuleConfig()) -> SensitiveScore:
+                    config: TemporalRule = TemporalRule()) -> SensitiveScore:
     """Temporal Acc and vIoU of one time-sensitive query over its T evaluated frames in time order.
 
     ``labels`` (T,) bool; ``frame_iou`` (T,) IoU of the query's predicted mask vs the base

@@ -6,14 +6,14 @@ For one query, over its evaluated frames in time order:
 1. **Smoothing** (paper Sec. 4 / release ``smooth_feature_post``):
    ``s~_t = sum_k w_k s_{t+k}`` with ``w = (0.1, 0.8, 0.1)`` over neighbouring *evaluated* frames.
    A neighbour is *missing* when it falls outside the sequence or its score is undefined (NaN);
-   :attr:`TemporalRuleConfig.ends` says what happens then (default: the remaining weights are
-   renormalised to sum to 1; ``"keep"`` is the release's behaviour, which keeps the raw value).
-2. **Threshold** ``tau``: the mean over frames of the smoothed scores (``"paper"``), or of the
-   unsmoothed scores while still thresholding the smoothed ones (``"release"``). Undefined scores
-   are left out of the mean.
+   :attr:`~benchmark.protocol.TemporalRule.ends` says what happens then (default, the release's: the
+   frame keeps its raw value; the ``paper-text`` protocol renormalises the remaining weights).
+2. **Threshold** ``tau``: the mean over frames of the unsmoothed scores while thresholding the
+   smoothed ones (``tau_from="raw"``, the release's mix), or of the smoothed scores (``"smoothed"``,
+   the paper's wording). Undefined scores are left out of the mean.
 3. **Decision** ``pred_t = s~_t >= tau`` (equality up to a tiny relative float tolerance). A frame whose own score is undefined (the method's
    spatial mask was empty, so there is nothing to average) is decided
-   :attr:`TemporalRuleConfig.undefined_decision` (default: negative). If every score is undefined,
+   :attr:`TemporalRule.undefined_decision` (default: negative). If every score is undefined,
    ``tau`` is NaN and every frame gets that decision.
 
 Metrics (fractions in [0, 1]):
@@ -32,14 +32,12 @@ Diagnostics beside them (not in the paper; they say how far Acc can be trusted):
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
-from typing import Literal
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-EndMode = Literal["renormalise", "keep", "replicate"]
-ThresholdVariant = Literal["paper", "release"]
+from ..protocol import TemporalRule
 
 EMPTY_UNION_VIOU = 1.0
 """vIoU when no frame is predicted positive and none is labelled positive (``S_u`` empty): the
@@ -51,63 +49,6 @@ NEAR_THRESHOLD_FRACTION = 0.05
 defined frames (:func:`near_threshold_fraction`). Not a paper constant: a diagnostic of how fragile
 the mean-threshold decisions are (on 15 evaluated frames one flipped decision moves Acc by 6.7
 points)."""
-
-
-@dataclass(frozen=True)
-class TemporalRuleConfig:
-    """Constants of the temporal decision rule (defaults: the paper's)."""
-
-    weights: tuple[float, ...] = (0.1, 0.8, 0.1)
-    """Smoothing kernel over neighbouring evaluated frames, centred, odd length, summing to 1.
-    Paper and release: ``(0.1, 0.8, 0.1)``; the release also offers ``(0.1, 0.2, 0.4, 0.2, 0.1)``;
-    ``(1.0,)`` disables smoothing."""
-    ends: EndMode = "renormalise"
-    """What a missing neighbour (outside the sequence, or an undefined score) does:
-    ``"renormalise"`` (default): drop it and rescale the remaining weights to sum to 1, e.g. the
-    first frame gets ``(0.8 s_0 + 0.1 s_1) / 0.9``;
-    ``"keep"`` (release): the frame keeps its unsmoothed score;
-    ``"replicate"``: the missing neighbour takes the frame's own score (edge padding at the ends),
-    e.g. ``0.9 s_0 + 0.1 s_1``."""
-    threshold_variant: ThresholdVariant = "paper"
-    """``"paper"``: ``tau`` = mean of the smoothed scores, threshold the smoothed scores.
-    ``"release"``: ``tau`` = mean of the unsmoothed scores, threshold the smoothed scores (the
-    release's mix)."""
-    inclusive: bool = True
-    """``pred_t = s~_t >= tau`` (paper and release); ``False`` uses ``>``."""
-    undefined_decision: bool = False
-    """Decision for a frame whose score is undefined (NaN, e.g. an empty spatial mask)."""
-    tie_tolerance: float = 1e-9
-    """Relative tolerance (times the largest ``|s~_t|``) within which ``s~_t`` counts as equal to
-    ``tau``, so float rounding cannot split ties: a constant score sequence is all positive with
-    ``>=``. Not a paper constant; 0 compares exactly."""
-
-    def __post_init__(self) -> None:
-        w = np.asarray(self.weights, dtype=np.float64)
-        object.__setattr__(self, "weights", tuple(float(x) for x in w))
-        if w.ndim != 1 or w.size % 2 == 0:
-            raise ValueError(f"weights must be a 1-D kernel of odd length, got {self.weights}")
-        if not np.all(np.isfinite(w)) or np.any(w < 0):
-            raise ValueError(f"weights must be finite and non-negative, got {self.weights}")
-        if abs(w.sum() - 1.0) > 1e-6:
-            raise ValueError(f"weights must sum to 1, got sum {w.sum():.6g}")
-        if w[w.size // 2] <= 0:
-            raise ValueError("the centre weight must be positive")
-        if not (self.tie_tolerance >= 0):
-            raise ValueError(f"tie_tolerance must be >= 0, got {self.tie_tolerance}")
-        if self.ends not in ("renormalise", "keep", "replicate"):
-            raise ValueError(f"ends must be 'renormalise', 'keep' or 'replicate', got {self.ends!r}")
-        if self.threshold_variant not in ("paper", "release"):
-            raise ValueError(f"threshold_variant must be 'paper' or 'release', got {self.threshold_variant!r}")
-
-    @classmethod
-    def release(cls) -> "TemporalRuleConfig":
-        """The release's behaviour: raw score kept at the ends, tau from the unsmoothed scores."""
-        return cls(ends="keep", threshold_variant="release")
-
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["weights"] = list(self.weights)
-        return d
 
 
 @dataclass(frozen=True)
@@ -133,8 +74,8 @@ def _scores_array(scores: np.ndarray) -> np.ndarray:
     return s
 
 
-def smooth_scores(scores: np.ndarray, config: TemporalRuleConfig = TemporalRuleConfig()) -> np.ndarray:
-    """Smooth ``scores`` (T,) in time order -> (T,) float64 (see :class:`TemporalRuleConfig`).
+def smooth_scores(scores: np.ndarray, config: TemporalRule = TemporalRule()) -> np.ndarray:
+    """Smooth ``scores`` (T,) in time order -> (T,) float64 (see :class:`TemporalRule`).
 
     NaN scores stay NaN and count as missing neighbours for the frames beside them.
     """
@@ -159,14 +100,15 @@ def smooth_scores(scores: np.ndarray, config: TemporalRuleConfig = TemporalRuleC
     return out
 
 
-def temporal_threshold(scores: np.ndarray, smoothed: np.ndarray, config: TemporalRuleConfig) -> float:
-    """``tau``: mean of ``smoothed`` (paper) or of ``scores`` (release) over defined values; NaN if none."""
-    source = smoothed if config.threshold_variant == "paper" else scores
+def temporal_threshold(scores: np.ndarray, smoothed: np.ndarray, config: TemporalRule) -> float:
+    """``tau``: mean of ``smoothed`` or of the raw ``scores`` (:attr:`TemporalRule.tau_from`) over defined
+    values; NaN if none."""
+    source = smoothed if config.tau_from == "smoothed" else scores
     defined = source[~np.isnan(source)]
     return float(defined.mean()) if defined.size else float("nan")
 
 
-def apply_temporal_rule(scores: np.ndarray, config: TemporalRuleConfig = TemporalRuleConfig()) -> TemporalDecision:
+def apply_temporal_rule(scores: np.ndarray, config: TemporalRule = TemporalRule()) -> TemporalDecision:
     """Run the whole rule on ``scores`` (T,) in time order (NaN = undefined)."""
     s = _scores_array(scores)
     smoothed = smooth_scores(s, config)
@@ -181,7 +123,7 @@ def apply_temporal_rule(scores: np.ndarray, config: TemporalRuleConfig = Tempora
     return TemporalDecision(scores=s, smoothed=smoothed, threshold=tau, decisions=decisions.astype(bool))
 
 
-def decide_temporal(scores: np.ndarray, config: TemporalRuleConfig = TemporalRuleConfig()) -> np.ndarray:
+def decide_temporal(scores: np.ndarray, config: TemporalRule = TemporalRule()) -> np.ndarray:
     """``pred_t`` (T,) bool for ``scores`` (T,) in time order; see :func:`apply_temporal_rule`."""
     return apply_temporal_rule(scores, config).decisions
 

@@ -7,73 +7,26 @@ canonical phrases' embeddings:
 2. LERF relevance: ``r = min_c exp(s q.f) / (exp(s q.f) + exp(s c.f))`` with ``s = 10``;
    equivalently ``sigmoid(s (q.f - max_c c.f))`` (computed that way: no overflow).
 3. Smooth: ``v = (v + avgpool_k(v)) / 2`` with a ``k x k`` (29 at the paper's 960x536; scaled to the
-   rendered resolution by default, see :attr:`RelevanceConfig.kernel_scaling`) window, stride 1, and
+   rendered resolution by default, see :attr:`benchmark.protocol.AgnosticQuery.kernel_scaling`) window, stride 1, and
    the padding excluded from the mean.
-4. Rescale by min-max and threshold (paper: rescaled > 0.4; release:
-   ``clip(2 (v - min) / (max - min) - 1, 0, 1) > 0.4``, i.e. rescaled > 0.7).
+4. Rescale by min-max and threshold (release, the default: ``clip(2 (v - min) / (max - min) - 1, 0, 1) > 0.4``,
+   i.e. rescaled > 0.7; the paper's wording: rescaled > 0.4).
 5. Majority filter ``7 x 7`` (mean of the binary mask > 0.5).
 6. Level choice: the level whose smoothed relevance map has the highest maximum.
 
-All functions take torch tensors and run on CPU or CUDA; every constant is a named config field.
+All functions take torch tensors and run on CPU or CUDA; every constant is a field of
+:class:`benchmark.protocol.AgnosticQuery`, the time-agnostic part of the evaluation protocol.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
-from typing import Literal, Optional, Sequence
+from typing import Optional, Sequence
 
 import torch
 import torch.nn.functional as F
 
-CANONICAL_PHRASES: tuple[str, ...] = ("object", "things", "stuff", "texture")
-"""LERF's canonical negative phrases, as used by LangSplat and 4D LangSplat."""
-
-
-@dataclass
-class RelevanceConfig:
-    """Constants of the time-agnostic query (paper values by default)."""
-
-    canonical_phrases: tuple[str, ...] = CANONICAL_PHRASES
-    """Negative phrases the query competes against in the LERF relevance."""
-    temperature: float = 10.0
-    """Scale ``s`` inside ``exp(s q.f)`` of the LERF relevance (paper and release: 10)."""
-    smoothing_kernel: int = 29
-    """Side of the average-pooling window mixed into the relevance map (29x29)."""
-    threshold: float = 0.4
-    """Threshold on the min-max rescaled, smoothed relevance."""
-    threshold_variant: Literal["paper", "release"] = "paper"
-    """``"paper"``: rescaled > threshold. ``"release"``: ``clip(2 x - 1, 0, 1) > threshold`` of the
-    rescaled ``x`` (i.e. rescaled > (1 + threshold) / 2 = 0.7)."""
-    majority_kernel: int = 7
-    """Side of the majority filter applied to the binary mask (7x7, mean > 0.5)."""
-    majority_fraction: float = 0.5
-    """A pixel stays in the mask when more than this fraction of its window is in the mask."""
-    kernel_scaling: Literal["resolution", "fixed"] = "resolution"
-    """``"resolution"``: both windows are the paper's sizes scaled by ``sqrt(H W / (H_ref W_ref))`` to the
-    rendered image, rounded to the nearest odd size (at least 1), so they cover the same fraction of the
-    image as in the paper (29 px at 960x536 is 5 px at 128x170). ``"fixed"``: the pixel sizes as given,
-    whatever the resolution (the release's code, literally). Measured with perfect (ground-truth)
-    features on split-cookie at 128 px, release threshold: mIoU 77.2 fixed vs 90.8 scaled, because a
-    29x29 window at 128 px spreads every small part's relevance over its neighbours."""
-    reference_size: tuple[int, int] = (536, 960)
-    """(height, width) at which the window sizes above are defined: the release renders HyperNeRF's
-    ``rgb/2x`` images, 960x536."""
-
-    def kernels_for(self, height: int, width: int) -> tuple[int, int]:
-        """(smoothing, majority) window sides for an image of ``height x width`` (see ``kernel_scaling``)."""
-        if self.kernel_scaling == "fixed":
-            return self.smoothing_kernel, self.majority_kernel
-        if self.kernel_scaling != "resolution":
-            raise ValueError(f"kernel_scaling must be 'resolution' or 'fixed', got {self.kernel_scaling!r}")
-        scale = math.sqrt(height * width / float(self.reference_size[0] * self.reference_size[1]))
-        return _nearest_odd(self.smoothing_kernel * scale), _nearest_odd(self.majority_kernel * scale)
-
-
-def _nearest_odd(size: float) -> int:
-    """The odd integer nearest to ``size``, at least 1 (a centred window needs an odd side)."""
-    return max(1, 2 * int(math.floor((size - 1.0) / 2.0 + 0.5)) + 1)
-
+from benchmark.protocol import CANONICAL_PHRASES, AgnosticQuery
 
 def relevance(features: torch.Tensor, query: torch.Tensor, canon: torch.Tensor,
               temperature: float = 10.0) -> torch.Tensor:
@@ -116,13 +69,11 @@ def rescaled(values: torch.Tensor) -> torch.Tensor:
     return (values - lo) / (hi - lo).clamp_min(1e-12)
 
 
-def threshold_mask(smoothed: torch.Tensor, cfg: RelevanceConfig) -> torch.Tensor:
+def threshold_mask(smoothed: torch.Tensor, cfg: AgnosticQuery) -> torch.Tensor:
     """Binary mask from a smoothed relevance map (step 4 of the protocol)."""
     x = rescaled(smoothed)
-    if cfg.threshold_variant == "release":
+    if cfg.threshold_rule == "stretched":
         x = (2.0 * x - 1.0).clamp(0.0, 1.0)
-    elif cfg.threshold_variant != "paper":
-        raise ValueError(f"threshold_variant must be 'paper' or 'release', got {cfg.threshold_variant!r}")
     return x > cfg.threshold
 
 
@@ -156,7 +107,7 @@ class AgnosticResult:
 
 
 def query_levels(level_features: torch.Tensor, query: torch.Tensor, canon: torch.Tensor,
-                 cfg: Optional[RelevanceConfig] = None) -> AgnosticResult:
+                 cfg: Optional[AgnosticQuery] = None) -> AgnosticResult:
     """Run steps 2-6 on decoded features of every level of one frame.
 
     Args:
@@ -164,12 +115,12 @@ def query_levels(level_features: torch.Tensor, query: torch.Tensor, canon: torch
         query:          [D] query embedding.
         canon:          [P, D] canonical phrase embeddings.
     """
-    cfg = cfg or RelevanceConfig()
+    cfg = cfg or AgnosticQuery()
     rel = relevance(level_features, query, canon, cfg.temperature)  # [L, H, W]
     return answer_from_relevance(rel, cfg)
 
 
-def answer_from_relevance(rel: torch.Tensor, cfg: RelevanceConfig) -> AgnosticResult:
+def answer_from_relevance(rel: torch.Tensor, cfg: AgnosticQuery) -> AgnosticResult:
     """Steps 3-6 (smoothing, level choice, threshold, majority filter) on per-level relevance.
 
     Args:

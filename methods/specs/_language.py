@@ -9,10 +9,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar, Optional
 
-CANONICAL_PHRASES: tuple[str, ...] = ("object", "things", "stuff", "texture")
-"""LERF's canonical negative phrases, as used by LangSplat and 4D LangSplat."""
-
-
 AE_SAMPLE_WEIGHTINGS = ("pixels", "masks", "uniform")
 """Values of :attr:`LanguageMethodConfig.ae_sample_weighting`."""
 
@@ -22,14 +18,11 @@ class LanguageMethodConfig:
     """Every constant of geometry, autoencoder, field and query (paper values by default where the
     recipe fixes one; CPU-scale iteration counts, with the paper's in the docstring)."""
 
-    ANSWER_OPTIONS: ClassVar[frozenset[str]] = frozenset({
-        "uncovered_alpha", "canonical_phrases", "temperature", "smoothing_kernel", "threshold",
-        "threshold_variant", "majority_kernel", "majority_fraction", "kernel_scaling", "decode_chunk",
-        "decode_chunk_cuda",
-        "sensitive_mask"})
+    ANSWER_OPTIONS: ClassVar[frozenset[str]] = frozenset({"uncovered_alpha", "decode_chunk", "decode_chunk_cuda"})
     """Fields read only when answering, never when fitting: the runner's fit cache key ignores them
-    (they hash as their defaults) and a cached fit answers with the run's values, so comparing query
-    rules (``--set threshold_variant=release``) reuses the fit."""
+    (they hash as their defaults) and a cached fit answers with the run's values. The query rules
+    (threshold, windows, canonical phrases, temporal rule) are not method options at all: they are the
+    evaluation protocol's (:mod:`benchmark.protocol`), handed to the fitted model when it answers."""
 
     # --- geometry (fitted once per scene, geometry options and seed; then frozen) ----------------
     static_iterations: int = 1000
@@ -66,22 +59,13 @@ class LanguageMethodConfig:
     (the reconstruction cosine is reported in the fit's info)."""
     ae_max_steps: int = 10000
     """Cap on autoencoder steps (bounds the cost with many distinct features, e.g. CLIP on SAM masks)."""
-    ae_sample_weighting: str = "pixels"
-    """How often each distinct mask feature is drawn into an autoencoder batch: ``"pixels"`` (default: by
-    the pixel area carrying it), ``"masks"`` (once per mask and training image: the release's autoencoder
-    data, LangSplat's ``Autoencoder_dataset`` over the per-mask ``*_f.npy`` features) or ``"uniform"``.
-    A trade measured in session 20. Area weighting under-fits small parts: on the 7 presets (oracle track,
-    seeds 0-1, ``bench4d ablate autoencoder``) its reconstruction cosine is 0.989-0.997 (cook-spinach
-    1.0000) and the query on perfect latents through it scores 56.5 / 77.8 mIoU (paper / release
-    threshold) against 58.6 / 84.7 on perfect features; drawn per mask every name comes back (cosine
-    1.0000, 58.6 / 84.7). The fitted field does not follow under the paper threshold: on americano the
-    large parts' codes lie closer together (area-weighted distance to the nearest other code 0.558 vs
-    0.599), so the rendered field's errors move more pixels across names (with noise of 0.2 on the codes,
-    0.77 vs 0.89 of the pixels still decode nearest their own name). 4d-langsplat, seed 0, the same
-    geometry bit for bit (``results/ablations/ae-masks/``): americano 46.8 -> 43.8, chickchicken
-    26.5 -> 26.8, espresso 50.6 -> 51.0, keyboard 53.1 -> 51.5 mIoU (mean -0.9); under the release
-    threshold 60.6 -> 59.7, 51.1 -> 58.6, 59.1 -> 68.6, 63.4 -> 71.3 (mean +6.0). So ``"masks"`` goes with
-    ``threshold_variant="release"``; the default stays with the default threshold."""
+    ae_sample_weighting: str = "masks"
+    """How often each distinct mask feature is drawn into an autoencoder batch: ``"masks"`` (default: once
+    per mask and training image, the release's autoencoder data, LangSplat's ``Autoencoder_dataset`` over
+    its per-mask ``*_f.npy`` features), ``"pixels"`` (by the pixel area carrying it) or ``"uniform"``.
+    Area weighting under-fits small parts: the protocol ceiling's query on perfect latents through the
+    autoencoder loses 84.7 -> 77.8 mIoU on the 7 presets under the release rule with ``"pixels"`` and
+    nothing with ``"masks"`` (``reports/ablations/autoencoder-ceiling.md``)."""
 
     unmasked_text: Optional[str] = "background"
     """Pixels that no mask of a level covers are supervised at that level as one more mask whose
@@ -105,25 +89,7 @@ class LanguageMethodConfig:
     field_init_std: float = 0.0
     """Standard deviation of the initial features (release: zeros)."""
 
-    # --- time-agnostic query (shared/docs/protocol.md) -------------------------------------------
-    canonical_phrases: tuple[str, ...] = CANONICAL_PHRASES
-    """Negative phrases of the LERF relevance (paper and release: object, things, stuff, texture)."""
-    temperature: float = 10.0
-    """Scale ``s`` of ``exp(s q.f)`` in the relevance (paper and release: 10)."""
-    smoothing_kernel: int = 29
-    """Average-pooling window mixed into the relevance map (paper and release: 29)."""
-    threshold: float = 0.4
-    """Threshold on the min-max rescaled smoothed relevance (paper and release: 0.4)."""
-    threshold_variant: str = "paper"
-    """``"paper"``: rescaled > threshold; ``"release"``: ``clip(2 x - 1, 0, 1) > threshold``."""
-    majority_kernel: int = 7
-    """Majority filter window on the binary mask (release: 7)."""
-    majority_fraction: float = 0.5
-    """A pixel stays when more than this fraction of its window is set (release: 0.5)."""
-    kernel_scaling: str = "resolution"
-    """``"resolution"`` (default): the smoothing and majority windows scale with the rendered image from
-    their sizes at the paper's 960x536 (:attr:`methods.fields.relevance.RelevanceConfig.kernel_scaling`);
-    ``"fixed"``: the pixel sizes as given (the release's code)."""
+    # --- answering (the query rules themselves are the evaluation protocol's: benchmark.protocol) ------
     decode_chunk: int = 2048
     """Pixels decoded at once on the CPU (bounds query memory at any image size; no effect on results).
     Small enough that the decoder's [chunk, 256] temporaries (2 MiB) stay near the cache: decoding the
@@ -139,11 +105,6 @@ class LanguageMethodConfig:
         """:attr:`decode_chunk_cuda` on a CUDA device, else :attr:`decode_chunk`."""
         return self.decode_chunk_cuda if str(device).startswith("cuda") else self.decode_chunk
 
-    # --- time-sensitive answers of the relevance-score baselines ----------------------------------
-    sensitive_mask: str = "unfiltered"
-    """Mask inside which the relevance is averaged for a time-sensitive score: ``"unfiltered"`` (the
-    release uses the mask before the majority filter) or ``"filtered"``."""
-
     # --- engineering ------------------------------------------------------------------------------
     render_backend: str = "auto"
     """Rasterizer backend: ``"auto"`` (gsplat on CUDA when importable, else PyTorch), ``"torch"``, ``"gsplat"``."""
@@ -152,12 +113,7 @@ class LanguageMethodConfig:
     runner's cache folder (the parent of its ``fits`` folder), or no sharing outside the runner."""
 
     def __post_init__(self) -> None:
-        self.canonical_phrases = tuple(self.canonical_phrases)
         self.ae_hidden_dims = tuple(int(x) for x in self.ae_hidden_dims)
-        if self.threshold_variant not in ("paper", "release"):
-            raise ValueError(f"threshold_variant must be 'paper' or 'release', got {self.threshold_variant!r}")
-        if self.sensitive_mask not in ("unfiltered", "filtered"):
-            raise ValueError(f"sensitive_mask must be 'unfiltered' or 'filtered', got {self.sensitive_mask!r}")
         if self.ae_sample_weighting not in AE_SAMPLE_WEIGHTINGS:
             raise ValueError(f"ae_sample_weighting must be one of {AE_SAMPLE_WEIGHTINGS}, "
                              f"got {self.ae_sample_weighting!r}")
@@ -166,7 +122,3 @@ class LanguageMethodConfig:
         for name in ("static_iterations", "deformation_iterations", "field_iterations", "ae_max_steps", "ae_min_steps"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0")
-        if self.smoothing_kernel % 2 == 0 or self.majority_kernel % 2 == 0:
-            raise ValueError("smoothing_kernel and majority_kernel must be odd (centred windows)")
-        if self.kernel_scaling not in ("resolution", "fixed"):
-            raise ValueError(f"kernel_scaling must be 'resolution' or 'fixed', got {self.kernel_scaling!r}")

@@ -6,8 +6,6 @@ from dataclasses import dataclass
 
 from methods.registry import MethodSpec
 
-CANONICAL_PHRASES: tuple[str, ...] = ("object", "things", "stuff", "texture")
-
 
 @dataclass
 class NearestFrameConfig:
@@ -19,20 +17,15 @@ class NearestFrameConfig:
     distance is centre distance over the scene's half-diagonal plus ``1 - cos`` of the angle between
     viewing directions. 0 = nearest in time only."""
     match_rule: str = "canonical"
-    """``"canonical"``: a mask answers the query only when the query beats every canonical phrase
-    on it (LERF relevance > 0.5, the paper's relevance); otherwise the answer is empty and the
+    """``"canonical"``: a mask answers the query only when the query beats every canonical phrase of the
+    protocol on it (LERF relevance > 0.5 at the protocol's temperature); otherwise the answer is empty and the
     time-sensitive score undefined (NaN). ``"best"``: always answer with the best-matching mask."""
-    canonical_phrases: tuple[str, ...] = CANONICAL_PHRASES
-    """LERF's negative phrases (paper and release: object, things, stuff, texture)."""
-    temperature: float = 10.0
-    """Scale ``s`` of the LERF relevance ``sigmoid(s (q.f - c.f))`` (paper and release: 10)."""
 
     def __post_init__(self) -> None:
         if self.match_rule not in ("canonical", "best"):
             raise ValueError(f"match_rule must be 'canonical' or 'best', got {self.match_rule!r}")
         if self.camera_weight < 0:
             raise ValueError("camera_weight must be >= 0")
-        self.canonical_phrases = tuple(self.canonical_phrases)
 
 
 SPEC = MethodSpec(

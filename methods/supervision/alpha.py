@@ -5,7 +5,7 @@ D-NeRF's RGBA frames carry an exact whole-object mask. On TRAINING frames:
 * the ``alpha`` segmenter cuts each frame into two masks at every level: the object (alpha) and the
   background (everything else), so every pixel is supervised as a real segmenter's would be;
 * the ``object-name`` image-text source gives the object mask the text embedding of the scene's
-  object name (:data:`benchmark.loaders.dnerf.OBJECT_QUERIES`, else the scene name) and the
+  object name (the scene's whole-object query: its annotation file, or the run's ``object_query``) and the
   background mask the embedding of ``background_text``, as passages of the run's text encoder.
 
 Like the synthetic oracle, they isolate the 3D/4D method from 2D foundation models; evaluated frames'
@@ -59,10 +59,11 @@ class ObjectNameEncoder(ImageTextEncoder):
 
     def __init__(self, scene: Scene, text_encoder: TextEncoder, background_text: str = "background",
                  object_name: Optional[str] = None) -> None:
-        from benchmark.loaders.dnerf import OBJECT_QUERIES
-
+        if not object_name:
+            raise InputError(scene.root, "object_name", "the object-name source needs the object's name (the "
+                             "scene's whole-object query, or --object-query); a folder name is no name")
         self._text_encoder = text_encoder
-        self.object_name = object_name or OBJECT_QUERIES.get(scene.name, scene.name)
+        self.object_name = object_name
         self.background_text = background_text
 
     @property
