@@ -142,7 +142,7 @@ def label_groups(x: Sequence[float], y: Sequence[float], *, x_log: bool, toleran
 
 
 def pareto(results_dir: str | Path = "results", reports_dir: str | Path = "reports") -> list[Path]:
-    """Write ``reports/pareto_<dataset>_<track>.{png,pdf}``; returns the files written.
+    """Write ``reports/pareto_<dataset>_<track>_<protocol>.{png,pdf}``; returns the files written.
 
     Each row of panels compares the methods on the scenes all of them ran (:func:`chart_points`),
     named in the row's title line; points that coincide share one stacked label."""
@@ -151,7 +151,7 @@ def pareto(results_dir: str | Path = "results", reports_dir: str | Path = "repor
     if not len(runs):
         raise InputError(results_dir, None, "no results files to plot (run bench4d run-all first)")
     written: list[Path] = []
-    for (dataset, track), group_runs in runs.groupby(["dataset", "track"], sort=True):
+    for (dataset, track, protocol), group_runs in runs.groupby(["dataset", "track", "protocol"], sort=True):
         kinds = [k for k in ("agnostic", "sensitive") if group_runs[ACCURACY_METRICS[k][0]].notna().any()]
         fig, axes = plt.subplots(len(kinds), 2, figsize=(10, 4.4 * len(kinds)), squeeze=False, layout="constrained")
         palette = plt.rcParams["axes.prop_cycle"].by_key()["color"]
@@ -196,13 +196,13 @@ def pareto(results_dir: str | Path = "results", reports_dir: str | Path = "repor
                 ax.xaxis.set_minor_formatter(NullFormatter())
                 ax.set_xlabel(label)
                 ax.set_ylabel(f"{metric} (%) ↑")
-                ax.set_title(f"{dataset} / {track}: {metric} vs {'query speed' if col == 0 else 'fit time'}\n"
+                ax.set_title(f"{dataset} / {track} / {protocol}: {metric} vs {'query speed' if col == 0 else 'fit time'}\n"
                              f"{where}", fontsize=9)
                 ax.grid(True, which="both", alpha=0.3)
                 if col == 0:
                     ax.legend(fontsize=7, loc="best")
         fig.suptitle("error bars: std over seeds (seeds that ran all the scenes named)", fontsize=9)
-        written += _save(fig, Path(reports_dir) / f"pareto_{dataset}_{track}")
+        written += _save(fig, Path(reports_dir) / f"pareto_{dataset}_{track}_{protocol}")
         plt.close(fig)
     return written
 

@@ -69,6 +69,9 @@ class MethodSpec:
     """Query kinds it answers."""
     devices: tuple[str, ...] = ("cpu", "cuda")
     """Devices it runs on."""
+    floor: bool = False
+    """A floor, not a competitor: it answers from the training frames' 2D supervision without going
+    through the protocol's query; the leaderboard shows it in its own labelled row and never ranks it."""
     code: tuple[str, ...] = ()
     """Further modules or packages (dotted names) whose source the fit depends on, e.g.
     ``("methods.gaussians", "methods.fields")``: their files are hashed into the fit cache key with

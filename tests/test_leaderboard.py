@@ -11,6 +11,7 @@ import pandas as pd
 import pytest
 
 from benchmark.errors import InputError
+from benchmark.protocol import PROTOCOLS
 from benchmark.leaderboard import build_leaderboard
 from benchmark.plots import chart_points, label_groups, pareto, pareto_front, timeline
 from benchmark.results import MEAN_SCENE, find_results, load_results, results_path, runs_table, seed_summary, write_results
@@ -18,8 +19,8 @@ from benchmark.results import MEAN_SCENE, find_results, load_results, results_pa
 # (method, scene, seed) -> mIoU; Acc = mIoU - 10; fps and fit time per method
 MIOU = {("alpha", "s1"): [50.0, 52.0, 54.0], ("alpha", "s2"): [60.0, 60.0, 60.0],
         ("beta", "s1"): [70.0, 71.0, 72.0], ("beta", "s2"): [40.0, 44.0, 48.0]}
-FPS = {"alpha": 100.0, "beta": 2.0, "gamma": 1.0, "delta": 1.0, "epsilon": 1.0, "zeta": 1.0}
-FIT = {"alpha": 0.5, "beta": 300.0, "gamma": 10.0, "delta": 10.0, "epsilon": 10.0, "zeta": 10.0}
+FPS = {"alpha": 100.0, "beta": 2.0, "gamma": 1.0, "delta": 1.0, "epsilon": 1.0, "zeta": 1.0, "nearest-frame": 1.0}
+FIT = {"alpha": 0.5, "beta": 300.0, "gamma": 10.0, "delta": 10.0, "epsilon": 10.0, "zeta": 10.0, "nearest-frame": 1.0}
 
 
 def _doc(method: str, scene: str, seed: int, miou: float) -> dict:
@@ -30,7 +31,7 @@ def _doc(method: str, scene: str, seed: int, miou: float) -> dict:
                        "gt_pixels": 4, "score": 0.1 * (i % 5), "smoothed": 0.1 * (i % 5) + 0.01,
                        "decision": i % 5 >= 2, "label": 6 <= t <= 12})
     return {"method": method, "dataset": "synthetic", "scene": scene, "track": "oracle", "seed": seed,
-            "splits": ["test"],
+            "splits": ["test"], "protocol": PROTOCOLS["release"].to_dict(),
             "metrics": {"mIoU": miou, "mAcc": 90.0 + seed, "Acc": miou - 10.0, "vIoU": miou / 2,
                         "agnostic_queries": 3, "sensitive_queries": 1, "frames_scored": 40},
             "timing": {"fit_seconds": FIT[method], "fit_cached": False,
@@ -50,6 +51,41 @@ def _write_all(root: Path, order_seed: int) -> None:
     random.Random(order_seed).shuffle(items)
     for m, s, seed, v in items:
         write_results(results_path(root, "synthetic", s, m, "oracle", seed), _doc(m, s, seed, v))
+
+
+def test_protocols_get_their_own_tables_floors_are_not_ranked_and_means_show_their_ceiling_share(tmp_path):
+    from benchmark.atomic import write_json
+
+    root = tmp_path / "results"
+    for method, protocol, values in (("alpha", "release", (56.0, 42.0)), ("gamma", "release", (28.0, 21.0)),
+                                     ("nearest-frame", "release", (99.0, 99.0)), ("beta", "paper-text", (30.0, 30.0))):
+        for scene, v in zip(("s1", "s2"), values):
+            doc = {**_doc(method, scene, 0, v), "protocol": PROTOCOLS[protocol].to_dict()}
+            write_results(results_path(root, "synthetic", scene, method, "oracle", 0), doc)
+    reports = tmp_path / "rep"
+    current = {"current": True}
+    write_json(reports / "ablations" / "protocol-ceiling.json", {"scenes": {
+        "s1": {"scene_version": current, "variants": {"release": {"mIoU": 0.8, "vIoU": 0.5},
+                                                      "paper-text": {"mIoU": 0.5, "vIoU": 0.25}}},
+        "s2": {"scene_version": current, "variants": {"release": {"mIoU": 0.6, "vIoU": 0.5},
+                                                      "paper-text": {"mIoU": 0.5, "vIoU": 0.25}}}}})
+    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=reports)
+    text = (tmp_path / "lb.md").read_text()
+    release, paper = text.index("protocol: release (default)"), text.index("protocol: paper-text")
+    assert release < paper
+    table = text[release:paper].split("### Time-agnostic queries")[1].split("###")[0]
+    header = next(line for line in table.splitlines() if line.startswith("| method |")).split("|")
+    share = header.index(" % of ceiling (mIoU) ↑ ")
+    rows = {line.split("|")[1].strip(): line.split("|") for line in table.splitlines() if line.startswith("| ")}
+    assert rows["alpha"][share].strip() == "**70.00**"  # (56 + 42) / 2 = 49 of (80 + 60) / 2 = 70
+    assert rows["gamma"][share].strip() == "35.00"
+    floor = rows["_nearest-frame (2D floor, not ranked)_"]
+    assert floor[share].strip() == "141.43" and "**" not in "|".join(floor)  # above the ceiling, never ranked
+    assert list(rows)[-1].startswith("_nearest-frame")  # below the methods it is a floor for
+    paper_table = text[paper:].split("### Time-agnostic queries")[1].split("###")[0]
+    beta = next(line for line in paper_table.splitlines() if line.startswith("| beta |")).split("|")
+    assert beta[share].strip() == "60.00"  # against the paper-text ceiling, not the release one
+    assert (reports / "leaderboard_synthetic_oracle_release.csv").is_file()
 
 
 def test_summary_means_stds_and_dataset_mean_per_seed(tmp_path):
@@ -167,7 +203,7 @@ def test_pareto_front_keeps_only_non_dominated_points():
 def test_charts_are_written_as_png_and_pdf(tmp_path):
     _write_all(tmp_path / "results", 0)
     written = pareto(tmp_path / "results", tmp_path / "reports")
-    assert sorted(p.name for p in written) == ["pareto_synthetic_oracle.pdf", "pareto_synthetic_oracle.png"]
+    assert sorted(p.name for p in written) == ["pareto_synthetic_oracle_release.pdf", "pareto_synthetic_oracle_release.png"]
     assert all(p.stat().st_size > 1000 for p in written)
     tl = timeline("beta", "s1", "cracked cookie", results_dir=tmp_path / "results", reports_dir=tmp_path / "reports")
     assert {p.suffix for p in tl} == {".png", ".pdf"}

@@ -490,7 +490,7 @@ def _write_timing(args, kind: str, suffix: str, result: dict, md: str) -> int:
     return 0
 
 
-CEILING_VARIANTS = {"release (default)": {},
+CEILING_VARIANTS = {"release": {},
                     "paper-text": {"threshold_rule": "rescaled"},
                     "release, fixed 29/7 windows": {"kernel_scaling": "fixed"},
                     "paper-text, fixed 29/7 windows": {"threshold_rule": "rescaled", "kernel_scaling": "fixed"}}

@@ -37,4 +37,5 @@ SPEC = MethodSpec(
     paper="",
     tracks=("oracle", "real"),
     queries=("agnostic", "sensitive"),
+    floor=True,
 )
