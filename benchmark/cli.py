@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eval": ("eval", "fit a method on a scene, answer every annotated query, score and record"),
     "run-all": ("run_all", "evaluate methods x scenes x seeds; mean and spread over seeds"),
     "leaderboard": ("leaderboard", "regenerate leaderboard.md and reports/*.csv from results"),
+    "paper-tables": ("paper_tables", "every table of the paper with the published numbers beside ours"),
     "plot": ("plot", "charts: pareto (accuracy vs speed), timeline (similarity over time)"),
     "annotate": ("annotate", "local web app to annotate query masks and time segments"),
     "demo": ("demo", "the main job: a synthetic scene end to end, printing metrics and timings"),

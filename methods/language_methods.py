@@ -109,7 +109,7 @@ def _stable_hash(obj: Any) -> str:
     return stable_hash(obj, 24)
 
 
-def _device_kind(device: str | torch.device) -> str:
+def device_kind(device: str | torch.device) -> str:
     return "cuda" if torch.device(device).type == "cuda" else "cpu"
 
 
@@ -190,7 +190,7 @@ def shared_cache_root(config: LanguageMethodConfig, work_dir: Optional[Path]) ->
     return None
 
 
-def _scene_folder(root: Path, scene: Scene) -> Path:
+def scene_cache_folder(root: Path, scene: Scene) -> Path:
     return root / CACHE_SUBDIR / f"{scene.dataset}-{scene.name}"
 
 
@@ -222,7 +222,7 @@ def geometry_key(scene: Scene, kind: str, config: LanguageMethodConfig, seed: in
     from .supervision.cache import scene_fingerprint
 
     return _stable_hash({"kind": kind, "recon": config_to_dict(recon_config(config, seed)), "seed": seed,
-                         "device": _device_kind(device), "scene": scene_fingerprint(scene, scene.train_frames),
+                         "device": device_kind(device), "scene": scene_fingerprint(scene, scene.train_frames),
                          "code": source_hash(GEOMETRY_SOURCES)})
 
 
@@ -232,7 +232,7 @@ def fit_geometry(scene: Scene, kind: str, config: LanguageMethodConfig, *, seed:
     if kind not in ("3dgs", "4dgs"):
         raise ValueError(f"geometry kind must be '3dgs' or '4dgs', got {kind!r}")
     key = geometry_key(scene, kind, config, seed, device)
-    path = None if cache_root is None else _scene_folder(cache_root, scene) / f"geometry-{kind}-{key}.pt"
+    path = None if cache_root is None else scene_cache_folder(cache_root, scene) / f"geometry-{kind}-{key}.pt"
     if path is not None and path.is_file():
         saved = _torch_load(path, device)
         if saved is not None and saved.get("key") == key:
@@ -373,9 +373,9 @@ def fit_language_field(scene: Scene, supervision: Supervision, config: LanguageM
                         "unmasked_text": config.unmasked_text, "autoencoder": config_to_dict(ae_cfg),
                         **({} if config.ae_sample_weighting == "pixels" else  # keys of earlier fits kept
                            {"ae_sample_weighting": config.ae_sample_weighting}),
-                        "field": config_to_dict(f_cfg), "seed": seed, "device": _device_kind(device),
+                        "field": config_to_dict(f_cfg), "seed": seed, "device": device_kind(device),
                         "code": [source_hash(FIELD_FIT_SOURCES), FIELD_FIT_VERSION]})
-    path = None if cache_root is None else _scene_folder(cache_root, scene) / f"field-{kind}-{key}.pt"
+    path = None if cache_root is None else scene_cache_folder(cache_root, scene) / f"field-{kind}-{key}.pt"
     if path is not None and path.is_file():
         saved = _torch_load(path, device)
         if saved is not None and saved.get("key") == key:

@@ -335,3 +335,34 @@ def test_time_sensitive_table_shows_score_auc_ranked_and_near_threshold_share_un
         assert rows[name][near_col] == f"{near:.2f}"  # never bold
     assert rows["beta"][auc_col] == "**100.00**" and not rows["alpha"][auc_col].startswith("**")
     assert expected(beta)[1] == 90.0  # 9 of 10 decisions within 5 % of the range (0.205 - 0 = 0.205)
+
+
+def test_paper_tables_put_the_published_numbers_beside_ours_with_rank_agreement(tmp_path):
+    from benchmark.cli import main
+    from benchmark.paper_tables import AGNOSTIC_METHODS, kendall_tau
+    from benchmark.synthetic.digest import expected_digest
+
+    assert kendall_tau({"a": 1, "b": 2, "c": 3}, {"a": 3, "b": 2, "c": 1}) == (pytest.approx(-1.0), 3)
+    assert math.isnan(kendall_tau({"a": 1}, {"a": 2, "b": 1})[0])
+    root = tmp_path / "results"
+    presets = ("americano", "chickchicken", "split-cookie", "espresso", "keyboard", "torchocolate")
+    # the paper's order reversed: Feature-3DGS best, 4D LangSplat worst
+    for rank, method in enumerate(AGNOSTIC_METHODS):
+        for scene in presets:
+            current = {"preset": scene, "size": 128, "seed": 0, "digest": expected_digest(scene, 128)}
+            write_results(results_path(root, "synthetic", scene, method, "oracle", 0),
+                          {**_doc("alpha", scene, 0, 80.0 - 10 * rank), "method": method,
+                           "scene_info": {"generated": current}})
+    out = tmp_path / "paper-tables.md"
+    assert main(["paper-tables", "--results-dir", str(root), "--reports-dir", str(tmp_path / "rep"),
+                 "--out", str(out)]) == 0
+    text = out.read_text()
+    agnostic = text.split("## Time-agnostic queries, HyperNeRF")[1].split("## ")[0]
+    row = next(line for line in agnostic.splitlines() if line.startswith("| Feature-3DGS |"))
+    assert "| 34.65 / 80.00 |" in row and row.endswith("| 36.63 / 80.00 | 74.02 / 90.00 |")
+    assert "Kendall's tau = -1.00" in agnostic and "is best here: no (best here: Feature-3DGS)" in agnostic
+    assert "protocol `release`" in text and "held-out frames" in text
+    assert "## Number of states K" in text and "## Query speed" in text
+    # another protocol's runs are not this table's
+    assert main(["paper-tables", "--results-dir", str(root), "--protocol", "paper-text", "--out", str(out)]) == 0
+    assert "| 34.65 / – |" in out.read_text()

@@ -31,11 +31,14 @@ def test_nearest_frame_is_registered_and_listed_without_importing_its_code():
     assert cls.supports == frozenset({"agnostic", "sensitive"})
 
 
-def test_unknown_method_suggests_close_name_and_paper_only_methods_are_not_runnable():
+def test_unknown_method_suggests_close_name_and_paper_only_methods_are_not_runnable(monkeypatch):
+    from methods.specs import paper_numbers
+
     with pytest.raises(InputError, match="did you mean 'nearest-frame'"):
         registry.get("nearest-frme")
+    monkeypatch.setitem(paper_numbers.PAPER_NUMBERS, "segment-any-4d", {"display": "SA4D", "results": {}})
     with pytest.raises(InputError, match="not implemented here yet"):
-        registry.get("gaussian-grouping")
+        registry.get("segment-any-4d")
 
 
 def test_config_overrides_are_parsed_by_field_type_and_checked():
@@ -45,7 +48,7 @@ def test_config_overrides_are_parsed_by_field_type_and_checked():
     with pytest.raises(InputError, match="did you mean 'camera_weight'"):
         spec.make_config({"camera_weigth": "1"})
     with pytest.raises(InputError, match="cannot read"):
-        spec.make_config({"temperature": "hot"})
+        spec.make_config({"camera_weight": "far"})
 
 
 def test_spec_rejects_bad_declarations():
@@ -179,4 +182,6 @@ def test_methods_command_lists_methods_tracks_and_sources(capsys):
     assert main(["methods"]) == 0
     out = capsys.readouterr().out
     assert "nearest-frame [default]" in out and "oracle-text" in out and "minilm" in out
-    assert "Known by paper numbers only" in out and "4d-langsplat" in out
+    # every method of the paper's tables runs here: none is known by its numbers only
+    assert "Known by paper numbers only" not in out
+    assert all(f"  {name}" in out for name in ("4d-langsplat", "feature-3dgs", "gaussian-grouping"))

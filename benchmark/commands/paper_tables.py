@@ -1,0 +1,34 @@
+"""``bench4d paper-tables``: every table of the paper with the published numbers beside ours.
+
+    bench4d paper-tables [--results-dir results] [--reports-dir reports] [--protocol release] [--track oracle]
+                         [--out reports/paper-tables.md]
+
+Reads results files only (no fit): see :mod:`benchmark.paper_tables`.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ._common import add_protocol_argument
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--results-dir", type=Path, default=Path("results"))
+    parser.add_argument("--reports-dir", type=Path, default=Path("reports"),
+                        help="where the query-speed reports are read from")
+    add_protocol_argument(parser)
+    parser.add_argument("--track", choices=("oracle", "real"), default="oracle")
+    parser.add_argument("--out", type=Path, default=Path("reports/paper-tables.md"))
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..atomic import write_text
+    from ..paper_tables import render
+
+    text = render(args.results_dir, args.reports_dir, protocol=args.protocol, track=args.track)
+    write_text(args.out, text)
+    print(text)
+    print(f"wrote {args.out}")
+    return 0
