@@ -27,7 +27,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "annotate": ("annotate", "local web app to annotate query masks and time segments"),
     "demo": ("demo", "the main job: a synthetic scene end to end, printing metrics and timings"),
     "cache": ("cache", "what the cache folder holds; prune leftovers of interrupted runs or unreferenced fits"),
-    "ablate": ("ablate", "ablations of the time-varying field: delta-sim (caption prompts), states (K), speed"),
+    "ablate": ("ablate", "analyses: protocol ceiling, rescore under another protocol, gap, autoencoder, states (K), "
+                         "delta-sim (caption prompts), decisions, speed"),
 }
 
 RECORDING_COMMANDS = frozenset({"eval", "run-all", "recon", "ablate", "demo"})

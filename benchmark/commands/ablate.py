@@ -156,7 +156,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     ae.add_argument("--name", default="autoencoder-ceiling", help="output file stem under --out")
     ae.add_argument("--out", type=Path, default=Path("reports/ablations"))
     ae.add_argument("--quiet", action="store_true")
-    r = sub.add_parser("rescore", help="re-answer recorded runs with other query-rule options (same fits)")
+    r = sub.add_parser("rescore", help="re-answer recorded runs under another protocol or answer options (same fits)")
     r.add_argument("--name", required=True, help="ablation name: runs go to <results-dir>/ablations/<name>/")
     r.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="an answer option to change (repeatable), e.g. uncovered_alpha=0.3")
