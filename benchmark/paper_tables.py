@@ -18,7 +18,7 @@ from typing import Any, Optional, Sequence
 import pandas as pd
 
 from .atomic import read_json
-from .protocol import DEFAULT_PROTOCOL, SCORED_FRAMES_NOTE
+from .protocol import DEFAULT_PROTOCOL, RELEASE_DEFECTS_NOT_COPIED, SCORED_FRAMES_NOTE
 from .results import comparable_runs, find_results, load_results, protocol_of, runs_table, seed_summary
 
 SYNTHETIC_ANALOGUE = {("hypernerf", s): s for s in
@@ -225,7 +225,8 @@ def render(results_dir: str | Path = "results", reports_dir: str | Path = "repor
              f"Paper: {PAPER_SOURCE}. Ours: `{results_dir.as_posix()}/`, protocol `{protocol}`, track `{track}`, "
              f"seeds {seeds}; scored frames: {SCORED_FRAMES_NOTE}. The paper's scenes are real videos; ours are "
              "the synthetic presets modelled on them (same objects, state changes and camera kind, exact "
-             "ground truth), so the comparison is of orderings, not of values.", ""]
+             "ground truth), so the comparison is of orderings, not of values.", "",
+             "Release behaviours not copied (both protocols): " + "; ".join(RELEASE_DEFECTS_NOT_COPIED) + ".", ""]
     lines += _comparison("Time-agnostic queries, HyperNeRF (paper Table 2 and per-scene table)", "hypernerf",
                          AGNOSTIC_METHODS, ("mIoU", "mAcc"), ours, PAPER_NUMBERS,
                          "Ours: the six HyperNeRF-like presets.")

@@ -222,7 +222,7 @@ DEFAULT_PROTOCOL = "release"
 RELEASE_DEFECTS_NOT_COPIED: tuple[str, ...] = (
     "annotation files: the release reads only the first polygon of an annotation; every polygon of a "
     "label in an image is OR-ed here",
-    "vIoU with no frame predicted or labelled positive: the release divides by zero (returns 0); here it is "
+    "vIoU with no frame predicted or labelled positive: the release returns 0; here it is "
     "1 (the method correctly says 'never'; never arises with the release's annotations)",
 )
 """Release behaviours that change what a query means or crash; both presets keep them fixed."""
