@@ -30,6 +30,10 @@ from ..polygons import polygons_to_mask
 from ..release import COCO_RELATIVE_PATH, VIDEO_RELATIVE_PATH, export_release, import_release
 
 
+MAX_MASK_SIDE = 16384
+"""Largest mask side an imported file may declare (a decoder allocates height x width first)."""
+
+
 def _frame_base(scene: Scene) -> int:
     """The release numbers HyperNeRF frames from 1 and everything else from 0."""
     return 1 if scene.dataset == "hypernerf" else 0
@@ -207,7 +211,16 @@ def _import_coco(doc, file: str, scene: Scene, current: AnnotationSet) -> Annota
             src_w, src_h = im["width"], im["height"]
         if isinstance(seg, dict):
             from ..format import validate_rle
+            from .session import check_runs
 
+            size = seg.get("size")
+            if (isinstance(size, list) and len(size) == 2
+                    and all(isinstance(v, int) and not isinstance(v, bool) for v in size)):
+                if not all(0 < v <= MAX_MASK_SIDE for v in size):
+                    raise InputError(file, f"{field}.segmentation.size", f"expected sides in 1..{MAX_MASK_SIDE}")
+                if isinstance(seg.get("counts"), list):
+                    # the checks a decoder cannot be trusted with (int64 sums wrap), before it sees the runs
+                    check_runs(seg["counts"], size[0], size[1], f"{field}.segmentation", file)
             rle = validate_rle(seg, file, f"{field}.segmentation")
             m = decode_mask(rle)
             if m.shape != (f.height, f.width):

@@ -20,7 +20,10 @@ import datetime as _dt
 import fcntl
 import io
 import json
+import math
 import os
+import re
+import shutil
 import threading
 import time
 import zipfile
@@ -41,6 +44,11 @@ from ..propagate import PropagationConfig, propagate_between, propagate_chain
 from .review import ReviewConfig, review
 
 TOOL_NAME = "bench4d annotate"
+MAX_CLICKS = 1000
+"""Most corrective clicks one segmentation request may carry."""
+MAX_COORDINATE = 1e6
+"""Box and click coordinates (pixels) beyond this are refused: far outside any frame, and near the
+limits of the integer pixel arithmetic of the segmenters."""
 
 
 class Conflict(Exception):
@@ -117,19 +125,51 @@ def mask_to_runs(mask: np.ndarray) -> list[int]:
     return runs
 
 
+def check_runs(runs: Any, height: int, width: int, field: str = "mask", file: Optional[str] = None) -> list[int]:
+    """Validate run lengths for an (H, W) mask before any decoder sees them; returns them.
+
+    Every run must be a non-negative ``int`` and the runs must add up to exactly H x W, checked in
+    Python integers: in int64, runs such as ``[HW, 2**63 - 1, 2**63 - 1, 2]`` wrap around to the
+    right sum, and a decoder trusting that sum writes far past its buffer.
+    """
+    name = f"{field}.counts"
+    if not isinstance(runs, list):
+        raise InputError(file, name, "expected a list of integer run lengths")
+    total = height * width
+    if len(runs) > total + 1:  # even a checkerboard needs at most H x W + 1 runs
+        raise InputError(file, name, f"{len(runs)} runs for a {height}x{width} frame (at most {total + 1})")
+    if not all(isinstance(r, int) and not isinstance(r, bool) for r in runs):
+        raise InputError(file, name, "expected a list of integer run lengths")
+    if runs and min(runs) < 0:
+        raise InputError(file, name, "negative run length")
+    if runs and max(runs) > total:
+        raise InputError(file, name, f"a run is longer than the frame's {height}x{width}={total} pixels")
+    covered = sum(runs)  # Python ints: no wrap-around
+    if covered != total:
+        raise InputError(file, name, f"runs cover {covered} pixels, the frame has {height}x{width}={total}")
+    return runs
+
+
 def runs_to_mask(runs: Any, height: int, width: int, field: str = "mask") -> np.ndarray:
     """Inverse of :func:`mask_to_runs`, validated (an :class:`InputError` names ``field``)."""
-    if not isinstance(runs, list) or not all(isinstance(r, int) and not isinstance(r, bool) for r in runs):
-        raise InputError(None, f"{field}.counts", "expected a list of integer run lengths")
-    counts = np.asarray(runs, dtype=np.int64)
-    if counts.size and counts.min() < 0:
-        raise InputError(None, f"{field}.counts", "negative run length")
-    if int(counts.sum()) != height * width:
-        raise InputError(None, f"{field}.counts",
-                         f"runs cover {int(counts.sum())} pixels, the frame has {height}x{width}={height * width}")
-    values = (np.arange(counts.size) % 2).astype(bool)
-    flat = np.repeat(values, counts)
-    return flat.reshape(width, height).T.copy()
+    runs = check_runs(runs, height, width, field)
+    try:
+        counts = np.asarray(runs, dtype=np.int64)  # each run is at most H x W: no overflow
+        values = (np.arange(counts.size) % 2).astype(bool)
+        flat = np.repeat(values, counts)
+        return flat.reshape(width, height).T.copy()
+    except (ValueError, OverflowError) as err:  # not expected after check_runs: a second line of defence
+        raise InputError(None, f"{field}.counts", f"cannot decode: {err}") from None
+
+
+def _coordinate(v: Any) -> bool:
+    """A finite number of reasonable size (``float()`` of a 400-digit int raises, ``inf`` poisons GrabCut)."""
+    if not isinstance(v, (int, float)) or isinstance(v, bool):
+        return False
+    try:
+        return math.isfinite(float(v)) and abs(float(v)) <= MAX_COORDINATE
+    except OverflowError:
+        return False
 
 
 def _mask_payload(rle: Optional[dict]) -> Optional[dict]:
@@ -198,9 +238,13 @@ class AnnotationSession:
         self._images: collections.OrderedDict[int, np.ndarray] = collections.OrderedDict()
         self._image_lock = threading.Lock()
         self._lockfile = LockFile(self.path) if lock else None
+        self.removed_temp_files: list[str] = []
+        """Temporary files of interrupted writes found and removed at start (see :func:`remove_interrupted_writes`)."""
         if self._lockfile is not None:
             self._lockfile.acquire({"pid": os.getpid(), "started": _now()})
         try:
+            if self._lockfile is not None:  # only the lock holder writes these files
+                self.removed_temp_files = remove_interrupted_writes(self.path)
             self.aset = self._open(self.path)
         except BaseException:
             self.close()
@@ -482,11 +526,9 @@ class AnnotationSession:
             raise InputError(None, "timing", "expected {frame index: seconds}")
         spent = self.aset.info.setdefault("annotation_seconds", {})
         for key, seconds in timing.items():
-            try:
-                index = int(key)
-            except (TypeError, ValueError):
-                raise InputError(None, "timing", f"bad frame index {key!r}") from None
-            frame = self.frame(index)
+            if not isinstance(key, str) or not re.fullmatch(r"[0-9]{1,9}", key):  # ASCII: int() takes '١'
+                raise InputError(None, "timing", f"bad frame index {str(key)[:40]!r}")
+            frame = self.frame(int(key))
             if not isinstance(seconds, (int, float)) or isinstance(seconds, bool) or not 0 <= seconds < 86400:
                 raise InputError(None, f"timing.{key}", f"expected seconds in [0, 86400), got {seconds!r}")
             spent[frame.name] = round(float(spent.get(frame.name, 0.0)) + float(seconds), 2)
@@ -542,15 +584,17 @@ class AnnotationSession:
         """Assisted segmentation on frame ``index``; returns the mask in the page's format."""
         frame = self.frame(index)
         h, w = frame.camera.height, frame.camera.width
-        if box is not None and (not isinstance(box, list) or len(box) != 4
-                                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in box)):
-            raise InputError(None, "box", "expected [x0, y0, x1, y1] or null")
+        if box is not None and (not isinstance(box, list) or len(box) != 4 or not all(_coordinate(v) for v in box)):
+            raise InputError(None, "box", f"expected [x0, y0, x1, y1] of finite numbers within +-{MAX_COORDINATE:g} "
+                                          "or null")
         if not isinstance(clicks, list):
             raise InputError(None, "clicks", "expected a list of [x, y, label]")
+        if len(clicks) > MAX_CLICKS:
+            raise InputError(None, "clicks", f"{len(clicks)} clicks; at most {MAX_CLICKS}")
         parsed = []
         for n, c in enumerate(clicks):
-            if (not isinstance(c, list) or len(c) != 3 or c[2] not in (0, 1)
-                    or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in c[:2])):
+            if (not isinstance(c, list) or len(c) != 3 or isinstance(c[2], float) or c[2] not in (0, 1)
+                    or not all(_coordinate(v) for v in c[:2])):
                 raise InputError(None, f"clicks[{n}]", "expected [x, y, 1 (object) | 0 (not object)]")
             parsed.append((float(c[0]), float(c[1]), int(c[2])))
         cur = None
@@ -582,7 +626,7 @@ class AnnotationSession:
         """
         self.frame(index)
         owner = self.owner(qid)
-        if direction not in (1, -1):
+        if not isinstance(direction, int) or isinstance(direction, bool) or direction not in (1, -1):
             raise InputError(None, "direction", "expected 1 (forward) or -1 (backward)")
         if not isinstance(count, int) or isinstance(count, bool) or count < 1:
             raise InputError(None, "count", "expected a positive integer")
@@ -654,8 +698,16 @@ class AnnotationSession:
         with self._lock:
             self._check_revision(revision)
             current = copy.deepcopy(self.aset)
-            new = import_set(fmt, Path(filename).name, data, self.scene, current, self.config)
-            validate_against_scene(new, self.scene, file=filename)
+            try:
+                new = import_set(fmt, Path(filename).name, data, self.scene, current, self.config)
+                validate_against_scene(new, self.scene, file=filename)
+            except InputError:
+                raise
+            except (ValueError, TypeError, KeyError, IndexError, AttributeError, OverflowError, RecursionError) as err:
+                # the upload is untrusted data: whatever its parsers trip over is a malformed file, and
+                # nothing has changed yet
+                raise InputError(Path(filename).name, None,
+                                 f"cannot read the file: {type(err).__name__}: {str(err)[:200]}") from None
             backup = None
             if self.path.exists():
                 backup = self.root / ".bench4d-backups" / f"{self.path.stem}.rev{self.revision}.json"
@@ -671,6 +723,42 @@ class AnnotationSession:
                 raise
         return {"revision": rev, "backup": None if backup is None else str(backup.relative_to(self.root)),
                 "queries": len(new.queries), "masks": len(new.masks)}
+
+
+_MKSTEMP = r"[a-z0-9_]{8}"  # the random part of tempfile.mkstemp / mkdtemp names
+
+
+def remove_interrupted_writes(path: Path) -> list[str]:
+    """Delete what a killed writer of annotation file ``path`` left behind; returns the names.
+
+    Every write goes through :func:`benchmark.atomic.atomic_path` (a ``.<name>.<random>.tmp`` file
+    beside the target, renamed over it when complete): a process killed before the rename leaves
+    that file, never a damaged target. The caller must hold the file's lock, so no live writer owns
+    one of these. Patterns are exact, so another annotation file's temporaries are left alone.
+    """
+    name, stem, root = re.escape(path.name), re.escape(path.stem), path.parent
+    places = [
+        (root, rf"\.{name}\.{_MKSTEMP}\.tmp"),
+        (root / ".bench4d-backups", rf"\.{stem}\.rev[0-9]+\.json\.{_MKSTEMP}\.tmp"),
+        (root / "exports", rf"\.?\.{stem}\.(?:json|coco-rle\.json)\.{_MKSTEMP}\.tmp(?:\.{_MKSTEMP}\.tmp)?"),
+        (root / "exports", rf"\.{stem}\.release\.{_MKSTEMP}"),  # a release export's staging folder
+    ]
+    removed = []
+    for folder, pattern in places:
+        if not folder.is_dir():
+            continue
+        for p in folder.iterdir():
+            if not re.fullmatch(pattern, p.name):
+                continue
+            try:
+                if p.is_dir() and not p.is_symlink():
+                    shutil.rmtree(p)
+                else:
+                    p.unlink()
+                removed.append(str(p.relative_to(root)))
+            except OSError:  # not ours to fight over: a later start tries again
+                pass
+    return removed
 
 
 def _rle_nonempty(rle: dict) -> bool:

@@ -1,7 +1,9 @@
 """``bench4d annotate SCENE_DIR --annotations FILE``: the local annotation web app.
 
 Starts a server on 127.0.0.1 (a free port by default) and prints the address to open, with a
-per-launch token in its fragment. Edits are saved to FILE about a second after they happen. See
+per-launch token in its fragment. Bound to any other address (``--host``), every request, reads
+included, needs that token. A port in use or an address that does not resolve is a one-line error
+and releases the annotation file's lock. Edits are saved to FILE about a second after they happen. See
 :mod:`annotations.tool.server` for the security model and :mod:`annotations.tool.session` for
 saving, revisions and the lock file.
 """
@@ -19,7 +21,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--annotations", required=True, metavar="FILE",
                         help="annotation file to edit (created on the first edit if missing)")
     parser.add_argument("--host", default="127.0.0.1",
-                        help="address to bind (default 127.0.0.1; anything else exposes the tool to the network)")
+                        help="address to bind (default 127.0.0.1; anything else exposes the tool to the network, "
+                             "and then every request, reads included, needs the printed token)")
     parser.add_argument("--port", type=int, default=0, help="port (default 0: a free one)")
     parser.add_argument("--split", default="all",
                         help="frames to offer: all, or a comma list of train/val/test (default all)")
