@@ -6,15 +6,17 @@ VENV ?= .venv
 TEST_VENV ?= .venv-test
 # torch first and pinned: the CPU build lies on local disk; an unpinned torch pulls a CUDA build.
 TORCH_SPEC ?= torch==2.13.0
+# the versions of the other dependencies the suite passes with (pyproject.toml keeps lower bounds only)
+CONSTRAINTS ?= constraints.txt
 PYTEST_ARGS ?= -n 2 -q
 
 .PHONY: setup demo test lint clean
 
-$(VENV)/.installed: pyproject.toml
+$(VENV)/.installed: pyproject.toml $(CONSTRAINTS)
 	$(PYTHON) -m venv $(VENV)
 	$(VENV)/bin/python -m pip install -q --upgrade pip
-	$(VENV)/bin/python -m pip install -q "$(TORCH_SPEC)"
-	$(VENV)/bin/python -m pip install -q -e ".[text,test]"
+	$(VENV)/bin/python -m pip install -q -c $(CONSTRAINTS) "$(TORCH_SPEC)"
+	$(VENV)/bin/python -m pip install -q -c $(CONSTRAINTS) -e ".[text,test]"
 	touch $@
 
 setup: $(VENV)/.installed
@@ -26,8 +28,8 @@ test:
 	rm -rf $(TEST_VENV)
 	$(PYTHON) -m venv $(TEST_VENV)
 	$(TEST_VENV)/bin/python -m pip install -q --upgrade pip
-	$(TEST_VENV)/bin/python -m pip install -q "$(TORCH_SPEC)"
-	$(TEST_VENV)/bin/python -m pip install -q -e ".[text,test]"
+	$(TEST_VENV)/bin/python -m pip install -q -c $(CONSTRAINTS) "$(TORCH_SPEC)"
+	$(TEST_VENV)/bin/python -m pip install -q -c $(CONSTRAINTS) -e ".[text,test]"
 	bash tests/browser_setup.sh
 	$(TEST_VENV)/bin/python -m pytest $(PYTEST_ARGS)
 

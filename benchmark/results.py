@@ -1,7 +1,8 @@
 """Run results files: the schema, atomic writing, reading, and tables over many runs.
 
 One file per run, ``<results>/<dataset>/<scene>/<method>/<track>/seed<N>.json`` (written by
-:func:`benchmark.runner.evaluate`), beside its predictions folder ``seed<N>.predictions/``.
+:func:`benchmark.runner.evaluate`), beside its predictions folder ``seed<N>.predictions/``. Writers of
+one file take turns (:func:`results_lock`); a file being replaced goes to ``<results>/archive/`` first.
 
 Schema (``"format": "bench4d-run"``, ``"version": 1``; metrics in percent, times in seconds,
 memory in MiB; ``null`` = not applicable)::
@@ -35,6 +36,7 @@ scenes of each seed first (the dataset number), then over seeds.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -246,9 +248,57 @@ def comparable_runs(runs: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
     return runs[~stale].reset_index(drop=True), runs[stale].reset_index(drop=True)
 
 
+@contextlib.contextmanager
+def exclusive_lock(lock_path: str | Path) -> Iterator[None]:
+    """Hold an exclusive ``flock`` on ``lock_path`` (created if missing) until the block ends; other
+    processes locking the same path wait. The holder removes the file before it lets go, so no lock file
+    outlives its writer (results folders are committed: one stray file per results file would litter
+    them). A waiter that then wakes on the removed file finds the path gone or naming another file, and
+    locks again. A process killed while holding it leaves the file behind: harmless, the next writer
+    locks and removes it."""
+    lock_path = Path(lock_path)
+    lock_path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:  # no flock on this platform (Windows): writers are not serialised there
+        yield
+        return
+    while True:
+        fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            held, now = os.fstat(fd), os.stat(lock_path)
+        except FileNotFoundError:  # removed by the holder we waited for: lock the path anew
+            os.close(fd)
+            continue
+        except BaseException:
+            os.close(fd)
+            raise
+        if (held.st_dev, held.st_ino) == (now.st_dev, now.st_ino):
+            break
+        os.close(fd)  # we locked a file its holder removed; another may hold the path's new file
+    try:
+        yield
+    finally:
+        try:
+            os.unlink(lock_path)
+        finally:
+            os.close(fd)  # unlinked first: a waiter on this file sees it gone and locks anew
+
+
+def results_lock(path: str | Path) -> contextlib.AbstractContextManager:
+    """The lock writers of results file ``path`` hold (``.<name>.lock`` beside it) across "archive the
+    file being replaced, write the predictions, write the results": two runs of the same method, scene,
+    track and seed finishing together would otherwise both find no file to archive, and the later would
+    overwrite the earlier's record. Readers never take it (every file is replaced atomically)."""
+    path = Path(path)
+    return exclusive_lock(path.with_name(f".{path.name}.lock"))
+
+
 def archive_results(path: str | Path, results_dir: str | Path, label: str) -> Path:
     """Move a results file and its predictions folder to ``results_dir/archive/<label>/`` (same
-    relative path), so a rerun never overwrites what was measured; returns the new file's path."""
+    relative path), so a rerun never overwrites what was measured; returns the new file's path. A writer
+    that may run beside others holds :func:`results_lock` around this and the writing that follows."""
     path, root = Path(path), Path(results_dir)
     target = root / ARCHIVE_DIR / label / path.relative_to(root)
     if target.exists():

@@ -16,7 +16,16 @@ One run = (method, scene, track, seed). :func:`evaluate`:
    and records fit time, peak memory, seeds, versions, git state, device, supervision;
 6. writes the predictions (``bench4d score`` format) and then ONE results JSON, each atomically:
    ``<results>/<dataset>/<scene>/<method>/<track>/seed<N>.json``. A results file exists only for a
-   complete run.
+   complete run. Writers of one results file are serialised (:func:`benchmark.results.results_lock`): a
+   file being replaced is moved to ``<results>/archive/`` first, so two runs finishing together both
+   keep their record.
+
+Queries of a kind the method does not answer are listed (``unanswered_queries`` in the results file and
+in the predictions' ``info``), not scored: :mod:`benchmark.metrics.scoring` states the rule, and
+``bench4d score`` of the predictions folder applies the same one.
+
+Caches are checked when read: a damaged cached fit (its ``fit.json`` or a model the method cannot load)
+or a damaged generated preset is made again, with a one-line warning on stderr.
 """
 
 from __future__ import annotations
@@ -46,7 +55,7 @@ from .atomic import read_json, write_json
 from .errors import InputError
 from .openblas import cpuinfo_value, openblas_core
 from .protocol import DEFAULT_PROTOCOL, get_protocol
-from .results import results_path, write_results
+from .results import exclusive_lock, results_lock, results_path, write_results
 from .scene import Frame, Scene
 
 DEFAULT_PRESET_SIZE = 128
@@ -118,6 +127,35 @@ class EvalOptions:
     which it inflates."""
 
 
+# -- warnings and paths -------------------------------------------------------------------------------
+def warn(message: str) -> None:
+    """One line on stderr, shown even under ``--quiet``: something found damaged is being made again."""
+    from tqdm.auto import tqdm
+
+    tqdm.write(f"warning: {' '.join(message.split())}", file=sys.stderr)
+
+
+def reason(err: BaseException) -> str:
+    """``err`` as one short line for a warning (messages of zipfile or numpy may span lines)."""
+    text = " ".join(str(err).split()) or type(err).__name__
+    text = text if len(text) <= 200 else text[:197] + "..."
+    return text if isinstance(err, InputError) else f"{type(err).__name__}: {text}"
+
+
+def check_folder(path: str | Path, option: str) -> None:
+    """An :class:`InputError` naming ``option`` unless ``path`` is a folder or can be made one: an existing
+    file there (or in place of a folder above it) would otherwise surface as a traceback from the first
+    write, possibly after a fit of hours."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise InputError(path, option, "is a file, not a folder")
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise InputError(path, option, f"cannot be made: {parent} is a file, not a folder")
+            break
+
+
 # -- scenes and ground truth -------------------------------------------------------------------------
 def _presets() -> dict:
     try:
@@ -142,18 +180,32 @@ def resolve_scene(spec: str | Path, cache_dir: Path, *, size: int = DEFAULT_PRES
                          f"presets: {', '.join(sorted(presets)) or 'none'}")
     # the folder is named after the preset: loaders name scenes after their folder
     target = Path(cache_dir) / "scenes" / f"{size}px" / name
+    # one process checks or makes a preset at a time: another would see it half cleared or replaced
+    with exclusive_lock(target.parent / f".{name}.lock"):
+        return _cached_preset(name, target, size, log)
+
+
+def _cached_preset(name: str, target: Path, size: int, log: Callable[[str], None]) -> Path:
+    """The preset ``name`` at ``target``: reused when sound and the committed version, else made anew."""
     from .synthetic.digest import expected_digest, scene_digest
 
     expected = expected_digest(name, size)
-    if (target / "annotations.json").is_file() and (target / "truth").is_dir():
-        if expected is None:
-            return target
-        found = scene_digest(target)
-        if found == expected:
-            return target
-        # a scene cached by other generator code would be measured under the preset's name: remake it
-        log(f"cached preset {name!r} at {target} is not the committed scene version "
-            f"(digest {found}, committed {expected}): regenerating")
+    if target.exists():
+        problem, found = _check_cached_scene(target)
+        if problem is None:
+            if expected is None or found == expected:
+                return target
+            # a scene cached by other generator code would be measured under the preset's name: remake it
+            log(f"cached preset {name!r} at {target} is not the committed scene version "
+                f"(digest {found}, committed {expected}): regenerating")
+        else:
+            warn(f"cached preset {name!r} at {target} is damaged ({problem}): regenerating it")
+            # the folder is the runner's own: clear it, so the generator does not refuse a folder whose
+            # description file is the damaged one
+            trash = target.parent / f".{target.name}.damaged-{os.getpid()}"
+            shutil.rmtree(trash, ignore_errors=True)
+            os.replace(target, trash)
+            shutil.rmtree(trash, ignore_errors=True)
     from .synthetic.generate import generate
 
     log(f"generating synthetic preset {name!r} at {size}px into {target}")
@@ -164,6 +216,42 @@ def resolve_scene(spec: str | Path, cache_dir: Path, *, size: int = DEFAULT_PRES
             f"(benchmark/synthetic/digests.json): its runs are not comparable with the leaderboard's until "
             f"`bench4d data digests --write` records the change")
     return out
+
+
+def _check_cached_scene(root: Path) -> tuple[Optional[str], Optional[str]]:
+    """``(problem, digest)`` of the cached generated scene ``root``: why it cannot be used as it is (a file
+    missing, truncated, its bytes flipped, keys missing) and None for a digest, or None and its digest
+    when every file the runner and the digest read is sound."""
+    from annotations.format import load_annotations
+
+    from .synthetic.digest import META_FILE, scene_digest
+    from .synthetic.truth import check_truth
+
+    try:
+        for required in ("annotations.json", META_FILE):
+            if not (root / required).is_file():
+                return f"{required} is missing", None
+        read_json(root / META_FILE)
+        check_truth(root)
+        load_annotations(root / "annotations.json")
+        digest = scene_digest(root)  # decodes every image and map: what a run and its record read
+    except Exception as err:  # noqa: BLE001 - whatever fails to read, the scene is made again
+        return reason(err), None
+    return None, digest
+
+
+def _scene_version(root: Path) -> Optional[dict]:
+    """:func:`~benchmark.synthetic.digest.scene_version` of a scene folder, with a damaged generated folder
+    given by path (the runner regenerates only its own cached presets) as one line naming it."""
+    from .synthetic.digest import scene_version
+
+    try:
+        return scene_version(root)
+    except InputError:
+        raise
+    except Exception as err:  # noqa: BLE001 - zipfile, zlib, numpy: a file of the scene is damaged
+        raise InputError(root, "scene", f"a file of this generated scene cannot be read ({reason(err)}); "
+                         "generate it again (bench4d data make-synthetic)") from None
 
 
 def dataset_label(scene: Scene) -> str:
@@ -422,12 +510,38 @@ class FitRecord:
     (``"process"``: the OS kept one mark, or a cached fit that did not record its window)."""
 
 
+def _read_fit_record(path: Path, key: str) -> dict:
+    """``fit.json`` of a cached fit, checked: the numbers :class:`FitRecord` takes from it, and the key it
+    was written under (an :class:`InputError` naming the file and field otherwise)."""
+    info = read_json(path)
+    if not isinstance(info, dict):
+        raise InputError(path, None, f"expected a JSON object, got {type(info).__name__}")
+    for name, optional in (("fit_seconds", False), ("peak_cpu_mib", False), ("peak_gpu_mib", True)):
+        if name not in info:
+            raise InputError(path, name, "missing required key")
+        value = info[name]
+        if (value is None and optional) or (isinstance(value, (int, float)) and not isinstance(value, bool)):
+            continue
+        raise InputError(path, name, f"expected a number{' or null' if optional else ''}, got {value!r}")
+    if info.get("key", key) != key:
+        raise InputError(path, "key", f"records fit {info['key']!r}, its folder is {key!r}")
+    if not isinstance(info.get("peak_window", "process"), str):
+        raise InputError(path, "peak_window", f"expected a string, got {info['peak_window']!r}")
+    return info
+
+
 def fit_or_load(spec, config, scene: Scene, supervision, *, seed: int, device: str, cache_dir: Path,
                 progress, refit: bool = False, reuse_key: Optional[str] = None,
                 head_from: Optional[str] = None) -> FitRecord:
     """Load the cached fit of this (method, config, seed, data, code), or fit and cache it
     (``reuse_key``: load that cached fit, whatever the key would be now; never fit. ``head_from``: the
-    cached fit of that key with only its time-varying head fitted anew, :attr:`EvalOptions.head_from`)."""
+    cached fit of that key with only its time-varying head fitted anew, :attr:`EvalOptions.head_from`).
+
+    A cached fit whose ``fit.json`` is malformed or whose model the method cannot load (any exception
+    from ``Method.load``: a truncated or corrupted file, a missing key) is fitted again, with a one-line
+    warning; one named by ``reuse_key`` or ``head_from`` is an :class:`InputError` instead (it cannot be
+    made again under its key). Processes fitting or loading one key take turns (a lock beside its
+    folder): the second loads what the first cached instead of fitting it again beside it."""
     from methods.supervision.cache import stable_hash
 
     method_cls = spec.load()
@@ -445,15 +559,35 @@ def fit_or_load(spec, config, scene: Scene, supervision, *, seed: int, device: s
     info_path = final / "fit.json"
     if reuse_key is not None and not info_path.is_file():
         raise InputError(info_path, "reuse_fit", f"no cached fit {reuse_key!r} of {spec.name} on {scene.name}")
+    with exclusive_lock(folder / f".{key}.lock"):
+        return _fit_or_load_locked(spec, method_cls, config, scene, supervision, seed=seed, device=device,
+                                   progress=progress, refit=refit, reuse_key=reuse_key, head_from=head_from,
+                                   folder=folder, key=key)
+
+
+def _fit_or_load_locked(spec, method_cls, config, scene: Scene, supervision, *, seed: int, device: str, progress,
+                        refit: bool, reuse_key: Optional[str], head_from: Optional[str], folder: Path,
+                        key: str) -> FitRecord:
+    """:func:`fit_or_load` once this process holds the key's lock."""
+    final = folder / key
+    info_path = final / "fit.json"
+    # partial folders of this key are a killed process's: a live writer of it would hold the lock
     for stale in folder.glob(f".{key}.partial-*") if folder.is_dir() else []:
-        shutil.rmtree(stale, ignore_errors=True)  # left by a killed process
+        shutil.rmtree(stale, ignore_errors=True)
     if info_path.is_file() and (not refit or reuse_key is not None):
-        info = read_json(info_path)
-        model = method_cls.load(final / "model", supervision=supervision, device=device)
-        if hasattr(model, "use_answer_options"):
-            model.use_answer_options(config)  # the fit may have been made with other answer options
-        return FitRecord(model, key, True, float(info["fit_seconds"]), float(info["peak_cpu_mib"]),
-                         info.get("peak_gpu_mib"), final, info.get("peak_window", "process"))
+        try:
+            info = _read_fit_record(info_path, key)
+            model = method_cls.load(final / "model", supervision=supervision, device=device)
+        except Exception as err:  # noqa: BLE001 - whatever a damaged fit raises, it is fitted again
+            if reuse_key is not None:
+                raise InputError(final, "reuse_fit", f"the cached fit {reuse_key!r} is damaged ({reason(err)}); a "
+                                 "reused fit is never fitted again") from None
+            warn(f"cached fit of {spec.name} on {scene.name} at {final} is damaged ({reason(err)}): fitting again")
+        else:
+            if hasattr(model, "use_answer_options"):
+                model.use_answer_options(config)  # the fit may have been made with other answer options
+            return FitRecord(model, key, True, float(info["fit_seconds"]), float(info["peak_cpu_mib"]),
+                             info.get("peak_gpu_mib"), final, info.get("peak_window", "process"))
 
     work = folder / f"{key}.work"
     work.mkdir(parents=True, exist_ok=True)
@@ -462,7 +596,11 @@ def fit_or_load(spec, config, scene: Scene, supervision, *, seed: int, device: s
     with memory.StagePeak(device) as peak:  # the fit's own peak (the run's still includes it)
         start = time.perf_counter()
         if head_from is not None:
-            base = method_cls.load(folder / head_from / "model", supervision=supervision, device=device)
+            try:
+                base = method_cls.load(folder / head_from / "model", supervision=supervision, device=device)
+            except Exception as err:  # noqa: BLE001 - a damaged base cannot be fitted again under its key
+                raise InputError(folder / head_from, "head_from", f"the cached fit {head_from!r} is damaged "
+                                 f"({reason(err)})") from None
             model = method_cls.refit_head(base, scene, supervision, config, seed=seed, device=device,
                                           progress=progress, work_dir=work)
         else:
@@ -484,8 +622,10 @@ def fit_or_load(spec, config, scene: Scene, supervision, *, seed: int, device: s
         if head_from is not None:
             info["head_refit_of"] = head_from  # geometry, field and autoencoder are that fit's
         write_json(tmp / "fit.json", info)
-        if final.exists():
-            shutil.rmtree(final)
+        if final.exists():  # a refit, or a damaged fit: moved aside whole first, never seen half deleted
+            old = folder / f".{key}.partial-replaced-{os.getpid()}"
+            os.replace(final, old)
+            shutil.rmtree(old, ignore_errors=True)
         os.replace(tmp, final)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -535,9 +675,10 @@ def evaluate(options: EvalOptions) -> RunOutcome:
     from .loaders import load_scene
     from .metrics import ScoreConfig, aggregate_scenes, score_scene
     from .predictions import QueryPrediction, ScenePredictions, write_predictions
-    from .synthetic.digest import scene_version
 
     progress = Progress(options.quiet)
+    check_folder(options.results_dir, "results_dir")
+    check_folder(options.cache_dir, "cache_dir")
     spec = registry.get(options.method)
     try:
         protocol = get_protocol(options.protocol)
@@ -551,6 +692,7 @@ def evaluate(options: EvalOptions) -> RunOutcome:
     peak_window = "run" if memory.reset_peak() else "process"
 
     root = resolve_scene(options.scene, Path(options.cache_dir), size=options.preset_size, log=progress.log)
+    generated = _scene_version(root)  # before the fit: a damaged generated folder stops the run now
     scene = load_scene(root) if options.scale is None else load_scene(root, scale=options.scale)
     aset: AnnotationSet = find_annotations(scene, options.annotations, options.object_query)
     eval_frames = _evaluated_frames(scene, aset, options.splits)
@@ -607,10 +749,11 @@ def evaluate(options: EvalOptions) -> RunOutcome:
         predictions.add(QueryPrediction(text=query.text, kind=query.kind, masks=masks, scores=scores))
     answer_seconds = time.perf_counter() - answer_start
 
+    # written with the predictions, so `bench4d score` of the folder scores exactly what this run scores
+    predictions.info["unanswered_queries"] = list(unanswered)
     score_config = ScoreConfig(temporal=protocol.temporal,
                                eval_frames=tuple(sorted(frame_of)), allow_extra=False)
-    scored_aset = _without(aset, unanswered)
-    scene_score = score_scene(scored_aset, predictions, score_config)
+    scene_score = score_scene(aset, predictions, score_config)
     score_doc = aggregate_scenes([scene_score]).to_json(include_frames=True)
 
     timing: dict[str, Any] = {
@@ -628,11 +771,6 @@ def evaluate(options: EvalOptions) -> RunOutcome:
     dataset = dataset_label(scene)
     out_path = results_path(options.results_dir, dataset, scene.name, spec.name, options.track, options.seed)
     pred_dir = out_path.with_name(out_path.stem + ".predictions")
-    if out_path.is_file():  # a rerun never destroys what was measured before
-        moved = keep_replaced(out_path, options.results_dir)
-        progress.log(f"{out_path}: an earlier run of this method, scene, track and seed moved to {moved}")
-    write_predictions(pred_dir, predictions, overwrite=True)
-
     results = {
         "method": spec.name, "dataset": dataset, "scene": scene.name, "layout": scene.dataset, "track": options.track,
         "seed": options.seed, "splits": list(options.splits),
@@ -655,7 +793,7 @@ def evaluate(options: EvalOptions) -> RunOutcome:
                         "code_changed_during_run": code_changed_since_start(), **device_description(options.device),
                         "torch_threads": _torch_threads(), "concurrent_runs": options.concurrent_runs},
         "scene_info": {"root": str(root), "summary": scene.summary(), "annotations": aset.info.get("source"),
-                       "scale": options.scale, "generated": scene_version(root)},
+                       "scale": options.scale, "generated": generated},
         "protocol": protocol.to_dict(),
         "score_config": score_config.to_dict(),
         "scores": {"queries": score_doc["queries"], "skipped": score_doc["skipped"], "frames": score_doc["frames"]},
@@ -663,13 +801,21 @@ def evaluate(options: EvalOptions) -> RunOutcome:
         "wall_seconds": time.perf_counter() - wall_start,
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
     }
-    write_results(out_path, results)
+    # archive, predictions, results: one writer of this file at a time, so a run finishing beside an
+    # identical one archives the other's record instead of overwriting it
+    with results_lock(out_path):
+        if out_path.is_file():  # a rerun never destroys what was measured before
+            moved = keep_replaced(out_path, options.results_dir)
+            progress.log(f"{out_path}: an earlier run of this method, scene, track and seed moved to {moved}")
+        write_predictions(pred_dir, predictions, overwrite=True)
+        write_results(out_path, results)
     return RunOutcome(out_path, results)
 
 
 def keep_replaced(path: Path, results_dir: str | Path) -> Path:
     """Move the results file ``path`` (and its predictions) that a new run is about to replace to
-    ``results_dir/archive/replaced-<its creation time>/``; returns where it went."""
+    ``results_dir/archive/replaced-<its creation time>/``; returns where it went. The caller holds
+    :func:`~benchmark.results.results_lock` of ``path`` until its own file is written."""
     from .results import ARCHIVE_DIR, archive_results
 
     try:
@@ -747,11 +893,3 @@ def prepared_texts(aset, frame_of: dict, supported) -> list[str]:
 def _query_frames(aset, query, frame_of: dict) -> list[str]:
     """Names of the evaluated frames where ``query`` (or its base) has a GT mask, in time order."""
     return [f.name for f in aset.annotated_frames(query.id) if f.name in frame_of]
-
-
-def _without(aset, texts: Sequence[str]):
-    """A copy of ``aset`` without the queries ``texts`` (kinds the method does not answer)."""
-    if not texts:
-        return aset
-    drop = set(texts)
-    return dataclasses.replace(aset, queries=[q for q in aset.queries if q.text not in drop])

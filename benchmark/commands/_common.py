@@ -40,6 +40,17 @@ def add_protocol_argument(parser: argparse.ArgumentParser) -> None:
                              "published numbers, default; paper-text: the paper's wording)")
 
 
+def check_run_folders(args: argparse.Namespace) -> None:
+    """``--results-dir`` and ``--cache-dir`` must be folders or makeable as folders: a file given there is a
+    one-line error naming the option, before any scene is made or fitted."""
+    from ..runner import check_folder
+
+    for option in ("--results-dir", "--cache-dir"):
+        value = getattr(args, option[2:].replace("-", "_"), None)
+        if value is not None:
+            check_folder(value, option)
+
+
 def parse_overrides(items: list[str]) -> dict[str, str]:
     out = {}
     for item in items:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ._common import add_run_arguments, check_device, parse_overrides, print_run, splits
+from ._common import add_run_arguments, check_device, check_run_folders, parse_overrides, print_run, splits
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -27,6 +27,7 @@ def run(args: argparse.Namespace) -> int:
     from ..runner import EvalOptions, evaluate
 
     check_device(args.device)
+    check_run_folders(args)
     outcome = evaluate(EvalOptions(
         method=args.method, scene=args.scene, seed=args.seed, track=args.track, results_dir=args.results_dir,
         cache_dir=args.cache_dir, splits=splits(args), device=args.device, text_encoder=args.text_encoder,

@@ -20,7 +20,7 @@ import sys
 import time
 from pathlib import Path
 
-from ._common import add_run_arguments, check_device, parse_overrides, splits
+from ._common import add_run_arguments, check_device, check_run_folders, parse_overrides, splits
 
 TEST_PRESETS = ("smoke",)
 """Presets made for tests, left out of the default sweep."""
@@ -109,10 +109,12 @@ def run(args: argparse.Namespace) -> int:
 
     from ..errors import InputError
     from ..loaders import load_scene
-    from ..results import archive_results, load_results, results_path, runs_table, scene_status, seed_summary
+    from ..results import (archive_results, load_results, results_lock, results_path, runs_table, scene_status,
+                           seed_summary)
     from ..runner import EvalOptions, checkout_at_start, dataset_label, resolve_scene
 
     check_device(args.device)
+    check_run_folders(args)
     if args.jobs < 1:
         raise InputError(None, "--jobs", f"must be >= 1, got {args.jobs}")
     if args.threads_per_job is not None and args.threads_per_job < 1:
@@ -150,9 +152,12 @@ def run(args: argparse.Namespace) -> int:
                         skipped += 1
                         continue
                     # measured on another version of this preset: rerun, keeping the old file in the archive
-                    moved = archive_results(path, args.results_dir, f"scene-{digest or 'unversioned'}")
-                    print(f"{path}: measured on another scene version; moved to {moved}, rerunning",
-                          file=sys.stderr)
+                    with results_lock(path):  # a run writing this file meanwhile finishes first
+                        moved = archive_results(path, args.results_dir, f"scene-{digest or 'unversioned'}") \
+                            if path.is_file() else None
+                    if moved is not None:
+                        print(f"{path}: measured on another scene version; moved to {moved}, rerunning",
+                              file=sys.stderr)
                 group.append(EvalOptions(
                     method=method, scene=str(root), seed=seed, track=args.track, results_dir=args.results_dir,
                     cache_dir=args.cache_dir, splits=splits(args), device=args.device, text_encoder=args.text_encoder,

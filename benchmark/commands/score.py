@@ -7,17 +7,27 @@
 Prediction folders are described in :mod:`benchmark.predictions`; the metrics and the temporal
 rule in :mod:`benchmark.metrics`. Prints a plain-text table; ``--out`` writes the results JSON
 (metrics in percent, the per-query table, the per-frame records, the rule used, provenance).
+
+``--out`` never replaces an input: a path that is (or resolves to, or is a hard link of) a ground-truth
+file, a file of a prediction folder or the ``--eval-frames`` file is refused before anything is scored,
+and so is a folder; a path that cannot be written is a one-line error.
+
+Queries a method declined are listed, not scored (:mod:`benchmark.metrics.scoring`): a prediction folder
+names them in ``info.unanswered_queries``; a folder ``bench4d eval`` wrote before it did so
+(``seed<N>.predictions/``) has them in the results file beside it (``seed<N>.json``), read instead.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import os
 import platform
 import sys
 import time
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
@@ -84,6 +94,98 @@ def _eval_frames(spec: str) -> set[str] | None:
     return set(names)
 
 
+def _folder(pred: Path) -> Path:
+    """A ``--pred`` as the folder it names (``read_predictions`` takes its main file too)."""
+    return pred.parent if pred.is_file() else pred
+
+
+def _input_files(args: argparse.Namespace) -> list[Path]:
+    """Every file this command reads: ground truth, prediction files (either layout; under a folder of
+    ``<scene>/`` folders too), the results file beside an eval folder, and the ``--eval-frames`` list."""
+    files = [Path(p) for p in args.gt]
+    if args.eval_frames.startswith("@"):
+        files.append(Path(args.eval_frames[1:]))
+    for pred in args.pred:
+        folder = _folder(Path(pred))
+        if folder.is_dir():
+            files += [p for p in folder.rglob("*") if p.is_file()]
+        beside = _results_beside(folder)
+        if beside is not None:
+            files.append(beside)
+    return files
+
+
+def check_out(out: Path, inputs: list[Path], folders: list[Path] = ()) -> None:
+    """Refuse an ``--out`` that would replace an input, change how a prediction folder (``folders``) reads,
+    or cannot be written, before anything is scored."""
+    from ..predictions import JSON_FILE, MASKS_DIR, SCORES_FILE
+
+    if out.is_dir():
+        raise InputError(out, "--out", "is a folder; give the path of a results file (e.g. results.json)")
+    try:
+        target = out.resolve()
+        existing = out.stat() if out.exists() else None
+    except (OSError, RuntimeError) as err:  # a symlink loop, a folder we may not look into
+        raise InputError(out, "--out", f"cannot be resolved: {err}") from None
+    for path in inputs:
+        try:
+            # the same path once links are resolved, or the same file under another name (a hard link)
+            same = path.resolve() == target or (existing is not None and path.exists()
+                                                and os.path.samestat(existing, path.stat()))
+        except (OSError, RuntimeError):
+            same = False  # an input that cannot be resolved is reported when it is read
+        if same:
+            raise InputError(out, "--out", f"is an input of this command ({path}); give another path")
+    for folder in folders:
+        root = folder.resolve()
+        # a second main file, or a file among the masks, would change what the folder holds when next read
+        if (target.parent == root and target.name in (JSON_FILE, SCORES_FILE)) or \
+                target.is_relative_to(root / MASKS_DIR):
+            raise InputError(out, "--out", f"would become part of the prediction folder {folder}; give another path")
+    for parent in out.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise InputError(out, "--out", f"cannot be written: {parent} is a file, not a folder")
+            if not os.access(parent, os.W_OK | os.X_OK):
+                raise InputError(out, "--out", f"cannot be written: no permission to write in {parent}")
+            break
+
+
+def _results_beside(folder: Path) -> Optional[Path]:
+    """The results file ``bench4d eval`` writes beside its predictions folder (``seed0.predictions`` ->
+    ``seed0.json``); None for a folder not named like one."""
+    suffix = ".predictions"
+    if not folder.name.endswith(suffix) or folder.name == suffix:
+        return None
+    return folder.with_name(folder.name[: -len(suffix)] + ".json")
+
+
+def _unanswered_from_results(predictions, folder: Path) -> bool:
+    """Give ``predictions`` the queries its run declined when the folder does not list them but the results
+    file ``bench4d eval`` wrote beside it does (folders written before the list was part of the
+    predictions). True when it did."""
+    from ..atomic import read_json
+    from ..metrics.scoring import UNANSWERED_FIELD
+
+    if UNANSWERED_FIELD in (predictions.info or {}):
+        return False
+    folder = _folder(folder)
+    results = _results_beside(folder)
+    if results is None or not results.is_file():
+        return False
+    doc = read_json(results)
+    listed = doc.get(UNANSWERED_FIELD) if isinstance(doc, dict) and doc.get("format") == "bench4d-run" else None
+    if not listed:
+        return False
+    if not isinstance(listed, list) or not all(isinstance(t, str) for t in listed):
+        raise InputError(results, UNANSWERED_FIELD, "expected a list of query texts")
+    recorded = doc.get("predictions")
+    if isinstance(recorded, str) and (results.parent / recorded).parent.resolve() != folder.resolve():
+        return False  # that results file is not this folder's run
+    predictions.info = {**(predictions.info or {}), UNANSWERED_FIELD: list(listed)}
+    return True
+
+
 def _pairs(gts: list[str], preds: list[str], asets: list) -> list[tuple[object, Path]]:
     if len(preds) == len(gts):
         return list(zip(asets, (Path(p) for p in preds)))
@@ -147,6 +249,11 @@ def run(args: argparse.Namespace) -> int:
 
     protocol = _protocol(args)
     temporal = protocol.temporal
+    if args.out is not None:  # before anything is read or scored: a refused path costs nothing
+        folders = [_folder(Path(p)) for p in args.pred]
+        # one folder of <scene>/ folders: each of those is a prediction folder too
+        folders += [sub for f in folders if f.is_dir() for sub in f.iterdir() if sub.is_dir()]
+        check_out(args.out, _input_files(args), folders)
     wanted = _eval_frames(args.eval_frames)
     asets = [load_annotations(Path(p)) for p in args.gt]
     pairs = _pairs(args.gt, args.pred, asets)
@@ -158,10 +265,14 @@ def run(args: argparse.Namespace) -> int:
 
     start = time.perf_counter()
     scenes = []
+    from_results = []
     for aset, folder in pairs:
         frames = None if wanted is None else tuple(sorted(wanted & {f.name for f in aset.frames}))
         config = ScoreConfig(temporal=temporal, eval_frames=frames, allow_extra=args.allow_extra)
-        scenes.append(score_scene(aset, read_predictions(folder), config))
+        predictions = read_predictions(folder)
+        if _unanswered_from_results(predictions, folder):
+            from_results.append(aset.scene)
+        scenes.append(score_scene(aset, predictions, config))
     dataset = aggregate_scenes(scenes)
     seconds = time.perf_counter() - start
 
@@ -172,6 +283,10 @@ def run(args: argparse.Namespace) -> int:
     for s in scenes:
         if s.skipped:
             print(f"note: {s.scene}: not scored (no evaluated frame): {', '.join(s.skipped)}", file=sys.stderr)
+        if s.unanswered:
+            where = "; listed by the results file beside the predictions" if s.scene in from_results else ""
+            print(f"note: {s.scene}: not scored (unanswered by the method{where}): {', '.join(s.unanswered)}",
+                  file=sys.stderr)
     if args.out is not None:
         provenance = {
             "bench4d_version": __version__,
@@ -185,6 +300,9 @@ def run(args: argparse.Namespace) -> int:
             "protocol": protocol.to_dict(),
             "protocol_applied": "temporal rule only: the predictions' masks were made by the method",
         }
-        write_json(args.out, dataset.to_json(provenance, include_frames=not args.no_frames))
+        try:
+            write_json(args.out, dataset.to_json(provenance, include_frames=not args.no_frames))
+        except OSError as err:  # read-only place, full disk, a folder made there meanwhile
+            raise InputError(args.out, "--out", f"cannot be written: {err.strerror or err}") from None
         print(f"wrote {args.out}")
     return 0

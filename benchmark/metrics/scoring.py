@@ -15,6 +15,19 @@ a GT mask, optionally restricted to :attr:`ScoreConfig.eval_frames`, in time ord
 :attr:`SceneScore.skipped`). mIoU / mAcc average time-agnostic queries only; Acc / vIoU (and the
 diagnostics AUC / nearTau, which need per-frame scores) average time-sensitive queries only.
 
+Unanswered queries: a method may decline a query kind it cannot answer (a time-sensitive query on a
+scene it has no state captions for, say). The predictions then list those query texts in
+``info["unanswered_queries"]`` (``bench4d eval`` writes it) and hold no answer for them. **A declared
+unanswered query is not scored, and is listed** (:attr:`SceneScore.unanswered`, ``"unanswered"`` in
+the results document): it enters no mean, so a method that answers only time-agnostic queries has no
+Acc / vIoU (NaN: absent from a time-sensitive table, whose readers are told it answered none) rather
+than a made-up failure score. Scoring it as a failure instead (an empty mask on every frame, every
+time-sensitive frame decided negative) would give such a method the share of negative frames as its Acc
+and rank it in a table of a task it never attempted. ``bench4d eval`` and ``bench4d score`` of the
+folder it wrote apply this one rule, so they give the same numbers. A GT query that has no prediction
+and is *not* declared unanswered stays an :class:`~benchmark.errors.InputError` (usually a misspelt
+query text or an incomplete conversion); so does a query declared unanswered that has an answer.
+
 Units: array functions, records and query rows hold fractions in [0, 1]; summaries and the results
 document are in percent.
 """
@@ -215,6 +228,10 @@ class SceneScore:
     """One per scored query."""
     skipped: list[str] = field(default_factory=list)
     """Queries not scored: no evaluated frame."""
+    unanswered: list[str] = field(default_factory=list)
+    """Queries not scored: the method declared them unanswered (module docstring), with evaluated frames."""
+    unanswered_kinds: dict[str, str] = field(default_factory=dict)
+    """Kind of each of :attr:`unanswered` (from the ground truth)."""
 
     def records_table(self) -> pd.DataFrame:
         return records_table(self.records)
@@ -276,6 +293,8 @@ class DatasetScore:
             "methods": sorted({s.method for s in self.scenes if s.method}),
             "queries": _table_json(queries),
             "skipped": [{"scene": s.scene, "query": q} for s in self.scenes for q in s.skipped],
+            "unanswered": [{"scene": s.scene, "query": q, "kind": s.unanswered_kinds.get(q)}
+                           for s in self.scenes for q in s.unanswered],
         }
         if include_frames:
             doc["frames"] = [r for s in self.scenes for r in _table_json(s.records_table())]
@@ -316,14 +335,29 @@ def _check_pred_keys(pred: QueryPrediction, known: set[str], scene: str, src) ->
                                  f"frame is not in the ground truth of scene {scene!r}")
 
 
+UNANSWERED_FIELD = "unanswered_queries"
+"""Key of a prediction folder's ``info`` that lists the query texts the method declined (module docstring)."""
+
+
+def declared_unanswered(predictions: ScenePredictions) -> list[str]:
+    """The query texts ``predictions`` declare unanswered (``info["unanswered_queries"]``; none if absent)."""
+    listed = (predictions.info or {}).get(UNANSWERED_FIELD)
+    if listed is None:
+        return []
+    if not isinstance(listed, list) or not all(isinstance(t, str) for t in listed):
+        raise InputError(predictions.source, f"info.{UNANSWERED_FIELD}", "expected a list of query texts")
+    return list(dict.fromkeys(listed))
+
+
 def score_scene(aset: AnnotationSet, predictions: ScenePredictions,
                 config: ScoreConfig = ScoreConfig()) -> SceneScore:
     """Score one method's predictions on one scene (see the module docstring for the rules).
 
     Raises :class:`InputError` (naming the prediction file and field) for: a GT query without a
-    prediction, a kind that contradicts the GT, a missing mask / score on an evaluated frame, a
-    mask of the wrong size, a frame or (unless ``allow_extra``) a query unknown to the GT, and
-    predictions made for another scene.
+    prediction that the predictions do not declare unanswered, a query declared unanswered that has a
+    prediction (or, unless ``allow_extra``, is unknown to the GT), a kind that contradicts the GT, a
+    missing mask / score on an evaluated frame, a mask of the wrong size, a frame or (unless
+    ``allow_extra``) a query unknown to the GT, and predictions made for another scene.
     """
     src = predictions.source
     if predictions.scene and predictions.scene != aset.scene:
@@ -349,6 +383,14 @@ def score_scene(aset: AnnotationSet, predictions: ScenePredictions,
             if text not in gt_texts and slug_counts.get(query_slug(text), 0) != 1:
                 raise InputError(pred.source or src, field_name(text),
                                  f"not a query of scene {aset.scene!r} (GT queries: {sorted(gt_texts)})")
+    declined = declared_unanswered(predictions)
+    for text in declined:
+        if predictions.find(text, by_slug=False) is not None:
+            raise InputError(src, f"info.{UNANSWERED_FIELD}", f"lists {text!r}, which the predictions answer")
+        if text not in gt_texts and not config.allow_extra:
+            raise InputError(src, f"info.{UNANSWERED_FIELD}",
+                             f"lists {text!r}, not a query of scene {aset.scene!r} (GT queries: {sorted(gt_texts)})")
+    declined_set = set(declined)
 
     gt_cache: dict[tuple[int, int], np.ndarray] = {}
 
@@ -365,6 +407,7 @@ def score_scene(aset: AnnotationSet, predictions: ScenePredictions,
     records: list[FrameRecord] = []
     rows: list[QueryScore] = []
     skipped: list[str] = []
+    unanswered: list[str] = []
     for query in sorted(aset.queries, key=lambda q: (q.kind, q.text)):
         try:
             owner = aset.mask_owner(query)
@@ -377,7 +420,11 @@ def score_scene(aset: AnnotationSet, predictions: ScenePredictions,
             if not frames:
                 skipped.append(query.text)
                 continue
-            raise InputError(src, field_name(query.text), "missing: the ground truth has this query")
+            if query.text in declined_set:
+                unanswered.append(query.text)
+                continue
+            raise InputError(src, field_name(query.text), "missing: the ground truth has this query (a method that "
+                             f"declines it lists it in info.{UNANSWERED_FIELD})")
         _check_pred_keys(pred, known, aset.scene, src)
         if pred.kind is not None and pred.kind != query.kind:
             raise InputError(pred.source or src, field_name(pred.text, "kind"),
@@ -442,5 +489,7 @@ def score_scene(aset: AnnotationSet, predictions: ScenePredictions,
                                    smoothed=nan if rule is None else float(rule.smoothed[i]),
                                    decision=bool(result.decisions[i]), label=bool(labels[i]))
                        for i, f in enumerate(frames))
+    kinds = {q.text: q.kind for q in aset.queries}
     return SceneScore(scene=aset.scene, method=predictions.method, config=config, records=records,
-                      queries=rows, skipped=skipped)
+                      queries=rows, skipped=skipped, unanswered=unanswered,
+                      unanswered_kinds={t: kinds[t] for t in unanswered})

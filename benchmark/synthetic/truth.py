@@ -14,6 +14,11 @@ Methods on the *oracle* supervision track may use the truth of **training frames
 look-ups raise :class:`TruthAccessError` for a frame (or time index) that no training frame covers,
 unless ``allow_eval=True`` - which only the harness (scoring, annotation building, visualisation)
 passes. Reading the files directly bypasses the guard; methods must not.
+
+Damaged files (truncated, flipped bytes, keys missing) are an :class:`~benchmark.errors.InputError`
+naming the file and the field, never a traceback from ``zipfile`` or a ``KeyError``;
+:func:`check_truth` reads everything once, so a cache can tell a damaged scene from a sound one
+(the runner regenerates a damaged preset).
 """
 
 from __future__ import annotations
@@ -34,6 +39,10 @@ TRUTH_FILE = "scene_truth.json"
 LEVELS_DIR = "levels"
 FORMAT = "bench4d-synthetic-truth"
 FORMAT_VERSION = 1
+FRAME_KEYS = ("name", "split", "time_index", "time", "camera_id", "camera", "image")
+"""Keys of every entry of ``frames`` in ``scene_truth.json``."""
+ARRAYS = (*LEVELS, "depth")
+"""Arrays of every ``levels/<frame>.npz``."""
 
 
 class TruthAccessError(PermissionError):
@@ -89,6 +98,8 @@ class SceneTruth:
 
     def __init__(self, truth_dir: Path, doc: dict):
         self.root = Path(truth_dir)
+        file = self.root / TRUTH_FILE
+        _check_doc(doc, file)
         self.doc = doc
         self.preset: str = doc["preset"]
         self.seed: int = doc["seed"]
@@ -96,13 +107,20 @@ class SceneTruth:
         self.num_frames: int = doc["num_frames"]
         self.generator_version: str = doc["generator_version"]
         self.frames: dict[str, TruthFrame] = {}
-        for f in doc["frames"]:
+        for i, f in enumerate(doc["frames"]):
+            try:
+                camera = Camera.from_dict(f["camera"])
+            except (KeyError, TypeError, ValueError) as err:
+                raise InputError(file, f"frames[{i}].camera", f"not a camera ({_reason(err)})") from None
             self.frames[f["name"]] = TruthFrame(f["name"], f["split"], f["time_index"], f["time"], str(f["camera_id"]),
-                                                Camera.from_dict(f["camera"]), f["image"])
+                                                camera, f["image"])
         self._by_cam_time = {(f.camera_id, f.time_index): f.name for f in self.frames.values()}
         self._train_times = {f.time_index for f in self.frames.values() if f.split == "train"}
-        self.catalogue: dict[str, dict[int, dict]] = {
-            lv: {int(k): v for k, v in doc["catalogue"][lv].items()} for lv in LEVELS}
+        try:
+            self.catalogue: dict[str, dict[int, dict]] = {
+                lv: {int(k): v for k, v in doc["catalogue"][lv].items()} for lv in LEVELS}
+        except (TypeError, ValueError, AttributeError) as err:
+            raise InputError(file, "catalogue", f"expected {{level: {{id: entry}}}} ({_reason(err)})") from None
 
     # -- frames -----------------------------------------------------------------------------------
     def frame_name(self, frame: FrameKey) -> str:
@@ -141,8 +159,22 @@ class SceneTruth:
         path = self.root / LEVELS_DIR / f"{name}.npz"
         if not path.is_file():
             raise InputError(path, None, "truth file of this frame not found")
-        with np.load(path) as data:
-            return {k: data[k] for k in data.files}
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {k: data[k] for k in data.files}
+        except Exception as err:  # noqa: BLE001 - zipfile, zlib, numpy: any of them, the file is damaged
+            raise InputError(path, None, f"damaged truth file ({_reason(err)}); regenerate the scene") from None
+        for key in ARRAYS:
+            if key not in arrays:
+                raise InputError(path, key, "missing array; regenerate the scene")
+            if arrays[key].ndim != 2:
+                raise InputError(path, key, f"expected an (H, W) map, got shape {arrays[key].shape}")
+        camera = self.frames[name].camera if name in self.frames else None
+        for key in ARRAYS:
+            if camera is not None and arrays[key].shape != (camera.height, camera.width):
+                raise InputError(path, key, f"map is {arrays[key].shape[0]}x{arrays[key].shape[1]}, the frame is "
+                                            f"{camera.height}x{camera.width}; regenerate the scene")
+        return arrays
 
     def levels(self, frame: FrameKey, *, allow_eval: bool = False) -> dict[Level, np.ndarray]:
         """Level name -> (H, W) uint16 id map of ``frame``."""
@@ -231,7 +263,9 @@ def has_truth(path: Optional[str | Path]) -> bool:
 
 
 def load_truth(path: str | Path) -> SceneTruth:
-    """Open the truth of a generated scene (``path`` = the scene folder or its ``truth/``)."""
+    """Open the truth of a generated scene (``path`` = the scene folder or its ``truth/``). A malformed
+    ``scene_truth.json`` is an :class:`InputError` naming its field; the per-frame maps are read (and
+    checked) when asked for, or all at once by :func:`check_truth`."""
     root = Path(path)
     truth_dir = root if (root / TRUTH_FILE).is_file() else root / TRUTH_DIR
     file = truth_dir / TRUTH_FILE
@@ -240,7 +274,54 @@ def load_truth(path: str | Path) -> SceneTruth:
         raise InputError(file, "format", f"not a bench4d synthetic truth file (expected format {FORMAT!r})")
     if doc.get("version") != FORMAT_VERSION:
         raise InputError(file, "version", f"unsupported version {doc.get('version')!r} (expected {FORMAT_VERSION})")
+    return SceneTruth(truth_dir, doc)
+
+
+def check_truth(path: str | Path) -> SceneTruth:
+    """:func:`load_truth` and every frame's maps read once: an :class:`InputError` naming the first damaged
+    file and field, else the truth. What a cache of generated scenes runs before trusting one."""
+    truth = load_truth(path)
+    for name in truth.frames:
+        truth._load(name)
+    return truth
+
+
+def _reason(err: BaseException) -> str:
+    """``err`` as one short line (messages of zipfile and numpy may span lines)."""
+    text = " ".join(str(err).split()) or type(err).__name__
+    text = text if len(text) <= 160 else text[:157] + "..."
+    return text if isinstance(err, InputError) else f"{type(err).__name__}: {text}"
+
+
+def _check_doc(doc: dict, file: Path) -> None:
+    """The structure :class:`SceneTruth` reads, field by field (a missing key or a wrong type is an
+    :class:`InputError` naming it, not a ``KeyError`` deep inside)."""
+    if not isinstance(doc, dict):
+        raise InputError(file, None, f"expected a JSON object, got {type(doc).__name__}")
     for key in ("preset", "seed", "layout", "num_frames", "generator_version", "frames", "catalogue", "states"):
         if key not in doc:
             raise InputError(file, key, "missing required key")
-    return SceneTruth(truth_dir, doc)
+    for key, kind in (("preset", str), ("layout", str), ("seed", int), ("num_frames", int), ("frames", list),
+                      ("catalogue", dict), ("states", list)):
+        if not isinstance(doc[key], kind) or isinstance(doc[key], bool):
+            raise InputError(file, key, f"expected {kind.__name__}, got {type(doc[key]).__name__}")
+    for i, frame in enumerate(doc["frames"]):
+        if not isinstance(frame, dict):
+            raise InputError(file, f"frames[{i}]", f"expected an object, got {type(frame).__name__}")
+        for key in FRAME_KEYS:
+            if key not in frame:
+                raise InputError(file, f"frames[{i}].{key}", "missing required key")
+        if not isinstance(frame["name"], str) or not isinstance(frame["split"], str):
+            raise InputError(file, f"frames[{i}]", "name and split must be strings")
+        if not isinstance(frame["time_index"], int) or isinstance(frame["time_index"], bool):
+            raise InputError(file, f"frames[{i}].time_index", f"expected an integer, got {frame['time_index']!r}")
+    for level in LEVELS:
+        entries = doc["catalogue"].get(level)
+        if not isinstance(entries, dict):
+            raise InputError(file, f"catalogue.{level}", "missing or not an object {id: entry}")
+        for k, entry in entries.items():
+            if not isinstance(entry, dict) or not all(key in entry for key in ("name", "implicit")):
+                raise InputError(file, f"catalogue.{level}[{k!r}]", "expected an object with name and implicit")
+    for i, state in enumerate(doc["states"]):
+        if not isinstance(state, dict) or "object" not in state or not isinstance(state.get("states"), list):
+            raise InputError(file, f"states[{i}]", "expected an object with 'object' and a 'states' list")
