@@ -241,11 +241,11 @@ def _paper_tables(dataset: str) -> list[str]:
     return lines
 
 
-def load_ceilings(reports_dir: str | Path) -> dict[str, dict[str, dict[str, float]]]:
+def load_ceilings(path: str | Path) -> dict[str, dict[str, dict[str, float]]]:
     """Protocol -> query kind -> scene -> the perfect-feature ceiling (fraction) of
-    :data:`CEILING_METRIC`, from ``bench4d ablate ceiling``'s file under ``reports_dir``; only scenes it
-    measured on the committed scene version. Empty without the file."""
-    path = Path(reports_dir) / CEILING_FILE
+    :data:`CEILING_METRIC`, from ``bench4d ablate ceiling``'s JSON file ``path``; only scenes it measured on
+    the committed scene version. Empty without the file."""
+    path = Path(path)
     if not path.is_file():
         return {}
     doc = read_json(path)
@@ -357,14 +357,16 @@ def paper_numbers_table() -> pd.DataFrame:
 
 
 def build_leaderboard(results_dir: str | Path = "results", *, markdown: str | Path = "leaderboard.md",
-                      reports_dir: str | Path = "reports") -> dict[str, Path]:
-    """Regenerate the leaderboard and CSVs; returns the files written (name -> path)."""
+                      reports_dir: str | Path = "reports", ceiling: Optional[str | Path] = None) -> dict[str, Path]:
+    """Regenerate the leaderboard and CSVs; returns the files written (name -> path). ``ceiling``: the
+    protocol ceiling's JSON (default: ``<reports_dir>/ablations/protocol-ceiling.json``)."""
     results_dir = Path(results_dir)
     paths = find_results(results_dir)
     runs = runs_table(paths, relative_to=results_dir)
     written: dict[str, Path] = {}
     md_path = Path(markdown)
-    write_text(md_path, render_markdown(runs, results_dir.as_posix(), load_ceilings(reports_dir)))
+    ceilings = load_ceilings(Path(reports_dir) / CEILING_FILE if ceiling is None else ceiling)
+    write_text(md_path, render_markdown(runs, results_dir.as_posix(), ceilings))
     written["leaderboard"] = md_path
     reports = Path(reports_dir)
     write_text(reports / "runs.csv", _csv(runs))  # every run, with its scene_current flag

@@ -15,12 +15,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--results-dir", type=Path, default=Path("results"))
     parser.add_argument("--out", type=Path, default=Path("leaderboard.md"), help="the Markdown leaderboard")
     parser.add_argument("--reports-dir", type=Path, default=Path("reports"), help="where the CSVs go")
+    parser.add_argument("--ceiling", type=Path, default=None,
+                        help="the protocol ceiling's JSON (default: <reports-dir>/ablations/protocol-ceiling.json)")
 
 
 def run(args: argparse.Namespace) -> int:
     from ..leaderboard import build_leaderboard
 
-    written = build_leaderboard(args.results_dir, markdown=args.out, reports_dir=args.reports_dir)
+    written = build_leaderboard(args.results_dir, markdown=args.out, reports_dir=args.reports_dir,
+                                ceiling=args.ceiling)
     for path in written.values():
         print(path)
     return 0
