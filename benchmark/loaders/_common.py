@@ -45,7 +45,7 @@ def as_array(value: Any, shape: tuple[int, ...], file: Path, field: str) -> np.n
     """``value`` as a finite float64 array of exactly ``shape`` (-1 = any length)."""
     try:
         arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an integer beyond float range
         raise InputError(file, field, f"expected numbers of shape {shape}, got {value!r:.80}") from None
     if arr.ndim != len(shape) or any(s not in (-1, a) for s, a in zip(shape, arr.shape)):
         raise InputError(file, field, f"expected shape {shape}, got {arr.shape}")
@@ -57,7 +57,10 @@ def as_array(value: Any, shape: tuple[int, ...], file: Path, field: str) -> np.n
 def as_float(value: Any, file: Path, field: str, *, positive: bool = False) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise InputError(file, field, f"expected a number, got {value!r:.80}")
-    out = float(value)
+    try:
+        out = float(value)
+    except OverflowError:  # an integer beyond float range
+        raise InputError(file, field, "is beyond the range of a float") from None
     if not math.isfinite(out):
         raise InputError(file, field, "is NaN or inf")
     if positive and out <= 0:
@@ -67,7 +70,8 @@ def as_float(value: Any, file: Path, field: str, *, positive: bool = False) -> f
 
 def as_int(value: Any, file: Path, field: str, *, minimum: Optional[int] = None) -> int:
     """An integer (``3`` or ``3.0``), optionally at least ``minimum``."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not float(value).is_integer():
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or (
+            isinstance(value, float) and not value.is_integer()):  # (a float that is inf or NaN is not either)
         raise InputError(file, field, f"expected an integer, got {value!r:.80}")
     out = int(value)
     if minimum is not None and out < minimum:

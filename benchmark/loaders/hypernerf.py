@@ -282,8 +282,8 @@ def load(path: str | Path, options: Optional[HyperNeRFOptions] = None) -> Scene:
     train_ids = dataset.get("train_ids", [])
     val_ids = dataset.get("val_ids", [])
     for key, lst in (("train_ids", train_ids), ("val_ids", val_ids)):
-        if not isinstance(lst, list):
-            raise InputError(ds_path, key, "expected a list of ids")
+        if not isinstance(lst, list) or not all(isinstance(i, str) for i in lst):
+            raise InputError(ds_path, key, "expected a list of id strings")
         unknown = sorted(set(lst) - set(ids))
         if unknown:
             raise InputError(ds_path, key, f"ids not in 'ids': {unknown[:5]}")
