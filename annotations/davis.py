@@ -10,36 +10,60 @@ OR-ed). Values that occur but are not mapped are ignored and listed in ``info["u
 Frame names are the PNG stems. ``time_index`` is the stem read as an integer when every stem is one
 (DAVIS's ``00000.png`` is frame 0), else the position in sorted order; ``time_index_offset`` is
 subtracted in both cases (e.g. 1 when the stems are 1-based).
+
+Every file must be a PNG (checked by its signature: a JPEG named ``.png`` is refused) with a
+palette or a single channel (colours are not object ids); its size is read from the header and
+refused before decoding when it exceeds :data:`annotations.model.MAX_MASK_PIXELS` or differs from
+the scene frame of the same name (when a scene is given).
 """
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 from typing import Iterable, Mapping, Optional
 
 import numpy as np
-from PIL import Image, UnidentifiedImageError
+from PIL import Image
 
 from benchmark.errors import InputError
+from benchmark.imageio import read_png_bytes
 
-from .format import validate_against_scene
+from .format import MAX_TIME_INDEX, validate_against_scene
 from .model import AnnotatedFrame, AnnotationSet, Query, encode_mask
 
 __all__ = ["import_davis", "read_index_png"]
 
 
-def read_index_png(path: str | Path) -> np.ndarray:
-    """(H, W) integer object indices of a palette / grey PNG (the palette is not applied)."""
+def read_index_png(path: str | Path, size: Optional[tuple[int, int]] = None) -> np.ndarray:
+    """(H, W) integer object indices of a palette / grey PNG (the palette is not applied).
+
+    The file is checked before any pixel is decoded (:func:`benchmark.imageio.read_png_bytes`): a PNG
+    signature, at most :data:`annotations.model.MAX_MASK_PIXELS` pixels, ``size`` =
+    ``(height, width)`` when given, and chunks that stay inside the file.
+    """
     path = Path(path)
+    data, width, height, _, colour = read_png_bytes(path, size)
+    if colour not in (0, 3):  # 0 grey, 3 palette; 2 RGB, 4 grey+alpha, 6 RGBA
+        kind = {2: "an RGB", 4: "a grey + alpha", 6: "an RGBA"}.get(colour, f"a colour type {colour}")
+        raise InputError(path, "mode", f"expected an indexed (palette) or single-channel PNG, got {kind} PNG: "
+                                       "colours are not object ids")
     try:
-        with Image.open(path) as img:
+        with Image.open(io.BytesIO(data), formats=["PNG"]) as img:
             img.load()
-            if img.mode not in ("P", "L", "I", "I;16", "1"):
-                raise InputError(path, "mode", f"expected an indexed (palette) or single-channel PNG, got mode "
-                                               f"{img.mode!r}: colours are not object ids")
-            return np.asarray(img).astype(np.int64)
-    except (UnidentifiedImageError, OSError) as err:
-        raise InputError(path, None, f"cannot read image: {err}") from None
+            mode = img.mode
+            ids = np.asarray(img).astype(np.int64) if mode in ("P", "L", "I", "I;16", "1") else None
+    # Pillow reports a corrupt stream as any of OSError, SyntaxError, ValueError, EOFError, zlib or
+    # struct errors, depending on where it breaks; each means the same thing to the user
+    except Exception as err:
+        reason = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise InputError(path, None, f"cannot decode PNG: {reason}") from None
+    if ids is None:
+        raise InputError(path, "mode", f"expected an indexed (palette) or single-channel PNG, got mode "
+                                       f"{mode!r}: colours are not object ids")
+    if ids.shape != (height, width):
+        raise InputError(path, None, f"decoded {ids.shape[1]}x{ids.shape[0]} pixels, the header says {width}x{height}")
+    return ids
 
 
 def import_davis(folder: str | Path, labels: Mapping[int, str], *, scene_name: str,
@@ -75,15 +99,18 @@ def import_davis(folder: str | Path, labels: Mapping[int, str], *, scene_name: s
     values_of = {t: np.array([v for v, tt in labels.items() if tt == t], dtype=np.int64) for t in texts}
 
     stems = [p.stem for p in paths]
-    numeric = all(s.isdigit() for s in stems)
+    numeric = all(s.isascii() and s.isdigit() for s in stems)
     indices = [int(s) if numeric else i for i, s in enumerate(stems)]
     frames, masks, unmapped = [], {}, set()
     mapped = np.array(sorted(labels), dtype=np.int64)
+    scene_sizes = {} if scene is None else {f.name: (f.camera.height, f.camera.width) for f in scene.frames}
     for fid, (path, index) in enumerate(zip(paths, indices), start=1):
         time_index = index - time_index_offset
         if time_index < 0:
             raise InputError(path, "time_index", f"{index} - time_index_offset {time_index_offset} is negative")
-        ids = read_index_png(path)
+        if time_index > MAX_TIME_INDEX:
+            raise InputError(path, "time_index", f"{time_index} is past time index {MAX_TIME_INDEX}")
+        ids = read_index_png(path, scene_sizes.get(path.stem))
         h, w = ids.shape
         frames.append(AnnotatedFrame(id=fid, name=path.stem, time_index=time_index, width=w, height=h,
                                      camera_id=camera_id))

@@ -56,7 +56,13 @@ Rules
   have them; a sensitive category without an entry holds nowhere.
 * RLE ``size`` is ``[height, width]`` and must equal the image's size. ``counts`` is a COCO
   compressed string (written) or an uncompressed list of run lengths (accepted on load); either
-  must describe exactly ``height * width`` pixels.
+  must describe exactly ``height * width`` pixels, every run between 0 and ``height * width``
+  (checked run by run before anything is decoded: :func:`annotations.model.rle_runs`).
+* Limits: ``width * height`` at most :data:`annotations.model.MAX_MASK_PIXELS`; ``time_index``,
+  interval ends and ``num_time_steps - 1`` at most :data:`MAX_TIME_INDEX` (2**31 - 1); ``bbox``
+  numbers finite. Files are read by :func:`benchmark.atomic.read_json` (nesting at most
+  :data:`benchmark.atomic.MAX_JSON_DEPTH` levels) and written as standard JSON (a NaN in ``info``
+  is written as ``null``).
 
 :func:`save_annotations` writes atomically and :func:`load_annotations` reproduces the same
 :class:`~annotations.model.AnnotationSet` (every field, intervals and masks bit-exact).
@@ -72,10 +78,11 @@ from typing import Any, Optional
 import numpy as np
 from pycocotools import mask as mask_utils
 
-from benchmark.atomic import read_json, write_text
-from benchmark.errors import InputError
+from benchmark.atomic import json_ready, read_json, write_text
+from benchmark.errors import InputError, short_repr
 
-from .model import AnnotatedFrame, AnnotationSet, Query
+from .model import (MAX_MASK_PIXELS, AnnotatedFrame, AnnotationSet, Query, check_rle,
+                    rle_runs, runs_to_string)
 
 FORMAT_NAME = "bench4d-annotations"
 FORMAT_VERSION = 1
@@ -88,105 +95,39 @@ __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "annotation_set_to_dict", "annotatio
 # ---------------------------------------------------------------------------------------------
 # RLE helpers
 # ---------------------------------------------------------------------------------------------
-def _counts_from_string(counts: str) -> Optional[np.ndarray]:
-    """Decode COCO's compressed RLE string into run lengths, or ``None`` if it is malformed.
-
-    COCO packs each run length (after the first two, as a difference from the run two places
-    back) into 5-bit groups, low first, as characters ``'0' + c`` where bit 0x20 of ``c`` says
-    "more groups follow" and bit 0x10 of the last group is the sign. Parsed here with numpy so a
-    corrupt string is caught before pycocotools' C decoder walks off the end of its buffer.
-    """
-    raw = np.frombuffer(counts.encode("ascii", errors="replace"), dtype=np.uint8).astype(np.int64) - 48
-    if raw.size == 0:
-        return np.zeros(0, dtype=np.int64)
-    if raw.min() < 0 or raw.max() > 63:
-        return None
-    more = (raw & 0x20) != 0
-    if more[-1]:
-        return None  # the string ends inside a number
-    ends = np.flatnonzero(~more)
-    starts = np.concatenate([[0], ends[:-1] + 1])
-    lengths = ends - starts + 1
-    if lengths.max() > 12:  # 60 bits: far beyond any image size, and keeps int64 shifts exact
-        return None
-    group = np.repeat(np.arange(ends.size), lengths)
-    k = np.arange(raw.size) - starts[group]
-    values = np.zeros(ends.size, dtype=np.int64)
-    np.add.at(values, group, (raw & 0x1F) << (5 * k))
-    negative = (raw[ends] & 0x10) != 0
-    values[negative] -= np.left_shift(np.int64(1), 5 * lengths[negative])
-    # undo the delta coding: cnts[i] += cnts[i-2] for i > 2 (COCO's rule starts at index 3)
-    out = values.copy()
-    if out.size > 3:
-        odd = out[1::2].copy()
-        out[1::2] = np.cumsum(odd)
-        even = out[2::2].copy()
-        out[2::2] = np.cumsum(even)
-    return out
-
-
 def validate_rle(rle: Any, file: str | Path | None, field: str,
                  size: Optional[tuple[int, int]] = None) -> dict:
     """Check a COCO RLE and return it as ``{"size": [h, w], "counts": str}``.
 
-    ``size`` is the expected ``(height, width)``. Raises :class:`InputError` naming ``field``.
+    ``size`` is the expected ``(height, width)``. Every check of
+    :func:`annotations.model.rle_runs` applies (size first, then each run bounded before any sum).
+    Raises :class:`InputError` naming ``field``.
     """
-    if not isinstance(rle, dict):
-        raise InputError(file, field, f"expected an RLE object with 'size' and 'counts', got {type(rle).__name__}")
-    for key in ("size", "counts"):
-        if key not in rle:
-            raise InputError(file, f"{field}.{key}", "missing required key")
-    rsize = rle["size"]
-    if (not isinstance(rsize, (list, tuple)) or len(rsize) != 2
-            or not all(_is_int(v) and v > 0 for v in rsize)):
-        raise InputError(file, f"{field}.size", f"expected [height, width] of positive ints, got {rsize!r}")
-    h, w = int(rsize[0]), int(rsize[1])
-    if size is not None and (h, w) != tuple(size):
-        raise InputError(file, f"{field}.size",
-                         f"mask is {w}x{h} (WxH) but its image is {size[1]}x{size[0]}")
+    return check_rle(rle, file, field, size)
+
+
+def _checked_rle(rle: Any, file, field: str, size: Optional[tuple[int, int]]) -> tuple[dict, int]:
+    """(JSON-ready checked RLE, foreground pixel count) from one pass over the runs."""
+    h, w, runs = rle_runs(rle, file, field, size)
     counts = rle["counts"]
     if isinstance(counts, bytes):
-        try:
-            counts = counts.decode("ascii")
-        except UnicodeDecodeError:
-            raise InputError(file, f"{field}.counts", "compressed RLE is not ASCII") from None
-    if isinstance(counts, str):
-        runs = _counts_from_string(counts)
-        if runs is None:
-            raise InputError(file, f"{field}.counts", "malformed compressed RLE string")
-        out = {"size": [h, w], "counts": counts}
-    elif isinstance(counts, list):
-        if not all(_is_int(c) for c in counts):
-            raise InputError(file, f"{field}.counts", "uncompressed RLE counts must be integers")
-        runs = np.asarray(counts, dtype=np.int64)
-        out = None
-    else:
-        raise InputError(file, f"{field}.counts",
-                         f"expected a compressed string or a list of run lengths, got {type(counts).__name__}")
-    if runs.size and runs.min() < 0:
-        raise InputError(file, f"{field}.counts", "negative run length")
-    if int(runs.sum()) != h * w:
-        raise InputError(file, f"{field}.counts",
-                         f"run lengths cover {int(runs.sum())} pixels but size {h}x{w} has {h * w}")
-    if out is None:
-        comp = mask_utils.frPyObjects({"size": [h, w], "counts": [int(c) for c in counts]}, h, w)
-        out = {"size": [h, w], "counts": comp["counts"].decode("ascii")}
-    return out
-
-
-def _coco_rle(rle: dict) -> dict:
-    counts = rle["counts"]
-    return {"size": list(rle["size"]), "counts": counts.encode("ascii") if isinstance(counts, str) else counts}
+        counts = counts.decode("ascii")
+    elif not isinstance(counts, str):
+        counts = runs_to_string(runs)
+    return {"size": [h, w], "counts": counts}, int(runs[1::2].sum())
 
 
 def rle_area(rle: dict) -> int:
-    """Foreground pixel count of a (compressed) RLE."""
-    return int(mask_utils.area(_coco_rle(rle)))
+    """Foreground pixel count of a (compressed) RLE (checked: :class:`InputError` if malformed)."""
+    return int(rle_runs(rle, None, "rle")[2][1::2].sum())
 
 
 def rle_bbox(rle: dict) -> list[float]:
-    """COCO ``[x, y, w, h]`` of a (compressed) RLE (zeros when empty)."""
-    return [float(v) for v in mask_utils.toBbox(_coco_rle(rle))]
+    """COCO ``[x, y, w, h]`` of a (compressed) RLE (zeros when empty); checked before pycocotools
+    sees it."""
+    checked = check_rle(rle, None, "rle")
+    coco = {"size": checked["size"], "counts": checked["counts"].encode("ascii")}
+    return [float(v) for v in mask_utils.toBbox(coco)]
 
 
 def rle_is_empty(rle: dict) -> bool:
@@ -195,6 +136,11 @@ def rle_is_empty(rle: dict) -> bool:
 
 def _is_int(v: Any) -> bool:
     return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+
+
+MAX_TIME_INDEX = 2 ** 31 - 1
+"""Largest ``time_index`` (and interval end) a file may give: time indices are stored in int32-safe
+columns when scored."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -218,14 +164,12 @@ def annotation_set_to_dict(aset: AnnotationSet) -> dict:
     query_order = {q.id: i for i, q in enumerate(aset.queries)}
     keys = sorted(aset.masks, key=lambda k: (frame_order.get(k[1], math.inf), query_order.get(k[0], math.inf),
                                               k[1], k[0]))
+    frame_by_id = {f.id: f for f in aset.frames}
     for ann_id, (qid, fid) in enumerate(keys, start=1):
-        rle = aset.masks[(qid, fid)]
-        counts = rle["counts"]
-        seg = {"size": [int(rle["size"][0]), int(rle["size"][1])],
-               "counts": counts.decode("ascii") if isinstance(counts, bytes) else counts}
-        if isinstance(seg["counts"], list):
-            seg = validate_rle(seg, None, f"masks[{qid}, {fid}]")
-        area = rle_area(seg)
+        frame = frame_by_id.get(fid)
+        size = None if frame is None else (int(frame.height), int(frame.width))
+        # in-memory masks are checked like a file's before pycocotools computes the bbox
+        seg, area = _checked_rle(aset.masks[(qid, fid)], "<in-memory AnnotationSet>", f"masks[{qid}, {fid}]", size)
         annotations.append({"id": ann_id, "image_id": int(fid), "category_id": int(qid), "segmentation": seg,
                             "area": area, "bbox": rle_bbox(seg), "iscrowd": 1, "absent": area == 0})
     for q in aset.queries:
@@ -250,16 +194,17 @@ def annotation_set_from_dict(doc: Any, file: str | Path | None = None) -> Annota
         if key not in doc:
             raise InputError(file, key, "missing required key")
     if doc["format"] != FORMAT_NAME:
-        raise InputError(file, "format", f"expected {FORMAT_NAME!r}, got {doc['format']!r}")
+        raise InputError(file, "format", f"expected {FORMAT_NAME!r}, got {short_repr(doc['format'])}")
     if not _is_int(doc["version"]) or doc["version"] != FORMAT_VERSION:
         raise InputError(file, "version",
-                         f"unsupported version {doc['version']!r}; this bench4d reads version {FORMAT_VERSION}")
+                         f"unsupported version {short_repr(doc['version'])}; this bench4d reads version {FORMAT_VERSION}")
     scene = doc["scene"]
     if not isinstance(scene, str) or not scene:
         raise InputError(file, "scene", "expected a non-empty string")
     nts = doc["num_time_steps"]
-    if nts is not None and not (_is_int(nts) and nts > 0):
-        raise InputError(file, "num_time_steps", f"expected a positive integer or null, got {nts!r}")
+    if nts is not None and not (_is_int(nts) and 0 < nts <= MAX_TIME_INDEX + 1):
+        raise InputError(file, "num_time_steps",
+                         f"expected a positive integer up to {MAX_TIME_INDEX + 1} or null, got {short_repr(nts)}")
     info = doc.get("info", {})
     if not isinstance(info, dict):
         raise InputError(file, "info", f"expected an object, got {type(info).__name__}")
@@ -295,7 +240,7 @@ def _get(item: Any, key: str, file, field: str, *, types: tuple = (), default: A
     if ok and check is not None:
         ok = check(value)
     if not ok:
-        raise InputError(file, name, f"expected {expect or '/'.join(t.__name__ for t in types)}, got {value!r}")
+        raise InputError(file, name, f"expected {expect or '/'.join(t.__name__ for t in types)}, got {short_repr(value)}")
     return value
 
 
@@ -309,7 +254,11 @@ def _parse_images(images: Any, nts: Optional[int], file) -> list[AnnotatedFrame]
         name = _get(im, "file_name", file, field, types=(str,), check=bool, expect="a non-empty frame name")
         width = _get(im, "width", file, field, types=(int,), check=lambda v: v > 0, expect="a positive int")
         height = _get(im, "height", file, field, types=(int,), check=lambda v: v > 0, expect="a positive int")
-        ti = _get(im, "time_index", file, field, types=(int,), check=lambda v: v >= 0, expect="an int >= 0")
+        if width * height > MAX_MASK_PIXELS:  # masks of this size are decoded when scored
+            raise InputError(file, f"{field}.width/height", f"{width}x{height} is larger than the "
+                                                            f"{MAX_MASK_PIXELS} pixels any frame may have")
+        ti = _get(im, "time_index", file, field, types=(int,), check=lambda v: 0 <= v <= MAX_TIME_INDEX,
+                  expect=f"an int in 0..{MAX_TIME_INDEX}")
         cam = _get(im, "camera_id", file, field, types=(str,), default="0")
         if nts is not None and ti >= nts:
             raise InputError(file, f"{field}.time_index", f"{ti} is out of range for num_time_steps={nts}")
@@ -401,28 +350,34 @@ def _parse_annotations(annotations: Any, frame_by_id: dict[int, AnnotatedFrame],
                 raise InputError(file, f"{field}.segmentation",
                                  "missing required key (only an annotation with \"absent\": true may omit it)")
             rle = {"size": [frame.height, frame.width], "counts": _empty_counts(frame.height, frame.width)}
+            area = 0
         else:
-            rle = validate_rle(ann["segmentation"], file, f"{field}.segmentation", size)
-        area = rle_area(rle)
+            rle, area = _checked_rle(ann["segmentation"], file, f"{field}.segmentation", size)
         if absent is not None and absent != (area == 0):
             raise InputError(file, f"{field}.absent",
                              f"says {str(absent).lower()} but the mask has {area} foreground pixels")
         if "area" in ann:
             given = ann["area"]
             if not isinstance(given, (int, float, np.number)) or isinstance(given, bool) or given != area:
-                raise InputError(file, f"{field}.area", f"is {given!r} but the mask has {area} foreground pixels")
+                raise InputError(file, f"{field}.area", f"is {short_repr(given)} but the mask has {area} foreground pixels")
         if "bbox" in ann:
             bbox = ann["bbox"]
             if (not isinstance(bbox, list) or len(bbox) != 4
-                    or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in bbox)):
-                raise InputError(file, f"{field}.bbox", f"expected [x, y, w, h] numbers, got {bbox!r}")
+                    or not all(_is_finite_number(v) for v in bbox)):
+                raise InputError(file, f"{field}.bbox", f"expected [x, y, w, h] finite numbers, got {short_repr(bbox)}")
         masks[(qid, fid)] = rle
     return masks
 
 
 def _empty_counts(height: int, width: int) -> str:
-    rle = mask_utils.encode(np.zeros((height, width), dtype=np.uint8, order="F"))
-    return rle["counts"].decode("ascii")
+    # one run of background, written without allocating the (possibly large) mask
+    return runs_to_string([height * width])
+
+
+def _is_finite_number(v: Any) -> bool:
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return False
+    return isinstance(v, int) or math.isfinite(v)
 
 
 def _parse_time_segments(segments: Any, query_by_id: dict[int, Query], nts: Optional[int], file) -> None:
@@ -434,7 +389,7 @@ def _parse_time_segments(segments: Any, query_by_id: dict[int, Query], nts: Opti
         try:
             qid = int(key)
         except ValueError:
-            raise InputError(file, field, f"key {key!r} is not a category id") from None
+            raise InputError(file, field, f"key {short_repr(key)} is not a category id") from None
         if qid not in query_by_id:
             raise InputError(file, field, f"unknown category id {qid}")
         query = query_by_id[qid]
@@ -444,12 +399,14 @@ def _parse_time_segments(segments: Any, query_by_id: dict[int, Query], nts: Opti
         parsed = []
         for j, iv in enumerate(_require_list(intervals, file, field)):
             if not (isinstance(iv, list) and len(iv) == 2 and all(_is_int(v) for v in iv)):
-                raise InputError(file, f"{field}[{j}]", f"expected [l, r] integers, got {iv!r}")
+                raise InputError(file, f"{field}[{j}]", f"expected [l, r] integers, got {short_repr(iv)}")
             lo, hi = int(iv[0]), int(iv[1])
             if lo < 0:
-                raise InputError(file, f"{field}[{j}]", f"negative time index in {iv}")
+                raise InputError(file, f"{field}[{j}]", f"negative time index in {short_repr(iv)}")
             if lo > hi:
                 raise InputError(file, f"{field}[{j}]", f"l > r in {iv} (intervals are inclusive [l, r])")
+            if hi > MAX_TIME_INDEX:
+                raise InputError(file, f"{field}[{j}]", f"{short_repr(iv)} reaches past time index {MAX_TIME_INDEX}")
             if nts is not None and hi >= nts:
                 raise InputError(file, f"{field}[{j}]", f"{iv} reaches past num_time_steps={nts}")
             parsed.append((lo, hi))
@@ -475,8 +432,8 @@ def save_annotations(aset: AnnotationSet, path: str | Path, *, overwrite: bool =
 
 def dumps_annotations(doc: dict) -> str:
     """JSON text with one line per image / category / annotation / time segment (diff-friendly)."""
-    def one(v: Any) -> str:
-        return json.dumps(v, ensure_ascii=False, separators=(", ", ": "))
+    def one(v: Any) -> str:  # standard JSON only: a NaN (e.g. in ``info``) is written as null
+        return json.dumps(json_ready(v), ensure_ascii=False, separators=(", ", ": "), allow_nan=False)
 
     lines = ["{"]
     keys = list(doc)

@@ -4,6 +4,12 @@ This is the data model; :mod:`annotations.format` reads and writes it as the pro
 JSON (COCO-style images/categories, COCO RLE masks, time segments), and the importers in
 :mod:`annotations.release` / :mod:`annotations.davis` produce it from other formats.
 
+Masks are COCO RLE. Every RLE a reader meets passes :func:`rle_runs` before anything decodes it:
+the size first (against the frame, and at most :data:`MAX_MASK_PIXELS`), then each run (an int in
+``0..height * width``, bounded before anything is summed, so no sum wraps around), then the total
+(exactly ``height * width``). Compressed strings are parsed by :func:`string_to_runs`, never by
+pycocotools' C decoder; :func:`decode_mask` builds the mask from the checked runs.
+
 Semantics
 ---------
 * A **time-agnostic** query ("coffee cup") has a mask on every evaluated frame where it was annotated.
@@ -17,10 +23,13 @@ Semantics
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Iterable, Literal, Optional
+from pathlib import Path
+from typing import Any, Iterable, Literal, Optional, Sequence
 
 import numpy as np
 from pycocotools import mask as mask_utils
+
+from benchmark.errors import InputError, short_repr
 
 QueryKind = Literal["agnostic", "sensitive"]
 Interval = tuple[int, int]
@@ -34,14 +43,177 @@ def encode_mask(mask: np.ndarray) -> dict:
     return {"size": [int(rle["size"][0]), int(rle["size"][1])], "counts": rle["counts"]}
 
 
-def decode_mask(rle: dict) -> np.ndarray:
-    """COCO RLE dict (compressed str/bytes counts or uncompressed list counts) -> (H, W) bool."""
-    r = dict(rle)
-    if isinstance(r["counts"], list):
-        r = mask_utils.frPyObjects(r, r["size"][0], r["size"][1])
-    elif isinstance(r["counts"], str):
-        r["counts"] = r["counts"].encode("ascii")
-    return mask_utils.decode(r).astype(bool)
+MAX_MASK_PIXELS = 1 << 26
+"""Largest mask (height x width, 67 M pixels, e.g. 8192 x 8192) any reader accepts. The benchmark's
+frames are far smaller (Neu3D's 2704 x 2028 is 5.5 M pixels); the bound caps what a few bytes of
+RLE or a PNG header can make a reader allocate, and keeps every run length exact in the 32-bit
+counts of pycocotools."""
+
+_MAX_GROUPS = 6
+"""Characters per number in a compressed RLE string. Six 5-bit groups hold every value a valid
+mask needs (|delta| <= MAX_MASK_PIXELS < 2**29), and pycocotools' C decoder shifts a C ``int`` by
+``5 * k``, which is only defined for fewer than 7 groups."""
+
+
+def check_mask_size(size: Any, file: str | Path | None = None, field: str = "size",
+                    expected: Optional[tuple[int, int]] = None) -> tuple[int, int]:
+    """``size`` as ``(height, width)`` of positive ints within :data:`MAX_MASK_PIXELS`.
+
+    ``expected`` ``(height, width)``: the frame the mask belongs to; any other size is refused
+    here, before a single pixel is decoded. Raises :class:`InputError` naming ``field``.
+    """
+    if (not isinstance(size, (list, tuple)) or len(size) != 2
+            or not all(_is_int(v) and v > 0 for v in size)):
+        raise InputError(file, field, f"expected [height, width] of positive ints, got {short_repr(size)}")
+    h, w = int(size[0]), int(size[1])
+    if expected is not None and (h, w) != (int(expected[0]), int(expected[1])):
+        raise InputError(file, field, f"mask is {w}x{h} (WxH) but its frame is {int(expected[1])}x{int(expected[0])}")
+    if h * w > MAX_MASK_PIXELS:
+        raise InputError(file, field, f"mask of {w}x{h} pixels is larger than the {MAX_MASK_PIXELS} pixels "
+                                      "any frame may have")
+    return h, w
+
+
+def string_to_runs(counts: str | bytes, file: str | Path | None = None, field: str = "counts") -> np.ndarray:
+    """Run lengths (int64) of COCO's compressed RLE string; malformed strings raise :class:`InputError`.
+
+    COCO packs each number (after the first three, as a difference from the run two places back)
+    into 5-bit groups, low first, as characters ``'0' + c`` where bit 0x20 of ``c`` says "more groups
+    follow" and bit 0x10 of the last group is the sign. Parsed here, not by pycocotools, whose C
+    decoder reads past the end of a string that stops inside a number. The values are not range
+    checked here (see :func:`rle_runs`); each is below 2**30 in magnitude and there are fewer than
+    2**32 of them, so no int64 sum below can wrap.
+    """
+    if isinstance(counts, str):
+        try:
+            data = counts.encode("ascii")
+        except UnicodeEncodeError:
+            raise InputError(file, field, "compressed RLE string is not ASCII") from None
+    else:
+        data = bytes(counts)
+    if len(data) >= 1 << 32:
+        raise InputError(file, field, "compressed RLE string is too long")
+    raw = np.frombuffer(data, dtype=np.uint8).astype(np.int64) - 48
+    if raw.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    if raw.min() < 0 or raw.max() > 63:
+        bad = int(np.flatnonzero((raw < 0) | (raw > 63))[0])
+        raise InputError(file, field, f"character {chr(data[bad])!r} at {bad} is not in COCO's RLE alphabet '0'..'o'")
+    more = (raw & 0x20) != 0
+    if more[-1]:
+        raise InputError(file, field, "compressed RLE string ends inside a number (truncated)")
+    ends = np.flatnonzero(~more)
+    starts = np.concatenate([[0], ends[:-1] + 1])
+    lengths = ends - starts + 1
+    if lengths.max() > _MAX_GROUPS:
+        raise InputError(file, field, f"a number in the compressed RLE string has more than {_MAX_GROUPS} "
+                                      "characters: no mask needs it")
+    k = np.arange(raw.size) - np.repeat(starts, lengths)
+    values = np.add.reduceat((raw & 0x1F) << (5 * k), starts)
+    negative = (raw[ends] & 0x10) != 0
+    values[negative] -= np.left_shift(np.int64(1), 5 * lengths[negative])
+    # undo the delta coding: cnts[i] += cnts[i-2] for i > 2 (COCO's rule starts at index 3)
+    if values.size > 3:
+        values[3::2] = np.cumsum(values[1::2])[1:]
+        values[4::2] = np.cumsum(values[2::2])[1:]
+    return values
+
+
+def runs_to_string(runs: Sequence[int] | np.ndarray) -> str:
+    """COCO's compressed RLE string of checked run lengths (what pycocotools writes for them)."""
+    out = bytearray()
+    prev = [0, 0]
+    for i, run in enumerate(int(r) for r in runs):
+        x = run - prev[i % 2] if i > 2 else run
+        prev[i % 2] = run
+        while True:
+            c = x & 0x1F
+            x >>= 5
+            more = x != -1 if c & 0x10 else x != 0
+            out.append(48 + (c | 0x20 if more else c))
+            if not more:
+                break
+    return out.decode("ascii")
+
+
+def rle_runs(rle: Any, file: str | Path | None = None, field: str = "segmentation",
+             size: Optional[tuple[int, int]] = None) -> tuple[int, int, np.ndarray]:
+    """``(height, width, runs)`` of a COCO RLE after every check; the one gate all RLE passes.
+
+    ``rle`` is ``{"size": [h, w], "counts": compressed str/bytes | list of run lengths}``. The size
+    is checked first (against ``size`` = the frame's ``(height, width)`` when given, and against
+    :data:`MAX_MASK_PIXELS`), then every run: an int, ``0 <= run <= h * w``, and together exactly
+    ``h * w`` pixels. Each run is bounded before anything is summed, so no sum can wrap around, and
+    nothing is decoded or handed to pycocotools before these checks pass. Raises :class:`InputError`.
+    """
+    if not isinstance(rle, dict):
+        raise InputError(file, field, f"expected an RLE object with 'size' and 'counts', got {type(rle).__name__}")
+    for key in ("size", "counts"):
+        if key not in rle:
+            raise InputError(file, f"{field}.{key}", "missing required key")
+    h, w = check_mask_size(rle["size"], file, f"{field}.size", size)
+    pixels = h * w
+    counts = rle["counts"]
+    where = f"{field}.counts"
+    if isinstance(counts, (str, bytes)):
+        runs = string_to_runs(counts, file, where)
+    elif isinstance(counts, (list, tuple)):
+        for i, c in enumerate(counts):
+            if not _is_int(c):
+                raise InputError(file, f"{where}[{i}]", f"run lengths are integers, got {short_repr(c)}")
+            if not 0 <= c <= pixels:  # exact comparison of unbounded ints: nothing wraps
+                raise InputError(file, f"{where}[{i}]", f"run length {short_repr(c)} is outside 0..{pixels} "
+                                                        f"(the mask has {h}x{w} pixels)")
+        runs = np.array([int(c) for c in counts], dtype=np.int64)
+    else:
+        raise InputError(file, where, f"expected a compressed string or a list of run lengths, "
+                                      f"got {type(counts).__name__}")
+    if runs.size:
+        bad = np.flatnonzero((runs < 0) | (runs > pixels))
+        if bad.size:
+            i = int(bad[0])
+            raise InputError(file, where, f"run {i} has length {int(runs[i])}, outside 0..{pixels} "
+                                          f"(the mask has {h}x{w} pixels)")
+    total = int(runs.sum())  # each run <= 2**26 and fewer than 2**32 runs: exact in int64
+    if total != pixels:
+        raise InputError(file, where, f"run lengths cover {total} pixels but size {h}x{w} has {pixels}")
+    return h, w, runs
+
+
+def runs_to_mask(runs: np.ndarray, height: int, width: int) -> np.ndarray:
+    """(H, W) bool of checked run lengths (column-major, first run = background), as pycocotools
+    decodes them. Only for runs that :func:`rle_runs` accepted."""
+    values = np.zeros(len(runs), dtype=bool)
+    values[1::2] = True
+    return np.repeat(values, runs).reshape(width, height).T
+
+
+def check_rle(rle: Any, file: str | Path | None = None, field: str = "segmentation",
+              size: Optional[tuple[int, int]] = None) -> dict:
+    """A checked RLE as ``{"size": [h, w], "counts": compressed str}`` (JSON-ready, COCO's layout);
+    see :func:`rle_runs` for the checks. A compressed string is kept as given."""
+    h, w, runs = rle_runs(rle, file, field, size)
+    counts = rle["counts"]
+    if isinstance(counts, bytes):
+        counts = counts.decode("ascii")  # string_to_runs has checked it is ASCII
+    elif not isinstance(counts, str):
+        counts = runs_to_string(runs)
+    return {"size": [h, w], "counts": counts}
+
+
+def decode_mask(rle: dict, file: str | Path | None = None, field: str = "mask",
+                size: Optional[tuple[int, int]] = None) -> np.ndarray:
+    """COCO RLE dict (compressed str/bytes counts or uncompressed list counts) -> (H, W) bool.
+
+    Checked by :func:`rle_runs` first (an :class:`InputError` names ``file`` and ``field``);
+    ``size`` = the frame's ``(height, width)`` refuses any other size before decoding.
+    """
+    h, w, runs = rle_runs(rle, file, field, size)
+    return runs_to_mask(runs, h, w)
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
 
 
 def normalise_intervals(intervals: Iterable[Iterable[int]]) -> list[Interval]:

@@ -21,6 +21,14 @@ The release's ``annotations/`` folder of a scene holds:
 
 Polygons are rasterised by :func:`annotations.polygons.polygons_to_mask` (pixel-centre rule, see
 there); a polygon drawn on an image of another size is rescaled to ``target_size`` first.
+
+Limits on hostile files (each an :class:`~benchmark.errors.InputError` naming the file and field):
+image sizes within :data:`annotations.model.MAX_MASK_PIXELS`; RLE checked run by run before it is
+decoded; polygon vertices finite and at most one image size outside the image; and the polygons of
+one label in one image at most :func:`polygon_budget` long (edge lengths in pixels, max(|dx|, |dy|),
+plus one per vertex), which bounds the rasteriser's working memory to a fixed multiple of the frame.
+A mask drawn with polygons stays far below it (about 0.2-3 x height x width even for noisy masks);
+:func:`export_release` writes a mask as RLE where its polygons would exceed it.
 """
 
 from __future__ import annotations
@@ -36,10 +44,10 @@ import numpy as np
 from pycocotools import mask as mask_utils
 
 from benchmark.atomic import read_json, write_json, write_text
-from benchmark.errors import InputError
+from benchmark.errors import InputError, short_repr
 
-from .format import validate_against_scene, validate_rle
-from .model import AnnotatedFrame, AnnotationSet, Query, decode_mask, encode_mask
+from .format import MAX_TIME_INDEX, validate_against_scene
+from .model import MAX_MASK_PIXELS, AnnotatedFrame, AnnotationSet, Query, decode_mask, encode_mask
 from .polygons import Rasterizer, mask_to_polygons, polygons_to_mask
 
 COCO_RELATIVE_PATH = Path("train") / "_annotations.coco.json"
@@ -51,7 +59,25 @@ FrameNames = Union[str, Callable[[int], str], Mapping[int, str], Sequence[str], 
 MissingMeans = Literal["not_annotated", "absent"]
 
 __all__ = ["COCO_RELATIVE_PATH", "VIDEO_RELATIVE_PATH", "ReleaseImportOptions", "import_release",
-           "import_release_folder", "export_release", "frame_number_from_file_name"]
+           "import_release_folder", "export_release", "frame_number_from_file_name", "check_polygon",
+           "polygon_budget", "polygon_cost"]
+
+
+def polygon_budget(height: int, width: int) -> int:
+    """Largest :func:`polygon_cost` of the polygons of one label in one (height x width) image:
+    ``2 * (height * width + height + width)``, twice the length of every pixel edge of the image."""
+    return 2 * (height * width + height + width)
+
+
+def polygon_cost(polygons: Sequence[Sequence[float]], scale: tuple[float, float] = (1.0, 1.0)) -> float:
+    """Boundary length of ``polygons`` in (scaled) pixels, each edge counted as max(|dx|, |dy|),
+    plus one per vertex: proportional to the points pycocotools walks and allocates to fill them."""
+    total = 0.0
+    for poly in polygons:
+        pts = np.asarray(poly, dtype=np.float64).reshape(-1, 2) * np.asarray(scale, dtype=np.float64)
+        if len(pts):
+            total += float(np.abs(pts - np.roll(pts, -1, axis=0)).max(axis=1).sum()) + len(pts)
+    return total
 
 
 @dataclass
@@ -76,11 +102,11 @@ def frame_number_from_file_name(file_name: str, file: str | Path | None = None, 
     """``"12_png.rf.ab12.jpg"`` -> 12 (the text before the first ``_``, or the stem if none)."""
     stem = Path(file_name).name
     head = stem.split("_", 1)[0] if "_" in stem else stem.split(".", 1)[0]
-    try:
-        return int(head)
-    except ValueError:
-        raise InputError(file, field, f"cannot read a frame number from {file_name!r} "
-                                      "(expected '<frame>_png.rf.<hash>.jpg')") from None
+    # ASCII digits only: int() would also take " 12", "1_2" or other scripts' digits
+    if not (head.isascii() and head.isdigit()) or len(head) > 12:
+        raise InputError(file, field, f"cannot read a frame number from {short_repr(file_name)} "
+                                      "(expected '<frame>_png.rf.<hash>.jpg')")
+    return int(head)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -138,8 +164,14 @@ def import_release(coco_json: str | Path, video_json: str | Path | None = None, 
     if num_time_steps is None:
         if scene is not None and scene.frames:
             num_time_steps = max(f.time_index for f in scene.frames) + 1
-        elif isinstance(bench_info, dict) and isinstance(bench_info.get("num_time_steps"), int):
-            num_time_steps = bench_info["num_time_steps"]
+        elif isinstance(bench_info, dict) and bench_info.get("num_time_steps") is not None:
+            nts = bench_info["num_time_steps"]
+            if not isinstance(nts, int) or isinstance(nts, bool) or not 0 < nts <= MAX_TIME_INDEX + 1:
+                raise InputError(coco_path, "info.bench4d.num_time_steps",
+                                 f"expected a positive integer up to {MAX_TIME_INDEX + 1} or null, got {short_repr(nts)}")
+            num_time_steps = nts
+    if target_size is not None:
+        _check_size(target_size[0], target_size[1], None, "target_size")
 
     queries, cat_ids = _read_categories(coco, coco_path, opts)
     frames, image_size = _read_images(coco, coco_path, frame_base=frame_base, target_size=target_size,
@@ -160,13 +192,26 @@ def import_release(coco_json: str | Path, video_json: str | Path | None = None, 
     return aset
 
 
+def _check_size(width: int, height: int, file, field: str) -> None:
+    if width * height > MAX_MASK_PIXELS:  # masks of this size are allocated when rasterised
+        raise InputError(file, field, f"{width}x{height} is larger than the {MAX_MASK_PIXELS} pixels any "
+                                      "frame may have")
+
+
+def _hashable_id(value: Any) -> bool:
+    """An id as COCO writes it (an int); other JSON values (lists, objects) cannot be dict keys."""
+    return isinstance(value, (int, str)) and not isinstance(value, bool)
+
+
 def _is_scene(obj: Any) -> bool:
     return hasattr(obj, "frames_at") and hasattr(obj, "frames")
 
 
 def _read_categories(coco: dict, file: Path, opts: ReleaseImportOptions) -> tuple[list[Query], dict[int, int]]:
-    owners = {a.get("category_id") for a in coco["annotations"] if isinstance(a, dict)}
-    supers = {c.get("supercategory") for c in coco["categories"] if isinstance(c, dict)}
+    owners = {a.get("category_id") for a in coco["annotations"]
+              if isinstance(a, dict) and _hashable_id(a.get("category_id"))}
+    supers = {c.get("supercategory") for c in coco["categories"]
+              if isinstance(c, dict) and isinstance(c.get("supercategory"), str)}
     queries: list[Query] = []
     ids: dict[int, int] = {}
     seen: dict[str, int] = {}
@@ -179,9 +224,9 @@ def _read_categories(coco: dict, file: Path, opts: ReleaseImportOptions) -> tupl
                 raise InputError(file, f"{field}.{key}", "missing required key")
         cid, name = cat["id"], cat["name"]
         if not isinstance(cid, int) or isinstance(cid, bool):
-            raise InputError(file, f"{field}.id", f"expected an integer, got {cid!r}")
+            raise InputError(file, f"{field}.id", f"expected an integer, got {short_repr(cid)}")
         if not isinstance(name, str) or not name.strip():
-            raise InputError(file, f"{field}.name", f"expected a non-empty query text, got {name!r}")
+            raise InputError(file, f"{field}.name", f"expected a non-empty query text, got {short_repr(name)}")
         is_root = (name == opts.root_category if opts.root_category is not None
                    else cid not in owners and name in supers and cat.get("supercategory") != name)
         if is_root:
@@ -245,20 +290,23 @@ def _read_images(coco: dict, file: Path, *, frame_base: int, target_size, frame_
                 raise InputError(file, f"{field}.{key}", "missing required key")
         iid = im["id"]
         if not isinstance(iid, int) or isinstance(iid, bool):
-            raise InputError(file, f"{field}.id", f"expected an integer, got {iid!r}")
+            raise InputError(file, f"{field}.id", f"expected an integer, got {short_repr(iid)}")
         if iid in frames:
             raise InputError(file, f"{field}.id", f"duplicate image id {iid}")
         for key in ("width", "height"):
             v = im[key]
             if not isinstance(v, int) or isinstance(v, bool) or v <= 0:
-                raise InputError(file, f"{field}.{key}", f"expected a positive integer, got {v!r}")
+                raise InputError(file, f"{field}.{key}", f"expected a positive integer, got {short_repr(v)}")
+        _check_size(im["width"], im["height"], file, f"{field}.width/height")
         if not isinstance(im["file_name"], str):
-            raise InputError(file, f"{field}.file_name", f"expected a string, got {im['file_name']!r}")
+            raise InputError(file, f"{field}.file_name", f"expected a string, got {short_repr(im['file_name'])}")
         number = frame_number_from_file_name(im["file_name"], file, f"{field}.file_name")
         time_index = number - frame_base
         if time_index < 0:
             raise InputError(file, f"{field}.file_name",
                              f"frame number {number} is below frame_base={frame_base} (is frame_base right?)")
+        if time_index > MAX_TIME_INDEX:
+            raise InputError(file, f"{field}.file_name", f"frame number {number} is past time index {MAX_TIME_INDEX}")
         if num_time_steps is not None and time_index >= num_time_steps:
             raise InputError(file, f"{field}.file_name",
                              f"frame number {number} (time_index {time_index}) is past the video's "
@@ -271,6 +319,7 @@ def _read_images(coco: dict, file: Path, *, frame_base: int, target_size, frame_
                              "augmentations must be disabled in the export")
         by_name[name] = i
         width, height = target_size if target_size is not None else (scene_size or (im["width"], im["height"]))
+        _check_size(width, height, file, f"{field}.width/height")
         frames[iid] = AnnotatedFrame(id=iid, name=name, time_index=time_index, width=int(width),
                                      height=int(height), camera_id=cam)
         sizes[iid] = (im["width"], im["height"])
@@ -280,7 +329,8 @@ def _read_images(coco: dict, file: Path, *, frame_base: int, target_size, frame_
 def _read_masks(coco: dict, file: Path, frames: dict[int, AnnotatedFrame], image_size: dict[int, tuple[int, int]],
                 cat_ids: dict[int, int], opts: ReleaseImportOptions) -> dict[tuple[int, int], dict]:
     polys: dict[tuple[int, int], list] = {}
-    rles: dict[tuple[int, int], list[np.ndarray]] = {}
+    cost: dict[tuple[int, int], float] = {}
+    rles: dict[tuple[int, int], np.ndarray] = {}
     for i, ann in enumerate(coco["annotations"]):
         field = f"annotations[{i}]"
         if not isinstance(ann, dict):
@@ -289,19 +339,19 @@ def _read_masks(coco: dict, file: Path, frames: dict[int, AnnotatedFrame], image
             if key not in ann:
                 raise InputError(file, f"{field}.{key}", "missing required key")
         iid, cid, seg = ann["image_id"], ann["category_id"], ann["segmentation"]
-        if iid not in frames:
-            raise InputError(file, f"{field}.image_id", f"unknown image id {iid!r}")
-        if cid not in cat_ids:
-            raise InputError(file, f"{field}.category_id", f"unknown (or root) category id {cid!r}")
+        if not _hashable_id(iid) or iid not in frames:
+            raise InputError(file, f"{field}.image_id", f"unknown image id {short_repr(iid)}")
+        if not _hashable_id(cid) or cid not in cat_ids:
+            raise InputError(file, f"{field}.category_id", f"unknown (or root) category id {short_repr(cid)}")
         key = (cat_ids[cid], iid)
         w_img, h_img = image_size[iid]
         frame = frames[iid]
         if isinstance(seg, dict):
-            rle = validate_rle(seg, file, f"{field}.segmentation", (h_img, w_img))
-            m = decode_mask(rle)
+            # size checked against the image before decoding, every run before the mask is built
+            m = decode_mask(seg, file, f"{field}.segmentation", (h_img, w_img))
             if (w_img, h_img) != (frame.width, frame.height):
                 m = _resample_nearest(m, frame.height, frame.width)
-            rles.setdefault(key, []).append(m)
+            rles[key] = m | rles[key] if key in rles else m  # OR-ed at once: one mask per label and image
             polys.setdefault(key, [])
             continue
         if not isinstance(seg, list):
@@ -310,14 +360,13 @@ def _read_masks(coco: dict, file: Path, frames: dict[int, AnnotatedFrame], image
         clean = []
         for j, poly in enumerate(seg):
             pfield = f"{field}.segmentation[{j}]"
-            if not isinstance(poly, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
-                                                     for v in poly):
-                raise InputError(file, pfield, "expected a flat list of numbers [x0, y0, x1, y1, ...]")
-            if len(poly) % 2:
-                raise InputError(file, pfield, f"odd number of coordinates ({len(poly)})")
-            if not all(math.isfinite(v) for v in poly):
-                raise InputError(file, pfield, "contains NaN or inf")
-            clean.append(poly)
+            clean.append(check_polygon(poly, w_img, h_img, file, pfield))
+        scale = (frame.width / w_img, frame.height / h_img)
+        cost[key] = cost.get(key, 0.0) + polygon_cost(clean, scale)
+        if cost[key] > polygon_budget(frame.height, frame.width):
+            raise InputError(file, f"{field}.segmentation",
+                             f"the polygons of this label in image {iid} are {cost[key]:.0f} pixels long, more than "
+                             f"{polygon_budget(frame.height, frame.width)} for a {frame.width}x{frame.height} image")
         polys.setdefault(key, []).extend(clean)
 
     masks: dict[tuple[int, int], dict] = {}
@@ -326,8 +375,8 @@ def _read_masks(coco: dict, file: Path, frames: dict[int, AnnotatedFrame], image
         w_img, h_img = image_size[iid]
         m = polygons_to_mask(plist, frame.height, frame.width,
                              scale=(frame.width / w_img, frame.height / h_img), rasterizer=opts.rasterizer)
-        for extra in rles.get((qid, iid), []):
-            m |= extra
+        if (qid, iid) in rles:
+            m |= rles[(qid, iid)]
         masks[(qid, iid)] = encode_mask(m)
     if opts.missing_means == "absent":
         annotated_images = {iid for (_, iid) in polys}
@@ -337,6 +386,26 @@ def _read_masks(coco: dict, file: Path, frames: dict[int, AnnotatedFrame], image
                 if (qid, iid) not in masks:
                     masks[(qid, iid)] = encode_mask(np.zeros((frame.height, frame.width), dtype=bool))
     return masks
+
+
+def check_polygon(poly: Any, w_img: int, h_img: int, file: Path, field: str) -> list:
+    """``poly`` checked as a flat ``[x0, y0, ...]`` of finite numbers, every vertex within one image
+    size of the ``w_img`` x ``h_img`` image it was drawn on (:class:`InputError` naming ``field``)."""
+    if not isinstance(poly, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in poly):
+        raise InputError(file, field, "expected a flat list of numbers [x0, y0, x1, y1, ...]")
+    if len(poly) % 2:
+        raise InputError(file, field, f"odd number of coordinates ({len(poly)})")
+    # ints are compared exactly first: float() of a huge int raises OverflowError
+    if not all(abs(v) <= 1e9 if isinstance(v, int) else math.isfinite(v) for v in poly):
+        raise InputError(file, field, "contains NaN, inf or a number beyond 1e9")
+    if poly:
+        pts = np.asarray(poly, dtype=np.float64).reshape(-1, 2)
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        # the rasteriser walks every edge point by point: a vertex far outside costs memory and time
+        if lo[0] < -w_img or lo[1] < -h_img or hi[0] > 2 * w_img or hi[1] > 2 * h_img:
+            raise InputError(file, field, f"vertices reach ({lo[0]:g}, {lo[1]:g})..({hi[0]:g}, {hi[1]:g}), more than "
+                                          f"one image size outside the {w_img}x{h_img} image")
+    return poly
 
 
 def _resample_nearest(mask: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -355,7 +424,7 @@ def _read_video(path: Path, aset: AnnotationSet, opts: ReleaseImportOptions) -> 
     next_id = max((q.id for q in aset.queries), default=0) + 1
     for base_text, queries in doc.items():
         if base_text not in by_text:
-            raise InputError(path, base_text, f"base label {base_text!r} is not a category of the COCO file "
+            raise InputError(path, base_text, f"base label {short_repr(base_text)} is not a category of the COCO file "
                                               f"(known: {sorted(by_text)[:8]})")
         base = by_text[base_text]
         if base.kind != "agnostic":
@@ -374,8 +443,10 @@ def _read_video(path: Path, aset: AnnotationSet, opts: ReleaseImportOptions) -> 
             for j, iv in enumerate(intervals):
                 if (not isinstance(iv, list) or len(iv) != 2
                         or not all(isinstance(v, int) and not isinstance(v, bool) for v in iv)):
-                    raise InputError(path, f"{field}[{j}]", f"expected [l, r] integers, got {iv!r}")
+                    raise InputError(path, f"{field}[{j}]", f"expected [l, r] integers, got {short_repr(iv)}")
                 lo, hi = iv[0] - opts.interval_base, iv[1] - opts.interval_base
+                if hi > MAX_TIME_INDEX:
+                    raise InputError(path, f"{field}[{j}]", f"{short_repr(iv)} reaches past time index {MAX_TIME_INDEX}")
                 if lo < 0:
                     raise InputError(path, f"{field}[{j}]", f"{iv} starts before the first frame "
                                                             f"(interval_base={opts.interval_base})")
@@ -459,15 +530,17 @@ def export_release(aset: AnnotationSet, out_dir: str | Path, *, frame_base: Opti
         if qid not in agnostic_ids:
             raise InputError(None, f"masks[{qid}, {fid}]", "only time-agnostic queries own masks")
         f = frame_by_id[fid]
-        m = decode_mask(aset.masks[(qid, fid)])
+        m = decode_mask(aset.masks[(qid, fid)], None, f"masks[{qid}, {fid}]", (f.height, f.width))
         if m.shape != (f.height, f.width):
             raise InputError(None, f"masks[{qid}, {fid}]", f"mask is {m.shape[1]}x{m.shape[0]} but frame "
                                                            f"{f.name!r} is {f.width}x{f.height}")
         polygons = mask_to_polygons(m)
         ann = {"id": len(annotations) + 1, "image_id": fid, "category_id": qid, "iscrowd": 0}
-        if np.array_equal(polygons_to_mask(polygons, f.height, f.width), m):
+        # polygons the importer would refuse as too long (e.g. checkerboard noise) are written as RLE
+        if (polygon_cost(polygons) <= polygon_budget(f.height, f.width)
+                and np.array_equal(polygons_to_mask(polygons, f.height, f.width), m)):
             ann["segmentation"] = polygons
-        else:  # never seen in tests; kept so an export can never silently change a mask
+        else:  # kept so an export can never silently change a mask
             ann["segmentation"] = encode_mask(m)
             ann["iscrowd"] = 1
         rle = encode_mask(m)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -47,31 +48,81 @@ def write_text(path: str | Path, text: str) -> None:
 
 
 def write_json(path: str | Path, obj: Any, indent: int | None = 2) -> None:
-    write_text(path, json.dumps(obj, indent=indent, sort_keys=False, default=_json_default) + "\n")
+    """Write ``obj`` as standard JSON: NaN and infinities become ``null`` (:func:`json_ready`)."""
+    write_text(path, dumps_json(obj, indent=indent) + "\n")
 
 
-def _json_default(obj: Any) -> Any:
+def dumps_json(obj: Any, indent: int | None = None, **kwargs: Any) -> str:
+    """``json.dumps`` that only ever writes standard JSON (no ``NaN`` / ``Infinity`` tokens)."""
+    return json.dumps(json_ready(obj), indent=indent, sort_keys=False, allow_nan=False, **kwargs)
+
+
+def json_ready(obj: Any) -> Any:
+    """JSON-ready copy: non-finite floats -> ``None`` (``null``: "undefined", as the results schema
+    reads it), numpy scalars and arrays -> Python, tuples -> lists, paths -> str. Other objects are
+    passed through (``json.dumps`` rejects what it cannot write)."""
     import numpy as np
 
-    if isinstance(obj, np.generic):
-        return obj.item()
+    if isinstance(obj, dict):
+        return {k: json_ready(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_ready(v) for v in obj]
     if isinstance(obj, np.ndarray):
-        return obj.tolist()
+        return json_ready(obj.tolist())
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
     if isinstance(obj, Path):
         return str(obj)
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+    return obj
+
+
+MAX_JSON_DEPTH = 100
+"""Deepest nesting of arrays and objects :func:`read_json` accepts. No bench4d file nests more
+than about ten levels; the bound keeps every recursive consumer of a parsed document (writers,
+sanitisers) far from Python's recursion limit."""
+
+
+def json_depth_exceeds(doc: Any, limit: int = MAX_JSON_DEPTH) -> bool:
+    """Whether ``doc`` nests arrays/objects deeper than ``limit`` (iterative: no recursion)."""
+    stack = [(doc, 1)]
+    while stack:
+        node, depth = stack.pop()
+        if depth > limit:
+            return True
+        if isinstance(node, dict):
+            stack.extend((v, depth + 1) for v in node.values() if isinstance(v, (dict, list)))
+        elif isinstance(node, list):
+            stack.extend((v, depth + 1) for v in node if isinstance(v, (dict, list)))
+    return False
 
 
 def read_json(path: str | Path) -> Any:
-    """Read JSON, turning a missing or malformed file into an :class:`InputError`."""
+    """Read JSON, turning every way a file can be missing or malformed into an :class:`InputError`
+    naming the file: not found, a folder, unreadable, not UTF-8, invalid JSON, numbers Python
+    refuses to convert, or nesting deeper than :data:`MAX_JSON_DEPTH`."""
     from .errors import InputError
 
     path = Path(path)
+    if path.is_dir():
+        raise InputError(path, None, "is a folder, expected a JSON file")
     if not path.is_file():
         raise InputError(path, None, "file not found")
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as err:
+        raise InputError(path, f"byte {err.start}", "not UTF-8 text") from None
+    except OSError as err:
+        raise InputError(path, None, f"cannot read: {err.strerror or err}") from None
+    try:
+        doc = json.loads(text)
     except json.JSONDecodeError as err:
         raise InputError(path, f"line {err.lineno} col {err.colno}", f"invalid JSON: {err.msg}") from None
-    except UnicodeDecodeError:
-        raise InputError(path, None, "not UTF-8 text") from None
+    except RecursionError:
+        raise InputError(path, None, f"invalid JSON: nested deeper than {MAX_JSON_DEPTH} levels") from None
+    except ValueError as err:  # e.g. an integer of more digits than Python converts
+        raise InputError(path, None, f"invalid JSON: {str(err).splitlines()[0]}") from None
+    if json_depth_exceeds(doc):
+        raise InputError(path, None, f"invalid JSON: nested deeper than {MAX_JSON_DEPTH} levels")
+    return doc

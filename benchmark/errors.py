@@ -40,3 +40,12 @@ def require_key(mapping: dict, key: str, file: str | Path | None, parent: str = 
     if key not in mapping:
         raise InputError(file, field, "missing required key")
     return mapping[key]
+
+
+def short_repr(value: object, limit: int = 60) -> str:
+    """``repr(value)`` for an error message, kept to one short line: a huge int by its size (its
+    decimal form may be thousands of digits, beyond what Python converts), long text cut."""
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) > 10 ** 18:
+        return f"an integer of {value.bit_length()} bits"
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + "..."

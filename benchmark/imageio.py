@@ -1,8 +1,27 @@
-"""Image reading and writing with errors that name the file (OpenCV underneath)."""
+"""Image reading and writing with errors that name the file (OpenCV underneath).
+
+Mask PNGs
+---------
+A mask is a PNG file (checked by its signature bytes: JPEG or anything else under a ``.png`` name
+is refused). Its size is read from the PNG header and refused before any pixel is decoded when it
+differs from the frame's (or exceeds :data:`annotations.model.MAX_MASK_PIXELS`). A pixel is
+foreground when:
+
+* **single channel** (grey, 1/8/16-bit): its value is non-zero;
+* **colour** (RGB, or a palette image, which reads as its palette's colours): **any** channel is
+  non-zero, so a red, green or blue mask on black reads the same;
+* **with alpha** (grey + alpha, RGBA, palette with transparency): a fully transparent pixel
+  (alpha 0) is background; otherwise the colour rule applies. An image whose colour channels are
+  zero everywhere and whose alpha varies is an **alpha-only mask**: foreground where alpha is
+  non-zero. (A fully opaque all-black image is an empty mask.)
+"""
 
 from __future__ import annotations
 
+import struct
+import zlib
 from pathlib import Path
+from typing import Optional
 
 import cv2
 import numpy as np
@@ -16,11 +35,23 @@ def read_image(path: str | Path, *, keep_alpha: bool = False) -> np.ndarray:
 
     Truncated or unreadable files raise :class:`InputError` naming the file.
     """
+    from annotations.model import MAX_MASK_PIXELS
+
     path = Path(path)
+    if path.is_dir():
+        raise InputError(path, None, "is a folder, expected an image file")
     if not path.is_file():
         raise InputError(path, None, "image file not found")
     data = np.fromfile(str(path), dtype=np.uint8)
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    if data[:8].tobytes() == PNG_SIGNATURE:  # refuse a huge PNG from its header, before decoding
+        width, height, _, _ = png_header(path, data[:33].tobytes())
+        if width * height > MAX_MASK_PIXELS:
+            raise InputError(path, None, f"image of {width}x{height} pixels is larger than the "
+                                         f"{MAX_MASK_PIXELS} pixels any frame may have")
+    try:
+        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    except cv2.error:
+        img = None
     if img is None:
         raise InputError(path, None, "cannot decode image (truncated or not an image)")
     if img.dtype == np.uint16:
@@ -43,18 +74,105 @@ def read_image(path: str | Path, *, keep_alpha: bool = False) -> np.ndarray:
     return img.astype(np.float32) / scale
 
 
-def read_mask(path: str | Path) -> np.ndarray:
-    """Read a single-channel mask PNG as (H, W) uint8/uint16 values (no rescaling)."""
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def png_header(path: str | Path, data: Optional[bytes] = None) -> tuple[int, int, int, int]:
+    """``(width, height, bit depth, colour type)`` from a PNG's signature and IHDR chunk, without
+    decoding pixels. Anything that is not a PNG raises :class:`InputError` naming the file."""
     path = Path(path)
+    if data is None:
+        data = _read_bytes(path, 33)
+    if data[:8] != PNG_SIGNATURE:
+        what = "a JPEG" if data[:3] == b"\xff\xd8\xff" else "empty" if not data else "not a PNG"
+        raise InputError(path, None, f"expected a PNG file, but the file is {what} (no PNG signature)")
+    if len(data) < 33 or data[12:16] != b"IHDR":
+        raise InputError(path, "IHDR", "truncated PNG: no header chunk")
+    length, = struct.unpack(">I", data[8:12])
+    width, height, depth, colour = struct.unpack(">IIBB", data[16:26])
+    if length != 13 or zlib.crc32(data[12:29]) != struct.unpack(">I", data[29:33])[0]:
+        raise InputError(path, "IHDR", "corrupt PNG header chunk")
+    if width == 0 or height == 0:
+        raise InputError(path, "IHDR", f"PNG of {width}x{height} pixels")
+    return width, height, depth, colour
+
+
+def _read_bytes(path: Path, limit: int = -1) -> bytes:
+    if path.is_dir():
+        raise InputError(path, None, "is a folder, expected a PNG file")
     if not path.is_file():
         raise InputError(path, None, "mask file not found")
-    data = np.fromfile(str(path), dtype=np.uint8)
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
-    if img is None:
-        raise InputError(path, None, "cannot decode mask image (truncated or not an image)")
-    if img.ndim == 3:
-        img = img[:, :, 0]
-    return img
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(limit)
+    except OSError as err:
+        raise InputError(path, None, f"cannot read: {err.strerror or err}") from None
+
+
+def read_png_bytes(path: str | Path, size: Optional[tuple[int, int]] = None) -> tuple[bytes, int, int, int, int]:
+    """The bytes of a mask PNG, checked as far as possible without decoding pixels:
+    ``(data, width, height, bit depth, colour type)``.
+
+    Refused with an :class:`InputError` naming the file: not a PNG (signature), a header of another
+    size than ``size`` = ``(height, width)`` or beyond :data:`annotations.model.MAX_MASK_PIXELS`, a
+    file far larger than its pixels can need, and a chunk that runs past the end of the file (a
+    decoder would allocate the length it declares before finding the data missing).
+    """
+    from annotations.model import MAX_MASK_PIXELS
+
+    path = Path(path)
+    width, height, depth, colour = png_header(path, _read_bytes(path, 33))
+    if size is not None and (height, width) != (int(size[0]), int(size[1])):
+        raise InputError(path, None, f"mask is {width}x{height} (WxH), the frame is {int(size[1])}x{int(size[0])}")
+    if width * height > MAX_MASK_PIXELS:
+        raise InputError(path, None, f"mask of {width}x{height} pixels is larger than the {MAX_MASK_PIXELS} "
+                                     "pixels any frame may have")
+    # deflate never needs much more than the raw rows (8 bytes a pixel at most: 16-bit RGBA)
+    limit = 2 * height * (1 + 8 * width) + (1 << 20)
+    data = _read_bytes(path, limit + 1)
+    if len(data) > limit:
+        raise InputError(path, None, f"file of more than {limit} bytes for a {width}x{height} mask")
+    offset = 8
+    while True:
+        if offset + 12 > len(data):
+            raise InputError(path, None, f"truncated PNG: it ends at byte {len(data)} before its IEND chunk")
+        length, = struct.unpack(">I", data[offset:offset + 4])
+        kind = data[offset + 4:offset + 8]
+        if offset + 12 + length > len(data):
+            raise InputError(path, None, f"truncated PNG: chunk {kind!r} at byte {offset} declares {length} bytes, "
+                                         f"the file has {len(data) - offset - 12} left")
+        offset += 12 + length
+        if kind == b"IEND":
+            return data, width, height, depth, colour
+
+
+def read_mask(path: str | Path, size: Optional[tuple[int, int]] = None) -> np.ndarray:
+    """Read a mask PNG (module docstring) as (H, W) uint8/uint16 values, non-zero = foreground.
+
+    ``size`` = the frame's ``(height, width)``: a PNG of another size is refused from its header,
+    before decoding. Without it the header must stay within
+    :data:`annotations.model.MAX_MASK_PIXELS`. A single-channel mask keeps its values; a colour
+    mask gives the largest channel (zeroed where alpha is 0), or the alpha of an alpha-only mask.
+    Every malformed file raises :class:`InputError` naming it (:func:`read_png_bytes`).
+    """
+    path = Path(path)
+    data, width, height, _, _ = read_png_bytes(path, size)
+    try:
+        img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error:  # OpenCV raises on some corrupt streams instead of returning None
+        img = None
+    if img is None or img.shape[:2] != (height, width) or img.dtype not in (np.uint8, np.uint16):
+        raise InputError(path, None, "cannot decode mask PNG (truncated or corrupt)")
+    if img.ndim == 2:
+        return img
+    if img.shape[2] in (2, 4):
+        colour, alpha = img[:, :, :-1], img[:, :, -1]
+        if not colour.any() and alpha.min() != alpha.max():
+            return alpha  # alpha-only mask
+        value = colour.max(axis=2)
+        value[alpha == 0] = 0
+        return value
+    return img.max(axis=2)  # any channel non-zero: the order of colour channels does not matter
 
 
 def write_image(path: str | Path, image: np.ndarray) -> None:

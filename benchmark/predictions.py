@@ -26,7 +26,7 @@ as :func:`annotations.model.encode_mask` writes. Frame names are
 
 **PNG layout** (easy to produce from any code)::
 
-    DIR/masks/<query slug>/<frame name>.png   # single channel, nonzero = positive
+    DIR/masks/<query slug>/<frame name>.png   # single channel, nonzero = positive (see below)
     DIR/scores.json                            # optional for time-agnostic-only predictions
     {
       "format": "bench4d-predictions", "version": 1, "scene": ..., "method": ..., "masks": "png",
@@ -37,6 +37,16 @@ as :func:`annotations.model.encode_mask` writes. Frame names are
 ``slug`` defaults to :func:`query_slug` of the text (lower case, runs of non-word characters ->
 ``-``); ``frames`` (optional) lists the PNGs to read, otherwise every PNG in the folder is read.
 A ``masks/<folder>`` not listed in ``scores.json`` is matched to the GT query whose slug it is.
+
+Mask PNGs must be PNG files (checked by signature) of the frame's size (checked from the header
+before decoding). Single-channel: non-zero = positive; colour: positive where **any** channel is
+non-zero; with alpha: transparent pixels are negative, and an image that is black everywhere with
+varying alpha is an alpha-only mask (:mod:`benchmark.imageio` states the rule in full).
+
+Numbers: a score is a finite number with ``|s| <= 1e30`` (:data:`SCORE_LIMIT`; larger values
+would overflow the mean the temporal rule takes) or ``null``. RLE is checked run by run before
+anything is decoded (:func:`annotations.model.rle_runs`), and a mask's declared size is checked
+against the frame's before decoding when the frame is known (:meth:`QueryPrediction.mask`).
 
 A time-sensitive query needs a mask (its spatial answer, scored against the base object's GT mask
 for vIoU) and a score or decision on every evaluated frame. When scores are given the harness's
@@ -54,10 +64,10 @@ from typing import Optional, Union
 
 import numpy as np
 
-from annotations.model import decode_mask, encode_mask
+from annotations.model import check_mask_size, check_rle, decode_mask, encode_mask
 
 from .atomic import read_json, write_json
-from .errors import InputError
+from .errors import InputError, short_repr
 from .imageio import read_mask, write_image
 
 FORMAT = "bench4d-predictions"
@@ -66,6 +76,8 @@ JSON_FILE = "predictions.json"
 SCORES_FILE = "scores.json"
 MASKS_DIR = "masks"
 KINDS = ("agnostic", "sensitive")
+SCORE_LIMIT = 1e30
+"""Largest ``|score|`` accepted: a mean of any number of such scores stays finite in float64."""
 
 MaskSource = Union[np.ndarray, dict, Path]
 """A mask as held in memory: (H, W) bool array, COCO RLE dict, or a PNG path (read lazily)."""
@@ -104,21 +116,26 @@ class QueryPrediction:
     source: Optional[Path] = None
     """File it was read from, for error messages (``None`` when built in memory)."""
 
-    def mask(self, frame: str) -> np.ndarray:
-        """The (H, W) bool mask of ``frame``; malformed data raises :class:`InputError`."""
+    def mask(self, frame: str, size: Optional[tuple[int, int]] = None) -> np.ndarray:
+        """The (H, W) bool mask of ``frame``; malformed data raises :class:`InputError`.
+
+        ``size`` = the frame's ``(height, width)``: an RLE or PNG declaring another size is refused
+        before it is decoded (without it, only :data:`annotations.model.MAX_MASK_PIXELS` bounds it).
+        """
         where = field_name(self.text, "masks", frame)
         if frame not in self.masks:
             raise InputError(self.source, where, "missing mask for this evaluated frame")
         value = self.masks[frame]
         if isinstance(value, Path):
-            return read_mask(value) > 0
+            return read_mask(value, size) > 0
         if isinstance(value, dict):
-            from annotations.format import validate_rle  # checks the runs cover exactly H x W pixels
-
-            return decode_mask(validate_rle(value, self.source, where))
+            return decode_mask(value, self.source, where, size)  # checks every run before decoding
         arr = np.asarray(value)
         if arr.ndim != 2:
             raise InputError(self.source, where, f"mask must be 2-D (H, W), got shape {arr.shape}")
+        if size is not None and arr.shape != tuple(size):
+            raise InputError(self.source, where, f"mask is {arr.shape[0]}x{arr.shape[1]}, the frame is "
+                                                 f"{size[0]}x{size[1]} (H x W)")
         return arr.astype(bool, copy=False)
 
 
@@ -151,14 +168,21 @@ class ScenePredictions:
 
 
 # -- writing ---------------------------------------------------------------------------------------
-def _score_json(value: float) -> Optional[float]:
+def _score_json(value: float, text: str = "", frame: Optional[str] = None) -> Optional[float]:
     v = float(value)
-    return None if math.isnan(v) else v
+    if math.isnan(v):
+        return None
+    if not abs(v) <= SCORE_LIMIT:
+        raise InputError(None, field_name(text, "scores", frame),
+                         f"{v!r} is not a finite number with |s| <= {SCORE_LIMIT:g}")
+    return v
 
 
 def _rle_of(pred: QueryPrediction, frame: str) -> dict:
     value = pred.masks[frame]
-    return dict(value) if isinstance(value, dict) else encode_mask(pred.mask(frame))
+    if isinstance(value, dict):  # written only when it would read back
+        return check_rle(value, pred.source, field_name(pred.text, "masks", frame))
+    return encode_mask(pred.mask(frame))
 
 
 def _header(preds: ScenePredictions) -> dict:
@@ -189,7 +213,7 @@ def write_predictions(directory: str | Path, predictions: ScenePredictions, *, l
             entry: dict = {"kind": pred.kind} if pred.kind else {}
             entry["masks"] = {frame: _rle_of(pred, frame) for frame in pred.masks}
             if pred.scores:
-                entry["scores"] = {f: _score_json(s) for f, s in pred.scores.items()}
+                entry["scores"] = {f: _score_json(s, text, f) for f, s in pred.scores.items()}
             if pred.decisions:
                 entry["decisions"] = {f: bool(d) for f, d in pred.decisions.items()}
             queries[text] = entry
@@ -201,14 +225,13 @@ def write_predictions(directory: str | Path, predictions: ScenePredictions, *, l
                 raise InputError(None, field_name(text), f"folder name {slug!r} clashes with query {slugs[slug]!r}")
             slugs[slug] = text
             for frame in pred.masks:
-                if not frame or "/" in frame or "\\" in frame or frame.startswith("."):
-                    raise InputError(None, field_name(text, "masks", frame), "frame name unusable as a file name")
+                _check_file_name(frame, None, field_name(text, "masks", frame))
                 mask = pred.mask(frame)
                 write_image(directory / MASKS_DIR / slug / f"{frame}.png", mask.astype(np.uint8) * 255)
             entry = {"kind": pred.kind} if pred.kind else {}
             entry.update(slug=slug, frames=list(pred.masks))
             if pred.scores:
-                entry["scores"] = {f: _score_json(s) for f, s in pred.scores.items()}
+                entry["scores"] = {f: _score_json(s, text, f) for f, s in pred.scores.items()}
             if pred.decisions:
                 entry["decisions"] = {f: bool(d) for f, d in pred.decisions.items()}
             queries[text] = entry
@@ -221,12 +244,12 @@ def write_predictions(directory: str | Path, predictions: ScenePredictions, *, l
 # -- reading ---------------------------------------------------------------------------------------
 def _check_header(doc: object, path: Path) -> dict:
     if not isinstance(doc, dict):
-        raise InputError(path, None, f"expected a JSON object, got {type(doc).__name__}")
+        raise InputError(path, None, f"expected a JSON object at the top level, got {type(doc).__name__}")
     if doc.get("format") != FORMAT:
-        raise InputError(path, "format", f"expected {FORMAT!r}, got {doc.get('format')!r}")
+        raise InputError(path, "format", f"expected {FORMAT!r}, got {short_repr(doc.get('format'))}")
     version = doc.get("version")
     if not isinstance(version, int) or isinstance(version, bool) or version < 1:
-        raise InputError(path, "version", f"expected an integer >= 1, got {version!r}")
+        raise InputError(path, "version", f"expected an integer >= 1, got {short_repr(version)}")
     if version > VERSION:
         raise InputError(path, "version", f"version {version} is newer than this bench4d reads ({VERSION})")
     for key in ("scene", "method"):
@@ -242,7 +265,7 @@ def _check_header(doc: object, path: Path) -> dict:
             raise InputError(path, field_name(text), "must be an object")
         kind = entry.get("kind")
         if kind is not None and kind not in KINDS:
-            raise InputError(path, field_name(text, "kind"), f"must be one of {KINDS}, got {kind!r}")
+            raise InputError(path, field_name(text, "kind"), f"must be one of {KINDS}, got {short_repr(kind)}")
     return doc
 
 
@@ -258,14 +281,17 @@ def _read_scores(entry: dict, path: Path, text: str) -> tuple[dict[str, float], 
     for frame, value in _frame_map(entry, "scores", path, text).items():
         if value is None:
             scores[frame] = float("nan")
-        elif isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
+        # compared before float(): an int too large for a float raises OverflowError, and a huge
+        # finite score would overflow the mean of the temporal rule to inf
+        elif isinstance(value, (int, float)) and not isinstance(value, bool) and abs(value) <= SCORE_LIMIT:
             scores[frame] = float(value)
         else:
-            raise InputError(path, field_name(text, "scores", frame), f"expected a finite number or null, got {value!r}")
+            raise InputError(path, field_name(text, "scores", frame),
+                             f"expected a finite number with |s| <= {SCORE_LIMIT:g} or null, got {short_repr(value)}")
     decisions: dict[str, bool] = {}
     for frame, value in _frame_map(entry, "decisions", path, text).items():
         if not isinstance(value, bool):
-            raise InputError(path, field_name(text, "decisions", frame), f"expected true or false, got {value!r}")
+            raise InputError(path, field_name(text, "decisions", frame), f"expected true or false, got {short_repr(value)}")
         decisions[frame] = value
     return scores, decisions
 
@@ -273,13 +299,19 @@ def _read_scores(entry: dict, path: Path, text: str) -> tuple[dict[str, float], 
 def _check_rle(rle: object, path: Path, where: str) -> dict:
     if not isinstance(rle, dict) or "size" not in rle or "counts" not in rle:
         raise InputError(path, where, "expected a COCO RLE object {\"size\": [H, W], \"counts\": ...}")
-    size = rle["size"]
-    if (not isinstance(size, list) or len(size) != 2
-            or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in size)):
-        raise InputError(path, f"{where}.size", f"expected [H, W] non-negative integers, got {size!r}")
+    # the size now (a huge one is refused before anything is decoded); the runs when the mask is decoded
+    check_mask_size(rle["size"], path, f"{where}.size")
     if not isinstance(rle["counts"], (str, list)):
-        raise InputError(path, f"{where}.counts", "expected a string or a list of integers")
+        raise InputError(path, f"{where}.counts", "expected a compressed string or a list of run lengths")
     return rle
+
+
+def _check_file_name(name: object, path: Path, where: str) -> str:
+    """A frame name or folder name usable as one path component inside the prediction folder."""
+    if (not isinstance(name, str) or not name or name.startswith(".") or "/" in name or "\\" in name
+            or "\0" in name):
+        raise InputError(path, where, f"not usable as a file name: {short_repr(name)}")
+    return name
 
 
 def _read_json_layout(path: Path) -> ScenePredictions:
@@ -303,9 +335,7 @@ def _read_png_layout(directory: Path) -> ScenePredictions:
                              source=directory)
     listed: set[str] = set()
     for text, entry in doc.get("queries", {}).items():
-        slug = entry.get("slug", query_slug(text))
-        if not isinstance(slug, str) or not slug or "/" in slug or slug.startswith("."):
-            raise InputError(scores_path, field_name(text, "slug"), f"not a folder name: {slug!r}")
+        slug = _check_file_name(entry.get("slug", query_slug(text)), scores_path, field_name(text, "slug"))
         listed.add(slug)
         folder = masks_dir / slug
         frames = entry.get("frames")
@@ -313,7 +343,8 @@ def _read_png_layout(directory: Path) -> ScenePredictions:
             files = sorted(folder.glob("*.png")) if folder.is_dir() else []
             masks = {f.stem: f for f in files}
         elif isinstance(frames, list) and all(isinstance(f, str) for f in frames):
-            masks = {f: folder / f"{f}.png" for f in frames}
+            masks = {_check_file_name(f, scores_path, f"{field_name(text, 'frames')}[{i}]"): folder / f"{f}.png"
+                     for i, f in enumerate(frames)}
         else:
             raise InputError(scores_path, field_name(text, "frames"), "must be a list of frame names")
         scores, decisions = _read_scores(entry, scores_path, text)
@@ -335,6 +366,9 @@ def read_predictions(directory: str | Path) -> ScenePredictions:
     directory = Path(directory)
     if directory.is_file() and directory.name in (JSON_FILE, SCORES_FILE):
         directory = directory.parent
+    if directory.is_file():
+        raise InputError(directory, None,
+                         f"is a file; expected a prediction folder (or its {JSON_FILE} / {SCORES_FILE})")
     if not directory.is_dir():
         raise InputError(directory, None, "prediction folder not found")
     json_path = directory / JSON_FILE

@@ -439,7 +439,7 @@ def score_scene(aset: AnnotationSet, predictions: ScenePredictions,
         gt_px = np.empty(len(frames), dtype=np.int64)
         for i, frame in enumerate(frames):
             g = gt_mask(owner, frame)
-            p = pred.mask(frame.name)
+            p = pred.mask(frame.name, g.shape)  # the declared size is checked before decoding
             if p.shape != g.shape:
                 raise InputError(pred.source or src, field_name(pred.text, "masks", frame.name),
                                  f"mask is {p.shape[0]}x{p.shape[1]}, the frame is {g.shape[0]}x{g.shape[1]} (H x W)")
