@@ -49,6 +49,7 @@ from .fields.language_field import FrozenGeometry, GaussianState, LanguageField,
 from .fields.relevance import answer_from_relevance, encode_canonical, relevance
 from .language_methods import (config_from_dict, device_kind, scene_cache_folder, config_to_dict, fit_geometry, shared_cache_root,
                                source_hash, with_unmasked_as)
+from .fields.views import ViewCycle
 from .specs.feature_3dgs import FEATURE_LEVEL_NAMES, Feature3DGSConfig
 from .supervision.base import Supervision, TextEncoder
 from .supervision.cache import stable_hash
@@ -196,12 +197,8 @@ def train_feature_field(geometry: FrozenGeometry, targets: Sequence[FeatureTarge
                            render_backend=config.render_backend, device=device)
     opt = torch.optim.Adam([{"params": [fld.features], "lr": config.feature_learning_rate},
                             {"params": list(fld.decoder.parameters()), "lr": config.decoder_learning_rate}])
-    # geometry is frozen: each view's deformed Gaussians are computed once while they fit in memory
-    budget = LanguageFieldConfig().cache_view_geometry_mib * 2 ** 20
-    keep_states = not geometry.is_dynamic or geometry.at(targets[0].time).nbytes() * len(targets) <= budget
-    states: dict[int, GaussianState] = {}
-    rng = np.random.default_rng(seed)
-    order: list[int] = []
+    views = ViewCycle(geometry, [t.time for t in targets], seed,
+                      LanguageFieldConfig().cache_view_geometry_mib * 2 ** 20)
     losses: list[float] = []
     loss_value = float("nan")
     steps = range(config.feature_iterations)
@@ -209,15 +206,8 @@ def train_feature_field(geometry: FrozenGeometry, targets: Sequence[FeatureTarge
         steps = progress(steps, desc="feature field", total=config.feature_iterations)
     start = time.perf_counter()
     for step in steps:
-        if not order:
-            order = rng.permutation(len(targets)).tolist()
-        view = order.pop()
+        view, state = views.next()
         target = targets[view]
-        state = states.get(view)
-        if state is None:
-            state = geometry.at(target.time)
-            if keep_states:
-                states[view] = state
         opt.zero_grad(set_to_none=True)
         rendered, _ = fld.render_with_alpha(state, target.camera)  # [H, W, C]
         loss = l1_backward(fld.decoder, rendered, target)

@@ -62,6 +62,7 @@ from .fields.language_field import FrozenGeometry, GaussianState, camera_tensors
 from .fields.relevance import AgnosticResult, answer_from_relevance, encode_canonical, relevance
 from .language_methods import (FIELD_FIT_VERSION, GeometryFit, device_kind, scene_cache_folder, config_from_dict, config_to_dict,
                                fit_geometry, shared_cache_root, source_hash, with_unmasked_as)
+from .fields.views import ViewCycle
 from .specs.gaussian_grouping import GaussianGroupingConfig
 from .supervision.association import AssociationConfig, TemporalAssociator
 from .supervision.base import LEVELS, Supervision, TextEncoder
@@ -330,10 +331,7 @@ def train_identity_field(geometry: FrozenGeometry, targets: Sequence[IdentityTar
                             {"params": field.classifier.parameters(), "lr": config.classifier_learning_rate}])
     ce_scale = 1.0 / math.log(max(num_identities, 2))  # the original's normalisation to about [0, 1]
     supervised = [bool((t.identity >= 0).any()) for t in targets]
-    states: dict[int, GaussianState] = {}
-    cache_states = geometry.at(targets[0].time).nbytes() * len(targets) <= VIEW_GEOMETRY_CACHE_MIB * 2 ** 20
-    rng = np.random.default_rng(seed)
-    order: list[int] = []
+    views = ViewCycle(geometry, [t.time for t in targets], seed, VIEW_GEOMETRY_CACHE_MIB * 2 ** 20)
     losses: list[float] = []
     loss_value = reg_value = float("nan")
     steps = range(config.identity_iterations)
@@ -341,15 +339,8 @@ def train_identity_field(geometry: FrozenGeometry, targets: Sequence[IdentityTar
         steps = progress(steps, desc="identities", total=config.identity_iterations)
     start = time.perf_counter()
     for step in steps:
-        if not order:
-            order = rng.permutation(len(targets)).tolist()
-        v = order.pop()
+        v, state = views.next()
         target = targets[v]
-        state = states.get(v)
-        if state is None:
-            state = geometry.at(target.time)
-            if cache_states:
-                states[v] = state
         encodings, _ = field.render_with_alpha(state, target.camera)  # [H, W, d]
         logits = field.logits(encodings.reshape(-1, field.identity_dim))  # [H W, K]
         if supervised[v]:
