@@ -48,6 +48,11 @@ def _finite(value: Any) -> bool:
     return value is not None and isinstance(value, (int, float)) and math.isfinite(float(value))
 
 
+def _mean(values: Sequence[Optional[float]]) -> float:
+    """Mean of ``values``; NaN if one is missing."""
+    return float(sum(values) / len(values)) if values and all(_finite(v) for v in values) else math.nan
+
+
 def _cell(paper: Optional[float], ours: Optional[float]) -> str:
     p = f"{paper:.2f}" if _finite(paper) else "–"
     o = f"{ours:.2f}" if _finite(ours) else "–"
@@ -106,35 +111,29 @@ def _comparison(title: str, dataset: str, methods: Sequence[str], metrics: tuple
     header += [f"mean {primary}", f"mean {secondary}"]
     lines = [f"## {title}", "", note, "", "Cells: **paper / ours** (percent; ours: mean over seeds).", "",
              "| " + " | ".join(header) + " |", "|---|" + "---:|" * (len(header) - 1)]
-    paper_mean, our_mean = {}, {}
     for m in methods:
         data = paper_numbers.get(m, {}).get("results", {}).get(dataset, {})
         cells = [_cell(data.get(s, {}).get(primary), ours.get(m, p, primary) if p else None)
                  for s, p in zip(scenes, presets)]
         avg = data.get("average", {})
         full = len(analogues) == len(scenes)  # our mean covers the paper's scenes only where all have analogues
-        paper_mean[m] = avg.get(primary, math.nan)
-        our_mean[m] = ours.mean(m, analogues, primary)
-        cells += [_cell(avg.get(primary), our_mean[m] if full else None),
+        cells += [_cell(avg.get(primary), ours.mean(m, analogues, primary) if full else None),
                   _cell(avg.get(secondary), ours.mean(m, analogues, secondary) if full else None)]
         lines.append(f"| {display.get(m, m)} | " + " | ".join(cells) + " |")
     lines.append("")
-    if len(analogues) == len(scenes):
-        lines.append(_agreement(paper_mean, our_mean, display))
-    else:  # compare on the scenes that have an analogue
-        for s, p in zip(scenes, presets):
-            if p:
-                per_paper = {m: paper_numbers.get(m, {}).get("results", {}).get(dataset, {}).get(s, {}).get(primary,
-                                                                                                        math.nan)
-                             for m in methods}
-                per_ours = {m: ours.get(m, p, primary) for m in methods}
-                lines.append(f"{s} ({p}): " + _agreement(per_paper, per_ours, display))
-    if len(analogues) == len(scenes) and secondary in ("vIoU",):
-        paper_v = {m: paper_numbers.get(m, {}).get("results", {}).get(dataset, {}).get("average", {}).get(secondary,
-                                                                                                          math.nan)
-                   for m in methods}
-        ours_v = {m: ours.mean(m, analogues, secondary) for m in methods}
-        lines += ["", f"{secondary}: " + _agreement(paper_v, ours_v, display)]
+    # orderings are compared on the scenes both sides have: the paper's per-scene numbers averaged over
+    # the scenes whose analogue every method ran here
+    shared = [(sc, p) for sc, p in zip(scenes, presets)
+              if p and all(_finite(ours.get(m, p, primary)) for m in methods)]
+    if not shared:
+        return lines + ["_Rank agreement: not measurable (no scene with an analogue that every method ran)._", ""]
+    where = ("the paper's scenes" if len(shared) == len(scenes)
+             else f"the {len(shared)} scenes both have ({', '.join(sc for sc, _ in shared)})")
+    for metric in dict.fromkeys((primary, secondary if secondary == "vIoU" else primary)):
+        paper_on = {m: _mean([paper_numbers.get(m, {}).get("results", {}).get(dataset, {}).get(sc, {}).get(metric)
+                              for sc, _ in shared]) for m in methods}
+        ours_on = {m: ours.mean(m, [p for _, p in shared], metric) for m in methods}
+        lines.append(f"{metric}, mean over {where}: " + _agreement(paper_on, ours_on, display))
     return lines + [""]
 
 
