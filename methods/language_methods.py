@@ -722,7 +722,7 @@ class LanguageFieldMethod(Method):
     config_class: ClassVar[type] = LanguageMethodConfig
     code_version = "lf-" + source_hash(FIELD_SOURCES + GEOMETRY_SOURCES)
     """The runner's whole-fit cache key carries this: the geometry's code is part of it, or a changed
-    Gaussian core would be answered from fits of the old one (until session 18 it was not)."""
+    Gaussian core would be answered from fits of the old one."""
 
     @classmethod
     def fit(cls, scene: Scene, supervision: Supervision, config: LanguageMethodConfig, *, seed: int, device: str,

@@ -522,7 +522,7 @@ def test_time_varying_code_version_covers_the_code_that_makes_its_targets():
 def test_the_field_methods_code_version_covers_the_gaussian_core():
     """The runner's whole-fit cache key holds the methods' ``code_version``: the Gaussian core (rasterizer,
     trainer, HexPlane) must be in it, or a changed geometry would be answered from fits of the old one
-    (session 18: the HexPlane's motion box changed the 4D-GS fit, and ``bench4d eval`` reloaded the old fit)."""
+    (the HexPlane's motion box once changed the 4D-GS fit, and ``bench4d eval`` reloaded the old fit)."""
     import inspect
 
     from methods.gaussians.hexplane import HexPlane

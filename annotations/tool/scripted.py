@@ -304,7 +304,7 @@ def dnerf_plan(scene, split: str = "test", min_px: int = 40) -> Plan:
               "click inside each and a right click inside each other region of the object in the box "
               "(annotations/tool/scripted.py), masks by the tool's GrabCut; whole object from a box around the "
               "D-NeRF alpha; parts with no matching colour left not annotated; time intervals read by eye from the "
-              "training frames by an AI agent (edges uncertain by a few frames). A draft: review by hand.")
+              "training frames by eye, without the truth (edges uncertain by a few frames). A draft: review by hand.")
     return Plan(queries, actions, {k: list(v) for k, v in spec["intervals"].items()}, method)
 
 
