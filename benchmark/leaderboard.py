@@ -138,6 +138,8 @@ def _table(summary: pd.DataFrame, kind: str, *, floors: frozenset[str] = frozens
     scenes = sorted(set(per_scene["scene"]))
     covered = {m: int((per_scene["method"] == m).sum()) for m in methods}
     shares = _ceiling_shares(summary, kind, ceiling, methods)
+    if not any(math.isfinite(v) for v in shares.values()):
+        shares = {}  # no scene of this table has a measured ceiling: no column of dashes
     share_title = f"% of ceiling ({CEILING_METRIC[kind]}) {_arrow(primary)}"
     columns: list[tuple[str, str, str]] = [(s, primary, f"{s} {primary} {_arrow(primary)}") for s in scenes]
     columns += [(MEAN_SCENE, primary, f"**mean {primary}** {_arrow(primary)}"),
