@@ -44,11 +44,12 @@ from benchmark.errors import InputError
 from benchmark.memory import StagePeak
 from benchmark.scene import Camera, Frame, Scene
 
-from .api import AgnosticAnswer, Method, Model, Progress
+from .api import AgnosticAnswer, Method, Progress
 from .fields.language_field import FrozenGeometry, GaussianState, LanguageField, LanguageFieldConfig
-from .fields.relevance import answer_from_relevance, encode_canonical, relevance
+from .fields.relevance import answer_from_relevance, relevance
 from .language_methods import (config_from_dict, device_kind, scene_cache_folder, config_to_dict, fit_geometry, shared_cache_root,
                                source_hash, with_unmasked_as)
+from .fields.texts import EncodedQueryModel
 from .fields.views import ViewCycle
 from .specs.feature_3dgs import FEATURE_LEVEL_NAMES, Feature3DGSConfig
 from .supervision.base import Supervision, TextEncoder
@@ -320,7 +321,7 @@ def fit_feature_field(scene: Scene, supervision: Supervision, config: Feature3DG
 # ---------------------------------------------------------------------------------------------------
 # The fitted model
 # ---------------------------------------------------------------------------------------------------
-class Feature3DGSModel(Model):
+class Feature3DGSModel(EncodedQueryModel):
     """A fitted ``feature-3dgs`` on one scene: answers time-agnostic queries (see the module docstring)."""
 
     supports = frozenset({"agnostic"})
@@ -337,8 +338,6 @@ class Feature3DGSModel(Model):
         self.field = field
         self.fit_info = info
         self.device = torch.device(device)
-        self._canon: Optional[torch.Tensor] = None
-        self._query_vectors: dict[str, torch.Tensor] = {}
         self._prepared = False
         self._rendered_cache: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}  # frame name -> (features, alpha)
 
@@ -347,15 +346,6 @@ class Feature3DGSModel(Model):
         state unchanged."""
         answer = {k: getattr(config, k) for k in type(config).ANSWER_OPTIONS}
         self.config = dataclasses.replace(self.config, **answer)
-
-    def use_protocol(self, protocol) -> None:
-        super().use_protocol(protocol)
-        self._canon = None  # the canonical phrases are the protocol's
-
-    @property
-    def relevance_cfg(self):
-        """The time-agnostic query rules answered under (:class:`benchmark.protocol.AgnosticQuery`)."""
-        return self.protocol.agnostic
 
     def describe(self) -> dict:
         """What the fit did (geometry and feature field: seconds, peaks, loss), for the results file."""
@@ -371,19 +361,6 @@ class Feature3DGSModel(Model):
         self._prepared = bool(texts)
 
     # -- query pieces ---------------------------------------------------------------------------------
-    def canonical(self) -> torch.Tensor:
-        """[P, D] canonical phrase embeddings (same text encoder as the queries)."""
-        if self._canon is None:
-            self._canon = encode_canonical(self.text_encoder, self.relevance_cfg.canonical_phrases).to(self.device)
-        return self._canon
-
-    def query_embedding(self, text: str) -> torch.Tensor:
-        """[D] embedding of a query text, encoded once per text."""
-        if text not in self._query_vectors:
-            self._query_vectors[text] = torch.as_tensor(self.text_encoder.encode([text], kind="query")[0],
-                                                        dtype=torch.float32, device=self.device)
-        return self._query_vectors[text]
-
     @torch.no_grad()
     def render(self, frame: Frame) -> tuple[torch.Tensor, torch.Tensor]:
         """([H, W, feature_dim] rendered features, [H, W] accumulated opacity) at the frame's camera and time."""

@@ -57,11 +57,12 @@ from benchmark.errors import InputError
 from benchmark.memory import StagePeak
 from benchmark.scene import Camera, Frame, Scene
 
-from .api import AgnosticAnswer, Method, Model, Progress
+from .api import AgnosticAnswer, Method, Progress
 from .fields.language_field import FrozenGeometry, GaussianState, camera_tensors
-from .fields.relevance import AgnosticResult, answer_from_relevance, encode_canonical, relevance
+from .fields.relevance import AgnosticResult, answer_from_relevance, relevance
 from .language_methods import (FIELD_FIT_VERSION, GeometryFit, device_kind, scene_cache_folder, config_from_dict, config_to_dict,
                                fit_geometry, shared_cache_root, source_hash, with_unmasked_as)
+from .fields.texts import EncodedQueryModel
 from .fields.views import ViewCycle
 from .specs.gaussian_grouping import GaussianGroupingConfig
 from .supervision.association import AssociationConfig, TemporalAssociator
@@ -489,7 +490,7 @@ def fit_identities(scene: Scene, supervision: Supervision, config: GaussianGroup
 # ---------------------------------------------------------------------------------------------------
 # The fitted model
 # ---------------------------------------------------------------------------------------------------
-class GaussianGroupingModel(Model):
+class GaussianGroupingModel(EncodedQueryModel):
     """A fitted ``gaussian-grouping`` on one scene (see the module docstring)."""
 
     supports = frozenset({"agnostic"})
@@ -506,8 +507,6 @@ class GaussianGroupingModel(Model):
         self.unmasked = fit.unmasked
         self.fit_info = fit.info
         self.device = torch.device(device)
-        self._canon: Optional[torch.Tensor] = None
-        self._query_vectors: dict[str, torch.Tensor] = {}
         self._keep_maps = False
         self._maps: dict[str, torch.Tensor] = {}  # frame name -> [H, W] identity map
 
@@ -517,15 +516,6 @@ class GaussianGroupingModel(Model):
         answer = {k: getattr(config, k) for k in type(config).ANSWER_OPTIONS}
         self.config = dataclasses.replace(self.config, **answer)
         self._maps.clear()
-
-    def use_protocol(self, protocol) -> None:
-        super().use_protocol(protocol)
-        self._canon = None  # the canonical phrases are the protocol's
-
-    @property
-    def relevance_cfg(self):
-        """The time-agnostic query rules answered under (:class:`benchmark.protocol.AgnosticQuery`)."""
-        return self.protocol.agnostic
 
     def describe(self) -> dict:
         """What the fit did (geometry, identities, identity field), for the results file."""
@@ -540,19 +530,6 @@ class GaussianGroupingModel(Model):
         self._keep_maps = bool(texts)
 
     # -- query pieces ---------------------------------------------------------------------------------
-    def canonical(self) -> torch.Tensor:
-        """[P, D] canonical phrase embeddings."""
-        if self._canon is None:
-            self._canon = encode_canonical(self.text_encoder, self.relevance_cfg.canonical_phrases).to(self.device)
-        return self._canon
-
-    def query_embedding(self, text: str) -> torch.Tensor:
-        """[D] embedding of a query text (encoded once per text)."""
-        if text not in self._query_vectors:
-            self._query_vectors[text] = torch.as_tensor(self.text_encoder.encode([text], kind="query")[0],
-                                                        device=self.device)
-        return self._query_vectors[text]
-
     def identity_relevance(self, text: str) -> torch.Tensor:
         """[K] LERF relevance of each identity's feature to ``text``."""
         return relevance(self.identity_features, self.query_embedding(text), self.canonical(),
