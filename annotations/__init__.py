@@ -1,7 +1,7 @@
 """Ground-truth annotations: the data model, the project's JSON format, importers and exporters."""
 
 from .format import load_annotations, save_annotations, validate_against_scene
-from .model import (AnnotatedFrame, AnnotationSet, Query, decode_mask, encode_mask,
+from benchmark.core.annotation import (AnnotatedFrame, AnnotationSet, Query, decode_mask, encode_mask,
                     normalise_intervals)
 
 __all__ = ["AnnotatedFrame", "AnnotationSet", "Query", "decode_mask", "encode_mask",

@@ -10,7 +10,7 @@ Two backends share one call, :meth:`Segmenter.segment`:
   Image embeddings are computed per frame in a background thread (the tool asks for the frames
   around the one on screen) and cached in memory and, optionally, on disk.
 
-Coordinates follow :mod:`benchmark.scene`: ``(x, y)`` are continuous pixel coordinates with the
+Coordinates follow :mod:`benchmark.core.scene`: ``(x, y)`` are continuous pixel coordinates with the
 image's top-left corner at ``(0, 0)``; pixel ``(row i, column j)`` covers ``[j, j+1) x [i, i+1)``.
 Masks are ``(H, W)`` bool, images ``(H, W, 3)`` uint8 RGB.
 """
@@ -28,7 +28,7 @@ from typing import Callable, Optional, Protocol, Sequence
 import cv2
 import numpy as np
 
-from benchmark.errors import InputError
+from benchmark.core.errors import InputError
 
 Box = tuple[float, float, float, float]
 """``(x0, y0, x1, y1)`` in pixel coordinates (corners, any order)."""
@@ -400,7 +400,7 @@ class SamSegmenter:
             if path is not None:
                 import torch
 
-                from benchmark.atomic import atomic_path
+                from benchmark.core.atomic import atomic_path
 
                 with atomic_path(path) as tmp:
                     torch.save({"features": emb.features, "original_size": list(emb.original_size),

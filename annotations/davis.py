@@ -13,7 +13,7 @@ subtracted in both cases (e.g. 1 when the stems are 1-based).
 
 Every file must be a PNG (checked by its signature: a JPEG named ``.png`` is refused) with a
 palette or a single channel (colours are not object ids); its size is read from the header and
-refused before decoding when it exceeds :data:`annotations.model.MAX_MASK_PIXELS` or differs from
+refused before decoding when it exceeds :data:`benchmark.core.annotation.MAX_MASK_PIXELS` or differs from
 the scene frame of the same name (when a scene is given).
 """
 
@@ -26,11 +26,11 @@ from typing import Iterable, Mapping, Optional
 import numpy as np
 from PIL import Image
 
-from benchmark.errors import InputError
-from benchmark.imageio import read_png_bytes
+from benchmark.core.errors import InputError
+from benchmark.core.imageio import read_png_bytes
 
 from .format import MAX_TIME_INDEX, validate_against_scene
-from .model import AnnotatedFrame, AnnotationSet, Query, encode_mask
+from benchmark.core.annotation import AnnotatedFrame, AnnotationSet, Query, encode_mask
 
 __all__ = ["import_davis", "read_index_png"]
 
@@ -38,8 +38,8 @@ __all__ = ["import_davis", "read_index_png"]
 def read_index_png(path: str | Path, size: Optional[tuple[int, int]] = None) -> np.ndarray:
     """(H, W) integer object indices of a palette / grey PNG (the palette is not applied).
 
-    The file is checked before any pixel is decoded (:func:`benchmark.imageio.read_png_bytes`): a PNG
-    signature, at most :data:`annotations.model.MAX_MASK_PIXELS` pixels, ``size`` =
+    The file is checked before any pixel is decoded (:func:`benchmark.core.imageio.read_png_bytes`): a PNG
+    signature, at most :data:`benchmark.core.annotation.MAX_MASK_PIXELS` pixels, ``size`` =
     ``(height, width)`` when given, and chunks that stay inside the file.
     """
     path = Path(path)
@@ -75,7 +75,7 @@ def import_davis(folder: str | Path, labels: Mapping[int, str], *, scene_name: s
     ``labels``: object value -> query text (values sharing a text are OR-ed).
     ``sensitive``: optional time-sensitive queries ``{text: (base_text, [[l, r], ...])}`` with
     inclusive 0-based ``time_index`` intervals. ``scene``: check the result against this
-    :class:`benchmark.scene.Scene`.
+    :class:`benchmark.core.scene.Scene`.
     """
     folder = Path(folder)
     if not folder.is_dir():

@@ -57,15 +57,15 @@ Rules
 * RLE ``size`` is ``[height, width]`` and must equal the image's size. ``counts`` is a COCO
   compressed string (written) or an uncompressed list of run lengths (accepted on load); either
   must describe exactly ``height * width`` pixels, every run between 0 and ``height * width``
-  (checked run by run before anything is decoded: :func:`annotations.model.rle_runs`).
-* Limits: ``width * height`` at most :data:`annotations.model.MAX_MASK_PIXELS`; ``time_index``,
+  (checked run by run before anything is decoded: :func:`benchmark.core.annotation.rle_runs`).
+* Limits: ``width * height`` at most :data:`benchmark.core.annotation.MAX_MASK_PIXELS`; ``time_index``,
   interval ends and ``num_time_steps - 1`` at most :data:`MAX_TIME_INDEX` (2**31 - 1); ``bbox``
-  numbers finite. Files are read by :func:`benchmark.atomic.read_json` (nesting at most
-  :data:`benchmark.atomic.MAX_JSON_DEPTH` levels) and written as standard JSON (a NaN in ``info``
+  numbers finite. Files are read by :func:`benchmark.core.atomic.read_json` (nesting at most
+  :data:`benchmark.core.atomic.MAX_JSON_DEPTH` levels) and written as standard JSON (a NaN in ``info``
   is written as ``null``).
 
 :func:`save_annotations` writes atomically and :func:`load_annotations` reproduces the same
-:class:`~annotations.model.AnnotationSet` (every field, intervals and masks bit-exact).
+:class:`~benchmark.core.annotation.AnnotationSet` (every field, intervals and masks bit-exact).
 """
 
 from __future__ import annotations
@@ -78,10 +78,10 @@ from typing import Any, Optional
 import numpy as np
 from pycocotools import mask as mask_utils
 
-from benchmark.atomic import json_ready, read_json, write_text
-from benchmark.errors import InputError, short_repr
+from benchmark.core.atomic import json_ready, read_json, write_text
+from benchmark.core.errors import InputError, short_repr
 
-from .model import (MAX_MASK_PIXELS, AnnotatedFrame, AnnotationSet, Query, check_rle,
+from benchmark.core.annotation import (MAX_MASK_PIXELS, AnnotatedFrame, AnnotationSet, Query, check_rle,
                     rle_runs, runs_to_string)
 
 FORMAT_NAME = "bench4d-annotations"
@@ -100,7 +100,7 @@ def validate_rle(rle: Any, file: str | Path | None, field: str,
     """Check a COCO RLE and return it as ``{"size": [h, w], "counts": str}``.
 
     ``size`` is the expected ``(height, width)``. Every check of
-    :func:`annotations.model.rle_runs` applies (size first, then each run bounded before any sum).
+    :func:`benchmark.core.annotation.rle_runs` applies (size first, then each run bounded before any sum).
     Raises :class:`InputError` naming ``field``.
     """
     return check_rle(rle, file, field, size)
@@ -452,7 +452,7 @@ def dumps_annotations(doc: dict) -> str:
 
 
 def load_annotations(path: str | Path, scene=None) -> AnnotationSet:
-    """Read and validate an annotation file; with a :class:`benchmark.scene.Scene`, also check it
+    """Read and validate an annotation file; with a :class:`benchmark.core.scene.Scene`, also check it
     against the scene (:func:`validate_against_scene`)."""
     path = Path(path)
     aset = annotation_set_from_dict(read_json(path), file=path)
@@ -462,7 +462,7 @@ def load_annotations(path: str | Path, scene=None) -> AnnotationSet:
 
 
 def validate_against_scene(aset: AnnotationSet, scene, file: str | Path | None = None) -> None:
-    """Check that ``aset`` describes ``scene`` (a :class:`benchmark.scene.Scene`).
+    """Check that ``aset`` describes ``scene`` (a :class:`benchmark.core.scene.Scene`).
 
     Every annotated frame must be a frame of the scene with the same ``time_index`` and
     ``camera_id``, and masks must have the size of that frame's camera image. ``num_time_steps``

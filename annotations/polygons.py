@@ -3,7 +3,7 @@
 Convention
 ----------
 Polygon vertices are continuous pixel coordinates ``(x, y)`` with the image's top-left *corner* at
-``(0, 0)`` (the project convention of :mod:`benchmark.scene`: the centre of pixel row ``i``, column
+``(0, 0)`` (the project convention of :mod:`benchmark.core.scene`: the centre of pixel row ``i``, column
 ``j`` is ``(j + 0.5, i + 0.5)``). A pixel belongs to a polygon when its **centre** lies inside it
 (even-odd rule). Rasterisation is pycocotools' ``frPyObjects``, which implements this rule on its
 1/5-pixel grid; the polygons of one label are OR-ed (``merge``). A polygon whose vertices lie on

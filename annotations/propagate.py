@@ -26,7 +26,7 @@ from typing import Callable, Literal, Optional, Sequence
 import cv2
 import numpy as np
 
-from benchmark.errors import InputError
+from benchmark.core.errors import InputError
 
 MotionModel = Literal["affine", "similarity"]
 _DIS_PRESETS = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,

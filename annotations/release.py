@@ -22,8 +22,8 @@ The release's ``annotations/`` folder of a scene holds:
 Polygons are rasterised by :func:`annotations.polygons.polygons_to_mask` (pixel-centre rule, see
 there); a polygon drawn on an image of another size is rescaled to ``target_size`` first.
 
-Limits on hostile files (each an :class:`~benchmark.errors.InputError` naming the file and field):
-image sizes within :data:`annotations.model.MAX_MASK_PIXELS`; RLE checked run by run before it is
+Limits on hostile files (each an :class:`~benchmark.core.errors.InputError` naming the file and field):
+image sizes within :data:`benchmark.core.annotation.MAX_MASK_PIXELS`; RLE checked run by run before it is
 decoded; polygon vertices finite and at most one image size outside the image; and the polygons of
 one label in one image at most :func:`polygon_budget` long (edge lengths in pixels, max(|dx|, |dy|),
 plus one per vertex), which bounds the rasteriser's working memory to a fixed multiple of the frame.
@@ -43,11 +43,11 @@ from typing import Any, Callable, Literal, Mapping, Optional, Sequence, Union
 import numpy as np
 from pycocotools import mask as mask_utils
 
-from benchmark.atomic import read_json, write_json, write_text
-from benchmark.errors import InputError, short_repr
+from benchmark.core.atomic import read_json, write_json, write_text
+from benchmark.core.errors import InputError, short_repr
 
 from .format import MAX_TIME_INDEX, validate_against_scene
-from .model import MAX_MASK_PIXELS, AnnotatedFrame, AnnotationSet, Query, decode_mask, encode_mask
+from benchmark.core.annotation import MAX_MASK_PIXELS, AnnotatedFrame, AnnotationSet, Query, decode_mask, encode_mask
 from .polygons import Rasterizer, mask_to_polygons, polygons_to_mask
 
 COCO_RELATIVE_PATH = Path("train") / "_annotations.coco.json"
@@ -138,7 +138,7 @@ def import_release(coco_json: str | Path, video_json: str | Path | None = None, 
     frame_names:
         How a ``time_index`` becomes the scene's frame name: a format string with fields ``number``
         (as in the file name) and ``time_index``, a callable, a mapping or sequence indexed by
-        ``time_index``, or a :class:`benchmark.scene.Scene` (its frame at that time index and
+        ``time_index``, or a :class:`benchmark.core.scene.Scene` (its frame at that time index and
         ``camera_id``; then the result is also checked against the scene). ``None`` (default): the
         ``frame_name`` an :func:`export_release` file records per image, else ``"{number:06d}"``
         (HyperNeRF's image ids, e.g. ``1_png...jpg`` -> ``"000001"``).

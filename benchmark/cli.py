@@ -11,7 +11,7 @@ import argparse
 import importlib
 import sys
 
-from .errors import InputError
+from benchmark.core.errors import InputError
 
 # command name -> (module under benchmark.commands, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {

@@ -1,6 +1,6 @@
 """``leaderboard.md`` and ``reports/*.csv`` from results files (deterministic: same files, same bytes).
 
-Per dataset, track and protocol (:mod:`benchmark.protocol`; the default first): a time-agnostic table
+Per dataset, track and protocol (:mod:`benchmark.core.protocol`; the default first): a time-agnostic table
 (mIoU, mAcc) and a time-sensitive table (Acc, vIoU), one row per method, per-scene primary metric plus the
 dataset means, each mean's share of the perfect-feature ceiling under the same protocol (where the
 ceiling was measured: ``reports/ablations/protocol-ceiling.json``), with query FPS and fit time beside
@@ -18,8 +18,8 @@ from typing import Optional
 
 import pandas as pd
 
-from .atomic import read_json, write_text
-from .protocol import DEFAULT_PROTOCOL
+from benchmark.core.atomic import read_json, write_text
+from benchmark.core.protocol import DEFAULT_PROTOCOL
 from .results import ACCURACY_METRICS, MEAN_SCENE, comparable_runs, find_results, runs_table, seed_summary
 
 CEILING_FILE = Path("ablations") / "protocol-ceiling.json"
@@ -209,8 +209,10 @@ def _absent_note(summary: pd.DataFrame, kind: str) -> list[str]:
 
 def _paper_tables(dataset: str) -> list[str]:
     """Markdown of the paper's own numbers on ``dataset`` (empty if the paper has none)."""
-    from methods.registry import paper_numbers
-    from methods.specs.paper_numbers import PAPER_NUMBERS, PAPER_SOURCE, QUERY_FPS_DEVICE
+    from methods.registry import paper_numbers, paper_reference
+
+    paper = paper_reference()
+    PAPER_NUMBERS, PAPER_SOURCE, QUERY_FPS_DEVICE = paper.numbers, paper.source, paper.query_fps_device
 
     lines: list[str] = []
     for kind in ("agnostic", "sensitive"):
@@ -275,7 +277,9 @@ def _protocol_order(name: str) -> tuple[int, str]:
 
 def render_markdown(runs: pd.DataFrame, results_dir_label: str,
                     ceilings: Optional[dict[str, dict[str, dict[str, float]]]] = None) -> str:
-    from methods.specs.paper_numbers import PAPER_NUMBERS
+    from methods.registry import paper_reference
+
+    PAPER_NUMBERS = paper_reference().numbers
 
     ceilings = ceilings or {}
     floors = _floor_methods()
@@ -346,7 +350,9 @@ def _csv(table: pd.DataFrame) -> str:
 
 
 def paper_numbers_table() -> pd.DataFrame:
-    from methods.specs.paper_numbers import PAPER_NUMBERS, PAPER_SOURCE
+    from methods.registry import paper_reference
+
+    PAPER_NUMBERS, PAPER_SOURCE = paper_reference().numbers, paper_reference().source
 
     rows = []
     for method, entry in PAPER_NUMBERS.items():

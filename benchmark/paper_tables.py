@@ -17,8 +17,8 @@ from typing import Any, Optional, Sequence
 
 import pandas as pd
 
-from .atomic import read_json
-from .protocol import DEFAULT_PROTOCOL, RELEASE_DEFECTS_NOT_COPIED, SCORED_FRAMES_NOTE
+from benchmark.core.atomic import read_json
+from benchmark.core.protocol import DEFAULT_PROTOCOL, RELEASE_DEFECTS_NOT_COPIED, SCORED_FRAMES_NOTE
 from .results import comparable_runs, find_results, load_results, protocol_of, runs_table, seed_summary
 
 SYNTHETIC_ANALOGUE = {("hypernerf", s): s for s in
@@ -184,7 +184,9 @@ def _prompt_tables(paper_ablations: dict) -> list[str]:
 
 
 def _speed_table(ours: OurNumbers, reports_dir: Path, paper_numbers: dict) -> list[str]:
-    from methods.specs.paper_numbers import QUERY_FPS_DEVICE
+    from methods.registry import paper_reference
+
+    QUERY_FPS_DEVICE = paper_reference().query_fps_device
 
     lines = ["## Query speed (paper: HyperNeRF, frames per second)", "",
              f"Paper: {QUERY_FPS_DEVICE}, 960x536. Ours (CPU): the results files' median per-frame query, mean over "
@@ -214,7 +216,10 @@ def _speed_table(ours: OurNumbers, reports_dir: Path, paper_numbers: dict) -> li
 def render(results_dir: str | Path = "results", reports_dir: str | Path = "reports", *,
            protocol: str = DEFAULT_PROTOCOL, track: str = "oracle") -> str:
     """The markdown of ``reports/paper-tables.md``."""
-    from methods.specs.paper_numbers import PAPER_ABLATIONS, PAPER_NUMBERS, PAPER_SOURCE
+    from methods.registry import paper_reference
+
+    paper = paper_reference()
+    PAPER_ABLATIONS, PAPER_NUMBERS, PAPER_SOURCE = paper.ablations, paper.numbers, paper.source
 
     results_dir, reports_dir = Path(results_dir), Path(reports_dir)
     ours = OurNumbers(results_dir, protocol=protocol, track=track)

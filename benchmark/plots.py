@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Optional, Sequence
 
 import numpy as np
 
-from .errors import InputError
+from benchmark.core.errors import InputError
 from .results import ACCURACY_METRICS, MEAN_SCENE, comparable_runs, find_results, load_results, results_path, runs_table, seed_summary
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -40,7 +40,7 @@ def NullFormatter():  # noqa: N802 - mirrors matplotlib's class name
 
 
 def _save(fig, stem: Path) -> list[Path]:
-    from .atomic import atomic_path
+    from benchmark.core.atomic import atomic_path
 
     stem.parent.mkdir(parents=True, exist_ok=True)
     out = []

@@ -21,8 +21,8 @@ One folder per (method, scene). Two layouts, read by :func:`read_predictions`:
     }
 
 COCO RLE is ``{"size": [H, W], "counts": "<compressed string>"}`` (or uncompressed list counts),
-as :func:`annotations.model.encode_mask` writes. Frame names are
-:attr:`annotations.model.AnnotatedFrame.name`.
+as :func:`benchmark.core.annotation.encode_mask` writes. Frame names are
+:attr:`benchmark.core.annotation.AnnotatedFrame.name`.
 
 **PNG layout** (easy to produce from any code)::
 
@@ -41,11 +41,11 @@ A ``masks/<folder>`` not listed in ``scores.json`` is matched to the GT query wh
 Mask PNGs must be PNG files (checked by signature) of the frame's size (checked from the header
 before decoding). Single-channel: non-zero = positive; colour: positive where **any** channel is
 non-zero; with alpha: transparent pixels are negative, and an image that is black everywhere with
-varying alpha is an alpha-only mask (:mod:`benchmark.imageio` states the rule in full).
+varying alpha is an alpha-only mask (:mod:`benchmark.core.imageio` states the rule in full).
 
 Numbers: a score is a finite number with ``|s| <= 1e30`` (:data:`SCORE_LIMIT`; larger values
 would overflow the mean the temporal rule takes) or ``null``. RLE is checked run by run before
-anything is decoded (:func:`annotations.model.rle_runs`), and a mask's declared size is checked
+anything is decoded (:func:`benchmark.core.annotation.rle_runs`), and a mask's declared size is checked
 against the frame's before decoding when the frame is known (:meth:`QueryPrediction.mask`).
 
 A time-sensitive query needs a mask (its spatial answer, scored against the base object's GT mask
@@ -64,11 +64,11 @@ from typing import Optional, Union
 
 import numpy as np
 
-from annotations.model import check_mask_size, check_rle, decode_mask, encode_mask
+from benchmark.core.annotation import check_mask_size, check_rle, decode_mask, encode_mask
 
-from .atomic import read_json, write_json
-from .errors import InputError, short_repr
-from .imageio import read_mask, write_image
+from benchmark.core.atomic import read_json, write_json
+from benchmark.core.errors import InputError, short_repr
+from benchmark.core.imageio import read_mask, write_image
 
 FORMAT = "bench4d-predictions"
 VERSION = 1
@@ -120,7 +120,7 @@ class QueryPrediction:
         """The (H, W) bool mask of ``frame``; malformed data raises :class:`InputError`.
 
         ``size`` = the frame's ``(height, width)``: an RLE or PNG declaring another size is refused
-        before it is decoded (without it, only :data:`annotations.model.MAX_MASK_PIXELS` bounds it).
+        before it is decoded (without it, only :data:`benchmark.core.annotation.MAX_MASK_PIXELS` bounds it).
         """
         where = field_name(self.text, "masks", frame)
         if frame not in self.masks:

@@ -23,7 +23,7 @@ memory in MiB; ``null`` = not applicable)::
                     changes of the code, not of results or reports),
                     "code_changed_during_run" (the code differed at the run's end: the commit may not be
                     all the code it ran; null: unknown), "device", ...}
-    protocol       the evaluation protocol (:mod:`benchmark.protocol`): its name and every constant; files
+    protocol       the evaluation protocol (:mod:`benchmark.core.protocol`): its name and every constant; files
                    written before protocols were named rebuild theirs from what they recorded
                    (:func:`protocol_of`)
     score_config   (the temporal rule used), scores {"queries", "frames", "skipped"}
@@ -46,8 +46,8 @@ from typing import Any, Iterable, Iterator, Optional
 import numpy as np
 import pandas as pd
 
-from .atomic import read_json, write_json, write_text
-from .errors import InputError
+from benchmark.core.atomic import read_json, write_json, write_text
+from benchmark.core.errors import InputError
 
 RESULTS_FORMAT = "bench4d-run"
 RESULTS_VERSION = 1
@@ -200,7 +200,7 @@ def peak_memory_with_shared(doc: dict) -> tuple[float, float, bool]:
     """``(cpu_mib, gpu_mib, measured)``: the most memory the run needed, MiB: the largest of its own
     peak, its fit's and the peak every stage of its fit record recorded (:data:`FIT_STAGES`), so a method
     reusing a cached geometry and field is charged for the memory they took, as for their seconds
-    (:mod:`benchmark.memory`). GPU: NaN when nothing ran on one. ``measured`` is False when the number
+    (:mod:`benchmark.core.memory`). GPU: NaN when nothing ran on one. ``measured`` is False when the number
     may be wrong: a peak over the process rather than the run (``memory.peak_window``; every results
     file made before per-run peaks), a cached fit that did not record its window
     (``memory.peak_fit_window``), or a stage of the fit record that recorded its seconds but no peak
@@ -349,14 +349,14 @@ def temporal_diagnostics(doc: dict) -> dict[str, float]:
 
 
 def protocol_of(doc: dict):
-    """The :class:`~benchmark.protocol.Protocol` a run answered and was scored under. Files written before
+    """The :class:`~benchmark.core.protocol.Protocol` a run answered and was scored under. Files written before
     protocols were named recorded the query rules in their method config (``threshold_variant``,
     ``sensitive_mask``, ...) and the temporal rule in ``score_config``; their relevance baselines scored a
     frame by the mean relevance inside the mask. A preset's name is given back where every constant is
     that preset's, else ``custom``."""
     import dataclasses
 
-    from .protocol import PROTOCOLS, AgnosticQuery, Protocol, SensitiveQuery, TemporalRule
+    from benchmark.core.protocol import PROTOCOLS, AgnosticQuery, Protocol, SensitiveQuery, TemporalRule
 
     if doc.get("protocol"):
         return Protocol.from_dict(doc["protocol"])

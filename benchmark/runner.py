@@ -50,13 +50,13 @@ from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 
-from . import memory
-from .atomic import read_json, write_json
-from .errors import InputError
-from .openblas import cpuinfo_value, openblas_core
-from .protocol import DEFAULT_PROTOCOL, get_protocol
+from .core import memory
+from benchmark.core.atomic import read_json, write_json
+from benchmark.core.errors import InputError
+from benchmark.core.openblas import cpuinfo_value, openblas_core
+from benchmark.core.protocol import DEFAULT_PROTOCOL, get_protocol
 from .results import exclusive_lock, results_lock, results_path, write_results
-from .scene import Frame, Scene
+from benchmark.core.scene import Frame, Scene
 
 DEFAULT_PRESET_SIZE = 128
 PACKAGES = ("numpy", "torch", "pandas", "scikit-image", "opencv-contrib-python-headless", "pycocotools",
@@ -103,7 +103,7 @@ class EvalOptions:
     Answers are upsampled (nearest) to each annotated frame's size before scoring, so scores are always
     taken at the annotations' resolution."""
     protocol: str = DEFAULT_PROTOCOL
-    """Evaluation protocol preset (:mod:`benchmark.protocol`): the query rules the model answers under and
+    """Evaluation protocol preset (:mod:`benchmark.core.protocol`): the query rules the model answers under and
     the temporal rule its scores are decided by; ``release`` (default) or ``paper-text``."""
     query_batch: int = 16
     """Frames per query call when answering (bounds the memory of full-resolution answers)."""
@@ -225,7 +225,7 @@ def _check_cached_scene(root: Path) -> tuple[Optional[str], Optional[str]]:
     from annotations.format import load_annotations
 
     from .synthetic.digest import META_FILE, scene_digest
-    from .synthetic.truth import check_truth
+    from benchmark.core.truth import check_truth
 
     try:
         for required in ("annotations.json", META_FILE):
@@ -485,7 +485,7 @@ def fit_config_dict(config: Any) -> dict[str, Any]:
 def fit_cache_key(spec, config, *, seed: int, device: str, supervision, scene: Scene) -> str:
     """Hash of everything a fit depends on: method code + config (less its answer options) + seed +
     device kind + data."""
-    from methods.supervision.cache import scene_fingerprint, stable_hash
+    from benchmark.core.cache_keys import scene_fingerprint, stable_hash
 
     method_cls = spec.load()
     return stable_hash({
@@ -542,7 +542,7 @@ def fit_or_load(spec, config, scene: Scene, supervision, *, seed: int, device: s
     warning; one named by ``reuse_key`` or ``head_from`` is an :class:`InputError` instead (it cannot be
     made again under its key). Processes fitting or loading one key take turns (a lock beside its
     folder): the second loads what the first cached instead of fitting it again beside it."""
-    from methods.supervision.cache import stable_hash
+    from benchmark.core.cache_keys import stable_hash
 
     method_cls = spec.load()
     folder = Path(cache_dir) / "fits" / spec.name / f"{scene.dataset}-{scene.name}"
@@ -667,10 +667,10 @@ class RunOutcome:
 
 def evaluate(options: EvalOptions) -> RunOutcome:
     """Run one evaluation (module docstring) and return the results file and its content."""
-    from annotations.model import AnnotationSet, encode_mask  # masks kept as RLE: full-res scenes fit in memory
+    from benchmark.core.annotation import AnnotationSet, encode_mask  # masks kept as RLE: full-res scenes fit in memory
     from methods import registry
     from methods.api import Progress, check_agnostic, check_sensitive
-    from methods.supervision.cache import build_supervision
+    from methods.api import build_supervision
 
     from .loaders import load_scene
     from .metrics import ScoreConfig, aggregate_scenes, score_scene
@@ -860,7 +860,7 @@ def default_sources(scene: Scene, track: str) -> dict[str, str]:
     but RGBA frames (D-NeRF) is supervised by its training alphas (``alpha`` + ``object-name``)."""
     if track != "oracle" or scene.dataset != "dnerf" or scene.root is None:
         return {}
-    from .synthetic.truth import has_truth
+    from benchmark.core.truth import has_truth
 
     if has_truth(scene.root):
         return {}

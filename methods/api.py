@@ -31,8 +31,8 @@ from typing import Any, ClassVar, Iterable, Literal, Optional, Sequence, TextIO
 
 import numpy as np
 
-from benchmark.protocol import Protocol, default_protocol
-from benchmark.scene import Frame, Scene
+from benchmark.core.protocol import Protocol, default_protocol
+from benchmark.core.scene import Frame, Scene
 
 from .supervision.base import Supervision
 
@@ -104,7 +104,7 @@ class Model(abc.ABC):
 
     @property
     def protocol(self) -> Protocol:
-        """The evaluation protocol the model answers under (:mod:`benchmark.protocol`; the default preset
+        """The evaluation protocol the model answers under (:mod:`benchmark.core.protocol`; the default preset
         until the harness hands it one with :meth:`use_protocol`)."""
         return getattr(self, "_protocol", None) or default_protocol()
 
@@ -183,3 +183,11 @@ def check_sensitive(answers: Sequence[SensitiveAnswer], frames: Sequence[Frame],
         score = float(answer.score)
         if math.isinf(score):
             raise ValueError(f"{who}: score for frame {frame.name!r} is inf (use NaN for undefined)")
+
+
+def build_supervision(scene: Scene, track: str = "oracle", **options: Any) -> Supervision:
+    """The 2D supervision of ``scene``'s training frames on ``track`` (``"oracle"`` or ``"real"``), built
+    once per scene and cached: :func:`methods.supervision.cache.build_supervision` (its options)."""
+    from .supervision.cache import build_supervision as build
+
+    return build(scene, track, **options)

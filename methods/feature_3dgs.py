@@ -39,10 +39,10 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from benchmark.atomic import atomic_path, write_json
-from benchmark.errors import InputError
-from benchmark.memory import StagePeak
-from benchmark.scene import Camera, Frame, Scene
+from benchmark.core.atomic import atomic_path, write_json
+from benchmark.core.errors import InputError
+from benchmark.core.memory import StagePeak
+from benchmark.core.scene import Camera, Frame, Scene
 
 from .api import AgnosticAnswer, Method, Progress
 from .fields.language_field import FrozenGeometry, GaussianState, LanguageField, LanguageFieldConfig
@@ -53,7 +53,7 @@ from .fields.texts import EncodedQueryModel
 from .fields.views import ViewCycle
 from .specs.feature_3dgs import FEATURE_LEVEL_NAMES, Feature3DGSConfig
 from .supervision.base import Supervision, TextEncoder
-from .supervision.cache import stable_hash
+from benchmark.core.cache_keys import stable_hash
 
 METHOD_NAME = "feature-3dgs"
 GEOMETRY_KIND = "4dgs"

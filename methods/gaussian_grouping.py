@@ -52,10 +52,10 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from benchmark.atomic import atomic_path, write_json
-from benchmark.errors import InputError
-from benchmark.memory import StagePeak
-from benchmark.scene import Camera, Frame, Scene
+from benchmark.core.atomic import atomic_path, write_json
+from benchmark.core.errors import InputError
+from benchmark.core.memory import StagePeak
+from benchmark.core.scene import Camera, Frame, Scene
 
 from .api import AgnosticAnswer, Method, Progress
 from .fields.language_field import FrozenGeometry, GaussianState, camera_tensors
@@ -410,7 +410,7 @@ def identity_options(config: GaussianGroupingConfig, track: str) -> dict[str, An
 
 def identity_key(geo: GeometryFit, supervision: Supervision, config: GaussianGroupingConfig, seed: int,
                  device: str) -> str:
-    from .supervision.cache import stable_hash
+    from benchmark.core.cache_keys import stable_hash
 
     return stable_hash({"geometry": geo.key, "supervision": supervision.fingerprint,
                         "options": identity_options(config, supervision.track), "seed": seed,

@@ -53,10 +53,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from benchmark.atomic import atomic_path, write_json
-from benchmark.errors import InputError
-from benchmark.memory import StagePeak
-from benchmark.scene import Frame, Scene
+from benchmark.core.atomic import atomic_path, write_json
+from benchmark.core.errors import InputError
+from benchmark.core.memory import StagePeak
+from benchmark.core.scene import Frame, Scene
 
 from .api import AgnosticAnswer, Method, Model, Progress, SensitiveAnswer
 from .fields.autoencoder import AutoencoderConfig, FeatureAutoencoder, train_autoencoder
@@ -104,7 +104,7 @@ def _source_hash_once(paths: tuple[Path, ...]) -> str:
 
 
 def _stable_hash(obj: Any) -> str:
-    from .supervision.cache import stable_hash
+    from benchmark.core.cache_keys import stable_hash
 
     return stable_hash(obj, 24)
 
@@ -219,7 +219,7 @@ class GeometryFit:
 
 
 def geometry_key(scene: Scene, kind: str, config: LanguageMethodConfig, seed: int, device: str) -> str:
-    from .supervision.cache import scene_fingerprint
+    from benchmark.core.cache_keys import scene_fingerprint
 
     return _stable_hash({"kind": kind, "recon": config_to_dict(recon_config(config, seed)), "seed": seed,
                          "device": device_kind(device), "scene": scene_fingerprint(scene, scene.train_frames),
@@ -413,7 +413,7 @@ def fit_language_field(scene: Scene, supervision: Supervision, config: LanguageM
 
 def spatial_mask(result: AgnosticResult, rules) -> torch.Tensor:
     """[H, W] bool: the time-sensitive query's spatial mask on a frame, before or after the majority
-    filter as :attr:`benchmark.protocol.SensitiveQuery.mask` says."""
+    filter as :attr:`benchmark.core.protocol.SensitiveQuery.mask` says."""
     return result.mask_unfiltered if rules.mask == "unfiltered" else result.mask
 
 
@@ -514,7 +514,7 @@ class LanguageFieldModel(Model):
 
     @property
     def relevance_cfg(self):
-        """The time-agnostic query rules answered under (:class:`benchmark.protocol.AgnosticQuery`)."""
+        """The time-agnostic query rules answered under (:class:`benchmark.core.protocol.AgnosticQuery`)."""
         return self.protocol.agnostic
 
     def describe(self) -> dict:
@@ -642,7 +642,7 @@ class LanguageFieldModel(Model):
 
     def relevance_score(self, result: AgnosticResult) -> float:
         """A frame's time-sensitive score from relevance alone (the CLIP baselines), under the protocol's
-        :attr:`~benchmark.protocol.SensitiveQuery.relevance_score`: the chosen level's peak smoothed
+        :attr:`~benchmark.core.protocol.SensitiveQuery.relevance_score`: the chosen level's peak smoothed
         relevance, or its mean inside the spatial mask (NaN when that mask is empty)."""
         rules = self.protocol.sensitive
         if rules.relevance_score == "peak":

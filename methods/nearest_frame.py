@@ -16,7 +16,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from benchmark.scene import Frame, Scene
+from benchmark.core.scene import Frame, Scene
 
 from .api import AgnosticAnswer, Method, Model, Progress, SensitiveAnswer
 from .specs.nearest_frame import NearestFrameConfig

@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Optional
 
-from benchmark.errors import InputError
+from benchmark.core.errors import InputError
 
 DEFAULT_METHOD = "nearest-frame"
 """The method ``bench4d demo`` runs: the best runnable method registered (switch it when a better
@@ -286,3 +286,24 @@ def paper_numbers(name: str) -> dict[str, Any]:
     if name in _REGISTRY and _REGISTRY[name].paper_numbers:
         return dict(_REGISTRY[name].paper_numbers)
     return dict(PAPER_NUMBERS.get(name, {}))
+
+
+@dataclass(frozen=True)
+class PaperReference:
+    """The published numbers the leaderboard and the paper tables print beside ours."""
+
+    numbers: Mapping[str, Any]
+    """Method name -> its entry (display name, results per dataset and scene, query FPS)."""
+    ablations: Mapping[str, Any]
+    """The paper's ablation tables (number of states, prompt kinds)."""
+    source: str
+    """Where the numbers come from."""
+    query_fps_device: str
+    """The GPU the published query speeds were measured on."""
+
+
+def paper_reference() -> PaperReference:
+    """The published numbers of every method of the paper, registered here or not."""
+    from .specs.paper_numbers import PAPER_ABLATIONS, PAPER_NUMBERS, PAPER_SOURCE, QUERY_FPS_DEVICE
+
+    return PaperReference(PAPER_NUMBERS, PAPER_ABLATIONS, PAPER_SOURCE, QUERY_FPS_DEVICE)

@@ -25,7 +25,7 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 
-from benchmark.errors import InputError
+from benchmark.core.errors import InputError
 
 from .supervision.base import TextEncoder, TextKind
 

@@ -5,7 +5,7 @@ baseline, plugged into :class:`methods.language_methods.LanguageFieldModel` as
 Both fit :func:`methods.fields.time_varying.fit_time_varying_field` on the method's frozen 4D-GS
 (shared with the time-agnostic half) and score a time-sensitive query on a frame as the protocol
 says: the spatial mask is the time-agnostic answer of the same text (after the 7x7 majority filter,
-or before it as the release does: the protocol's :attr:`~benchmark.protocol.SensitiveQuery.mask`), and
+or before it as the release does: the protocol's :attr:`~benchmark.core.protocol.SensitiveQuery.mask`), and
 ``s_t`` = mean cosine, over that mask, between the decoded time-varying feature and the query's
 text embedding (NaN on an empty mask).
 
@@ -21,9 +21,9 @@ from typing import ClassVar
 import numpy as np
 import torch
 
-from benchmark.atomic import atomic_path, write_json
-from benchmark.memory import StagePeak
-from benchmark.scene import Frame
+from benchmark.core.atomic import atomic_path, write_json
+from benchmark.core.memory import StagePeak
+from benchmark.core.scene import Frame
 
 from .fields.relevance import AgnosticResult
 from .fields.time_varying import build_captions, embed_captions, fit_time_varying_field, load_time_varying_field
@@ -32,9 +32,9 @@ from .language_methods import FitContext, LanguageFieldModel, TimeVaryingHead, s
 _HERE = Path(__file__).resolve().parent
 TIME_VARYING_SOURCES = (Path(__file__).resolve(), _HERE / "fields" / "time_varying.py", _HERE / "fields" / "status.py",
                         *sorted((_HERE / "captioners").glob("*.py")),
-                        _HERE.parent / "benchmark" / "metrics" / "captions.py")
+                        _HERE / "fields" / "caption_targets.py")
 """Files whose content defines a time-varying fit (part of the methods' ``code_version``: the runner
-hashes only each method's entry-point module). ``benchmark/metrics/captions.py`` makes the targets of
+hashes only each method's entry-point module). ``methods/fields/caption_targets.py`` makes the targets of
 the ``caption_window`` and ``caption_segments`` options (change points, states)."""
 TIME_VARYING_CODE = source_hash(TIME_VARYING_SOURCES)
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-import benchmark  # noqa: F401  (first: pins numpy's BLAS kernels before torch loads numpy; benchmark.openblas)
+import benchmark  # noqa: F401  (first: pins numpy's BLAS kernels before torch loads numpy; benchmark.core.openblas)
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("BENCH4D_SHARED", ROOT.parent / "shared"))

@@ -10,7 +10,7 @@ import pytest
 from annotations.assist import GrabCutSegmenter, SamConfig, SamSegmenter, make_segmenter
 from annotations.propagate import iou
 from annotations.tool.synthetic import rigid_sequence
-from benchmark.errors import InputError
+from benchmark.core.errors import InputError
 
 
 @pytest.fixture(scope="module")

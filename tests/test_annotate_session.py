@@ -14,13 +14,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from annotations.format import load_annotations
-from annotations.model import decode_mask
+from benchmark.core.annotation import decode_mask
 from annotations.propagate import iou
 from annotations.tool import exchange
 from annotations.tool.session import (AnnotationSession, Conflict, Locked, SessionConfig, mask_to_runs,
                                       runs_to_mask)
 from annotations.tool.synthetic import rigid_sequence, write_dnerf_scene
-from benchmark.errors import InputError
+from benchmark.core.errors import InputError
 from benchmark.loaders import load_scene
 
 W, H = 192, 112

@@ -14,12 +14,12 @@ from PIL import Image
 from annotations.davis import import_davis
 from annotations.format import (annotation_set_to_dict, load_annotations, save_annotations,
                                 validate_against_scene, validate_rle)
-from annotations.model import AnnotatedFrame, AnnotationSet, Query, decode_mask, encode_mask
+from benchmark.core.annotation import AnnotatedFrame, AnnotationSet, Query, decode_mask, encode_mask
 from annotations.polygons import mask_to_polygons, polygons_to_mask
 from annotations.release import (ReleaseImportOptions, export_release, import_release,
                                  import_release_folder)
-from benchmark.errors import InputError
-from benchmark.scene import Camera, Frame, Scene
+from benchmark.core.errors import InputError
+from benchmark.core.scene import Camera, Frame, Scene
 
 
 # ---------------------------------------------------------------------------------------------

@@ -9,9 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmark.errors import InputError
+from benchmark.core.errors import InputError
 from benchmark.loaders import load_scene
-from benchmark.metrics import caption_replay_accuracy, fitted_caption_targets, window_caption_embeddings
+from benchmark.metrics import caption_replay_accuracy
+from methods.fields.caption_targets import fitted_caption_targets, window_caption_embeddings
 from methods.captioners import get_captioner
 from methods.captioners.base import CaptionPromptConfig, Captioner, ObjectTracks, caption_objects
 from methods.captioners.file import CaptionsFile, tracks_from_file, write_captions_file
@@ -61,7 +62,7 @@ def test_truth_tracks_are_training_whole_objects(smoke, tracks):
 
 
 def test_template_captions_follow_states_of_training_frames(smoke, tracks):
-    from benchmark.synthetic.truth import load_truth
+    from benchmark.core.truth import load_truth
 
     truth = load_truth(smoke.root)
     states = {s["object"]: s["states"] for s in truth.timelines(allow_eval=True)}
@@ -328,7 +329,7 @@ def test_field_gap_caption_targets_follow_the_run_caption_window(monkeypatch):
     captions without a caption window, their windowed means with one."""
     import types
 
-    import benchmark.field_gap as field_gap
+    import benchmark.studies.field_gap as field_gap
     import methods.captioners.tracks as tracks_module
     import methods.fields.time_varying as tv_module
 

@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from benchmark.commands import recon
-from benchmark.scene import Camera, Frame, Scene
+from benchmark.core.scene import Camera, Frame, Scene
 from methods.gaussians.config import (DeformationConfig, GaussianConfig, HexPlaneConfig, ReconConfig, Schedule)
 from methods.gaussians.hexplane import DeformationField, HexPlane, axis_warp
 from methods.gaussians.model import DeformableGaussians, GaussianModel, deformation_field_from_state
@@ -643,7 +643,7 @@ def test_tiny_4dgs_on_cuda_reaches_the_cpu_quality(moving_scene):
 # ---------------------------------------------------------------------------------------------------
 def write_dnerf_folder(root: Path, size: int = 12) -> Path:
     """A tiny D-NeRF-layout scene (RGBA PNGs, OpenGL camera-to-world) rendered from the toy blobs."""
-    from benchmark.imageio import write_image
+    from benchmark.core.imageio import write_image
 
     focal = 1.2 * size
     splits = {"train": 10, "test": 3}

@@ -13,7 +13,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from benchmark.errors import InputError
+from benchmark.core.errors import InputError
 from benchmark.loaders import load_scene
 from tests.test_loaders import write_dnerf, write_hypernerf
 

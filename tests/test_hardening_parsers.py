@@ -2,7 +2,7 @@
 
 Property: any mutation of a valid file (values swapped for hostile ones, keys deleted, lists grown,
 bytes flipped or cut, PNG headers rewritten) gives either a valid object or an
-:class:`~benchmark.errors.InputError` naming the file in one line: never another exception, never a
+:class:`~benchmark.core.errors.InputError` naming the file in one line: never another exception, never a
 crash, and never an allocation beyond a fixed multiple of the frame size the file declares
 (measured with ``tracemalloc``). Then one targeted test per class of fault: RLE run lengths that
 wrap around, sizes checked before decoding, mask PNG formats, non-finite and huge numbers, and
@@ -31,12 +31,12 @@ from PIL import Image
 
 from annotations.davis import import_davis
 from annotations.format import annotation_set_to_dict, load_annotations, save_annotations
-from annotations.model import (MAX_MASK_PIXELS, AnnotatedFrame, AnnotationSet, Query, decode_mask, encode_mask,
+from benchmark.core.annotation import (MAX_MASK_PIXELS, AnnotatedFrame, AnnotationSet, Query, decode_mask, encode_mask,
                                rle_runs, runs_to_string, string_to_runs)
 from annotations.release import ReleaseImportOptions, export_release, import_release
-from benchmark.atomic import read_json, write_json
-from benchmark.errors import InputError
-from benchmark.imageio import read_mask
+from benchmark.core.atomic import read_json, write_json
+from benchmark.core.errors import InputError
+from benchmark.core.imageio import read_mask
 from benchmark.metrics import score_scene
 from benchmark.predictions import QueryPrediction, ScenePredictions, read_predictions, write_predictions
 

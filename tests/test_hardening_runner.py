@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 
 from annotations.format import save_annotations
-from annotations.model import AnnotatedFrame, AnnotationSet, Query
+from benchmark.core.annotation import AnnotatedFrame, AnnotationSet, Query
 from benchmark.cli import main
-from benchmark.errors import InputError
+from benchmark.core.errors import InputError
 from benchmark.predictions import QueryPrediction, ScenePredictions, read_predictions, write_predictions
 from benchmark.runner import EvalOptions, evaluate
 
@@ -222,14 +222,14 @@ def test_a_damaged_cached_preset_is_regenerated_with_one_warning(cached_preset, 
     warnings = _warnings(capsys.readouterr().err)
     assert len(warnings) == 1 and "damaged" in warnings[0] and "regenerating" in warnings[0]
     assert root == cached_preset["target"] and digest.scene_digest(root) == sound
-    from benchmark.synthetic.truth import check_truth
+    from benchmark.core.truth import check_truth
 
     check_truth(root)
     assert not [p for p in root.parent.iterdir() if p.name.startswith(".")]  # no lock or trash left
 
 
 def test_damaged_truth_read_directly_is_an_input_error_naming_file_and_field(smoke_base, tmp_path):
-    from benchmark.synthetic.truth import load_truth
+    from benchmark.core.truth import load_truth
 
     scene = tmp_path / "scene"
     shutil.copytree(smoke_base["scene"], scene)

@@ -27,7 +27,7 @@ from hypothesis import strategies as st
 from annotations.tool.server import AnnotationServer
 from annotations.tool.session import AnnotationSession, mask_to_runs, runs_to_mask
 from annotations.tool.synthetic import rigid_sequence, write_dnerf_scene
-from benchmark.errors import InputError
+from benchmark.core.errors import InputError
 from benchmark.loaders import load_scene
 
 W, H = 96, 64

@@ -12,12 +12,12 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from benchmark.scene import Camera
+from benchmark.core.scene import Camera
 from methods.fields.autoencoder import AutoencoderConfig, FeatureAutoencoder, train_autoencoder
 from methods.fields.language_field import (FrozenGeometry, GaussianState, LanguageField, LanguageFieldConfig,
                                            decode_for_relevance, make_target, masked_l1, project_phrases,
                                            relevance_basis, train_language_field)
-from benchmark.protocol import AgnosticQuery
+from benchmark.core.protocol import AgnosticQuery
 from methods.fields.relevance import query_levels, relevance
 from methods.gaussians.config import DeformationConfig, GaussianConfig
 from methods.gaussians.hexplane import DeformationField

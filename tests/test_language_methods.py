@@ -14,8 +14,8 @@ import numpy as np
 import torch
 import pytest
 
-from benchmark.errors import InputError
-from benchmark.protocol import PROTOCOLS
+from benchmark.core.errors import InputError
+from benchmark.core.protocol import PROTOCOLS
 from benchmark.runner import EvalOptions, evaluate
 from methods.fields.language_field import decode_for_relevance
 
@@ -431,7 +431,7 @@ def test_ablate_gap_reproduces_the_recorded_answers_and_the_ceiling(smoke, tmp_p
     protocol ceiling under the run's query options, and every evaluated pixel of every level is counted
     once in the latent confusion table."""
     from benchmark.cli import main
-    from benchmark.protocol_ceiling import protocol_ceiling
+    from benchmark.studies.protocol_ceiling import protocol_ceiling
     from benchmark.results import load_results
     from benchmark.runner import find_annotations
 
@@ -481,7 +481,7 @@ def test_ablate_gap_reproduces_the_recorded_answers_and_the_ceiling(smoke, tmp_p
         assert sum(c["pixels"] for c in rows) == pixels
         assert all(0.0 <= c["nearer_other"] <= 1.0 and 0.0 <= c["uncovered"] <= 1.0 for c in rows)
     # a second sweep reuses the analyses of unchanged runs instead of loading their fits again
-    import benchmark.field_gap as field_gap_module
+    import benchmark.studies.field_gap as field_gap_module
 
     monkeypatch.setattr(field_gap_module, "field_gap", lambda *a, **k: pytest.fail("analysed again"))
     assert main(["ablate", "gap", "--results-dir", str(smoke["results"]), "--cache-dir", str(smoke["cache"]),
@@ -495,7 +495,7 @@ def test_the_field_gap_prepares_the_runners_texts_even_when_its_agnostic_half_is
     """The shared decoding basis spans the prepared texts and moves answers at float precision, so the gap
     tool prepares exactly the runner's texts (queries of a kind the model answers, with a mask in an
     evaluated frame) also when the time-agnostic half comes from another run of the same field."""
-    from benchmark.field_gap import field_gap
+    from benchmark.studies.field_gap import field_gap
     from benchmark.runner import find_annotations
 
     aset = find_annotations(smoke["scene"])

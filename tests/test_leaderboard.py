@@ -10,8 +10,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from benchmark.errors import InputError
-from benchmark.protocol import PROTOCOLS
+from benchmark.core.errors import InputError
+from benchmark.core.protocol import PROTOCOLS
 from benchmark.leaderboard import build_leaderboard
 from benchmark.plots import chart_points, label_groups, pareto, pareto_front, timeline
 from benchmark.results import MEAN_SCENE, find_results, load_results, results_path, runs_table, seed_summary, write_results
@@ -54,7 +54,7 @@ def _write_all(root: Path, order_seed: int) -> None:
 
 
 def test_protocols_get_their_own_tables_floors_are_not_ranked_and_means_show_their_ceiling_share(tmp_path):
-    from benchmark.atomic import write_json
+    from benchmark.core.atomic import write_json
 
     root = tmp_path / "results"
     for method, protocol, values in (("alpha", "release", (56.0, 42.0)), ("gamma", "release", (28.0, 21.0)),

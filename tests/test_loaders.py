@@ -20,12 +20,12 @@ import cv2
 import numpy as np
 import pytest
 
-from benchmark.errors import InputError
-from benchmark.imageio import write_image
+from benchmark.core.errors import InputError
+from benchmark.core.imageio import write_image
 from benchmark.loaders import detect_layout, load_scene
 from benchmark.loaders.dnerf import object_annotations
 from benchmark.loaders.hypernerf import read_camera, to_opencv
-from benchmark.scene import Camera
+from benchmark.core.scene import Camera
 
 REPROJ_TOL_PX = 1e-6
 

@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from benchmark import memory
+from benchmark.core import memory
 from benchmark.leaderboard import UNMEASURED_MARK, render_markdown
 from benchmark.results import peak_memory_with_shared, run_row, runs_table, seed_summary
 

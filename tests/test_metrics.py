@@ -11,8 +11,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from annotations.model import AnnotationSet, Query
-from benchmark.protocol import PROTOCOLS
+from benchmark.core.annotation import AnnotationSet, Query
+from benchmark.core.protocol import PROTOCOLS
 from benchmark.metrics import (EMPTY_IOU, EMPTY_UNION_VIOU, TemporalRule, aggregate, apply_temporal_rule,
                                decide_temporal, delta_sim, delta_sim_scene, iou, mean_delta_sim, pixel_accuracy,
                                score_agnostic, score_sensitive, smooth_scores, temporal_accuracy, video_iou)
@@ -276,7 +276,7 @@ def test_caption_auc_and_replay_accuracy():
 
 def test_window_caption_embeddings_by_hand():
     """Each embedding becomes the unit mean of those within the window, itself and same-time ones included."""
-    from benchmark.metrics import window_caption_embeddings
+    from methods.fields.caption_targets import window_caption_embeddings
 
     times = np.array([0, 1, 2, 5, 5])
     emb = np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 0.0], [0.0, 1.0], [1.0, 0.0]])
@@ -308,7 +308,7 @@ def _paraphrases(states: list[int], seed: int = 0, dim: int = 16) -> np.ndarray:
 
 
 def test_caption_change_points_find_held_states_not_paraphrases():
-    from benchmark.metrics import caption_change_points, fitted_caption_targets, segment_caption_embeddings
+    from methods.fields.caption_targets import caption_change_points, fitted_caption_targets, segment_caption_embeddings
 
     times = np.arange(40)
     step = [0] * 22 + [1] * 18
@@ -342,7 +342,7 @@ def test_caption_change_points_find_held_states_not_paraphrases():
 
 
 def test_caption_segment_states_merge_only_what_comes_back():
-    from benchmark.metrics import caption_segment_states, caption_segments, segment_caption_embeddings
+    from methods.fields.caption_targets import caption_segment_states, caption_segments, segment_caption_embeddings
 
     times = np.arange(40)
     for seed in range(4):

@@ -1,5 +1,5 @@
 """Generated scenes do not depend on which BLAS kernels the CPU gets: numpy's OpenBLAS is pinned to the
-kernels the committed scene versions were made with (benchmark.openblas), in this process when bench4d
+kernels the committed scene versions were made with (benchmark.core.openblas), in this process when bench4d
 loads before numpy, else in a child process that the generator starts."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from benchmark import openblas
+from benchmark.core import openblas
 from benchmark.synthetic.generate import generate
 from benchmark.synthetic.digest import expected_digest, scene_digest
 
@@ -89,7 +89,7 @@ def test_a_script_that_loads_numpy_before_bench4d_still_makes_the_committed_scen
     """Where numpy loads first on a CPU with other kernels (AVX-512) the generator renders in a pinned
     child; elsewhere in this process. Either way the committed version comes out."""
     env = {k: v for k, v in os.environ.items() if k not in (openblas.CORE_VARIABLE, openblas.CHILD_FLAG)}
-    code = ("import numpy, sys; from benchmark import openblas; from benchmark.synthetic import generate; "
+    code = ("import numpy, sys; from benchmark.core import openblas; from benchmark.synthetic import generate; "
             "from benchmark.synthetic.digest import scene_digest; "
             "print(openblas.openblas_core(), openblas.generation_needs_pinned_process(), "
             "scene_digest(generate('smoke', sys.argv[1], size=48)))")

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from benchmark.protocol import (DEFAULT_PROTOCOL, PROTOCOLS, AgnosticQuery, Protocol, SensitiveQuery, TemporalRule,
+from benchmark.core.protocol import (DEFAULT_PROTOCOL, PROTOCOLS, AgnosticQuery, Protocol, SensitiveQuery, TemporalRule,
                                 get_protocol)
 from benchmark.results import protocol_of
 from methods.fields.relevance import AgnosticResult, answer_from_relevance

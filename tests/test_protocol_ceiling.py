@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from benchmark.errors import InputError
+from benchmark.core.errors import InputError
 
 
 @pytest.fixture(scope="module")
@@ -24,9 +24,9 @@ def smoke(tmp_path_factory):
 
 
 def test_ceiling_lookup_equals_the_query_on_full_feature_images(smoke):
-    from benchmark.protocol_ceiling import TRUTH_LEVELS, protocol_ceiling
-    from benchmark.synthetic.truth import load_truth
-    from benchmark.protocol import AgnosticQuery
+    from benchmark.studies.protocol_ceiling import TRUTH_LEVELS, protocol_ceiling
+    from benchmark.core.truth import load_truth
+    from benchmark.core.protocol import AgnosticQuery
     from methods.fields.relevance import query_levels
     from methods.text_encoders import get_text_encoder
 
@@ -73,8 +73,8 @@ def test_ceiling_lookup_equals_the_query_on_full_feature_images(smoke):
 
 def test_ceiling_needs_generator_truth(tmp_path):
     from benchmark.loaders import load_scene
-    from benchmark.protocol_ceiling import protocol_ceiling
-    from benchmark.protocol import AgnosticQuery
+    from benchmark.studies.protocol_ceiling import protocol_ceiling
+    from benchmark.core.protocol import AgnosticQuery
     from tests.test_gaussian_training import write_dnerf_folder
 
     scene = load_scene(write_dnerf_folder(tmp_path / "toy", size=8))
@@ -97,8 +97,8 @@ def test_ablate_ceiling_command_writes_a_table(smoke, tmp_path, capsys):
 
 
 def test_an_identity_autoencoder_leaves_the_ceiling_unchanged_and_a_collapsed_one_does_not(smoke):
-    from benchmark.protocol_ceiling import ThroughAutoencoder, protocol_ceiling
-    from benchmark.protocol import AgnosticQuery
+    from benchmark.studies.protocol_ceiling import ThroughAutoencoder, protocol_ceiling
+    from benchmark.core.protocol import AgnosticQuery
     from methods.text_encoders import get_text_encoder
 
     scene, aset = smoke

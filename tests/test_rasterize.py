@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 import torch
 
-from benchmark.errors import InputError
-from benchmark.scene import Camera
+from benchmark.core.errors import InputError
+from benchmark.core.scene import Camera
 from methods.gaussians import camera_to_tensors, rasterize
 from methods.gaussians.backends import torch_cpu
 from methods.gaussians.backends.gsplat_cuda import gsplat_available

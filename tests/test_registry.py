@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmark.errors import InputError
+from benchmark.core.errors import InputError
 from methods import registry
 from methods.supervision import registry as sources
 

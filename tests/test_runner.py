@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmark.errors import InputError
-from benchmark.protocol import PROTOCOLS
-from benchmark.openblas import cpuinfo_value, openblas_core
+from benchmark.core.errors import InputError
+from benchmark.core.protocol import PROTOCOLS
+from benchmark.core.openblas import cpuinfo_value, openblas_core
 from benchmark.runner import EvalOptions, evaluate
 
 SMOKE_SIZE = 48
@@ -155,7 +155,7 @@ THROWAWAY_IMPL = '''
 import json, os
 from pathlib import Path
 import numpy as np
-from benchmark.atomic import write_json
+from benchmark.core.atomic import write_json
 from methods.api import AgnosticAnswer, Method, Model, SensitiveAnswer
 
 LOG = Path(os.environ["THROWAWAY_LOG"])
@@ -282,7 +282,7 @@ def test_oracle_sources_use_training_frames_only(smoke_base):
 
 def test_nearest_frame_answers_a_training_frame_with_its_own_masks(smoke_base):
     from benchmark.loaders import load_scene
-    from benchmark.synthetic.truth import load_truth
+    from benchmark.core.truth import load_truth
     from methods.api import Progress
     from methods.nearest_frame import NearestFrame
     from methods.specs.nearest_frame import NearestFrameConfig
@@ -711,7 +711,7 @@ def test_run_all_errors_cross_the_worker_boundary():
     import pickle
 
     from benchmark.commands.run_all import _portable
-    from benchmark.errors import InputError
+    from benchmark.core.errors import InputError
 
     class Unpicklable(Exception):
         def __init__(self, a, b):

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from annotations.format import save_annotations
-from annotations.model import AnnotatedFrame, AnnotationSet, Query
+from benchmark.core.annotation import AnnotatedFrame, AnnotationSet, Query
 from benchmark.cli import main
-from benchmark.errors import InputError
+from benchmark.core.errors import InputError
 from benchmark.metrics import ScoreConfig, TemporalRule, aggregate_scenes, score_scene
-from benchmark.protocol import PROTOCOLS
+from benchmark.core.protocol import PROTOCOLS
 from benchmark.predictions import (JSON_FILE, QueryPrediction, ScenePredictions, query_slug, read_predictions,
                                    write_predictions)
 

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from benchmark.errors import InputError
-from benchmark.scene import Camera, Frame
+from benchmark.core.errors import InputError
+from benchmark.core.scene import Camera, Frame
 from methods.supervision import registry as sources
 from methods.supervision.association import TemporalAssociator, iou_matrix
 

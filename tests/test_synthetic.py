@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmark.errors import InputError
-from benchmark.scene import Camera
+from benchmark.core.errors import InputError
+from benchmark.core.scene import Camera
 from benchmark.synthetic import PRESETS, TruthAccessError, generate, list_presets, load_truth
 from benchmark.synthetic import csg
 from benchmark.synthetic.generate import preset_rng
@@ -344,7 +344,7 @@ def _per_frame(truth, text):
 
 
 def test_states_change_the_appearance(scene_dirs):
-    from benchmark.imageio import read_image
+    from benchmark.core.imageio import read_image
 
     # americano: the liquid darkens
     root = scene_dirs("americano", "hypernerf", size=64, frames=10)
@@ -462,7 +462,7 @@ def test_cli_make_validate_show(tmp_path, capsys):
 
 
 def test_dynamic_parts_are_the_ones_the_preset_animates(scene_dirs, tmp_path):
-    from benchmark.errors import InputError
+    from benchmark.core.errors import InputError
     from benchmark.synthetic.dynamic import dynamic_masks, dynamic_parts
 
     # smoke: the lid opens on its hinge (panel and knob), the ball rolls, the bar breaks; the box base stays

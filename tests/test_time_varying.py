@@ -16,8 +16,8 @@ import pytest
 import torch
 
 from benchmark.metrics import apply_temporal_rule
-from benchmark.protocol import PROTOCOLS
-from benchmark.scene import Camera, Frame, Scene
+from benchmark.core.protocol import PROTOCOLS
+from benchmark.core.scene import Camera, Frame, Scene
 from methods.captioners.base import Captions, ObjectTracks
 from methods.fields.language_field import FrozenGeometry
 from methods.fields.status import StatusField
@@ -272,7 +272,7 @@ def test_caption_window_averages_wording_within_a_state(world):
 def test_caption_segments_decide_which_objects_carry_states(world, monkeypatch):
     """With ``caption_segments`` the fit takes an object's change points, not the spread tolerance, as
     the test of change: a tolerance no caption spread reaches still leaves the box with 2 states."""
-    import benchmark.metrics.captions as captions_module
+    import methods.fields.caption_targets as captions_module
 
     def fake_change_points(times, emb, *, min_length, seed=0):
         # the box (two distinct captions) changes half way; the ball (one caption) never does
@@ -507,7 +507,7 @@ def test_time_varying_code_version_covers_the_code_that_makes_its_targets():
     would silently reuse heads fitted by the old code."""
     import inspect
 
-    from benchmark.metrics.captions import caption_change_points, caption_segment_states, window_caption_embeddings
+    from methods.fields.caption_targets import caption_change_points, caption_segment_states, window_caption_embeddings
     from methods.fields.status import StatusField
     from methods.fields.time_varying import fit_time_varying_field
     from methods.time_sensitive import TIME_VARYING_SOURCES

@@ -20,12 +20,12 @@ from typing import Optional
 import numpy as np
 from pycocotools import mask as mask_utils
 
-from benchmark.atomic import atomic_path
-from benchmark.errors import InputError
-from benchmark.scene import Scene
+from benchmark.core.atomic import atomic_path
+from benchmark.core.errors import InputError
+from benchmark.core.scene import Scene
 
 from ..format import annotation_set_from_dict, load_annotations, save_annotations
-from ..model import AnnotatedFrame, AnnotationSet, Query, decode_mask, encode_mask, normalise_intervals
+from benchmark.core.annotation import AnnotatedFrame, AnnotationSet, Query, decode_mask, encode_mask, normalise_intervals
 from ..polygons import polygons_to_mask
 from ..release import COCO_RELATIVE_PATH, VIDEO_RELATIVE_PATH, export_release, import_release
 

@@ -212,7 +212,7 @@ def run(out: Path, seeds: int = 2, frames: int = 60, width: int = 960, height: i
               "refinement snaps back to the true boundary at every step; real footage (similar colours, blur, "
               "articulation) will score lower. The affine-only rows show what the motion model alone keeps.", ""]
     text = "\n".join(lines)
-    from benchmark.atomic import write_text
+    from benchmark.core.atomic import write_text
 
     write_text(out, text)
     return text

@@ -21,7 +21,7 @@ from typing import NamedTuple, Optional, Sequence
 import cv2
 import numpy as np
 
-from ..model import AnnotationSet, decode_mask
+from benchmark.core.annotation import AnnotationSet, decode_mask
 
 
 @dataclass

@@ -52,7 +52,7 @@ from pathlib import Path
 from typing import Any, Callable, Optional
 from urllib.parse import parse_qs, urlsplit
 
-from benchmark.errors import InputError
+from benchmark.core.errors import InputError
 
 from .session import AnnotationSession, Conflict
 

@@ -1,6 +1,6 @@
 """The annotation tool's state, apart from HTTP: one scene, one annotation file, one writer.
 
-:class:`AnnotationSession` owns the :class:`~annotations.model.AnnotationSet` being edited. Every
+:class:`AnnotationSession` owns the :class:`~benchmark.core.annotation.AnnotationSet` being edited. Every
 accepted change is written to disk at once (temporary file, flush + fsync, atomic replace) with a
 new revision number; a change made against an older revision is refused (:class:`Conflict`), so a
 second browser tab cannot overwrite the first. A lock file held with ``flock`` keeps a second
@@ -34,12 +34,12 @@ from typing import Any, Optional
 import cv2
 import numpy as np
 
-from benchmark.errors import InputError
-from benchmark.scene import Frame, Scene
+from benchmark.core.errors import InputError
+from benchmark.core.scene import Frame, Scene
 
 from ..assist import GrabCutSegmenter, Segmenter
 from ..format import load_annotations, save_annotations, validate_against_scene
-from ..model import AnnotatedFrame, AnnotationSet, Query, decode_mask, encode_mask, normalise_intervals
+from benchmark.core.annotation import AnnotatedFrame, AnnotationSet, Query, decode_mask, encode_mask, normalise_intervals
 from ..propagate import PropagationConfig, propagate_between, propagate_chain
 from .review import ReviewConfig, review
 
@@ -731,7 +731,7 @@ _MKSTEMP = r"[a-z0-9_]{8}"  # the random part of tempfile.mkstemp / mkdtemp name
 def remove_interrupted_writes(path: Path) -> list[str]:
     """Delete what a killed writer of annotation file ``path`` left behind; returns the names.
 
-    Every write goes through :func:`benchmark.atomic.atomic_path` (a ``.<name>.<random>.tmp`` file
+    Every write goes through :func:`benchmark.core.atomic.atomic_path` (a ``.<name>.<random>.tmp`` file
     beside the target, renamed over it when complete): a process killed before the rename leaves
     that file, never a damaged target. The caller must hold the file's lock, so no live writer owns
     one of these. Patterns are exact, so another annotation file's temporaries are left alone.

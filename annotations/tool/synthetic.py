@@ -113,8 +113,8 @@ def write_dnerf_scene(sequence: RigidSequence, out_dir: str | Path, *, split: st
 
     Returns the folder. Lets the tool's tests and measurements load frames through the real loader.
     """
-    from benchmark.atomic import write_json
-    from benchmark.imageio import write_image
+    from benchmark.core.atomic import write_json
+    from benchmark.core.imageio import write_image
 
     out = Path(out_dir)
     (out / split).mkdir(parents=True, exist_ok=True)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..errors import InputError
+from benchmark.core.errors import InputError
 
 
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
@@ -33,7 +33,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def add_protocol_argument(parser: argparse.ArgumentParser) -> None:
-    from ..protocol import DEFAULT_PROTOCOL, PROTOCOLS
+    from benchmark.core.protocol import DEFAULT_PROTOCOL, PROTOCOLS
 
     parser.add_argument("--protocol", choices=tuple(PROTOCOLS), default=DEFAULT_PROTOCOL,
                         help="evaluation protocol: the query and temporal rules (release: those behind the "

@@ -38,7 +38,7 @@ relevance, smoothing, threshold, majority filter, mask to the host) on random Ga
 scale, through the method's own query code (:func:`methods.language_methods.measure_query_speed`; the
 paper reports 5.24 FPS on an A100 at 960x536).
 
-``ceiling``: the time-agnostic query run on perfect features (:mod:`benchmark.protocol_ceiling`)
+``ceiling``: the time-agnostic query run on perfect features (:mod:`benchmark.studies.protocol_ceiling`)
 under the threshold and window variants: what a field reproducing its oracle supervision exactly scores
 with that text encoder, per scene and query (a reference, not a strict bound). It reads evaluated
 frames' truth, so it is an analysis, never a method.
@@ -46,12 +46,12 @@ frames' truth, so it is an analysis, never a method.
 ``autoencoder``: the same query on perfect *latents*: each scene's autoencoder trained as the language
 methods train it (:func:`methods.language_methods.autoencoder_inputs`, under each ``ae_sample_weighting``
 and seed, other options by ``--set``), the ground-truth names' embeddings encoded and decoded by it
-(:class:`benchmark.protocol_ceiling.ThroughAutoencoder`). The drop from the ceiling is the autoencoder's
+(:class:`benchmark.studies.protocol_ceiling.ThroughAutoencoder`). The drop from the ceiling is the autoencoder's
 share of the gap alone, measured without fitting any geometry (``ablate gap`` measures it on recorded
 runs' own autoencoders). Oracle track.
 
 ``rescore``: re-answers every results file of ``--results-dir`` (leaderboard runs) under another evaluation
-protocol (``--protocol paper-text``, :mod:`benchmark.protocol`) and/or with changed *answer options*
+protocol (``--protocol paper-text``, :mod:`benchmark.core.protocol`) and/or with changed *answer options*
 (``LanguageMethodConfig.ANSWER_OPTIONS``, e.g. ``uncovered_alpha=0.3``) on the very fits the file was scored
 with (its ``fit.key``, :attr:`benchmark.runner.EvalOptions.reuse_fit`), writes the runs to
 ``<results-dir>/ablations/<name>/`` and a table of each metric before and after.
@@ -61,7 +61,7 @@ the recorded fit (same geometry, time-agnostic field and autoencoder: the option
 difference); other options fit each run anew. The table is then recorded → refitted.
 
 ``gap``: for recorded runs on generated scenes, the time-agnostic query on perfect features, on
-perfect latents through the run's own autoencoder, and on its rendered field (:mod:`benchmark.field_gap`):
+perfect latents through the run's own autoencoder, and on its rendered field (:mod:`benchmark.studies.field_gap`):
 how much of the distance to the ceiling the autoencoder costs and how much the rendered field, and
 per ground-truth name the pixels whose rendered latent is nearer another name's code; for time-sensitive
 queries, the state score inside the run's own mask, inside the object mask and on its caption targets.
@@ -87,7 +87,7 @@ from typing import Optional, Sequence
 import numpy as np
 from pathlib import Path
 
-from ..errors import InputError
+from benchmark.core.errors import InputError
 
 VISUAL = ("blur", "blur+gray", "blur+gray+contour")
 GAP_METHODS = ("langsplat", "deformable-clip", "non-status-field", "4d-langsplat")
@@ -257,7 +257,7 @@ def _markdown(header: list[str], rows: list[list[str]]) -> str:
 
 
 def _write(out: Path, stem: str, doc: dict, table: str) -> list[Path]:
-    from ..atomic import write_json, write_text
+    from benchmark.core.atomic import write_json, write_text
 
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / f"{stem}.json", doc)
@@ -337,7 +337,7 @@ def _delta_sim(args) -> int:
           "pairs ordered right by the cosine to the query: 100 = every caption alone separates the states, 50 = "
           "chance) / caption-replay Acc (temporal Acc when each evaluated frame is answered with the nearest "
           "training caption (or target): what a field reproducing them exactly would score); "
-          "`benchmark/metrics/captions.py`.\n\n"
+          "`methods/fields/caption_targets.py`.\n\n"
           + _markdown(["visual prompt", "text prompt", "Delta-sim"] + [f"{q} (Δ / AUC / replay Acc)" for q in qnames], rows))
     doc = {"ablation": "delta-sim", "scene": scene.name, "captioner": captioner.name, "track": captioner.track,
            "captioner_config": captioner.config(), "text_encoder": encoder.config(), "tracks": tracks.source,
@@ -353,8 +353,8 @@ def _delta_sim(args) -> int:
 def _as_targets(by_key: dict, window: int, segments: bool) -> dict:
     """``by_key`` ((base, time_index) -> caption embedding) with each base's embeddings made into the
     targets of a field fitted with ``caption_window=window`` or ``caption_segments`` (the method
-    defaults' segment length and caption seed): :func:`benchmark.metrics.fitted_caption_targets`."""
-    from benchmark.metrics import fitted_caption_targets
+    defaults' segment length and caption seed): :func:`methods.fields.caption_targets.fitted_caption_targets`."""
+    from methods.fields.caption_targets import fitted_caption_targets
     from methods.fields.time_varying import caption_target_options
     from methods.specs._time_varying import TimeVaryingOptions
 
@@ -375,7 +375,7 @@ def _tqdm(iterable=None, **kwargs):
 
 # -- K ablation ----------------------------------------------------------------------------------------
 def _states(args) -> int:
-    from ..atomic import read_json
+    from benchmark.core.atomic import read_json
     from ..runner import EvalOptions, evaluate
     from ._common import fmt, parse_overrides
 
@@ -495,13 +495,13 @@ CEILING_VARIANTS = {"release": {},
                     "release, fixed 29/7 windows": {"kernel_scaling": "fixed"},
                     "paper-text, fixed 29/7 windows": {"threshold_rule": "rescaled", "kernel_scaling": "fixed"}}
 """Query-rule variants the ceiling compares: overrides of the default protocol's time-agnostic rules
-(:class:`benchmark.protocol.AgnosticQuery`); the first two are the ``release`` and ``paper-text`` presets."""
+(:class:`benchmark.core.protocol.AgnosticQuery`); the first two are the ``release`` and ``paper-text`` presets."""
 
 
 def _ceiling(args) -> int:
-    from benchmark.protocol_ceiling import protocol_ceiling
+    from benchmark.studies.protocol_ceiling import protocol_ceiling
     from benchmark.synthetic.digest import scene_version
-    from benchmark.protocol import AgnosticQuery
+    from benchmark.core.protocol import AgnosticQuery
     from methods.text_encoders import get_text_encoder
 
     from ..loaders import load_scene
@@ -559,11 +559,11 @@ def _ceiling(args) -> int:
 def _autoencoder(args) -> int:
     import torch
 
-    from benchmark.protocol_ceiling import NameTable, ThroughAutoencoder, protocol_ceiling
+    from benchmark.studies.protocol_ceiling import NameTable, ThroughAutoencoder, protocol_ceiling
     from benchmark.synthetic.digest import scene_version
-    from benchmark.synthetic.truth import load_truth
+    from benchmark.core.truth import load_truth
     from methods.fields.autoencoder import train_autoencoder
-    from benchmark.protocol import AgnosticQuery
+    from benchmark.core.protocol import AgnosticQuery
     from methods import registry
     from methods.language_methods import autoencoder_inputs, with_unmasked_as
     from methods.specs._language import AE_SAMPLE_WEIGHTINGS
@@ -690,7 +690,7 @@ RESCORE_METRICS = ("mIoU", "mAcc", "Acc", "vIoU")
 def _rescore(args) -> int:
     from methods import registry
 
-    from ..protocol import get_protocol
+    from benchmark.core.protocol import get_protocol
     from ..results import ABLATIONS_DIR, find_results, load_results, protocol_of, results_path
     from ..runner import EvalOptions, config_dict, evaluate
 
@@ -840,8 +840,8 @@ def _gap(args) -> int:
     from methods.api import Progress
     from methods.supervision.cache import build_supervision
 
-    from ..atomic import read_json
-    from ..field_gap import GAP_VERSION, caption_targets, field_gap
+    from benchmark.core.atomic import read_json
+    from ..studies.field_gap import GAP_VERSION, caption_targets, field_gap
     from ..loaders import load_scene
     from ..results import find_results, load_results, protocol_of, scene_status
     from ..runner import (DEFAULT_PRESET_SIZE, config_dict, default_sources, find_annotations, fit_or_load,
@@ -926,7 +926,7 @@ def _gap(args) -> int:
 
 
 def _gap_table(runs: list[dict], skipped: list[str]) -> str:
-    from ..field_gap import RUNGS
+    from ..studies.field_gap import RUNGS
 
     def pct(v) -> str:
         return "–" if v is None or not np.isfinite(v) else f"{100 * v:.1f}"
@@ -957,7 +957,7 @@ def _gap_table(runs: list[dict], skipped: list[str]) -> str:
     tracks = ", ".join(sorted({str(r.get("track")) for r in runs}))
     text = ("# Field gap: where a fitted language field loses against perfect features\n\n"
             f"Supervision track: **{tracks}**. "
-            "Generated by `bench4d ablate gap` (`benchmark/field_gap.py`). Time-agnostic mIoU (percent) of the "
+            "Generated by `bench4d ablate gap` (`benchmark/studies/field_gap.py`). Time-agnostic mIoU (percent) of the "
             "protocol's query, with each run's own query options, on: **perfect** features (the oracle supervision "
             "exactly), perfect latents through the run's own **autoencoder**, and the **fitted** field (the run's "
             "answers; `reproduced`: equal to the recorded mIoU). The autoencoder's share is perfect - autoencoder, "

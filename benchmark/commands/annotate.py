@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..errors import InputError
+from benchmark.core.errors import InputError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -91,7 +91,7 @@ def referenced_keys(results_dirs: Iterable[Path]) -> set[str]:
     """Fit, geometry and field keys that results files name (every ``seed*.json`` below the folders,
     archive and ablations included). A results file that cannot be read stops the command: pruning
     on a partial view could delete what it names."""
-    from ..errors import InputError
+    from benchmark.core.errors import InputError
 
     keys: set[str] = set()
     for root in results_dirs:
@@ -179,7 +179,7 @@ def prune(cache_dir: Path, what: str, *, older_than_hours: float, results_dirs: 
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..errors import InputError
+    from benchmark.core.errors import InputError
 
     cache_dir = Path(args.cache_dir)
     if not cache_dir.is_dir():

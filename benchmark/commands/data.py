@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from benchmark.core.errors import InputError
 
 REPROJECTION_TOLERANCE_PX = 1e-3
 """A loaded camera must reproject points to within this many pixels of the generator's camera."""
@@ -108,7 +108,7 @@ def _annotation_path(scene_dir: Path, given: Path | None) -> Path | None:
 def check_truth(scene, truth_dir: Path) -> str:
     """Check the generator truth against the loaded scene: same frames, times, sizes, and cameras that
     reproject within :data:`REPROJECTION_TOLERANCE_PX`. Returns a one-line summary."""
-    from ..synthetic.truth import load_truth
+    from benchmark.core.truth import load_truth
 
     truth = load_truth(truth_dir)
     loaded = {f.name: f for f in scene.frames}
@@ -144,7 +144,7 @@ def _validate(args: argparse.Namespace) -> int:
     from annotations.format import load_annotations
 
     from ..loaders import load_scene
-    from ..synthetic.truth import TRUTH_DIR
+    from benchmark.core.truth import TRUTH_DIR
 
     scene = load_scene(args.scene)
     print(scene.summary())
@@ -168,7 +168,7 @@ def _validate(args: argparse.Namespace) -> int:
 
 
 def _rle_has_pixels(rle: dict) -> bool:
-    from annotations.model import decode_mask
+    from benchmark.core.annotation import decode_mask
 
     return bool(decode_mask(rle).any())
 
@@ -200,7 +200,7 @@ def write_contact_sheet(scene, aset, out: Path, *, num_frames: int = 4, queries=
     import matplotlib.pyplot as plt
     from matplotlib.patches import Patch
 
-    from ..atomic import atomic_path
+    from benchmark.core.atomic import atomic_path
 
     if num_frames < 1:
         raise InputError(None, "--frames", f"must be at least 1, got {num_frames}")
@@ -271,7 +271,7 @@ def _timing(args: argparse.Namespace) -> int:
 def _digests(args: argparse.Namespace) -> int:
     import tempfile
 
-    from ..atomic import write_json
+    from benchmark.core.atomic import write_json
     from ..synthetic import PRESETS, generate
     from ..synthetic.digest import DIGESTS_FILE, digest_key, load_digests, scene_digest
 

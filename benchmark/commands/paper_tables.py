@@ -24,7 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..atomic import write_text
+    from benchmark.core.atomic import write_text
     from ..paper_tables import render
 
     text = render(args.results_dir, args.reports_dir, protocol=args.protocol, track=args.track)

@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 from typing import Any, Optional
 
-from ..errors import InputError
+from benchmark.core.errors import InputError
 
 MODELS = ("3dgs", "4dgs")
 
@@ -184,8 +184,8 @@ def fit_and_evaluate(job: dict) -> dict:
     from methods.gaussians.rasterize import rasterize
     from methods.gaussians.train import Trainer, evaluate, measure_static_skip
 
-    from .. import memory
-    from ..imageio import write_image
+    from ..core import memory
+    from benchmark.core.imageio import write_image
 
     torch.set_num_threads(job["threads"])
     torch.set_flush_denormal(True)  # transmittance products underflow into slow denormals on CPU
@@ -287,7 +287,7 @@ def _jsonable(obj: Any) -> Any:
 
 def _child(job: dict, result_path: str) -> None:
     """Child-process entry: train, evaluate, write the entry (or the error) as JSON."""
-    from ..atomic import write_json
+    from benchmark.core.atomic import write_json
 
     try:
         write_json(result_path, {"ok": True, "entry": fit_and_evaluate(job)})
@@ -307,7 +307,7 @@ def run_job(job: dict, isolate: bool) -> dict:
     import multiprocessing as mp
     import tempfile
 
-    from ..atomic import read_json
+    from benchmark.core.atomic import read_json
 
     with tempfile.TemporaryDirectory(prefix="bench4d-recon-") as tmp:
         result_path = str(Path(tmp) / "result.json")
@@ -328,7 +328,7 @@ def run_job(job: dict, isolate: bool) -> dict:
 # Command
 # ---------------------------------------------------------------------------------------------------
 def run(args: argparse.Namespace) -> int:
-    from ..atomic import write_json
+    from benchmark.core.atomic import write_json
     from ..runner import device_description, git_state, package_versions, resolve_scene
     from ._common import check_device
 
@@ -426,7 +426,7 @@ def run(args: argparse.Namespace) -> int:
 
 def summarize(folder: Path) -> Path:
     """Tabulate ``folder/*/report.json`` (one per scene) into ``folder/summary.md``, atomically."""
-    from ..atomic import read_json, write_text
+    from benchmark.core.atomic import read_json, write_text
 
     reports = sorted(Path(folder).glob("*/report.json"))
     if not reports:

@@ -107,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
 
     from methods import registry
 
-    from ..errors import InputError
+    from benchmark.core.errors import InputError
     from ..loaders import load_scene
     from ..results import (archive_results, load_results, results_lock, results_path, runs_table, scene_status,
                            seed_summary)

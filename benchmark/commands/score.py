@@ -31,8 +31,8 @@ from typing import Optional
 
 import numpy as np
 
-from ..atomic import write_json
-from ..errors import InputError
+from benchmark.core.atomic import write_json
+from benchmark.core.errors import InputError
 from ._common import add_protocol_argument
 
 
@@ -60,7 +60,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _protocol(args: argparse.Namespace):
     """The protocol named by ``--protocol`` with the temporal flags applied (named ``custom`` if they change
     it). Predictions hold masks already: only its temporal rule decides anything here."""
-    from ..protocol import get_protocol
+    from benchmark.core.protocol import get_protocol
 
     changes: dict = {}
     if args.tau_from:
@@ -164,7 +164,7 @@ def _unanswered_from_results(predictions, folder: Path) -> bool:
     """Give ``predictions`` the queries its run declined when the folder does not list them but the results
     file ``bench4d eval`` wrote beside it does (folders written before the list was part of the
     predictions). True when it did."""
-    from ..atomic import read_json
+    from benchmark.core.atomic import read_json
     from ..metrics.scoring import UNANSWERED_FIELD
 
     if UNANSWERED_FIELD in (predictions.info or {}):

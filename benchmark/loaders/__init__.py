@@ -1,4 +1,4 @@
-"""Dataset loaders: every supported layout becomes one :class:`benchmark.scene.Scene`.
+"""Dataset loaders: every supported layout becomes one :class:`benchmark.core.scene.Scene`.
 
 >>> scene = load_scene("data/hypernerf/split-cookie")          # layout auto-detected
 >>> scene = load_scene("data/dnerf/lego", scale=0.5)            # 400 -> 200 px
@@ -21,8 +21,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Optional
 
-from ..errors import InputError
-from ..scene import Scene
+from benchmark.core.errors import InputError
+from benchmark.core.scene import Scene
 from . import dnerf, hypernerf, neu3d
 from ._common import make_options
 from .dnerf import DNeRFOptions

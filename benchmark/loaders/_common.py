@@ -11,9 +11,9 @@ from typing import Any, Iterable, Optional, Sequence
 import cv2
 import numpy as np
 
-from ..errors import InputError
-from ..imageio import read_image
-from ..scene import Camera
+from benchmark.core.errors import InputError
+from benchmark.core.imageio import read_image
+from benchmark.core.scene import Camera
 
 # Tolerance on ||R R^T - I|| for a rotation read from a file (float32 sources reach ~1e-7).
 ROTATION_TOLERANCE = 1e-3

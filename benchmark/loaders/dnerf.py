@@ -34,10 +34,10 @@ from typing import Optional
 
 import numpy as np
 
-from ..atomic import read_json
-from ..errors import InputError
-from ..imageio import read_image
-from ..scene import Camera, Frame, Scene
+from benchmark.core.atomic import read_json
+from benchmark.core.errors import InputError
+from benchmark.core.imageio import read_image
+from benchmark.core.scene import Camera, Frame, Scene
 from . import _common as C
 
 LAYOUT = "dnerf"
@@ -186,7 +186,7 @@ def object_annotations(scene: Scene, query_text: str, split: str = "test"):
     """One time-agnostic whole-object query ``query_text`` (what the object is: the scene's folder name
     says nothing a query may rely on) with the alpha masks as ground truth on every frame of ``split``
     (the real-data check for methods). Reads every frame's alpha channel."""
-    from annotations.model import AnnotatedFrame, AnnotationSet, Query
+    from benchmark.core.annotation import AnnotatedFrame, AnnotationSet, Query
 
     if not query_text or not str(query_text).strip():
         raise InputError(scene.root, "object query", "name the object the alpha masks show (e.g. 'person')")

@@ -52,9 +52,9 @@ from typing import Optional, Union
 
 import numpy as np
 
-from ..atomic import read_json
-from ..errors import InputError
-from ..scene import Camera, Frame, Scene
+from benchmark.core.atomic import read_json
+from benchmark.core.errors import InputError
+from benchmark.core.scene import Camera, Frame, Scene
 from . import _common as C
 
 LAYOUT = "hypernerf"

@@ -44,10 +44,10 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from ..atomic import read_json
-from ..errors import InputError
-from ..imageio import read_image
-from ..scene import Camera, Frame, Scene
+from benchmark.core.atomic import read_json
+from benchmark.core.errors import InputError
+from benchmark.core.imageio import read_image
+from benchmark.core.scene import Camera, Frame, Scene
 from . import _common as C
 
 LAYOUT = "neu3d"

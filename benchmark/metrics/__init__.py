@@ -13,9 +13,7 @@
 
 from .aggregate import LEVELS, FrameRecord, aggregate, records_table
 from .captions import (caption_auc, caption_replay_accuracy, caption_replay_scores, cosine_similarity, delta_sim,
-                       caption_change_points, delta_sim_scene, fitted_caption_targets, mean_delta_sim,
-                       caption_segment_states, caption_segments, segment_caption_embeddings,
-                       window_caption_embeddings)
+                       delta_sim_scene, mean_delta_sim)
 from .masks import EMPTY_IOU, accuracy_from_confusion, confusion, iou, iou_from_confusion, pixel_accuracy
 from .scoring import (REPORT_METRICS, AgnosticScore, DatasetScore, QueryScore, SceneScore, ScoreConfig,
                       SensitiveScore, aggregate_scenes, score_agnostic, score_scene, score_sensitive)
@@ -27,9 +25,7 @@ from .temporal import (EMPTY_UNION_VIOU, NEAR_THRESHOLD_FRACTION, TemporalDecisi
 __all__ = [
     "LEVELS", "FrameRecord", "aggregate", "records_table",
     "caption_auc", "caption_replay_accuracy", "caption_replay_scores", "cosine_similarity", "delta_sim",
-    "caption_change_points", "delta_sim_scene", "fitted_caption_targets", "mean_delta_sim",
-    "caption_segment_states", "caption_segments", "segment_caption_embeddings",
-    "window_caption_embeddings",
+    "delta_sim_scene", "mean_delta_sim",
     "EMPTY_IOU", "accuracy_from_confusion", "confusion", "iou", "iou_from_confusion", "pixel_accuracy",
     "REPORT_METRICS", "AgnosticScore", "DatasetScore", "QueryScore", "SceneScore", "ScoreConfig",
     "SensitiveScore", "aggregate_scenes", "score_agnostic", "score_scene", "score_sensitive",

@@ -35,7 +35,7 @@ class FrameRecord:
     kind: str
     """``"agnostic"`` or ``"sensitive"``."""
     frame: str
-    """Frame name (:attr:`annotations.model.AnnotatedFrame.name`)."""
+    """Frame name (:attr:`benchmark.core.annotation.AnnotatedFrame.name`)."""
     time_index: int
     camera_id: str
     iou: float

@@ -3,9 +3,9 @@
 Layers (per-scene scoring is separate from combining, as in TrackEval):
 
 * :func:`score_agnostic` / :func:`score_sensitive`: one query's arrays -> its metric values.
-* :func:`score_scene`: one :class:`~annotations.model.AnnotationSet` + one
+* :func:`score_scene`: one :class:`~benchmark.core.annotation.AnnotationSet` + one
   :class:`~benchmark.predictions.ScenePredictions` -> :class:`SceneScore` (records + query rows),
-  with every mismatch between the two reported as an :class:`~benchmark.errors.InputError`.
+  with every mismatch between the two reported as an :class:`~benchmark.core.errors.InputError`.
 * :func:`aggregate_scenes`: scene scores -> :class:`DatasetScore` (means as in
   :mod:`benchmark.metrics.aggregate`).
 
@@ -25,7 +25,7 @@ than a made-up failure score. Scoring it as a failure instead (an empty mask on 
 time-sensitive frame decided negative) would give such a method the share of negative frames as its Acc
 and rank it in a table of a task it never attempted. ``bench4d eval`` and ``bench4d score`` of the
 folder it wrote apply this one rule, so they give the same numbers. A GT query that has no prediction
-and is *not* declared unanswered stays an :class:`~benchmark.errors.InputError` (usually a misspelt
+and is *not* declared unanswered stays an :class:`~benchmark.core.errors.InputError` (usually a misspelt
 query text or an incomplete conversion); so does a query declared unanswered that has an answer.
 
 Units: array functions, records and query rows hold fractions in [0, 1]; summaries and the results
@@ -42,9 +42,9 @@ from typing import Iterable, Optional, Sequence
 import numpy as np
 import pandas as pd
 
-from annotations.model import AnnotatedFrame, AnnotationSet, Query
+from benchmark.core.annotation import AnnotatedFrame, AnnotationSet, Query
 
-from ..errors import InputError
+from benchmark.core.errors import InputError
 from ..predictions import QueryPrediction, ScenePredictions, field_name, query_slug
 from .aggregate import FrameRecord, aggregate, records_table
 from .masks import accuracy_from_confusion, confusion, iou, iou_from_confusion, pixel_accuracy

@@ -6,7 +6,7 @@ For one query, over its evaluated frames in time order:
 1. **Smoothing** (paper Sec. 4 / release ``smooth_feature_post``):
    ``s~_t = sum_k w_k s_{t+k}`` with ``w = (0.1, 0.8, 0.1)`` over neighbouring *evaluated* frames.
    A neighbour is *missing* when it falls outside the sequence or its score is undefined (NaN);
-   :attr:`~benchmark.protocol.TemporalRule.ends` says what happens then (default, the release's: the
+   :attr:`~benchmark.core.protocol.TemporalRule.ends` says what happens then (default, the release's: the
    frame keeps its raw value; the ``paper-text`` protocol renormalises the remaining weights).
 2. **Threshold** ``tau``: the mean over frames of the unsmoothed scores while thresholding the
    smoothed ones (``tau_from="raw"``, the release's mix), or of the smoothed scores (``"smoothed"``,
@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-from ..protocol import TemporalRule
+from benchmark.core.protocol import TemporalRule
 
 EMPTY_UNION_VIOU = 1.0
 """vIoU when no frame is predicted positive and none is labelled positive (``S_u`` empty): the

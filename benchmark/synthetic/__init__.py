@@ -17,7 +17,7 @@ See :mod:`.truth` for the training-frames-only guard that oracle supervision mus
 
 from .generate import GENERATOR_VERSION, generate
 from .presets import PRESETS, PresetSpec, list_presets
-from .truth import SceneTruth, TruthAccessError, load_truth
+from benchmark.core.truth import SceneTruth, TruthAccessError, load_truth
 
 DEFAULT_PRESET = "split-cookie"
 """The preset ``bench4d demo`` runs: time-sensitive, clear visual change, quick to render."""

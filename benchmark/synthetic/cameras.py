@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..scene import Camera
+from benchmark.core.scene import Camera
 from .transforms import look_at_opencv, spherical
 
 

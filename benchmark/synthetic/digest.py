@@ -31,8 +31,8 @@ from typing import Any, Optional
 
 import numpy as np
 
-from ..atomic import read_json
-from ..errors import InputError
+from benchmark.core.atomic import read_json
+from benchmark.core.errors import InputError
 
 DIGESTS_FILE = Path(__file__).with_name("digests.json")
 """Committed digests: ``{"format": ..., "presets": {preset: {"<size>px-seed<seed>": digest}}}``."""

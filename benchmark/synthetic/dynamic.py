@@ -20,8 +20,8 @@ from typing import Iterable, Optional
 
 import numpy as np
 
-from ..atomic import read_json
-from ..errors import InputError
+from benchmark.core.atomic import read_json
+from benchmark.core.errors import InputError
 from .model import Catalogue, Leaf
 
 META_FILE = "bench4d_meta.json"
@@ -40,7 +40,7 @@ def dynamic_parts(root: str | Path) -> dict[int, str]:
     finest level: a coffee stream that starts and stops is dynamic, the machine around it is not)."""
     from .generate import preset_rng
     from .presets import PRESETS
-    from .truth import load_truth
+    from benchmark.core.truth import load_truth
 
     root = Path(root)
     meta_path = root / META_FILE
@@ -69,7 +69,7 @@ def dynamic_masks(root: str | Path, frames: Iterable, parts: Optional[dict[int, 
     """Frame name -> (H, W) bool pixels showing a dynamic part, for ``frames`` (names or frames; truth
     of evaluated frames included: for scoring only). ``parts``: :func:`dynamic_parts` of ``root`` when
     the caller has it already (it rebuilds the preset)."""
-    from .truth import load_truth
+    from benchmark.core.truth import load_truth
 
     ids = np.array(sorted(dynamic_parts(root) if parts is None else parts), dtype=np.int64)
     truth = load_truth(root)

@@ -21,14 +21,14 @@ from typing import Optional
 
 import numpy as np
 
-from .. import openblas
-from ..errors import InputError
+from ..core import openblas
+from benchmark.core.errors import InputError
 from . import layouts
 from .gt import build_annotations
 from .model import Catalogue, FrameContext
 from .presets import PRESETS, PresetSpec
 from .render import SurfaceLayer, background_instances, instances, render, surfaces
-from .truth import TRUTH_DIR, TruthFrame, save_levels, write_truth
+from benchmark.core.truth import TRUTH_DIR, TruthFrame, save_levels, write_truth
 
 GENERATOR = "bench4d.synthetic"
 GENERATOR_VERSION = "1.0"
@@ -107,7 +107,7 @@ def generate(preset: str, out_dir: str | Path, *, size: Optional[int] = None, fr
     ``views`` the rig size in the Neu3D layout; ``layout`` one of ``hypernerf``, ``neu3d``, ``dnerf``
     (default: the preset's). The same arguments and ``seed`` give identical files, on any x86-64 CPU with
     AVX2: where numpy's BLAS runs other kernels than the committed scene versions were made with, the
-    scene is rendered in a child process that runs theirs (:mod:`benchmark.openblas`).
+    scene is rendered in a child process that runs theirs (:mod:`benchmark.core.openblas`).
     """
     spec, size, frames, views, layout = resolve_settings(preset, size, frames, views, layout)
     out = Path(out_dir)

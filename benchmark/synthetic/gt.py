@@ -14,7 +14,7 @@ from typing import Iterable
 
 import numpy as np
 
-from annotations.model import AnnotatedFrame, AnnotationSet, Query
+from benchmark.core.annotation import AnnotatedFrame, AnnotationSet, Query
 
 from .model import LEVELS, Catalogue
 

@@ -29,9 +29,9 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from ..atomic import write_json
-from ..imageio import write_image as write_image_file
-from ..scene import Camera
+from benchmark.core.atomic import write_json
+from benchmark.core.imageio import write_image as write_image_file
+from benchmark.core.scene import Camera
 from . import cameras as cams
 from .model import SceneDef
 from .render import RenderResult

@@ -16,16 +16,16 @@ the pixels cannot disagree about when a state changes.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable, Literal, Optional, Sequence, TypeVar, Union
+from typing import Callable, Optional, Sequence, TypeVar, Union
 
 import numpy as np
+
+from benchmark.core.truth import LEVELS, Level
 
 from .csg import Solid
 from .textures import Texture
 from .transforms import smoothstep
 
-Level = Literal["whole", "part", "subpart"]
-LEVELS: tuple[Level, ...] = ("subpart", "part", "whole")
 """Finest first, the order of the id maps (SAM small / middle / large)."""
 
 T = TypeVar("T")

@@ -11,7 +11,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Callable, Optional, Sequence
 
-from ..atomic import write_text
+from benchmark.core.atomic import write_text
 from .generate import GENERATOR_VERSION, generate, resolve_settings
 from .presets import PRESETS
 

@@ -19,7 +19,7 @@ import inspect
 from dataclasses import dataclass
 from typing import Any
 
-from benchmark.errors import InputError
+from benchmark.core.errors import InputError
 
 
 @dataclass(frozen=True)

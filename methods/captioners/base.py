@@ -39,9 +39,9 @@ from typing import Any, Callable, ClassVar, Iterable, Optional, Sequence
 
 import numpy as np
 
-from benchmark.atomic import read_json, write_json
-from benchmark.errors import InputError
-from benchmark.scene import Frame, Scene
+from benchmark.core.atomic import read_json, write_json
+from benchmark.core.errors import InputError
+from benchmark.core.scene import Frame, Scene
 
 from .visual_prompt import VisualPromptConfig, visual_prompt
 
@@ -300,7 +300,7 @@ def caption_cache_path(cache_root: Path, scene: Scene, captioner: Captioner, key
 
 def caption_key(scene: Scene, captioner: Captioner, prompt: CaptionPromptConfig, tracks: ObjectTracks) -> str:
     """Hash of what the captions depend on: the scene's training frames, captioner, prompt, tracks."""
-    from methods.supervision.cache import scene_fingerprint, stable_hash
+    from benchmark.core.cache_keys import scene_fingerprint, stable_hash
 
     frames = [scene.frame(n) for n in tracks.frame_names]
     return stable_hash({"scene": scene_fingerprint(scene, frames), "captioner": captioner.config(),

@@ -16,7 +16,7 @@ the file and the field)::
             "000004": "the cookie is whole",        # frame name -> caption ...
             "000005": {"caption": "...",            # ... or an object with the caption and,
                        "mask": {"size": [H, W], "counts": "..."}}   # optionally, the object's mask
-          }                                         # (COCO RLE, as annotations.model.encode_mask)
+          }                                         # (COCO RLE, as benchmark.core.annotation.encode_mask)
         }
       }
     }
@@ -34,9 +34,9 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
-from benchmark.atomic import read_json, write_json
-from benchmark.errors import InputError
-from benchmark.scene import Frame, Scene
+from benchmark.core.atomic import read_json, write_json
+from benchmark.core.errors import InputError
+from benchmark.core.scene import Frame, Scene
 
 from .base import Captioner, Captions, ObjectTracks
 
@@ -156,7 +156,7 @@ class FileCaptioner(Captioner):
 
 def tracks_from_file(scene: Scene, path: str | Path, frames: Optional[Sequence[Frame]] = None) -> ObjectTracks:
     """Object tracks from the masks of a captions file (every caption must carry its mask)."""
-    from annotations.model import decode_mask
+    from benchmark.core.annotation import decode_mask
 
     from .tracks import tracked_frames
 
@@ -197,7 +197,7 @@ def write_captions_file(path: str | Path, captions: Captions, tracks: Optional[O
 
     An existing file is replaced only with ``overwrite=True``.
     """
-    from annotations.model import encode_mask
+    from benchmark.core.annotation import encode_mask
 
     path = Path(path)
     if path.exists() and not overwrite:

@@ -32,9 +32,9 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
-from benchmark.atomic import read_json
-from benchmark.errors import InputError
-from benchmark.scene import Frame, Scene
+from benchmark.core.atomic import read_json
+from benchmark.core.errors import InputError
+from benchmark.core.scene import Frame, Scene
 
 from .base import Captioner
 

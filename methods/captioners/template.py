@@ -22,8 +22,8 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
-from benchmark.errors import InputError
-from benchmark.scene import Frame, Scene
+from benchmark.core.errors import InputError
+from benchmark.core.scene import Frame, Scene
 
 from .base import Captioner
 from .tracks import whole_of

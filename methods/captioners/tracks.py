@@ -15,8 +15,8 @@ from typing import Optional
 
 import numpy as np
 
-from benchmark.errors import InputError
-from benchmark.scene import Frame, Scene
+from benchmark.core.errors import InputError
+from benchmark.core.scene import Frame, Scene
 
 from .base import ObjectTracks
 

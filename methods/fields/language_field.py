@@ -34,7 +34,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from benchmark.scene import Camera
+from benchmark.core.scene import Camera
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -7,7 +7,7 @@ canonical phrases' embeddings:
 2. LERF relevance: ``r = min_c exp(s q.f) / (exp(s q.f) + exp(s c.f))`` with ``s = 10``;
    equivalently ``sigmoid(s (q.f - max_c c.f))`` (computed that way: no overflow).
 3. Smooth: ``v = (v + avgpool_k(v)) / 2`` with a ``k x k`` (29 at the paper's 960x536; scaled to the
-   rendered resolution by default, see :attr:`benchmark.protocol.AgnosticQuery.kernel_scaling`) window, stride 1, and
+   rendered resolution by default, see :attr:`benchmark.core.protocol.AgnosticQuery.kernel_scaling`) window, stride 1, and
    the padding excluded from the mean.
 4. Rescale by min-max and threshold (release, the default: ``clip(2 (v - min) / (max - min) - 1, 0, 1) > 0.4``,
    i.e. rescaled > 0.7; the paper's wording: rescaled > 0.4).
@@ -15,7 +15,7 @@ canonical phrases' embeddings:
 6. Level choice: the level whose smoothed relevance map has the highest maximum.
 
 All functions take torch tensors and run on CPU or CUDA; every constant is a field of
-:class:`benchmark.protocol.AgnosticQuery`, the time-agnostic part of the evaluation protocol.
+:class:`benchmark.core.protocol.AgnosticQuery`, the time-agnostic part of the evaluation protocol.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from typing import Optional, Sequence
 import torch
 import torch.nn.functional as F
 
-from benchmark.protocol import CANONICAL_PHRASES, AgnosticQuery
+from benchmark.core.protocol import CANONICAL_PHRASES, AgnosticQuery
 
 def relevance(features: torch.Tensor, query: torch.Tensor, canon: torch.Tensor,
               temperature: float = 10.0) -> torch.Tensor:

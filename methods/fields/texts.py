@@ -7,7 +7,7 @@ from typing import Optional
 
 import torch
 
-from benchmark.protocol import AgnosticQuery
+from benchmark.core.protocol import AgnosticQuery
 
 from ..api import Model
 from .relevance import encode_canonical

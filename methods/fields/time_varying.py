@@ -59,11 +59,11 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from benchmark.errors import InputError
-from benchmark.metrics.captions import caption_segments, window_caption_embeddings
-from benchmark.scene import Camera, Frame, Scene
+from benchmark.core.errors import InputError
+from benchmark.core.scene import Camera, Frame, Scene
 
 from .autoencoder import AutoencoderConfig, FeatureAutoencoder, train_autoencoder
+from .caption_targets import caption_segments, window_caption_embeddings
 from .language_field import FrozenGeometry, GaussianState, camera_tensors, random_geometry
 from .status import NonStatusField, StatusField, StatusFieldConfig
 
@@ -198,7 +198,7 @@ def segment_caption_targets(scene: Scene, sup: CaptionSupervision, *, min_length
                             ) -> tuple[CaptionSupervision, dict[int, list[float]], dict[int, list[int]]]:
     """(``sup`` with each object's caption embeddings replaced by the (renormalised) mean of its
     state, {object: change-point time indices}, {object: state label of each segment}). Not in the
-    paper. The segments come from :func:`benchmark.metrics.caption_change_points` (circular binary
+    paper. The segments come from :func:`methods.fields.caption_targets.caption_change_points` (circular binary
     segmentation of the time-ordered captions with a permutation test, pieces at least ``min_length``
     time steps): a state that holds over an interval becomes one target however its paraphrases vary,
     and the change stays a step, where a window would blur it. Segments whose captions a permutation

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmark.atomic import write_text
+from benchmark.core.atomic import write_text
 
 from .rasterize import rasterize
 

@@ -363,7 +363,7 @@ class DeformableGaussians:
 
 def save_model(path: str | Path, model: "GaussianModel | DeformableGaussians") -> None:
     """Save a model's tensors with ``torch.save``, atomically."""
-    from benchmark.atomic import atomic_path
+    from benchmark.core.atomic import atomic_path
 
     with atomic_path(path) as tmp:
         torch.save({"kind": type(model).__name__, "state": model.state_dict()}, tmp)

@@ -1,6 +1,6 @@
 """One differentiable Gaussian-splatting rasterizer entry point: :func:`rasterize`.
 
-Conventions are the project's (:mod:`benchmark.scene`): OpenCV camera axes, ``viewmat`` maps world to
+Conventions are the project's (:mod:`benchmark.core.scene`): OpenCV camera axes, ``viewmat`` maps world to
 camera, pixel ``(i, j)`` has centre ``(j + 0.5, i + 0.5)``. Quaternions are ``(w, x, y, z)``.
 
 Backends (same inputs, same :class:`RenderOutput`):
@@ -29,10 +29,10 @@ from typing import TYPE_CHECKING, Optional
 import torch
 from torch import Tensor
 
-from benchmark.errors import InputError
+from benchmark.core.errors import InputError
 
 if TYPE_CHECKING:  # pragma: no cover
-    from benchmark.scene import Camera
+    from benchmark.core.scene import Camera
 
 BACKENDS = ("auto", "torch", "gsplat")
 
@@ -167,7 +167,7 @@ def rasterize(
 def camera_to_tensors(
     camera: "Camera", device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32
 ) -> tuple[Tensor, Tensor, int, int]:
-    """``benchmark.scene.Camera`` -> ``(viewmat [4, 4], K [3, 3], width, height)`` for :func:`rasterize`.
+    """``benchmark.core.scene.Camera`` -> ``(viewmat [4, 4], K [3, 3], width, height)`` for :func:`rasterize`.
 
     The rasterizer is a pinhole: OpenCV distortion coefficients of the camera, if any, are not applied
     (undistort the images, or accept the error).

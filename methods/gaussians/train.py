@@ -1,4 +1,4 @@
-"""3D-GS and 4D-GS training on a :class:`~benchmark.scene.Scene` (one training view per iteration).
+"""3D-GS and 4D-GS training on a :class:`~benchmark.core.scene.Scene` (one training view per iteration).
 
 * :meth:`Trainer.fit_3dgs`: the 3D-GS recipe (static reference).
 * :meth:`Trainer.fit_4dgs`: 4D-GS = a 3D-GS static stage, then a deformation stage that trains the
@@ -23,9 +23,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from benchmark.atomic import atomic_path
-from benchmark.errors import InputError
-from benchmark.scene import Camera, Frame, Scene
+from benchmark.core.atomic import atomic_path
+from benchmark.core.errors import InputError
+from benchmark.core.scene import Camera, Frame, Scene
 
 from .config import DeformationConfig, GaussianConfig, ReconConfig, Schedule, exponential_lr
 from .hexplane import DeformationField

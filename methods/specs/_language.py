@@ -22,7 +22,7 @@ class LanguageMethodConfig:
     """Fields read only when answering, never when fitting: the runner's fit cache key ignores them
     (they hash as their defaults) and a cached fit answers with the run's values. The query rules
     (threshold, windows, canonical phrases, temporal rule) are not method options at all: they are the
-    evaluation protocol's (:mod:`benchmark.protocol`), handed to the fitted model when it answers."""
+    evaluation protocol's (:mod:`benchmark.core.protocol`), handed to the fitted model when it answers."""
 
     # --- geometry (fitted once per scene, geometry options and seed; then frozen) ----------------
     static_iterations: int = 1000
@@ -89,7 +89,7 @@ class LanguageMethodConfig:
     field_init_std: float = 0.0
     """Standard deviation of the initial features (release: zeros)."""
 
-    # --- answering (the query rules themselves are the evaluation protocol's: benchmark.protocol) ------
+    # --- answering (the query rules themselves are the evaluation protocol's: benchmark.core.protocol) ------
     decode_chunk: int = 2048
     """Pixels decoded at once on the CPU (bounds query memory at any image size; no effect on results).
     Small enough that the decoder's [chunk, 256] temporaries (2 MiB) stay near the cache: decoding the

@@ -18,8 +18,8 @@ from typing import Any, Optional
 
 import numpy as np
 
-from benchmark.errors import InputError
-from benchmark.scene import Frame, Scene
+from benchmark.core.errors import InputError
+from benchmark.core.scene import Frame, Scene
 
 from .base import LEVELS, ImageTextEncoder, Segmenter, TextEncoder
 from .truth_access import EVAL_TRUTH_MESSAGE, EvaluatedFrameTruthError

@@ -24,7 +24,7 @@ from typing import Any, ClassVar, Literal, Optional, Sequence
 
 import numpy as np
 
-from benchmark.scene import Frame
+from benchmark.core.scene import Frame
 
 LEVELS: tuple[str, str, str] = ("small", "middle", "large")
 """The three mask levels of SAM (subpart, part, whole), in this order everywhere."""
@@ -148,7 +148,7 @@ class FrameSupervision:
     """The 2D supervision of one training frame."""
 
     name: str
-    """:attr:`benchmark.scene.Frame.name` of the training frame."""
+    """:attr:`benchmark.core.scene.Frame.name` of the training frame."""
     time: float
     time_index: int
     camera_id: str

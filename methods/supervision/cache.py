@@ -14,17 +14,16 @@ Both files are written atomically; an unreadable or mismatched file is rebuilt, 
 
 from __future__ import annotations
 
-import hashlib
 import io
-import json
 from pathlib import Path
-from typing import Any, Callable, Iterable, Optional, Sequence
+from typing import Any, Callable, Iterable, Optional
 
 import numpy as np
 
-from benchmark.atomic import write_bytes
-from benchmark.errors import InputError
-from benchmark.scene import Frame, Scene
+from benchmark.core.atomic import write_bytes
+from benchmark.core.cache_keys import scene_fingerprint, stable_hash
+from benchmark.core.errors import InputError
+from benchmark.core.scene import Scene
 
 from .base import LEVELS, FrameSupervision, Supervision, relabel_levels
 
@@ -35,44 +34,6 @@ CACHE_FORMAT = 1
 
 def _no_progress(iterable: Iterable, **_: Any) -> Iterable:
     return iterable
-
-
-def stable_hash(obj: Any, length: int = 16) -> str:
-    """Hex digest of the canonical JSON of ``obj`` (sorted keys)."""
-    text = json.dumps(obj, sort_keys=True, default=_jsonable)
-    return hashlib.sha256(text.encode("utf-8")).hexdigest()[:length]
-
-
-def _jsonable(obj: Any) -> Any:
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, Path):
-        return str(obj)
-    if isinstance(obj, (set, frozenset)):
-        return sorted(obj)
-    raise TypeError(f"cannot hash {type(obj).__name__}")
-
-
-def frame_fingerprint(frame: Frame) -> dict[str, Any]:
-    """What identifies a frame's data: name, time, camera, and its image file's size and mtime."""
-    entry: dict[str, Any] = {"name": frame.name, "time": round(float(frame.time), 9),
-                             "time_index": frame.time_index, "camera_id": frame.camera_id,
-                             "split": frame.split, "camera": frame.camera.to_dict()}
-    if frame.image_path is not None:
-        path = Path(frame.image_path)
-        if path.is_file():
-            st = path.stat()
-            entry["image"] = [path.name, st.st_size, st.st_mtime_ns]
-    return entry
-
-
-def scene_fingerprint(scene: Scene, frames: Optional[Sequence[Frame]] = None) -> str:
-    """Hash of a scene's identity and of ``frames`` (all frames by default)."""
-    frames = scene.frames if frames is None else frames
-    return stable_hash({"dataset": scene.dataset, "name": scene.name,
-                        "frames": [frame_fingerprint(f) for f in frames]}, 24)
 
 
 def _save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:

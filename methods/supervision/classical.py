@@ -19,8 +19,8 @@ from typing import Any, Optional
 
 import numpy as np
 
-from benchmark.errors import InputError
-from benchmark.scene import Frame, Scene
+from benchmark.core.errors import InputError
+from benchmark.core.scene import Frame, Scene
 
 from .association import AssociationConfig, TemporalAssociator
 from .base import LEVELS, Segmenter

@@ -20,7 +20,7 @@ The encoder is pluggable (:class:`CLIPBackend`):
 
 Queries go through the same model's text tower (:class:`CLIPTextEncoder`), so the time-agnostic
 query compares text and mask features in one space. No weights can be downloaded here: a missing
-model is a clear :class:`~benchmark.errors.InputError`.
+model is a clear :class:`~benchmark.core.errors.InputError`.
 """
 
 from __future__ import annotations
@@ -33,8 +33,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from benchmark.errors import InputError
-from benchmark.scene import Frame, Scene
+from benchmark.core.errors import InputError
+from benchmark.core.scene import Frame, Scene
 
 from .base import ImageTextEncoder, TextEncoder, TextKind
 

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmark.scene import Frame, Scene
+from benchmark.core.scene import Frame, Scene
 
 from .base import Segmenter
 from .truth_access import open_truth, training_id_maps

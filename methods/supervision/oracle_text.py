@@ -14,7 +14,7 @@ from typing import Any, Optional
 
 import numpy as np
 
-from benchmark.scene import Frame, Scene
+from benchmark.core.scene import Frame, Scene
 
 from .base import LEVELS, ImageTextEncoder, TextEncoder
 from .truth_access import open_truth, training_id_maps

@@ -18,7 +18,7 @@ import pkgutil
 from dataclasses import dataclass, field
 from typing import Any, Literal, Optional
 
-from benchmark.errors import InputError
+from benchmark.core.errors import InputError
 
 SourceKind = Literal["segmenter", "image_text", "captioner"]
 SOURCE_KINDS: tuple[str, ...] = ("segmenter", "image_text", "captioner")

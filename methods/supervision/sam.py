@@ -35,8 +35,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from benchmark.errors import InputError
-from benchmark.scene import Frame, Scene
+from benchmark.core.errors import InputError
+from benchmark.core.scene import Frame, Scene
 
 from .association import AssociationConfig, TemporalAssociator
 from .base import LEVELS, Segmenter

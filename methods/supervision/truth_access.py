@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmark.errors import InputError
-from benchmark.scene import Frame, Scene
+from benchmark.core.errors import InputError
+from benchmark.core.scene import Frame, Scene
 
 EVAL_TRUTH_MESSAGE = "ground truth of evaluated frames is for scoring"
 
@@ -17,8 +17,8 @@ class EvaluatedFrameTruthError(PermissionError):
 
 
 def open_truth(scene: Scene):
-    """The :class:`benchmark.synthetic.truth.SceneTruth` of ``scene`` (InputError if it has none)."""
-    from benchmark.synthetic.truth import has_truth, load_truth
+    """The :class:`benchmark.core.truth.SceneTruth` of ``scene`` (InputError if it has none)."""
+    from benchmark.core.truth import has_truth, load_truth
 
     root = None if scene.root is None else Path(scene.root)
     if not has_truth(root):

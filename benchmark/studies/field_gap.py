@@ -1,7 +1,7 @@
 """Where a fitted language field loses IoU: the time-agnostic query on three rungs of features.
 
 A fitted oracle-track language field scores below the protocol ceiling
-(:mod:`benchmark.protocol_ceiling`) for two separable reasons: its autoencoder cannot represent every
+(:mod:`benchmark.studies.protocol_ceiling`) for two separable reasons: its autoencoder cannot represent every
 name exactly in ``latent_dim`` dimensions, and its rendered latents (geometry, deformation, field
 training) are not the latents of the right name at every pixel. Each evaluated frame is answered on
 
@@ -34,12 +34,12 @@ from typing import Any, Iterable, Optional
 import numpy as np
 import torch
 
-from .errors import InputError
-from .metrics.captions import fitted_caption_targets
-from .metrics.masks import iou
+from benchmark.core.errors import InputError
+from methods.fields.caption_targets import fitted_caption_targets
+from benchmark.metrics.masks import iou
 from .protocol_ceiling import TRUTH_LEVELS, NameTable
-from .runner import prepared_texts
-from .scene import Scene
+from benchmark.runner import prepared_texts
+from benchmark.core.scene import Scene
 
 RUNGS = ("perfect", "autoencoder", "fitted")
 """Feature rungs, best to worst (module docstring)."""
@@ -57,7 +57,7 @@ def field_gap(model, scene: Scene, annotations, eval_frames: Iterable[str], *,
         model: a fitted language-field model (``autoencoder``, ``text_encoder``, ``agnostic``,
             ``render_latents_and_alpha``, ``canonical``, ``query_embedding_cached``, ``relevance_cfg``).
         scene: the generated scene the model was fitted on (its truth is read for ``eval_frames``).
-        annotations: the scene's :class:`annotations.model.AnnotationSet`.
+        annotations: the scene's :class:`benchmark.core.annotation.AnnotationSet`.
         eval_frames: names of the frames the run was scored on (a results file's ``score_config``).
         background_text: the name of pixels without a part at a level (default: the model's
             ``unmasked_text``, else ``"background"``): what its oracle supervision used there.
@@ -91,7 +91,7 @@ def agnostic_gap(model, scene: Scene, annotations, frame_of: dict, *,
     a model prepared as the runner prepares it (as :func:`field_gap` does)."""
     from methods.fields.relevance import answer_from_relevance, relevance
 
-    from .synthetic.truth import load_truth
+    from benchmark.core.truth import load_truth
 
     try:
         truth = load_truth(scene.root)
@@ -155,7 +155,7 @@ def caption_targets(model, scene: Scene, track: str, cache_root,
     from methods.captioners.tracks import caption_embeddings_by_base
     from methods.fields.time_varying import build_captions, caption_target_options
 
-    from .synthetic.truth import has_truth, load_truth
+    from benchmark.core.truth import has_truth, load_truth
 
     captions, tracks = build_captions(scene, track, model.config, cache_root=cache_root)
     # a scene without generator truth (captions from a file) maps bases by track label; a broken truth file raises
@@ -184,7 +184,7 @@ def temporal_gap(model, annotations, frame_of: dict, temporal=None,
     frame scored by the base object's caption at the nearest training time: a field reproducing its
     targets exactly) and ``caption_autoencoder`` (the same captions through the field's autoencoder);
     fractions. Empty for a model without time-sensitive answers."""
-    from .metrics import TemporalRule, caption_replay_scores, score_auc, score_sensitive
+    from benchmark.metrics import TemporalRule, caption_replay_scores, score_auc, score_sensitive
 
     temporal = temporal or TemporalRule()
     if "sensitive" not in getattr(model, "supports", ()):

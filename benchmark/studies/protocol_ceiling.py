@@ -28,9 +28,9 @@ from typing import Any, Mapping
 import numpy as np
 import torch
 
-from .errors import InputError
-from .metrics.masks import iou
-from .scene import Scene
+from benchmark.core.errors import InputError
+from benchmark.metrics.masks import iou
+from benchmark.core.scene import Scene
 
 TRUTH_LEVELS = ("subpart", "part", "whole")
 """The truth's level names, small to large (the SAM levels' order)."""
@@ -68,7 +68,7 @@ class ThroughAutoencoder:
 
     Given to :func:`protocol_ceiling`, it scores what a field that reproduces its *latent* targets exactly
     decodes to: the query on perfect latents, so the gap to the plain ceiling is the autoencoder's alone
-    (the ``autoencoder`` rung of :mod:`benchmark.field_gap`, here without any fitted geometry). Queries and
+    (the ``autoencoder`` rung of :mod:`benchmark.studies.field_gap`, here without any fitted geometry). Queries and
     canonical phrases pass through unchanged, as the methods encode them.
     """
 
@@ -93,7 +93,7 @@ def protocol_ceiling(scene: Scene, annotations, text_encoder, configs: Mapping[s
 
     Args:
         scene: a generated scene (its truth is read for evaluated frames).
-        annotations: the scene's :class:`annotations.model.AnnotationSet`.
+        annotations: the scene's :class:`benchmark.core.annotation.AnnotationSet`.
         text_encoder: encodes names (passages), queries and canonical phrases.
         configs: variant name -> :class:`methods.fields.relevance.RelevanceConfig`.
     Returns:
@@ -103,7 +103,7 @@ def protocol_ceiling(scene: Scene, annotations, text_encoder, configs: Mapping[s
     """
     from methods.fields.relevance import answer_from_relevance
 
-    from .synthetic.truth import load_truth
+    from benchmark.core.truth import load_truth
 
     try:
         truth = load_truth(scene.root)

@@ -29,7 +29,7 @@ from typing import Any, Iterable, Literal, Optional, Sequence
 import numpy as np
 from pycocotools import mask as mask_utils
 
-from benchmark.errors import InputError, short_repr
+from .errors import InputError, short_repr
 
 QueryKind = Literal["agnostic", "sensitive"]
 Interval = tuple[int, int]
@@ -256,7 +256,7 @@ class AnnotatedFrame:
     id: int
     """Image id, unique in the set."""
     name: str
-    """Frame name in the scene (:attr:`benchmark.scene.Frame.name`, the image file stem)."""
+    """Frame name in the scene (:attr:`benchmark.core.scene.Frame.name`, the image file stem)."""
     time_index: int
     """0-based video frame number."""
     width: int

@@ -15,7 +15,7 @@ look-ups raise :class:`TruthAccessError` for a frame (or time index) that no tra
 unless ``allow_eval=True`` - which only the harness (scoring, annotation building, visualisation)
 passes. Reading the files directly bypasses the guard; methods must not.
 
-Damaged files (truncated, flipped bytes, keys missing) are an :class:`~benchmark.errors.InputError`
+Damaged files (truncated, flipped bytes, keys missing) are an :class:`~benchmark.core.errors.InputError`
 naming the file and the field, never a traceback from ``zipfile`` or a ``KeyError``;
 :func:`check_truth` reads everything once, so a cache can tell a damaged scene from a sound one
 (the runner regenerates a damaged preset).
@@ -25,14 +25,25 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Union
+from typing import Any, Literal, Optional, Protocol, Union
 
 import numpy as np
 
-from ..atomic import read_json, write_json
-from ..errors import InputError
-from ..scene import Camera, Frame
-from .model import LEVELS, Catalogue, Level
+from .atomic import read_json, write_json
+from .errors import InputError
+from .scene import Camera, Frame
+
+Level = Literal["whole", "part", "subpart"]
+LEVELS: tuple[Level, ...] = ("subpart", "part", "whole")
+"""Segmentation levels, finest first (the order of every id stack)."""
+
+
+class Catalogue(Protocol):
+    """What :func:`write_truth` reads of the generator's object catalogue."""
+
+    def timelines(self) -> list[tuple[Any, Any]]: ...
+
+    def to_dict(self) -> dict: ...
 
 TRUTH_DIR = "truth"
 TRUTH_FILE = "scene_truth.json"

@@ -4,7 +4,7 @@ Mask PNGs
 ---------
 A mask is a PNG file (checked by its signature bytes: JPEG or anything else under a ``.png`` name
 is refused). Its size is read from the PNG header and refused before any pixel is decoded when it
-differs from the frame's (or exceeds :data:`annotations.model.MAX_MASK_PIXELS`). A pixel is
+differs from the frame's (or exceeds :data:`benchmark.core.annotation.MAX_MASK_PIXELS`). A pixel is
 foreground when:
 
 * **single channel** (grey, 1/8/16-bit): its value is non-zero;
@@ -35,7 +35,7 @@ def read_image(path: str | Path, *, keep_alpha: bool = False) -> np.ndarray:
 
     Truncated or unreadable files raise :class:`InputError` naming the file.
     """
-    from annotations.model import MAX_MASK_PIXELS
+    from .annotation import MAX_MASK_PIXELS
 
     path = Path(path)
     if path.is_dir():
@@ -114,11 +114,11 @@ def read_png_bytes(path: str | Path, size: Optional[tuple[int, int]] = None) -> 
     ``(data, width, height, bit depth, colour type)``.
 
     Refused with an :class:`InputError` naming the file: not a PNG (signature), a header of another
-    size than ``size`` = ``(height, width)`` or beyond :data:`annotations.model.MAX_MASK_PIXELS`, a
+    size than ``size`` = ``(height, width)`` or beyond :data:`benchmark.core.annotation.MAX_MASK_PIXELS`, a
     file far larger than its pixels can need, and a chunk that runs past the end of the file (a
     decoder would allocate the length it declares before finding the data missing).
     """
-    from annotations.model import MAX_MASK_PIXELS
+    from .annotation import MAX_MASK_PIXELS
 
     path = Path(path)
     width, height, depth, colour = png_header(path, _read_bytes(path, 33))
@@ -151,7 +151,7 @@ def read_mask(path: str | Path, size: Optional[tuple[int, int]] = None) -> np.nd
 
     ``size`` = the frame's ``(height, width)``: a PNG of another size is refused from its header,
     before decoding. Without it the header must stay within
-    :data:`annotations.model.MAX_MASK_PIXELS`. A single-channel mask keeps its values; a colour
+    :data:`benchmark.core.annotation.MAX_MASK_PIXELS`. A single-channel mask keeps its values; a colour
     mask gives the largest channel (zeroed where alpha is 0), or the alpha of an alpha-only mask.
     Every malformed file raises :class:`InputError` naming it (:func:`read_png_bytes`).
     """
