@@ -1,5 +1,6 @@
 # Two commands do everything (see README):
-#   make demo   sets up .venv and runs the main job on the embedded default synthetic scene
+#   make demo   sets up .venv and runs the main job (a 4D language method beside the 2D floor) on a small
+#               synthetic scene
 #   make test   builds a fresh virtualenv from scratch and runs the whole test suite (CI runs this)
 PYTHON ?= python3
 VENV ?= .venv
@@ -23,6 +24,7 @@ setup: $(VENV)/.installed
 
 demo: setup
 	$(VENV)/bin/bench4d demo
+	@echo "To type bench4d without $(VENV)/bin/ in front: source $(VENV)/bin/activate"
 
 test:
 	rm -rf $(TEST_VENV)

@@ -6,9 +6,11 @@ Two backends share one call, :meth:`Segmenter.segment`:
   box, downscaled to a bounded size so one call stays well under a second at 960x540. Corrective
   clicks (left = "this is the object", right = "this is not") become hard labels in a disk and
   GrabCut is re-run from the current mask.
-* :class:`SamSegmenter` (optional): Segment Anything, loading weights from a path the user gives.
-  Image embeddings are computed per frame in a background thread (the tool asks for the frames
-  around the one on screen) and cached in memory and, optionally, on disk.
+* :class:`PromptedSamSegmenter` (optional): Segment Anything prompted with the box and clicks, the model
+  loaded from a path the user gives by the ``sam`` segmenter's loader
+  (:func:`methods.supervision.sam.load_segment_anything`). Image embeddings are computed per frame in a
+  background thread (the tool asks for the frames around the one on screen) and cached in memory and,
+  optionally, on disk.
 
 Coordinates follow :mod:`benchmark.core.scene`: ``(x, y)`` are continuous pixel coordinates with the
 image's top-left corner at ``(0, 0)``; pixel ``(row i, column j)`` covers ``[j, j+1) x [i, i+1)``.
@@ -103,26 +105,64 @@ class GrabCutSegmenter:
         height, width = image.shape[:2]
         current = None if current is None else _check_mask(current, (height, width))
         clicks = [(float(x), float(y), int(lbl)) for x, y, lbl in clicks]
+        box = self._box_for(box, clicks, current)
+        if box is None:  # no box, no mask to refine, no positive click: nothing to segment
+            return np.zeros((height, width), bool) if current is None else current.copy()
+        bx0, by0, bx1, by1 = _box_pixels(box, width, height)
+        if bx1 - bx0 < 2 or by1 - by0 < 2:
+            raise InputError(None, "box", f"box {box} covers less than 2x2 pixels of the {width}x{height} image")
+        crop = self._crop(image, (bx0, by0, bx1, by1), clicks)
+        refine = current is not None and bool(current[crop.rows, crop.cols].any()) and bool(clicks)
+        labels = self._initial_labels(crop, current if refine else None)
+        self._label_clicks(labels, crop, clicks)
+        fg_possible = np.isin(labels, (cv2.GC_FGD, cv2.GC_PR_FGD))
+        if not fg_possible.any():
+            return np.zeros((height, width), bool)
+        iterations = self.config.refine_iterations if (refine or clicks) else self.config.iterations
+        bgd_model = np.zeros((1, 65), np.float64)
+        fgd_model = np.zeros((1, 65), np.float64)
+        try:
+            cv2.grabCut(crop.small, labels, None, bgd_model, fgd_model, iterations, cv2.GC_INIT_WITH_MASK)
+        except cv2.error:
+            # degenerate colour statistics (e.g. a flat crop): keep the prior labelling
+            pass
+        fg_small = np.isin(labels, (cv2.GC_FGD, cv2.GC_PR_FGD)).astype(np.float32)
+        fg_crop = (cv2.resize(fg_small, (crop.width, crop.height), interpolation=cv2.INTER_LINEAR) >= 0.5) \
+            if crop.scale < 1.0 else fg_small > 0.5
+        out = np.zeros((height, width), bool)
+        out[crop.rows, crop.cols] = fg_crop
+        if current is not None and refine:
+            # the crop holds the box, clicks and context; keep the user's mask beyond it untouched
+            keep = current.copy()
+            keep[crop.rows, crop.cols] = False
+            out |= keep
+        _stamp_clicks(out, clicks, self.config.click_radius_px)
+        return out
+
+    def _box_for(self, box: Optional[Box], clicks: Sequence[Click], current: Optional[np.ndarray]) -> Optional[Box]:
+        """The box to segment in: ``box``, else the current mask's bounds, else a box around the positive
+        clicks a few click radii wide; ``None`` when there is none of them."""
         if box is None and current is not None and current.any():
             ys, xs = np.nonzero(current)
             box = (xs.min(), ys.min(), xs.max() + 1, ys.max() + 1)
         if box is None:
             if not any(lbl == 1 for _, _, lbl in clicks):
-                return np.zeros((height, width), bool) if current is None else current.copy()
-            # clicks alone: a box around the positive clicks, a few click radii wide
+                return None
             pos = np.array([(x, y) for x, y, lbl in clicks if lbl == 1])
             pad = 8 * self.config.click_radius_px
             box = (pos[:, 0].min() - pad, pos[:, 1].min() - pad, pos[:, 0].max() + pad, pos[:, 1].max() + pad)
-        bx0, by0, bx1, by1 = _box_pixels(box, width, height)
-        if bx1 - bx0 < 2 or by1 - by0 < 2:
-            raise InputError(None, "box", f"box {box} covers less than 2x2 pixels of the {width}x{height} image")
+        return box
 
-        # crop = box + context, grown to hold every click and the current mask
+    def _crop(self, image: np.ndarray, box: tuple[int, int, int, int], clicks: Sequence[Click]) -> "_Crop":
+        """The box with context around it, grown to hold every click, and downscaled to ``max_side``."""
+        height, width = image.shape[:2]
+        bx0, by0, bx1, by1 = box
         side = max(bx1 - bx0, by1 - by0)
         pad = max(self.config.min_margin_px, int(round(self.config.margin * side)))
         cx0, cy0, cx1, cy1 = bx0 - pad, by0 - pad, bx1 + pad, by1 + pad
         for x, y, _ in clicks:
-            cx0, cy0, cx1, cy1 = min(cx0, int(x) - pad), min(cy0, int(y) - pad), max(cx1, int(x) + pad), max(cy1, int(y) + pad)
+            cx0, cy0 = min(cx0, int(x) - pad), min(cy0, int(y) - pad)
+            cx1, cy1 = max(cx1, int(x) + pad), max(cy1, int(y) + pad)
         cx0, cy0, cx1, cy1 = max(cx0, 0), max(cy0, 0), min(cx1, width), min(cy1, height)
         crop = image[cy0:cy1, cx0:cx1]
         ch, cw = crop.shape[:2]
@@ -130,14 +170,18 @@ class GrabCutSegmenter:
         sw, sh = max(2, int(round(cw * scale))), max(2, int(round(ch * scale)))
         sx, sy = sw / cw, sh / ch
         small = cv2.resize(crop, (sw, sh), interpolation=cv2.INTER_AREA) if scale < 1.0 else crop.copy()
+        inner = (int(np.floor((by0 - cy0) * sy)), int(np.ceil((by1 - cy0) * sy)),
+                 int(np.floor((bx0 - cx0) * sx)), int(np.ceil((bx1 - cx0) * sx)))
+        return _Crop(cx0, cy0, cx1, cy1, small, scale, sx, sy, inner)
 
-        # labels: outside the box is background; inside, the current mask (if any) or "probably object"
+    def _initial_labels(self, crop: "_Crop", current: Optional[np.ndarray]) -> np.ndarray:
+        """GrabCut's starting labels on the downscaled crop: outside the box background; inside, the
+        ``current`` mask when refining it, else "probably object" (less the ring-coloured pixels)."""
+        sh, sw = crop.small.shape[:2]
+        r0, r1, c0, c1 = crop.inner
         labels = np.full((sh, sw), cv2.GC_BGD, np.uint8)
-        r0, r1 = int(np.floor((by0 - cy0) * sy)), int(np.ceil((by1 - cy0) * sy))
-        c0, c1 = int(np.floor((bx0 - cx0) * sx)), int(np.ceil((bx1 - cx0) * sx))
-        refine = current is not None and bool(current[cy0:cy1, cx0:cx1].any()) and bool(clicks)
-        if refine:
-            cur = cv2.resize(current[cy0:cy1, cx0:cx1].astype(np.uint8), (sw, sh), interpolation=cv2.INTER_NEAREST)
+        if current is not None:
+            cur = cv2.resize(current[crop.rows, crop.cols].astype(np.uint8), (sw, sh), interpolation=cv2.INTER_NEAREST)
             labels[:] = np.where(cur > 0, cv2.GC_PR_FGD, cv2.GC_PR_BGD)
             outside = np.ones((sh, sw), bool)
             outside[r0:r1, c0:c1] = False
@@ -149,7 +193,7 @@ class GrabCutSegmenter:
                 # inside the box, pixels coloured like the context ring start as "probably background":
                 # otherwise a box around a thin or spread-out object (limbs, a person with arms
                 # out) teaches GrabCut's object model the background colour seen between the limbs
-                like_bg = _like_ring(small, labels == cv2.GC_BGD, self.config.ring_colours,
+                like_bg = _like_ring(crop.small, labels == cv2.GC_BGD, self.config.ring_colours,
                                      self.config.ring_distance)
                 inside = np.zeros((sh, sw), bool)
                 inside[r0:r1, c0:c1] = True
@@ -159,46 +203,64 @@ class GrabCutSegmenter:
             ring = np.zeros((sh, sw), bool)
             ring[:2, :], ring[-2:, :], ring[:, :2], ring[:, -2:] = True, True, True, True
             labels[ring & (labels != cv2.GC_FGD)] = cv2.GC_PR_BGD
-        radius = max(1, int(round(self.config.click_radius_px * scale)))
+        return labels
+
+    def _label_clicks(self, labels: np.ndarray, crop: "_Crop", clicks: Sequence[Click]) -> None:
+        """Each click's disk becomes a hard label, and the uniform region around it a "probable" one."""
+        sh, sw = labels.shape
+        radius = max(1, int(round(self.config.click_radius_px * crop.scale)))
         if self.config.flood_tolerance > 0 and clicks:
             # a click speaks for the uniform region around it, not only its disk: that region starts
             # on the clicked side ("probably"), so one right click on a face removes the face
-            lab = cv2.cvtColor(small, cv2.COLOR_RGB2LAB)
+            lab = cv2.cvtColor(crop.small, cv2.COLOR_RGB2LAB)
             reach = max(radius, int(self.config.flood_reach * max(sh, sw)))
             for x, y, lbl in clicks:
-                centre = (int((x - cx0) * sx), int((y - cy0) * sy))
-                region = _flood(lab, centre, self.config.flood_tolerance, reach)
+                region = _flood(lab, crop.point(x, y), self.config.flood_tolerance, reach)
                 if lbl == 1:
                     labels[region & (labels != cv2.GC_FGD) & (labels != cv2.GC_BGD)] = cv2.GC_PR_FGD
                 else:
                     labels[region & (labels != cv2.GC_FGD)] = cv2.GC_PR_BGD
         for x, y, lbl in clicks:
-            centre = (int((x - cx0) * sx), int((y - cy0) * sy))
-            cv2.circle(labels, centre, radius, int(cv2.GC_FGD if lbl == 1 else cv2.GC_BGD), thickness=-1)
+            cv2.circle(labels, crop.point(x, y), radius, int(cv2.GC_FGD if lbl == 1 else cv2.GC_BGD), thickness=-1)
 
-        fg_possible = np.isin(labels, (cv2.GC_FGD, cv2.GC_PR_FGD))
-        if not fg_possible.any():
-            return np.zeros((height, width), bool)
-        iterations = self.config.refine_iterations if (refine or clicks) else self.config.iterations
-        bgd_model = np.zeros((1, 65), np.float64)
-        fgd_model = np.zeros((1, 65), np.float64)
-        try:
-            cv2.grabCut(small, labels, None, bgd_model, fgd_model, iterations, cv2.GC_INIT_WITH_MASK)
-        except cv2.error:
-            # degenerate colour statistics (e.g. a flat crop): keep the prior labelling
-            pass
-        fg_small = np.isin(labels, (cv2.GC_FGD, cv2.GC_PR_FGD)).astype(np.float32)
-        fg_crop = (cv2.resize(fg_small, (cw, ch), interpolation=cv2.INTER_LINEAR) >= 0.5) if scale < 1.0 \
-            else fg_small > 0.5
-        out = np.zeros((height, width), bool)
-        out[cy0:cy1, cx0:cx1] = fg_crop
-        if current is not None and refine:
-            # the crop holds the box, clicks and context; keep the user's mask beyond it untouched
-            keep = current.copy()
-            keep[cy0:cy1, cx0:cx1] = False
-            out |= keep
-        _stamp_clicks(out, clicks, self.config.click_radius_px)
-        return out
+
+@dataclass
+class _Crop:
+    """The part of the image GrabCut sees: ``[x0, x1) x [y0, y1)``, downscaled by ``scale``."""
+
+    x0: int
+    y0: int
+    x1: int
+    y1: int
+    small: np.ndarray
+    """The crop at GrabCut's resolution (uint8 RGB)."""
+    scale: float
+    """Downscale factor (1 = full resolution)."""
+    sx: float
+    sy: float
+    """Exact horizontal and vertical factors from crop to ``small`` pixels."""
+    inner: tuple[int, int, int, int]
+    """The box in ``small`` pixels: rows ``[r0, r1)``, columns ``[c0, c1)``."""
+
+    @property
+    def rows(self) -> slice:
+        return slice(self.y0, self.y1)
+
+    @property
+    def cols(self) -> slice:
+        return slice(self.x0, self.x1)
+
+    @property
+    def height(self) -> int:
+        return self.y1 - self.y0
+
+    @property
+    def width(self) -> int:
+        return self.x1 - self.x0
+
+    def point(self, x: float, y: float) -> tuple[int, int]:
+        """Image coordinates -> ``small`` pixel (column, row)."""
+        return int((x - self.x0) * self.sx), int((y - self.y0) * self.sy)
 
 
 def _like_ring(image: np.ndarray, ring: np.ndarray, k: int, distance: float) -> np.ndarray:
@@ -285,7 +347,7 @@ def _check_mask(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 # Segment Anything (optional)
 # ---------------------------------------------------------------------------------------------
 @dataclass
-class SamConfig:
+class PromptedSamConfig:
     """Settings of the optional SAM backend."""
 
     checkpoint: Optional[Path] = None
@@ -308,17 +370,18 @@ class _Embedding:
     input_size: tuple[int, int]
 
 
-class SamSegmenter:
-    """Segment Anything with per-frame embeddings computed in the background and cached.
+class PromptedSamSegmenter:
+    """Segment Anything prompted with a box and clicks, with per-frame embeddings computed in the
+    background and cached.
 
     ``predictor`` is a ``segment_anything.SamPredictor`` (or anything with its ``set_image`` /
-    ``predict`` interface and ``features``/``original_size``/``input_size`` attributes); by default one
-    is built from :attr:`SamConfig.checkpoint`.
+    ``predict`` interface and ``features``/``original_size``/``input_size`` attributes); by default the
+    ``sam`` segmenter's loader builds one from :attr:`PromptedSamConfig.checkpoint`.
     """
 
     name = "sam"
 
-    def __init__(self, config: SamConfig, predictor=None):
+    def __init__(self, config: PromptedSamConfig, predictor=None):
         self.config = config
         self._predictor = predictor if predictor is not None else _load_sam_predictor(config)
         self._cache: collections.OrderedDict[str, _Embedding] = collections.OrderedDict()
@@ -436,28 +499,17 @@ class SamSegmenter:
         return np.asarray(masks[0]).astype(bool)
 
 
-def _load_sam_predictor(config: SamConfig):
+def _load_sam_predictor(config: PromptedSamConfig):
+    """The ``sam`` segmenter's model (:func:`methods.supervision.sam.load_segment_anything`), once the
+    tool's own options are checked."""
     if config.checkpoint is None:
         raise InputError(None, "--sam-checkpoint", "the SAM backend needs a path to its weights")
     path = Path(config.checkpoint)
     if not path.is_file():
         raise InputError(path, "--sam-checkpoint", "SAM weights not found")
-    try:
-        from segment_anything import SamPredictor, sam_model_registry
-    except ImportError:
-        raise InputError(None, "--segmenter sam",
-                         "the SAM backend needs the optional package: pip install 'bench4d[sam]'") from None
-    if config.model_type not in sam_model_registry:
-        raise InputError(None, "--sam-model", f"unknown SAM model {config.model_type!r} "
-                                              f"(known: {', '.join(sorted(sam_model_registry))})")
-    try:
-        model = sam_model_registry[config.model_type](checkpoint=str(path))
-    except Exception as err:  # noqa: BLE001 - torch's messages for a wrong checkpoint are long
-        raise InputError(path, "--sam-checkpoint",
-                         f"cannot load as SAM {config.model_type}: {type(err).__name__}: {str(err)[:200]}") from None
-    model.to(config.device)
-    model.eval()
-    return SamPredictor(model)
+    from methods.supervision.sam import load_segment_anything
+
+    return load_segment_anything(path, config.model_type, config.device)
 
 
 def make_segmenter(kind: str = "grabcut", *, sam_checkpoint: Optional[Path] = None, sam_model: str = "vit_b",
@@ -466,6 +518,6 @@ def make_segmenter(kind: str = "grabcut", *, sam_checkpoint: Optional[Path] = No
     if kind == "grabcut":
         return GrabCutSegmenter()
     if kind == "sam":
-        return SamSegmenter(SamConfig(checkpoint=sam_checkpoint, model_type=sam_model, device=device,
-                                      cache_dir=cache_dir))
+        return PromptedSamSegmenter(PromptedSamConfig(checkpoint=sam_checkpoint, model_type=sam_model, device=device,
+                                                      cache_dir=cache_dir))
     raise InputError(None, "--segmenter", f"unknown segmenter {kind!r} (grabcut or sam)")

@@ -480,32 +480,55 @@ def export_release(aset: AnnotationSet, out_dir: str | Path, *, frame_base: Opti
     ``frame_base``: number of the first frame in the file names (1 HyperNeRF, 0 Neu3D); ``None``
     takes the ``frame_base`` recorded in ``aset.info`` by :func:`import_release`.
     """
+    frame_base = _export_frame_base(aset, frame_base)
+    out_dir = Path(out_dir)
+    coco_path = out_dir / COCO_RELATIVE_PATH
+    video_path = out_dir / VIDEO_RELATIVE_PATH
+    sensitive = aset.sensitive_queries
+    if not overwrite:
+        for p in [coco_path] + ([video_path] if sensitive else []):
+            if p.exists():
+                raise InputError(p, None, "file exists; pass overwrite=True to replace it")
+    coco = {"info": {"description": f"bench4d export of scene {aset.scene}",
+                     "bench4d": {"scene": aset.scene, "num_time_steps": aset.num_time_steps,
+                                 "frame_base": frame_base, "interval_base": interval_base}},
+            "categories": _export_categories(aset, root_category), "images": _export_images(aset, frame_base),
+            "annotations": _export_annotations(aset)}
+    write_json(coco_path, coco, indent=None)
+    written = {"coco": coco_path}
+    if sensitive:
+        write_text(video_path, _video_annotations_text(aset, interval_base))
+        written["video"] = video_path
+    return written
+
+
+def _export_frame_base(aset: AnnotationSet, frame_base: Optional[int]) -> int:
+    """``frame_base`` as given, else the one :func:`import_release` recorded in ``aset.info``."""
     if frame_base is None:
         frame_base = aset.info.get("frame_base")
         if not isinstance(frame_base, int) or isinstance(frame_base, bool):
             raise InputError(None, "frame_base", "not recorded in the annotation set's info: pass frame_base "
                                                  "(1 for HyperNeRF, 0 for Neu3D)")
-    out_dir = Path(out_dir)
-    coco_path = out_dir / COCO_RELATIVE_PATH
-    video_path = out_dir / VIDEO_RELATIVE_PATH
-    sensitive = aset.sensitive_queries
-    targets = [coco_path] + ([video_path] if sensitive else [])
-    if not overwrite:
-        for p in targets:
-            if p.exists():
-                raise InputError(p, None, "file exists; pass overwrite=True to replace it")
+    return frame_base
+
+
+def _export_categories(aset: AnnotationSet, root_category: str) -> list[dict]:
+    """COCO categories: the root (a free id) and one per time-agnostic query, ids kept."""
     agnostic = aset.agnostic_queries
     if any(q.text == root_category for q in aset.queries):
         raise InputError(None, "root_category", f"{root_category!r} is also a query text; pick another root name")
     root_id = 0 if all(q.id != 0 for q in agnostic) else max(q.id for q in agnostic) + 1
-
     categories = [{"id": root_id, "name": root_category, "supercategory": "none"}]
     for q in agnostic:
         cat = {"id": q.id, "name": q.text, "supercategory": root_category}
         if q.level is not None:
             cat["level"] = q.level
         categories.append(cat)
+    return categories
 
+
+def _export_images(aset: AnnotationSet, frame_base: int) -> list[dict]:
+    """COCO images named as the release names them (``<number>_png.rf.<hash>.jpg``), one per time index."""
     images = []
     seen_numbers: dict[int, str] = {}
     for f in aset.frames:
@@ -518,11 +541,15 @@ def export_release(aset: AnnotationSet, out_dir: str | Path, *, frame_base: Opti
         digest = hashlib.sha1(f"{aset.scene}/{f.name}".encode()).hexdigest()[:32]
         images.append({"id": f.id, "file_name": f"{number}_png.rf.{digest}.jpg", "width": f.width,
                        "height": f.height, "frame_name": f.name, "camera_id": str(f.camera_id)})
+    return images
 
+
+def _export_annotations(aset: AnnotationSet) -> list[dict]:
+    """COCO annotations of every mask, in frame then query order."""
     frame_by_id = {f.id: f for f in aset.frames}
     frame_order = {f.id: i for i, f in enumerate(aset.frames)}
     query_order = {q.id: i for i, q in enumerate(aset.queries)}
-    agnostic_ids = {q.id for q in agnostic}
+    agnostic_ids = {q.id for q in aset.agnostic_queries}
     annotations = []
     for qid, fid in sorted(aset.masks, key=lambda k: (frame_order.get(k[1], 0), query_order.get(k[0], 0))):
         if fid not in frame_by_id:
@@ -534,37 +561,40 @@ def export_release(aset: AnnotationSet, out_dir: str | Path, *, frame_base: Opti
         if m.shape != (f.height, f.width):
             raise InputError(None, f"masks[{qid}, {fid}]", f"mask is {m.shape[1]}x{m.shape[0]} but frame "
                                                            f"{f.name!r} is {f.width}x{f.height}")
-        polygons = mask_to_polygons(m)
-        ann = {"id": len(annotations) + 1, "image_id": fid, "category_id": qid, "iscrowd": 0}
-        # polygons the importer would refuse as too long (e.g. checkerboard noise) are written as RLE
-        if (polygon_cost(polygons) <= polygon_budget(f.height, f.width)
-                and np.array_equal(polygons_to_mask(polygons, f.height, f.width), m)):
-            ann["segmentation"] = polygons
-        else:  # kept so an export can never silently change a mask
-            ann["segmentation"] = encode_mask(m)
-            ann["iscrowd"] = 1
-        rle = encode_mask(m)
-        coco_rle = {"size": rle["size"], "counts": rle["counts"].encode("ascii")}
-        ann["area"] = int(mask_utils.area(coco_rle))
-        ann["bbox"] = [float(v) for v in mask_utils.toBbox(coco_rle)]
-        annotations.append(ann)
+        annotations.append(_export_annotation(len(annotations) + 1, fid, qid, m))
+    return annotations
 
-    coco = {"info": {"description": f"bench4d export of scene {aset.scene}",
-                     "bench4d": {"scene": aset.scene, "num_time_steps": aset.num_time_steps,
-                                 "frame_base": frame_base, "interval_base": interval_base}},
-            "categories": categories, "images": images, "annotations": annotations}
-    write_json(coco_path, coco, indent=None)
-    written = {"coco": coco_path}
-    if sensitive:
-        video: dict[str, dict[str, list]] = {}
-        for q in sensitive:
-            base = aset.query(q.base)
-            video.setdefault(base.text, {})[q.text] = [[a + interval_base, b + interval_base] for a, b in q.intervals]
-        lines = []
-        for base_text, queries in video.items():
-            inner = ",\n".join(f"    {json.dumps(t, ensure_ascii=False)}: {json.dumps(iv)}"
-                                for t, iv in queries.items())
-            lines.append(f"  {json.dumps(base_text, ensure_ascii=False)}: {{\n{inner}\n  }}")
-        write_text(video_path, "{\n" + ",\n".join(lines) + "\n}\n")
-        written["video"] = video_path
-    return written
+
+def _export_annotation(ann_id: int, image_id: int, category_id: int, mask: np.ndarray) -> dict:
+    """One COCO annotation: exact polygons when they re-rasterise to ``mask`` within the importer's
+    budget, else RLE (``iscrowd: 1``)."""
+    height, width = mask.shape
+    polygons = mask_to_polygons(mask)
+    ann = {"id": ann_id, "image_id": image_id, "category_id": category_id, "iscrowd": 0}
+    # polygons the importer would refuse as too long (e.g. checkerboard noise) are written as RLE
+    if (polygon_cost(polygons) <= polygon_budget(height, width)
+            and np.array_equal(polygons_to_mask(polygons, height, width), mask)):
+        ann["segmentation"] = polygons
+    else:  # kept so an export can never silently change a mask
+        ann["segmentation"] = encode_mask(mask)
+        ann["iscrowd"] = 1
+    rle = encode_mask(mask)
+    coco_rle = {"size": rle["size"], "counts": rle["counts"].encode("ascii")}
+    ann["area"] = int(mask_utils.area(coco_rle))
+    ann["bbox"] = [float(v) for v in mask_utils.toBbox(coco_rle)]
+    return ann
+
+
+def _video_annotations_text(aset: AnnotationSet, interval_base: int) -> str:
+    """The release's ``video_annotations.json`` text: base label -> time-sensitive query -> intervals,
+    one query a line."""
+    video: dict[str, dict[str, list]] = {}
+    for q in aset.sensitive_queries:
+        base = aset.query(q.base)
+        video.setdefault(base.text, {})[q.text] = [[a + interval_base, b + interval_base] for a, b in q.intervals]
+    lines = []
+    for base_text, queries in video.items():
+        inner = ",\n".join(f"    {json.dumps(t, ensure_ascii=False)}: {json.dumps(iv)}"
+                            for t, iv in queries.items())
+        lines.append(f"  {json.dumps(base_text, ensure_ascii=False)}: {{\n{inner}\n  }}")
+    return "{\n" + ",\n".join(lines) + "\n}\n"

@@ -25,10 +25,12 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "paper-tables": ("paper_tables", "every table of the paper with the published numbers beside ours"),
     "plot": ("plot", "charts: pareto (accuracy vs speed), timeline (similarity over time)"),
     "annotate": ("annotate", "local web app to annotate query masks and time segments"),
+    "models": ("models", "the real track's model backends: hub ids, sizes, where weights are looked for, present or not"),
+    "doctor": ("doctor", "before a long run: CUDA, gsplat, libraries, weights, free disk and memory, one line each"),
     "demo": ("demo", "the main job: a synthetic scene end to end, printing metrics and timings"),
     "cache": ("cache", "what the cache folder holds; prune leftovers of interrupted runs or unreferenced fits"),
     "ablate": ("ablate", "analyses: protocol ceiling, rescore under another protocol, gap, autoencoder, states (K), "
-                         "delta-sim (caption prompts), decisions, speed"),
+                         "delta-sim (caption prompts), decisions, speed, query-speed"),
 }
 
 RECORDING_COMMANDS = frozenset({"eval", "run-all", "recon", "ablate", "demo"})

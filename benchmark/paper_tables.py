@@ -138,11 +138,13 @@ def _comparison(title: str, dataset: str, methods: Sequence[str], metrics: tuple
 
 
 def _states_table(results_dir: Path, paper_ablations: dict) -> list[str]:
+    from methods import registry
+
     paper = paper_ablations["states_chickchicken"]
     ours: dict[int, tuple[float, float, str, str]] = {}
     for path in sorted(results_dir.glob("ablations/states-k*/*/*/4d-langsplat/*/seed*.json")):
         doc = load_results(path)
-        k = (doc.get("method_config") or {}).get("num_states")
+        k = registry.get(doc["method"]).recorded_options(doc.get("method_config")).get("status.num_states")
         if k is not None:
             ours[int(k)] = (doc["metrics"].get("Acc"), doc["metrics"].get("vIoU"), doc["scene"], protocol_of(doc).name)
     lines = ["## Number of states K of the status field (paper Table 5: chickchicken)", ""]

@@ -4,30 +4,11 @@ One file per run, ``<results>/<dataset>/<scene>/<method>/<track>/seed<N>.json`` 
 :func:`benchmark.runner.evaluate`), beside its predictions folder ``seed<N>.predictions/``. Writers of
 one file take turns (:func:`results_lock`); a file being replaced goes to ``<results>/archive/`` first.
 
-Schema (``"format": "bench4d-run"``, ``"version": 1``; metrics in percent, times in seconds,
-memory in MiB; ``null`` = not applicable)::
-
-    method, dataset, scene, track, seed, splits
-    metrics        {"mIoU", "mAcc", "Acc", "vIoU", "AUC", "nearTau", "agnostic_queries", "sensitive_queries",
-                    "frames_scored"} (AUC / nearTau: diagnostics of the time-sensitive decisions; files
-                    written before they existed get them from their recorded frames, :func:`temporal_diagnostics`)
-    timing         {"fit_seconds", "fit_cached", "answer_all_seconds",
-                    "query_agnostic": {"seconds_per_frame", "fps", ...}, "query_sensitive": {...}}
-    memory         {"peak_cpu_mib", "peak_cpu_fit_mib", "peak_gpu_mib", "peak_gpu_fit_mib",
-                    "peak_window": "run" (peaks of this run alone) or "process" (the process's so far),
-                    "peak_fit_window": the same for the fit (a cached fit: as it recorded)}
-    method_config, fit {"key", "cached", "code_version" (the method's, at the run; older files lack it),
-                        "head_refit_of" (a head refitted on that recorded fit), "info"},
-    supervision    {"track", "sources", ...},
-    environment    {"packages", "git": {"commit", "dirty"} (as the command started; dirty: tracked
-                    changes of the code, not of results or reports),
-                    "code_changed_during_run" (the code differed at the run's end: the commit may not be
-                    all the code it ran; null: unknown), "device", ...}
-    protocol       the evaluation protocol (:mod:`benchmark.core.protocol`): its name and every constant; files
-                   written before protocols were named rebuild theirs from what they recorded
-                   (:func:`protocol_of`)
-    score_config   (the temporal rule used), scores {"queries", "frames", "skipped"}
-    predictions    (path of predictions.json relative to this file), created, wall_seconds
+Schema: :class:`RunResults` (``"format": "bench4d-run"``, ``"version": 1``), one typed record per
+object of the file, each field with its meaning; metrics in percent, times in seconds, memory in MiB,
+``null`` = not applicable. :func:`write_results` checks a document against it before writing, and
+:func:`read_results` after reading: a file that does not match is an :class:`InputError` naming the
+first wrong, missing or unknown field.
 
 :func:`runs_table` flattens files into one row per run; :func:`seed_summary` gives mean, std and
 count over seeds per (dataset, track, method, scene), plus a ``"mean"`` scene that averages the
@@ -37,17 +18,19 @@ scenes of each seed first (the dataset number), then over seeds.
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import math
 import os
 from pathlib import Path
-from typing import Any, Iterable, Iterator, Optional
+from typing import (Any, Iterable, Iterator, Literal, NotRequired, Optional, TypedDict, Union, get_args, get_origin,
+                    get_type_hints)
 
 import numpy as np
 import pandas as pd
 
 from benchmark.core.atomic import read_json, write_json, write_text
-from benchmark.core.errors import InputError
+from benchmark.core.errors import InputError, short_repr
 
 RESULTS_FORMAT = "bench4d-run"
 RESULTS_VERSION = 1
@@ -66,6 +49,319 @@ MEAN_SCENE = "mean"
 """Scene label of the dataset-level row in :func:`seed_summary`."""
 
 
+# -- the schema --------------------------------------------------------------------------------------
+# A results file is a JSON object; each TypedDict below is one object of it. NotRequired fields may be
+# absent (files written before the field existed lack it); Optional ones may be null. Free-form objects
+# (a method's config, the supervision's description, the protocol) are typed ``dict[str, Any]``: their
+# own modules define them. :func:`check_results` checks a document against :class:`RunResults`.
+class GitState(TypedDict):
+    """The checkout the run's command started on."""
+
+    commit: Optional[str]
+    """HEAD's commit id; null outside a git checkout."""
+    dirty: Optional[bool]
+    """Whether the code (not results or reports) had tracked changes; null outside a git checkout."""
+
+
+class QueryTiming(TypedDict):
+    """Per-frame time of one query kind (:func:`benchmark.runner.time_queries`)."""
+
+    query: NotRequired[str]
+    """The query text timed."""
+    frames: NotRequired[int]
+    """Frames timed."""
+    repeats: NotRequired[int]
+    """Timed calls per frame, after one warm-up call."""
+    seconds_per_frame: NotRequired[Optional[float]]
+    """Median seconds of one single-frame call."""
+    fps: NotRequired[Optional[float]]
+    """Frames per second: the inverse of ``seconds_per_frame``."""
+    min_seconds: NotRequired[Optional[float]]
+    """Fastest timed call."""
+    max_seconds: NotRequired[Optional[float]]
+    """Slowest timed call."""
+
+
+class Timing(TypedDict):
+    """Seconds the run took."""
+
+    fit_seconds: NotRequired[Optional[float]]
+    """The fit's own seconds (a cached fit: as it recorded them)."""
+    fit_cached: NotRequired[bool]
+    """Whether the fit was loaded from the cache."""
+    answer_all_seconds: NotRequired[Optional[float]]
+    """Answering every query on every evaluated frame, text encoding included."""
+    note: NotRequired[str]
+    """How the query times were taken."""
+    query_agnostic: NotRequired[QueryTiming]
+    """Time of a time-agnostic query."""
+    query_sensitive: NotRequired[QueryTiming]
+    """Time of a time-sensitive query (absent when the method answers none)."""
+
+
+class Metrics(TypedDict):
+    """The run's scores in percent (null: no query of that kind was scored), and what they count."""
+
+    mIoU: NotRequired[Optional[float]]
+    """Mean IoU of the time-agnostic queries."""
+    mAcc: NotRequired[Optional[float]]
+    """Mean pixel accuracy of the time-agnostic queries."""
+    Acc: NotRequired[Optional[float]]
+    """Temporal accuracy of the time-sensitive queries."""
+    vIoU: NotRequired[Optional[float]]
+    """Video IoU of the time-sensitive queries."""
+    AUC: NotRequired[Optional[float]]
+    """Diagnostic: ROC AUC of the time-sensitive scores (absent: computed from the frames, :func:`temporal_diagnostics`)."""
+    nearTau: NotRequired[Optional[float]]
+    """Diagnostic: share of time-sensitive decisions near the threshold."""
+    agnostic_queries: NotRequired[int]
+    """Time-agnostic queries scored."""
+    sensitive_queries: NotRequired[int]
+    """Time-sensitive queries scored."""
+    frames_scored: NotRequired[int]
+    """(query, frame) pairs scored."""
+    scenes: NotRequired[int]
+    """Scenes averaged (one per run)."""
+
+
+class Memory(TypedDict):
+    """Peak memory in MiB (null: nothing ran on that device)."""
+
+    peak_cpu_mib: NotRequired[Optional[float]]
+    """High-water resident memory of the run."""
+    peak_cpu_fit_mib: NotRequired[Optional[float]]
+    """The fit's own peak (a cached fit: as it recorded it)."""
+    peak_gpu_mib: NotRequired[Optional[float]]
+    """Peak CUDA memory of the run."""
+    peak_gpu_fit_mib: NotRequired[Optional[float]]
+    """The fit's own peak CUDA memory."""
+    peak_window: NotRequired[Literal["run", "process"]]
+    """``run``: the peaks are this run's alone; ``process``: the process's so far (absent: the latter)."""
+    peak_fit_window: NotRequired[Literal["run", "process"]]
+    """The same for the fit's peaks."""
+    note: NotRequired[str]
+    """How the peaks were taken."""
+
+
+class FitSummary(TypedDict):
+    """The fit the run answered with."""
+
+    key: str
+    """Its cache key (folder name under ``<cache>/fits/<method>/<dataset>-<scene>/``)."""
+    cached: NotRequired[bool]
+    """Whether it was loaded from the cache."""
+    code_version: NotRequired[str]
+    """The digest of the method's code at the run (:meth:`methods.registry.MethodSpec.code_digest`)."""
+    head_refit_of: NotRequired[str]
+    """Key of the cached fit whose time-varying head alone this fit made anew."""
+    info: NotRequired[Optional[dict[str, Any]]]
+    """What the model describes of itself (stages, their seconds and peaks: :data:`FIT_STAGES`)."""
+
+
+class Environment(TypedDict):
+    """Where and on what code the run ran."""
+
+    packages: NotRequired[dict[str, str]]
+    """Versions of Python, bench4d and the packages that matter (:data:`benchmark.runner.PACKAGES`)."""
+    git: NotRequired[GitState]
+    """The checkout as the command started."""
+    code_changed_during_run: NotRequired[Optional[bool]]
+    """Whether the code differed at the run's end; null: unknown."""
+    device: NotRequired[str]
+    """The device asked for (``cpu``, ``cuda:0``)."""
+    platform: NotRequired[str]
+    """Operating system and its version."""
+    machine: NotRequired[str]
+    """CPU architecture."""
+    cpu_count: NotRequired[Optional[int]]
+    """Logical CPU cores of the machine."""
+    processor: NotRequired[Optional[str]]
+    """CPU model name; null when it cannot be read."""
+    numpy_blas_core: NotRequired[Optional[str]]
+    """The kernel set numpy's OpenBLAS runs (generated pixels depend on it); null: another BLAS."""
+    gpu: NotRequired[str]
+    """Name of the CUDA device."""
+    torch_threads: NotRequired[Optional[int]]
+    """torch's intra-op threads; null where torch was not loaded."""
+    concurrent_runs: NotRequired[int]
+    """Runs sharing the machine at the time (inflates the timings)."""
+
+
+class SceneInfo(TypedDict):
+    """The scene folder the run read."""
+
+    root: NotRequired[str]
+    """Its path."""
+    summary: NotRequired[str]
+    """Frames, cameras, resolution."""
+    annotations: NotRequired[Optional[str]]
+    """The ground-truth file; null for truth made from the alpha masks."""
+    scale: NotRequired[Optional[float]]
+    """Resolution multiplier it was loaded at; null: full size."""
+    generated: NotRequired[Optional[dict[str, Any]]]
+    """Preset, size, seed and digest of a generated scene (:func:`scene_status`); null for others."""
+
+
+class Scores(TypedDict):
+    """Scores per query and per frame (fractions per frame, percent per query)."""
+
+    queries: NotRequired[list[dict[str, Any]]]
+    """One row per scored query."""
+    skipped: NotRequired[list[dict[str, Any]]]
+    """Queries not scored: no evaluated frame."""
+    frames: NotRequired[list[dict[str, Any]]]
+    """One record per (query, frame); stored as a ``{"columns", "rows"}`` table."""
+
+
+class RunResults(TypedDict):
+    """One results file (``format`` and ``version`` are added by :func:`write_results`)."""
+
+    format: Literal["bench4d-run"]
+    """Always :data:`RESULTS_FORMAT`."""
+    version: int
+    """Schema version, 1 to :data:`RESULTS_VERSION`."""
+    method: str
+    """Registered method name."""
+    dataset: str
+    """Dataset the run is filed under (``synthetic`` for generated scenes)."""
+    scene: str
+    """Scene name."""
+    layout: NotRequired[str]
+    """The loader's dataset (folder layout) of the scene."""
+    track: str
+    """Supervision track: ``oracle`` or ``real``."""
+    seed: int
+    """Seed of the fit."""
+    splits: NotRequired[list[str]]
+    """Splits whose annotated frames were scored."""
+    metrics: Metrics
+    """The run's scores."""
+    unanswered_queries: NotRequired[list[str]]
+    """Query texts of a kind the method does not answer: listed, not scored."""
+    timing: Timing
+    """Fit and query times."""
+    memory: NotRequired[Memory]
+    """Peak memory."""
+    method_config: NotRequired[dict[str, Any]]
+    """The method's config, every field."""
+    fit: NotRequired[FitSummary]
+    """The fit answered with."""
+    supervision: NotRequired[dict[str, Any]]
+    """The 2D supervision of the training frames: track, sources, their configs, fingerprint."""
+    environment: NotRequired[Environment]
+    """Package versions, git state, device, threads."""
+    scene_info: NotRequired[SceneInfo]
+    """The scene folder and its version."""
+    protocol: NotRequired[dict[str, Any]]
+    """The evaluation protocol, every constant (absent: rebuilt from the config, :func:`protocol_of`)."""
+    score_config: NotRequired[dict[str, Any]]
+    """The temporal rule and the frames scored."""
+    scores: NotRequired[Scores]
+    """Per-query and per-frame scores."""
+    predictions: NotRequired[str]
+    """Path of the run's ``predictions.json``, relative to this file."""
+    wall_seconds: NotRequired[float]
+    """The whole run, start to written."""
+    created: NotRequired[str]
+    """When it was written (ISO 8601, UTC)."""
+
+
+@functools.lru_cache(maxsize=None)
+def _fields(record: type) -> tuple[tuple[str, Any, bool], ...]:
+    """``(name, type, required)`` of each field of the TypedDict ``record``, in order. Required-ness is
+    read from ``NotRequired`` itself: with postponed annotations ``__required_keys__`` cannot see it."""
+    out = []
+    for name, hint in get_type_hints(record, include_extras=True).items():
+        optional = get_origin(hint) is NotRequired
+        out.append((name, get_args(hint)[0] if optional else hint, not optional))
+    return tuple(out)
+
+
+def _is_record(hint: Any) -> bool:
+    return isinstance(hint, type) and issubclass(hint, dict) and hasattr(hint, "__required_keys__")
+
+
+def _expected(hint: Any) -> str:
+    """``hint`` in words, for an error message."""
+    origin, args = get_origin(hint), get_args(hint)
+    if origin is Union:
+        return " or ".join(_expected(a) for a in args)
+    if origin is Literal:
+        return "one of " + ", ".join(repr(a) for a in args)
+    if hint is type(None):
+        return "null"
+    words = {str: "a string", int: "an integer", float: "a number", bool: "true or false", list: "a list",
+             dict: "an object"}
+    return words.get(origin or hint, "an object" if _is_record(hint) else str(hint))
+
+
+def _check_value(value: Any, hint: Any, path: Optional[Path], where: str) -> None:
+    """An :class:`InputError` naming ``where`` (or a field below it) unless ``value`` is of type ``hint``."""
+    origin, args = get_origin(hint), get_args(hint)
+    if hint is Any:
+        return
+    nullable = origin is Union and type(None) in args
+    if nullable:
+        if value is None:
+            return
+        (hint,) = [a for a in args if a is not type(None)]
+        origin, args = get_origin(hint), get_args(hint)
+    if origin is Literal:
+        ok = value in args and isinstance(value, type(args[0]))
+    elif _is_record(hint):
+        ok = isinstance(value, dict)
+    elif hint is float:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+    elif hint is int:
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    else:
+        ok = isinstance(value, origin or hint)
+    if not ok:
+        null = " or null" if nullable else ""
+        raise InputError(path, where, f"expected {_expected(hint)}{null}, got {short_repr(value)}")
+    if _is_record(hint):
+        _check_record(value, hint, path, where)
+    elif origin is list:
+        for i, item in enumerate(value):
+            _check_value(item, args[0], path, f"{where}[{i}]")
+    elif origin is dict and args[1] is not Any:
+        for key, item in value.items():
+            _check_value(item, args[1], path, f"{where}.{key}")
+
+
+def _check_record(doc: dict, record: type, path: Optional[Path], prefix: str = "") -> None:
+    names = set()
+    for name, hint, required in _fields(record):
+        names.add(name)
+        where = f"{prefix}.{name}" if prefix else name
+        if name not in doc:
+            if required:
+                raise InputError(path, where, "missing required key")
+            continue
+        _check_value(doc[name], hint, path, where)
+    for name in doc:
+        if name not in names:
+            raise InputError(path, f"{prefix}.{name}" if prefix else str(name),
+                             f"not a field of {RESULTS_FORMAT!r} version {RESULTS_VERSION} ({record.__name__})")
+
+
+def _check_header(doc: Any, path: Optional[Path]) -> None:
+    """An :class:`InputError` unless ``doc`` is an object of :data:`RESULTS_FORMAT` in a version this reads."""
+    if not isinstance(doc, dict) or doc.get("format") != RESULTS_FORMAT:
+        raise InputError(path, "format", f"not a bench4d run results file (expected {RESULTS_FORMAT!r})")
+    version = doc.get("version")
+    if not isinstance(version, int) or isinstance(version, bool) or not 1 <= version <= RESULTS_VERSION:
+        raise InputError(path, "version", f"unsupported version {version!r} (this bench4d reads up to {RESULTS_VERSION})")
+
+
+def check_results(doc: Any, path: Optional[str | Path] = None) -> None:
+    """Check ``doc`` (a results document, per-frame records as a list) against :class:`RunResults`: an
+    :class:`InputError` naming ``path`` and the first field that is missing, of the wrong type or unknown."""
+    path = None if path is None else Path(path)
+    _check_header(doc, path)
+    _check_record(doc, RunResults, path)
+
+
 def results_path(results_dir: str | Path, dataset: str, scene: str, method: str, track: str, seed: int) -> Path:
     return Path(results_dir) / dataset / scene / method / track / f"seed{seed}.json"
 
@@ -73,16 +369,15 @@ def results_path(results_dir: str | Path, dataset: str, scene: str, method: str,
 _FRAMES_PLACEHOLDER = "__bench4d_frames__"
 
 
-def write_results(path: str | Path, doc: dict) -> None:
-    """Check the required keys, then write atomically (a reader never sees a partial file).
+def write_results(path: str | Path, doc: RunResults | dict) -> None:
+    """Check ``doc`` against :class:`RunResults` (``format`` and ``version`` added), then write it atomically
+    (a reader never sees a partial file).
 
     The per-frame records (``scores.frames``, a list of dicts in memory) are stored as a table,
     ``{"columns": [...], "rows": [[...], ...]}`` with one row per line: compact and diff-friendly.
     """
-    for key in ("method", "dataset", "scene", "track", "seed", "metrics", "timing"):
-        if key not in doc:
-            raise ValueError(f"results document lacks {key!r}")
     full = _sanitize({"format": RESULTS_FORMAT, "version": RESULTS_VERSION, **doc})
+    check_results(full, path)
     frames = (full.get("scores") or {}).get("frames")
     if not frames:
         write_json(path, full)  # already strict JSON
@@ -131,27 +426,19 @@ def _expand_frames(doc: dict, path: Path) -> None:
     scores["frames"] = [dict(zip(columns, row)) for row in rows]
 
 
-def load_results(path: str | Path) -> dict:
-    """Read and check one results file (InputError naming the file and field)."""
+def read_results(path: str | Path) -> dict:
+    """Read one results file and check it against :class:`RunResults` (an :class:`InputError` naming the
+    file and the first wrong, missing or unknown field); the per-frame records come back as a list."""
     path = Path(path)
     doc = read_json(path)
-    if not isinstance(doc, dict) or doc.get("format") != RESULTS_FORMAT:
-        raise InputError(path, "format", f"not a bench4d run results file (expected {RESULTS_FORMAT!r})")
-    version = doc.get("version")
-    if not isinstance(version, int) or isinstance(version, bool) or not 1 <= version <= RESULTS_VERSION:
-        raise InputError(path, "version", f"unsupported version {version!r} (this bench4d reads up to {RESULTS_VERSION})")
-    for key, kind in (("method", str), ("dataset", str), ("scene", str), ("track", str), ("seed", int),
-                      ("metrics", dict), ("timing", dict)):
-        if key not in doc:
-            raise InputError(path, key, "missing required key")
-        if not isinstance(doc[key], kind) or isinstance(doc[key], bool):
-            raise InputError(path, key, f"expected {kind.__name__}, got {type(doc[key]).__name__}")
-    for name in ("mIoU", "mAcc", "Acc", "vIoU", *DIAGNOSTIC_METRICS):
-        value = doc["metrics"].get(name)
-        if value is not None and not isinstance(value, (int, float)):
-            raise InputError(path, f"metrics.{name}", f"expected a number or null, got {value!r}")
+    _check_header(doc, path)
     _expand_frames(doc, path)
+    check_results(doc, path)
     return doc
+
+
+load_results = read_results
+"""The same reader under the name the leaderboard, plots and studies call."""
 
 
 ABLATIONS_DIR = "ablations"

@@ -1,12 +1,14 @@
 """The evaluation runner: fit a method on a scene, answer every annotated query, score, record.
 
-One run = (method, scene, track, seed). :func:`evaluate`:
+One run = (method, scene, track, seed). :func:`evaluate` composes four public steps, which a study may
+compose itself: :func:`prepare_run` (1, 2), :func:`obtain_fit` (3), :func:`answer_queries` (4) and
+:func:`score_and_write` (4 to 6). It:
 
 1. resolves the scene (a folder, or a synthetic preset generated once into the cache) and its
    ground-truth annotations;
 2. builds (or reads from the cache) the 2D supervision of the training frames for the track;
 3. fits the method, or loads the cached fit (key: method, config, seed, device kind, supervision
-   fingerprint, scene fingerprint, code version). A fit is written to a temporary folder and renamed
+   fingerprint, scene fingerprint, code digest and version). A fit is written to a temporary folder and renamed
    into place when complete; a resumable method keeps its checkpoints in a per-key work folder, so
    an interrupted fit continues where it stopped;
 4. answers every annotated query on the evaluated frames (the test split by default; the release
@@ -51,11 +53,11 @@ from typing import Any, Callable, Optional, Sequence
 import numpy as np
 
 from .core import memory
-from benchmark.core.atomic import read_json, write_json
+from benchmark.core.atomic import json_ready, read_json, write_json
 from benchmark.core.errors import InputError
 from benchmark.core.openblas import cpuinfo_value, openblas_core
 from benchmark.core.protocol import DEFAULT_PROTOCOL, get_protocol
-from .results import exclusive_lock, results_lock, results_path, write_results
+from .results import RunResults, exclusive_lock, results_lock, results_path, write_results
 from benchmark.core.scene import Frame, Scene
 
 DEFAULT_PRESET_SIZE = 128
@@ -89,7 +91,8 @@ class EvalOptions:
     source_options: dict[str, dict] = field(default_factory=dict)
     """Options per source kind (kind -> keyword arguments of its factory)."""
     method_options: dict[str, Any] = field(default_factory=dict)
-    """Overrides of the method's config (name -> value)."""
+    """Overrides of the method's config: dotted option path -> value (``{"autoencoder.latent_dim": "4"}``;
+    strings are read by the option's type, :meth:`methods.registry.MethodSpec.make_config`)."""
     annotations: Optional[Path] = None
     """Ground-truth file; default: found beside the scene (see :func:`find_annotations`)."""
     object_query: Optional[str] = None
@@ -113,14 +116,6 @@ class EvalOptions:
     """Timed calls per frame (after one warm-up call); the median is reported."""
     refit: bool = False
     """Ignore a cached fit and fit again."""
-    reuse_fit: Optional[str] = None
-    """Answer with the cached fit of this key (a results file's ``fit.key``) instead of the one the
-    current code and config hash to: an answer-rule ablation on the very fits a results file was
-    scored with, after code changes that moved the keys. Missing fit = error, never a refit."""
-    head_from: Optional[str] = None
-    """Fit only the method's time-varying head anew (under this run's config) on the cached fit of this
-    key, keeping its geometry, time-agnostic field and autoencoder: an ablation of head options on the
-    very geometry a results file used, after code changes that moved the geometry keys."""
     quiet: bool = False
     concurrent_runs: int = 1
     """Runs sharing this machine at the same time (``run-all --jobs``): recorded beside the timings,
@@ -444,70 +439,60 @@ def seed_everything(seed: int) -> None:
 
 
 # -- fitting with a cache -----------------------------------------------------------------------------
-def _file_hash(paths: Sequence[Path]) -> str:
-    """Short hash of the files ``paths`` (names relative to the checkout), read once per process: the
-    code a process runs is the code it imported, so a file edited while a long ``run-all`` goes on
-    neither moves the keys of its later fits nor makes it refit what it has just cached."""
-    return _file_hash_once(tuple(Path(p) for p in paths))
-
-
-@functools.lru_cache(maxsize=None)
-def _file_hash_once(paths: tuple[Path, ...]) -> str:
-    digest = hashlib.sha256()
-    root = Path(__file__).resolve().parents[1]
-    for path in paths:
-        if path.is_file():
-            resolved = path.resolve()
-            # names relative to the checkout, so a moved or fresh clone keeps its cached fits
-            label = resolved.relative_to(root) if resolved.is_relative_to(root) else Path(resolved.name)
-            digest.update(label.as_posix().encode())
-            digest.update(path.read_bytes())
-    return digest.hexdigest()[:16]
-
-
 def config_dict(config: Any) -> dict[str, Any]:
-    """A config dataclass as plain JSON values (the form results and fit records store it in)."""
+    """A config dataclass as plain JSON values, groups as nested dicts (the form results and fit records
+    store it in; :meth:`methods.registry.MethodSpec.recorded_options` reads it back)."""
     return json.loads(json.dumps(dataclasses.asdict(config), default=str))
 
 
 def fit_config_dict(config: Any) -> dict[str, Any]:
-    """The config as the fit sees it: fields the config class lists in ``ANSWER_OPTIONS`` (read only
-    when answering) take their defaults, so runs that differ only in how they answer share one fit
-    (and keys of default runs are what they were before the distinction existed)."""
+    """The config as the fit sees it: without its answer group (:data:`methods.registry.ANSWER_GROUP`, read
+    only when answering), so runs that differ only in how they answer share one fit."""
+    from methods.registry import ANSWER_GROUP
+
     values = config_dict(config)
-    answer = getattr(type(config), "ANSWER_OPTIONS", frozenset())
-    if answer and dataclasses.is_dataclass(config):
-        defaults = config_dict(type(config)())
-        values = {k: (defaults[k] if k in answer else v) for k, v in values.items()}
+    values.pop(ANSWER_GROUP, None)
     return values
 
 
 def fit_cache_key(spec, config, *, seed: int, device: str, supervision, scene: Scene) -> str:
-    """Hash of everything a fit depends on: method code + config (less its answer options) + seed +
-    device kind + data."""
+    """Hash of everything a fit depends on: method code (:meth:`~methods.registry.MethodSpec.code_digest`:
+    its modules and every project module they import, each read once per process, so a file edited while
+    a long ``run-all`` goes on does not move the keys of its later fits) + config (less its answer
+    options) + seed + device kind + data."""
     from benchmark.core.cache_keys import scene_fingerprint, stable_hash
 
-    method_cls = spec.load()
     return stable_hash({
         "method": spec.name, "config": fit_config_dict(config), "seed": seed,
         "device": "cuda" if _cuda(device) else "cpu",
         "supervision": supervision.fingerprint, "scene": scene_fingerprint(scene, scene.train_frames),
-        "code": {"method": getattr(method_cls, "code_version", "1"), "source": _file_hash(spec.source_files())},
+        "code": spec.code_digest(),
     }, 24)
 
 
 @dataclass
 class FitRecord:
+    """A fitted model and what its fit cost."""
+
     model: Any
+    """The fitted model (:class:`methods.api.Model`)."""
     key: str
+    """Its cache key (:func:`fit_cache_key`, or the key of the cached fit it was asked for)."""
     cached: bool
+    """Whether it was loaded from the cache rather than fitted now."""
     fit_seconds: float
+    """Seconds the fit took (a cached fit: as it recorded them)."""
     peak_cpu_mib: float
+    """The fit's peak resident memory, MiB."""
     peak_gpu_mib: Optional[float]
+    """The fit's peak CUDA memory, MiB; None off CUDA."""
     directory: Path
+    """Its folder in the cache."""
     peak_window: str = "run"
     """Whether the fit's peaks are its own (``"run"``) or may include what the process held before
     (``"process"``: the OS kept one mark, or a cached fit that did not record its window)."""
+    head_refit_of: Optional[str] = None
+    """Key of the cached fit whose time-varying head alone this fit made anew; None for a whole fit."""
 
 
 def _read_fit_record(path: Path, key: str) -> dict:
@@ -535,7 +520,7 @@ def fit_or_load(spec, config, scene: Scene, supervision, *, seed: int, device: s
                 head_from: Optional[str] = None) -> FitRecord:
     """Load the cached fit of this (method, config, seed, data, code), or fit and cache it
     (``reuse_key``: load that cached fit, whatever the key would be now; never fit. ``head_from``: the
-    cached fit of that key with only its time-varying head fitted anew, :attr:`EvalOptions.head_from`).
+    cached fit of that key with only its time-varying head fitted anew; see :func:`obtain_fit`).
 
     A cached fit whose ``fit.json`` is malformed or whose model the method cannot load (any exception
     from ``Method.load``: a truncated or corrupted file, a missing key) is fitted again, with a one-line
@@ -548,17 +533,18 @@ def fit_or_load(spec, config, scene: Scene, supervision, *, seed: int, device: s
     folder = Path(cache_dir) / "fits" / spec.name / f"{scene.dataset}-{scene.name}"
     if head_from is not None:
         if reuse_key is not None:
-            raise InputError(None, "head_from", "give reuse_fit or head_from, not both")
+            raise InputError(None, "head_refit_from", "give cached_key or head_refit_from, not both")
         base_info = folder / head_from / "fit.json"
         if not base_info.is_file():
-            raise InputError(base_info, "head_from", f"no cached fit {head_from!r} of {spec.name} on {scene.name}")
+            raise InputError(base_info, "head_refit_from", f"no cached fit {head_from!r} of {spec.name} on "
+                             f"{scene.name}")
     key = reuse_key or fit_cache_key(spec, config, seed=seed, device=device, supervision=supervision, scene=scene)
     if head_from is not None:  # what this config's own fit would be, on that fit's time-agnostic half
         key = stable_hash({"head_of": head_from, "fit": key}, 24)
     final = folder / key
     info_path = final / "fit.json"
     if reuse_key is not None and not info_path.is_file():
-        raise InputError(info_path, "reuse_fit", f"no cached fit {reuse_key!r} of {spec.name} on {scene.name}")
+        raise InputError(info_path, "cached_key", f"no cached fit {reuse_key!r} of {spec.name} on {scene.name}")
     with exclusive_lock(folder / f".{key}.lock"):
         return _fit_or_load_locked(spec, method_cls, config, scene, supervision, seed=seed, device=device,
                                    progress=progress, refit=refit, reuse_key=reuse_key, head_from=head_from,
@@ -580,14 +566,14 @@ def _fit_or_load_locked(spec, method_cls, config, scene: Scene, supervision, *, 
             model = method_cls.load(final / "model", supervision=supervision, device=device)
         except Exception as err:  # noqa: BLE001 - whatever a damaged fit raises, it is fitted again
             if reuse_key is not None:
-                raise InputError(final, "reuse_fit", f"the cached fit {reuse_key!r} is damaged ({reason(err)}); a "
+                raise InputError(final, "cached_key", f"the cached fit {reuse_key!r} is damaged ({reason(err)}); a "
                                  "reused fit is never fitted again") from None
             warn(f"cached fit of {spec.name} on {scene.name} at {final} is damaged ({reason(err)}): fitting again")
         else:
             if hasattr(model, "use_answer_options"):
                 model.use_answer_options(config)  # the fit may have been made with other answer options
             return FitRecord(model, key, True, float(info["fit_seconds"]), float(info["peak_cpu_mib"]),
-                             info.get("peak_gpu_mib"), final, info.get("peak_window", "process"))
+                             info.get("peak_gpu_mib"), final, info.get("peak_window", "process"), head_from)
 
     work = folder / f"{key}.work"
     work.mkdir(parents=True, exist_ok=True)
@@ -599,7 +585,7 @@ def _fit_or_load_locked(spec, method_cls, config, scene: Scene, supervision, *, 
             try:
                 base = method_cls.load(folder / head_from / "model", supervision=supervision, device=device)
             except Exception as err:  # noqa: BLE001 - a damaged base cannot be fitted again under its key
-                raise InputError(folder / head_from, "head_from", f"the cached fit {head_from!r} is damaged "
+                raise InputError(folder / head_from, "head_refit_from", f"the cached fit {head_from!r} is damaged "
                                  f"({reason(err)})") from None
             model = method_cls.refit_head(base, scene, supervision, config, seed=seed, device=device,
                                           progress=progress, work_dir=work)
@@ -630,7 +616,7 @@ def _fit_or_load_locked(spec, method_cls, config, scene: Scene, supervision, *, 
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     shutil.rmtree(work, ignore_errors=True)
-    return FitRecord(model, key, False, fit_seconds, peak_cpu, peak_gpu, final, memory.window())
+    return FitRecord(model, key, False, fit_seconds, peak_cpu, peak_gpu, final, memory.window(), head_from)
 
 
 # -- answering and timing ------------------------------------------------------------------------------
@@ -665,16 +651,82 @@ class RunOutcome:
     """Its content."""
 
 
+@dataclass
+class PreparedRun:
+    """A run's inputs, resolved and checked before anything is fitted: what :func:`obtain_fit`,
+    :func:`answer_queries` and :func:`score_and_write` work on."""
+
+    options: EvalOptions
+    """The run as asked for."""
+    spec: Any
+    """The method's registry entry (:class:`methods.registry.MethodSpec`)."""
+    config: Any
+    """The method's config, with the run's overrides."""
+    protocol: Any
+    """The evaluation protocol (:class:`~benchmark.core.protocol.Protocol`) the model answers and is scored under."""
+    progress: Any
+    """Progress bars and log lines (:class:`methods.api.Progress`; silent under ``quiet``)."""
+    root: Path
+    """The scene's folder (a synthetic preset: its folder in the cache)."""
+    generated: Optional[dict]
+    """Preset, size, seed and digest of a generated scene; None for other scenes."""
+    scene: Scene
+    """The scene, loaded at the run's scale."""
+    annotations: Any
+    """Its ground truth (:class:`~benchmark.core.annotation.AnnotationSet`)."""
+    eval_frames: list
+    """The annotated frames of the scored splits."""
+    supervision: Any
+    """The 2D supervision of the training frames on the run's track."""
+    peak_window: str
+    """``"run"`` when the run's memory peaks are its own, ``"process"`` where the OS keeps one mark."""
+    wall_start: float
+    """``time.perf_counter()`` as the run started."""
+
+
+@dataclass
+class Answers:
+    """A model's answers to a run's queries, in the form ``bench4d score`` reads."""
+
+    predictions: Any
+    """Masks (and time-sensitive scores) per query and evaluated frame
+    (:class:`~benchmark.predictions.ScenePredictions`)."""
+    unanswered: list[str]
+    """Texts of the queries of a kind the model does not answer: listed, not scored."""
+    queries: list
+    """The queries with a ground-truth mask in an evaluated frame, in annotation order."""
+    supported: set[str]
+    """The query kinds the model answers."""
+    frame_of: dict[str, Frame]
+    """The evaluated frames of the scene, by name."""
+    seconds: float
+    """Wall time of answering them all, text encoding included."""
+
+
 def evaluate(options: EvalOptions) -> RunOutcome:
     """Run one evaluation (module docstring) and return the results file and its content."""
-    from benchmark.core.annotation import AnnotationSet, encode_mask  # masks kept as RLE: full-res scenes fit in memory
+    return evaluate_with_fit(options)
+
+
+def evaluate_with_fit(options: EvalOptions, *, cached_key: Optional[str] = None,
+                      head_refit_from: Optional[str] = None) -> RunOutcome:
+    """:func:`evaluate` answering with a fit a study names (see :func:`obtain_fit`): ``cached_key``, the
+    cached fit of that key as it is; ``head_refit_from``, that fit with its time-varying head alone fitted
+    anew under ``options``' config. Without either it is :func:`evaluate`."""
+    prepared = prepare_run(options)
+    fit = obtain_fit(prepared, cached_key=cached_key, head_refit_from=head_refit_from)
+    answers = answer_queries(prepared, fit.model)
+    return score_and_write(prepared, fit, answers)
+
+
+def prepare_run(options: EvalOptions) -> PreparedRun:
+    """Check the run's options and resolve its inputs: method, config, protocol, scene (a preset is
+    generated once), ground truth, evaluated frames and supervision (built once per scene and sources).
+    Starts the run's clock and memory window."""
     from methods import registry
-    from methods.api import Progress, check_agnostic, check_sensitive
-    from methods.api import build_supervision
+    from methods.api import Progress
 
     from .loaders import load_scene
-    from .metrics import ScoreConfig, aggregate_scenes, score_scene
-    from .predictions import QueryPrediction, ScenePredictions, write_predictions
 
     progress = Progress(options.quiet)
     check_folder(options.results_dir, "results_dir")
@@ -694,10 +746,20 @@ def evaluate(options: EvalOptions) -> RunOutcome:
     root = resolve_scene(options.scene, Path(options.cache_dir), size=options.preset_size, log=progress.log)
     generated = _scene_version(root)  # before the fit: a damaged generated folder stops the run now
     scene = load_scene(root) if options.scale is None else load_scene(root, scale=options.scale)
-    aset: AnnotationSet = find_annotations(scene, options.annotations, options.object_query)
+    aset = find_annotations(scene, options.annotations, options.object_query)
     eval_frames = _evaluated_frames(scene, aset, options.splits)
     progress.log(f"{scene.summary()}; scoring {len(eval_frames)} annotated frame(s) of split(s) "
                  f"{'+'.join(options.splits)}")
+    supervision = _run_supervision(options, scene, aset, progress)
+    return PreparedRun(options=options, spec=spec, config=config, protocol=protocol, progress=progress, root=root,
+                       generated=generated, scene=scene, annotations=aset, eval_frames=eval_frames,
+                       supervision=supervision, peak_window=peak_window, wall_start=wall_start)
+
+
+def _run_supervision(options: EvalOptions, scene: Scene, aset, progress):
+    """The run's 2D supervision: the track's sources (``options.sources`` overriding the scene's defaults,
+    :func:`default_sources`), built or read from the cache."""
+    from methods.api import build_supervision
 
     sources = dict(options.sources) or default_sources(scene, options.track)
     source_options = {kind: dict(opts) for kind, opts in options.source_options.items()}
@@ -705,111 +767,173 @@ def evaluate(options: EvalOptions) -> RunOutcome:
         source_options.setdefault("image_text", {})["object_name"] = whole_object_name(aset, options.object_query)
     if sources:
         progress.log(f"supervision sources: {sources}")
-    supervision = build_supervision(scene, options.track, cache_dir=options.cache_dir,
-                                    text_encoder=options.text_encoder, sources=sources or None,
-                                    source_options=source_options, device=options.device,
-                                    progress=progress)
-    fit = fit_or_load(spec, config, scene, supervision, seed=options.seed, device=options.device,
-                      cache_dir=Path(options.cache_dir), progress=progress, refit=options.refit,
-                      reuse_key=options.reuse_fit, head_from=options.head_from)
-    progress.log(f"{spec.name}: {'loaded cached fit' if fit.cached else 'fitted'} in {fit.fit_seconds:.2f} s")
-    model = fit.model
-    model.use_protocol(protocol)
-    supported = set(spec.queries) & set(getattr(model, "supports", spec.queries))
+    return build_supervision(scene, options.track, cache_dir=options.cache_dir, text_encoder=options.text_encoder,
+                             sources=sources or None, source_options=source_options, device=options.device,
+                             progress=progress)
 
-    frame_of = {f.name: scene.frame(f.name) for f in eval_frames}
-    size_of = {f.name: (f.height, f.width) for f in eval_frames}
+
+def obtain_fit(prepared: PreparedRun, *, cached_key: Optional[str] = None,
+               head_refit_from: Optional[str] = None) -> FitRecord:
+    """The run's fit: the cached one of its key, or a new fit cached under it (:func:`fit_or_load`).
+
+    Two hooks let a study answer with the very fits a results file was scored with after code changes
+    have moved the keys: ``cached_key`` (a results file's ``fit.key``) answers with the cached fit of that
+    key, whatever the key would be now; missing or damaged, it is an :class:`InputError`, never a refit.
+    ``head_refit_from`` fits only the method's time-varying head anew (under the run's config) on the
+    cached fit of that key, keeping its geometry, time-agnostic field and autoencoder. Give one at most."""
+    options = prepared.options
+    fit = fit_or_load(prepared.spec, prepared.config, prepared.scene, prepared.supervision, seed=options.seed,
+                      device=options.device, cache_dir=Path(options.cache_dir), progress=prepared.progress,
+                      refit=options.refit, reuse_key=cached_key, head_from=head_refit_from)
+    prepared.progress.log(f"{prepared.spec.name}: {'loaded cached fit' if fit.cached else 'fitted'} in "
+                          f"{fit.fit_seconds:.2f} s")
+    return fit
+
+
+def answer_queries(prepared: PreparedRun, model) -> Answers:
+    """``model``'s answers, under the run's protocol, to every query with a ground-truth mask in an
+    evaluated frame: masks at the annotations' resolution, time-sensitive scores per frame. A query of a
+    kind the model does not answer is listed in ``unanswered`` (and in the predictions' ``info``)."""
+    from .predictions import ScenePredictions
+
+    spec, aset, options = prepared.spec, prepared.annotations, prepared.options
+    model.use_protocol(prepared.protocol)
+    supported = set(spec.queries) & set(getattr(model, "supports", spec.queries))
+    frame_of = {f.name: prepared.scene.frame(f.name) for f in prepared.eval_frames}
+    size_of = {f.name: (f.height, f.width) for f in prepared.eval_frames}
     predictions = ScenePredictions(scene=aset.scene, method=spec.name,
                                    info={"track": options.track, "seed": options.seed})
     unanswered = []
-    answer_start = time.perf_counter()
+    start = time.perf_counter()
     queries = [q for q in aset.queries if _query_frames(aset, q, frame_of)]
     if hasattr(model, "prepare"):
         model.prepare(prepared_texts(aset, frame_of, supported))
-    for query in progress(queries, desc=f"queries ({spec.name})", total=len(queries)):
+    for query in prepared.progress(queries, desc=f"queries ({spec.name})", total=len(queries)):
         if query.kind not in supported:
             unanswered.append(query.text)
             continue
         names = _query_frames(aset, query, frame_of)
-        frames = [frame_of[n] for n in names]
-        who = f"method {spec.name!r}, query {query.text!r}"
-        masks: dict[str, dict] = {}
-        scores: dict[str, float] = {}
-        step = max(1, options.query_batch)
-        for start in range(0, len(frames), step):  # in chunks: answers at full resolution add up
-            chunk, chunk_names = frames[start:start + step], names[start:start + step]
-            if query.kind == "agnostic":
-                answers = model.query_agnostic(query.text, chunk)
-                check_agnostic(answers, chunk, who)
-            else:
-                answers = model.query_sensitive(query.text, chunk)
-                check_sensitive(answers, chunk, who)
-                scores.update({n: float(a.score) for n, a in zip(chunk_names, answers)})
-            masks.update({n: encode_mask(to_size(a.mask, size_of[n])) for n, a in zip(chunk_names, answers)})
-        predictions.add(QueryPrediction(text=query.text, kind=query.kind, masks=masks, scores=scores))
-    answer_seconds = time.perf_counter() - answer_start
-
+        predictions.add(_answer_query(model, query, names, [frame_of[n] for n in names], size_of,
+                                      batch=options.query_batch, who=f"method {spec.name!r}, query {query.text!r}"))
+    seconds = time.perf_counter() - start
     # written with the predictions, so `bench4d score` of the folder scores exactly what this run scores
     predictions.info["unanswered_queries"] = list(unanswered)
-    score_config = ScoreConfig(temporal=protocol.temporal,
-                               eval_frames=tuple(sorted(frame_of)), allow_extra=False)
-    scene_score = score_scene(aset, predictions, score_config)
-    score_doc = aggregate_scenes([scene_score]).to_json(include_frames=True)
+    return Answers(predictions, unanswered, queries, supported, frame_of, seconds)
 
+
+def _answer_query(model, query, names: list[str], frames: list[Frame], size_of: dict, *, batch: int, who: str):
+    """One query's answers on ``frames`` (named ``names``), checked, in chunks of ``batch`` frames (answers at
+    full resolution add up), masks resized to ``size_of`` each frame."""
+    from benchmark.core.annotation import encode_mask  # masks kept as RLE: full-res scenes fit in memory
+    from methods.api import check_agnostic, check_sensitive
+
+    from .predictions import QueryPrediction
+
+    masks: dict[str, dict] = {}
+    scores: dict[str, float] = {}
+    step = max(1, batch)
+    for start in range(0, len(frames), step):
+        chunk, chunk_names = frames[start:start + step], names[start:start + step]
+        if query.kind == "agnostic":
+            answers = model.query_agnostic(query.text, chunk)
+            check_agnostic(answers, chunk, who)
+        else:
+            answers = model.query_sensitive(query.text, chunk)
+            check_sensitive(answers, chunk, who)
+            scores.update({n: float(a.score) for n, a in zip(chunk_names, answers)})
+        masks.update({n: encode_mask(to_size(a.mask, size_of[n])) for n, a in zip(chunk_names, answers)})
+    return QueryPrediction(text=query.text, kind=query.kind, masks=masks, scores=scores)
+
+
+def score_and_write(prepared: PreparedRun, fit: FitRecord, answers: Answers) -> RunOutcome:
+    """Score the answers with the protocol's temporal rule, time the model's queries, and write the
+    predictions and then the results file (module docstring, steps 4 to 6)."""
+    from .metrics import ScoreConfig, aggregate_scenes, score_scene
+
+    score_config = ScoreConfig(temporal=prepared.protocol.temporal,
+                               eval_frames=tuple(sorted(answers.frame_of)), allow_extra=False)
+    scene_score = score_scene(prepared.annotations, answers.predictions, score_config)
+    score_doc = aggregate_scenes([scene_score]).to_json(include_frames=True)
+    timing = query_timing(prepared, fit, answers)
+    peak_gpu_total = memory.peak_gpu_mib(prepared.options.device)
+
+    options, scene = prepared.options, prepared.scene
+    out_path = results_path(options.results_dir, dataset_label(scene), scene.name, prepared.spec.name, options.track,
+                            options.seed)
+    pred_dir = out_path.with_name(out_path.stem + ".predictions")
+    results = results_document(prepared, fit, answers, score_config, score_doc, timing, peak_gpu_total,
+                               predictions=str(pred_dir.relative_to(out_path.parent) / "predictions.json"))
+    write_run(out_path, pred_dir, answers.predictions, results, prepared)
+    return RunOutcome(out_path, results)
+
+
+def query_timing(prepared: PreparedRun, fit: FitRecord, answers: Answers) -> dict[str, Any]:
+    """The results file's ``timing``: the fit's seconds, answering's, and per query kind the time of its
+    first query's single-frame calls (:func:`time_queries`)."""
+    options, model = prepared.options, fit.model
     timing: dict[str, Any] = {
-        "fit_seconds": fit.fit_seconds, "fit_cached": fit.cached, "answer_all_seconds": answer_seconds,
+        "fit_seconds": fit.fit_seconds, "fit_cached": fit.cached, "answer_all_seconds": answers.seconds,
         "note": "query_*: median seconds of single-frame calls after one warm-up call; query text embeddings are "
                 "cached per text, so these exclude text encoding (answer_all_seconds includes it)"}
     for kind in ("agnostic", "sensitive"):
-        first = next((q for q in queries if q.kind == kind and kind in supported), None)
+        first = next((q for q in answers.queries if q.kind == kind and kind in answers.supported), None)
         if first is not None:
-            frames = [frame_of[n] for n in _query_frames(aset, first, frame_of)]
+            frames = [answers.frame_of[n] for n in _query_frames(prepared.annotations, first, answers.frame_of)]
             timing[f"query_{kind}"] = time_queries(model, kind, first.text, frames, device=options.device,
                                                    num_frames=options.timing_frames, repeats=options.timing_repeats)
-    peak_gpu_total = memory.peak_gpu_mib(options.device)
+    return timing
 
-    dataset = dataset_label(scene)
-    out_path = results_path(options.results_dir, dataset, scene.name, spec.name, options.track, options.seed)
-    pred_dir = out_path.with_name(out_path.stem + ".predictions")
-    results = {
-        "method": spec.name, "dataset": dataset, "scene": scene.name, "layout": scene.dataset, "track": options.track,
-        "seed": options.seed, "splits": list(options.splits),
-        "metrics": score_doc["metrics"]["dataset"],
-        "unanswered_queries": unanswered,
-        "timing": timing,
-        "memory": {"peak_cpu_mib": memory.peak_cpu_mib(), "peak_cpu_fit_mib": fit.peak_cpu_mib,
-                   "peak_gpu_mib": peak_gpu_total, "peak_gpu_fit_mib": fit.peak_gpu_mib,
-                   "peak_window": peak_window, "peak_fit_window": fit.peak_window,
-                   "note": "CPU peaks: high-water resident memory of this run (peak_window 'run'; "
-                           "'process': the OS could not reset it, the process's peak so far); fit peak: the "
-                           "fit's own (a cached fit reports its original peak); stages reused from the shared "
-                           "cache record theirs in fit.info (benchmark/memory.py)"},
-        "method_config": config_dict(config),
-        "fit": {"key": fit.key, "cached": fit.cached, "code_version": str(getattr(spec.load(), "code_version", "1")),
-                **({"head_refit_of": options.head_from} if options.head_from else {}),
-                "info": _jsonable(model.describe()) if hasattr(model, "describe") else None},
-        "supervision": supervision.describe(),
-        "environment": {"packages": package_versions(), "git": git_state(),
-                        "code_changed_during_run": code_changed_since_start(), **device_description(options.device),
-                        "torch_threads": _torch_threads(), "concurrent_runs": options.concurrent_runs},
-        "scene_info": {"root": str(root), "summary": scene.summary(), "annotations": aset.info.get("source"),
-                       "scale": options.scale, "generated": generated},
-        "protocol": protocol.to_dict(),
-        "score_config": score_config.to_dict(),
-        "scores": {"queries": score_doc["queries"], "skipped": score_doc["skipped"], "frames": score_doc["frames"]},
-        "predictions": str(pred_dir.relative_to(out_path.parent) / "predictions.json"),
-        "wall_seconds": time.perf_counter() - wall_start,
-        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-    }
+
+def results_document(prepared: PreparedRun, fit: FitRecord, answers: Answers, score_config, score_doc: dict,
+                     timing: dict, peak_gpu_total: Optional[float], *, predictions: str) -> RunResults:
+    """The results file's content (:class:`~benchmark.results.RunResults`) of a scored run."""
+    options, spec, scene, model = prepared.options, prepared.spec, prepared.scene, fit.model
+    return RunResults(
+        method=spec.name, dataset=dataset_label(scene), scene=scene.name, layout=scene.dataset, track=options.track,
+        seed=options.seed, splits=list(options.splits),
+        metrics=score_doc["metrics"]["dataset"],
+        unanswered_queries=answers.unanswered,
+        timing=timing,
+        memory={"peak_cpu_mib": memory.peak_cpu_mib(), "peak_cpu_fit_mib": fit.peak_cpu_mib,
+                "peak_gpu_mib": peak_gpu_total, "peak_gpu_fit_mib": fit.peak_gpu_mib,
+                "peak_window": prepared.peak_window, "peak_fit_window": fit.peak_window,
+                "note": "CPU peaks: high-water resident memory of this run (peak_window 'run'; "
+                        "'process': the OS could not reset it, the process's peak so far); fit peak: the "
+                        "fit's own (a cached fit reports its original peak); stages reused from the shared "
+                        "cache record theirs in fit.info (benchmark/memory.py)"},
+        method_config=config_dict(prepared.config),
+        fit={"key": fit.key, "cached": fit.cached, "code_version": spec.code_digest(),
+             **({"head_refit_of": fit.head_refit_of} if fit.head_refit_of else {}),
+             "info": json_ready(model.describe()) if hasattr(model, "describe") else None},
+        supervision=prepared.supervision.describe(),
+        environment={"packages": package_versions(), "git": git_state(),
+                     "code_changed_during_run": code_changed_since_start(), **device_description(options.device),
+                     "torch_threads": _torch_threads(), "concurrent_runs": options.concurrent_runs},
+        scene_info={"root": str(prepared.root), "summary": scene.summary(),
+                    "annotations": prepared.annotations.info.get("source"), "scale": options.scale,
+                    "generated": prepared.generated},
+        protocol=prepared.protocol.to_dict(),
+        score_config=score_config.to_dict(),
+        scores={"queries": score_doc["queries"], "skipped": score_doc["skipped"], "frames": score_doc["frames"]},
+        predictions=predictions,
+        wall_seconds=time.perf_counter() - prepared.wall_start,
+        created=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+    )
+
+
+def write_run(out_path: Path, pred_dir: Path, predictions, results: RunResults, prepared: PreparedRun) -> None:
+    """Write the predictions to ``pred_dir`` and then ``results`` to ``out_path``, each atomically; an
+    earlier file of the same run is moved to the archive first (:func:`keep_replaced`)."""
+    from .predictions import write_predictions
+
     # archive, predictions, results: one writer of this file at a time, so a run finishing beside an
     # identical one archives the other's record instead of overwriting it
     with results_lock(out_path):
         if out_path.is_file():  # a rerun never destroys what was measured before
-            moved = keep_replaced(out_path, options.results_dir)
-            progress.log(f"{out_path}: an earlier run of this method, scene, track and seed moved to {moved}")
+            moved = keep_replaced(out_path, prepared.options.results_dir)
+            prepared.progress.log(f"{out_path}: an earlier run of this method, scene, track and seed moved to {moved}")
         write_predictions(pred_dir, predictions, overwrite=True)
         write_results(out_path, results)
-    return RunOutcome(out_path, results)
 
 
 def keep_replaced(path: Path, results_dir: str | Path) -> Path:
@@ -830,17 +954,6 @@ def keep_replaced(path: Path, results_dir: str | Path) -> Path:
         n += 1
         label = f"replaced-{stamp}-{n}"
     return archive_results(path, results_dir, label)
-
-
-def _jsonable(obj: Any) -> Any:
-    """``obj`` with numpy / torch scalars and arrays made JSON-serialisable (lists of numbers)."""
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if hasattr(obj, "tolist"):
-        return obj.tolist()
-    return obj
 
 
 def to_size(mask, size: tuple[int, int]):

@@ -137,8 +137,6 @@ class Method(abc.ABC):
 
     supports: ClassVar[frozenset[str]] = frozenset(QUERY_KINDS)
     """Query kinds the fitted models answer."""
-    code_version: ClassVar[str] = "1"
-    """Bump to invalidate cached fits when behaviour changes in a way the source hash misses."""
     resumable: ClassVar[bool] = False
     """True when :meth:`fit` writes intermediate checkpoints into ``work_dir`` and resumes from them."""
 

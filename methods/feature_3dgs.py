@@ -10,7 +10,7 @@ time-agnostic baseline; here it is built as follows.
   jointly with RGB (and densifies on both); the shared frozen geometry makes the comparison with
   ``deformable-clip`` and ``4d-langsplat`` about the feature field alone. Features do not deform.
 * **Target**: at each training frame, pixel p gets the feature of the mask covering p at ONE SAM
-  level (``feature_level``); pixels no mask covers get the ``unmasked_text`` passage embedding
+  level (``feature.level``); pixels no mask covers get the ``extensions.unmasked_text`` passage embedding
   (:func:`~methods.language_methods.with_unmasked_as`), as for the language fields. Feature 3DGS
   distils one feature map per image, with no hierarchy, so each pixel must carry one granularity:
   the middle level (parts, and wholes that have none) lies between the two others, so a whole is
@@ -22,7 +22,7 @@ time-agnostic baseline; here it is built as follows.
 * **Query**: render at the frame's camera and time, decode, LERF relevance against the canonical
   phrases, then the protocol's smoothing, min-max threshold and majority filter on that one level
   (:func:`~methods.fields.relevance.answer_from_relevance`). Pixels whose accumulated opacity is below
-  ``uncovered_alpha`` read as ``unmasked_text``. The features carry no time, so time-sensitive
+  ``answer.uncovered_alpha`` read as ``extensions.unmasked_text``. The features carry no time, so time-sensitive
   queries are not answered.
 """
 
@@ -47,13 +47,14 @@ from benchmark.core.scene import Camera, Frame, Scene
 from .api import AgnosticAnswer, Method, Progress
 from .fields.language_field import FrozenGeometry, GaussianState, LanguageField, LanguageFieldConfig
 from .fields.relevance import answer_from_relevance, relevance
-from .language_methods import (config_from_dict, device_kind, scene_cache_folder, config_to_dict, fit_geometry, shared_cache_root,
-                               source_hash, with_unmasked_as)
+from .language_methods import (config_to_dict, device_kind, fit_geometry, scene_cache_folder, shared_cache_root,
+                               with_unmasked_as)
 from .fields.texts import EncodedQueryModel
 from .fields.views import ViewCycle
+from .specs._recorded import config_from_record
 from .specs.feature_3dgs import FEATURE_LEVEL_NAMES, Feature3DGSConfig
 from .supervision.base import Supervision, TextEncoder
-from benchmark.core.cache_keys import stable_hash
+from benchmark.core.cache_keys import code_digest, stable_hash
 
 METHOD_NAME = "feature-3dgs"
 GEOMETRY_KIND = "4dgs"
@@ -61,13 +62,8 @@ MODEL_FILE = "feature_3dgs.pt"
 META_FILE = "feature_3dgs.json"
 CACHE_PREFIX = "feature3dgs"
 
-_HERE = Path(__file__).resolve().parent
-FIT_SOURCES = (Path(__file__).resolve(), _HERE / "fields" / "language_field.py")
-"""Files whose content defines a feature fit (part of its cache key; the geometry's own key covers the
-Gaussian core)."""
-FIT_OPTIONS = ("feature_dim", "feature_level", "feature_iterations", "feature_learning_rate",
-               "decoder_learning_rate", "unmasked_text", "render_backend")
-"""Config fields a feature fit depends on, beyond the geometry's."""
+FIT_CODE = "methods.feature_3dgs"
+"""The module that runs a feature fit (this one): its code digest is part of the feature cache key."""
 TRAIN_PIXEL_CHUNK = 1 << 15
 """Pixels decoded at once in training: each [chunk, D] temporary of the loss is 64 MiB at D = 512,
 whatever the image size. Fixed, not an option: the chunking sets the order of float sums, so it must
@@ -194,17 +190,18 @@ def train_feature_field(geometry: FrozenGeometry, targets: Sequence[FeatureTarge
     device = geometry.device
     with torch.random.fork_rng(devices=[]):  # the decoder's initial weights depend on the seed only
         torch.manual_seed(seed)
-        fld = FeatureField(geometry.num_gaussians, config.feature_dim, output_dim,
-                           render_backend=config.render_backend, device=device)
-    opt = torch.optim.Adam([{"params": [fld.features], "lr": config.feature_learning_rate},
-                            {"params": list(fld.decoder.parameters()), "lr": config.decoder_learning_rate}])
+        fld = FeatureField(geometry.num_gaussians, config.feature.dim, output_dim,
+                           render_backend=config.geometry.render_backend, device=device)
+    opt = torch.optim.Adam([{"params": [fld.features], "lr": config.feature.learning_rate},
+                            {"params": list(fld.decoder.parameters()), "lr": config.feature.decoder_learning_rate}])
     views = ViewCycle(geometry, [t.time for t in targets], seed,
                       LanguageFieldConfig().cache_view_geometry_mib * 2 ** 20)
     losses: list[float] = []
     loss_value = float("nan")
-    steps = range(config.feature_iterations)
+    iterations = config.feature.iterations
+    steps = range(iterations)
     if progress is not None:
-        steps = progress(steps, desc="feature field", total=config.feature_iterations)
+        steps = progress(steps, desc="feature field", total=iterations)
     start = time.perf_counter()
     for step in steps:
         view, state = views.next()
@@ -213,13 +210,13 @@ def train_feature_field(geometry: FrozenGeometry, targets: Sequence[FeatureTarge
         rendered, _ = fld.render_with_alpha(state, target.camera)  # [H, W, C]
         loss = l1_backward(fld.decoder, rendered, target)
         opt.step()
-        if step % max(1, log_every) == 0 or step == config.feature_iterations - 1:
+        if step % max(1, log_every) == 0 or step == iterations - 1:
             loss_value = loss
             losses.append(loss)
     seconds = time.perf_counter() - start
     fraction = float(np.mean([float((t.index >= 0).float().mean()) for t in targets]))
     fld.requires_grad_(False)
-    return fld, FeatureReport(config.feature_iterations, seconds, loss_value, losses, fraction)
+    return fld, FeatureReport(iterations, seconds, loss_value, losses, fraction)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -235,10 +232,12 @@ class FeatureFit:
 
 def feature_cache_key(geometry_key: str, supervision: Supervision, config: Feature3DGSConfig, seed: int,
                       device: str) -> str:
-    """Key of a feature fit: geometry, supervision, the options of :data:`FIT_OPTIONS`, seed, device kind, code."""
-    return stable_hash({"geometry": geometry_key, "supervision": supervision.fingerprint,
-                        "options": {name: getattr(config, name) for name in FIT_OPTIONS}, "seed": seed,
-                        "device": device_kind(device), "code": source_hash(FIT_SOURCES)}, 24)
+    """Key of a feature fit: geometry, supervision, the options it depends on beyond the geometry's (the
+    ``feature`` group, ``extensions.unmasked_text``, the rasterizer), seed, device kind, code."""
+    options = {"feature": config_to_dict(config.feature), "unmasked_text": config.extensions.unmasked_text,
+               "render_backend": config.geometry.render_backend}
+    return stable_hash({"geometry": geometry_key, "supervision": supervision.fingerprint, "options": options,
+                        "seed": seed, "device": device_kind(device), "code": code_digest(FIT_CODE)}, 24)
 
 
 def feature_cache_path(cache_root: Path, scene: Scene, key: str) -> Path:
@@ -268,8 +267,8 @@ def _cached_field(path: Path, key: str, geometry: FrozenGeometry, output_dim: in
         saved = torch.load(path, map_location=device, weights_only=True)
         if saved.get("key") != key:
             return None
-        fld = _field_from_state(saved["field"], geometry.num_gaussians, config.render_backend, device)
-        if fld.feature_dim != config.feature_dim or fld.output_dim != output_dim:
+        fld = _field_from_state(saved["field"], geometry.num_gaussians, config.geometry.render_backend, device)
+        if fld.feature_dim != config.feature.dim or fld.output_dim != output_dim:
             return None
         return fld, json.loads(saved["info"])
     except Exception:  # a corrupt or incompatible cache file is refitted, never trusted
@@ -281,7 +280,7 @@ def fit_feature_field(scene: Scene, supervision: Supervision, config: Feature3DG
     """The shared 4D-GS and the feature field of ``scene`` (each cached when ``cache_root`` is given)."""
     geo = fit_geometry(scene, GEOMETRY_KIND, config, seed=seed, device=device, progress=progress,
                        cache_root=cache_root)
-    supervision = with_unmasked_as(supervision, config.unmasked_text)
+    supervision = with_unmasked_as(supervision, config.extensions.unmasked_text)
     output_dim = int(supervision.feature_dim)
     key = feature_cache_key(geo.key, supervision, config, seed, device)
     path = None if cache_root is None else feature_cache_path(cache_root, scene, key)
@@ -294,21 +293,21 @@ def fit_feature_field(scene: Scene, supervision: Supervision, config: Feature3DG
                                                   "cached": {"geometry": geo.cached, "field": True}})
         progress.log(f"feature field: {path.name} is unreadable or not this fit's; refitting")
 
-    level = int(config.feature_level)
+    level = int(config.feature.level)
     with StagePeak(device) as peak:  # reused from the cache by other runs, which are charged this peak
         targets = feature_targets(scene, supervision, level, device)
         if not targets:
             raise InputError(None, "supervision", f"no training frame has a mask at level {level} "
-                             f"({FEATURE_LEVEL_NAMES[level]}, feature_level) and unmasked_text is unset: "
+                             f"({FEATURE_LEVEL_NAMES[level]}, feature.level) and extensions.unmasked_text is unset: "
                              "the feature field has nothing to learn")
-        progress.log(f"feature field: {config.feature_dim} channels decoded to {output_dim}, "
+        progress.log(f"feature field: {config.feature.dim} channels decoded to {output_dim}, "
                      f"{FEATURE_LEVEL_NAMES[level]} masks of {len(targets)} training views")
         fld, report = train_feature_field(geo.geometry, targets, config, output_dim=output_dim, seed=seed,
                                           progress=progress)
     info = {"key": key,
             "field": {"iterations": report.iterations, "seconds": report.seconds, "final_loss": report.final_loss,
                       "losses": report.losses, "supervised_fraction": report.supervised_fraction,
-                      "views": len(targets), "level": FEATURE_LEVEL_NAMES[level], "feature_dim": config.feature_dim,
+                      "views": len(targets), "level": FEATURE_LEVEL_NAMES[level], "feature_dim": config.feature.dim,
                       "output_dim": output_dim, **peak.record()}}
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -342,10 +341,8 @@ class Feature3DGSModel(EncodedQueryModel):
         self._rendered_cache: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}  # frame name -> (features, alpha)
 
     def use_answer_options(self, config: Feature3DGSConfig) -> None:
-        """Answer with ``config``'s answer options (:attr:`LanguageMethodConfig.ANSWER_OPTIONS`), the fitted
-        state unchanged."""
-        answer = {k: getattr(config, k) for k in type(config).ANSWER_OPTIONS}
-        self.config = dataclasses.replace(self.config, **answer)
+        """Answer with ``config``'s ``answer`` group, the fitted state unchanged."""
+        self.config = dataclasses.replace(self.config, answer=config.answer)
 
     def describe(self) -> dict:
         """What the fit did (geometry and feature field: seconds, peaks, loss), for the results file."""
@@ -385,16 +382,17 @@ class Feature3DGSModel(EncodedQueryModel):
     def relevance_map(self, text: str, frame: Frame) -> torch.Tensor:
         """[H, W] LERF relevance of ``text`` at every pixel of ``frame``, before smoothing.
 
-        Covered pixels are decoded ``decode_chunk`` at a time, never the whole [H, W, D] map; pixels whose
-        opacity is below ``uncovered_alpha`` take the relevance of the ``unmasked_text`` embedding.
+        Covered pixels are decoded ``answer.decode_chunk`` at a time, never the whole [H, W, D] map; pixels
+        whose opacity is below ``answer.uncovered_alpha`` take the relevance of the ``extensions.unmasked_text``
+        embedding.
         """
         rendered, alpha = self.render(frame)  # [H, W, C], [H, W]
         query, canon = self.query_embedding(text), self.canonical()
         temperature = self.relevance_cfg.temperature
         flat = rendered.reshape(-1, rendered.shape[-1])  # [H W, C]
         out = flat.new_empty(flat.shape[0])  # [H W]
-        background = self.config.unmasked_text
-        uncovered = (alpha < self.config.uncovered_alpha).reshape(-1) if background else None
+        background = self.config.extensions.unmasked_text
+        uncovered = (alpha < self.config.answer.uncovered_alpha).reshape(-1) if background else None
         if uncovered is not None and bool(uncovered.any()):
             embedding = torch.as_tensor(self.text_encoder.encode([background], kind="passage")[0],
                                         dtype=flat.dtype, device=flat.device)  # [D]
@@ -403,7 +401,7 @@ class Feature3DGSModel(EncodedQueryModel):
         else:
             rows = None
         count = flat.shape[0] if rows is None else rows.numel()
-        chunk = self.config.decode_chunk_for(self.device)
+        chunk = self.config.answer.decode_chunk_for(self.device)
         for start in range(0, count, chunk):
             if rows is None:
                 out[start:start + chunk] = relevance(self.field.decoder(flat[start:start + chunk]), query, canon,
@@ -450,10 +448,10 @@ class Feature3DGS(Method):
     def load(cls, directory: Path, *, supervision: Supervision, device: str) -> Feature3DGSModel:
         directory = Path(directory)
         meta: dict[str, Any] = json.loads((directory / META_FILE).read_text())
-        config = config_from_dict(cls.config_class, meta["config"])
+        config = config_from_record(cls.config_class, meta["config"], what=f"{directory / META_FILE}: config")
         state = torch.load(directory / MODEL_FILE, map_location=device, weights_only=True)
         geometry = FrozenGeometry.from_state_dict(state["geometry"], device)
-        fld = _field_from_state(state["field"], geometry.num_gaussians, config.render_backend, device)
+        fld = _field_from_state(state["field"], geometry.num_gaussians, config.geometry.render_backend, device)
         if fld.output_dim != supervision.feature_dim:
             raise InputError(directory / MODEL_FILE, "supervision",
                              f"the decoder outputs {fld.output_dim}-d features but the supervision's text encoder "

@@ -16,7 +16,7 @@ from typing import ClassVar, Optional
 
 from .language_methods import LanguageFieldMethod, TimeVaryingHead
 from .specs.four_d_langsplat import FourDLangSplatConfig
-from .time_sensitive import TIME_VARYING_CODE, StatusHead
+from .time_sensitive import StatusHead
 
 
 class FourDLangSplat(LanguageFieldMethod):
@@ -26,4 +26,3 @@ class FourDLangSplat(LanguageFieldMethod):
     time_varying_head: ClassVar[Optional[type[TimeVaryingHead]]] = StatusHead
     supports = frozenset({"agnostic", "sensitive"})
     config_class = FourDLangSplatConfig
-    code_version = LanguageFieldMethod.code_version + "-tv-" + TIME_VARYING_CODE

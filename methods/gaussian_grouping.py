@@ -7,7 +7,7 @@ per pixel into the scene's mask identities; a query selects the identities whose
 * **Geometry**: the 4D-GS the other 4D language methods use (:func:`~methods.language_methods.fit_geometry`,
   same options, so one cached fit per scene and seed serves them all), frozen. The original trains the
   identity encodings jointly with RGB; here only encodings and classifier are optimised.
-* **Identities** (:func:`build_identities`): the masks of ONE SAM level (``identity_level``, default 2 =
+* **Identities** (:func:`build_identities`): the masks of ONE SAM level (``identity.level``, default 2 =
   large, whole objects: the original's SAM "everything" masks), made consistent over time as the
   original's DEVA tracking makes them: an identity means the same thing in every training frame.
   Masks whose features are equal (to 1e-6, as :func:`~methods.language_methods.distinct_features`
@@ -17,22 +17,22 @@ per pixel into the scene's mask identities; a query selects the identities whose
   supervision cache relabels every frame to 0..M-1 (:func:`~methods.supervision.base.relabel_levels`),
   dropping them. So on the real track masks of consecutive training frames of one camera are linked
   here again by overlap, with the segmenters' own rule
-  (:class:`~methods.supervision.association.TemporalAssociator`, IoU above ``association_min_iou``).
+  (:class:`~methods.supervision.association.TemporalAssociator`, IoU above ``association.min_iou``).
   Cameras are not linked to each other. Pixels no mask covers are one more identity whose feature is
-  the passage embedding of ``unmasked_text`` (:func:`~methods.language_methods.with_unmasked_as`).
+  the passage embedding of ``extensions.unmasked_text`` (:func:`~methods.language_methods.with_unmasked_as`).
   Each identity keeps its encoder feature, the L2-normalised mean of its masks' features: this makes
   the method open-vocabulary.
-* **Fit** (:func:`train_identity_field`): per-Gaussian encodings of ``identity_dim`` channels rendered
+* **Fit** (:func:`train_identity_field`): per-Gaussian encodings of ``identity.dim`` channels rendered
   by the language field's rasterizer, a linear classifier to the identities, cross-entropy against each
   training frame's identity map (divided by log of the number of identities, as the original), plus
-  the original's 3D regulariser every ``identity_reg_interval`` steps: for a random sample of Gaussians
+  the original's 3D regulariser every ``identity.reg_interval`` steps: for a random sample of Gaussians
   at the view's time, the KL divergence between each one's identity distribution and those of its
-  ``identity_reg_k`` nearest Gaussians (itself included, as the original). Adam; seeded. Cached per
+  ``identity.reg_k`` nearest Gaussians (itself included, as the original). Adam; seeded. Cached per
   (geometry, supervision, options, seed, device kind, code) beside the shared geometry.
 * **Query** (time-agnostic only): LERF relevance of every identity's feature against the query and
   the canonical phrases, with the evaluation protocol's temperature and phrases
   (:attr:`methods.api.Model.protocol`); the identity encodings rendered at the frame's camera and time and classified
-  per pixel (argmax; pixels of accumulated opacity below ``uncovered_alpha`` are the unmasked
+  per pixel (argmax; pixels of accumulated opacity below ``answer.uncovered_alpha`` are the unmasked
   identity); the pixel's relevance is its identity's; then the protocol's smoothing, min-max threshold
   and majority filter (:func:`~methods.fields.relevance.answer_from_relevance`) on that single map.
 """
@@ -53,6 +53,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from benchmark.core.atomic import atomic_path, write_json
+from benchmark.core.cache_keys import code_digest, stable_hash
 from benchmark.core.errors import InputError
 from benchmark.core.memory import StagePeak
 from benchmark.core.scene import Camera, Frame, Scene
@@ -60,10 +61,11 @@ from benchmark.core.scene import Camera, Frame, Scene
 from .api import AgnosticAnswer, Method, Progress
 from .fields.language_field import FrozenGeometry, GaussianState, camera_tensors
 from .fields.relevance import AgnosticResult, answer_from_relevance, relevance
-from .language_methods import (FIELD_FIT_VERSION, GeometryFit, device_kind, scene_cache_folder, config_from_dict, config_to_dict,
-                               fit_geometry, shared_cache_root, source_hash, with_unmasked_as)
+from .language_methods import (GeometryFit, config_to_dict, device_kind, fit_geometry, scene_cache_folder,
+                               shared_cache_root, with_unmasked_as)
 from .fields.texts import EncodedQueryModel
 from .fields.views import ViewCycle
+from .specs._recorded import config_from_record
 from .specs.gaussian_grouping import GaussianGroupingConfig
 from .supervision.association import AssociationConfig, TemporalAssociator
 from .supervision.base import LEVELS, Supervision, TextEncoder
@@ -72,11 +74,8 @@ MODEL_FILE = "gaussian_grouping.pt"
 META_FILE = "gaussian_grouping.json"
 GEOMETRY_KIND = "4dgs"
 
-_HERE = Path(__file__).resolve().parent
-IDENTITY_FIT_SOURCES = (Path(__file__).resolve(), _HERE / "supervision" / "association.py",
-                        _HERE / "fields" / "language_field.py")
-"""Files whose content defines an identity fit (part of its cache key, with the geometry's key and
-:data:`~methods.language_methods.FIELD_FIT_VERSION`, which versions :func:`with_unmasked_as`)."""
+IDENTITY_FIT_CODE = "methods.gaussian_grouping"
+"""The module that runs an identity fit (this one): its code digest is part of the identity cache key."""
 
 SH_C0 = 0.28209479177387814
 """Degree-0 spherical-harmonic constant: the original initialises encodings as ``RGB2SH(rand)``."""
@@ -99,13 +98,13 @@ class IdentityTable:
     frame_names: list[str]
     """Supervised training frames, in the supervision's order."""
     maps: list[np.ndarray]
-    """Per frame, (H, W) int64 identity of each pixel; -1 = none (only without ``unmasked_text``)."""
+    """Per frame, (H, W) int64 identity of each pixel; -1 = none (only without ``extensions.unmasked_text``)."""
     features: np.ndarray
     """(K, D) float32 L2-normalised feature of each identity: the mean of its masks' features."""
     mask_counts: np.ndarray
     """(K,) int64 number of (frame, mask) pairs of each identity."""
     unmasked: int
-    """Index of the identity of pixels no mask covers; -1 = none (``unmasked_text`` is ``None``)."""
+    """Index of the identity of pixels no mask covers; -1 = none (``extensions.unmasked_text`` is ``None``)."""
 
     @property
     def num_identities(self) -> int:
@@ -113,10 +112,10 @@ class IdentityTable:
 
 
 def uses_overlap_association(config: GaussianGroupingConfig, track: str) -> bool:
-    """Whether masks are linked over time by overlap (``overlap_association``; ``"auto"``: real track)."""
-    if config.overlap_association == "auto":
+    """Whether masks are linked over time by overlap (``association.overlap``; ``"auto"``: real track)."""
+    if config.association.overlap == "auto":
         return track == "real"
-    return config.overlap_association == "on"
+    return config.association.overlap == "on"
 
 
 def build_identities(supervision: Supervision, level: int, unmasked_text: Optional[str], *,
@@ -128,63 +127,24 @@ def build_identities(supervision: Supervision, level: int, unmasked_text: Option
     closed transitively. Identities are numbered by first appearance (frame order, then mask index).
     """
     if level not in range(len(LEVELS)):
-        raise ValueError(f"identity_level must be 0, 1 or 2, got {level!r}")
+        raise ValueError(f"identity.level must be 0, 1 or 2, got {level!r}")
     filled = with_unmasked_as(supervision, unmasked_text)
-    node_of: dict[tuple[int, int], int] = {}
-    frame_nodes: list[list[tuple[int, int]]] = []  # per frame, (mask index, node)
-    node_features: list[np.ndarray] = []
-    for i, fs in enumerate(filled.frames):
-        plane = fs.levels[level]
-        feats = np.asarray(fs.features[level], dtype=np.float32)
-        counts = np.bincount(plane[plane >= 0].ravel().astype(np.int64), minlength=feats.shape[0])
-        if counts.shape[0] > feats.shape[0]:
-            raise InputError(None, "supervision", f"frame {fs.name!r} level {LEVELS[level]} has mask index "
-                             f"{counts.shape[0] - 1} but {feats.shape[0]} features")
-        frame_nodes.append([])
-        for j in np.flatnonzero(counts).tolist():
-            node_of[(i, j)] = len(node_features)
-            frame_nodes[i].append((j, len(node_features)))
-            node_features.append(feats[j])
-    if not node_features:
-        raise InputError(None, "supervision", f"no mask at level {LEVELS[level]!r} (identity_level={level}) "
-                         "and no unmasked_text: there is no identity to learn")
-    feats = np.stack(node_features)  # [nodes, D]
-    parent = np.arange(feats.shape[0])
-
-    def root(n: int) -> int:
-        while parent[n] != n:
-            parent[n] = parent[parent[n]]
-            n = int(parent[n])
-        return n
-
-    def union(a: int, b: int) -> None:
-        ra, rb = root(a), root(b)
-        if ra != rb:
-            parent[max(ra, rb)] = min(ra, rb)
-
-    keys = np.round(feats * 1e6).astype(np.int64)
+    nodes = _mask_nodes(filled, level)
+    groups = _UnionFind(nodes.features.shape[0])
+    keys = np.round(nodes.features * 1e6).astype(np.int64)
     _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
     for n, group in enumerate(inverse.ravel().tolist()):
-        union(n, int(first[group]))
+        groups.union(n, int(first[group]))
     if overlap:
         # the supervision's own frames (holes not filled): the unmasked region is linked by its feature
-        associator = TemporalAssociator(AssociationConfig(min_iou=min_iou))
-        first_of_track: dict[int, int] = {}
-        for i, fs in enumerate(supervision.frames):  # sorted by time within each camera
-            plane = np.asarray(fs.levels[level], dtype=np.int64)
-            tracked = associator.associate(plane[None], fs.camera_id)[0]  # (H, W) ids over time
-            valid = plane >= 0
-            pairs = np.unique(np.stack([plane[valid], tracked[valid]], 1), axis=0)  # [masks, 2]: (index, track)
-            for j, track_id in pairs.tolist():
-                node = node_of[(i, j)]
-                union(node, first_of_track.setdefault(track_id, node))
+        _link_by_overlap(supervision, level, nodes.of_mask, groups, min_iou)
 
-    roots = np.array([root(n) for n in range(feats.shape[0])])  # a group's root is its first node
+    roots = np.array([groups.root(n) for n in range(nodes.features.shape[0])])  # a group's root is its first node
     _, identity_of_node = np.unique(roots, return_inverse=True)  # so ranks number by first appearance
     identity_of_node = identity_of_node.ravel()
     k = int(identity_of_node.max()) + 1
-    sums = np.zeros((k, feats.shape[1]), np.float64)
-    np.add.at(sums, identity_of_node, feats)
+    sums = np.zeros((k, nodes.features.shape[1]), np.float64)
+    np.add.at(sums, identity_of_node, nodes.features)
     mask_counts = np.bincount(identity_of_node, minlength=k).astype(np.int64)
     features = sums / np.maximum(np.linalg.norm(sums, axis=1, keepdims=True), 1e-12)
 
@@ -199,14 +159,91 @@ def build_identities(supervision: Supervision, level: int, unmasked_text: Option
             features = np.concatenate([features, text_feature.astype(np.float64)], 0)
             mask_counts = np.concatenate([mask_counts, [0]])
 
+    maps = _identity_maps(filled, level, nodes.per_frame, identity_of_node)
+    return IdentityTable([fs.name for fs in filled.frames], maps, features.astype(np.float32), mask_counts, unmasked)
+
+
+@dataclass
+class _MaskNodes:
+    """The masks of one level that cover pixels, over all frames: the nodes identities are built from."""
+
+    of_mask: dict[tuple[int, int], int]
+    """(frame index, mask index) -> node."""
+    per_frame: list[list[tuple[int, int]]]
+    """Per frame, (mask index, node) of each of its masks."""
+    features: np.ndarray
+    """[nodes, D] float32 feature of each node's mask."""
+
+
+def _mask_nodes(supervision: Supervision, level: int) -> _MaskNodes:
+    """One node per mask of ``level`` that covers at least one pixel, numbered by frame then mask index."""
+    of_mask: dict[tuple[int, int], int] = {}
+    per_frame: list[list[tuple[int, int]]] = []
+    features: list[np.ndarray] = []
+    for i, fs in enumerate(supervision.frames):
+        plane = fs.levels[level]
+        feats = np.asarray(fs.features[level], dtype=np.float32)
+        counts = np.bincount(plane[plane >= 0].ravel().astype(np.int64), minlength=feats.shape[0])
+        if counts.shape[0] > feats.shape[0]:
+            raise InputError(None, "supervision", f"frame {fs.name!r} level {LEVELS[level]} has mask index "
+                             f"{counts.shape[0] - 1} but {feats.shape[0]} features")
+        per_frame.append([])
+        for j in np.flatnonzero(counts).tolist():
+            of_mask[(i, j)] = len(features)
+            per_frame[i].append((j, len(features)))
+            features.append(feats[j])
+    if not features:
+        raise InputError(None, "supervision", f"no mask at level {LEVELS[level]!r} (identity.level={level}) "
+                         "and no extensions.unmasked_text: there is no identity to learn")
+    return _MaskNodes(of_mask, per_frame, np.stack(features))
+
+
+class _UnionFind:
+    """Disjoint sets of ``0..n-1``; a set's root is its smallest member."""
+
+    def __init__(self, n: int) -> None:
+        self.parent = np.arange(n)
+
+    def root(self, n: int) -> int:
+        parent = self.parent
+        while parent[n] != n:
+            parent[n] = parent[parent[n]]
+            n = int(parent[n])
+        return n
+
+    def union(self, a: int, b: int) -> None:
+        ra, rb = self.root(a), self.root(b)
+        if ra != rb:
+            self.parent[max(ra, rb)] = min(ra, rb)
+
+
+def _link_by_overlap(supervision: Supervision, level: int, node_of: dict[tuple[int, int], int],
+                     groups: _UnionFind, min_iou: float) -> None:
+    """Join the nodes of masks that the overlap association of consecutive training frames of one camera
+    carries into one track (:class:`TemporalAssociator`, IoU above ``min_iou``)."""
+    associator = TemporalAssociator(AssociationConfig(min_iou=min_iou))
+    first_of_track: dict[int, int] = {}
+    for i, fs in enumerate(supervision.frames):  # sorted by time within each camera
+        plane = np.asarray(fs.levels[level], dtype=np.int64)
+        tracked = associator.associate(plane[None], fs.camera_id)[0]  # (H, W) ids over time
+        valid = plane >= 0
+        pairs = np.unique(np.stack([plane[valid], tracked[valid]], 1), axis=0)  # [masks, 2]: (index, track)
+        for j, track_id in pairs.tolist():
+            node = node_of[(i, j)]
+            groups.union(node, first_of_track.setdefault(track_id, node))
+
+
+def _identity_maps(supervision: Supervision, level: int, per_frame: list[list[tuple[int, int]]],
+                   identity_of_node: np.ndarray) -> list[np.ndarray]:
+    """Per frame, the (H, W) int64 identity of each pixel of ``level`` (-1 where no mask covers it)."""
     maps = []
-    for i, fs in enumerate(filled.frames):
+    for i, fs in enumerate(supervision.frames):
         plane = np.asarray(fs.levels[level], dtype=np.int64)
         lut = np.full(int(plane.max()) + 2 if plane.size else 1, -1, np.int64)  # last entry: -1 pixels
-        for j, node in frame_nodes[i]:
+        for j, node in per_frame[i]:
             lut[j] = identity_of_node[node]
         maps.append(lut[plane])  # plane -1 reads the last entry, -1
-    return IdentityTable([fs.name for fs in filled.frames], maps, features.astype(np.float32), mask_counts, unmasked)
+    return maps
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -326,18 +363,19 @@ def train_identity_field(geometry: FrozenGeometry, targets: Sequence[IdentityTar
         raise ValueError("the identity field needs at least one training view")
     device = geometry.device
     gen = torch.Generator().manual_seed(seed)
-    field = IdentityField(geometry.num_gaussians, config.identity_dim, num_identities, generator=gen, device=device,
-                          render_backend=config.render_backend)
-    opt = torch.optim.Adam([{"params": [field.encodings], "lr": config.identity_learning_rate},
-                            {"params": field.classifier.parameters(), "lr": config.classifier_learning_rate}])
+    options = config.identity
+    field = IdentityField(geometry.num_gaussians, options.dim, num_identities, generator=gen, device=device,
+                          render_backend=config.geometry.render_backend)
+    opt = torch.optim.Adam([{"params": [field.encodings], "lr": options.learning_rate},
+                            {"params": field.classifier.parameters(), "lr": options.classifier_learning_rate}])
     ce_scale = 1.0 / math.log(max(num_identities, 2))  # the original's normalisation to about [0, 1]
     supervised = [bool((t.identity >= 0).any()) for t in targets]
     views = ViewCycle(geometry, [t.time for t in targets], seed, VIEW_GEOMETRY_CACHE_MIB * 2 ** 20)
     losses: list[float] = []
     loss_value = reg_value = float("nan")
-    steps = range(config.identity_iterations)
+    steps = range(options.iterations)
     if progress is not None:
-        steps = progress(steps, desc="identities", total=config.identity_iterations)
+        steps = progress(steps, desc="identities", total=options.iterations)
     start = time.perf_counter()
     for step in steps:
         v, state = views.next()
@@ -348,20 +386,20 @@ def train_identity_field(geometry: FrozenGeometry, targets: Sequence[IdentityTar
             loss = ce_scale * F.cross_entropy(logits, target.identity.reshape(-1), ignore_index=-1)
         else:
             loss = logits.sum() * 0.0
-        if config.identity_reg_weight > 0 and step % config.identity_reg_interval == 0:
-            sample = torch.randperm(geometry.num_gaussians, generator=gen)[: config.identity_reg_sample_size]
-            kl = neighbour_kl(field, state.means, sample.to(device), config.identity_reg_k)
-            regulariser = config.identity_reg_weight * kl / num_identities  # the original's normalisation
+        if options.reg_weight > 0 and step % options.reg_interval == 0:
+            sample = torch.randperm(geometry.num_gaussians, generator=gen)[: options.reg_sample_size]
+            kl = neighbour_kl(field, state.means, sample.to(device), options.reg_k)
+            regulariser = options.reg_weight * kl / num_identities  # the original's normalisation
             loss = loss + regulariser
             reg_value = float(regulariser.detach())
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        if step % 100 == 0 or step == config.identity_iterations - 1:
+        if step % 100 == 0 or step == options.iterations - 1:
             loss_value = float(loss.detach())
             losses.append(loss_value)
     field.requires_grad_(False)
-    return field, IdentityReport(config.identity_iterations, time.perf_counter() - start, loss_value, reg_value, losses)
+    return field, IdentityReport(options.iterations, time.perf_counter() - start, loss_value, reg_value, losses)
 
 
 def identity_targets(scene: Scene, table: IdentityTable, device: str | torch.device) -> list[IdentityTarget]:
@@ -397,25 +435,17 @@ class IdentityFit:
 
 def identity_options(config: GaussianGroupingConfig, track: str) -> dict[str, Any]:
     """What an identity fit depends on besides geometry, supervision, seed, device and code."""
-    return {"identity_level": config.identity_level, "identity_dim": config.identity_dim,
-            "identity_iterations": config.identity_iterations,
-            "identity_learning_rate": config.identity_learning_rate,
-            "classifier_learning_rate": config.classifier_learning_rate,
-            "identity_reg_weight": config.identity_reg_weight, "identity_reg_k": config.identity_reg_k,
-            "identity_reg_sample_size": config.identity_reg_sample_size,
-            "identity_reg_interval": config.identity_reg_interval,
-            "overlap": uses_overlap_association(config, track), "association_min_iou": config.association_min_iou,
-            "unmasked_text": config.unmasked_text, "render_backend": config.render_backend}
+    return {"identity": config_to_dict(config.identity), "overlap": uses_overlap_association(config, track),
+            "association_min_iou": config.association.min_iou, "unmasked_text": config.extensions.unmasked_text,
+            "render_backend": config.geometry.render_backend}
 
 
 def identity_key(geo: GeometryFit, supervision: Supervision, config: GaussianGroupingConfig, seed: int,
                  device: str) -> str:
-    from benchmark.core.cache_keys import stable_hash
-
     return stable_hash({"geometry": geo.key, "supervision": supervision.fingerprint,
                         "options": identity_options(config, supervision.track), "seed": seed,
                         "device": device_kind(device),
-                        "code": [source_hash(IDENTITY_FIT_SOURCES), FIELD_FIT_VERSION]}, 24)
+                        "code": code_digest(IDENTITY_FIT_CODE)}, 24)
 
 
 def identity_cache_path(cache_root: Path, scene: Scene, key: str) -> Path:
@@ -435,12 +465,12 @@ def _fit_from_state(state: dict, geometry: FrozenGeometry, config: GaussianGroup
     encodings, features = state["encodings"], state["features"]
     weight = state["classifier"]["weight"]
     k = int(weight.shape[0])
-    if (tuple(encodings.shape) != (geometry.num_gaussians, config.identity_dim)
-            or tuple(weight.shape) != (k, config.identity_dim) or features.shape[0] != k
+    dim = config.identity.dim
+    if (tuple(encodings.shape) != (geometry.num_gaussians, dim)
+            or tuple(weight.shape) != (k, dim) or features.shape[0] != k
             or not -1 <= int(state["unmasked"]) < k):
         raise ValueError("saved identity field does not match the geometry and options")
-    field = IdentityField(geometry.num_gaussians, config.identity_dim, k, device=device,
-                          render_backend=config.render_backend)
+    field = IdentityField(geometry.num_gaussians, dim, k, device=device, render_backend=config.geometry.render_backend)
     field.encodings.data.copy_(encodings)
     field.classifier.load_state_dict(state["classifier"])
     field.requires_grad_(False)
@@ -465,15 +495,16 @@ def fit_identities(scene: Scene, supervision: Supervision, config: GaussianGroup
 
     overlap = uses_overlap_association(config, supervision.track)
     with StagePeak(device) as peak:
-        table = build_identities(supervision, config.identity_level, config.unmasked_text, overlap=overlap,
-                                 min_iou=config.association_min_iou)
-        progress.log(f"identities: {table.num_identities} at level {LEVELS[config.identity_level]} over "
+        level = config.identity.level
+        table = build_identities(supervision, level, config.extensions.unmasked_text, overlap=overlap,
+                                 min_iou=config.association.min_iou)
+        progress.log(f"identities: {table.num_identities} at level {LEVELS[level]} over "
                      f"{len(table.maps)} training frames" + (" (overlap association)" if overlap else ""))
         targets = identity_targets(scene, table, device)
         field, report = train_identity_field(geo.geometry, targets, table.num_identities, config, seed=seed,
                                              progress=progress)
     info = {"key": key,
-            "identities": {"count": table.num_identities, "level": LEVELS[config.identity_level],
+            "identities": {"count": table.num_identities, "level": LEVELS[level],
                            "unmasked": table.unmasked, "overlap_association": overlap,
                            "masks": int(table.mask_counts.sum()), "frames": len(table.maps)},
             "field": {"kind": "identity", "iterations": report.iterations, "seconds": report.seconds,
@@ -511,10 +542,9 @@ class GaussianGroupingModel(EncodedQueryModel):
         self._maps: dict[str, torch.Tensor] = {}  # frame name -> [H, W] identity map
 
     def use_answer_options(self, config: GaussianGroupingConfig) -> None:
-        """Answer with ``config``'s answer options (:attr:`LanguageMethodConfig.ANSWER_OPTIONS`), the fitted
-        state unchanged; kept identity maps are dropped (``uncovered_alpha`` shapes them)."""
-        answer = {k: getattr(config, k) for k in type(config).ANSWER_OPTIONS}
-        self.config = dataclasses.replace(self.config, **answer)
+        """Answer with ``config``'s ``answer`` group, the fitted state unchanged; kept identity maps are
+        dropped (``answer.uncovered_alpha`` shapes them)."""
+        self.config = dataclasses.replace(self.config, answer=config.answer)
         self._maps.clear()
 
     def describe(self) -> dict:
@@ -544,7 +574,7 @@ class GaussianGroupingModel(EncodedQueryModel):
         encodings, alpha = self.field.render_with_alpha(self.geometry.at(frame.time), frame.camera)
         identity = self.field.logits(encodings).argmax(-1)  # [H, W]
         if self.unmasked >= 0:
-            identity = torch.where(alpha < self.config.uncovered_alpha, self.unmasked, identity)
+            identity = torch.where(alpha < self.config.answer.uncovered_alpha, self.unmasked, identity)
         if self._keep_maps:
             size = identity.numel() * identity.element_size()
             while self._maps and size * (len(self._maps) + 1) > self.MAX_CACHE_BYTES:
@@ -598,7 +628,7 @@ class GaussianGrouping(Method):
     def load(cls, directory: Path, *, supervision: Supervision, device: str) -> GaussianGroupingModel:
         directory = Path(directory)
         meta = json.loads((directory / META_FILE).read_text())
-        config = config_from_dict(GaussianGroupingConfig, meta["config"])
+        config = config_from_record(GaussianGroupingConfig, meta["config"], what=f"{directory / META_FILE}: config")
         state = torch.load(directory / MODEL_FILE, map_location=device, weights_only=True)
         geometry = FrozenGeometry.from_state_dict(state["geometry"], device)
         fit = _fit_from_state(state, geometry, config, meta["fit_info"], device)

@@ -8,28 +8,31 @@ method             geometry        time-sensitive answer
 ``langsplat``      static 3D-GS    relevance score (mean relevance inside the spatial mask); time
                                    is ignored by the geometry (Qin et al., CVPR 2024)
 ``deformable-clip`` 4D-GS          relevance score, as the paper's baseline
-``4d-langsplat``   4D-GS           the status field (:class:`TimeVaryingHead`, its own issue);
-                                   time-agnostic half only until it is plugged in
+``4d-langsplat``   4D-GS           the status field (a :class:`TimeVaryingHead`,
+                                   :mod:`methods.time_sensitive`)
 =================  ==============  ================================================================
 
 Fitting (:func:`fit_language_field`):
 
 1. **Geometry** (:func:`fit_geometry`): 3D-GS or 4D-GS on the training frames' RGB with the Gaussian
    core's trainer, then frozen (:class:`~methods.fields.language_field.FrozenGeometry`). Cached per
-   (scene's training data, geometry kind, geometry options, seed, device kind, Gaussian-core code)
-   under ``<cache>/language/<dataset>-<scene>/``, so ``deformable-clip`` and ``4d-langsplat`` (and
-   later ``non-status-field``) share ONE 4D-GS fit.
-2. **Autoencoder** D -> ``latent_dim`` on the distinct mask features of all levels and training
-   frames, weighted by their total area (the release trains on every pixel's feature, i.e. area
-   weighted), at least ``ae_min_steps`` steps; its reconstruction cosine is recorded. Pixels that no
-   mask covers first become one more mask per level named ``unmasked_text`` (default
-   "background"; :func:`with_unmasked_as`): the paper's SAM masks cover the background, the oracle
-   segmenter does not, and unsupervised Gaussians decode to arbitrary features.
+   (scene's training data, geometry kind, geometry options, seed, device kind, the code digest of the
+   Gaussian core's trainer) under ``<cache>/language/<dataset>-<scene>/``, so every 4D-GS method
+   (``deformable-clip``, ``4d-langsplat``, ``non-status-field``, ``feature-3dgs``,
+   ``gaussian-grouping``) shares ONE 4D-GS fit.
+2. **Autoencoder** D -> ``autoencoder.latent_dim`` on the distinct mask features of all levels and
+   training frames, drawn as ``autoencoder.sample_weighting`` says (default: once per mask and image, as
+   the release's autoencoder data), at least ``autoencoder.min_steps`` steps; its reconstruction cosine is
+   recorded. Pixels that no mask covers first become one more mask per level named
+   ``extensions.unmasked_text`` (default "background"; :func:`with_unmasked_as`): the paper's SAM masks
+   cover the background, the oracle segmenter does not, and unsupervised Gaussians decode to arbitrary
+   features.
 3. **Field** (:func:`~methods.fields.language_field.train_language_field`): per-Gaussian latents of
    the three levels on the frozen geometry, L1 inside valid masks. Cached per (geometry, supervision
-   fingerprint, autoencoder and field options, seed, code), shared like the geometry.
+   fingerprint, autoencoder and field options, seed, the code digest of this module), shared like
+   the geometry.
 
-Querying (:class:`LanguageFieldModel`): render the 3 x ``latent_dim`` latent channels at the frame's
+Querying (:class:`LanguageFieldModel`): render the 3 x ``autoencoder.latent_dim`` latent channels at the frame's
 camera and time in one rasterizer call, decode each level, and run the protocol's
 :func:`~methods.fields.relevance.query_levels` (relevance against the canonical phrases, 29x29
 smoothing, min-max threshold, 7x7 majority filter, level with the highest peak) on exactly reduced
@@ -41,10 +44,8 @@ from __future__ import annotations
 import abc
 import dataclasses
 import functools
-import hashlib
 import json
 import time
-import typing
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar, Optional, Sequence
@@ -54,17 +55,20 @@ import torch
 import torch.nn.functional as F
 
 from benchmark.core.atomic import atomic_path, write_json
+from benchmark.core.cache_keys import code_digest, scene_fingerprint, stable_hash
 from benchmark.core.errors import InputError
 from benchmark.core.memory import StagePeak
 from benchmark.core.scene import Frame, Scene
 
 from .api import AgnosticAnswer, Method, Model, Progress, SensitiveAnswer
 from .fields.autoencoder import AutoencoderConfig, FeatureAutoencoder, train_autoencoder
+from .fields.configs import AE_SAMPLE_WEIGHTINGS
 from .fields.language_field import (FieldTarget, FrozenGeometry, LanguageField, LanguageFieldConfig,
                                     decode_for_relevance, make_target, project_phrases,
                                     relevance_basis, train_language_field)
 from .fields.relevance import AgnosticResult, encode_canonical, query_levels
-from .specs._language import AE_SAMPLE_WEIGHTINGS, LanguageMethodConfig
+from .specs._language import LanguageMethodConfig
+from .specs._recorded import config_from_record
 from .supervision.base import LEVELS, Supervision, TextEncoder
 
 MODEL_FILE = "language_model.pt"
@@ -72,40 +76,14 @@ META_FILE = "language_model.json"
 HEAD_DIR = "time_varying"
 CACHE_SUBDIR = "language"
 
-_HERE = Path(__file__).resolve().parent
-GEOMETRY_SOURCES = tuple(sorted((_HERE / "gaussians").rglob("*.py")))
-"""Files whose content defines a geometry fit (part of the geometry cache key)."""
-FIELD_SOURCES = (_HERE / "fields" / "language_field.py", _HERE / "fields" / "autoencoder.py",
-                 _HERE / "fields" / "relevance.py", Path(__file__).resolve())
-"""Files whose content defines a field fit and its queries (part of the methods' ``code_version``,
-since the registry hashes only each method's entry-point module)."""
-FIELD_FIT_SOURCES = (_HERE / "fields" / "language_field.py", _HERE / "fields" / "autoencoder.py")
-"""Files whose content defines a field fit (part of the field cache key). The fitting code of this
-module is versioned by :data:`FIELD_FIT_VERSION` instead, so that changing how a fitted field is
-queried does not refit it."""
-FIELD_FIT_VERSION = "1"
-"""Bump when :func:`distinct_features`, :func:`with_unmasked_as`, :func:`field_targets` or
-:func:`fit_language_field` change what a field fit produces."""
-
-
-def source_hash(paths: Sequence[Path]) -> str:
-    """Short hash of the content of ``paths`` (missing files hash as absent), read once per process (see
-    :func:`benchmark.runner._file_hash`: an edit made while a run goes on must not move its cache keys)."""
-    return _source_hash_once(tuple(Path(p) for p in paths))
-
-
-@functools.lru_cache(maxsize=None)
-def _source_hash_once(paths: tuple[Path, ...]) -> str:
-    digest = hashlib.sha256()
-    for path in paths:
-        digest.update(path.name.encode())
-        digest.update(path.read_bytes() if path.is_file() else b"<missing>")
-    return digest.hexdigest()[:16]
+GEOMETRY_CODE = "methods.gaussians.train"
+"""The module that runs a geometry fit: its code digest (with every module it imports) is part of the
+geometry cache key."""
+FIELD_CODE = "methods.language_methods"
+"""The module that runs a field fit (this one): its code digest is part of the field cache key."""
 
 
 def _stable_hash(obj: Any) -> str:
-    from benchmark.core.cache_keys import stable_hash
-
     return stable_hash(obj, 24)
 
 
@@ -114,64 +92,46 @@ def device_kind(device: str | torch.device) -> str:
 
 
 # ---------------------------------------------------------------------------------------------------
-# Config pieces
+# The parts' configs: what the Gaussian core and the field read, from the method config's groups
 # ---------------------------------------------------------------------------------------------------
 def recon_config(config: LanguageMethodConfig, seed: int):
-    """The Gaussian core's :class:`~methods.gaussians.config.ReconConfig` for this method config."""
+    """The Gaussian core's :class:`~methods.gaussians.config.ReconConfig` for the ``geometry`` group of
+    ``config`` (the core's recipe constants are its own defaults)."""
     from methods.gaussians.config import GaussianConfig, ReconConfig
 
-    g = GaussianConfig(max_gaussians=config.max_gaussians,
-                       gaussians_per_foreground_pixel=config.gaussians_per_foreground_pixel)
-    return ReconConfig(gaussians=g, static_iterations=config.static_iterations,
-                       deformation_iterations=config.deformation_iterations,
-                       reference_iterations=config.static_model_iterations, seed=seed)
+    g = config.geometry
+    gaussians = GaussianConfig(max_gaussians=g.max_gaussians,
+                               gaussians_per_foreground_pixel=g.gaussians_per_foreground_pixel)
+    return ReconConfig(gaussians=gaussians, static_iterations=g.static_iterations,
+                       deformation_iterations=g.deformation_iterations, reference_iterations=g.static_model_iterations,
+                       seed=seed)
 
 
 def autoencoder_config(config: LanguageMethodConfig, num_features: Optional[int] = None) -> AutoencoderConfig:
-    """The autoencoder's config; with ``num_features`` (distinct features) the epochs are raised so that
-    training runs at least ``ae_min_steps`` steps (and at most ``ae_max_steps``)."""
-    epochs = config.ae_epochs
-    if num_features is not None:
-        steps_per_epoch = max(1, -(-int(num_features) // config.ae_batch_size))
-        epochs = max(epochs, -(-min(config.ae_min_steps, config.ae_max_steps) // steps_per_epoch))
-    return AutoencoderConfig(hidden_dims=tuple(config.ae_hidden_dims), latent_dim=config.latent_dim,
-                             cosine_weight=config.ae_cosine_weight, learning_rate=config.ae_learning_rate,
-                             batch_size=config.ae_batch_size, epochs=epochs, max_steps=config.ae_max_steps)
+    """The ``autoencoder`` group of ``config``; with ``num_features`` (distinct features) its epochs raised to
+    run at least ``min_steps`` steps (:meth:`~methods.fields.configs.AutoencoderConfig.for_features`)."""
+    return config.autoencoder if num_features is None else config.autoencoder.for_features(num_features)
 
 
 def autoencoder_inputs(supervision: Supervision,
                        config: LanguageMethodConfig) -> tuple[np.ndarray, np.ndarray, AutoencoderConfig]:
     """What the scene's autoencoder trains on: the distinct mask features of ``supervision`` (give it
     :func:`with_unmasked_as` first, as the fit does), their sampling weights under
-    :attr:`~LanguageMethodConfig.ae_sample_weighting`, and the autoencoder's config."""
-    feats, weights = distinct_features(supervision, config.ae_sample_weighting)
+    ``autoencoder.sample_weighting``, and the autoencoder's config."""
+    feats, weights = distinct_features(supervision, config.autoencoder.sample_weighting)
     return feats, weights, autoencoder_config(config, feats.shape[0])
 
 
 def field_config(config: LanguageMethodConfig) -> LanguageFieldConfig:
-    return LanguageFieldConfig(num_levels=len(LEVELS), latent_dim=config.latent_dim,
-                               iterations=config.field_iterations, learning_rate=config.field_learning_rate,
-                               loss_weight=config.field_loss_weight, init_std=config.field_init_std,
-                               render_backend=config.render_backend)
+    """The field's config: the ``field`` group of ``config`` with the field's shape (three levels of the
+    autoencoder's latent) and the geometry's rasterizer."""
+    return LanguageFieldConfig(**dataclasses.asdict(config.field), num_levels=len(LEVELS),
+                               latent_dim=config.autoencoder.latent_dim,
+                               render_backend=config.geometry.render_backend)
 
 
 def config_to_dict(config: Any) -> dict:
     return json.loads(json.dumps(dataclasses.asdict(config), default=str))
-
-
-def config_from_dict(cls: type, data: dict) -> Any:
-    """Rebuild dataclass ``cls`` from :func:`config_to_dict` output (lists back to tuples; unknown keys
-    from older versions dropped)."""
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    kwargs = {}
-    for key, value in data.items():
-        if key not in names:
-            continue
-        if isinstance(value, list) and typing.get_origin(hints.get(key)) is tuple:
-            value = tuple(value)
-        kwargs[key] = value
-    return cls(**kwargs)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -219,11 +179,9 @@ class GeometryFit:
 
 
 def geometry_key(scene: Scene, kind: str, config: LanguageMethodConfig, seed: int, device: str) -> str:
-    from benchmark.core.cache_keys import scene_fingerprint
-
     return _stable_hash({"kind": kind, "recon": config_to_dict(recon_config(config, seed)), "seed": seed,
                          "device": device_kind(device), "scene": scene_fingerprint(scene, scene.train_frames),
-                         "code": source_hash(GEOMETRY_SOURCES)})
+                         "code": code_digest(GEOMETRY_CODE)})
 
 
 def fit_geometry(scene: Scene, kind: str, config: LanguageMethodConfig, *, seed: int, device: str,
@@ -246,7 +204,8 @@ def fit_geometry(scene: Scene, kind: str, config: LanguageMethodConfig, *, seed:
     # an interrupted geometry fit (the longest stage of a run on the CPU) resumes from its checkpoint
     checkpoint = None if path is None else Checkpointing(path.with_name(path.stem + ".partial.pt"), key)
     trainer = Trainer(scene, recon, device=device,
-                      rasterize_fn=functools.partial(rasterize, backend=config.render_backend), progress=progress,
+                      rasterize_fn=functools.partial(rasterize, backend=config.geometry.render_backend),
+                      progress=progress,
                       checkpoint=checkpoint)
     resuming = checkpoint is not None and checkpoint.path.is_file()
     progress.log(f"geometry: fitting {kind} on {len(trainer.views)} training views (cap {trainer.cap} Gaussians)"
@@ -361,20 +320,25 @@ def field_targets(scene: Scene, supervision: Supervision, autoencoder: FeatureAu
     return targets
 
 
+def field_key(geometry_key: str, supervision: Supervision, config: LanguageMethodConfig, ae_cfg: AutoencoderConfig,
+              f_cfg: LanguageFieldConfig, *, seed: int, device: str) -> str:
+    """Key of a field fit: the geometry's key, the supervision (with its unmasked pixels filled), the
+    autoencoder and field options, seed, device kind and the code digest of :data:`FIELD_CODE`."""
+    return _stable_hash({"geometry": geometry_key, "supervision": supervision.fingerprint,
+                         "unmasked_text": config.extensions.unmasked_text, "autoencoder": config_to_dict(ae_cfg),
+                         "field": config_to_dict(f_cfg), "seed": seed, "device": device_kind(device),
+                         "code": code_digest(FIELD_CODE)})
+
+
 def fit_language_field(scene: Scene, supervision: Supervision, config: LanguageMethodConfig, *, kind: str,
                        seed: int, device: str, progress: Progress,
                        cache_root: Optional[Path]) -> SharedField:
     """Geometry, autoencoder and field of ``scene`` (each cached when ``cache_root`` is given)."""
     geo = fit_geometry(scene, kind, config, seed=seed, device=device, progress=progress, cache_root=cache_root)
-    supervision = with_unmasked_as(supervision, config.unmasked_text)
+    supervision = with_unmasked_as(supervision, config.extensions.unmasked_text)
     feats, areas, ae_cfg = autoencoder_inputs(supervision, config)
     f_cfg = field_config(config)
-    key = _stable_hash({"geometry": geo.key, "supervision": supervision.fingerprint,
-                        "unmasked_text": config.unmasked_text, "autoencoder": config_to_dict(ae_cfg),
-                        **({} if config.ae_sample_weighting == "pixels" else  # keys of earlier fits kept
-                           {"ae_sample_weighting": config.ae_sample_weighting}),
-                        "field": config_to_dict(f_cfg), "seed": seed, "device": device_kind(device),
-                        "code": [source_hash(FIELD_FIT_SOURCES), FIELD_FIT_VERSION]})
+    key = field_key(geo.key, supervision, config, ae_cfg, f_cfg, seed=seed, device=device)
     path = None if cache_root is None else scene_cache_folder(cache_root, scene) / f"field-{kind}-{key}.pt"
     if path is not None and path.is_file():
         saved = _torch_load(path, device)
@@ -494,10 +458,9 @@ class LanguageFieldModel(Model):
         self._reduced_cache: dict[str, torch.Tensor] = {}  # frame name -> [L, H, W, k + 1]
 
     def use_answer_options(self, config: LanguageMethodConfig) -> None:
-        """Answer with ``config``'s answer options (:attr:`LanguageMethodConfig.ANSWER_OPTIONS`), the
-        fitted state unchanged; memoised query state is dropped."""
-        answer = {k: getattr(config, k) for k in type(config).ANSWER_OPTIONS}
-        self.config = dataclasses.replace(self.config, **answer)
+        """Answer with ``config``'s ``answer`` group, the fitted state unchanged; memoised query state is
+        dropped."""
+        self.config = dataclasses.replace(self.config, answer=config.answer)
         self._forget_query_state()
 
     def use_protocol(self, protocol) -> None:
@@ -573,12 +536,12 @@ class LanguageFieldModel(Model):
 
     def decode_reduced(self, latents: torch.Tensor, alpha: torch.Tensor, basis: torch.Tensor) -> torch.Tensor:
         """[L, H, W, k + 1] reduced decoded features (:func:`decode_for_relevance`) of the latent maps
-        ``latents`` [L, H, W, d], with the pixels of ``alpha`` [H, W] below ``config.uncovered_alpha`` set to the
-        reduced ``unmasked_text`` embedding (see the config field). Only covered pixels are decoded: the
-        others would be overwritten (object-centric scenes such as D-NeRF are mostly uncovered)."""
-        chunk = self.config.decode_chunk_for(latents.device)
-        text = self.config.unmasked_text
-        uncovered = alpha < self.config.uncovered_alpha
+        ``latents`` [L, H, W, d], with the pixels of ``alpha`` [H, W] below ``config.answer.uncovered_alpha`` set to the
+        reduced ``extensions.unmasked_text`` embedding (see the config field). Only covered pixels are decoded:
+        the others would be overwritten (object-centric scenes such as D-NeRF are mostly uncovered)."""
+        chunk = self.config.answer.decode_chunk_for(latents.device)
+        text = self.config.extensions.unmasked_text
+        uncovered = alpha < self.config.answer.uncovered_alpha
         if not text or not bool(uncovered.any()):
             return decode_for_relevance(latents, self.autoencoder.decoder, basis, chunk)
         if text not in self._background:
@@ -689,13 +652,13 @@ class LanguageFieldModel(Model):
 
 
 def _wants_head(config, scene: Scene, track: str, progress: Progress) -> bool:
-    """Whether to fit the time-varying head (``config.time_varying``, "auto" resolved on this scene)."""
-    choice = getattr(config, "time_varying", "on")
+    """Whether to fit the time-varying head (``config.status.fit``, "auto" resolved on this scene)."""
+    choice = config.status.fit
     if choice != "auto":
         return choice == "on"
     from .fields.time_varying import resolve_captioning
 
-    captioner, tracks = resolve_captioning(config, track)
+    captioner, tracks = resolve_captioning(config.captions, track)
     if captioner == "template" or tracks == "truth":
         from .supervision.truth_access import open_truth
 
@@ -720,9 +683,6 @@ class LanguageFieldMethod(Method):
     time_varying_head: ClassVar[Optional[type[TimeVaryingHead]]] = None
     """The head fitted after the time-agnostic half (4D LangSplat's status field), or ``None``."""
     config_class: ClassVar[type] = LanguageMethodConfig
-    code_version = "lf-" + source_hash(FIELD_SOURCES + GEOMETRY_SOURCES)
-    """The runner's whole-fit cache key carries this: the geometry's code is part of it, or a changed
-    Gaussian core would be answered from fits of the old one."""
 
     @classmethod
     def fit(cls, scene: Scene, supervision: Supervision, config: LanguageMethodConfig, *, seed: int, device: str,
@@ -761,7 +721,7 @@ class LanguageFieldMethod(Method):
     def load(cls, directory: Path, *, supervision: Supervision, device: str) -> LanguageFieldModel:
         directory = Path(directory)
         meta = json.loads((directory / META_FILE).read_text())
-        config = config_from_dict(cls.config_class, meta["config"])
+        config = config_from_record(cls.config_class, meta["config"], what=f"{directory / META_FILE}: config")
         state = torch.load(directory / MODEL_FILE, map_location=device, weights_only=True)
         geometry = FrozenGeometry.from_state_dict(state["geometry"], device)
         ae = FeatureAutoencoder(int(state["input_dim"]), autoencoder_config(config)).to(device)
@@ -775,121 +735,3 @@ class LanguageFieldMethod(Method):
             model.head = cls.time_varying_head.load(directory / HEAD_DIR, model=model, device=device)
             model.supports = frozenset(model.supports | {"sensitive"})
         return model
-
-
-# ---------------------------------------------------------------------------------------------------
-# Query speed at a chosen scale
-# ---------------------------------------------------------------------------------------------------
-class SeededTextEncoder(TextEncoder):
-    """Pseudo-random unit vectors seeded by each text's hash: a stand-in of a chosen dimension (CLIP's
-    512) for timing the query path, where what the vectors mean does not matter. Never for scores."""
-
-    name = "seeded-random"
-
-    def __init__(self, dim: int = 512) -> None:
-        super().__init__()
-        self._dim = int(dim)
-
-    @property
-    def dim(self) -> int:
-        return self._dim
-
-    def _encode(self, texts: list[str], kind: str) -> np.ndarray:
-        rows = []
-        for text in texts:
-            seed = int.from_bytes(hashlib.sha256(f"{kind}:{text}".encode()).digest()[:8], "little")
-            rows.append(np.random.default_rng(seed).standard_normal(self._dim))
-        return np.asarray(rows, dtype=np.float32)
-
-
-def measure_query_speed(num_gaussians: int, width: int, height: int, *, frames: int = 10, warmup: int = 2,
-                        queries: int = 1, feature_dim: int = 512, device: str | torch.device = "cpu",
-                        config: Optional[LanguageMethodConfig] = None, seed: int = 0) -> dict[str, Any]:
-    """Frames per second of the time-agnostic query of a 4D language field on random Gaussians.
-
-    The timed path is the method's own (:meth:`LanguageFieldModel.query_agnostic`): deform the
-    geometry to the frame's time, render every level's latents in one rasterizer call, decode them
-    through the autoencoder (``feature_dim``: CLIP ViT-B/16's 512), relevance against the canonical
-    phrases, smoothing, threshold, majority filter, level choice, and the mask copied to the host --
-    per frame and per query, as the paper's FPS counts it. Geometry, features and decoder are random
-    (:func:`methods.fields.language_field.random_geometry`, :class:`SeededTextEncoder`): the work does not
-    depend on what they mean. With ``queries > 1`` the frames are also answered for that many queries
-    after one :meth:`LanguageFieldModel.prepare` (render and decode once per frame, shared by the
-    queries), as the evaluation runner does.
-    """
-    from .fields.language_field import random_geometry
-
-    dev = torch.device(device)
-    cfg = config or LanguageMethodConfig()
-    geometry, camera = random_geometry(num_gaussians, width, height, seed=seed, device=dev)
-    gen = torch.Generator().manual_seed(seed + 2)
-    fcfg = field_config(cfg)
-    field_ = LanguageField(geometry.num_gaussians, dataclasses.replace(fcfg, init_std=1.0), generator=gen, device=dev)
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(seed)
-        autoencoder = FeatureAutoencoder(feature_dim, autoencoder_config(cfg)).to(dev)
-    shared = SharedField(geometry, field_, autoencoder, {})
-    model = LanguageFieldModel("4d-langsplat", cfg, SeededTextEncoder(feature_dim), shared, sensitive=None,
-                               device=str(dev))
-    frame_list = [Frame(name=f"t{i:04d}", camera=camera, time=(i + 0.5) / (frames + warmup), time_index=i,
-                        split="test") for i in range(frames + warmup)]
-    texts = [f"query {i}" for i in range(max(1, int(queries)))]
-
-    def sync() -> None:
-        if dev.type == "cuda":
-            torch.cuda.synchronize(dev)
-
-    if dev.type == "cuda":
-        torch.cuda.reset_peak_memory_stats(dev)
-    for frame in frame_list[:warmup]:
-        model.query_agnostic(texts[0], [frame])
-    sync()
-    t0 = time.perf_counter()
-    answers = [model.query_agnostic(texts[0], [frame])[0] for frame in frame_list[warmup:]]
-    sync()
-    seconds = (time.perf_counter() - t0) / frames
-    out: dict[str, Any] = {
-        "gaussians": geometry.num_gaussians, "width": width, "height": height, "device": str(dev),
-        "levels": fcfg.num_levels, "latent_dim": fcfg.latent_dim, "feature_dim": feature_dim,
-        "frames": frames, "seconds_per_frame": seconds, "fps": 1.0 / seconds,
-        "mask_shape": list(answers[0].mask.shape),
-    }
-    # where the time goes: the same work stage by stage, synchronised between stages (slightly slower
-    # in total than the pipelined run above, which is the number to report)
-    basis, zq, zc = model._reduced_phrases(texts[0])
-    stages = dict.fromkeys(("deform", "render", "decode", "query", "to_host"), 0.0)
-    for frame in frame_list[warmup:]:
-        t_prev = time.perf_counter()
-
-        def lap(name: str) -> None:
-            nonlocal t_prev
-            sync()
-            now = time.perf_counter()
-            stages[name] += (now - t_prev) / frames
-            t_prev = now
-
-        state = model.geometry.at(frame.time)
-        lap("deform")
-        latents, alpha = model.field.render_with_alpha(state, frame.camera)
-        lap("render")
-        reduced = model.decode_reduced(latents, alpha, basis)
-        lap("decode")
-        result = query_levels(reduced, zq, zc, model.relevance_cfg)
-        lap("query")
-        result.mask.cpu().numpy(), result.relevance.float().cpu().numpy()
-        lap("to_host")
-    out["stage_seconds_per_frame"] = stages
-    if len(texts) > 1:
-        model.prepare(texts)
-        sync()
-        t0 = time.perf_counter()
-        for frame in frame_list[warmup:]:
-            for text in texts:
-                model.query_agnostic(text, [frame])
-        sync()
-        per_answer = (time.perf_counter() - t0) / (frames * len(texts))
-        out.update({"queries": len(texts), "prepared_seconds_per_answer": per_answer,
-                    "prepared_answers_per_second": 1.0 / per_answer})
-    if dev.type == "cuda":
-        out["peak_gpu_mib"] = torch.cuda.max_memory_allocated(dev) / 2 ** 20
-    return out

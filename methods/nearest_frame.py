@@ -19,6 +19,7 @@ import numpy as np
 from benchmark.core.scene import Frame, Scene
 
 from .api import AgnosticAnswer, Method, Model, Progress, SensitiveAnswer
+from .specs._recorded import config_from_record
 from .specs.nearest_frame import NearestFrameConfig
 from .supervision.base import LEVELS, Supervision, TextEncoder
 
@@ -151,7 +152,6 @@ class NearestFrame(Method):
     """See the module docstring."""
 
     supports = frozenset({"agnostic", "sensitive"})
-    code_version = "1"
 
     @classmethod
     def fit(cls, scene: Scene, supervision: Supervision, config: NearestFrameConfig, *, seed: int,
@@ -173,7 +173,7 @@ class NearestFrame(Method):
     def load(cls, directory: Path, *, supervision: Supervision, device: str) -> NearestFrameModel:
         directory = Path(directory)
         meta = json.loads((directory / META_FILE).read_text())
-        config = NearestFrameConfig(**meta["config"])
+        config = config_from_record(NearestFrameConfig, meta["config"], what=f"{directory / META_FILE}: config")
         with np.load(directory / STATE_FILE, allow_pickle=False) as data:
             n = len(meta["names"])
             levels = [data[f"levels/{i}"] for i in range(n)]

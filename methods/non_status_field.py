@@ -14,7 +14,7 @@ from typing import ClassVar, Optional
 
 from .language_methods import LanguageFieldMethod, TimeVaryingHead
 from .specs.non_status_field import NonStatusFieldConfig
-from .time_sensitive import TIME_VARYING_CODE, NonStatusHead
+from .time_sensitive import NonStatusHead
 
 
 class NonStatusFieldMethod(LanguageFieldMethod):
@@ -24,4 +24,3 @@ class NonStatusFieldMethod(LanguageFieldMethod):
     time_varying_head: ClassVar[Optional[type[TimeVaryingHead]]] = NonStatusHead
     supports = frozenset({"agnostic", "sensitive"})
     config_class = NonStatusFieldConfig
-    code_version = LanguageFieldMethod.code_version + "-tv-" + TIME_VARYING_CODE

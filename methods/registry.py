@@ -15,9 +15,15 @@ A method is added by **one spec file** in :mod:`methods.specs` plus its code::
                       config=MyConfig, paper="Author et al., Venue 2025", tracks=("oracle", "real"),
                       queries=("agnostic", "sensitive"))
 
+A config's fields may themselves be dataclasses (option groups: ``autoencoder.latent_dim``); each field's
+docstring is its help. :mod:`benchmark.core.config` derives from the class the option list
+(``bench4d methods --options NAME``), dotted overrides (:meth:`MethodSpec.make_config`, ``--set``) and the
+command-line flags of ``bench4d eval --method NAME``.
+
 Spec files import nothing heavy (no torch): ``bench4d methods`` lists every method without loading
 any of them. Specs from outside the package can be added with ``$BENCH4D_METHOD_SPECS`` (comma-
-separated module names or ``.py`` paths) or :func:`register`.
+separated module names or ``.py`` paths) or :func:`register`. :data:`METHODS` holds them (a lazy
+:class:`methods._registry.Registry`, as every registry of the package).
 
 The paper's own numbers of methods not (yet) implemented here live in
 :mod:`methods.specs.paper_numbers`; they are shown beside ours, never ranked with ours.
@@ -26,24 +32,30 @@ The paper's own numbers of methods not (yet) implemented here live in
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import importlib
 import importlib.util
 import os
 import pkgutil
 import sys
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Optional
+from typing import Any, Iterator, Mapping, Optional
 
+from benchmark.core.cache_keys import code_digest
+from benchmark.core.config import ConfigOption, config_options, with_overrides
 from benchmark.core.errors import InputError
+
+from ._registry import Registry, entry_point_modules, import_entry_point
 
 DEFAULT_METHOD = "nearest-frame"
 """The method ``bench4d demo`` runs: the best runnable method registered (switch it when a better
 one lands)."""
 
 SPECS_ENV = "BENCH4D_METHOD_SPECS"
+
+ANSWER_GROUP = "answer"
+"""The option group of a method config read only when answering, never when fitting: fit cache keys leave
+it out, a cached fit answers with the run's values, and ``bench4d ablate rescore`` changes it on recorded fits."""
 
 
 @dataclass(frozen=True)
@@ -72,10 +84,6 @@ class MethodSpec:
     floor: bool = False
     """A floor, not a competitor: it answers from the training frames' 2D supervision without going
     through the protocol's query; the leaderboard shows it in its own labelled row and never ranks it."""
-    code: tuple[str, ...] = ()
-    """Further modules or packages (dotted names) whose source the fit depends on, e.g.
-    ``("methods.gaussians", "methods.fields")``: their files are hashed into the fit cache key with
-    the entry point's module, so editing them invalidates cached fits."""
 
     def __post_init__(self) -> None:
         if not dataclasses.is_dataclass(self.config):
@@ -93,112 +101,69 @@ class MethodSpec:
             raise ValueError(f"method {self.name!r}: unknown tracks {sorted(bad)}")
 
     # -- code ----------------------------------------------------------------------------------
+    @property
+    def module(self) -> str:
+        """The module of :attr:`entry_point`."""
+        return self.entry_point.partition(":")[0]
+
     def load(self):
         """Import and return the method class (``entry_point``)."""
-        module_name, _, attr = self.entry_point.partition(":")
-        try:
-            module = importlib.import_module(module_name)
-        except ImportError as err:
-            raise InputError(None, f"method {self.name}", f"cannot import {module_name}: {err}") from err
-        try:
-            cls = getattr(module, attr)
-        except AttributeError:
-            raise InputError(None, f"method {self.name}", f"{module_name} has no attribute {attr!r}") from None
+        cls = import_entry_point(self.entry_point, f"method {self.name}")
         declared = set(getattr(cls, "supports", self.queries))
         if set(self.queries) - declared:
             raise TypeError(f"method {self.name!r}: spec promises {sorted(self.queries)} but "
                             f"{cls.__name__}.supports is {sorted(declared)}")
         return cls
 
-    def source_files(self) -> list[Path]:
-        """Files whose content defines the method's behaviour (for fit cache keys): the entry
-        point's module and every module of :attr:`code` (packages recursively), sorted."""
-        files: set[Path] = set()
-        for name in (self.entry_point.partition(":")[0], *self.code):
-            try:
-                spec = importlib.util.find_spec(name)
-            except (ImportError, ValueError):
-                spec = None
-            if spec is None:
-                raise InputError(None, f"method {self.name}", f"code module {name!r} not found")
-            if spec.submodule_search_locations:  # a package: all its Python files
-                for folder in spec.submodule_search_locations:
-                    files.update(Path(folder).rglob("*.py"))
-            elif spec.origin and spec.origin not in ("built-in", "frozen"):
-                files.add(Path(spec.origin))
-        return sorted(files)
+    def code_digest(self) -> str:
+        """Hash of the method's code, for fit cache keys: the entry point's module, every project module it
+        imports (transitively, function-local imports included) and the modules of the registry entries
+        that code names (e.g. the captioners a time-varying head loads by name)."""
+        try:
+            found = importlib.util.find_spec(self.module) is not None
+        except (ImportError, ValueError):
+            found = False
+        if not found:
+            raise InputError(None, f"method {self.name}", f"code module {self.module!r} not found")
+        return code_digest(self.module, *entry_point_modules(self.module))
 
     # -- configuration -------------------------------------------------------------------------
     def default_config(self):
         return self.config()
 
     def make_config(self, overrides: Optional[Mapping[str, Any]] = None):
-        """The default config with ``overrides`` (``name -> value``; strings are parsed by field type)."""
-        cfg = self.config()
-        if not overrides:
-            return cfg
-        hints = typing.get_type_hints(self.config)
-        names = [f.name for f in dataclasses.fields(self.config)]
-        changes = {}
-        for key, value in overrides.items():
-            if key not in names:
-                close = difflib.get_close_matches(key, names, n=1)
-                hint = f" (did you mean {close[0]!r}?)" if close else ""
-                raise InputError(None, f"{self.name} config", f"unknown option {key!r}{hint}; options: {', '.join(names)}")
-            changes[key] = _parse_value(value, hints.get(key), f"{self.name} config.{key}")
-        return dataclasses.replace(cfg, **changes)
+        """The default config with ``overrides`` (dotted option path -> value, e.g.
+        ``{"autoencoder.latent_dim": "4"}``; strings are read by the option's type). An unknown path or a
+        value the config refuses is an :class:`InputError`."""
+        what = f"{self.name} config"
+        try:
+            return with_overrides(self.config(), overrides, what=what)
+        except InputError:
+            raise
+        except (TypeError, ValueError) as err:
+            raise InputError(None, what, str(err)) from None
 
+    def options(self) -> list[ConfigOption]:
+        """Every option of the method's config: dotted path, type, default and help."""
+        return config_options(self.config)
 
-def _parse_value(value: Any, hint: Any, where: str) -> Any:
-    if not isinstance(value, str) or hint is None or hint is str:
-        return value
-    origin = typing.get_origin(hint)
-    args = typing.get_args(hint)
-    if origin is typing.Union and type(None) in args:
-        if value.lower() in ("none", "null"):
-            return None
-        hint = next(a for a in args if a is not type(None))
-        origin = typing.get_origin(hint)
-    try:
-        if hint is bool:
-            if value.lower() in ("1", "true", "yes", "on"):
-                return True
-            if value.lower() in ("0", "false", "no", "off"):
-                return False
-            raise ValueError(value)
-        if hint in (int, float):
-            return hint(value)
-        if origin is typing.Literal:
-            if value not in typing.get_args(hint):
-                raise ValueError(value)
-            return value
-        if origin in (tuple, list):
-            item = typing.get_args(hint)[0] if typing.get_args(hint) else str
-            parts = [p.strip() for p in value.split(",") if p.strip()]
-            parsed = [item(p) if item in (int, float) else p for p in parts]
-            return tuple(parsed) if origin is tuple else parsed
-    except ValueError:
-        raise InputError(None, where, f"cannot read {value!r} as {getattr(hint, '__name__', hint)}") from None
-    return value
+    def answer_options(self) -> frozenset[str]:
+        """The options read only when answering (those of the config's :data:`ANSWER_GROUP` group)."""
+        return frozenset(o.path for o in self.options() if o.path.startswith(ANSWER_GROUP + "."))
+
+    def recorded_options(self, recorded: Optional[Mapping[str, Any]]) -> dict[str, Any]:
+        """Dotted path -> value of this method's options in a recorded config (a results file's
+        ``method_config``, nested or in the flat form of older records); other keys are left out."""
+        from .specs._recorded import recorded_options
+
+        return recorded_options(self.config, recorded)
+
+    def config_from_record(self, recorded: Optional[Mapping[str, Any]]):
+        """The config a recorded ``method_config`` (nested or flat) describes, other options default."""
+        return self.make_config(self.recorded_options(recorded))
 
 
 # -- the registry ----------------------------------------------------------------------------------
-_REGISTRY: dict[str, MethodSpec] = {}
-_DISCOVERED = False
-
-
-def register(spec: MethodSpec, *, replace: bool = False) -> MethodSpec:
-    """Add ``spec`` (spec files are discovered; tests and plug-ins may call this directly)."""
-    if spec.name in _REGISTRY and not replace and _REGISTRY[spec.name] is not spec:
-        raise ValueError(f"method {spec.name!r} is already registered")
-    _REGISTRY[spec.name] = spec
-    return spec
-
-
-def unregister(name: str) -> None:
-    _REGISTRY.pop(name, None)
-
-
 def _specs_of(module) -> list[MethodSpec]:
     found = list(getattr(module, "SPECS", ()) or ())
     if hasattr(module, "SPEC"):
@@ -217,55 +182,55 @@ def _import_path(path: Path):
     return module
 
 
-def _discover() -> None:
-    global _DISCOVERED
-    if _DISCOVERED:
-        return
-    _DISCOVERED = True
+def _discover() -> Iterator[MethodSpec]:
+    """The specs of :mod:`methods.specs` (``SPEC`` / ``SPECS`` of each public module), then those of the
+    modules and files named by ``$BENCH4D_METHOD_SPECS``."""
     from . import specs
 
     for info in sorted(pkgutil.iter_modules(specs.__path__), key=lambda i: i.name):
         if info.name.startswith("_") or info.name == "paper_numbers":
             continue
-        for spec in _specs_of(importlib.import_module(f"{specs.__name__}.{info.name}")):
-            _REGISTRY.setdefault(spec.name, spec)
+        yield from _specs_of(importlib.import_module(f"{specs.__name__}.{info.name}"))
     for item in filter(None, (s.strip() for s in os.environ.get(SPECS_ENV, "").split(","))):
-        module = _import_path(Path(item)) if item.endswith(".py") else importlib.import_module(item)
-        for spec in _specs_of(module):
-            _REGISTRY.setdefault(spec.name, spec)
+        yield from _specs_of(_import_path(Path(item)) if item.endswith(".py") else importlib.import_module(item))
+
+
+METHODS: Registry[MethodSpec] = Registry("method", _discover)
+"""Every runnable method, by name."""
+
+
+def register(spec: MethodSpec, *, replace: bool = False) -> MethodSpec:
+    """Add ``spec`` (spec files are discovered; tests and plug-ins may call this directly)."""
+    return METHODS.register(spec, replace=replace)
+
+
+def unregister(name: str) -> None:
+    METHODS.unregister(name)
 
 
 def refresh() -> None:
-    """Forget discovered specs (keeps nothing registered by hand) and discover again on next use."""
-    global _DISCOVERED
-    _DISCOVERED = False
-    _REGISTRY.clear()
+    """Forget every spec (those registered by hand too) and discover again on next use."""
+    METHODS.refresh()
 
 
 def names() -> list[str]:
     """Names of all registered (runnable) methods, sorted."""
-    _discover()
-    return sorted(_REGISTRY)
+    return sorted(METHODS.names())
 
 
 def all_specs() -> list[MethodSpec]:
-    _discover()
-    return [_REGISTRY[n] for n in sorted(_REGISTRY)]
+    return sorted(METHODS.entries(), key=lambda s: s.name)
 
 
 def get(name: str) -> MethodSpec:
     """The spec of ``name``; unknown names raise :class:`InputError` with a "did you mean"."""
-    _discover()
-    if name in _REGISTRY:
-        return _REGISTRY[name]
-    from .specs.paper_numbers import PAPER_NUMBERS
+    if name not in METHODS:
+        from .specs.paper_numbers import PAPER_NUMBERS
 
-    close = difflib.get_close_matches(name, list(_REGISTRY) + list(PAPER_NUMBERS), n=1)
-    hint = f" (did you mean {close[0]!r}?)" if close else ""
-    if name in PAPER_NUMBERS:
-        raise InputError(None, "method", f"{name!r} is not implemented here yet (only its paper numbers are "
-                         f"known); runnable methods: {', '.join(sorted(_REGISTRY))}")
-    raise InputError(None, "method", f"unknown method {name!r}{hint}; registered: {', '.join(sorted(_REGISTRY))}")
+        if name in PAPER_NUMBERS:
+            raise InputError(None, "method", f"{name!r} is not implemented here yet (only its paper numbers are "
+                             f"known); runnable methods: {', '.join(names())}")
+    return METHODS.get(name)
 
 
 def default_method() -> str:
@@ -280,11 +245,10 @@ def default_method() -> str:
 
 def paper_numbers(name: str) -> dict[str, Any]:
     """The paper's numbers for method ``name``: from its spec if registered, else the data file."""
-    _discover()
     from .specs.paper_numbers import PAPER_NUMBERS
 
-    if name in _REGISTRY and _REGISTRY[name].paper_numbers:
-        return dict(_REGISTRY[name].paper_numbers)
+    if name in METHODS and METHODS.get(name).paper_numbers:
+        return dict(METHODS.get(name).paper_numbers)
     return dict(PAPER_NUMBERS.get(name, {}))
 
 

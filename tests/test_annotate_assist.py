@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from annotations.assist import GrabCutSegmenter, SamConfig, SamSegmenter, make_segmenter
+from annotations.assist import GrabCutSegmenter, PromptedSamConfig, PromptedSamSegmenter, make_segmenter
 from annotations.propagate import iou
 from annotations.tool.synthetic import rigid_sequence
 from benchmark.core.errors import InputError
@@ -76,10 +77,33 @@ def test_bad_boxes_are_input_errors(seq):
 def test_sam_without_weights_is_a_clear_error(tmp_path):
     with pytest.raises(InputError, match="sam-checkpoint"):
         make_segmenter("sam", sam_checkpoint=tmp_path / "missing.pth")
+    with pytest.raises(InputError, match="sam-checkpoint"):
+        make_segmenter("sam")
+
+
+def test_sam_model_comes_from_the_sam_segmenters_loader(tmp_path, monkeypatch):
+    """The tool's SAM is the ``sam`` segmenter's: one loader of the official package's models."""
+    from methods.supervision import sam
+
+    weights = tmp_path / "sam_vit_b.pth"
+    weights.write_bytes(b"not a checkpoint")
+    calls = []
+
+    def fake_loader(checkpoint, model_type, device):
+        calls.append((Path(checkpoint), model_type, device))
+        return FakePredictor()
+
+    monkeypatch.setattr(sam, "load_segment_anything", fake_loader)
+    seg = make_segmenter("sam", sam_checkpoint=weights, sam_model="vit_b", device="cpu")
+    assert isinstance(seg, PromptedSamSegmenter) and calls == [(weights, "vit_b", "cpu")]
+    monkeypatch.undo()
+    # the real loader: the optional package missing, or the file not a checkpoint, is a clear error
+    with pytest.raises(InputError, match="segment_anything|cannot load as SAM"):
+        make_segmenter("sam", sam_checkpoint=weights)
 
 
 class FakePredictor:
-    """Stands in for segment_anything.SamPredictor: the attributes SamSegmenter reads and writes.
+    """Stands in for segment_anything.SamPredictor: the attributes PromptedSamSegmenter reads and writes.
 
     ``set_image`` "embeds" an image as its mean colour; ``predict`` returns the box region of the
     embedded image's size, so the test can tell which embedding a prediction used.
@@ -118,7 +142,7 @@ class FakePredictor:
 
 def test_sam_embeddings_are_prefetched_and_cached(seq, tmp_path):
     fake = FakePredictor()
-    sam = SamSegmenter(SamConfig(memory_cache=2, cache_dir=tmp_path / "cache"), predictor=fake)
+    sam = PromptedSamSegmenter(PromptedSamConfig(memory_cache=2, cache_dir=tmp_path / "cache"), predictor=fake)
     sam.prefetch("a", lambda: seq.images[0])
     sam.prefetch("a", lambda: seq.images[0])  # asked twice, computed once
     assert sam.wait_idle(10)

@@ -14,6 +14,7 @@ from benchmark.loaders import load_scene
 from benchmark.metrics import caption_replay_accuracy
 from methods.fields.caption_targets import fitted_caption_targets, window_caption_embeddings
 from methods.captioners import get_captioner
+from methods.specs._time_varying import CaptionConfig, TimeVaryingExtensions
 from methods.captioners.base import CaptionPromptConfig, Captioner, ObjectTracks, caption_objects
 from methods.captioners.file import CaptionsFile, tracks_from_file, write_captions_file
 from methods.captioners.tracks import truth_tracks
@@ -340,7 +341,7 @@ def test_field_gap_caption_targets_follow_the_run_caption_window(monkeypatch):
     scene = types.SimpleNamespace(root=Path("/nonexistent"), frames=[])  # no generator truth: none used
     for window in (0, 1):
         model = types.SimpleNamespace(head=types.SimpleNamespace(field=types.SimpleNamespace(autoencoder=None)),
-                                      config=types.SimpleNamespace(caption_window=window), text_encoder=None)
+                                      config=types.SimpleNamespace(extensions=TimeVaryingExtensions(caption_window=window), captions=CaptionConfig()), text_encoder=None)
         times, table = field_gap.caption_targets(model, scene, "oracle", None, None)["box"]
         want = raw if window == 0 else window_caption_embeddings(np.arange(4), raw, 1)
         np.testing.assert_array_equal(times, np.arange(4))

@@ -16,9 +16,9 @@ import pytest
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-GEOMETRY = {"static_iterations": 20, "deformation_iterations": 20, "render_backend": "torch"}
-QUICK = {**GEOMETRY, "feature_iterations": 20}
-SHORT = {**GEOMETRY, "feature_iterations": 300, "feature_learning_rate": 3e-2, "decoder_learning_rate": 3e-3}
+GEOMETRY = {"geometry.static_iterations": 20, "geometry.deformation_iterations": 20, "geometry.render_backend": "torch"}
+QUICK = {**GEOMETRY, "feature.iterations": 20}
+SHORT = {**GEOMETRY, "feature.iterations": 300, "feature.learning_rate": 3e-2, "feature.decoder_learning_rate": 3e-3}
 """A quarter of the default schedule at three times the default learning rates."""
 
 
@@ -38,23 +38,23 @@ def smoke(tmp_path_factory) -> dict:
             "supervision": supervision}
 
 
-def _config(smoke, **options):
+def _config(smoke, options: dict):
     from methods import registry
 
     return registry.get("feature-3dgs").make_config({**options, "shared_cache_dir": str(smoke["cache"])})
 
 
-def _fit(smoke, seed: int = 0, **options):
+def _fit(smoke, options: dict, seed: int = 0):
     from methods.api import Progress
     from methods.feature_3dgs import Feature3DGS
 
-    return Feature3DGS.fit(smoke["scene"], smoke["supervision"], _config(smoke, **options), seed=seed, device="cpu",
+    return Feature3DGS.fit(smoke["scene"], smoke["supervision"], _config(smoke, options), seed=seed, device="cpu",
                            progress=Progress(True))
 
 
 @pytest.fixture(scope="module")
 def fitted(smoke):
-    return _fit(smoke, **SHORT)
+    return _fit(smoke, SHORT)
 
 
 def _agreement_with_truth(model, smoke) -> tuple[float, float]:
@@ -82,35 +82,36 @@ def _agreement_with_truth(model, smoke) -> tuple[float, float]:
 def test_registered_time_agnostic_sharing_the_4dgs_and_options_checked_by_name(smoke):
     from methods import registry
     from methods.language_methods import geometry_key
-    from methods.specs.deformable_clip import DeformableCLIPConfig
+    from benchmark.core.errors import InputError
     from methods.specs.feature_3dgs import Feature3DGSConfig
 
     listing = ("import sys; from methods import registry; assert 'feature-3dgs' in registry.names(); "
-               "registry.get('feature-3dgs').make_config({'feature_level': '2'}); assert 'torch' not in sys.modules")
+               "registry.get('feature-3dgs').make_config({'feature.level': '2'}); assert 'torch' not in sys.modules")
     out = subprocess.run([sys.executable, "-c", listing], capture_output=True, text=True, cwd=ROOT)
     assert out.returncode == 0, out.stderr
     spec = registry.get("feature-3dgs")
     assert spec.queries == ("agnostic",) and spec.load().supports == frozenset({"agnostic"})
     assert isinstance(spec.default_config(), Feature3DGSConfig)
-    for bad in ({"feature_level": "3"}, {"feature_dim": "0"}, {"feature_iterations": "-1"},
-                {"feature_learning_rate": "0"}, {"decoder_learning_rate": "-1"}):
-        with pytest.raises(ValueError, match=next(iter(bad))):
+    for bad in ({"feature.level": "3"}, {"feature.dim": "0"}, {"feature.iterations": "-1"},
+                {"feature.learning_rate": "0"}, {"feature.decoder_learning_rate": "-1"}):
+        with pytest.raises(InputError, match=next(iter(bad)).split(".")[1]):
             spec.make_config(bad)
+    assert "autoencoder.latent_dim" not in {o.path for o in spec.options()}  # no option it does not read
     # the same geometry options give deformable-clip's (and 4d-langsplat's) geometry key: one shared 4D-GS
-    ours = geometry_key(smoke["scene"], "4dgs", Feature3DGSConfig(**GEOMETRY), 0, "cpu")
-    assert ours == geometry_key(smoke["scene"], "4dgs", DeformableCLIPConfig(**GEOMETRY), 0, "cpu")
-    assert ours != geometry_key(smoke["scene"], "4dgs", Feature3DGSConfig(**GEOMETRY), 1, "cpu")
+    ours = geometry_key(smoke["scene"], "4dgs", spec.make_config(GEOMETRY), 0, "cpu")
+    assert ours == geometry_key(smoke["scene"], "4dgs", registry.get("deformable-clip").make_config(GEOMETRY), 0, "cpu")
+    assert ours != geometry_key(smoke["scene"], "4dgs", spec.make_config(GEOMETRY), 1, "cpu")
 
 
 def test_decoder_outputs_the_supervision_dimension(smoke):
-    model = _fit(smoke, **QUICK)
+    model = _fit(smoke, QUICK)
     dim = smoke["supervision"].feature_dim
     assert model.field.decoder.in_features == 16 and model.field.decoder.out_features == dim
     frame = smoke["scene"].test_frames[0]
     rendered, alpha = model.render(frame)
     assert rendered.shape == (frame.camera.height, frame.camera.width, 16) and alpha.shape == rendered.shape[:2]
     assert model.decode(rendered).shape == (*rendered.shape[:2], dim)
-    other = _fit(smoke, **{**QUICK, "feature_dim": 5})
+    other = _fit(smoke, {**QUICK, "feature.dim": 5})
     assert (other.field.decoder.in_features, other.field.decoder.out_features) == (5, dim)
     assert other.fit_info["field"]["output_dim"] == dim and other.fit_info["field"]["level"] == "middle"
 
@@ -119,15 +120,16 @@ def test_pixels_no_gaussian_covers_read_as_the_unmasked_text(smoke):
     import dataclasses
 
     from methods.fields.relevance import relevance
+    from methods.specs._language import AnswerConfig
 
-    model = _fit(smoke, **QUICK)
+    model = _fit(smoke, QUICK)
     frame = smoke["scene"].test_frames[0]
     query, canon = model.query_embedding("box"), model.canonical()
     rendered, _ = model.render(frame)
     decoded = relevance(model.decode(rendered), query, canon, model.relevance_cfg.temperature)  # [H, W]
-    model.use_answer_options(dataclasses.replace(model.config, uncovered_alpha=0.0))  # every pixel covered
+    model.use_answer_options(dataclasses.replace(model.config, answer=AnswerConfig(uncovered_alpha=0.0)))  # all covered
     assert torch.allclose(model.relevance_map("box", frame), decoded, atol=1e-6)
-    model.use_answer_options(dataclasses.replace(model.config, uncovered_alpha=2.0))  # none covered
+    model.use_answer_options(dataclasses.replace(model.config, answer=AnswerConfig(uncovered_alpha=2.0)))  # none
     background = torch.as_tensor(model.text_encoder.encode(["background"], kind="passage"))  # [1, D]
     want = relevance(background, query, canon, model.relevance_cfg.temperature)
     assert torch.allclose(model.relevance_map("box", frame), want.expand(decoded.shape))
@@ -135,7 +137,7 @@ def test_pixels_no_gaussian_covers_read_as_the_unmasked_text(smoke):
 
 def test_fitted_answers_match_the_truth_better_than_an_unfitted_field(smoke, fitted):
     """The unfitted field has the same seed, geometry and initial decoder, and no feature steps."""
-    unfitted = _fit(smoke, **{**SHORT, "feature_iterations": 0})
+    unfitted = _fit(smoke, {**SHORT, "feature.iterations": 0})
     assert not bool(unfitted.field.features.any())  # zero-initialised, as the original
     fitted_iou, fitted_auc = _agreement_with_truth(fitted, smoke)
     unfitted_iou, unfitted_auc = _agreement_with_truth(unfitted, smoke)
@@ -167,14 +169,14 @@ def test_save_and_load_give_identical_answers(smoke, fitted, tmp_path):
     loaded.prepare(["box"])
     assert not loaded._rendered_cache
     meta = json.loads((tmp_path / "feature_3dgs.json").read_text())
-    assert meta["method"] == "feature-3dgs" and meta["config"]["feature_iterations"] == SHORT["feature_iterations"]
+    assert meta["method"] == "feature-3dgs" and meta["config"]["feature"]["iterations"] == SHORT["feature.iterations"]
 
 
 def test_feature_cache_is_reused_and_a_corrupt_file_refitted(smoke, monkeypatch):
     import methods.feature_3dgs as f3
 
-    options = {**QUICK, "feature_iterations": 25}
-    first = _fit(smoke, **options)
+    options = {**QUICK, "feature.iterations": 25}
+    first = _fit(smoke, options)
     assert first.fit_info["cached"]["field"] is False
     (path,) = (smoke["cache"] / "language").rglob(f"feature3dgs-4dgs-{first.fit_info['key']}.pt")
 
@@ -183,23 +185,23 @@ def test_feature_cache_is_reused_and_a_corrupt_file_refitted(smoke, monkeypatch)
 
     with monkeypatch.context() as patch:
         patch.setattr(f3, "train_feature_field", no_training)
-        second = _fit(smoke, **options)
+        second = _fit(smoke, options)
     assert second.fit_info["cached"]["field"] is True
     assert torch.equal(second.field.features, first.field.features)
     assert second.fit_info["field"] == first.fit_info["field"]
 
     for damage in (b"not a torch file", path.read_bytes()[:100]):  # garbage, then a truncated file
         path.write_bytes(damage)
-        again = _fit(smoke, **options)
+        again = _fit(smoke, options)
         assert again.fit_info["cached"]["field"] is False
         assert torch.equal(again.field.features, first.field.features)  # seeded: the same fit again
         assert torch.equal(again.field.decoder.weight, first.field.decoder.weight)
     # a readable file of another fit under this fit's name is not trusted either
     saved = torch.load(path, weights_only=True)
     torch.save({**saved, "key": "another fit"}, path)
-    assert _fit(smoke, **options).fit_info["cached"]["field"] is False
+    assert _fit(smoke, options).fit_info["cached"]["field"] is False
     # and options that change the fit give another key
-    assert _fit(smoke, **{**options, "feature_level": 2}).fit_info["key"] != first.fit_info["key"]
+    assert _fit(smoke, {**options, "feature.level": 2}).fit_info["key"] != first.fit_info["key"]
 
 
 def test_runs_through_the_evaluation_runner(smoke):
@@ -218,7 +220,7 @@ def test_runs_through_the_evaluation_runner(smoke):
     assert sorted(doc["unanswered_queries"]) == ["broken bar", "closed box", "intact bar", "open box"]
     assert doc["timing"]["query_agnostic"]["fps"] > 0 and "query_sensitive" not in doc["timing"]
     info = doc["fit"]["info"]
-    assert info["geometry"]["kind"] == "4dgs" and info["field"]["iterations"] == QUICK["feature_iterations"]
+    assert info["geometry"]["kind"] == "4dgs" and info["field"]["iterations"] == QUICK["feature.iterations"]
     assert "losses" not in info["field"] and info["field"]["peak_cpu_mib"] > 0
     assert fit_seconds_with_shared(doc) >= info["field"]["seconds"] + info["geometry"]["seconds"] - 1e-9
     assert (outcome.path.parent / doc["predictions"]).is_file()

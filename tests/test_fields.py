@@ -118,6 +118,29 @@ def test_autoencoder_reconstructs_distinct_vectors():
     assert cos0 < 0.5
 
 
+def test_autoencoder_epochs_are_raised_to_its_minimum_steps_within_its_cap():
+    cfg = AutoencoderConfig(batch_size=64, epochs=100, min_steps=8000, max_steps=10000)
+    # 13 distinct vectors: one step an epoch, so 8 000 epochs; 200 vectors: 4 steps an epoch, 2 000 epochs
+    assert cfg.for_features(13).epochs == 8000 and cfg.for_features(200).epochs == 2000
+    assert AutoencoderConfig(min_steps=8000, max_steps=300).for_features(13).epochs == 300  # the cap wins
+    assert AutoencoderConfig().for_features(13).epochs == 100  # no minimum: the epochs as given
+    x = np.random.default_rng(0).normal(size=(5, 8)).astype(np.float32)
+    _, report = train_autoencoder(x, AutoencoderConfig(hidden_dims=(4,), min_steps=700, max_steps=900), seed=0)
+    assert report.steps == 700
+    with pytest.raises(ValueError, match="min_steps"):
+        AutoencoderConfig(min_steps=-1)
+
+
+def test_the_status_head_config_shapes_the_status_field():
+    from methods.fields.configs import StatusHeadConfig
+
+    head = StatusHeadConfig(num_states=5, hidden_dim=16, weight_mode="linear", iterations=7)
+    assert head.shape(2) == StatusFieldConfig(num_states=2, hidden_dim=16, weight_mode="linear", init_noise=0.1)
+    assert type(head.shape(2)) is StatusFieldConfig  # what a saved field records, without the training options
+    with pytest.raises(ValueError, match="fit must be one of"):
+        StatusHeadConfig(fit="sometimes")
+
+
 def test_status_field_layout_weights_and_static_gaussians():
     n, d, fdim = 10, 6, 8
     base = torch.arange(n * d, dtype=torch.float32).reshape(n, d)

@@ -10,17 +10,21 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import pytest
 import torch
 
+from benchmark.core.config import with_overrides
 from benchmark.runner import EvalOptions, evaluate
+from methods.specs._language import AnswerConfig
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY_GEOMETRY = {"static_iterations": 20, "deformation_iterations": 20, "render_backend": "torch"}
+TINY_GEOMETRY = {"geometry.static_iterations": 20, "geometry.deformation_iterations": 20,
+                 "geometry.render_backend": "torch"}
 """The tiny 4D-GS the language-method tests use (the same options give the same shared geometry)."""
-TINY = {**TINY_GEOMETRY, "identity_iterations": 300, "identity_reg_sample_size": 200}
+TINY = {**TINY_GEOMETRY, "identity.iterations": 300, "identity.reg_sample_size": 200}
 
 
 @pytest.fixture(scope="module")
@@ -38,17 +42,18 @@ def smoke(tmp_path_factory) -> dict:
             "supervision": supervision}
 
 
-def _config(smoke, **changes):
+def _config(smoke, changes: Optional[dict] = None):
     from methods import registry
 
-    return registry.get("gaussian-grouping").make_config({**TINY, "shared_cache_dir": str(smoke["cache"]), **changes})
+    return registry.get("gaussian-grouping").make_config({**TINY, "shared_cache_dir": str(smoke["cache"]),
+                                                          **(changes or {})})
 
 
-def _fit(smoke, **changes):
+def _fit(smoke, changes: Optional[dict] = None):
     from methods.api import Progress
     from methods.gaussian_grouping import GaussianGrouping
 
-    return GaussianGrouping.fit(smoke["scene"], smoke["supervision"], _config(smoke, **changes), seed=0,
+    return GaussianGrouping.fit(smoke["scene"], smoke["supervision"], _config(smoke, changes), seed=0,
                                 device="cpu", progress=Progress(True))
 
 
@@ -68,20 +73,22 @@ def test_spec_is_registered_time_agnostic_and_listed_without_torch():
             "assert 'torch' not in sys.modules; print('ok')")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert out.returncode == 0, out.stderr
+    from benchmark.core.errors import InputError
     from methods import registry
-    from methods.specs._language import LanguageMethodConfig
+    from methods.specs.gaussian_grouping import GaussianGroupingConfig
 
     spec = registry.get("gaussian-grouping")
     assert spec.queries == ("agnostic",) and set(spec.tracks) == {"oracle", "real"}
     assert spec.load().supports == frozenset({"agnostic"})
     cfg = spec.default_config()
-    assert isinstance(cfg, LanguageMethodConfig)
-    assert (cfg.identity_level, cfg.identity_dim, cfg.identity_reg_k) == (2, 16, 5)
-    for bad, field in [({"identity_level": "3"}, "identity_level"), ({"identity_dim": "0"}, "identity_dim"),
-                       ({"overlap_association": "maybe"}, "overlap_association"),
-                       ({"identity_reg_weight": "-1"}, "identity_reg_weight")]:
-        with pytest.raises(ValueError, match=field):
+    assert isinstance(cfg, GaussianGroupingConfig)
+    assert (cfg.identity.level, cfg.identity.dim, cfg.identity.reg_k) == (2, 16, 5)
+    for bad, field in [({"identity.level": "3"}, "level"), ({"identity.dim": "0"}, "dim"),
+                       ({"association.overlap": "maybe"}, "overlap"),
+                       ({"identity.reg_weight": "-1"}, "reg_weight")]:
+        with pytest.raises(InputError, match=field):
             spec.make_config(bad)
+    assert not {"field.iterations", "autoencoder.latent_dim"} & {o.path for o in spec.options()}  # not read
 
 
 def test_oracle_identities_name_one_object_in_every_frame(smoke):
@@ -114,7 +121,7 @@ def _moving_squares_supervision(track: str = "real"):
     """Two squares sliding right over 5 frames; each frame's mask indices are its own (the larger square
     first in one frame, last in the next) and every mask's feature is a fresh random vector, as image
     features of the same object differ between frames."""
-    from methods.language_methods import SeededTextEncoder
+    from methods.text_encoders import SeededTextEncoder
     from methods.supervision.base import FrameSupervision, Supervision
 
     rng = np.random.default_rng(0)
@@ -138,7 +145,7 @@ def _moving_squares_supervision(track: str = "real"):
 
 def test_real_track_masks_are_linked_over_time_by_overlap():
     from methods.gaussian_grouping import build_identities, uses_overlap_association
-    from methods.specs.gaussian_grouping import GaussianGroupingConfig
+    from methods.specs.gaussian_grouping import GaussianGroupingConfig, OverlapAssociationConfig
 
     sup, truth = _moving_squares_supervision()
     table = build_identities(sup, 2, "background", overlap=True)
@@ -155,7 +162,7 @@ def test_real_track_masks_are_linked_over_time_by_overlap():
     assert build_identities(sup, 2, "background", overlap=False).num_identities == 11
     cfg = GaussianGroupingConfig()
     assert uses_overlap_association(cfg, "real") and not uses_overlap_association(cfg, "oracle")
-    assert uses_overlap_association(dataclasses.replace(cfg, overlap_association="on"), "oracle")
+    assert uses_overlap_association(dataclasses.replace(cfg, association=OverlapAssociationConfig("on")), "oracle")
     # no unmasked text: uncovered pixels are nobody's, and nothing stands for them
     bare = build_identities(sup, 2, None, overlap=True)
     assert bare.unmasked == -1 and bare.num_identities == 2 and (bare.maps[0] == -1).any()
@@ -186,8 +193,9 @@ def test_3d_regulariser_makes_neighbouring_gaussians_agree():
     targets = [IdentityTarget(camera, t, identity) for t in (0.2, 0.5, 0.8)]
     disagreement, accuracy = {}, {}
     for weight in (0.0, 2.0):
-        cfg = GaussianGroupingConfig(identity_iterations=150, identity_reg_weight=weight,
-                                     identity_reg_sample_size=200, render_backend="torch")
+        cfg = with_overrides(GaussianGroupingConfig(), {"identity.iterations": 150, "identity.reg_weight": weight,
+                                                        "identity.reg_sample_size": 200,
+                                                        "geometry.render_backend": "torch"})
         field, report = train_identity_field(geometry, targets, 2, cfg, seed=0)
         state = geometry.at(0.5)
         with torch.no_grad():
@@ -207,7 +215,7 @@ def test_fitted_identities_classify_training_views_and_answer_better_than_unfitt
     from methods.gaussian_grouping import build_identities
 
     scene = smoke["scene"]
-    unfitted = _fit(smoke, identity_iterations=0)
+    unfitted = _fit(smoke, {"identity.iterations": 0})
     table = build_identities(smoke["supervision"], 2, "background", overlap=False)
 
     def accuracy(model) -> float:
@@ -249,12 +257,12 @@ def test_answers_are_protocol_steps_on_the_identity_relevance_map(smoke, fitted)
     # the most relevant identity is the box's, and its pixels are the answer's core
     assert int(rel.argmax()) != fitted.unmasked and got.mask.any()
     # nothing covered: every pixel is the unmasked identity, so the relevance map is flat
-    cover = fitted.config.uncovered_alpha
-    fitted.use_answer_options(dataclasses.replace(fitted.config, uncovered_alpha=2.0))
+    cover = fitted.config.answer.uncovered_alpha
+    fitted.use_answer_options(dataclasses.replace(fitted.config, answer=AnswerConfig(uncovered_alpha=2.0)))
     try:
         assert (fitted.identity_map(frame) == fitted.unmasked).all()
     finally:
-        fitted.use_answer_options(dataclasses.replace(fitted.config, uncovered_alpha=cover))
+        fitted.use_answer_options(dataclasses.replace(fitted.config, answer=AnswerConfig(uncovered_alpha=cover)))
 
 
 def test_save_and_load_answer_identically(smoke, fitted, tmp_path):
@@ -280,21 +288,21 @@ def test_identity_fit_is_reused_from_the_cache_and_a_corrupt_file_is_refit(smoke
     calls = []
     original = gg.train_identity_field
     monkeypatch.setattr(gg, "train_identity_field", lambda *a, **k: calls.append(1) or original(*a, **k))
-    options = {"identity_iterations": 60, "identity_learning_rate": 0.04}  # a fit of its own
+    options = {"identity.iterations": 60, "identity.learning_rate": 0.04}  # a fit of its own
     before = _identity_cache_files(smoke)
-    first = _fit(smoke, **options)
+    first = _fit(smoke, options)
     assert calls == [1] and first.fit_info["cached"]["identities"] is False
     (path,) = sorted(set(_identity_cache_files(smoke)) - set(before))
     assert path.name == f"identities-4dgs-{first.fit_info['key']}.pt"
     frame = smoke["scene"].test_frames[0]
     want = first.query_agnostic("box", [frame])[0]
 
-    again = _fit(smoke, **options)
+    again = _fit(smoke, options)
     assert calls == [1] and again.fit_info["cached"] == {"geometry": True, "identities": True}
     assert np.array_equal(again.query_agnostic("box", [frame])[0].relevance, want.relevance)
 
     path.write_bytes(b"not a torch file")
-    refit = _fit(smoke, **options)
+    refit = _fit(smoke, options)
     assert calls == [1, 1] and refit.fit_info["cached"]["identities"] is False
     assert np.array_equal(refit.query_agnostic("box", [frame])[0].relevance, want.relevance)  # seeded
     saved = torch.load(path, weights_only=True)  # rewritten whole
@@ -303,15 +311,15 @@ def test_identity_fit_is_reused_from_the_cache_and_a_corrupt_file_is_refit(smoke
     # a readable file that does not fit the geometry is not trusted either
     saved["encodings"] = saved["encodings"][:10]
     torch.save(saved, path)
-    _fit(smoke, **options)
+    _fit(smoke, options)
     assert calls == [1, 1, 1] and torch.load(path, weights_only=True)["encodings"].shape[0] > 10
     # another option is another fit, beside the first
-    _fit(smoke, **{**options, "identity_iterations": 5})
+    _fit(smoke, {**options, "identity.iterations": 5})
     assert len(_identity_cache_files(smoke)) == len(before) + 2
 
 
 def test_runs_through_the_evaluation_runner_on_the_shared_geometry(smoke, fitted):
-    options = {**TINY_GEOMETRY, "identity_iterations": 40, "identity_reg_sample_size": 100}
+    options = {**TINY_GEOMETRY, "identity.iterations": 40, "identity.reg_sample_size": 100}
     outcome = evaluate(EvalOptions(method="gaussian-grouping", scene=str(smoke["scene_dir"]), seed=0,
                                    results_dir=smoke["results"], cache_dir=smoke["cache"], quiet=True,
                                    timing_frames=1, timing_repeats=1, method_options=options))

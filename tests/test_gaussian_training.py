@@ -21,8 +21,10 @@ from methods.gaussians.config import (DeformationConfig, GaussianConfig, HexPlan
 from methods.gaussians.hexplane import DeformationField, HexPlane, axis_warp
 from methods.gaussians.model import DeformableGaussians, GaussianModel, deformation_field_from_state
 from methods.gaussians.rasterize import rasterize
-from methods.gaussians.train import (Checkpointing, DensifyStats, GaussianOptimizer, Trainer, densify_and_prune, evaluate,
-                                     gaussian_cap, gaussian_window, inside_box, make_views, reset_opacity, ssim)
+from methods.gaussians.checkpoint import Checkpointing
+from methods.gaussians.optimizer import GaussianOptimizer
+from methods.gaussians.strategy import DensifyStats, densify_and_prune, reset_opacity
+from methods.gaussians.train import Trainer, evaluate, gaussian_cap, gaussian_window, inside_box, make_views, ssim
 
 RAST = functools.partial(rasterize, backend="torch")
 
@@ -289,42 +291,52 @@ def test_the_motion_box_is_where_a_static_model_leaves_the_images_unexplained():
 
 def test_the_deformation_stage_starts_with_what_lies_outside_the_motion_box_static(monkeypatch):
     """One blob slides, the static stage explains the rest: the field starts on the Gaussians in the motion
-    box only (on all of them with the option off), and the fit is no worse for it."""
+    box only (on all of them with the option off), and the fit is no worse for it: it keeps what the field
+    learns of the motion, which a start box that holds nothing loses."""
     box = torch.tensor([[-1.0, -1.0, 0.0], [1.0, 2.0, 0.5]])
     points = torch.tensor([[0.0, 0.0, 0.2], [1.0, 2.0, 0.5], [1.01, 0.0, 0.2], [0.0, 0.0, -0.1]])
     assert inside_box(points, box).tolist() == [True, True, False, False]  # faces belong to the box
     scene = toy_scene(size=24, times=6, views_per_time=8, motion=0.8, moving=1)
-    started, psnr = {}, {}
-    for on in (True, False):
-        cfg = small_recon_config(300, 300, static_outside_motion_box=on)
-        cfg.deformation.hexplane.motion_min_pixels = 16  # one blob in 24-px views
-        result = Trainer(scene, cfg, rasterize_fn=RAST).fit_4dgs()
-        assert result.field_box["motion_box"] is not None
-        started[on] = result.field_box.get("static_at_start", 0)
-        psnr[on] = evaluate(result.model, scene.test_frames, scene.background, RAST)["psnr"]
-    gaussians = result.model.num_gaussians
-    assert started[False] == 0 and 0 < started[True] < gaussians, (started, gaussians)
-    assert psnr[True] > psnr[False] - 0.5, psnr
-    # recheck_outside_motion_box off: every check is told that only the Gaussians in the box may move
-    allowed = []
+    checks: list = []  # (may_move, which Gaussians lie in motion_box) at every static check of a fit
+    motion_box = None
     check = DeformableGaussians.update_static_mask
 
     def spy(self, cfg, extent, times=None, px_per_unit=None, may_move=None):
-        allowed.append((may_move, inside_box(self.gaussians.means.detach(), torch.tensor(motion_box))))
+        inside = None if motion_box is None else inside_box(self.gaussians.means.detach(), motion_box)
+        checks.append((may_move, inside))
         return check(self, cfg, extent, times, px_per_unit, may_move)
 
     monkeypatch.setattr(DeformableGaussians, "update_static_mask", spy)
-    motion_box = result.field_box["motion_box"]
-    default = small_recon_config(300, 300)
-    default.deformation.hexplane.motion_min_pixels = 16
-    Trainer(scene, default, rasterize_fn=RAST).fit_4dgs()  # the default: rechecked, nothing confined
-    assert allowed and all(may is None for may, _ in allowed)
-    allowed.clear()
-    confined = small_recon_config(300, 300, recheck_outside_motion_box=False)
-    confined.deformation.hexplane.motion_min_pixels = 16
-    result = Trainer(scene, confined, rasterize_fn=RAST).fit_4dgs()
-    motion_box = result.field_box["motion_box"]  # the same static stage: the same box
-    assert allowed and all(may is not None and torch.equal(may, inside) for may, inside in allowed)
+
+    def fit(**deformation):
+        cfg = small_recon_config(300, 300, **deformation)
+        cfg.deformation.hexplane.motion_min_pixels = 16  # one blob in 24-px views
+        checks.clear()
+        result = Trainer(scene, cfg, rasterize_fn=RAST).fit_4dgs()
+        assert result.field_box["motion_box"] is not None
+        return result, evaluate(result.model, scene.test_frames, scene.background, RAST)["psnr"]
+
+    on, psnr_on = fit()  # the default: static outside the box at the start, rechecked, nothing confined
+    assert checks and all(may is None for may, _ in checks)
+    off, psnr_off = fit(static_outside_motion_box=False)
+    started = on.field_box.get("static_at_start", 0)
+    assert "static_at_start" not in off.field_box and 0 < started < on.model.num_gaussians, started
+    # the reference that deforms nothing: a start box that holds no Gaussian leaves every one static
+    static_outside_box = Trainer._static_outside_box
+    monkeypatch.setattr(Trainer, "_static_outside_box", lambda self: torch.tensor([[50.0] * 3, [51.0] * 3]))
+    frozen, psnr_frozen = fit()
+    monkeypatch.setattr(Trainer, "_static_outside_box", static_outside_box)
+    assert frozen.model.num_dynamic() == 0
+    psnr = {"on": psnr_on, "off": psnr_off, "frozen": psnr_frozen}
+    # Short fits are chaotic: the CPU's kernels (ATEN_CPU_CAPABILITY, MKL) move each by about a dB and
+    # the frozen reference lies only 1-2 dB below the others, so the margins are set from their spread
+    # over kernels; a start box that misses the moving blob makes "on" the frozen fit, and fails.
+    assert psnr_on > psnr_frozen + 0.25, psnr
+    assert psnr_on > psnr_off - 1.5, psnr
+    # recheck_outside_motion_box off: every check is told that only the Gaussians in the box may move
+    motion_box = torch.tensor(on.field_box["motion_box"])  # the same static stage: the same box
+    fit(recheck_outside_motion_box=False)
+    assert checks and all(may is not None and torch.equal(may, inside) for may, inside in checks)
 
 
 def test_a_saved_field_keeps_its_motion_box_and_one_saved_before_it_loads_uniform():

@@ -19,7 +19,7 @@ from benchmark.core.annotation import AnnotatedFrame, AnnotationSet, Query
 from benchmark.cli import main
 from benchmark.core.errors import InputError
 from benchmark.predictions import QueryPrediction, ScenePredictions, read_predictions, write_predictions
-from benchmark.runner import EvalOptions, evaluate
+from benchmark.runner import EvalOptions, evaluate, evaluate_with_fit
 
 SMOKE_SIZE = 48
 RUN = Path("synthetic") / "smoke" / "nearest-frame" / "oracle"
@@ -177,8 +177,28 @@ def test_a_damaged_fit_named_for_reuse_is_an_input_error_never_a_refit(env):
     key = first.results["fit"]["key"]
     fit = env["cache"] / "fits" / "nearest-frame" / "hypernerf-smoke" / key
     _truncate(fit / "model" / "nearest_frame.npz")
-    with pytest.raises(InputError, match="reuse_fit.*damaged"):
-        evaluate(_options(env, reuse_fit=key))
+    with pytest.raises(InputError, match="cached_key.*damaged"):
+        evaluate_with_fit(_options(env), cached_key=key)
+    with pytest.raises(InputError, match="cached_key.*no cached fit 'no-such-key'"):
+        evaluate_with_fit(_options(env), cached_key="no-such-key")
+
+
+def test_a_named_cached_fit_answers_after_the_code_moved_the_key(env, monkeypatch):
+    from methods.nearest_frame import NearestFrame
+    from methods.registry import MethodSpec
+
+    first = evaluate(_options(env)).results
+    monkeypatch.setattr(MethodSpec, "code_digest", lambda spec: "other code")  # the key the code hashes to moves
+    monkeypatch.setattr(NearestFrame, "fit", classmethod(lambda cls, *a, **k: pytest.fail("refitted")))
+    again = evaluate_with_fit(_options(env), cached_key=first["fit"]["key"]).results
+    assert again["fit"]["key"] == first["fit"]["key"] and again["timing"]["fit_cached"] is True
+    assert again["metrics"] == first["metrics"] and "head_refit_of" not in again["fit"]
+    with pytest.raises(InputError, match="cached_key or head_refit_from, not both"):
+        evaluate_with_fit(_options(env), cached_key=first["fit"]["key"], head_refit_from=first["fit"]["key"])
+    with pytest.raises(InputError, match="head_refit_from.*no cached fit"):
+        evaluate_with_fit(_options(env), head_refit_from="no-such-key")
+    with pytest.raises(pytest.fail.Exception, match="refitted"):  # the plain run wants the fit of the new key
+        evaluate(_options(env))
 
 
 # -- damaged generated scenes -----------------------------------------------------------------------------

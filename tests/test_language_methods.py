@@ -20,8 +20,8 @@ from benchmark.runner import EvalOptions, evaluate
 from methods.fields.language_field import decode_for_relevance
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY = {"static_iterations": 20, "deformation_iterations": 20, "field_iterations": 30, "ae_max_steps": 60,
-        "render_backend": "torch"}
+TINY = {"geometry.static_iterations": 20, "geometry.deformation_iterations": 20, "field.iterations": 30,
+        "autoencoder.max_steps": 60, "geometry.render_backend": "torch"}
 
 
 @pytest.fixture(scope="module")
@@ -39,7 +39,7 @@ def smoke(tmp_path_factory) -> dict:
             "supervision": supervision}
 
 
-TINY_STATUS = {"tv_static_iterations": 20, "status_iterations": 30, "tv_ae_max_steps": 60}
+TINY_STATUS = {"status.static_iterations": 20, "status.iterations": 30, "caption_autoencoder.max_steps": 60}
 """Tiny status-field stage of ``4d-langsplat`` (its time-sensitive half, :mod:`methods.time_sensitive`)."""
 
 
@@ -65,10 +65,10 @@ def test_specs_list_without_torch_and_declare_what_the_classes_support():
         cls = spec.load()
         assert set(spec.queries) == queries and cls.supports == frozenset(queries)
         assert cls.geometry_kind == kind
-    cfg = registry.get("4d-langsplat").make_config({"ae_sample_weighting": "pixels"})
-    assert cfg.ae_sample_weighting == "pixels"
+    cfg = registry.get("4d-langsplat").make_config({"autoencoder.sample_weighting": "pixels"})
+    assert cfg.autoencoder.sample_weighting == "pixels"
     for rule in ("threshold_variant", "canonical_phrases", "sensitive_mask"):  # the protocol's, not a method's
-        with pytest.raises(Exception, match=rule):
+        with pytest.raises(InputError, match=rule):
             registry.get("langsplat").make_config({rule: "release"})
 
 
@@ -212,10 +212,10 @@ def test_autoencoder_sample_weights_count_pixels_masks_or_nothing(smoke):
     assert not np.allclose(pixels / pixels.sum(), masks / masks.sum())  # they do weight differently
     with pytest.raises(ValueError, match="weighting"):
         distinct_features(sup, "area")
-    from methods.specs.deformable_clip import DeformableCLIPConfig
+    from methods import registry
 
-    with pytest.raises(ValueError, match="ae_sample_weighting"):  # refused before any fitting starts
-        DeformableCLIPConfig(ae_sample_weighting="area")
+    with pytest.raises(InputError, match="sample_weighting"):  # refused before any fitting starts
+        registry.get("deformable-clip").make_config({"autoencoder.sample_weighting": "area"})
 
 
 def test_autoencoder_batches_drawn_per_mask_reconstruct_small_masks_as_well_as_large_ones():
@@ -275,7 +275,7 @@ def test_4d_langsplat_on_a_dnerf_folder_answers_agnostic_queries_without_a_head(
     with pytest.raises(InputError, match="truth"):
         evaluate(EvalOptions(method="4d-langsplat", scene=str(scene_dir), results_dir=tmp_path / "r2",
                              cache_dir=tmp_path / "c", quiet=True, timing_frames=1, timing_repeats=1,
-                             method_options={**TINY, **TINY_STATUS, "time_varying": "on"}, object_query="blob"))
+                             method_options={**TINY, **TINY_STATUS, "status.fit": "on"}, object_query="blob"))
 
 
 def test_pixels_no_gaussian_covers_show_the_background_text(smoke, monkeypatch):
@@ -318,9 +318,12 @@ def test_another_protocol_or_answer_option_reuses_the_fit_and_changes_the_answer
     from benchmark.runner import fit_config_dict
     from methods.specs.deformable_clip import DeformableCLIPConfig
 
-    default, other_alpha = DeformableCLIPConfig(), DeformableCLIPConfig(uncovered_alpha=0.3)
+    from methods.fields.configs import LanguageFieldOptions
+    from methods.specs._language import AnswerConfig
+
+    default, other_alpha = DeformableCLIPConfig(), DeformableCLIPConfig(answer=AnswerConfig(uncovered_alpha=0.3))
     assert fit_config_dict(default) == fit_config_dict(other_alpha)
-    assert fit_config_dict(default) != fit_config_dict(DeformableCLIPConfig(field_iterations=7))
+    assert fit_config_dict(default) != fit_config_dict(DeformableCLIPConfig(field=LanguageFieldOptions(iterations=7)))
     base = _eval(smoke, "deformable-clip")
     assert base.results["protocol"] == PROTOCOLS["release"].to_dict()
     other = evaluate(EvalOptions(method="deformable-clip", scene=str(smoke["scene_dir"]), results_dir=tmp_path / "r",
@@ -357,15 +360,16 @@ def test_ablate_rescore_reanswers_recorded_fits(smoke, tmp_path, capsys):
     assert main(common + ["--name", "same", "--protocol", "paper-text"]) == 0
     again = json.loads((tmp_path / "rescore-same.json").read_text())["runs"]
     assert [r["mIoU_after"] for r in again] == pytest.approx([r["mIoU_after"] for r in rel])
-    assert main(common + ["--name", "bad", "--set", "field_iterations=5"]) != 0
-    assert "'field_iterations'] are not answer options" in capsys.readouterr().err
+    assert main(common + ["--name", "bad", "--set", "field.iterations=5"]) != 0
+    assert "'field.iterations'] are not answer options" in capsys.readouterr().err
     # --refit: a fit option refits (the recorded run's other options kept); a name no method has is refused
-    assert main(common + ["--name", "refit", "--refit", "--set", "field_iterations=5"]) == 0
+    assert main(common + ["--name", "refit", "--refit", "--set", "field.iterations=5"]) == 0
     (row,) = json.loads((tmp_path / "rescore-refit.json").read_text())["runs"]
     (path,) = (smoke["results"] / "ablations" / "refit").rglob("seed*.json")
     refitted, (recorded,) = json.loads(path.read_text()), [
         json.loads(p.read_text()) for p in smoke["results"].glob("synthetic/*/deformable-clip/*/seed0.json")]
-    assert refitted["method_config"]["field_iterations"] == 5 and refitted["fit"]["key"] != recorded["fit"]["key"]
+    assert refitted["method_config"]["field"]["iterations"] == 5 and refitted["fit"]["key"] != recorded["fit"]["key"]
+    assert refitted["method_config"]["geometry"]["static_iterations"] == 20  # the recorded run's, kept
     assert row["mIoU_before"] == pytest.approx(recorded["metrics"]["mIoU"])
     assert row["mIoU_after"] == pytest.approx(refitted["metrics"]["mIoU"])
     assert "refitted" in (tmp_path / "rescore-refit.md").read_text()
@@ -376,22 +380,22 @@ def test_ablate_rescore_reanswers_recorded_fits(smoke, tmp_path, capsys):
 def test_ablate_rescore_refit_of_a_head_option_keeps_the_recorded_geometry(smoke, tmp_path, monkeypatch):
     """``--refit`` with a time-varying-head option fits the head alone on the recorded fit: the geometry
     and time-agnostic field are the recorded ones even when the geometry code has changed since."""
-    import benchmark.runner as runner
     from benchmark.cli import main
     from methods.language_methods import LanguageFieldMethod
+    from methods.registry import MethodSpec
 
     recorded = _eval(smoke, "4d-langsplat").results
     calls = []
     monkeypatch.setattr(LanguageFieldMethod, "fit", classmethod(lambda cls, *a, **k: calls.append(1)))  # never a full fit
-    monkeypatch.setattr(runner, "_file_hash", lambda paths: "code changed since the run")  # keys move
+    monkeypatch.setattr(MethodSpec, "code_digest", lambda self: "code changed since the run")  # keys move
     assert main(["ablate", "rescore", "--results-dir", str(smoke["results"]), "--cache-dir", str(smoke["cache"]),
                  "--methods", "4d-langsplat", "--out", str(tmp_path), "--quiet", "--refit",
-                 "--name", "window", "--set", "caption_window=2"]) == 0
+                 "--name", "window", "--set", "extensions.caption_window=2"]) == 0
     assert not calls
     (path,) = (smoke["results"] / "ablations" / "window").rglob("seed0.json")
     new = json.loads(path.read_text())
     assert new["fit"]["head_refit_of"] == recorded["fit"]["key"] != new["fit"]["key"]
-    assert new["method_config"]["caption_window"] == 2
+    assert new["method_config"]["extensions"]["caption_window"] == 2
     assert new["fit"]["info"]["time_varying"]["caption_window"] == 2
     # same geometry and time-agnostic field: the time-agnostic answers are the recorded ones exactly
     assert new["metrics"]["mIoU"] == pytest.approx(recorded["metrics"]["mIoU"])
@@ -399,7 +403,7 @@ def test_ablate_rescore_refit_of_a_head_option_keeps_the_recorded_geometry(smoke
     # a head option beside an answer option: the same head (its cache key ignores answer options), re-answered
     assert main(["ablate", "rescore", "--results-dir", str(smoke["results"]), "--cache-dir", str(smoke["cache"]),
                  "--methods", "4d-langsplat", "--out", str(tmp_path), "--quiet", "--refit", "--name", "window-release",
-                 "--set", "caption_window=2", "--protocol", "paper-text"]) == 0
+                 "--set", "extensions.caption_window=2", "--protocol", "paper-text"]) == 0
     assert not calls
     (path,) = (smoke["results"] / "ablations" / "window-release").rglob("seed0.json")
     both = json.loads(path.read_text())
@@ -408,20 +412,20 @@ def test_ablate_rescore_refit_of_a_head_option_keeps_the_recorded_geometry(smoke
     # a boolean option given as text is the recorded True: asked again, the run is kept, not answered anew
     seg = ["ablate", "rescore", "--results-dir", str(smoke["results"]), "--cache-dir", str(smoke["cache"]),
            "--methods", "4d-langsplat", "--out", str(tmp_path), "--quiet", "--refit", "--name", "segments",
-           "--set", "caption_segments=true"]
+           "--set", "extensions.caption_segments=true"]
     assert main(seg) == 0
     (path,) = (smoke["results"] / "ablations" / "segments").rglob("seed0.json")
     first = path.read_bytes()
-    assert json.loads(first)["method_config"]["caption_segments"] is True
+    assert json.loads(first)["method_config"]["extensions"]["caption_segments"] is True
     assert main(seg) == 0 and path.read_bytes() == first
-    # the head's code has changed since: the kept file is stale, the head is refitted under the new code
+    # the head's code has changed since: the kept file is stale, the head is refitted under the new code (the
+    # runner keys a fit's code by the spec's digest and the class's ``code_version``, and records the latter)
     from methods.four_d_langsplat import FourDLangSplat
 
-    assert json.loads(first)["fit"]["code_version"] == FourDLangSplat.code_version
-    monkeypatch.setattr(FourDLangSplat, "code_version", "head code changed since")
+    monkeypatch.setattr(MethodSpec, "code_digest", lambda self: "head code changed since")
+    monkeypatch.setattr(FourDLangSplat, "code_version", "head code changed since", raising=False)
     assert main(seg) == 0
     again = json.loads(path.read_text())
-    assert again["fit"]["code_version"] == "head code changed since"
     assert again["fit"]["key"] != json.loads(first)["fit"]["key"] and not again["fit"]["cached"]
     assert not calls
 
@@ -520,7 +524,7 @@ def test_the_field_gap_prepares_the_runners_texts_even_when_its_agnostic_half_is
 
 
 def test_query_speed_times_the_method_query_path():
-    from methods.language_methods import measure_query_speed
+    from benchmark.studies.query_speed import measure_query_speed
 
     out = measure_query_speed(1500, 32, 24, frames=2, warmup=1, queries=3, feature_dim=64)
     assert out["gaussians"] == 1500 and out["mask_shape"] == [24, 32]

@@ -119,7 +119,7 @@ def test_ablate_autoencoder_command_compares_weightings(smoke, tmp_path, capsys)
 
     scene, _ = smoke
     args = ["ablate", "autoencoder", "--scenes", str(scene.root), "--weightings", "pixels", "masks",
-            "--seeds", "0", "1", "--set", "ae_min_steps=100", "--set", "ae_max_steps=100",
+            "--seeds", "0", "1", "--set", "autoencoder.min_steps=100", "--set", "autoencoder.max_steps=100",
             "--cache-dir", str(tmp_path / "cache"), "--out", str(tmp_path), "--quiet"]
     assert main(args) == 0
     doc = json.loads((tmp_path / "autoencoder-ceiling.json").read_text())
@@ -132,7 +132,7 @@ def test_ablate_autoencoder_command_compares_weightings(smoke, tmp_path, capsys)
     md = (tmp_path / "autoencoder-ceiling.md").read_text()
     assert "| smoke | masks |" in md and "perfect / through" in md
     capsys.readouterr()
-    assert main(args + ["--set", "ae_sample_weightin=masks"]) == 2
-    assert "did you mean 'ae_sample_weighting'" in capsys.readouterr().err
+    assert main(args + ["--set", "autoencoder.sample_weightin=masks"]) == 2
+    assert "did you mean 'autoencoder.sample_weighting'" in capsys.readouterr().err
     assert main(["ablate", "autoencoder", "--weightings", "area", "--out", str(tmp_path), "--quiet"]) == 2
     assert "unknown weighting 'area'" in capsys.readouterr().err

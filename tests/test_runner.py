@@ -343,11 +343,12 @@ def test_demo_and_eval_commands_end_to_end(env, capsys, tmp_path):
     from benchmark.runner import resolve_scene
 
     common = ["--results-dir", str(env["results"]), "--cache-dir", str(env["cache"]), "--quiet"]
-    assert main(["demo", "--scene", str(env["scene"]), *common]) == 0
+    assert main(["demo", "--method", "nearest-frame", "--scene", str(env["scene"]), *common]) == 0
     out = capsys.readouterr().out
     assert "nearest-frame on synthetic/smoke" in out and "mIoU" in out and "FPS" in out
     # without --results-dir the demo writes inside its cache, never into a checkout's committed results/
-    assert main(["demo", "--scene", str(env["scene"]), "--cache-dir", str(env["cache"]), "--quiet"]) == 0
+    assert main(["demo", "--method", "nearest-frame", "--scene", str(env["scene"]), "--cache-dir", str(env["cache"]),
+                 "--quiet"]) == 0
     assert (env["cache"] / "demo-results" / "synthetic" / "smoke" / "nearest-frame" / "oracle" / "seed0.json").is_file()
     capsys.readouterr()
     assert main(["eval", "--method", "nearest-frame", "--scene", str(env["scene"]), "--seed", "3", "--set",
@@ -357,6 +358,27 @@ def test_demo_and_eval_commands_end_to_end(env, capsys, tmp_path):
     assert "unknown option 'nope'" in capsys.readouterr().err
     with pytest.raises(Exception, match="did you mean preset 'smoke'"):
         resolve_scene("smok", tmp_path / "c")
+
+
+def test_eval_takes_the_methods_options_as_flags_derived_from_its_config(env, capsys):
+    from benchmark.cli import main
+    from benchmark.results import load_results
+
+    with pytest.raises(SystemExit) as shown:
+        main(["eval", "--method", "4d-langsplat", "--scene", "smoke", "--help"])
+    assert shown.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--autoencoder.latent-dim INT Latent channels per level (paper: 3 for CLIP). (default: 3)" in text
+    assert "4d-langsplat options: status:" in text and "--status.weight-mode {softmax,linear}" in text
+    common = ["--scene", str(env["scene"]), "--results-dir", str(env["results"]), "--cache-dir", str(env["cache"]),
+              "--quiet"]
+    assert main(["eval", "--method", "nearest-frame", "--seed", "5", "--match-rule", "best", "--set",
+                 "camera_weight=0.5", *common]) == 0
+    doc = load_results(next(env["results"].rglob("seed5.json")))
+    assert doc["method_config"] == {"camera_weight": 0.5, "match_rule": "best"}
+    with pytest.raises(SystemExit):  # another method's option is no flag of this one's
+        main(["eval", "--method", "nearest-frame", "--autoencoder.latent-dim", "4", *common])
+    assert "unrecognized arguments: --autoencoder.latent-dim" in capsys.readouterr().err
 
 
 def test_supervision_is_computed_once_per_scene_and_source_and_rebuilt_when_corrupt(env, monkeypatch):
@@ -592,21 +614,24 @@ def test_a_run_says_whether_the_code_changed_since_its_command_started(env, monk
         torch.set_num_threads(threads)
 
 
-def test_code_hashes_of_cache_keys_are_read_once_per_process(tmp_path):
+def test_code_hashes_of_cache_keys_are_read_once_per_process(tmp_path, monkeypatch):
     # a file edited while a long run goes on must not move the keys of the fits that run makes later
     # (the second method of a scene would otherwise refit the geometry the first one just cached)
-    from benchmark.runner import _file_hash
-    from methods.language_methods import source_hash
+    import benchmark.core.cache_keys as cache_keys
+    from methods.registry import MethodSpec
+    from methods.specs.nearest_frame import NearestFrameConfig
 
-    code = tmp_path / "code.py"
+    monkeypatch.syspath_prepend(str(tmp_path))
+    code = tmp_path / "throwaway_keyed_method.py"
     code.write_text("A = 1\n")
-    before = (_file_hash([code]), source_hash([code]))
+    spec = MethodSpec(name="keyed", description="test: a code digest", entry_point="throwaway_keyed_method:A",
+                      config=NearestFrameConfig, tracks=("oracle",), queries=("agnostic",))
+    before = spec.code_digest()
     code.write_text("A = 2\n")
-    assert (_file_hash([code]), source_hash([code])) == before
-    (tmp_path / "b").mkdir()
-    edited = tmp_path / "b" / "code.py"  # same name, the edited content, first read now
-    edited.write_text("A = 2\n")
-    assert (_file_hash([edited]), source_hash([edited])) != before
+    assert spec.code_digest() == before
+    cache_keys._closure.cache_clear()  # a new process reads the edited file
+    cache_keys._file_digest.cache_clear()
+    assert spec.code_digest() != before
 
 
 def test_each_run_of_a_sweep_reports_its_own_peak_memory(env, monkeypatch):
@@ -650,6 +675,56 @@ def test_a_cached_fit_passes_on_whether_its_peak_was_its_own(env):
     info_path.write_text(json.dumps(info))
     old = evaluate(_options(env, seed=7)).results
     assert old["memory"]["peak_fit_window"] == "process" and peak_memory_with_shared(old)[2] is False
+
+
+def test_the_named_steps_of_a_run_compose_to_evaluate(env):
+    from benchmark.runner import answer_queries, obtain_fit, prepare_run, score_and_write
+
+    whole = evaluate(_options(env)).results
+    prepared = prepare_run(_options(env))
+    assert [f.name for f in prepared.eval_frames] == whole["score_config"]["eval_frames"]
+    fit = obtain_fit(prepared)
+    assert fit.cached and fit.key == whole["fit"]["key"] and fit.head_refit_of is None
+    answers = answer_queries(prepared, fit.model)
+    assert answers.unanswered == [] and len(answers.predictions.queries) == len(answers.queries) == 12
+    assert answers.predictions.info["unanswered_queries"] == []
+    steps = score_and_write(prepared, fit, answers)
+    assert steps.results["metrics"] == whole["metrics"] and steps.results["scores"] == whole["scores"]
+    assert list(steps.results) == list(whole)  # the same fields, in the same order
+
+
+def test_fitting_commands_take_one_thread_unless_told(env, capsys, monkeypatch):
+    import argparse
+
+    import torch
+
+    from benchmark.cli import main
+    from benchmark.commands import run_all
+
+    threads = torch.get_num_threads()
+    for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):  # restored after the test (the rule sets them)
+        monkeypatch.setenv(name, "0")
+    common = ["eval", "--method", "nearest-frame", "--scene", str(env["scene"]), "--results-dir", str(env["results"]),
+              "--cache-dir", str(env["cache"]), "--quiet"]
+    path = env["results"] / "synthetic" / "smoke" / "nearest-frame" / "oracle" / "seed0.json"
+    try:
+        torch.set_num_threads(2)
+        assert main(common) == 0
+        assert json.loads(path.read_text())["environment"]["torch_threads"] == 1
+        assert main([*common, "--threads", "2"]) == 0
+        assert json.loads(path.read_text())["environment"]["torch_threads"] == 2
+        assert os.environ["OMP_NUM_THREADS"] == "2"  # what the worker processes of run-all inherit
+        capsys.readouterr()
+        assert main([*common, "--threads", "0"]) == 2
+        assert "--threads" in capsys.readouterr().err
+    finally:
+        torch.set_num_threads(threads)
+    parser = argparse.ArgumentParser()
+    run_all.add_arguments(parser)
+    assert parser.parse_args([]).threads is None
+    assert parser.parse_args(["--threads", "3"]).threads == 3
+    assert parser.parse_args(["--threads-per-job", "2"]).threads == 2  # the hidden second name
+    assert "--threads-per-job" not in parser.format_help() and "--threads" in parser.format_help()
 
 
 def test_run_all_jobs_run_scene_seed_groups_in_worker_processes(env, capsys):

@@ -9,7 +9,7 @@ import pytest
 
 from benchmark.cli import main
 from benchmark.results import results_path, write_results
-from benchmark.time_decisions import accuracy_span, query_rows, summarise
+from benchmark.studies.time_decisions import accuracy_span, query_rows, summarise
 
 
 def _run(method: str, seed: int, smoothed: list[float], labels: list[bool], tau: float) -> dict:

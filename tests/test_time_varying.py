@@ -8,8 +8,8 @@ its features vary with t (as a trained 4D-GS's do where things move); nothing mo
 from __future__ import annotations
 
 import hashlib
-from pathlib import Path
 from types import SimpleNamespace
+from typing import Optional
 
 import numpy as np
 import pytest
@@ -25,7 +25,8 @@ from methods.fields.time_varying import (choose_num_states, embed_captions, fit_
                                           smooth_caption_embeddings,
                                          load_time_varying_field, object_blend_weights, object_semantics,
                                          render_channels)
-from methods.specs._time_varying import TimeVaryingOptions
+from benchmark.core.config import with_overrides
+from methods.specs._time_varying import TimeVaryingExtensions, TimeVaryingMethodConfig
 from methods.supervision.base import TextEncoder
 
 W, H = 32, 24
@@ -107,9 +108,11 @@ def world():
                            masks=masks)
 
 
-def _options(**kw) -> TimeVaryingOptions:
-    base = dict(tv_ae_max_steps=400, tv_static_iterations=60, status_iterations=300, tv_ae_hidden_dims=(32, 16))
-    return TimeVaryingOptions(**{**base, **kw})
+def _options(changes: Optional[dict] = None) -> TimeVaryingMethodConfig:
+    """A time-varying method config small enough for the toy world, with ``changes`` (dotted path -> value)."""
+    base = {"caption_autoencoder.max_steps": 400, "status.static_iterations": 60, "status.iterations": 300,
+            "caption_autoencoder.hidden_dims": (32, 16)}
+    return with_overrides(TimeVaryingMethodConfig(), {**base, **(changes or {})})
 
 
 @pytest.fixture(scope="module")
@@ -127,8 +130,8 @@ def test_object_semantics_and_k(world):
     sem = object_semantics(world.sup, tolerance=0.02, max_states=3, min_state_run=4.0)
     assert sem[0].dynamic and sem[0].states == 2
     assert not sem[1].dynamic and sem[1].states == 1 and sem[1].spread < 1e-6
-    assert choose_num_states(sem, _options(num_states=3)) == 2
-    assert choose_num_states(sem, _options(num_states=5, choose_states=False)) == 5
+    assert choose_num_states(sem, _options({"status.num_states": 3})) == 2
+    assert choose_num_states(sem, _options({"status.num_states": 5, "extensions.choose_states": False})) == 5
     assert choose_num_states({1: sem[1]}, _options()) == 1
 
 
@@ -162,7 +165,6 @@ def test_caption_segments_make_one_target_per_held_state():
     """Each object's targets become its segment means: alternating wording inside a state collapses to
     one target per state, the change stays a step at the state change, an unchanging object keeps one."""
     from methods.fields.time_varying import CaptionSupervision, segment_caption_targets
-    from methods.specs._time_varying import TimeVaryingOptions
 
     names = [f"f{t:02d}" for t in range(30)]  # 30 time steps: room for the permutation test at 1 %
     scene = SimpleNamespace(frame=lambda name: SimpleNamespace(time_index=int(name[1:])))
@@ -198,7 +200,7 @@ def test_caption_segments_make_one_target_per_held_state():
     assert not object_semantics(_sup_from(x), tolerance=0.0, max_states=3, min_state_run=4.0,
                                 change_points={0: []})[0].dynamic  # no change point: one target, static
     with pytest.raises(ValueError, match="alternatives"):
-        TimeVaryingOptions(caption_window=3, caption_segments=True)
+        TimeVaryingExtensions(caption_window=3, caption_segments=True)
 
 
 def test_caption_segments_merge_a_state_that_comes_back():
@@ -266,7 +268,7 @@ def test_caption_window_averages_wording_within_a_state(world):
     smoothed = [float(row(smooth, i) @ row(smooth, i + 1)) for i in (1, 6)]
     assert min(smoothed) > max(raw) + 0.5
     with pytest.raises(ValueError, match="caption_window"):
-        _options(caption_window=-1)
+        _options({"extensions.caption_window": -1})
 
 
 def test_caption_segments_decide_which_objects_carry_states(world, monkeypatch):
@@ -279,14 +281,16 @@ def test_caption_segments_decide_which_objects_carry_states(world, monkeypatch):
         return [float(np.median(times))] if len(np.unique(np.round(emb, 6), axis=0)) > 1 else []
 
     monkeypatch.setattr(captions_module, "caption_change_points", fake_change_points)
-    opts = _options(caption_segments=True, semantic_change_tolerance=2.0, status_iterations=20, tv_static_iterations=10)
+    opts = _options({"extensions.caption_segments": True, "extensions.semantic_change_tolerance": 2.0,
+                     "status.iterations": 20, "status.static_iterations": 10})
     field = fit_time_varying_field(world.geometry, world.scene, world.sup, opts, kind="status", seed=0, backend="torch")
     sem = field.info["objects_semantics"]
     assert sem["0"]["dynamic"] and sem["0"]["states"] == 2 and not sem["1"]["dynamic"]
     assert field.info["num_states"] == 2 and field.info["dynamic_gaussians"] > 0
     # without segments the same tolerance freezes the box: the spread test is what decides there
     plain = fit_time_varying_field(world.geometry, world.scene, world.sup,
-                                   _options(semantic_change_tolerance=2.0, status_iterations=20, tv_static_iterations=10),
+                                   _options({"extensions.semantic_change_tolerance": 2.0, "status.iterations": 20,
+                                             "status.static_iterations": 10}),
                                    kind="status", seed=0, backend="torch")
     assert not plain.info["objects_semantics"]["0"]["dynamic"] and plain.info["num_states"] == 1
 
@@ -326,11 +330,13 @@ def test_caption_autoencoder_trains_at_least_its_minimum_steps(world):
     """Few distinct captions make 100 epochs a few hundred steps; the states' margins need more."""
     from methods.fields.time_varying import fit_time_varying_field as fit
 
-    opts = _options(tv_ae_max_steps=900, tv_ae_min_steps=700, tv_static_iterations=2, status_iterations=2)
+    opts = _options({"caption_autoencoder.max_steps": 900, "caption_autoencoder.min_steps": 700,
+                     "status.static_iterations": 2, "status.iterations": 2})
     tv = fit(world.geometry, world.scene, world.sup, opts, kind="non-status", seed=0, backend="torch")
     assert tv.info["autoencoder"]["steps"] == 700
-    capped = fit(world.geometry, world.scene, world.sup, _options(tv_ae_max_steps=300, tv_static_iterations=2,
-                                                                  status_iterations=2),
+    capped = fit(world.geometry, world.scene, world.sup, _options({"caption_autoencoder.max_steps": 300,
+                                                                  "status.static_iterations": 2,
+                                                                  "status.iterations": 2}),
                  kind="non-status", seed=0, backend="torch")
     assert capped.info["autoencoder"]["steps"] == 300
 
@@ -384,12 +390,13 @@ def test_head_scores_inside_the_chosen_spatial_mask(world, status_field, tmp_pat
 
 def test_variants_k_layout_and_non_status(world):
     fixed = fit_time_varying_field(world.geometry, world.scene, world.sup,
-                                   _options(num_states=4, choose_states=False, skip_static_semantics=False,
-                                            weight_mode="linear", status_iterations=20),
+                                   _options({"status.num_states": 4, "extensions.choose_states": False,
+                                             "extensions.skip_static_semantics": False, "status.weight_mode": "linear",
+                                             "status.iterations": 20}),
                                    kind="status", seed=1, backend="torch")
     assert isinstance(fixed.module, StatusField)
     assert fixed.module.states.shape == (2 * N_PER, 4, 6) and fixed.memory()["saved_fraction"] == pytest.approx(0.0)
-    non = fit_time_varying_field(world.geometry, world.scene, world.sup, _options(status_iterations=150),
+    non = fit_time_varying_field(world.geometry, world.scene, world.sup, _options({"status.iterations": 150}),
                                  kind="non-status", seed=0, backend="torch")
     assert non.module.static.shape == (2 * N_PER, 6)
     frames = [f for f in world.scene.frames if f.split == "test"]
@@ -419,10 +426,10 @@ def test_blend_operator_is_the_rendering(world):
 
 
 def test_operators_and_rasterizer_train_the_same_field(world):
-    fast = fit_time_varying_field(world.geometry, world.scene, world.sup, _options(status_iterations=40),
+    fast = fit_time_varying_field(world.geometry, world.scene, world.sup, _options({"status.iterations": 40}),
                                   kind="status", seed=0, backend="torch")
     slow = fit_time_varying_field(world.geometry, world.scene, world.sup,
-                                  _options(status_iterations=40, blend_operators=False),
+                                  _options({"status.iterations": 40, "extensions.blend_operators": False}),
                                   kind="status", seed=0, backend="torch")
     assert fast.info["blend_operators"]["recorded"] == len(world.tracks.frame_names)
     assert slow.info["blend_operators"]["recorded"] == 0
@@ -430,7 +437,7 @@ def test_operators_and_rasterizer_train_the_same_field(world):
 
 
 def test_measure_status_speed_small():
-    from methods.fields.time_varying import measure_status_speed
+    from benchmark.studies.status_speed import measure_status_speed
 
     out = measure_status_speed(400, 32, 24, num_states=3, dynamic_fraction=0.5, iterations=1, warmup=1,
                                operator=True)
@@ -473,13 +480,13 @@ def _latent_variation(tv) -> tuple[float, float]:
 
 def test_time_tv_and_entropy_terms_act_on_the_status_field(world, status_field):
     regular = fit_time_varying_field(world.geometry, world.scene, world.sup,
-                                     _options(status_time_tv_weight=5.0, status_entropy_weight=0.5),
+                                     _options({"extensions.time_tv_weight": 5.0, "extensions.entropy_weight": 0.5}),
                                      kind="status", seed=0, backend="torch")
     tv_plain, ent_plain = _latent_variation(status_field)
     tv_reg, ent_reg = _latent_variation(regular)
     assert tv_reg < 0.8 * tv_plain and ent_reg < 0.8 * ent_plain
-    with pytest.raises(ValueError, match="status_time_tv_weight"):
-        _options(status_time_tv_weight=-1.0).check_time_varying()
+    with pytest.raises(ValueError, match="time_tv_weight"):
+        _options({"extensions.time_tv_weight": -1.0})
 
 
 def test_speed_command_records_where_it_ran_and_rejects_bad_sizes(tmp_path, capsys):
@@ -499,38 +506,3 @@ def test_speed_command_records_where_it_ran_and_rejects_bad_sizes(tmp_path, caps
     assert "--dynamic-fraction" in capsys.readouterr().err
     assert main(args[:2] + ["--gaussians", "0", "--quiet"]) == 2
     assert "--gaussians" in capsys.readouterr().err
-
-
-def test_time_varying_code_version_covers_the_code_that_makes_its_targets():
-    """The fit cache key of a time-varying method hashes :data:`TIME_VARYING_SOURCES`: every module
-    whose code shapes the fitted head (targets, states, the network) must be among them, or editing it
-    would silently reuse heads fitted by the old code."""
-    import inspect
-
-    from methods.fields.caption_targets import caption_change_points, caption_segment_states, window_caption_embeddings
-    from methods.fields.status import StatusField
-    from methods.fields.time_varying import fit_time_varying_field
-    from methods.time_sensitive import TIME_VARYING_SOURCES
-
-    sources = {Path(p).resolve() for p in TIME_VARYING_SOURCES}
-    assert all(p.is_file() for p in sources)
-    for code in (caption_change_points, caption_segment_states, window_caption_embeddings, StatusField,
-                 fit_time_varying_field):
-        assert Path(inspect.getsourcefile(code)).resolve() in sources, code.__name__
-
-
-def test_the_field_methods_code_version_covers_the_gaussian_core():
-    """The runner's whole-fit cache key holds the methods' ``code_version``: the Gaussian core (rasterizer,
-    trainer, HexPlane) must be in it, or a changed geometry would be answered from fits of the old one
-    (the HexPlane's motion box once changed the 4D-GS fit, and ``bench4d eval`` reloaded the old fit)."""
-    import inspect
-
-    from methods.gaussians.hexplane import HexPlane
-    from methods.gaussians.rasterize import rasterize
-    from methods.gaussians.train import Trainer
-    from methods.language_methods import FIELD_SOURCES, GEOMETRY_SOURCES, LanguageFieldMethod, source_hash
-
-    for code in (HexPlane, rasterize, Trainer):
-        assert Path(inspect.getsourcefile(code)).resolve() in {Path(p).resolve() for p in GEOMETRY_SOURCES}
-    assert LanguageFieldMethod.code_version == "lf-" + source_hash(FIELD_SOURCES + GEOMETRY_SOURCES)
-    assert LanguageFieldMethod.code_version != "lf-" + source_hash(FIELD_SOURCES)

@@ -104,80 +104,13 @@ def run_plan(plan: Plan, scene_dir: str | Path, out: str | Path, *, log: Callabl
             page = ctx.new_page()
             page.goto(tool.url)
             page.wait_for_function("document.body.dataset.ready === '1'", timeout=60000)
-            frames = page.evaluate("window.bench4d.S.frames")
-            index = {f["name"]: f["index"] for f in frames}
-            by_time: dict[int, int] = {}
-            for f in frames:
-                by_time.setdefault(f["time_index"], f["index"])
-            existing = {q["text"]: q["id"] for q in page.evaluate("window.bench4d.S.queries")}
-
-            def qid(text: str) -> int:
-                return {q["text"]: q["id"] for q in page.evaluate("window.bench4d.S.queries")}[text]
-
-            for text, kind, base, level in plan.queries:
-                if text in existing:
-                    continue
-                page.locator("#add-query summary").click()
-                page.fill("#new-text", text)
-                page.select_option("#new-kind", kind)
-                if base is not None:
-                    page.select_option("#new-base", label=f"base: {base}")
-                page.select_option("#new-level", level or "")
-                n = page.evaluate("window.bench4d.S.queries.length")
-                page.click("#add-query-btn")
-                page.wait_for_function(f"window.bench4d.S.queries.length === {n + 1}")
-                page.locator("#add-query summary").click()
-
-            def goto(i: int) -> None:
-                page.evaluate("i => window.bench4d.goto(i)", i)
-                page.wait_for_function(f"window.bench4d.frame() === {i} && window.bench4d.S.loaded.has({i})")
-
-            def to_page(x: float, y: float, w: int, h: int) -> tuple[float, float]:
-                box = page.locator("#view").bounding_box()
-                return box["x"] + x * box["width"] / w, box["y"] + y * box["height"] / h
-
-            def wait_segment() -> None:
-                page.wait_for_function("document.querySelector('#message').textContent.startsWith('grabcut') || "
-                                       "document.querySelector('#message').textContent.startsWith('sam') || "
-                                       "document.querySelector('#message').textContent.startsWith('segmentation failed')",
-                                       timeout=30000)
-                msg = page.inner_text("#message")
-                if msg.startswith("segmentation failed"):
-                    raise RuntimeError(msg)
-                stats["segment_ms"].append(float(re.search(r"(\d+) ms", msg).group(1)))
-
+            driver = _PageDriver(page, stats)
+            driver.add_queries(plan.queries)
             page.keyboard.press("b")
             for act in plan.actions:
-                i = index[act.frame]
-                if page.evaluate("window.bench4d.frame()") != i:
-                    goto(i)
-                page.evaluate("q => window.bench4d.select(q)", qid(act.query))
-                f = frames[i]
-                w, h = f["width"], f["height"]
-                if act.box is None and not act.clicks:
-                    page.locator("#view").focus()
-                    page.keyboard.press("a")
-                    stats["absent"] += 1
-                else:
-                    page.evaluate("document.querySelector('#message').textContent = ''")
-                    x0, y0, x1, y1 = act.box
-                    page.mouse.move(*to_page(x0, y0, w, h))
-                    page.mouse.down()
-                    page.mouse.move(*to_page(x1, y1, w, h), steps=4)
-                    page.mouse.up()
-                    wait_segment()
-                    for x, y, lbl in act.clicks:
-                        page.evaluate("document.querySelector('#message').textContent = ''")
-                        page.mouse.click(*to_page(x, y, w, h), button="left" if lbl else "right")
-                        wait_segment()
-                stats["actions"] += 1
+                driver.perform(act)
             for text, ivs in plan.intervals.items():
-                page.evaluate("q => window.bench4d.select(q)", qid(text))
-                for lo, hi in ivs:
-                    goto(by_time[lo])
-                    page.keyboard.press("[")
-                    goto(by_time[hi])
-                    page.keyboard.press("]")
+                driver.mark_intervals(text, ivs)
             if page.evaluate("window.bench4d.flush()") is not True:
                 raise RuntimeError("the last edits were not saved")
             ctx.close()
@@ -188,6 +121,96 @@ def run_plan(plan: Plan, scene_dir: str | Path, out: str | Path, *, log: Callabl
     log(f"{stats['actions']} actions ({stats['absent']} absent), median segmentation "
         f"{np.median(stats['segment_ms']) if stats['segment_ms'] else 0:.0f} ms, {stats['seconds']:.0f} s in all")
     return stats
+
+
+class _PageDriver:
+    """The tool's page driven through its real mouse and keyboard events; counts go into ``stats``."""
+
+    def __init__(self, page, stats: dict):
+        self.page = page
+        self.stats = stats
+        self.frames = page.evaluate("window.bench4d.S.frames")
+        self.index = {f["name"]: f["index"] for f in self.frames}
+        self.by_time: dict[int, int] = {}  # time index -> the first frame at that time
+        for f in self.frames:
+            self.by_time.setdefault(f["time_index"], f["index"])
+
+    def qid(self, text: str) -> int:
+        return {q["text"]: q["id"] for q in self.page.evaluate("window.bench4d.S.queries")}[text]
+
+    def add_queries(self, queries: list[tuple[str, str, Optional[str], Optional[str]]]) -> None:
+        """Create the queries the file does not hold yet, through the add-query form."""
+        page = self.page
+        existing = {q["text"]: q["id"] for q in page.evaluate("window.bench4d.S.queries")}
+        for text, kind, base, level in queries:
+            if text in existing:
+                continue
+            page.locator("#add-query summary").click()
+            page.fill("#new-text", text)
+            page.select_option("#new-kind", kind)
+            if base is not None:
+                page.select_option("#new-base", label=f"base: {base}")
+            page.select_option("#new-level", level or "")
+            n = page.evaluate("window.bench4d.S.queries.length")
+            page.click("#add-query-btn")
+            page.wait_for_function(f"window.bench4d.S.queries.length === {n + 1}")
+            page.locator("#add-query summary").click()
+
+    def goto(self, i: int) -> None:
+        self.page.evaluate("i => window.bench4d.goto(i)", i)
+        self.page.wait_for_function(f"window.bench4d.frame() === {i} && window.bench4d.S.loaded.has({i})")
+
+    def to_page(self, x: float, y: float, w: int, h: int) -> tuple[float, float]:
+        """Page coordinates of image pixel ``(x, y)`` of a ``w`` x ``h`` frame."""
+        box = self.page.locator("#view").bounding_box()
+        return box["x"] + x * box["width"] / w, box["y"] + y * box["height"] / h
+
+    def wait_segment(self) -> None:
+        """Wait for the segmenter's message; record its time (a failure raises)."""
+        page = self.page
+        page.wait_for_function("document.querySelector('#message').textContent.startsWith('grabcut') || "
+                               "document.querySelector('#message').textContent.startsWith('sam') || "
+                               "document.querySelector('#message').textContent.startsWith('segmentation failed')",
+                               timeout=30000)
+        msg = page.inner_text("#message")
+        if msg.startswith("segmentation failed"):
+            raise RuntimeError(msg)
+        self.stats["segment_ms"].append(float(re.search(r"(\d+) ms", msg).group(1)))
+
+    def perform(self, act: Action) -> None:
+        """One action: mark absent, or drag the box and make the corrective clicks."""
+        page = self.page
+        i = self.index[act.frame]
+        if page.evaluate("window.bench4d.frame()") != i:
+            self.goto(i)
+        page.evaluate("q => window.bench4d.select(q)", self.qid(act.query))
+        w, h = self.frames[i]["width"], self.frames[i]["height"]
+        if act.box is None and not act.clicks:
+            page.locator("#view").focus()
+            page.keyboard.press("a")
+            self.stats["absent"] += 1
+        else:
+            page.evaluate("document.querySelector('#message').textContent = ''")
+            x0, y0, x1, y1 = act.box
+            page.mouse.move(*self.to_page(x0, y0, w, h))
+            page.mouse.down()
+            page.mouse.move(*self.to_page(x1, y1, w, h), steps=4)
+            page.mouse.up()
+            self.wait_segment()
+            for x, y, lbl in act.clicks:
+                page.evaluate("document.querySelector('#message').textContent = ''")
+                page.mouse.click(*self.to_page(x, y, w, h), button="left" if lbl else "right")
+                self.wait_segment()
+        self.stats["actions"] += 1
+
+    def mark_intervals(self, text: str, intervals: list[tuple[int, int]]) -> None:
+        """Mark each inclusive interval of query ``text`` with the ``[`` and ``]`` keys."""
+        self.page.evaluate("q => window.bench4d.select(q)", self.qid(text))
+        for lo, hi in intervals:
+            self.goto(self.by_time[lo])
+            self.page.keyboard.press("[")
+            self.goto(self.by_time[hi])
+            self.page.keyboard.press("]")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -449,75 +449,86 @@ class AnnotationSession:
             raise InputError(None, "changes", "expected a list")
         with self._lock:
             self._check_revision(revision)
-            staged: list[tuple] = []
-            for n, ch in enumerate(changes):
-                field_name = f"changes[{n}]"
-                if not isinstance(ch, dict):
-                    raise InputError(None, field_name, "expected an object")
-                kind = ch.get("type")
-                if kind == "mask":
-                    index = ch.get("frame")
-                    frame = self.frame(index)
-                    owner = self.owner(ch.get("query"))
-                    payload = ch.get("mask")
-                    if payload is None:
-                        staged.append(("mask", owner.id, index, None))
-                        continue
-                    if not isinstance(payload, dict):
-                        raise InputError(None, f"{field_name}.mask", "expected an object or null")
-                    h, w = frame.camera.height, frame.camera.width
-                    if payload.get("absent") is True:
-                        mask = np.zeros((h, w), bool)
+            # every change is checked before any is applied: a bad one leaves the file as it was
+            staged = [self._stage_change(f"changes[{n}]", ch) for n, ch in enumerate(changes)]
+            return self._apply_staged(staged, timing)
+
+    def _stage_change(self, field_name: str, ch: Any) -> tuple:
+        """One change, checked: ``("mask", query id, frame index, RLE or None)`` or
+        ``("intervals", query id, intervals)``."""
+        if not isinstance(ch, dict):
+            raise InputError(None, field_name, "expected an object")
+        kind = ch.get("type")
+        if kind == "mask":
+            return self._stage_mask(field_name, ch)
+        if kind == "intervals":
+            return self._stage_intervals(field_name, ch)
+        raise InputError(None, f"{field_name}.type", f"unknown change type {kind!r} (mask or intervals)")
+
+    def _stage_mask(self, field_name: str, ch: dict) -> tuple:
+        index = ch.get("frame")
+        frame = self.frame(index)
+        owner = self.owner(ch.get("query"))
+        payload = ch.get("mask")
+        if payload is None:
+            return ("mask", owner.id, index, None)
+        if not isinstance(payload, dict):
+            raise InputError(None, f"{field_name}.mask", "expected an object or null")
+        h, w = frame.camera.height, frame.camera.width
+        if payload.get("absent") is True:
+            mask = np.zeros((h, w), bool)
+        else:
+            mask = runs_to_mask(payload.get("counts"), h, w, f"{field_name}.mask")
+        return ("mask", owner.id, index, encode_mask(mask))
+
+    def _stage_intervals(self, field_name: str, ch: dict) -> tuple:
+        q = self.query(ch.get("query"))
+        if q.kind != "sensitive":
+            raise InputError(None, f"{field_name}.query", f"{q.text!r} is time-agnostic: no intervals")
+        ivs = ch.get("intervals")
+        if not isinstance(ivs, list) or not all(
+                isinstance(iv, list) and len(iv) == 2 and all(isinstance(v, int) and not isinstance(v, bool)
+                                                              for v in iv) for iv in ivs):
+            raise InputError(None, f"{field_name}.intervals", "expected a list of [l, r] integer pairs")
+        last = self.aset.num_time_steps - 1
+        clean = []
+        for lo, hi in ivs:
+            lo, hi = min(lo, hi), max(lo, hi)
+            if lo < 0 or hi > last:
+                raise InputError(None, f"{field_name}.intervals",
+                                 f"[{lo}, {hi}] is outside the video's time indices 0..{last}")
+            clean.append((lo, hi))
+        return ("intervals", q.id, normalise_intervals(clean))
+
+    def _apply_staged(self, staged: list[tuple], timing: Any) -> int:
+        """Apply checked changes and commit; on any failure the annotation set is restored."""
+        backup_masks = dict(self.aset.masks)
+        backup_frames = list(self.aset.frames)
+        backup_intervals = {q.id: list(q.intervals) for q in self.aset.queries}
+        backup_info = copy.deepcopy(self.aset.info)
+        try:
+            for item in staged:
+                if item[0] == "mask":
+                    _, qid, index, rle = item
+                    if rle is None:
+                        af = self._annotated_frame(index)
+                        if af is not None:
+                            self.aset.masks.pop((qid, af.id), None)
                     else:
-                        mask = runs_to_mask(payload.get("counts"), h, w, f"{field_name}.mask")
-                    staged.append(("mask", owner.id, index, encode_mask(mask)))
-                elif kind == "intervals":
-                    q = self.query(ch.get("query"))
-                    if q.kind != "sensitive":
-                        raise InputError(None, f"{field_name}.query", f"{q.text!r} is time-agnostic: no intervals")
-                    ivs = ch.get("intervals")
-                    if not isinstance(ivs, list) or not all(
-                            isinstance(iv, list) and len(iv) == 2 and all(isinstance(v, int) and not isinstance(v, bool)
-                                                                          for v in iv) for iv in ivs):
-                        raise InputError(None, f"{field_name}.intervals", "expected a list of [l, r] integer pairs")
-                    last = self.aset.num_time_steps - 1
-                    clean = []
-                    for lo, hi in ivs:
-                        lo, hi = min(lo, hi), max(lo, hi)
-                        if lo < 0 or hi > last:
-                            raise InputError(None, f"{field_name}.intervals",
-                                             f"[{lo}, {hi}] is outside the video's time indices 0..{last}")
-                        clean.append((lo, hi))
-                    staged.append(("intervals", q.id, normalise_intervals(clean)))
+                        af = self._ensure_frame(index)
+                        self.aset.masks[(qid, af.id)] = rle
                 else:
-                    raise InputError(None, f"{field_name}.type", f"unknown change type {kind!r} (mask or intervals)")
-            backup_masks = dict(self.aset.masks)
-            backup_frames = list(self.aset.frames)
-            backup_intervals = {q.id: list(q.intervals) for q in self.aset.queries}
-            backup_info = copy.deepcopy(self.aset.info)
-            try:
-                for item in staged:
-                    if item[0] == "mask":
-                        _, qid, index, rle = item
-                        if rle is None:
-                            af = self._annotated_frame(index)
-                            if af is not None:
-                                self.aset.masks.pop((qid, af.id), None)
-                        else:
-                            af = self._ensure_frame(index)
-                            self.aset.masks[(qid, af.id)] = rle
-                    else:
-                        _, qid, ivs = item
-                        self.aset.query(qid).intervals = ivs
-                self._add_timing(timing)
-                return self._commit()
-            except BaseException:
-                self.aset.masks = backup_masks
-                self.aset.frames = backup_frames
-                for q in self.aset.queries:
-                    q.intervals = backup_intervals.get(q.id, [])
-                self.aset.info = backup_info
-                raise
+                    _, qid, ivs = item
+                    self.aset.query(qid).intervals = ivs
+            self._add_timing(timing)
+            return self._commit()
+        except BaseException:
+            self.aset.masks = backup_masks
+            self.aset.frames = backup_frames
+            for q in self.aset.queries:
+                q.intervals = backup_intervals.get(q.id, [])
+            self.aset.info = backup_info
+            raise
 
     def _add_timing(self, timing: Any) -> None:
         if not timing or not self.config.record_timing:

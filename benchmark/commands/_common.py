@@ -1,9 +1,11 @@
-"""Arguments shared by ``eval``, ``run-all`` and ``demo``."""
+"""Arguments shared by ``eval``, ``run-all`` and ``demo``, and the thread rule of the commands that fit."""
 
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
+from typing import Optional
 
 from benchmark.core.errors import InputError
 
@@ -28,8 +30,35 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the object of a D-NeRF scene with no annotation file (its alpha masks are the truth "
                              "of this one whole-object query); default: the annotation file's whole-object query")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a method config field (repeatable)")
+                        help="a method option by its dotted path, e.g. autoencoder.latent_dim=4 (repeatable; 'bench4d methods --options M' lists them)")
+    add_threads_argument(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress bars or log lines")
+
+
+DEFAULT_THREADS = 1
+"""Torch threads of a fitting process unless ``--threads`` says otherwise: on a loaded 2-core machine a
+second thread made fits about ten times slower, and ``run-all --jobs N`` runs N fitting processes."""
+
+
+def add_threads_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--threads", type=int, default=None, metavar="N",
+                        help=f"torch threads of each fitting process (default {DEFAULT_THREADS}: on a shared or "
+                             "2-core machine more threads make fits slower, not faster)")
+
+
+def set_threads(threads: Optional[int] = None) -> int:
+    """The thread rule of every command that fits: ``threads`` (default :data:`DEFAULT_THREADS`) torch
+    threads in this process, and OpenMP / MKL threads for the worker processes it starts. Returns the
+    number set; fewer than 1 is an :class:`InputError` naming ``--threads``."""
+    count = DEFAULT_THREADS if threads is None else threads
+    if count < 1:
+        raise InputError(None, "--threads", f"must be >= 1, got {count}")
+    for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[name] = str(count)
+    import torch
+
+    torch.set_num_threads(count)
+    return count
 
 
 def add_protocol_argument(parser: argparse.ArgumentParser) -> None:

@@ -258,7 +258,7 @@ def write_contact_sheet(scene, aset, out: Path, *, num_frames: int = 4, queries=
 
 # -- timing ------------------------------------------------------------------------------------------------
 def _timing(args: argparse.Namespace) -> int:
-    from ..synthetic.timing import measure_generation, write_report
+    from ..studies.generation_timing import measure_generation, write_report
 
     presets = None if args.presets is None else [p.strip() for p in args.presets.split(",") if p.strip()]
     rows = measure_generation(presets, size=args.size, log=lambda m: print(m, file=sys.stderr))

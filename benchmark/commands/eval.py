@@ -1,9 +1,12 @@
 """``bench4d eval``: fit one method on one scene, answer every annotated query, score, record.
 
     bench4d eval --method nearest-frame --scene smoke [--seed 0] [--track oracle]
-                 [--results-dir results] [--cache-dir cache] [--quiet]
+                 [--results-dir results] [--cache-dir cache] [--threads 1] [--quiet]
+                 [--<group>.<option> VALUE ...] [--set <group>.<option>=VALUE ...]
 
-``--scene`` is a scene folder or a synthetic preset name (generated into the cache once).
+``--scene`` is a scene folder or a synthetic preset name (generated into the cache once). The method's
+options are flags derived from its config (``--autoencoder.latent-dim 4``; ``bench4d eval --method M --help``
+lists them with their help and default); ``--set autoencoder.latent_dim=4`` is the same for scripts.
 """
 
 from __future__ import annotations
@@ -11,16 +14,54 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ._common import add_run_arguments, check_device, check_run_folders, parse_overrides, print_run, splits
+from ._common import (add_run_arguments, check_device, check_run_folders, parse_overrides, print_run, set_threads,
+                      splits)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--method", required=True, help="registered method (see bench4d methods)")
+    parser.add_argument("--method", required=True, help="registered method (see bench4d methods); its options "
+                        "are listed by bench4d eval --method M --help")
     parser.add_argument("--scene", required=True, help="scene folder or synthetic preset name")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--annotations", type=Path, default=None, help="ground-truth file (default: found beside the scene)")
     parser.add_argument("--refit", action="store_true", help="ignore a cached fit")
     add_run_arguments(parser)
+    _add_method_options_on_parse(parser)
+
+
+def _add_method_options_on_parse(parser: argparse.ArgumentParser) -> None:
+    """Parse in two phases: read ``--method`` first, then add that method's config options (one flag per
+    option, :func:`benchmark.core.config.add_config_arguments`) and parse everything. An unknown method adds
+    none (the run then says so)."""
+    parse_known_args = parser.parse_known_args
+
+    def two_phase(args=None, namespace=None):
+        probe = argparse.ArgumentParser(add_help=False)
+        probe.add_argument("--method")
+        method = probe.parse_known_args(args)[0].method
+        if method and not getattr(parser, "_method_options_of", None):
+            from benchmark.core.config import add_config_arguments
+            from benchmark.core.errors import InputError
+            from methods import registry
+
+            try:
+                spec = registry.get(method)
+            except InputError:
+                spec = None
+            if spec is not None:
+                add_config_arguments(parser, spec.config, title=f"{spec.name} options")
+                parser._method_options_of = spec.name
+        return parse_known_args(args, namespace)
+
+    parser.parse_known_args = two_phase
+
+
+def method_options(args: argparse.Namespace) -> dict[str, str]:
+    """The method's options given on the command line: ``--set KEY=VALUE`` items, then the derived flags
+    (a flag given both ways takes the flag's value)."""
+    from benchmark.core.config import overrides_from_arguments
+
+    return {**parse_overrides(args.set), **overrides_from_arguments(args)}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -28,10 +69,12 @@ def run(args: argparse.Namespace) -> int:
 
     check_device(args.device)
     check_run_folders(args)
+    set_threads(args.threads)
     outcome = evaluate(EvalOptions(
         method=args.method, scene=args.scene, seed=args.seed, track=args.track, results_dir=args.results_dir,
         cache_dir=args.cache_dir, splits=splits(args), device=args.device, text_encoder=args.text_encoder,
-        method_options=parse_overrides(args.set), annotations=args.annotations, preset_size=args.size, scale=args.scale,
-        protocol=args.protocol, object_query=args.object_query, refit=args.refit, quiet=args.quiet))
+        method_options=method_options(args), annotations=args.annotations, preset_size=args.size,
+        scale=args.scale, protocol=args.protocol, object_query=args.object_query, refit=args.refit,
+        quiet=args.quiet))
     print_run(outcome.results, outcome.path)
     return 0

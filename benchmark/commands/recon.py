@@ -23,6 +23,8 @@ import time
 from pathlib import Path
 from typing import Any, Optional
 
+from benchmark.core.atomic import json_ready
+from benchmark.core.config import with_overrides
 from benchmark.core.errors import InputError
 
 MODELS = ("3dgs", "4dgs")
@@ -45,8 +47,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--reference-iters", type=int, default=None,
                         help="3D-GS reference iterations (default: the 4D-GS total)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a config field, e.g. gaussians.sh_degree=1 or "
-                             "deformation.hexplane.spatial_resolution=64 (repeatable)")
+                        help="override a ReconConfig option by its dotted path, e.g. gaussians.sh_degree=1 or "
+                             "deformation.hexplane.multires=1,2 (repeatable)")
     parser.add_argument("--out", type=Path, default=None, help="output folder (default reports/recon/<scene>)")
     parser.add_argument("--cache-dir", type=Path, default=Path("cache"), help="where presets are generated")
     parser.add_argument("--seed", type=int, default=0)
@@ -72,8 +74,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 # Configuration
 # ---------------------------------------------------------------------------------------------------
 def build_config(args: argparse.Namespace):
-    """The :class:`ReconConfig` of this run (iterations, seed, ``--set`` overrides)."""
+    """The :class:`ReconConfig` of this run (iterations, seed, ``--set`` overrides by dotted path)."""
     from methods.gaussians.config import ReconConfig
+
+    from ._common import parse_overrides
 
     cfg = ReconConfig(seed=args.seed, log_every=args.log_every)
     total = args.iters if args.iters is not None else 3000
@@ -89,39 +93,7 @@ def build_config(args: argparse.Namespace):
     if cfg.static_iterations < 0 or cfg.deformation_iterations < 0:
         raise InputError(None, "--static-iters/--deform-iters", "iteration counts must be >= 0")
     cfg.reference_iterations = args.reference_iters
-    for item in args.set:
-        apply_override(cfg, item)
-    return cfg
-
-
-def apply_override(cfg: Any, item: str) -> None:
-    """Set ``a.b.c=value`` on the nested dataclass ``cfg``; value parsed as JSON, else kept a string."""
-    key, sep, raw = item.partition("=")
-    if not sep or not key.strip():
-        raise InputError(None, "--set", f"expected KEY=VALUE, got {item!r}")
-    obj = cfg
-    parts = key.strip().split(".")
-    for name in parts[:-1]:
-        if not dataclasses.is_dataclass(obj) or not hasattr(obj, name):
-            raise InputError(None, "--set", f"unknown config field {key!r}")
-        obj = getattr(obj, name)
-    name = parts[-1]
-    if not dataclasses.is_dataclass(obj) or name not in {f.name for f in dataclasses.fields(obj)}:
-        raise InputError(None, "--set", f"unknown config field {key!r}")
-    try:
-        value = json.loads(raw)
-    except json.JSONDecodeError:
-        value = raw
-    current = getattr(obj, name)
-    if isinstance(current, tuple) and isinstance(value, list):
-        value = tuple(value)
-    elif isinstance(current, bool) and not isinstance(value, bool):
-        raise InputError(None, "--set", f"{key} expects true/false, got {raw!r}")
-    elif isinstance(current, (int, float)) and not isinstance(current, bool):
-        if not isinstance(value, (int, float)) or isinstance(value, bool):
-            raise InputError(None, "--set", f"{key} expects a number, got {raw!r}")
-        value = type(current)(value) if isinstance(current, float) or float(value).is_integer() else value
-    setattr(obj, name, value)
+    return with_overrides(cfg, parse_overrides(args.set), what="--set")
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -181,8 +153,9 @@ def fit_and_evaluate(job: dict) -> dict:
 
     import torch
 
+    from benchmark.studies.static_skip import measure_static_skip
     from methods.gaussians.rasterize import rasterize
-    from methods.gaussians.train import Trainer, evaluate, measure_static_skip
+    from methods.gaussians.train import Trainer, evaluate
 
     from ..core import memory
     from benchmark.core.imageio import write_image
@@ -252,37 +225,24 @@ def fit_and_evaluate(job: dict) -> dict:
         saved.append(str(pred_path))
     entry["renders"] = saved
     del ev, result, trainer
-    return _jsonable(entry)
+    return json_ready(entry)
 
 
 def _checkpointing(job: dict, scene):
     """An interrupted fit of this job resumes from ``.<label>.partial.pt`` in the output folder; the key
-    names the scene, frames, model, config and the Gaussian core's code, so another job's file is ignored."""
+    names the scene, frames, model, config and the code digest of the Gaussian core's trainer, so another
+    job's file is ignored."""
     import hashlib
 
+    from benchmark.core.cache_keys import code_digest
     from methods.gaussians.train import Checkpointing
-    from methods.language_methods import GEOMETRY_SOURCES, source_hash
 
     what = {"scene": scene.summary(), "folder": job.get("scene_dir"), "scale": job.get("scale"),
             "time_range": job.get("time_range"), "model": job["model"],
             "device": str(job.get("device", "cpu")).split(":")[0], "config": dataclasses.asdict(job["config"]),
-            "code": source_hash(GEOMETRY_SOURCES)}
+            "code": code_digest("methods.gaussians.train")}
     key = hashlib.sha256(json.dumps(what, sort_keys=True, default=str).encode()).hexdigest()[:24]
     return Checkpointing(Path(job["out_dir"]) / f".{job.get('label', job['model'])}.partial.pt", key)
-
-
-def _jsonable(obj: Any) -> Any:
-    import numpy as np
-
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.generic):
-        obj = obj.item()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
 
 
 def _child(job: dict, result_path: str) -> None:
@@ -329,23 +289,13 @@ def run_job(job: dict, isolate: bool) -> dict:
 # ---------------------------------------------------------------------------------------------------
 def run(args: argparse.Namespace) -> int:
     from benchmark.core.atomic import write_json
-    from ..runner import device_description, git_state, package_versions, resolve_scene
-    from ._common import check_device
+    from ..runner import resolve_scene
 
     if args.summarize is not None:
         path = summarize(args.summarize)
         print(path.read_text(encoding="utf-8"))
         return 0
-    if not args.scene:
-        raise InputError(None, "--scene", "required (a scene folder or a synthetic preset name)")
-    check_device(args.device)
-    if args.size <= 0:
-        raise InputError(None, "--size", f"must be positive, got {args.size}")
-    if args.scale is not None and args.scale <= 0:
-        raise InputError(None, "--scale", f"must be positive, got {args.scale}")
-    threads = args.threads
-    if threads < 1:
-        raise InputError(None, "--threads", f"must be >= 1, got {threads}")
+    _check_arguments(args)
     cfg = build_config(args)
     time_range = parse_time_range(args.time_range)
     scene_dir = resolve_scene(args.scene, args.cache_dir, size=args.size, log=print)
@@ -362,15 +312,55 @@ def run(args: argparse.Namespace) -> int:
     out_dir = args.out or Path("reports") / "recon" / (scene.name + suffix)
     out_dir.mkdir(parents=True, exist_ok=True)
 
+    report = _report_header(args, cfg, scene, scene_dir, kept, time_range)
+    started = time.perf_counter()
+    for job in _jobs(args, cfg):
+        job.update({"scene_dir": str(scene_dir), "scale": args.scale, "time_range": time_range,
+                    "device": args.device, "threads": args.threads,
+                    "renders": args.renders, "out_dir": str(out_dir), "save_model": args.save_models})
+        print(f"  training {job['label']} ...", flush=True)
+        entry = run_job(job, isolate=not args.no_isolate)
+        report["models"][job["label"]] = entry
+        _print_entry(job["label"], entry)
+        write_json(out_dir / "report.json", report)  # partial report survives an interruption
+    _compare_models(report)
+    report["total_seconds"] = time.perf_counter() - started
+    write_json(out_dir / "report.json", report)
+    print(f"  report: {out_dir / 'report.json'}")
+    return 0
+
+
+def _check_arguments(args: argparse.Namespace) -> None:
+    """Raise :class:`InputError` on arguments a training run cannot start with."""
+    from ._common import check_device
+
+    if not args.scene:
+        raise InputError(None, "--scene", "required (a scene folder or a synthetic preset name)")
+    check_device(args.device)
+    if args.size <= 0:
+        raise InputError(None, "--size", f"must be positive, got {args.size}")
+    if args.scale is not None and args.scale <= 0:
+        raise InputError(None, "--scale", f"must be positive, got {args.scale}")
+    if args.threads < 1:
+        raise InputError(None, "--threads", f"must be >= 1, got {args.threads}")
+
+
+def _jobs(args: argparse.Namespace, cfg) -> list[dict]:
+    """The models to train (model kind, label, config), 4D-GS first."""
     wanted = ["4dgs", "3dgs"] if args.model == "both" else [args.model]
-    jobs = []
-    for kind in wanted:
-        jobs.append({"model": kind, "label": kind, "config": cfg})
+    jobs = [{"model": kind, "label": kind, "config": cfg} for kind in wanted]
     if args.compare_static_skip and "4dgs" in wanted:
         no_skip = dataclasses.replace(cfg, deformation=dataclasses.replace(cfg.deformation, static_skip=False))
         jobs.append({"model": "4dgs", "label": "4dgs-no-static-skip", "config": no_skip})
+    return jobs
 
-    report: dict[str, Any] = {
+
+def _report_header(args: argparse.Namespace, cfg, scene, scene_dir: Path, kept: tuple[int, int],
+                   time_range) -> dict[str, Any]:
+    """The report before any model is trained: command, scene, config, machine (``models`` empty)."""
+    from ..runner import device_description, git_state, package_versions
+
+    return {
         "command": "bench4d " + " ".join(getattr(args, "_argv", None) or sys.argv[1:]),
         "overrides": list(args.set),
         "scene": {"name": scene.name, "dataset": scene.dataset, "folder": str(scene_dir), "scale": args.scale,
@@ -379,24 +369,22 @@ def run(args: argparse.Namespace) -> int:
                   "time_steps": scene.num_time_steps,
                   "image_size": None if not scene.frames else [scene.frames[0].camera.width,
                                                                scene.frames[0].camera.height]},
-        "config": dataclasses.asdict(cfg), "threads": threads, "environment": device_description(args.device),
+        "config": dataclasses.asdict(cfg), "threads": args.threads, "environment": device_description(args.device),
         "packages": package_versions(("numpy", "torch", "scikit-image")), "git": git_state(),
         "models": {},
     }
-    started = time.perf_counter()
-    for job in jobs:
-        job.update({"scene_dir": str(scene_dir), "scale": args.scale, "time_range": time_range,
-                    "device": args.device, "threads": threads,
-                    "renders": args.renders, "out_dir": str(out_dir), "save_model": args.save_models})
-        print(f"  training {job['label']} ...", flush=True)
-        entry = run_job(job, isolate=not args.no_isolate)
-        report["models"][job["label"]] = entry
-        print(f"  {job['label']:<22} PSNR {entry['psnr']:.2f} dB  SSIM {entry['ssim']:.4f}  "
-              f"fit {entry['fit_seconds']:.0f} s wall / {entry['fit_cpu_seconds']:.0f} s CPU  "
-              f"{entry['render_fps']:.1f} FPS  {entry['gaussians']} Gaussians  peak {entry['peak_rss_mib']:.0f} MiB"
-              + (f"  moving parts ({100 * entry['moving']['pixel_fraction']:.1f} % of pixels) PSNR "
-                 f"{entry['moving']['psnr']:.2f} dB" if "moving" in entry else ""), flush=True)
-        write_json(out_dir / "report.json", report)  # partial report survives an interruption
+
+
+def _print_entry(label: str, entry: dict) -> None:
+    print(f"  {label:<22} PSNR {entry['psnr']:.2f} dB  SSIM {entry['ssim']:.4f}  "
+          f"fit {entry['fit_seconds']:.0f} s wall / {entry['fit_cpu_seconds']:.0f} s CPU  "
+          f"{entry['render_fps']:.1f} FPS  {entry['gaussians']} Gaussians  peak {entry['peak_rss_mib']:.0f} MiB"
+          + (f"  moving parts ({100 * entry['moving']['pixel_fraction']:.1f} % of pixels) PSNR "
+             f"{entry['moving']['psnr']:.2f} dB" if "moving" in entry else ""), flush=True)
+
+
+def _compare_models(report: dict[str, Any]) -> None:
+    """Add the 4D-GS vs 3D-GS and with vs without static skip comparisons to ``report`` and print them."""
     models = report["models"]
     if "4dgs" in models and "3dgs" in models:
         gain = models["4dgs"]["psnr"] - models["3dgs"]["psnr"]
@@ -418,10 +406,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"  trained with / without static skip: PSNR {a['psnr']:.2f} / {b['psnr']:.2f} dB, "
               f"CPU {a['fit_cpu_seconds']:.0f} / {b['fit_cpu_seconds']:.0f} s, "
               f"{a['render_fps']:.1f} / {b['render_fps']:.1f} FPS")
-    report["total_seconds"] = time.perf_counter() - started
-    write_json(out_dir / "report.json", report)
-    print(f"  report: {out_dir / 'report.json'}")
-    return 0
 
 
 def summarize(folder: Path) -> Path:

@@ -1,16 +1,20 @@
 """``bench4d run-all``: evaluate methods x scenes x seeds, then report mean and spread over seeds.
 
-    bench4d run-all [--methods M ...] [--scenes S ...] [--seeds 0 1 2] [--force] [--jobs N]
+    bench4d run-all [--methods M ...] [--scenes S ...] [--seeds 0 1 2] [--force] [--jobs N] [--threads 1]
+                    [--engine local|ray] [--address HOST:PORT]
 
 Defaults: every registered method, every synthetic preset (except the tiny test preset ``smoke``),
 seeds 0 1 2. Runs whose results file exists are skipped (so an interrupted sweep resumes) unless
 ``--force``; a rerun moves the file it replaces to ``results/archive/`` (never overwritten).
 
-``--jobs N`` runs N (scene, seed) groups at once, each in a worker process with
-``--threads-per-job`` torch threads (default: cores / N); the methods of a group run in order in
-one worker, so the 4D methods share one geometry and field fit as they do sequentially. (The
+``--jobs N`` runs N (scene, seed) groups at once, each in a worker process with ``--threads`` torch
+threads (default 1, :func:`~benchmark.commands._common.set_threads`); the methods of a group run in
+order in one worker, so the 4D methods share one geometry and field fit as they do sequentially. (The
 committed sweeps ran as two single-threaded processes on 2 CPU cores.) Every results file records
 ``concurrent_runs`` and ``torch_threads`` beside its timings, which sharing the machine inflates.
+
+``--engine ray`` runs each group as a task of a Ray cluster instead (:mod:`benchmark.commands.ray_engine`):
+a local instance, or the cluster at ``--address``.
 """
 
 from __future__ import annotations
@@ -18,9 +22,10 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
-from ._common import add_run_arguments, check_device, check_run_folders, parse_overrides, splits
+from ._common import add_run_arguments, check_device, check_run_folders, parse_overrides, set_threads, splits
 
 TEST_PRESETS = ("smoke",)
 """Presets made for tests, left out of the default sweep."""
@@ -36,9 +41,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--jobs", type=int, default=1,
                         help="runs at the same time, each (scene, seed) in its own worker process running its "
                              "methods in order, so methods that share a fit reuse it (default 1: this process)")
-    parser.add_argument("--threads-per-job", type=int, default=None,
-                        help="torch threads of each worker (default: CPU cores / jobs, at least 1)")
+    parser.add_argument("--engine", choices=("local", "ray"), default="local",
+                        help="local: this machine's processes (--jobs); ray: each (scene, seed) group a task of a "
+                             "Ray cluster (needs pip install 'bench4d[ray]')")
+    parser.add_argument("--address", default=None,
+                        help="with --engine ray: the cluster to join (HOST:PORT, or auto); default: start a local "
+                             "Ray instance")
     add_run_arguments(parser)
+    # a hidden second name of --threads, which sweep scripts spell
+    parser.add_argument("--threads-per-job", dest="threads", type=int, default=argparse.SUPPRESS, help=argparse.SUPPRESS)
 
 
 def default_scenes() -> list[str]:
@@ -91,51 +102,117 @@ def _start_worker(threads: int, git: dict) -> None:
     """A ``--jobs`` worker: its torch threads, and the commit it records: the parent command's (read as
     ``bench4d`` started, with its code fingerprint, so a run can tell that the code changed since),
     not the checkout's when the worker happens to start."""
-    import os
-
-    for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ[name] = str(threads)
-    import torch
-
-    torch.set_num_threads(threads)
+    set_threads(threads)
     from ..runner import adopt_git_state
 
     adopt_git_state(git)
 
 
 def run(args: argparse.Namespace) -> int:
-
-    from methods import registry
-
-    from benchmark.core.errors import InputError
-    from ..loaders import load_scene
-    from ..results import (archive_results, load_results, results_lock, results_path, runs_table, scene_status,
-                           seed_summary)
-    from ..runner import EvalOptions, checkout_at_start, dataset_label, resolve_scene
+    from ..results import runs_table, seed_summary
 
     check_device(args.device)
     check_run_folders(args)
+    threads = _check_counts(args)
+    runnable = _runnable_methods(args)
+    start = time.perf_counter()
+    tally = _Tally(args.keep_going, args.quiet)
+    groups = _plan_groups(args, runnable, tally)
+    jobs = min(args.jobs, len(groups)) or 1
+    if args.engine == "ray":
+        _run_on_ray(args, groups, threads, tally)
+    elif jobs == 1:
+        _set_concurrency(groups, 1)
+        _run_here(groups, tally)
+    else:
+        _set_concurrency(groups, jobs)
+        _run_in_workers(groups, jobs, threads, tally, args.quiet)
+    summary = seed_summary(runs_table(tally.done))
+    print(f"\n{len(tally.done)} run(s) ({tally.skipped} reused), {len(tally.failed)} failed, "
+          f"{time.perf_counter() - start:.1f} s")
+    _print_summary(summary)
+    return 1 if tally.failed else 0
+
+
+def _check_counts(args: argparse.Namespace) -> int:
+    """``--jobs`` checked, and the thread rule applied to this process (its workers get the same);
+    returns the threads of each fitting process."""
+    from benchmark.core.errors import InputError
+
     if args.jobs < 1:
         raise InputError(None, "--jobs", f"must be >= 1, got {args.jobs}")
-    if args.threads_per_job is not None and args.threads_per_job < 1:
-        raise InputError(None, "--threads-per-job", f"must be >= 1, got {args.threads_per_job}")
+    return set_threads(args.threads)
+
+
+def _runnable_methods(args: argparse.Namespace) -> list[str]:
+    """The methods asked for (default: every registered one) that run on ``--track``; unknown names fail
+    before any work, with a "did you mean"."""
+    from methods import registry
+
     methods = args.methods or registry.names()
     for m in methods:
-        registry.get(m)  # unknown names fail before any work, with a "did you mean"
+        registry.get(m)
     runnable = []
     for method in methods:
         if args.track not in registry.get(method).tracks:
             print(f"skip {method}: does not run on the {args.track} track", file=sys.stderr)
         else:
             runnable.append(method)
+    return runnable
+
+
+@dataclass
+class _Tally:
+    """What a sweep has done so far: results files (made or reused) and failures."""
+
+    keep_going: bool
+    """``--keep-going``: a failed run is reported and the sweep goes on."""
+    quiet: bool
+    """``--quiet``: no line per finished run."""
+    done: list[Path] = field(default_factory=list)
+    """Results files of the sweep, reused ones included."""
+    failed: list[tuple] = field(default_factory=list)
+    """``(method, scene, seed, error)`` of each failed run."""
+    skipped: int = 0
+    """Runs whose results file was reused."""
+
+    def reused(self, path: Path) -> None:
+        self.done.append(path)
+        self.skipped += 1
+
+    def report(self, items: list[dict]) -> None:
+        """Record the outcomes :func:`_run_group` returned, printing a line each (a failure only under
+        ``--keep-going``: otherwise it is raised)."""
+        for item in items:
+            if "error" in item:
+                self.failed.append((item["method"], item["scene"], item["seed"], item["error"]))
+                if self.keep_going:
+                    print(f"FAILED {item['method']} on {item['scene']} seed {item['seed']}: {item['error']}",
+                          file=sys.stderr)
+                continue
+            self.done.append(item["path"])
+            if not self.quiet:
+                print(_summary_line(item), file=sys.stderr)
+
+    def stop(self) -> bool:
+        """Whether the sweep stops here: a run failed and ``--keep-going`` was not given."""
+        return bool(self.failed) and not self.keep_going
+
+
+def _plan_groups(args: argparse.Namespace, runnable: list[str], tally: _Tally) -> list[list]:
+    """The runs to make, one group per (scene, seed): its methods run in order in one process, so a
+    method sharing another's geometry and field (the 4D methods) finds them cached. A run whose results
+    file exists is reused (counted in ``tally``) unless ``--force`` or it measured another scene version."""
+    from benchmark.core.errors import InputError
+
+    from ..loaders import load_scene
+    from ..results import results_path
+    from ..runner import EvalOptions, dataset_label, resolve_scene
+
     scenes = args.scenes or default_scenes()
     if not scenes:
         raise InputError(None, "--scenes", "no scenes given and no synthetic presets available")
     overrides = parse_overrides(args.set)
-    done, failed, skipped = [], [], 0
-    start = time.perf_counter()
-    # one group per (scene, seed): its methods run in order in one process, so a method sharing
-    # another's geometry and field (the 4D methods) finds them cached
     groups: list[list] = []
     for scene_spec in scenes:
         root = resolve_scene(scene_spec, args.cache_dir, size=args.size,
@@ -145,83 +222,96 @@ def run(args: argparse.Namespace) -> int:
             group = []
             for method in runnable:
                 path = results_path(args.results_dir, dataset_label(scene), scene.name, method, args.track, seed)
-                if path.is_file() and not args.force:
-                    digest, current = scene_status(load_results(path))
-                    if current is not False:
-                        done.append(path)
-                        skipped += 1
-                        continue
-                    # measured on another version of this preset: rerun, keeping the old file in the archive
-                    with results_lock(path):  # a run writing this file meanwhile finishes first
-                        moved = archive_results(path, args.results_dir, f"scene-{digest or 'unversioned'}") \
-                            if path.is_file() else None
-                    if moved is not None:
-                        print(f"{path}: measured on another scene version; moved to {moved}, rerunning",
-                              file=sys.stderr)
+                if path.is_file() and not args.force and _reuse(path, args.results_dir):
+                    tally.reused(path)
+                    continue
                 group.append(EvalOptions(
                     method=method, scene=str(root), seed=seed, track=args.track, results_dir=args.results_dir,
                     cache_dir=args.cache_dir, splits=splits(args), device=args.device, text_encoder=args.text_encoder,
                     method_options=overrides, preset_size=args.size, scale=args.scale,
-                    protocol=args.protocol, object_query=args.object_query, quiet=args.quiet or args.jobs > 1))
+                    protocol=args.protocol, object_query=args.object_query, quiet=args.quiet or args.jobs > 1 or args.engine == "ray"))
             if group:
                 groups.append(group)
-    jobs = min(args.jobs, len(groups)) or 1
+    return groups
+
+
+def _reuse(path: Path, results_dir: Path) -> bool:
+    """Whether the existing results file ``path`` stands; one measured on another version of its preset is
+    moved to the archive instead (and rerun)."""
+    from ..results import archive_results, load_results, results_lock, scene_status
+
+    digest, current = scene_status(load_results(path))
+    if current is not False:
+        return True
+    with results_lock(path):  # a run writing this file meanwhile finishes first
+        moved = archive_results(path, results_dir, f"scene-{digest or 'unversioned'}") if path.is_file() else None
+    if moved is not None:
+        print(f"{path}: measured on another scene version; moved to {moved}, rerunning", file=sys.stderr)
+    return False
+
+
+def _set_concurrency(groups: list[list], runs: int) -> None:
     for group in groups:
         for options in group:
-            options.concurrent_runs = jobs  # timings are taken beside this many other runs at most
+            options.concurrent_runs = runs  # timings are taken beside this many other runs at most
 
-    def report(items: list[dict]) -> None:
-        for item in items:
-            if "error" in item:
-                failed.append((item["method"], item["scene"], item["seed"], item["error"]))
-                if args.keep_going:
-                    print(f"FAILED {item['method']} on {item['scene']} seed {item['seed']}: {item['error']}",
-                          file=sys.stderr)
-                continue
-            done.append(item["path"])
-            if not args.quiet:
-                print(_summary_line(item), file=sys.stderr)
 
-    if jobs == 1:
-        for group in groups:
-            report(_run_group(group, args.keep_going))
-            if failed and not args.keep_going:
-                raise failed[0][3]
-    else:
-        import concurrent.futures as cf
-        import multiprocessing as mp
-        import os
+def _run_on_ray(args: argparse.Namespace, groups: list[list], threads: int, tally: _Tally) -> None:
+    """Run the groups as tasks of a Ray cluster (:mod:`benchmark.commands.ray_engine`); the first failure
+    is raised unless ``--keep-going``."""
+    from ..runner import checkout_at_start
+    from . import ray_engine
 
-        threads = args.threads_per_job or max(1, (os.cpu_count() or 1) // jobs)
-        if not args.quiet:
-            print(f"run-all: {sum(len(g) for g in groups)} run(s) in {len(groups)} (scene, seed) group(s), "
-                  f"{jobs} at a time, {threads} torch thread(s) each", file=sys.stderr)
-        with cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
-                                    initializer=_start_worker, initargs=(threads, checkout_at_start())) as pool:
-            futures = {pool.submit(_run_group, group, args.keep_going): group for group in groups}
-            for future in cf.as_completed(futures):
-                try:
-                    items = future.result()
-                except cf.process.BrokenProcessPool:
-                    # a worker was killed (out of memory, a signal): the pool cannot go on; what finished is
-                    # kept, and a rerun resumes the rest (results, cached fits, geometry checkpoints)
-                    group = futures[future]
-                    err = RuntimeError("a run-all worker process died (killed: out of memory?); rerun the same "
-                                       "command to resume")
-                    items = [{"method": o.method, "scene": Path(o.scene).name, "seed": o.seed, "error": err}
-                             for o in group]
-                    report(items)
-                    pool.shutdown(wait=False, cancel_futures=True)
-                    print(f"run-all: {err}", file=sys.stderr)
-                    break
-                report(items)
-                if failed and not args.keep_going:
-                    pool.shutdown(wait=True, cancel_futures=True)
-                    raise failed[0][3]
-    summary = seed_summary(runs_table(done))
-    print(f"\n{len(done)} run(s) ({skipped} reused), {len(failed)} failed, {time.perf_counter() - start:.1f} s")
-    _print_summary(summary)
-    return 1 if failed else 0
+    if not groups:
+        return
+    cpus = ray_engine.connect(args.address, quiet=args.quiet).get("CPU", 1)
+    _set_concurrency(groups, max(1, min(len(groups), int(cpus // threads))))
+    ray_engine.run_groups(groups, address=args.address, threads=threads,
+                          gpus=1 if args.device.startswith("cuda") else 0, git=checkout_at_start(),
+                          keep_going=tally.keep_going, quiet=args.quiet, report=tally.report, stop=tally.stop)
+    if tally.stop():
+        raise tally.failed[0][3]
+
+
+def _run_here(groups: list[list], tally: _Tally) -> None:
+    """Run the groups one after the other in this process; the first failure is raised unless
+    ``--keep-going``."""
+    for group in groups:
+        tally.report(_run_group(group, tally.keep_going))
+        if tally.stop():
+            raise tally.failed[0][3]
+
+
+def _run_in_workers(groups: list[list], jobs: int, threads: int, tally: _Tally, quiet: bool) -> None:
+    """Run the groups ``jobs`` at a time, each in a worker process with ``threads`` torch threads. A worker
+    killed (out of memory, a signal) stops the pool: what finished is kept, and a rerun resumes the rest
+    (results, cached fits, geometry checkpoints)."""
+    import concurrent.futures as cf
+    import multiprocessing as mp
+
+    from ..runner import checkout_at_start
+
+    if not quiet:
+        print(f"run-all: {sum(len(g) for g in groups)} run(s) in {len(groups)} (scene, seed) group(s), "
+              f"{jobs} at a time, {threads} torch thread(s) each", file=sys.stderr)
+    with cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
+                                initializer=_start_worker, initargs=(threads, checkout_at_start())) as pool:
+        futures = {pool.submit(_run_group, group, tally.keep_going): group for group in groups}
+        for future in cf.as_completed(futures):
+            try:
+                items = future.result()
+            except cf.process.BrokenProcessPool:
+                err = RuntimeError("a run-all worker process died (killed: out of memory?); rerun the same "
+                                   "command to resume")
+                tally.report([{"method": o.method, "scene": Path(o.scene).name, "seed": o.seed, "error": err}
+                              for o in futures[future]])
+                pool.shutdown(wait=False, cancel_futures=True)
+                print(f"run-all: {err}", file=sys.stderr)
+                break
+            tally.report(items)
+            if tally.stop():
+                pool.shutdown(wait=True, cancel_futures=True)
+                raise tally.failed[0][3]
 
 
 def _print_summary(summary) -> None:

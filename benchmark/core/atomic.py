@@ -59,15 +59,16 @@ def dumps_json(obj: Any, indent: int | None = None, **kwargs: Any) -> str:
 
 def json_ready(obj: Any) -> Any:
     """JSON-ready copy: non-finite floats -> ``None`` (``null``: "undefined", as the results schema
-    reads it), numpy scalars and arrays -> Python, tuples -> lists, paths -> str. Other objects are
-    passed through (``json.dumps`` rejects what it cannot write)."""
+    reads it), numpy scalars and arrays (and anything else with ``tolist``, e.g. torch tensors) -> Python,
+    tuples -> lists, paths -> str, mapping keys -> str. Other objects are passed through (``json.dumps``
+    rejects what it cannot write)."""
     import numpy as np
 
     if isinstance(obj, dict):
-        return {k: json_ready(v) for k, v in obj.items()}
+        return {str(k): json_ready(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [json_ready(v) for v in obj]
-    if isinstance(obj, np.ndarray):
+    if isinstance(obj, np.ndarray) or (hasattr(obj, "tolist") and not isinstance(obj, np.generic)):
         return json_ready(obj.tolist())
     if isinstance(obj, np.generic):
         obj = obj.item()

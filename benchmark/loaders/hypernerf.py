@@ -252,14 +252,23 @@ def _load_points(path: Path, center: np.ndarray, world_scale: float) -> np.ndarr
     return (pts - center) * world_scale
 
 
-def load(path: str | Path, options: Optional[HyperNeRFOptions] = None) -> Scene:
-    """Load a HyperNeRF/Nerfies scene folder (conventions in the module docstring)."""
-    opts = options or HyperNeRFOptions()
-    root = Path(path)
-    rule = opts.split_rule or "auto"
-    if rule not in SPLIT_RULES:
-        raise InputError(None, "split_rule", f"unknown rule {rule!r} for {LAYOUT} (valid: {', '.join(SPLIT_RULES)})")
+@dataclass(frozen=True)
+class _SceneFrame:
+    """What ``scene.json`` says about the world frame, as the loader uses it."""
 
+    near: float
+    far: float
+    world_scale: float
+    """Scale applied to camera positions and points (1 when not normalising)."""
+    center: np.ndarray
+    """Subtracted from camera positions and points before scaling (zeros when not normalising)."""
+    file_scale: float
+    """The file's own ``scale``, recorded in the scene's metadata either way."""
+    file_center: np.ndarray
+    """The file's own ``center``, recorded in the scene's metadata either way."""
+
+
+def _read_scene_frame(root: Path, normalize: bool) -> _SceneFrame:
     scene_path = root / "scene.json"
     scene_json = read_json(scene_path)
     world_scale = C.as_float(C.get_key(scene_json, "scale", scene_path), scene_path, "scale", positive=True)
@@ -269,10 +278,13 @@ def load(path: str | Path, options: Optional[HyperNeRFOptions] = None) -> Scene:
     if far <= near:
         raise InputError(scene_path, "far", f"must exceed near ({far} <= {near})")
     file_scale, file_center = world_scale, center
-    if not opts.normalize:  # near/far are stored in normalised units
+    if not normalize:  # near/far are stored in normalised units
         near, far, world_scale, center = near / world_scale, far / world_scale, 1.0, np.zeros(3)
+    return _SceneFrame(near, far, world_scale, center, file_scale, file_center)
 
-    ds_path = root / "dataset.json"
+
+def _read_dataset_ids(ds_path: Path) -> tuple[list[str], list[str], list[str]]:
+    """``ids``, ``train_ids`` and ``val_ids`` of ``dataset.json``, checked."""
     dataset = read_json(ds_path)
     ids = C.get_key(dataset, "ids", ds_path)
     if not isinstance(ids, list) or not ids or not all(isinstance(i, str) for i in ids):
@@ -287,15 +299,13 @@ def load(path: str | Path, options: Optional[HyperNeRFOptions] = None) -> Scene:
         unknown = sorted(set(lst) - set(ids))
         if unknown:
             raise InputError(ds_path, key, f"ids not in 'ids': {unknown[:5]}")
-    splits = _assign_splits(ids, train_ids, val_ids, rule, opts.train_every, opts.test_offset, ds_path)
-    if "train" not in splits:
-        raise InputError(ds_path, "train_ids", "the training split is empty")
-    steps, times, cam_ids, time_source = _frame_times(root, ids, opts.time_key)
+    return ids, train_ids, val_ids
 
-    multiplier, folder, exact = _resolve_resolution(root, opts.scale)
-    raw = [read_camera(root / "camera" / f"{fid}.json") for fid in ids]
-    # Output size per distinct 1x size: the actual files' size when the folder matches exactly
-    # (intrinsics follow the real ratio), else the rounded product.
+
+def _output_sizes(ids: list[str], raw: list[NerfiesCamera], multiplier: float, folder: Optional[Path],
+                  exact: bool) -> dict[tuple[int, int], tuple[int, int]]:
+    """Output size per distinct 1x size: the actual files' size when the folder matches exactly
+    (intrinsics follow the real ratio), else the rounded product."""
     out_size: dict[tuple[int, int], tuple[int, int]] = {}
     for fid, cam in zip(ids, raw):
         key = (cam.width, cam.height)
@@ -304,34 +314,60 @@ def load(path: str | Path, options: Optional[HyperNeRFOptions] = None) -> Scene:
                 out_size[key] = C.image_size(folder / f"{fid}.png")
             else:
                 out_size[key] = C.target_size(cam.width, cam.height, multiplier)
+    return out_size
 
+
+def _image_loader(root: Path, fid: str, multiplier: float, folder: Optional[Path], exact: bool,
+                  size: tuple[int, int], check_images: bool):
+    """``(image path, loader)`` of frame ``fid``; without an image folder the loader raises."""
+    if folder is None:
+        image_path = root / "rgb" / f"{round(1 / multiplier)}x" / f"{fid}.png"
+        return image_path, partial(C.missing_image, image_path,
+                                   f"no images in this scene folder (no {root / 'rgb'}/<k>x/): cameras only")
+    image_path = folder / f"{fid}.png"
+    if check_images and not image_path.is_file():
+        raise InputError(image_path, "image", f"image file of id {fid!r} not found")
+    # an exact folder is read as is, so a wrongly sized file fails Frame.image()
+    w, h = size
+    return image_path, partial(C.load_rgb, image_path) if exact else partial(C.load_rgb, image_path, w, h)
+
+
+def load(path: str | Path, options: Optional[HyperNeRFOptions] = None) -> Scene:
+    """Load a HyperNeRF/Nerfies scene folder (conventions in the module docstring)."""
+    opts = options or HyperNeRFOptions()
+    root = Path(path)
+    rule = opts.split_rule or "auto"
+    if rule not in SPLIT_RULES:
+        raise InputError(None, "split_rule", f"unknown rule {rule!r} for {LAYOUT} (valid: {', '.join(SPLIT_RULES)})")
+    world = _read_scene_frame(root, opts.normalize)
+    ds_path = root / "dataset.json"
+    ids, train_ids, val_ids = _read_dataset_ids(ds_path)
+    splits = _assign_splits(ids, train_ids, val_ids, rule, opts.train_every, opts.test_offset, ds_path)
+    if "train" not in splits:
+        raise InputError(ds_path, "train_ids", "the training split is empty")
+    steps, times, cam_ids, time_source = _frame_times(root, ids, opts.time_key)
+
+    multiplier, folder, exact = _resolve_resolution(root, opts.scale)
+    raw = [read_camera(root / "camera" / f"{fid}.json") for fid in ids]
+    out_size = _output_sizes(ids, raw, multiplier, folder, exact)
     frames = []
     for fid, cam, split, step, t, cam_id in zip(ids, raw, splits, steps, times, cam_ids):
-        cam_file = root / "camera" / f"{fid}.json"
-        w, h = out_size[(cam.width, cam.height)]
-        camera = to_opencv(cam, center, world_scale, path=cam_file, ignore_skew=opts.ignore_skew).resized(w, h)
-        if folder is None:
-            image_path = root / "rgb" / f"{round(1 / multiplier)}x" / f"{fid}.png"
-            loader = partial(C.missing_image, image_path,
-                             f"no images in this scene folder (no {root / 'rgb'}/<k>x/): cameras only")
-        else:
-            image_path = folder / f"{fid}.png"
-            if opts.check_images and not image_path.is_file():
-                raise InputError(image_path, "image", f"image file of id {fid!r} not found")
-            # an exact folder is read as is, so a wrongly sized file fails Frame.image()
-            loader = partial(C.load_rgb, image_path) if exact else partial(C.load_rgb, image_path, w, h)
+        size = out_size[(cam.width, cam.height)]
+        camera = to_opencv(cam, world.center, world.world_scale, path=root / "camera" / f"{fid}.json",
+                           ignore_skew=opts.ignore_skew).resized(*size)
+        image_path, loader = _image_loader(root, fid, multiplier, folder, exact, size, opts.check_images)
         frames.append(Frame(name=fid, camera=camera, time=t, time_index=step, split=split,
                             camera_id=cam_id, image_path=image_path, load_image=loader))
 
     points = None
     if (root / "points.npy").is_file():
-        points = _load_points(root / "points.npy", center, world_scale)
+        points = _load_points(root / "points.npy", world.center, world.world_scale)
         bounds = C.box(points)
     else:
-        bounds = C.frustum_bounds([f.camera for f in frames], [near] * len(frames), [far] * len(frames))
+        bounds = C.frustum_bounds([f.camera for f in frames], [world.near] * len(frames), [world.far] * len(frames))
     return Scene(
         name=root.resolve().name, dataset=LAYOUT, frames=frames, bounds=bounds, root=root,
-        points=points, near_far=(near, far),
+        points=points, near_far=(world.near, world.far),
         metadata={
             "layout": LAYOUT,
             "image_folder": None if folder is None else str(folder.relative_to(root)),
@@ -339,8 +375,8 @@ def load(path: str | Path, options: Optional[HyperNeRFOptions] = None) -> Scene:
             "split_rule": rule if rule != "auto" else ("dataset" if val_ids else "every4"),
             "time_source": time_source,
             "normalized": opts.normalize,
-            "scene_center": file_center.tolist(),
-            "scene_scale": file_scale,
+            "scene_center": world.file_center.tolist(),
+            "scene_scale": world.file_scale,
             "num_time_steps": max(steps) + 1,
         },
     )

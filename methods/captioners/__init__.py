@@ -13,52 +13,49 @@ Code is imported only when a captioner is created (:func:`get_captioner`).
 
 from __future__ import annotations
 
-import difflib
-import importlib
 import inspect
 from dataclasses import dataclass
 from typing import Any
 
 from benchmark.core.errors import InputError
 
+from .._registry import Registry
+
 
 @dataclass(frozen=True)
 class CaptionerSpec:
+    """How to find and build one captioner."""
+
     name: str
+    """Registry name, e.g. ``"template"``."""
     track: str
     """``"oracle"`` or ``"real"``."""
     description: str
+    """One line for listings."""
     entry_point: str
     """``"module:factory"``; ``factory(scene, **options)`` returns the captioner."""
 
 
-CAPTIONERS: dict[str, CaptionerSpec] = {s.name: s for s in (
+BUILT_IN: tuple[CaptionerSpec, ...] = (
     CaptionerSpec("template", "oracle", "captions from the synthetic scene's states (oracle; paraphrases per frame)",
                   "methods.captioners.template:TemplateCaptioner"),
     CaptionerSpec("qwen2-vl", "real", "Qwen2-VL, video description then per-frame captions (paper)",
                   "methods.captioners.qwen2vl:Qwen2VLCaptioner"),
     CaptionerSpec("file", "real", "captions made elsewhere, read from a JSON file (option path=...)",
                   "methods.captioners.file:FileCaptioner"),
-)}
+)
+
+CAPTIONERS: Registry[CaptionerSpec] = Registry("captioner", lambda: BUILT_IN)
+"""Every captioner, by name (the built-in ones, and any registered by hand)."""
 
 
 def captioner_spec(name: str) -> CaptionerSpec:
-    if name not in CAPTIONERS:
-        close = difflib.get_close_matches(name, list(CAPTIONERS), n=1)
-        hint = f" (did you mean {close[0]!r}?)" if close else ""
-        raise InputError(None, "captioner", f"unknown captioner {name!r}{hint}; known: {', '.join(CAPTIONERS)}")
-    return CAPTIONERS[name]
+    return CAPTIONERS.get(name)
 
 
 def get_captioner(name: str, scene, **options: Any):
     """Create captioner ``name`` for ``scene`` with ``options`` (keyword arguments of its factory)."""
-    spec = captioner_spec(name)
-    module_name, _, attr = spec.entry_point.partition(":")
-    try:
-        module = importlib.import_module(module_name)
-    except ImportError as err:
-        raise InputError(None, f"captioner {name}", f"cannot import {module_name}: {err}") from err
-    factory = getattr(module, attr)
+    factory = CAPTIONERS.load(name)
     try:
         inspect.signature(factory).bind(scene, **options)
     except TypeError as err:

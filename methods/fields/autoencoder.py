@@ -17,29 +17,9 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from .configs import AutoencoderConfig
 
-@dataclass
-class AutoencoderConfig:
-    """Architecture and training of the feature autoencoder (paper/release values by default)."""
-
-    hidden_dims: tuple[int, ...] = (256, 128, 64, 32)
-    """Encoder hidden widths between the input dimension and the latent (release for CLIP:
-    512 -> 256 -> 128 -> 64 -> 32 -> 3); the decoder mirrors them back to the input dimension."""
-    latent_dim: int = 3
-    """Latent channels carried by each Gaussian (3 for CLIP, 6 for captions)."""
-    cosine_weight: float = 1.0
-    """Weight ``w`` of the ``1 - cos`` term added to the MSE."""
-    learning_rate: float = 1e-3
-    """Adam learning rate."""
-    batch_size: int = 64
-    """Minibatch size (release: 64)."""
-    epochs: int = 100
-    """Passes over the distinct feature vectors (release: 100)."""
-    max_steps: Optional[int] = 3000
-    """Cap on optimiser steps. With few distinct vectors (one per mask) 100 epochs is tiny; with
-    millions of pixels it is not: the cap keeps the cost bounded. ``None`` = epochs only."""
-    normalize_latent: bool = True
-    """L2-normalise the latent (release). Rendering blends latents, so decoding is robust to it."""
+__all__ = ["AutoencoderConfig", "AutoencoderReport", "FeatureAutoencoder", "train_autoencoder"]
 
 
 class FeatureAutoencoder(nn.Module):
@@ -87,15 +67,16 @@ class AutoencoderReport:
 def train_autoencoder(features: np.ndarray | torch.Tensor, cfg: Optional[AutoencoderConfig] = None,
                       *, seed: int = 0, weights: Optional[np.ndarray] = None,
                       device: str | torch.device = "cpu") -> tuple[FeatureAutoencoder, AutoencoderReport]:
-    """Fit the autoencoder on ``features`` [M, D] (e.g. one vector per mask).
+    """Fit the autoencoder on ``features`` [M, D] (e.g. one vector per mask), for the epochs of
+    :meth:`AutoencoderConfig.for_features` (at least ``min_steps`` steps).
 
     ``weights`` [M] (e.g. mask areas) sets the sampling probability of each vector, so frequent
     features are reconstructed best; uniform when ``None``.
     """
-    cfg = cfg or AutoencoderConfig()
     x = torch.as_tensor(np.asarray(features, dtype=np.float32), device=device)
     if x.ndim != 2 or x.shape[0] == 0:
         raise ValueError(f"features must be a non-empty [M, D] array, got shape {tuple(x.shape)}")
+    cfg = (cfg or AutoencoderConfig()).for_features(x.shape[0])
     gen = torch.Generator(device="cpu").manual_seed(seed)
     torch.manual_seed(seed)
     model = FeatureAutoencoder(x.shape[1], cfg).to(device)

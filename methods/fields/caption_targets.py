@@ -12,7 +12,7 @@ def window_caption_embeddings(caption_times: np.ndarray, caption_embeddings: np.
     """(N, D) float64 unit vectors: each caption embedding (N, D) replaced by the renormalised mean of
     the embeddings whose time index (N,) lies within ``window`` steps of its own (itself included,
     and every caption at its own time: several cameras at one time are averaged even at window 0).
-    The targets a field fitted with the ``caption_window`` option sees
+    The targets a field fitted with the ``extensions.caption_window`` option sees
     (:func:`methods.fields.time_varying.smooth_caption_embeddings` calls this per object). ``window``
     below 0 raises; a mean of zero length (opposite embeddings) stays zero."""
     if int(window) < 0:
@@ -201,7 +201,7 @@ def segment_caption_embeddings(caption_times: np.ndarray, caption_embeddings: np
 def caption_segments(caption_times: np.ndarray, caption_embeddings: np.ndarray, *, min_length: int,
                      seed: int = 0) -> tuple[list[float], list[int], np.ndarray]:
     """(change points, state label per segment, (N, D) targets) of one object's captions (N,) times,
-    (N, D) embeddings under the ``caption_segments`` option: :func:`caption_change_points`, then
+    (N, D) embeddings under the ``extensions.caption_segments`` option: :func:`caption_change_points`, then
     :func:`caption_segment_states` (a state that comes back is one target), then the state means
     (:func:`segment_caption_embeddings`)."""
     cuts = caption_change_points(caption_times, caption_embeddings, min_length=min_length, seed=seed)
@@ -213,8 +213,8 @@ def fitted_caption_targets(caption_times: np.ndarray, caption_embeddings: np.nda
                            segment_min_length: int = 0, seed: int = 0) -> np.ndarray:
     """(N, D) float64: one object's caption embeddings (N, D) at times (N,) as a time-varying field's
     targets are made from them: as they are (both options 0), averaged over ``window`` time steps
-    (:func:`window_caption_embeddings`; option ``caption_window``), or replaced by the mean of their
-    state (``segment_min_length`` > 0: :func:`caption_segments`; option ``caption_segments``). Both at
+    (:func:`window_caption_embeddings`; option ``extensions.caption_window``), or replaced by the mean of their
+    state (``segment_min_length`` > 0: :func:`caption_segments`; option ``extensions.caption_segments``). Both at
     once raise."""
     if window and segment_min_length:
         raise ValueError("a caption window and caption segments are alternatives: give one")

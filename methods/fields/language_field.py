@@ -35,45 +35,9 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from benchmark.core.scene import Camera
+from methods.gaussians.rasterize import camera_tensors
 
-
-# ---------------------------------------------------------------------------------------------------
-# Configuration
-# ---------------------------------------------------------------------------------------------------
-@dataclass
-class LanguageFieldConfig:
-    """Shape and training of the time-agnostic language field."""
-
-    num_levels: int = 3
-    """Feature levels carried by every Gaussian (SAM small / middle / large: 3)."""
-    latent_dim: int = 3
-    """Latent channels per level (paper: the CLIP autoencoder's 3)."""
-    iterations: int = 1200
-    """Optimisation steps, one training view each. The release refines the language field for
-    10 000 iterations (4D LangSplat) or 30 000 (LangSplat) on a GPU; the field is a linear function
-    of the features once geometry is frozen, so a few hundred passes over the training views fit it."""
-    learning_rate: float = 1e-2
-    """Adam learning rate of the features (release: 2.5e-3 over 10 000+ iterations; the shorter CPU
-    schedule needs a larger step to move zero-initialised features to unit-norm latents)."""
-    loss_weight: float = 0.2
-    """Weight of the language L1 loss (protocol: 0.2). With geometry frozen it only rescales the
-    gradient, which Adam normalises; kept so that the loss values match the recipe's."""
-    init_std: float = 0.0
-    """Standard deviation of the initial features (release: zeros)."""
-    render_backend: str = "auto"
-    """Rasterizer backend (``"auto"``: gsplat on CUDA when importable, else the PyTorch one)."""
-    near: float = 0.01
-    """Near plane passed to the rasterizer (camera-space depth)."""
-    cache_view_geometry_mib: float = 512.0
-    """Deformed Gaussians of the training views are computed once and kept while they fit in this
-    many MiB (geometry is frozen, so they never change); beyond it they are recomputed per step."""
-    log_every: int = 100
-    """Record the loss every this many steps (in the training report)."""
-
-    @property
-    def channels(self) -> int:
-        """Rendered channels: ``num_levels * latent_dim``."""
-        return self.num_levels * self.latent_dim
+from .configs import LanguageFieldConfig
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -233,13 +197,6 @@ def random_geometry(num_gaussians: int, width: int, height: int, *, seed: int = 
 # ---------------------------------------------------------------------------------------------------
 # The field
 # ---------------------------------------------------------------------------------------------------
-def camera_tensors(camera: Camera, device: torch.device | str) -> tuple[torch.Tensor, torch.Tensor, int, int]:
-    """``(viewmat [4, 4], K [3, 3], width, height)`` of ``camera`` for the rasterizer."""
-    from methods.gaussians.rasterize import camera_to_tensors
-
-    return camera_to_tensors(camera, device=device)
-
-
 class LanguageField(nn.Module):
     """Per-Gaussian latent features of every level: ``features`` [N, levels * latent_dim].
 

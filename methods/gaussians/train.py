@@ -6,9 +6,9 @@
   added to the loss (the release never adds them) and, optionally, the deformation evaluated only on
   Gaussians that move (:meth:`~methods.gaussians.model.DeformableGaussians.update_static_mask`).
 
-Densification follows 3D-GS: Gaussians whose mean view-space positional gradient (NDC units) exceeds
-the threshold are cloned when small and split when large; transparent or huge ones are pruned; the total
-never exceeds the scene's cap (:func:`gaussian_cap`), highest-gradient candidates first.
+Each stage is a loop of named steps (:meth:`Trainer._run_stage`); densification is the stage's
+:class:`~methods.gaussians.strategy.DensificationStrategy` (the total never exceeds the scene's cap,
+:func:`gaussian_cap`), checkpoints and the fit's clock are :mod:`methods.gaussians.checkpoint`'s.
 """
 
 from __future__ import annotations
@@ -16,20 +16,21 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Callable, Iterable, Optional, Sequence
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
-from benchmark.core.atomic import atomic_path
 from benchmark.core.errors import InputError
-from benchmark.core.scene import Camera, Frame, Scene
+from benchmark.core.scene import Frame, Scene
 
+from .checkpoint import Checkpointing, FitCheckpoints
 from .config import DeformationConfig, GaussianConfig, ReconConfig, Schedule, exponential_lr
 from .hexplane import DeformationField
-from .model import PARAM_NAMES, DeformableGaussians, GaussianModel, inverse_sigmoid
+from .model import DeformableGaussians, GaussianModel
+from .optimizer import GaussianOptimizer
+from .rasterize import RenderOutput, camera_tensors
+from .strategy import DensificationStrategy
 
 RasterizeFn = Callable[..., object]
 
@@ -44,8 +45,8 @@ def default_rasterize() -> RasterizeFn:
 # Views, scene size, model size
 # ---------------------------------------------------------------------------------------------------
 @dataclass
-class View:
-    """One frame as tensors, ready to render and compare."""
+class RGBView:
+    """One frame's RGB image and camera as tensors, ready to render and compare."""
 
     name: str
     image: torch.Tensor
@@ -64,25 +65,18 @@ class View:
     """(H, W) bool foreground mask when the scene has one."""
 
 
-def camera_tensors(camera: Camera, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
-    """((4, 4) world-to-camera, (3, 3) K) float32 tensors of ``camera``."""
-    viewmat = torch.as_tensor(camera.world_to_camera, dtype=torch.float32, device=device)
-    K = torch.as_tensor(camera.K, dtype=torch.float32, device=device)
-    return viewmat, K
-
-
-def make_views(frames: Sequence[Frame], device: torch.device | str = "cpu", with_images: bool = True) -> list[View]:
-    """Load ``frames`` as :class:`View`s (images decoded once; 128-px scenes hold easily in memory)."""
+def make_views(frames: Sequence[Frame], device: torch.device | str = "cpu", with_images: bool = True) -> list[RGBView]:
+    """Load ``frames`` as :class:`RGBView` objects (images decoded once; 128-px scenes hold easily in memory)."""
     views = []
     for fr in frames:
         # The rasterizer is a pinhole: distortion coefficients (HyperNeRF) are ignored, as in 4D-GS.
-        viewmat, K = camera_tensors(fr.camera, device)
+        viewmat, K, width, height = camera_tensors(fr.camera, device)
         img = torch.as_tensor(np.ascontiguousarray(fr.image(), dtype=np.float32), device=device) if with_images \
             else torch.empty(0)
         fg = fr.alpha() if with_images else None
-        views.append(View(fr.name, img, viewmat, K, fr.camera.width, fr.camera.height, float(fr.time),
-                          torch.as_tensor(fr.camera.center, dtype=torch.float32, device=device),
-                          None if fg is None else np.asarray(fg, dtype=bool)))
+        views.append(RGBView(fr.name, img, viewmat, K, width, height, float(fr.time),
+                             torch.as_tensor(fr.camera.center, dtype=torch.float32, device=device),
+                             None if fg is None else np.asarray(fg, dtype=bool)))
     return views
 
 
@@ -101,7 +95,7 @@ def scene_extent(centers: np.ndarray, bounds: np.ndarray, margin: float) -> floa
     return radius
 
 
-def foreground_fraction(views: Sequence[View], background: Optional[np.ndarray], threshold: float) -> float:
+def foreground_fraction(views: Sequence[RGBView], background: Optional[np.ndarray], threshold: float) -> float:
     """Mean fraction of foreground pixels over ``views``: alpha masks, else pixels unlike the background,
     else 1 (real backgrounds: everything must be modelled)."""
     fractions = []
@@ -116,7 +110,7 @@ def foreground_fraction(views: Sequence[View], background: Optional[np.ndarray],
     return float(np.mean(fractions)) if fractions else 1.0
 
 
-def gaussian_cap(views: Sequence[View], background: Optional[np.ndarray], cfg: GaussianConfig) -> int:
+def gaussian_cap(views: Sequence[RGBView], background: Optional[np.ndarray], cfg: GaussianConfig) -> int:
     """Most Gaussians this scene gets: ``gaussians_per_foreground_pixel`` x mean foreground pixels of a
     training view, within [min_gaussians, max_gaussians]."""
     if not views:
@@ -128,7 +122,7 @@ def gaussian_cap(views: Sequence[View], background: Optional[np.ndarray], cfg: G
 
 
 def initial_gaussians(scene: Scene, cfg: GaussianConfig, cap: int, generator: torch.Generator,
-                      device: torch.device | str = "cpu", views: Optional[Sequence[View]] = None) -> GaussianModel:
+                      device: torch.device | str = "cpu", views: Optional[Sequence[RGBView]] = None) -> GaussianModel:
     """From the scene's point cloud (random subset if larger than the cap), else random in its bounds.
 
     Random points are kept only where some training camera ``views`` sees them (in front of it, inside
@@ -164,7 +158,7 @@ def initial_gaussians(scene: Scene, cfg: GaussianConfig, cap: int, generator: to
     return GaussianModel.from_points(pts.numpy(), rgb.numpy(), cfg, device)
 
 
-def seen_by_any(points: torch.Tensor, views: Sequence[View], near: float) -> torch.Tensor:
+def seen_by_any(points: torch.Tensor, views: Sequence[RGBView], near: float) -> torch.Tensor:
     """(M,) bool: the (M, 3) ``points`` project inside the image of at least one of ``views``."""
     seen = torch.zeros(points.shape[0], dtype=torch.bool)
     for v in views:
@@ -237,191 +231,6 @@ def photometric_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: f
 
 
 # ---------------------------------------------------------------------------------------------------
-# Optimiser that follows densification
-# ---------------------------------------------------------------------------------------------------
-class GaussianOptimizer:
-    """Adam over the Gaussian tensors, one group per tensor, whose moments follow densification."""
-
-    def __init__(self, model: GaussianModel, cfg: GaussianConfig, extent: float):
-        self.model = model
-        lrs = {"means": cfg.position_lr_init * extent, "sh_dc": cfg.feature_lr,
-               "sh_rest": cfg.feature_lr / cfg.feature_rest_lr_divisor, "opacity_logits": cfg.opacity_lr,
-               "log_scales": cfg.scaling_lr, "quats": cfg.rotation_lr}
-        self.optim = torch.optim.Adam([{"params": [model.params[k]], "lr": lrs[k], "name": k} for k in PARAM_NAMES],
-                                      lr=0.0, eps=cfg.adam_eps)
-        self.groups = {g["name"]: g for g in self.optim.param_groups}
-
-    def set_lr(self, name: str, lr: float) -> None:
-        self.groups[name]["lr"] = lr
-
-    def load_state_dict(self, state: dict) -> None:
-        """Moments and learning rates as saved (torch replaces the group dicts: ``groups`` follows)."""
-        self.optim.load_state_dict(state)
-        self.groups = {g["name"]: g for g in self.optim.param_groups}
-
-    def step(self) -> None:
-        self.optim.step()
-        self.optim.zero_grad(set_to_none=True)
-
-    def rebuild(self, new_values: dict[str, torch.Tensor], keep_rows: torch.Tensor, n_added: int) -> None:
-        """Replace every tensor by ``new_values[name]`` whose rows are ``old[keep_rows]`` followed by
-        ``n_added`` new rows; Adam moments follow the kept rows and start at zero for new ones."""
-        for name in PARAM_NAMES:
-            group = self.groups[name]
-            old = group["params"][0]
-            new = new_values[name].detach().contiguous().requires_grad_(True)
-            state = self.optim.state.pop(old, None)
-            if state:
-                for key in ("exp_avg", "exp_avg_sq"):
-                    moment = state[key][keep_rows]
-                    pad = moment.new_zeros((n_added,) + moment.shape[1:])
-                    state[key] = torch.cat([moment, pad], 0)
-                self.optim.state[new] = state
-            group["params"][0] = new
-            self.model.params[name] = new
-
-    def reset_moments(self, name: str) -> None:
-        state = self.optim.state.get(self.groups[name]["params"][0])
-        if state:
-            state["exp_avg"].zero_()
-            state["exp_avg_sq"].zero_()
-
-
-@dataclass
-class DensifyStats:
-    """Per-Gaussian accumulators between two densifications."""
-
-    grad_sum: torch.Tensor
-    """(N,) sum of view-space positional gradient norms (NDC units) over the views that saw it."""
-    count: torch.Tensor
-    """(N,) number of views that saw it."""
-    max_radius: torch.Tensor
-    """(N,) largest screen radius (pixels) over those views."""
-
-    @staticmethod
-    def zeros(n: int, device: torch.device | str = "cpu") -> "DensifyStats":
-        return DensifyStats(torch.zeros(n, device=device), torch.zeros(n, device=device),
-                            torch.zeros(n, device=device))
-
-    def update(self, means2d_grad: torch.Tensor, radii: torch.Tensor, visible: torch.Tensor,
-               width: int, height: int) -> None:
-        """Add one view: ``means2d_grad`` (N, 2) d loss / d pixel position, ``radii`` (N,), ``visible`` (N,)."""
-        # Pixel -> NDC gradient (NDC spans 2 over the image): the threshold 0.0002 is in NDC units.
-        scale = means2d_grad.new_tensor([width * 0.5, height * 0.5])
-        norm = (means2d_grad * scale).norm(dim=-1)
-        vis = visible.float()
-        self.grad_sum += norm * vis
-        self.count += vis
-        self.max_radius = torch.where(visible, torch.maximum(self.max_radius, radii.float()), self.max_radius)
-
-
-@torch.no_grad()
-def densify_and_prune(model: GaussianModel, opt: GaussianOptimizer, stats: DensifyStats, cfg: GaussianConfig,
-                      extent: float, cap: int, size_pruning: bool, max_screen_px: Optional[float],
-                      generator: torch.Generator, prune_only: bool = False) -> tuple[torch.Tensor, dict[str, int]]:
-    """One 3D-GS densification + pruning step, within the cap.
-
-    Returns ``(source, counts)``: ``source`` (N_new,) gives, for every Gaussian after the step, the index
-    of the Gaussian it came from (itself, or the parent of a clone / split child), so callers can carry
-    per-Gaussian buffers along; ``counts`` = cloned, split, pruned, total.
-    """
-    p = model.params
-    n = model.num_gaussians
-    device = p["means"].device
-    grads = torch.nan_to_num(stats.grad_sum / stats.count, nan=0.0)
-    scales = torch.exp(p["log_scales"])
-    big = scales.amax(1) > cfg.percent_dense * extent
-    candidates = (grads >= cfg.densify_grad_threshold) if not prune_only else torch.zeros(n, dtype=torch.bool,
-                                                                                             device=device)
-    # Budget: a clone adds one Gaussian, a split adds split_count - 1; best gradients first.
-    room = cap - n
-    cand_idx = candidates.nonzero().squeeze(1)
-    if cand_idx.numel():
-        order = cand_idx[grads[cand_idx].argsort(descending=True)]
-        cost = torch.where(big[order], cfg.split_count - 1, 1)
-        order = order[cost.cumsum(0) <= max(room, 0)]
-        candidates = torch.zeros_like(candidates)
-        candidates[order] = True
-    clone = candidates & ~big
-    split = candidates & big
-    clone_idx = clone.nonzero().squeeze(1)
-    split_idx = split.nonzero().squeeze(1)
-
-    # Children: clones are copies; split children are sampled from the parent Gaussian and shrunk.
-    k = cfg.split_count
-    rep = split_idx.repeat(k)
-    std = scales[rep]
-    local = torch.randn(std.shape, generator=generator).to(device) * std
-    rot = quat_to_rotmat(F.normalize(p["quats"][rep], dim=-1))
-    split_means = p["means"][rep] + torch.einsum("nij,nj->ni", rot, local)
-    children = {name: torch.cat([p[name][clone_idx], p[name][rep]], 0) for name in PARAM_NAMES}
-    children["means"] = torch.cat([p["means"][clone_idx], split_means], 0)
-    children["log_scales"] = torch.cat([p["log_scales"][clone_idx],
-                                        torch.log(scales[rep] / cfg.split_scale_divisor)], 0)
-    child_source = torch.cat([clone_idx, rep])
-
-    ext = {name: torch.cat([p[name], children[name]], 0) for name in PARAM_NAMES}
-    source = torch.cat([torch.arange(n, device=device), child_source])
-    radius = torch.cat([stats.max_radius, torch.zeros(child_source.numel(), device=device)])
-    keep = torch.ones(source.numel(), dtype=torch.bool, device=device)
-    keep[split_idx] = False  # split parents are replaced by their children
-    prune = torch.sigmoid(ext["opacity_logits"]) < cfg.min_opacity
-    if size_pruning:
-        if max_screen_px is not None:
-            prune |= radius > max_screen_px
-        prune |= torch.exp(ext["log_scales"]).amax(1) > cfg.max_world_fraction * extent
-    if bool((keep & ~prune).any()):
-        keep &= ~prune
-    keep_old = keep[:n].nonzero().squeeze(1)
-    keep_new = keep[n:].nonzero().squeeze(1)
-    new_values = {name: torch.cat([ext[name][keep_old], ext[name][n + keep_new]], 0) for name in PARAM_NAMES}
-    opt.rebuild(new_values, keep_old, int(keep_new.numel()))
-    final_source = torch.cat([source[keep_old], source[n + keep_new]])
-    counts = {"cloned": int(clone_idx.numel()), "split": int(split_idx.numel()),
-              "pruned": int((~keep).sum()) - int(split_idx.numel()), "total": model.num_gaussians}
-    return final_source, counts
-
-
-@torch.no_grad()
-def reset_opacity(model: GaussianModel, opt: GaussianOptimizer, value: float) -> None:
-    """Clamp every opacity to at most ``value`` and forget its Adam moments (3D-GS opacity reset)."""
-    logits = model.params["opacity_logits"]
-    logits.copy_(torch.minimum(logits, inverse_sigmoid(torch.tensor(value))))
-    opt.reset_moments("opacity_logits")
-
-
-def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
-    """(N, 4) unit quaternions (w, x, y, z) -> (N, 3, 3) rotation matrices."""
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], -1).reshape(-1, 3, 3)
-
-
-def saved_tensor_bytes(fn: Callable[[], object]) -> tuple[object, int]:
-    """Run ``fn`` and return (its result, bytes of the tensors autograd saved for backward during it).
-
-    This is the activation memory a step pays for the computation; RSS cannot see it reliably on CPU.
-    """
-    total = 0
-    seen: set[int] = set()
-
-    def pack(t: torch.Tensor):
-        nonlocal total
-        key = t.untyped_storage().data_ptr() if t.device.type != "meta" else id(t)
-        if key not in seen:
-            seen.add(key)
-            total += t.untyped_storage().nbytes()
-        return t
-
-    with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
-        result = fn()
-    return result, total
-
-
-# ---------------------------------------------------------------------------------------------------
 # Trainer
 # ---------------------------------------------------------------------------------------------------
 @dataclass
@@ -450,21 +259,89 @@ class FitResult:
 
 
 @dataclass
-class Checkpointing:
-    """Where and how often a fit saves its whole training state, so that an interrupted fit resumes.
+class StageRun:
+    """One training stage as it goes: what it trains, and the bookkeeping it reports and checkpoints."""
 
-    A resumed fit ends exactly as an uninterrupted one on the CPU (the state includes every random
-    generator, the Adam moments, the densification statistics and the loop's bookkeeping; on CUDA the
-    rasterizer's atomic adds make any two runs differ in the last bits); its ``fit_seconds`` add the
-    time spent before the interruption. The file is removed when the fit completes."""
+    name: str
+    """``"static"`` or ``"deformation"``."""
+    iterations: int
+    """The stage's length."""
+    model: GaussianModel
+    """The Gaussians (the canonical ones in the deformation stage)."""
+    opt: GaussianOptimizer
+    """The Gaussians' optimiser."""
+    deformable: Optional[DeformableGaussians]
+    """The Gaussians with their deformation field (deformation stage), else None."""
+    net_opt: Optional[torch.optim.Optimizer]
+    """The deformation field's optimiser (deformation stage), else None."""
+    schedule: Schedule
+    """The stage's learning rates, SH degree and densification intervals."""
+    strategy: DensificationStrategy
+    """When and how the stage densifies, prunes and resets opacities."""
+    iter_seconds: np.ndarray
+    """(iterations,) wall seconds of each iteration."""
+    deform_seconds: np.ndarray
+    """(iterations,) wall seconds of each iteration's deformation (0 in a static stage)."""
+    events: list[dict] = field(default_factory=list)
+    """Densifications, opacity resets and static checks, in order."""
+    first_loss: float = float("nan")
+    """Loss of the stage's first iteration."""
+    last_loss: float = float("nan")
+    """Loss of the latest iteration."""
+    px_per_unit: Optional[torch.Tensor] = None
+    """(N,) pixels per world unit of the Gaussians for the motion prior; dropped at each densification."""
+    first_iteration: int = 1
+    """The iteration the loop starts at (after the checkpoint's, when resumed)."""
+    cpu_start: float = 0.0
+    """``time.process_time()`` at the stage's start, less the time spent before an interruption."""
+    wall_start: float = 0.0
+    """``time.perf_counter()`` at the stage's start, less the time spent before an interruption."""
 
-    path: Path
-    """The checkpoint file (written atomically: temp file + rename)."""
-    key: str
-    """What the fit is (e.g. the geometry cache key): a checkpoint of another fit is ignored."""
-    every_seconds: float = 120.0
-    """Wall seconds between saves, plus a save where one stage ends and another begins; saving reads
-    the state and never changes it."""
+    def start_clock(self, loop: Optional[dict] = None) -> None:
+        """The stage's time counts from now, plus that of a resumed ``loop`` (see :meth:`state_dict`)."""
+        cpu_before = 0.0 if loop is None else float(loop["cpu_seconds"])
+        wall_before = 0.0 if loop is None else float(loop["wall_seconds"])
+        self.cpu_start, self.wall_start = time.process_time() - cpu_before, time.perf_counter() - wall_before
+
+    def record(self, iteration: int, loss: float, started: float) -> None:
+        """``iteration`` ended with ``loss``; it began at ``time.perf_counter()`` = ``started``."""
+        self.last_loss = loss
+        if iteration == 1:
+            self.first_loss = loss
+        self.iter_seconds[iteration - 1] = time.perf_counter() - started
+
+    def state_dict(self) -> dict:
+        """The loop's bookkeeping and the densification state, for a checkpoint."""
+        return {**self.strategy.state_dict(), "events": self.events,
+                "iter_seconds": torch.from_numpy(self.iter_seconds.copy()),
+                "deform_seconds": torch.from_numpy(self.deform_seconds.copy()),
+                "last_loss": self.last_loss, "first_loss": self.first_loss, "px_per_unit": self.px_per_unit,
+                "cpu_seconds": time.process_time() - self.cpu_start,
+                "wall_seconds": time.perf_counter() - self.wall_start}
+
+    def load_state_dict(self, loop: dict, device: torch.device | str) -> None:
+        self.strategy.load_state_dict(loop)
+        self.events = list(loop["events"])
+        self.iter_seconds = loop["iter_seconds"].cpu().numpy().astype(np.float64)
+        self.deform_seconds = loop["deform_seconds"].cpu().numpy().astype(np.float64)
+        self.last_loss, self.first_loss = float(loop["last_loss"]), float(loop["first_loss"])
+        self.px_per_unit = None if loop["px_per_unit"] is None else loop["px_per_unit"].to(device)
+
+    def summary(self) -> dict:
+        """The stage's entry of :attr:`FitResult.stages`."""
+        n = self.iterations
+        tail = self.iter_seconds[n // 2:] if n > 1 else self.iter_seconds
+        out = {"stage": self.name, "iterations": n, "seconds": float(self.iter_seconds.sum()),
+               "cpu_seconds": time.process_time() - self.cpu_start,
+               "ms_per_iteration": 1000 * float(self.iter_seconds.mean()) if n else 0.0,
+               "ms_per_iteration_second_half": 1000 * float(tail.mean()) if len(tail) else 0.0,
+               "first_loss": self.first_loss, "final_loss": self.last_loss, "gaussians": self.model.num_gaussians,
+               "schedule_scale": self.schedule.scale, "events": self.events}
+        if self.deformable is not None:
+            out["deform_ms_per_iteration_second_half"] = 1000 * float(self.deform_seconds[n // 2:].mean()) \
+                if n > 1 else 1000 * float(self.deform_seconds.mean())
+            out["dynamic_gaussians"] = self.deformable.num_dynamic()
+        return out
 
 
 class Trainer:
@@ -509,14 +386,14 @@ class Trainer:
         iterations = iterations or c.reference_iterations or (c.static_iterations + c.deformation_iterations)
         self._reset_random()
         model = initial_gaussians(self.scene, c.gaussians, self.cap, self.generator, self.device, self.views)
-        self._total_iterations = iterations
-        resume = self._load_checkpoint("3dgs", iterations)
+        self._checkpoints = FitCheckpoints(self.checkpoint, "3dgs", iterations, self.device)
+        resume = self._checkpoints.resume
         opt = self._gaussians_from(resume, model)
-        self._start_clock(resume)
+        self._checkpoints.start_clock()
         result = FitResult("3dgs", model, 0.0, extent=self.extent, cap=self.cap)
         sched = Schedule(c.gaussians, c.reference_scale(iterations))
         self._run_stage("static", model, opt, None, None, sched, iterations, result, resume)
-        self._finish(result, resume)
+        self._checkpoints.finish(result)
         return result
 
     def fit_4dgs(self) -> FitResult:
@@ -524,19 +401,40 @@ class Trainer:
         c = self.cfg
         self._reset_random()
         model = initial_gaussians(self.scene, c.gaussians, self.cap, self.generator, self.device, self.views)
-        self._total_iterations = c.static_iterations + c.deformation_iterations
-        resume = self._load_checkpoint("4dgs", self._total_iterations)
+        self._checkpoints = FitCheckpoints(self.checkpoint, "4dgs", c.static_iterations + c.deformation_iterations,
+                                           self.device)
+        resume = self._checkpoints.resume
         opt = self._gaussians_from(resume, model)
         result = FitResult("4dgs", model, 0.0, extent=self.extent, cap=self.cap)
-        self._start_clock(resume)
+        self._checkpoints.start_clock()
         in_deformation = resume is not None and resume["stage"] == "deformation"
         if c.static_iterations > 0 and not in_deformation:
             self._run_stage("static", model, opt, None, None, Schedule(c.gaussians, c.static_stage_scale()),
                             c.static_iterations, result, resume, stage_follows=c.deformation_iterations > 0)
+        deformable, net_opt = self._deformation_model(model, result, resume if in_deformation else None)
+        result.model = deformable
+        if c.deformation_iterations > 0:
+            d = c.deformation
+            sched = Schedule(c.gaussians, c.deformation_stage_scale(), densify_until=d.densify_until_iter,
+                             opacity_resets=d.opacity_reset_interval is not None,
+                             reset_interval=d.opacity_reset_interval)
+            self._run_stage("deformation", model, opt, deformable, net_opt, sched, c.deformation_iterations,
+                            result, resume if in_deformation else None)
+        self._checkpoints.finish(result)
+        return result
+
+    def _deformation_model(self, model: GaussianModel, result: FitResult,
+                           resume: Optional[dict]) -> tuple[DeformableGaussians, torch.optim.Optimizer]:
+        """The deformation stage's model on the static stage's Gaussians, and the field's optimiser.
+
+        The HexPlane box (and motion box) are read from the Gaussians as the static stage ends, into
+        ``result.field_box``; ``resume``: a checkpoint taken inside the deformation stage (the Gaussians
+        have moved since: its box, field, optimiser and dynamic mask are the saved ones).
+        """
+        c = self.cfg
         d = c.deformation
-        # the box is read from the Gaussians as the static stage ends (a resumed fit has moved them since)
-        bounds = resume["field_bounds"] if in_deformation else self.hexplane_bounds(model)
-        if in_deformation:
+        bounds = resume["field_bounds"] if resume is not None else self.hexplane_bounds(model)
+        if resume is not None:
             focus = resume.get("field_focus")
         else:
             clock = time.process_time()
@@ -552,44 +450,22 @@ class Trainer:
         self._field_bounds, self._field_focus = bounds, focus
         deformable = DeformableGaussians(model, field_)
         start_box = self._static_outside_box()
-        if not in_deformation and start_box is not None:
+        if resume is None and start_box is not None:
             deformable.dynamic_mask = inside_box(model.params["means"].detach(), start_box)
             result.field_box["static_at_start"] = int((~deformable.dynamic_mask).sum())
-        result.model = deformable
         groups = [{"params": field_.mlp_parameters(), "lr": d.deformation_lr_init * self.extent, "name": "mlp"},
                   {"params": field_.grid_parameters(), "lr": d.grid_lr_init * self.extent, "name": "grid"}]
         if field_.color_parameters():
             groups.append({"params": field_.color_parameters(), "lr": d.color_lr_init, "name": "color"})
         net_opt = torch.optim.Adam(groups, lr=0.0, eps=c.gaussians.adam_eps)
-        if in_deformation:
+        if resume is not None:
             field_.load_state_dict(resume["field"])
             net_opt.load_state_dict(resume["net_opt"])
             mask = resume["dynamic_mask"]
             deformable.dynamic_mask = None if mask is None else mask.to(self.device)
-        if c.deformation_iterations > 0:
-            sched = Schedule(c.gaussians, c.deformation_stage_scale(), densify_until=d.densify_until_iter,
-                             opacity_resets=d.opacity_reset_interval is not None,
-                             reset_interval=d.opacity_reset_interval)
-            self._run_stage("deformation", model, opt, deformable, net_opt, sched, c.deformation_iterations,
-                            result, resume if in_deformation else None)
-        self._finish(result, resume)
-        return result
+        return deformable, net_opt
 
     # -- checkpoints --------------------------------------------------------------------------------
-    def _load_checkpoint(self, kind: str, total_iterations: int) -> Optional[dict]:
-        """The saved state of this very fit, or None (no checkpointing, no file, another fit's, unreadable)."""
-        ck = self.checkpoint
-        if ck is None or not Path(ck.path).is_file():
-            return None
-        try:
-            state = torch.load(ck.path, map_location=self.device, weights_only=True)
-        except Exception:  # a corrupt or incompatible checkpoint is never trusted: the fit starts over
-            return None
-        if (not isinstance(state, dict) or state.get("key") != ck.key or state.get("kind") != kind
-                or state.get("total_iterations") != total_iterations):
-            return None
-        return state
-
     def _gaussians_from(self, resume: Optional[dict], model: GaussianModel) -> GaussianOptimizer:
         """The Gaussians' optimiser; with a checkpoint, the Gaussians, their moments and every random
         generator as saved."""
@@ -605,19 +481,21 @@ class Trainer:
             torch.set_rng_state(resume["torch_rng"])
         return opt
 
-    def _start_clock(self, resume: Optional[dict]) -> None:
-        """Fit time counts from the fit's start, the time spent before an interruption included."""
-        before_wall = 0.0 if resume is None else float(resume["fit_seconds"])
-        before_cpu = 0.0 if resume is None else float(resume["fit_cpu_seconds"])
-        self._fit_start = (time.perf_counter() - before_wall, time.process_time() - before_cpu)
-
-    def _finish(self, result: FitResult, resume: Optional[dict]) -> None:
-        result.fit_seconds = time.perf_counter() - self._fit_start[0]
-        result.fit_cpu_seconds = time.process_time() - self._fit_start[1]
-        if resume is not None:
-            result.resumed_at = {"stage": resume["stage"], "iteration": int(resume["iteration"])}
-        if self.checkpoint is not None:
-            Path(self.checkpoint.path).unlink(missing_ok=True)  # the caller keeps the fitted model
+    def _training_state(self, run: StageRun, result: FitResult) -> dict:
+        """The whole training state as the stage ``run`` stands (see :class:`Checkpointing`)."""
+        model = run.model
+        state: dict = {
+            "params": {k: v.detach() for k, v in model.params.items()},
+            "active_sh_degree": model.active_sh_degree, "opt": run.opt.optim.state_dict(),
+            "generator": self.generator.get_state(), "numpy_rng": self.rng.bit_generator.state,
+            "view_order": list(self._order), "torch_rng": torch.get_rng_state(),
+            "stages": list(result.stages), "history": list(result.history), "loop": run.state_dict()}
+        if run.deformable is not None:
+            mask = run.deformable.dynamic_mask
+            state.update({"field": run.deformable.field.state_dict(), "net_opt": run.net_opt.state_dict(),
+                          "dynamic_mask": None if mask is None else mask.detach(),
+                          "field_bounds": self._field_bounds, "field_focus": self._field_focus})
+        return state
 
     def hexplane_bounds(self, model: GaussianModel) -> torch.Tensor:
         """(2, 3) HexPlane box: robust box of the static Gaussians, widened by ``bounds_margin``."""
@@ -702,7 +580,7 @@ class Trainer:
         return max(2, math.ceil(self.scene.num_time_steps / 2))
 
     # -- the loop -----------------------------------------------------------------------------------
-    def _next_view(self) -> View:
+    def _next_view(self) -> RGBView:
         """Views in a fresh random order every epoch (3D-GS)."""
         if not self._order:
             self._order = self.rng.permutation(len(self.views)).tolist()
@@ -715,171 +593,135 @@ class Trainer:
         """One training stage. ``resume``: a checkpoint taken inside this stage to go on from;
         ``stage_follows``: another stage comes after this one, so its end is checkpointed (the end of a
         fit's last stage is not: the fit completes and removes its checkpoint right after)."""
-        c = self.cfg
-        g = c.gaussians
-        d: DeformationConfig = c.deformation
-        stats = DensifyStats.zeros(model.num_gaussians, self.device)
-        events: list[dict] = []
-        iter_seconds = np.zeros(iterations)
-        deform_seconds = np.zeros(iterations)
-        lambda_dssim = g.lambda_dssim if deformable is None else d.lambda_dssim
-        reg_weights = {"plane_tv": d.plane_tv_weight, "time_smoothness": d.time_smoothness_weight,
-                       "l1_time_planes": d.l1_time_planes_weight}
-        warmup = max(1, int(round(d.static_warmup_fraction * iterations)))
-        check_every = max(1, int(round(d.static_check_interval_fraction * iterations)))
-        decay_steps = sched.at(d.lr_decay_steps)
-        log_every = c.log_every
-        start_count = model.num_gaussians
-        window = sched.densify_until_iteration()
-
-        def budget(it: int) -> int:
-            """Gaussians allowed after iteration ``it`` (see GaussianConfig.gradual_cap)."""
-            if not g.gradual_cap or start_count >= self.cap:
-                return self.cap
-            return int(start_count + (self.cap - start_count) * min(1.0, it / window))
-
-        last_loss = first_loss = float("nan")
-        px_per_unit: Optional[torch.Tensor] = None  # (N,) for the motion prior; dropped at each densification
-        first_iteration, cpu_before, wall_before = 1, 0.0, 0.0
-        if resume is not None and resume["stage"] == stage:
-            loop = resume["loop"]
-            stats = DensifyStats(*(loop[k].to(self.device) for k in ("grad_sum", "count", "max_radius")))
-            events = list(loop["events"])
-            iter_seconds = loop["iter_seconds"].cpu().numpy().astype(np.float64)
-            deform_seconds = loop["deform_seconds"].cpu().numpy().astype(np.float64)
-            start_count = int(loop["start_count"])
-            last_loss, first_loss = float(loop["last_loss"]), float(loop["first_loss"])
-            px_per_unit = None if loop["px_per_unit"] is None else loop["px_per_unit"].to(self.device)
-            cpu_before, wall_before = float(loop["cpu_seconds"]), float(loop["wall_seconds"])
+        strategy = DensificationStrategy(self.cfg.gaussians, sched, iterations, self.extent, self.cap,
+                                         model.num_gaussians, self.generator, self.device)
+        run = StageRun(stage, iterations, model, opt, deformable, net_opt, sched, strategy,
+                       iter_seconds=np.zeros(iterations), deform_seconds=np.zeros(iterations))
+        loop = resume["loop"] if resume is not None and resume["stage"] == stage else None
+        if loop is not None:
+            run.load_state_dict(loop, self.device)
             result.stages, result.history = list(resume["stages"]), list(resume["history"])
-            first_iteration = int(resume["iteration"]) + 1
-        cpu_start, wall_start = time.process_time() - cpu_before, time.perf_counter() - wall_before
-        last_save = time.perf_counter()
-
-        def save(it: int) -> None:
-            """The whole training state after iteration ``it`` (see :class:`Checkpointing`)."""
-            ck = self.checkpoint
-            state: dict = {
-                "key": ck.key, "kind": result.kind, "total_iterations": self._total_iterations,
-                "stage": stage, "iteration": it,
-                "params": {k: v.detach() for k, v in model.params.items()},
-                "active_sh_degree": model.active_sh_degree, "opt": opt.optim.state_dict(),
-                "generator": self.generator.get_state(), "numpy_rng": self.rng.bit_generator.state,
-                "view_order": list(self._order), "torch_rng": torch.get_rng_state(),
-                "fit_seconds": time.perf_counter() - self._fit_start[0],
-                "fit_cpu_seconds": time.process_time() - self._fit_start[1],
-                "stages": list(result.stages), "history": list(result.history),
-                "loop": {"grad_sum": stats.grad_sum, "count": stats.count, "max_radius": stats.max_radius,
-                         "events": events, "iter_seconds": torch.from_numpy(iter_seconds.copy()),
-                         "deform_seconds": torch.from_numpy(deform_seconds.copy()), "start_count": start_count,
-                         "last_loss": last_loss, "first_loss": first_loss, "px_per_unit": px_per_unit,
-                         "cpu_seconds": time.process_time() - cpu_start,
-                         "wall_seconds": time.perf_counter() - wall_start}}
-            if deformable is not None:
-                mask = deformable.dynamic_mask
-                state.update({"field": deformable.field.state_dict(), "net_opt": net_opt.state_dict(),
-                              "dynamic_mask": None if mask is None else mask.detach(),
-                              "field_bounds": self._field_bounds, "field_focus": self._field_focus})
-            with atomic_path(ck.path) as tmp:
-                torch.save(state, tmp)
-
-        steps: Iterable[int] = range(first_iteration, iterations + 1)
-        if self.progress is not None:
-            steps = self.progress(steps, desc=f"geometry ({stage})", total=len(steps))
-        for it in steps:
-            t_start = time.perf_counter()
-            # one band more every scaled interval; never lowered (the deformation stage keeps the static
-            # stage's degree, as the release's oneupSHdegree does)
-            model.active_sh_degree = max(model.active_sh_degree, sched.sh_degree(it - 1))
-            if deformable is None:
-                opt.set_lr("means", sched.position_lr(it - 1, self.extent))
-            else:
-                opt.set_lr("means", self.extent * exponential_lr(it - 1, g.position_lr_init, g.position_lr_final,
-                                                                   decay_steps))
-                for group in net_opt.param_groups:
-                    lo, hi, unit = {"mlp": (d.deformation_lr_final, d.deformation_lr_init, self.extent),
-                                    "grid": (d.grid_lr_final, d.grid_lr_init, self.extent),
-                                    "color": (d.color_lr_final, d.color_lr_init, 1.0)}[group["name"]]
-                    group["lr"] = unit * exponential_lr(it - 1, hi, lo, decay_steps, 0, d.deformation_lr_delay_mult)
+            run.first_iteration = int(resume["iteration"]) + 1
+        run.start_clock(loop)
+        self._checkpoints.begin_stage()
+        for it in self._iterations(run):
+            started = time.perf_counter()
+            self._follow_schedule(run, it)
             view = self._next_view()
-            if deformable is None:
-                means, quats, scales = model.means, model.quats, model.scales
-            else:
-                t_def = time.perf_counter()
-                offsets = deformable.offsets(view.time, skip_static=d.static_skip)
-                means, quats, scales = deformable.apply_offsets(offsets)
-                deform_seconds[it - 1] = time.perf_counter() - t_def
-            colors = (model.colors(view.center, means) if deformable is None
-                      else deformable.colors(view.center, means, offsets))
-            out = self.rasterize(means, quats, scales, model.opacities, colors, view.viewmat, view.K,
-                                 view.width, view.height, background=self.background, near=g.near)
-            means2d = out.means2d
-            if means2d.requires_grad and not means2d.is_leaf:
-                means2d.retain_grad()
-            loss = photometric_loss(out.image, view.image, lambda_dssim, self.window)
-            if deformable is not None:
-                regs = deformable.field.hexplane.regularisers()
-                loss = loss + sum(reg_weights[k] * v for k, v in regs.items())
-                if d.motion_l1_weight > 0 and offsets is not None:
-                    if px_per_unit is None:
-                        px_per_unit = self.pixels_per_unit(model.means.detach())
-                    loss = loss + d.motion_l1_weight * motion_l1(offsets, px_per_unit, model.params["quats"], d)
+            render, offsets = self._render(run, view, it)
+            strategy.step_pre_backward(render)
+            loss = self._loss(run, render, view, offsets)
             loss.backward()
             with torch.no_grad():
-                if means2d.grad is not None:
-                    stats.update(means2d.grad, out.radii, out.visible, view.width, view.height)
                 opt.step()
                 if net_opt is not None:
                     net_opt.step()
                     net_opt.zero_grad(set_to_none=True)
-                if sched.densify_now(it):
-                    px_per_unit = None
-                    source, counts = densify_and_prune(model, opt, stats, g, self.extent, budget(it),
-                                                       sched.screen_pruning_active(it), g.max_screen_px,
-                                                       self.generator)
-                    if deformable is not None and deformable.dynamic_mask is not None:
-                        deformable.dynamic_mask = deformable.dynamic_mask[source]
-                    stats = DensifyStats.zeros(model.num_gaussians, self.device)
-                    events.append({"iteration": it, "event": "densify", **counts})
-                if sched.reset_opacity_now(it, iterations):
-                    reset_opacity(model, opt, g.opacity_reset_value)
-                    events.append({"iteration": it, "event": "opacity_reset"})
-                if (deformable is not None and d.static_skip and it >= warmup
-                        and ((it - warmup) % check_every == 0 or it == iterations)):
-                    means = model.means.detach()
-                    confine = None if d.recheck_outside_motion_box else self._static_outside_box()
-                    counts = deformable.update_static_mask(
-                        d, self.extent, px_per_unit=self.pixels_per_unit(means),
-                        may_move=None if confine is None else inside_box(means, confine))
-                    events.append({"iteration": it, "event": "static_check", **counts})
-            last_loss = float(loss.detach())
-            if it == 1:
-                first_loss = last_loss
-            iter_seconds[it - 1] = time.perf_counter() - t_start
-            if log_every and (it % log_every == 0 or it == iterations):
-                result.history.append({"stage": stage, "iteration": it, "loss": last_loss,
-                                       "gaussians": model.num_gaussians,
-                                       "dynamic": None if deformable is None else deformable.num_dynamic()})
-                print(f"[{stage}] it {it}/{iterations} loss {last_loss:.4f} N {model.num_gaussians} "
-                      f"cpu {time.process_time() - cpu_start:.0f}s wall {time.perf_counter() - wall_start:.0f}s"
-                      + ("" if deformable is None else f" dynamic {deformable.num_dynamic()}"), flush=True)
-            if self.checkpoint is not None:
-                due = time.perf_counter() - last_save >= self.checkpoint.every_seconds
-                if (due and it < iterations) or (it == iterations and stage_follows):
-                    save(it)
-                    last_save = time.perf_counter()
-        tail = iter_seconds[iterations // 2:] if iterations > 1 else iter_seconds
-        summary = {"stage": stage, "iterations": iterations, "seconds": float(iter_seconds.sum()),
-                   "cpu_seconds": time.process_time() - cpu_start,
-                   "ms_per_iteration": 1000 * float(iter_seconds.mean()) if iterations else 0.0,
-                   "ms_per_iteration_second_half": 1000 * float(tail.mean()) if len(tail) else 0.0,
-                   "first_loss": first_loss, "final_loss": last_loss, "gaussians": model.num_gaussians,
-                   "schedule_scale": sched.scale, "events": events}
-        if deformable is not None:
-            summary["deform_ms_per_iteration_second_half"] = 1000 * float(deform_seconds[iterations // 2:].mean()) \
-                if iterations > 1 else 1000 * float(deform_seconds.mean())
-            summary["dynamic_gaussians"] = deformable.num_dynamic()
-        result.stages.append(summary)
+                self._refine(run, it, render, view)
+            run.record(it, float(loss.detach()), started)
+            self._log(run, it, result)
+            if self._checkpoints.due(it, iterations, stage_follows):
+                self._checkpoints.save(stage, it, self._training_state(run, result))
+        result.stages.append(run.summary())
+
+    def _iterations(self, run: StageRun) -> Iterable[int]:
+        """The stage's iterations still to run, through the progress wrapper where there is one."""
+        steps: Iterable[int] = range(run.first_iteration, run.iterations + 1)
+        if self.progress is not None:
+            steps = self.progress(steps, desc=f"geometry ({run.name})", total=len(steps))
+        return steps
+
+    def _follow_schedule(self, run: StageRun, it: int) -> None:
+        """SH degree and learning rates of iteration ``it``."""
+        g, d = self.cfg.gaussians, self.cfg.deformation
+        # one band more every scaled interval; never lowered (the deformation stage keeps the static
+        # stage's degree, as the release's oneupSHdegree does)
+        run.model.active_sh_degree = max(run.model.active_sh_degree, run.schedule.sh_degree(it - 1))
+        if run.deformable is None:
+            run.opt.set_lr("means", run.schedule.position_lr(it - 1, self.extent))
+            return
+        decay_steps = run.schedule.at(d.lr_decay_steps)
+        run.opt.set_lr("means", self.extent * exponential_lr(it - 1, g.position_lr_init, g.position_lr_final,
+                                                               decay_steps))
+        for group in run.net_opt.param_groups:
+            lo, hi, unit = {"mlp": (d.deformation_lr_final, d.deformation_lr_init, self.extent),
+                            "grid": (d.grid_lr_final, d.grid_lr_init, self.extent),
+                            "color": (d.color_lr_final, d.color_lr_init, 1.0)}[group["name"]]
+            group["lr"] = unit * exponential_lr(it - 1, hi, lo, decay_steps, 0, d.deformation_lr_delay_mult)
+
+    def _render(self, run: StageRun, view: RGBView, it: int) -> tuple[RenderOutput, Optional[tuple]]:
+        """(the render of ``view``, the deformation offsets it used: None in a static stage)."""
+        model, deformable = run.model, run.deformable
+        offsets = None
+        if deformable is None:
+            means, quats, scales = model.means, model.quats, model.scales
+            colors = model.colors(view.center, means)
+        else:
+            t_def = time.perf_counter()
+            offsets = deformable.offsets(view.time, skip_static=self.cfg.deformation.static_skip)
+            means, quats, scales = deformable.apply_offsets(offsets)
+            run.deform_seconds[it - 1] = time.perf_counter() - t_def
+            colors = deformable.colors(view.center, means, offsets)
+        render = self.rasterize(means, quats, scales, model.opacities, colors, view.viewmat, view.K,
+                                view.width, view.height, background=self.background, near=self.cfg.gaussians.near)
+        return render, offsets
+
+    def _loss(self, run: StageRun, render: RenderOutput, view: RGBView, offsets: Optional[tuple]) -> torch.Tensor:
+        """Photometric loss; in the deformation stage plus the HexPlane regularisers and the motion prior."""
+        g, d = self.cfg.gaussians, self.cfg.deformation
+        if run.deformable is None:
+            return photometric_loss(render.image, view.image, g.lambda_dssim, self.window)
+        loss = photometric_loss(render.image, view.image, d.lambda_dssim, self.window)
+        reg_weights = {"plane_tv": d.plane_tv_weight, "time_smoothness": d.time_smoothness_weight,
+                       "l1_time_planes": d.l1_time_planes_weight}
+        regs = run.deformable.field.hexplane.regularisers()
+        loss = loss + sum(reg_weights[k] * v for k, v in regs.items())
+        if d.motion_l1_weight > 0 and offsets is not None:
+            if run.px_per_unit is None:
+                run.px_per_unit = self.pixels_per_unit(run.model.means.detach())
+            loss = loss + d.motion_l1_weight * motion_l1(offsets, run.px_per_unit, run.model.params["quats"], d)
+        return loss
+
+    def _refine(self, run: StageRun, it: int, render: RenderOutput, view: RGBView) -> None:
+        """After the optimiser steps: the densification strategy, then the static check where one is due."""
+        source, events = run.strategy.step_post_backward(it, run.model, run.opt, render, view.width, view.height)
+        deformable = run.deformable
+        if source is not None:
+            run.px_per_unit = None
+            if deformable is not None and deformable.dynamic_mask is not None:
+                deformable.dynamic_mask = deformable.dynamic_mask[source]
+        run.events.extend(events)
+        if deformable is None or not self._static_check_due(run, it):
+            return
+        d = self.cfg.deformation
+        means = run.model.means.detach()
+        confine = None if d.recheck_outside_motion_box else self._static_outside_box()
+        counts = deformable.update_static_mask(d, self.extent, px_per_unit=self.pixels_per_unit(means),
+                                               may_move=None if confine is None else inside_box(means, confine))
+        run.events.append({"iteration": it, "event": "static_check", **counts})
+
+    def _static_check_due(self, run: StageRun, it: int) -> bool:
+        """Whether the deformation stage looks for static Gaussians after ``it``: from the warm-up on,
+        every check interval and at the stage's end (``static_skip`` only)."""
+        d = self.cfg.deformation
+        if not d.static_skip:
+            return False
+        warmup = max(1, int(round(d.static_warmup_fraction * run.iterations)))
+        check_every = max(1, int(round(d.static_check_interval_fraction * run.iterations)))
+        return it >= warmup and ((it - warmup) % check_every == 0 or it == run.iterations)
+
+    def _log(self, run: StageRun, it: int, result: FitResult) -> None:
+        """Every ``log_every`` iterations and at the stage's end: a history entry and a progress line."""
+        log_every = self.cfg.log_every
+        if not log_every or not (it % log_every == 0 or it == run.iterations):
+            return
+        deformable = run.deformable
+        result.history.append({"stage": run.name, "iteration": it, "loss": run.last_loss,
+                               "gaussians": run.model.num_gaussians,
+                               "dynamic": None if deformable is None else deformable.num_dynamic()})
+        print(f"[{run.name}] it {it}/{run.iterations} loss {run.last_loss:.4f} N {run.model.num_gaussians} "
+              f"cpu {time.process_time() - run.cpu_start:.0f}s wall {time.perf_counter() - run.wall_start:.0f}s"
+              + ("" if deformable is None else f" dynamic {deformable.num_dynamic()}"), flush=True)
 
 
 def inside_box(points: torch.Tensor, box: torch.Tensor) -> torch.Tensor:
@@ -907,7 +749,7 @@ def motion_l1(offsets: tuple, px_per_unit: torch.Tensor, quats: torch.Tensor, d:
 # Rendering and evaluation
 # ---------------------------------------------------------------------------------------------------
 @torch.no_grad()
-def render_view(model: object, view: View, background: torch.Tensor, rasterize_fn: RasterizeFn,
+def render_view(model: object, view: RGBView, background: torch.Tensor, rasterize_fn: RasterizeFn,
                 skip_static: bool = True, near: float = 0.01) -> torch.Tensor:
     """(H, W, 3) render of ``model`` (:class:`GaussianModel` or :class:`DeformableGaussians`) at ``view``."""
     if isinstance(model, DeformableGaussians):
@@ -977,48 +819,3 @@ def evaluate(model: object, frames: Sequence[Frame], background: Optional[np.nda
             "per_frame": [{"frame": v.name, "psnr": p, "ssim": s} for v, p, s in zip(views, psnrs, ssims)],
             "render_fps": len(views) / render_seconds if render_seconds > 0 else float("nan"),
             "renders": renders}
-
-
-def measure_static_skip(deformable: DeformableGaussians, views: Sequence[View], background: torch.Tensor,
-                        rasterize_fn: RasterizeFn, lambda_dssim: float = 0.2, repeats: int = 8) -> dict:
-    """What evaluating the deformation only on dynamic Gaussians saves, on a trained model.
-
-    For each mode (``skip``: field on ``dynamic_mask`` only; ``full``: on every Gaussian) and the same
-    ``repeats`` views: CPU milliseconds of the deformation forward + backward alone and of a whole
-    training step (deformation, rasterisation, loss, backward; no optimiser step), and the bytes autograd
-    saves for backward (activation memory) for each. Gradients are cleared afterwards.
-    """
-    gm = deformable.gaussians
-    window = gaussian_window(11, 1.5).to(gm.params["means"].device)
-    params = list(gm.params.values()) + list(deformable.field.parameters())
-    picks = [views[i % len(views)] for i in range(repeats + 1)]
-
-    def deform_only(view: View, skip: bool) -> torch.Tensor:
-        means, quats, scales = deformable.deform(view.time, skip_static=skip)
-        return means.sum() + quats.sum() + scales.sum()
-
-    def full_step(view: View, skip: bool) -> torch.Tensor:
-        means, quats, scales, colors = deformable.deform_with_colors(view.time, view.center, skip_static=skip)
-        out = rasterize_fn(means, quats, scales, gm.opacities, colors, view.viewmat,
-                           view.K, view.width, view.height, background=background)
-        return photometric_loss(out.image, view.image, lambda_dssim, window)
-
-    result: dict = {"gaussians": deformable.num_gaussians, "dynamic": deformable.num_dynamic()}
-    result["dynamic_fraction"] = result["dynamic"] / max(1, result["gaussians"])
-    for label, fn in (("deform", deform_only), ("step", full_step)):
-        for skip in (True, False):
-            mode = "skip" if skip else "full"
-            cpu = []
-            saved = 0
-            for k, view in enumerate(picks):
-                c0 = time.process_time()
-                loss, nbytes = saved_tensor_bytes(lambda: fn(view, skip))
-                loss.backward()
-                if k > 0:  # the first call warms caches up
-                    cpu.append(time.process_time() - c0)
-                saved = max(saved, nbytes)
-                for p in params:
-                    p.grad = None
-            result[f"{label}_cpu_ms_{mode}"] = 1000 * float(np.mean(cpu))
-            result[f"{label}_saved_mib_{mode}"] = saved / 2 ** 20
-    return result

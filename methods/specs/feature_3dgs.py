@@ -2,46 +2,63 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
+from typing import Optional
 
 from methods.registry import MethodSpec
-from methods.specs._language import LanguageMethodConfig
+from methods.specs._language import AnswerConfig, GeometryConfig, LanguageExtensions
 
 FEATURE_LEVEL_NAMES: tuple[str, str, str] = ("small", "middle", "large")
-"""Names of the values 0, 1, 2 of :attr:`Feature3DGSConfig.feature_level` (the SAM levels, in the
-order of :data:`methods.supervision.base.LEVELS`; repeated here so the spec imports nothing heavy)."""
+"""Names of the values 0, 1, 2 of :attr:`FeatureFieldConfig.level` (the SAM levels, in the order of
+:data:`methods.supervision.base.LEVELS`; repeated here so the spec imports nothing heavy)."""
 
 
 @dataclass
-class Feature3DGSConfig(LanguageMethodConfig):
-    """Options of :class:`methods.feature_3dgs.Feature3DGS`: geometry and query options shared with the
-    language fields (so the 4D-GS is the cached one of ``deformable-clip`` / ``4d-langsplat``), plus
-    the feature field's. The autoencoder and ``field_*`` options are unused."""
+class FeatureFieldConfig:
+    """The distilled per-Gaussian feature field and its 1x1 decoder (original values: Zhou et al., CVPR 2024)."""
 
-    feature_dim: int = 16
-    """Channels of the per-Gaussian feature, decoded to the encoder's dimension by a learned 1x1
-    convolution (the original's speed-up module renders D / 4: 128 channels for 512-d LSeg)."""
-    feature_level: int = 1
-    """SAM level whose mask features form the dense target: 0 small, 1 middle (default), 2 large. One
-    level, as the original distils one feature map per image; the middle lies between parts and wholes."""
-    feature_iterations: int = 1200
+    dim: int = 16
+    """Channels of the per-Gaussian feature, decoded to the encoder's dimension by a learned 1x1 convolution
+    (original's speed-up module: D / 4)."""
+    level: int = 1
+    """SAM level whose mask features form the dense target: 0 small, 1 middle, 2 large (one level, as the
+    original distils one feature map per image)."""
+    iterations: int = 1200
     """Optimisation steps, one training view each (original: 30 000, jointly with RGB, on a GPU)."""
-    feature_learning_rate: float = 1e-2
-    """Adam learning rate of the per-Gaussian features (original: 1e-3 over its 25x longer schedule)."""
+    learning_rate: float = 1e-2
+    """Adam learning rate of the per-Gaussian features (original: 1e-3 over a 25x longer schedule)."""
     decoder_learning_rate: float = 1e-3
-    """Adam learning rate of the 1x1 decoder (original: 1e-4 over its 25x longer schedule)."""
+    """Adam learning rate of the 1x1 decoder (original: 1e-4 over a 25x longer schedule)."""
 
     def __post_init__(self) -> None:
-        LanguageMethodConfig.__post_init__(self)
-        if self.feature_dim < 1:
-            raise ValueError(f"feature_dim must be >= 1, got {self.feature_dim}")
-        if self.feature_level not in range(len(FEATURE_LEVEL_NAMES)):
-            raise ValueError(f"feature_level must be 0 (small), 1 (middle) or 2 (large), got {self.feature_level!r}")
-        if self.feature_iterations < 0:
-            raise ValueError(f"feature_iterations must be >= 0, got {self.feature_iterations}")
-        for name in ("feature_learning_rate", "decoder_learning_rate"):
+        if self.dim < 1:
+            raise ValueError(f"dim must be >= 1, got {self.dim}")
+        if self.level not in range(len(FEATURE_LEVEL_NAMES)):
+            raise ValueError(f"level must be 0 (small), 1 (middle) or 2 (large), got {self.level!r}")
+        if self.iterations < 0:
+            raise ValueError(f"iterations must be >= 0, got {self.iterations}")
+        for name in ("learning_rate", "decoder_learning_rate"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+
+
+@dataclass
+class Feature3DGSConfig:
+    """Options of :class:`methods.feature_3dgs.Feature3DGS`: the geometry of the language fields (so the
+    4D-GS is the cached one of ``deformable-clip`` / ``4d-langsplat``) and the feature field's."""
+
+    geometry: GeometryConfig = dataclasses.field(default_factory=GeometryConfig)
+    """The Gaussian geometry (shared with the language fields)."""
+    feature: FeatureFieldConfig = dataclasses.field(default_factory=FeatureFieldConfig)
+    """The distilled feature field."""
+    answer: AnswerConfig = dataclasses.field(default_factory=AnswerConfig)
+    """Options read only when answering."""
+    extensions: LanguageExtensions = dataclasses.field(default_factory=LanguageExtensions)
+    """Departures from the paper."""
+    shared_cache_dir: Optional[str] = None
+    """Where fitted geometries and fields are shared between methods and runs (``None``: the runner's
+    cache folder)."""
 
 
 SPEC = MethodSpec(
@@ -54,6 +71,4 @@ SPEC = MethodSpec(
           "CVPR 2024 (time-agnostic baseline of Li et al., 4D LangSplat, CVPR 2025)",
     tracks=("oracle", "real"),
     queries=("agnostic",),
-    code=("methods.language_methods", "methods.fields.language_field", "methods.fields.relevance",
-          "methods.gaussians"),
 )

@@ -5,19 +5,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from methods.registry import MethodSpec
-from methods.specs._language import LanguageMethodConfig
-from methods.specs._time_varying import TimeVaryingOptions
+from methods.specs._time_varying import TimeVaryingMethodConfig
 
 
 @dataclass
-class FourDLangSplatConfig(LanguageMethodConfig, TimeVaryingOptions):
+class FourDLangSplatConfig(TimeVaryingMethodConfig):
     """Options of :class:`methods.four_d_langsplat.FourDLangSplat`: the time-agnostic half (shared with
     ``deformable-clip``, so both methods reuse one cached 4D-GS and field per scene and seed) and the
-    time-varying field (:class:`methods.specs._time_varying.TimeVaryingOptions`)."""
-
-    def __post_init__(self) -> None:
-        LanguageMethodConfig.__post_init__(self)
-        self.check_time_varying()
+    status field (``status``: K states per semantically changing Gaussian mixed by an MLP)."""
 
 
 SPEC = MethodSpec(

@@ -9,17 +9,18 @@ from methods.registry import MethodSpec
 
 @dataclass
 class NearestFrameConfig:
-    """Options of :class:`methods.nearest_frame.NearestFrame`."""
+    """Options of :class:`methods.nearest_frame.NearestFrame`. Time distance is counted in training-frame
+    steps (the median gap between training times), camera distance as centre distance over the scene's
+    half-diagonal plus ``1 - cos`` of the angle between viewing directions; ``"canonical"`` matching asks
+    for LERF relevance > 0.5 at the protocol's temperature, and an unanswered frame's time-sensitive score
+    is undefined (NaN)."""
 
     camera_weight: float = 1.0
-    """Weight of camera distance against time distance when picking the training frame. Time
-    distance is measured in training-frame steps (median gap between training times); camera
-    distance is centre distance over the scene's half-diagonal plus ``1 - cos`` of the angle between
-    viewing directions. 0 = nearest in time only."""
+    """Weight of camera distance against time distance when picking the training frame (0: nearest in
+    time only)."""
     match_rule: str = "canonical"
-    """``"canonical"``: a mask answers the query only when the query beats every canonical phrase of the
-    protocol on it (LERF relevance > 0.5 at the protocol's temperature); otherwise the answer is empty and the
-    time-sensitive score undefined (NaN). ``"best"``: always answer with the best-matching mask."""
+    """``"canonical"``: a mask answers only where the query beats every canonical phrase on it (else no
+    answer); ``"best"``: always the best-matching mask."""
 
     def __post_init__(self) -> None:
         if self.match_rule not in ("canonical", "best"):

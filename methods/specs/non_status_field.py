@@ -5,20 +5,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from methods.registry import MethodSpec
-from methods.specs._language import LanguageMethodConfig
-from methods.specs._time_varying import TimeVaryingOptions
+from methods.specs._time_varying import TimeVaryingMethodConfig
 
 
 @dataclass
-class NonStatusFieldConfig(LanguageMethodConfig, TimeVaryingOptions):
+class NonStatusFieldConfig(TimeVaryingMethodConfig):
     """Options of :class:`methods.non_status_field.NonStatusFieldMethod`: the time-agnostic half shared
     with ``deformable-clip`` / ``4d-langsplat`` (one cached 4D-GS and field per scene and seed), and
-    the time-varying field's options (the status-only ones - ``num_states``, ``weight_mode``,
-    ``skip_static_semantics`` ... - are unused)."""
-
-    def __post_init__(self) -> None:
-        LanguageMethodConfig.__post_init__(self)
-        self.check_time_varying()
+    the time-varying head's (the states' options - ``status.num_states``, ``status.weight_mode``,
+    ``status.init_noise``, ``extensions.choose_states``, ``extensions.skip_static_semantics`` ... - are
+    unused: every Gaussian's latent is deformed directly)."""
 
 
 SPEC = MethodSpec(

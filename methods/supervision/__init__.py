@@ -1,4 +1,4 @@
-"""2D supervision: segmenters, image-text encoders, captioners, and the cached bundle methods fit on.
+"""2D supervision: segmenters, image-text encoders, and the cached bundle methods fit on.
 
 * :mod:`.base`: the interfaces and :class:`Supervision` / :class:`FrameSupervision`.
 * :mod:`.registry`: sources by name and track (spec files in :mod:`.specs`).
@@ -6,8 +6,7 @@
 * Oracle track sources: :mod:`.gt` (segmenter), :mod:`.oracle_text` (image-text).
 """
 
-from .base import (LEVELS, Captioner, FrameSupervision, ImageTextEncoder, Segmenter, Supervision, TextEncoder,
-                   relabel_levels)
+from .base import LEVELS, FrameSupervision, ImageTextEncoder, Segmenter, Supervision, TextEncoder, relabel_levels
 
-__all__ = ["LEVELS", "Captioner", "FrameSupervision", "ImageTextEncoder", "Segmenter", "Supervision",
-           "TextEncoder", "relabel_levels"]
+__all__ = ["LEVELS", "FrameSupervision", "ImageTextEncoder", "Segmenter", "Supervision", "TextEncoder",
+           "relabel_levels"]

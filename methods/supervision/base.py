@@ -9,7 +9,8 @@ A *track* names where supervision comes from:
 
 Every source is small: a :class:`Segmenter` cuts a frame into masks at three levels, an
 :class:`ImageTextEncoder` gives one feature per mask, a :class:`TextEncoder` embeds texts (queries,
-captions) in the same space, a :class:`Captioner` describes masks in words. The harness builds one
+captions) in the same space; captioners, which describe tracked objects in words, are
+:class:`methods.captioners.base.Captioner`. The harness builds one
 :class:`Supervision` per (scene, track, sources) through the on-disk cache
 (:mod:`methods.supervision.cache`), so every method on a scene fits on the same masks and features.
 
@@ -122,25 +123,6 @@ class ImageTextEncoder(abc.ABC):
 
     def config(self) -> dict[str, Any]:
         return {"name": self.name, "text_encoder": self.text_encoder.config()}
-
-
-class Captioner(abc.ABC):
-    """Describes masks in words (interface only; captioners are added with the real track)."""
-
-    name: ClassVar[str] = "captioner"
-    track: ClassVar[str] = "real"
-
-    @abc.abstractmethod
-    def caption(self, image: np.ndarray, masks: np.ndarray, *, frame: Frame) -> list[str]:
-        """One caption per mask.
-
-        Args:
-            image: (H, W, 3) float32 RGB in [0, 1].
-            masks: (M, H, W) bool.
-        """
-
-    def config(self) -> dict[str, Any]:
-        return {"name": self.name}
 
 
 @dataclass

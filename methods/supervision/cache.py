@@ -16,20 +16,21 @@ from __future__ import annotations
 
 import io
 from pathlib import Path
-from typing import Any, Callable, Iterable, Optional
+from typing import Any, Callable, Iterable, Optional, Sequence
 
 import numpy as np
 
 from benchmark.core.atomic import write_bytes
 from benchmark.core.cache_keys import scene_fingerprint, stable_hash
 from benchmark.core.errors import InputError
-from benchmark.core.scene import Scene
+from benchmark.core.scene import Frame, Scene
 
-from .base import LEVELS, FrameSupervision, Supervision, relabel_levels
+from .base import LEVELS, FrameSupervision, ImageTextEncoder, Segmenter, Supervision, relabel_levels
 
 ProgressFn = Callable[..., Iterable]
 CACHE_FORMAT = 1
-"""Bump when the npz layout changes: every cached file is then rebuilt."""
+"""Version of the npz file layout (not of the code that fills it): bump when the layout changes, and
+every cached file is rebuilt."""
 
 
 def _no_progress(iterable: Iterable, **_: Any) -> Iterable:
@@ -87,50 +88,13 @@ def build_supervision(scene: Scene, track: str = "oracle", *, cache_dir: str | P
     image_text = specs["image_text"].create(scene, text_encoder=encoder, device=device,
                                             **source_options.get("image_text", {}))
     folder = Path(cache_dir) / "supervision" / scene.dataset / scene.name
-    names = [f.name for f in train]
-
     seg_key = stable_hash({"format": CACHE_FORMAT, "frames": scene_fingerprint(scene, train),
                            "segmenter": segmenter.config()})
-    seg_path = folder / f"segments-{specs['segmenter'].name}-{seg_key}.npz"
-    levels = _load_segments(seg_path, names)
-    if levels is None:
-        levels = []
-        for frame in progress(train, desc=f"segment ({specs['segmenter'].name})", total=len(train)):
-            ids = segmenter.segment(frame)
-            if ids.shape[1:] != (frame.camera.height, frame.camera.width):
-                raise InputError(frame.image_path, "segments",
-                                 f"segmenter {specs['segmenter'].name!r} returned {ids.shape[1:]} for a "
-                                 f"{frame.camera.height}x{frame.camera.width} frame")
-            levels.append(relabel_levels(ids)[0])
-        arrays = {"frame_names": np.array(names), **{f"levels/{i}": lv for i, lv in enumerate(levels)}}
-        _save_npz(seg_path, arrays)
-
+    levels = cached_segments(folder / f"segments-{specs['segmenter'].name}-{seg_key}.npz", train, segmenter,
+                             specs["segmenter"].name, progress)
     feat_key = stable_hash({"segments": seg_key, "image_text": image_text.config()})
-    feat_path = folder / f"features-{specs['image_text'].name}-{feat_key}.npz"
-    features = _load_features(feat_path, names)
-    if features is None:
-        features = []
-        for frame, lv in progress(list(zip(train, levels)), desc=f"encode masks ({specs['image_text'].name})",
-                                  total=len(train)):
-            counts = [int(lv[level].max()) + 1 if (lv[level] >= 0).any() else 0 for level in range(len(LEVELS))]
-            masks = np.concatenate([lv[level][None] == np.arange(counts[level])[:, None, None]
-                                    for level in range(len(LEVELS))], axis=0)
-            if masks.shape[0]:
-                mask_levels = np.repeat(np.arange(len(LEVELS)), counts)
-                feats = np.asarray(image_text.encode_masks(frame.image(), masks, frame=frame, levels=mask_levels),
-                                   dtype=np.float32)
-                if feats.shape[0] != masks.shape[0]:
-                    raise ValueError(f"image-text source {specs['image_text'].name!r} returned {feats.shape[0]} "
-                                     f"features for {masks.shape[0]} masks")
-            else:
-                feats = np.zeros((0, encoder.dim), dtype=np.float32)
-            bounds = np.cumsum([0] + counts)
-            features.append(tuple(feats[bounds[level]:bounds[level + 1]] for level in range(len(LEVELS))))
-        arrays = {"frame_names": np.array(names)}
-        for i, per_level in enumerate(features):
-            for level, feats in enumerate(per_level):
-                arrays[f"features/{i}/{level}"] = feats
-        _save_npz(feat_path, arrays)
+    features = cached_features(folder / f"features-{specs['image_text'].name}-{feat_key}.npz", train, levels,
+                               image_text, specs["image_text"].name, encoder.dim, progress)
 
     frames = [FrameSupervision(name=f.name, time=float(f.time), time_index=int(f.time_index),
                                camera_id=f.camera_id, levels=lv, features=feats)
@@ -144,6 +108,64 @@ def build_supervision(scene: Scene, track: str = "oracle", *, cache_dir: str | P
     fingerprint = stable_hash({"features": feat_key, "text_encoder": query_encoder.config(), "track": track}, 24)
     return Supervision(track=track, sources=sources_used, frames=frames, text_encoder=query_encoder,
                        fingerprint=fingerprint, source_configs=configs)
+
+
+def cached_segments(path: Path, train: Sequence[Frame], segmenter: Segmenter, name: str,
+                    progress: ProgressFn) -> list[np.ndarray]:
+    """Per training frame, the (3, H, W) int16 mask-index map: read from ``path``, or segmented by
+    ``segmenter`` (registered as ``name``), relabelled and written there."""
+    names = [f.name for f in train]
+    levels = _load_segments(path, names)
+    if levels is not None:
+        return levels
+    levels = []
+    for frame in progress(train, desc=f"segment ({name})", total=len(train)):
+        ids = segmenter.segment(frame)
+        if ids.shape[1:] != (frame.camera.height, frame.camera.width):
+            raise InputError(frame.image_path, "segments",
+                             f"segmenter {name!r} returned {ids.shape[1:]} for a "
+                             f"{frame.camera.height}x{frame.camera.width} frame")
+        levels.append(relabel_levels(ids)[0])
+    _save_npz(path, {"frame_names": np.array(names), **{f"levels/{i}": lv for i, lv in enumerate(levels)}})
+    return levels
+
+
+def cached_features(path: Path, train: Sequence[Frame], levels: list[np.ndarray], image_text: ImageTextEncoder,
+                    name: str, dim: int, progress: ProgressFn) -> list[tuple]:
+    """Per training frame and level, the (M_l, D) float32 features of its masks: read from ``path``, or
+    encoded by ``image_text`` (registered as ``name``; ``dim``: the width of a frame without masks) and
+    written there."""
+    names = [f.name for f in train]
+    features = _load_features(path, names)
+    if features is not None:
+        return features
+    features = [_encode_frame_masks(frame, lv, image_text, name, dim)
+                for frame, lv in progress(list(zip(train, levels)), desc=f"encode masks ({name})", total=len(train))]
+    arrays = {"frame_names": np.array(names)}
+    for i, per_level in enumerate(features):
+        for level, feats in enumerate(per_level):
+            arrays[f"features/{i}/{level}"] = feats
+    _save_npz(path, arrays)
+    return features
+
+
+def _encode_frame_masks(frame: Frame, levels: np.ndarray, image_text: ImageTextEncoder, name: str,
+                        dim: int) -> tuple:
+    """Per level, the (M_l, D) float32 features of one frame's masks (``levels``: its mask-index maps)."""
+    counts = [int(levels[level].max()) + 1 if (levels[level] >= 0).any() else 0 for level in range(len(LEVELS))]
+    masks = np.concatenate([levels[level][None] == np.arange(counts[level])[:, None, None]
+                            for level in range(len(LEVELS))], axis=0)
+    if masks.shape[0]:
+        mask_levels = np.repeat(np.arange(len(LEVELS)), counts)
+        feats = np.asarray(image_text.encode_masks(frame.image(), masks, frame=frame, levels=mask_levels),
+                           dtype=np.float32)
+        if feats.shape[0] != masks.shape[0]:
+            raise ValueError(f"image-text source {name!r} returned {feats.shape[0]} "
+                             f"features for {masks.shape[0]} masks")
+    else:
+        feats = np.zeros((0, dim), dtype=np.float32)
+    bounds = np.cumsum([0] + counts)
+    return tuple(feats[bounds[level]:bounds[level + 1]] for level in range(len(LEVELS)))
 
 
 def _load_segments(path: Path, names: list[str]) -> Optional[list[np.ndarray]]:

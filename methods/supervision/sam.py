@@ -98,22 +98,37 @@ class MultimaskPredictor(abc.ABC):
         return {"backend": type(self).__name__}
 
 
+def load_segment_anything(checkpoint: str | Path, model_type: str = "vit_h", device: str = "cpu"):
+    """A ``segment_anything.SamPredictor`` of the local weights ``checkpoint`` (architecture ``model_type``:
+    ``vit_b``, ``vit_l`` or ``vit_h``), in eval mode on ``device``: the one loader of the official package's
+    models, for this segmenter and the annotation tool's assisted segmentation. Every failure is an
+    :class:`InputError` that says what to do."""
+    try:
+        from segment_anything import SamPredictor, sam_model_registry
+    except Exception as err:  # ImportError of segment_anything itself or of torchvision inside it
+        raise InputError(None, "sam backend segment-anything",
+                         f"cannot import segment_anything ({err.__class__.__name__}: {err}); it needs "
+                         "torchvision: pip install 'bench4d[sam]', or use backend='hf' (transformers)") from None
+    path = Path(checkpoint)
+    if not path.is_file():
+        raise InputError(path, "sam checkpoint", "file not found (weights load from a local path only)")
+    if model_type not in sam_model_registry:
+        raise InputError(None, "sam model_type", f"unknown SAM model {model_type!r} "
+                                                 f"(known: {', '.join(sorted(sam_model_registry))})")
+    try:
+        model = sam_model_registry[model_type](checkpoint=str(path))
+    except Exception as err:  # torch's messages for a wrong checkpoint are long
+        raise InputError(path, "sam checkpoint",
+                         f"cannot load as SAM {model_type}: {type(err).__name__}: {str(err)[:200]}") from None
+    return SamPredictor(model.to(device).eval())
+
+
 class SegmentAnythingPredictor(MultimaskPredictor):
     """The official ``segment_anything`` package (needs torchvision: optional extra ``bench4d[sam]``)."""
 
     def __init__(self, checkpoint: str | Path, model_type: str = "vit_h", device: str = "cpu") -> None:
-        try:
-            from segment_anything import SamPredictor, sam_model_registry
-        except Exception as err:  # ImportError of segment_anything itself or of torchvision inside it
-            raise InputError(None, "sam backend segment-anything",
-                             f"cannot import segment_anything ({err.__class__.__name__}: {err}); it needs "
-                             "torchvision: pip install 'bench4d[sam]', or use backend='hf' (transformers)") from None
-        path = Path(checkpoint)
-        if not path.is_file():
-            raise InputError(path, "sam checkpoint", "file not found (weights load from a local path only)")
-        sam = sam_model_registry[model_type](checkpoint=str(path)).to(device).eval()
-        self.predictor = SamPredictor(sam)
-        self.model_type, self.checkpoint = model_type, path
+        self.predictor = load_segment_anything(checkpoint, model_type, device)
+        self.model_type, self.checkpoint = model_type, Path(checkpoint)
         self.device = torch.device(device)
         self._size: Optional[tuple[int, int]] = None
 

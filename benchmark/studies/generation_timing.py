@@ -12,8 +12,8 @@ from pathlib import Path
 from typing import Callable, Optional, Sequence
 
 from benchmark.core.atomic import write_text
-from .generate import GENERATOR_VERSION, generate, resolve_settings
-from .presets import PRESETS
+from benchmark.synthetic.generate import GENERATOR_VERSION, generate, resolve_settings
+from benchmark.synthetic.presets import PRESETS
 
 
 def measure_generation(presets: Optional[Sequence[str]] = None, *, size: int = 128, seed: int = 0,

@@ -1,4 +1,4 @@
-"""CPU timing of the PyTorch rasterizer: ``python -m methods.gaussians.bench``.
+"""CPU timing of the PyTorch rasterizer: ``python -m benchmark.studies.rasterizer_bench``.
 
 Measures forward + backward milliseconds per iteration (median over repeats) on a realistic surface
 scene -- Gaussians lying on a back wall, a floor and three spheres in front of the camera, with
@@ -24,8 +24,7 @@ import numpy as np
 import torch
 
 from benchmark.core.atomic import write_text
-
-from .rasterize import rasterize
+from methods.gaussians.rasterize import rasterize
 
 REPORT = Path(__file__).resolve().parents[2] / "reports" / "rasterizer_cpu.md"
 
@@ -182,7 +181,7 @@ def measure_step_memory(n: int, side: int, channels: int = 6) -> float:
 
 def memory_of_one_step(n: int, side: int, channels: int = 6) -> float:
     """:func:`measure_step_memory` in a fresh single-threaded process (MiB)."""
-    code = ("import torch; torch.set_num_threads(1); from methods.gaussians.bench import measure_step_memory; "
+    code = ("import torch; torch.set_num_threads(1); from benchmark.studies.rasterizer_bench import measure_step_memory; "
             f"print(measure_step_memory({n}, {side}, {channels}))")
     root = Path(__file__).resolve().parents[2]
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=root, check=True)
@@ -196,7 +195,7 @@ def run_benchmark(iters: int = 8, report: Path = REPORT, sizes: bool = True) -> 
     lines = [
         "# CPU rasterizer timing (PyTorch backend)",
         "",
-        f"Command: `python -m methods.gaussians.bench --iters {iters}`. Forward + backward of "
+        f"Command: `python -m benchmark.studies.rasterizer_bench --iters {iters}`. Forward + backward of "
         "`rasterize(..., backend=\"torch\")` with an L2 image loss plus a depth term; median of "
         f"{iters} iterations after 2 warm-up iterations. *wall* = elapsed time; *CPU* = CPU time of the "
         "iteration (the thread's with 1 thread, the whole process' with 2), which is what the "
@@ -243,7 +242,7 @@ def run_benchmark(iters: int = 8, report: Path = REPORT, sizes: bool = True) -> 
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m methods.gaussians.bench", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m benchmark.studies.rasterizer_bench", description=__doc__.split("\n")[0])
     parser.add_argument("--iters", type=int, default=8, help="timed iterations per setting (median reported)")
     parser.add_argument("--no-sizes", action="store_true", help="skip the size sweep")
     parser.add_argument("--report", type=Path, default=REPORT, help="Markdown file to write")

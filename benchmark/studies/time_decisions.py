@@ -1,4 +1,5 @@
-"""How far the time-sensitive Acc of recorded runs can be trusted, and what the threshold rule costs.
+"""How far the time-sensitive Acc of recorded runs can be trusted, and what the threshold rule costs:
+``bench4d ablate decisions``.
 
 Reads only what a results file records (per-frame smoothed scores, labels, each query's ``tau``), so
 it needs no fit and no scene. Per time-sensitive query of a run:
@@ -21,14 +22,17 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Iterable, Optional
+from typing import Iterable, Optional, Sequence
 
 import numpy as np
 import pandas as pd
 
-from .metrics.temporal import (NEAR_THRESHOLD_FRACTION, accuracy_at_threshold, best_cut_accuracy,
-                               near_threshold_fraction, score_auc)
-from .results import sensitive_query_records
+from benchmark.core.errors import InputError
+from benchmark.metrics.temporal import (NEAR_THRESHOLD_FRACTION, accuracy_at_threshold, best_cut_accuracy,
+                                        near_threshold_fraction, score_auc)
+from benchmark.results import find_results, load_results, scene_status, sensitive_query_records
+
+from ._report import Report, stderr_log, write_report
 
 CHANCE_PERMUTATIONS = 200
 """Label shuffles behind ``chance_best_cut`` (seeded, so the report is deterministic)."""
@@ -118,3 +122,34 @@ def markdown(per_scene: pd.DataFrame, per_method: pd.DataFrame, *, sources: str)
         lines.append(f"| {r['method']} | {r['scene']} | {r['seeds']} | {f(r['acc'])} | {f(r['acc_low'])}–{f(r['acc_high'])} | "
                      f"{f(r['auc'])} | {f(r['near'])} | {f(r['best_cut'])} | {f(r['chance_best_cut'])} |")
     return "\n".join(lines) + "\n"
+
+
+def decisions_report(results_dir: Path, *, methods: Optional[Sequence[str]] = None,
+                     datasets: Optional[Sequence[str]] = None, scenes: Optional[Sequence[str]] = None,
+                     name: str = "time-decisions", out: Path, quiet: bool = False) -> Report:
+    """The decisions of every run in ``results_dir`` (only ``methods`` / ``datasets`` / ``scenes`` when
+    given) that answered a time-sensitive query from scores, written to ``<out>/<name>.{json,md}``.
+    Runs measured on another scene version are left out, as the leaderboard leaves them out."""
+    if not results_dir.is_dir():
+        raise InputError(results_dir, None, "results folder not found")
+    rows = []
+    for path in find_results(results_dir):
+        doc = load_results(path)
+        if scene_status(doc)[1] is False:
+            continue
+        if ((methods and doc["method"] not in methods) or (datasets and doc["dataset"] not in datasets)
+                or (scenes and doc["scene"] not in scenes)):
+            continue
+        rows += [{**r, "dataset": doc["dataset"], "track": doc["track"]} for r in query_rows(doc, path=path)]
+    if not rows:
+        raise InputError(results_dir, None, "no recorded run answers a time-sensitive query from scores "
+                                            "(with these filters)")
+    for r in rows:  # a method on two datasets or tracks: keep them apart
+        r["method"] = f"{r['method']} ({r['dataset']}, {r['track']})"
+    per_scene, per_method = summarise(rows)
+    table = markdown(per_scene, per_method, sources=f"`{results_dir.as_posix()}/`")
+    doc = {"per_method": per_method.to_dict(orient="records"), "per_scene": per_scene.to_dict(orient="records"),
+           "queries": rows}
+    paths = write_report(out, name, doc, table)
+    stderr_log(quiet)("wrote " + ", ".join(str(p) for p in paths))
+    return Report(table, paths)

@@ -1,0 +1,91 @@
+"""``bench4d doctor``: before a long run, what this machine has and lacks, one line each: Python and
+torch, CUDA and its free memory, the gsplat build, the optional libraries, the real track's weights,
+free disk under the cache folder and free memory against what a scene of the given size needs."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import sys
+from pathlib import Path
+
+GB = 1 << 30
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--cache-dir", type=Path, default=Path("cache"), help="where fits and supervision go")
+    parser.add_argument("--width", type=int, default=960, help="image width of the scene to run (default: 960)")
+    parser.add_argument("--height", type=int, default=536, help="image height (default: 536)")
+    parser.add_argument("--frames", type=int, default=200, help="training frames of the scene (default: 200)")
+    parser.add_argument("--track", choices=("oracle", "real"), default="real",
+                        help="real: check the model weights too (default)")
+
+
+def scene_needs(width: int, height: int, frames: int) -> dict[str, float]:
+    """Rough GB a scene needs: on disk (images, three mask levels, latent features, fits) and in memory
+    (its images and training views loaded at once)."""
+    pixels = width * height * frames
+    disk = pixels * (3 + 3 * 2 + 3 * 3 * 4) / GB + 2.0  # RGB, int16 masks, 3x3 float latents; fits and features
+    memory = pixels * (3 * 4 + 3 * 2) / GB + 4.0  # float images and masks, plus models and working set
+    return {"disk_gb": round(disk, 1), "memory_gb": round(memory, 1)}
+
+
+def _free_memory_gb() -> float:
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) / (1 << 20)
+    except OSError:
+        pass
+    return float("nan")
+
+
+def checks(args: argparse.Namespace) -> list[tuple[bool, str]]:
+    """(ok, line) for everything a run needs."""
+    from methods.backends import BACKENDS, locate, module_available
+
+    out: list[tuple[bool, str]] = [(sys.version_info >= (3, 10), f"python {sys.version.split()[0]}")]
+    try:
+        import torch
+        out.append((True, f"torch {torch.__version__}"))
+        if torch.cuda.is_available():
+            free, total = torch.cuda.mem_get_info()
+            out.append((True, f"CUDA: {torch.cuda.get_device_name(0)}, {free / GB:.1f} of {total / GB:.1f} GB free"))
+        else:
+            out.append((False, "CUDA: not available (runs use the CPU: fine for the oracle track at small sizes)"))
+    except ImportError:
+        out.append((False, "torch: not installed (make setup)"))
+    gsplat = module_available("gsplat")
+    out.append((gsplat, "gsplat: installed (the CUDA rasterizer)" if gsplat else
+                "gsplat: not installed (pip install 'bench4d[gpu]'; the PyTorch rasterizer is used instead)"))
+    for module, extra in (("transformers", "captioner"), ("sentence_transformers", "e5mistral"),
+                          ("segment_anything", "sam"), ("open_clip", "clip"), ("ray", "ray")):
+        ok = module_available(module)
+        hint = "installed" if ok else f"not installed (pip install 'bench4d[{extra}]')"
+        out.append((ok, f"{module}: {hint}"))
+    if args.track == "real":
+        for backend in BACKENDS:
+            found = locate(backend)
+            where = found.source if found.path is None else f"{found.source}: {found.path}"
+            out.append((found.present, f"weights {backend.name}: {'present' if found.present else 'missing'} ({where})"))
+    need = scene_needs(args.width, args.height, args.frames)
+    folder = args.cache_dir if args.cache_dir.exists() else args.cache_dir.resolve().parent
+    while not folder.exists():
+        folder = folder.parent
+    free = shutil.disk_usage(folder).free / GB
+    out.append((free >= need["disk_gb"], f"disk: {free:.1f} GB free under {folder}, a {args.width}x{args.height} scene "
+                                         f"of {args.frames} training frames needs about {need['disk_gb']} GB"))
+    memory = _free_memory_gb()
+    out.append((memory >= need["memory_gb"], f"memory: {memory:.1f} GB available, the scene needs about "
+                                             f"{need['memory_gb']} GB; {os.cpu_count()} CPU cores"))
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    results = checks(args)
+    for ok, line in results:
+        print(f"[{'ok' if ok else '--'}] {line}")
+    missing = sum(not ok for ok, _ in results)
+    print(f"{missing} thing(s) missing" if missing else "everything a run needs is here")
+    return 0
