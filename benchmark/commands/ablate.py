@@ -91,7 +91,7 @@ from benchmark.core.errors import InputError
 from benchmark.studies._report import stderr_log
 from methods.captioners.base import TEXT_PROMPTS, VISUAL_PROMPTS
 
-from ._common import check_device, parse_overrides
+from ._common import add_threads_argument, check_device, parse_overrides, set_threads
 
 REPORTS = Path("reports/ablations")
 """Where every ablation writes its report by default."""
@@ -102,6 +102,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     for add in (_delta_sim_arguments, _speed_arguments, _query_speed_arguments, _ceiling_arguments,
                 _autoencoder_arguments, _rescore_arguments, _gap_arguments, _decisions_arguments, _states_arguments):
         add(sub)
+    for study in sub.choices.values():
+        add_threads_argument(study)
 
 
 def _delta_sim_arguments(sub) -> None:
@@ -260,6 +262,7 @@ def _output_arguments(p: argparse.ArgumentParser, out_help: Optional[str] = None
 
 
 def run(args: argparse.Namespace) -> int:
+    set_threads(args.threads)
     return RUNS[args.ablation](args)
 
 

@@ -24,6 +24,8 @@ from pathlib import Path
 from typing import Any, Optional
 
 from benchmark.core.atomic import json_ready
+
+from ._common import add_threads_argument, set_threads
 from benchmark.core.config import with_overrides
 from benchmark.core.errors import InputError
 
@@ -52,9 +54,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=None, help="output folder (default reports/recon/<scene>)")
     parser.add_argument("--cache-dir", type=Path, default=Path("cache"), help="where presets are generated")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--threads", type=int, default=1,
-                        help="torch threads per training process (default 1: on a shared 2-core machine a "
-                             "second thread costs several times the CPU per step, see reports/rasterizer_cpu.md)")
+    add_threads_argument(parser)
     parser.add_argument("--device", default="cpu", help="cpu or cuda[:N]")
     parser.add_argument("--renders", type=int, default=3, help="test renders saved per model as PNG")
     parser.add_argument("--compare-static-skip", action="store_true",
@@ -160,7 +160,7 @@ def fit_and_evaluate(job: dict) -> dict:
     from ..core import memory
     from benchmark.core.imageio import write_image
 
-    torch.set_num_threads(job["threads"])
+    set_threads(job["threads"])
     torch.set_flush_denormal(True)  # transmittance products underflow into slow denormals on CPU
     device = job["device"]
     cuda = device.startswith("cuda")
@@ -341,8 +341,7 @@ def _check_arguments(args: argparse.Namespace) -> None:
         raise InputError(None, "--size", f"must be positive, got {args.size}")
     if args.scale is not None and args.scale <= 0:
         raise InputError(None, "--scale", f"must be positive, got {args.scale}")
-    if args.threads < 1:
-        raise InputError(None, "--threads", f"must be >= 1, got {args.threads}")
+    args.threads = set_threads(args.threads)
 
 
 def _jobs(args: argparse.Namespace, cfg) -> list[dict]:
