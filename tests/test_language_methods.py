@@ -126,7 +126,10 @@ def test_methods_share_one_4dgs_fit_answer_every_query_and_reload(smoke):
     model.prepare(texts)
     for t in texts:
         for a, b in zip(alone[t], model.query_agnostic(t, frames)):
-            assert (a.mask != b.mask).mean() < 1e-3 and np.allclose(a.relevance, b.relevance, atol=1e-4)
+            # the relevance agrees to float error; a mask pixel may flip only where the relevance sits within
+            # that error of the threshold, and this tiny fit's relevance is nearly flat (torch's default
+            # kernels flipped 0.4 % of the pixels, AVX2 / AVX-512 none)
+            assert np.allclose(a.relevance, b.relevance, atol=1e-4) and (a.mask != b.mask).mean() < 2e-2
     assert len(model._reduced_cache) == len(frames)
     model.prepare(["box"])  # a new set drops what was kept
     assert not model._reduced_cache
