@@ -22,6 +22,7 @@ import functools
 import json
 import math
 import os
+import types
 from pathlib import Path
 from typing import (Any, Iterable, Iterator, Literal, NotRequired, Optional, TypedDict, Union, get_args, get_origin,
                     get_type_hints)
@@ -284,7 +285,7 @@ def _is_record(hint: Any) -> bool:
 def _expected(hint: Any) -> str:
     """``hint`` in words, for an error message."""
     origin, args = get_origin(hint), get_args(hint)
-    if origin is Union:
+    if origin in (Union, types.UnionType):
         return " or ".join(_expected(a) for a in args)
     if origin is Literal:
         return "one of " + ", ".join(repr(a) for a in args)
@@ -300,7 +301,7 @@ def _check_value(value: Any, hint: Any, path: Optional[Path], where: str) -> Non
     origin, args = get_origin(hint), get_args(hint)
     if hint is Any:
         return
-    nullable = origin is Union and type(None) in args
+    nullable = origin in (Union, types.UnionType) and type(None) in args  # Optional[X] or X | None
     if nullable:
         if value is None:
             return

@@ -187,3 +187,20 @@ def test_every_committed_results_file_reads():
         pytest.skip("no committed results in this checkout")
     for path in files:
         read_results(path)
+
+
+def test_the_schema_reads_the_same_whichever_union_spelling_typing_cached_first():
+    """``NotRequired[float | None]`` and ``NotRequired[Optional[float]]`` share typing's cache: whichever an
+    imported library made first is what the schema's hints hold, and both must mean "a number or null"."""
+    import types
+    from typing import NotRequired, Optional, get_args
+
+    from benchmark.results import _check_value
+
+    for hint in (Optional[float], float | None):
+        assert isinstance(hint, types.UnionType) or get_args(hint) == (float, type(None))
+        _check_value(3.5, hint, None, "metrics.mIoU")
+        _check_value(None, hint, None, "metrics.mIoU")
+        with pytest.raises(InputError, match="metrics.mIoU"):
+            _check_value("high", hint, None, "metrics.mIoU")
+    NotRequired[float | None]  # noqa: B018 - what a library importing before bench4d may do

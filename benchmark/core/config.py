@@ -23,6 +23,7 @@ import functools
 import inspect
 import json
 import textwrap
+import types
 import typing
 from dataclasses import dataclass
 from typing import Any, Mapping, Optional
@@ -140,7 +141,7 @@ def parse_value(value: Any, hint: Any, where: str) -> Any:
     if not isinstance(value, str) or hint is None or hint is str or hint is Any:
         return value
     origin, args = typing.get_origin(hint), typing.get_args(hint)
-    if origin is typing.Union and type(None) in args:
+    if origin in (typing.Union, types.UnionType) and type(None) in args:
         if value.strip().lower() in ("none", "null"):
             return None
         hint = next(a for a in args if a is not type(None))
@@ -226,7 +227,7 @@ def _metavar(hint: Any) -> str:
     """What a flag's value looks like: the type's name (an optional one's, tuples ``INT,...``, literals
     their choices)."""
     origin, args = typing.get_origin(hint), typing.get_args(hint)
-    if origin is typing.Union and type(None) in args:
+    if origin in (typing.Union, types.UnionType) and type(None) in args:
         return _metavar(next(a for a in args if a is not type(None)))
     if origin is typing.Literal:
         return "{" + ",".join(map(str, args)) + "}"
