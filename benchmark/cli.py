@@ -17,6 +17,7 @@ from benchmark.core.errors import InputError
 COMMANDS: dict[str, tuple[str, str]] = {
     "data": ("data", "make, validate and show scenes (make-synthetic, validate, show)"),
     "score": ("score", "score prediction files against ground-truth annotations"),
+    "convert": ("convert", "another release's outputs (4D LangSplat's rendered masks, time decisions) as bench4d predictions"),
     "recon": ("recon", "reconstruct a scene with 3D-GS / 4D-GS and report PSNR, SSIM, time, memory"),
     "methods": ("methods", "list registered methods and supervision sources"),
     "eval": ("eval", "fit a method on a scene, answer every annotated query, score and record"),

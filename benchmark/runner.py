@@ -261,20 +261,31 @@ def dataset_label(scene: Scene) -> str:
 def find_annotations(scene: Scene, explicit: Optional[Path] = None, object_query: Optional[str] = None):
     """The ground truth of ``scene``: ``explicit``, else a file beside the scene, else the package's
     ``annotations/scenes/<dataset>/<scene>.json``, else (D-NeRF, given ``object_query``) the alpha-channel
-    masks as the truth of that one whole-object query."""
+    masks as the truth of that one whole-object query.
+
+    Besides bench4d's JSON, the 4D LangSplat release's own export is read as shipped: ``explicit`` may be
+    its ``annotations/`` folder (``train/_annotations.coco.json`` and ``video_annotations.json``) or that
+    COCO file, and a scene folder holding ``annotations/train/_annotations.coco.json`` is found
+    (:func:`load_release_annotations`)."""
     from annotations.format import load_annotations
 
     if explicit is not None:
+        explicit = Path(explicit)
+        if explicit.is_dir() or explicit.name.endswith(".coco.json"):
+            return load_release_annotations(scene, explicit)
         return load_annotations(explicit)
     candidates = []
     if scene.root is not None:
         root = Path(scene.root)
         candidates += [root / "annotations.json", root / "annotations" / f"{scene.name}.json",
-                       root / "annotations" / "annotations.json"]
+                       root / "annotations" / "annotations.json",
+                       root / "annotations" / "train" / "_annotations.coco.json"]
     package_root = Path(__file__).resolve().parents[1] / "annotations" / "scenes"
     candidates.append(package_root / scene.dataset / f"{scene.name}.json")
     for path in candidates:
         if path.is_file():
+            if path.name.endswith(".coco.json"):
+                return load_release_annotations(scene, path)
             return load_annotations(path)
     if scene.dataset == "dnerf" and object_query:
         from .loaders.dnerf import object_annotations
@@ -283,6 +294,26 @@ def find_annotations(scene: Scene, explicit: Optional[Path] = None, object_query
     hint = " or, to score its alpha masks, --object-query TEXT" if scene.dataset == "dnerf" else ""
     raise InputError(scene.root, "annotations", "no ground truth found; looked for "
                      + ", ".join(str(c) for c in candidates) + f" (pass --annotations FILE{hint})")
+
+
+def load_release_annotations(scene: Scene, path: Path):
+    """The release's annotation export of ``scene``: ``path`` is its ``annotations/`` folder or the COCO
+    file in it (``video_annotations.json`` beside ``train/`` is read when present). Frames are matched
+    to the scene by time index: the release numbers HyperNeRF frames from 1 and Neu3D frames from 0, and
+    annotates one camera (the test camera where the scene has several)."""
+    from annotations.release import COCO_RELATIVE_PATH, import_release_folder
+
+    path = Path(path)
+    folder = path.parent.parent if path.is_file() else path
+    if not (folder / COCO_RELATIVE_PATH).is_file():
+        raise InputError(path, "annotations", f"not a release annotation folder: no {COCO_RELATIVE_PATH} in it")
+    frame_base = 1 if scene.dataset == "hypernerf" else 0
+    test_cameras = sorted({str(f.camera_id) for f in scene.frames if f.split == "test"})
+    camera_id = test_cameras[0] if len({str(f.camera_id) for f in scene.frames}) > 1 and len(test_cameras) == 1 else None
+    aset = import_release_folder(folder, scene_name=scene.name, frame_base=frame_base, frame_names=scene,
+                                 camera_id=camera_id)
+    aset.info["path"] = str(folder / COCO_RELATIVE_PATH)
+    return aset
 
 
 def whole_object_name(aset, explicit: Optional[str] = None) -> str:

@@ -103,3 +103,81 @@ def module_available(name: str) -> bool:
     import importlib.util
 
     return importlib.util.find_spec(name) is not None
+
+
+# ---------------------------------------------------------------------------------------------------
+# Memory plans of the large models
+# ---------------------------------------------------------------------------------------------------
+GIB = 1024 ** 3
+WEIGHT_MARGIN = 1.15
+"""GPU memory a model takes beyond its half-precision weights (CUDA context, buffers), as a factor."""
+
+
+@dataclass(frozen=True)
+class MemoryPlan:
+    """How a large model is loaded on a device: precision, batch size, and whether layers go to the CPU."""
+
+    device: str
+    """Where the model runs (``"cpu"``, ``"cuda"``, ``"cuda:1"``)."""
+    dtype: Optional[str]
+    """torch dtype name of the weights (``None``: the library's default, full precision on the CPU)."""
+    batch_size: int
+    """Inputs processed at once, from the memory left after the weights."""
+    offload: bool
+    """Load with ``device_map="auto"``: the layers that do not fit on the GPU stay on the CPU."""
+    message: Optional[str] = None
+    """One line saying why the model is offloaded (``None``: it fits)."""
+
+
+def gpu_free_bytes(device: str) -> int:
+    """Free memory of CUDA ``device`` in bytes (``torch.cuda.mem_get_info``)."""
+    import torch
+
+    return int(torch.cuda.mem_get_info(torch.device(device))[0])
+
+
+def half_dtype(device: str) -> str:
+    """``"bfloat16"`` where the GPU supports it (no overflow in long generations), else ``"float16"``."""
+    import torch
+
+    with torch.cuda.device(torch.device(device)):
+        return "bfloat16" if torch.cuda.is_bf16_supported() else "float16"
+
+
+def plan_memory(backend: Backend, device: str, *, per_item_gb: float, max_batch: int = 64,
+                free_bytes: Optional[int] = None, dtype: Optional[str] = None) -> MemoryPlan:
+    """The :class:`MemoryPlan` of ``backend`` on ``device``.
+
+    On the CPU: full precision, ``max_batch``. On CUDA: half precision; the weights
+    (``backend.gpu_memory_gb`` x :data:`WEIGHT_MARGIN`) plus one input (``per_item_gb``) must fit in the free
+    memory (``free_bytes``, else :func:`gpu_free_bytes`), and the batch is what the rest holds, at most
+    ``max_batch``. A model that does not fit is offloaded (``device_map="auto"``, one input at a time) when
+    ``accelerate`` is installed; otherwise an :class:`~benchmark.core.errors.InputError` says what to do.
+    """
+    from benchmark.core.errors import InputError
+
+    if not str(device).startswith("cuda"):
+        return MemoryPlan(device=device, dtype=None, batch_size=max_batch, offload=False)
+    dtype = dtype or half_dtype(device)
+    free = gpu_free_bytes(device) if free_bytes is None else int(free_bytes)
+    weights = backend.gpu_memory_gb * WEIGHT_MARGIN * GIB
+    per_item = max(per_item_gb, 1e-6) * GIB
+    if weights + per_item <= free:
+        batch = int(max(1, min(max_batch, (free - weights) // per_item)))
+        return MemoryPlan(device=device, dtype=dtype, batch_size=batch, offload=False)
+    need = f"{backend.model} needs about {(weights + per_item) / GIB:.1f} GB of GPU memory and {free / GIB:.1f} GB is free"
+    if not module_available("accelerate"):
+        raise InputError(None, f"{backend.name} memory",
+                         f"{need}: install accelerate (pip install accelerate) to offload layers to the CPU, or run "
+                         "this stage on a larger GPU (captions made elsewhere come in through captions.file)")
+    return MemoryPlan(device=device, dtype=dtype, batch_size=1, offload=True,
+                      message=f"{need}: loading it with device_map='auto' (layers that do not fit run on the CPU, "
+                              "much slower)")
+
+
+def backend(name: str) -> Backend:
+    """The backend called ``name`` in :data:`BACKENDS`."""
+    for b in BACKENDS:
+        if b.name == name:
+            return b
+    raise KeyError(name)

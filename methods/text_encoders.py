@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional
@@ -78,7 +79,11 @@ class SentenceTransformerTextEncoder(TextEncoder):
     name = "sentence-transformers"
 
     def __init__(self, path: str | Path, *, query_prompt: str = "", passage_prompt: str = "",
-                 query_prompt_name: Optional[str] = None, device: str = "cpu", label: Optional[str] = None) -> None:
+                 query_prompt_name: Optional[str] = None, device: str = "cpu", label: Optional[str] = None,
+                 memory_backend: Optional[str] = None, free_bytes: Optional[int] = None) -> None:
+        """``memory_backend``: the :data:`methods.backends.BACKENDS` name whose memory plan loads the model on
+        CUDA (half precision, batch size from free memory, CPU offload where it does not fit; ``None``:
+        loaded as saved). ``free_bytes``: free GPU memory to plan with (default: what the GPU reports)."""
         super().__init__()
         path = Path(path)
         if not path.is_dir():
@@ -94,13 +99,34 @@ class SentenceTransformerTextEncoder(TextEncoder):
         self.passage_prompt = passage_prompt
         if label:
             self.name = label
-        self._model = SentenceTransformer(str(path), device=device)
+        self.batch_size = 32  # sentence-transformers' own default; a memory plan replaces it on CUDA
+        if memory_backend is not None and str(device).startswith("cuda"):
+            self._model = self._load_on_gpu(SentenceTransformer, path, device, memory_backend, free_bytes)
+        else:
+            self._model = SentenceTransformer(str(path), device=device)
         named = dict(getattr(self._model, "prompts", None) or {})
         if query_prompt_name and query_prompt_name in named:  # the model's own text of that prompt wins
             self.query_prompt = named[query_prompt_name]
         self.query_prompt_name = query_prompt_name
         get_dim = getattr(self._model, "get_embedding_dimension", None) or self._model.get_sentence_embedding_dimension
         self._dim = int(get_dim())
+
+    def _load_on_gpu(self, loader, path: Path, device: str, memory_backend: str, free_bytes: Optional[int]):
+        """The model loaded by its memory plan (:func:`methods.backends.plan_memory`)."""
+        import torch
+
+        from methods.backends import backend, plan_memory
+
+        plan = plan_memory(backend(memory_backend), device, per_item_gb=E5_MISTRAL_GB_PER_TEXT, max_batch=256,
+                           free_bytes=free_bytes)
+        self.batch_size = plan.batch_size
+        if plan.message:
+            print(f"{memory_backend}: {plan.message}", file=sys.stderr)
+        model_kwargs: dict[str, Any] = {"torch_dtype": getattr(torch, plan.dtype)}
+        if plan.offload:
+            model_kwargs["device_map"] = "auto"
+            return loader(str(path), model_kwargs=model_kwargs)
+        return loader(str(path), device=device, model_kwargs=model_kwargs)
 
     @property
     def dim(self) -> int:
@@ -112,7 +138,7 @@ class SentenceTransformerTextEncoder(TextEncoder):
 
     def _encode(self, texts: list[str], kind: TextKind) -> np.ndarray:
         prompt = self.query_prompt if kind == "query" else self.passage_prompt
-        return self._model.encode([prompt + t for t in texts], convert_to_numpy=True,
+        return self._model.encode([prompt + t for t in texts], convert_to_numpy=True, batch_size=self.batch_size,
                                   normalize_embeddings=True, show_progress_bar=False)
 
 
@@ -133,6 +159,10 @@ E5_MISTRAL_QUERY_PROMPT = "Instruct: Given a news summary, retrieve other semant
 """That prompt's text, used where the model folder does not name it (its own text wins where it does)."""
 
 
+E5_MISTRAL_GB_PER_TEXT = 0.05
+"""GPU memory of one text in an e5-mistral batch (activations of a caption of up to a few hundred tokens)."""
+
+
 def e5_mistral(path: Optional[str] = None, device: str = "cpu") -> TextEncoder:
     """e5-mistral-7b-instruct from the local folder ``path`` (or ``$BENCH4D_E5_MISTRAL``)."""
     path = path or os.environ.get("BENCH4D_E5_MISTRAL")
@@ -142,7 +172,7 @@ def e5_mistral(path: Optional[str] = None, device: str = "cpu") -> TextEncoder:
                          "(the weights cannot be downloaded by bench4d)")
     return SentenceTransformerTextEncoder(path, query_prompt=E5_MISTRAL_QUERY_PROMPT,
                                           query_prompt_name=E5_MISTRAL_QUERY_PROMPT_NAME, device=device,
-                                          label="e5-mistral")
+                                          label="e5-mistral", memory_backend="e5-mistral")
 
 
 @dataclass(frozen=True)

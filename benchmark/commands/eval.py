@@ -23,7 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "are listed by bench4d eval --method M --help")
     parser.add_argument("--scene", required=True, help="scene folder or synthetic preset name")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--annotations", type=Path, default=None, help="ground-truth file (default: found beside the scene)")
+    parser.add_argument("--annotations", type=Path, default=None, help="ground-truth file, or the 4D LangSplat release's annotations/ folder (default: found beside the scene)")
     parser.add_argument("--refit", action="store_true", help="ignore a cached fit")
     add_run_arguments(parser)
     _add_method_options_on_parse(parser)

@@ -26,6 +26,7 @@ whole flow (shapes, prompts, caching) and produces noise, never captions to repo
 from __future__ import annotations
 
 import os
+import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Optional, Sequence
@@ -131,17 +132,36 @@ def tiny_random_components(seed: int = 0):
     return model, tokenizer, processor
 
 
-def load_components(model: str, *, device: str = "cpu", dtype: str = "auto", max_pixels: Optional[int] = None):
-    """(model, tokenizer, image processor) of a Qwen2-VL checkpoint (folder or hub id)."""
+QWEN_TOKENS_PER_REQUEST_GB = 2.0
+"""GPU memory of one request (activations and KV cache of a few frames' vision tokens plus the answer)."""
+
+
+def load_components(model: str, *, device: str = "cpu", dtype: str = "auto", max_pixels: Optional[int] = None,
+                    free_bytes: Optional[int] = None):
+    """(model, tokenizer, image processor) of a Qwen2-VL checkpoint (folder or hub id).
+
+    On CUDA the model loads by its :func:`methods.backends.plan_memory` plan: half precision (``dtype="auto"``),
+    and with ``device_map="auto"`` (CPU offload, one line on stderr saying so) where it does not fit in the
+    free memory (``free_bytes``, else what the GPU reports)."""
     try:
         import torch
         from transformers import AutoTokenizer, Qwen2VLForConditionalGeneration
         from transformers.models.qwen2_vl.image_processing_pil_qwen2_vl import Qwen2VLImageProcessorPil
     except ImportError as err:
         raise InputError(None, "captioner qwen2-vl", f"transformers with Qwen2-VL is needed ({err})") from None
-    torch_dtype = dtype if dtype == "auto" else getattr(torch, dtype)
+    from methods.backends import backend, plan_memory
+
+    plan = plan_memory(backend("qwen2-vl"), device, per_item_gb=QWEN_TOKENS_PER_REQUEST_GB, max_batch=1,
+                       free_bytes=free_bytes, dtype=None if dtype == "auto" else dtype)
+    if plan.message:
+        print(f"qwen2-vl: {plan.message}", file=sys.stderr)
+    name = plan.dtype or dtype
+    kwargs: dict[str, Any] = {"torch_dtype": name if name == "auto" else getattr(torch, name)}
+    if plan.offload:
+        kwargs["device_map"] = "auto"
     try:
-        net = Qwen2VLForConditionalGeneration.from_pretrained(model, torch_dtype=torch_dtype).to(device).eval()
+        net = Qwen2VLForConditionalGeneration.from_pretrained(model, **kwargs)
+        net = (net if plan.offload else net.to(device)).eval()
         tokenizer = AutoTokenizer.from_pretrained(model)
         extra = {} if max_pixels is None else {"max_pixels": int(max_pixels)}
         processor = Qwen2VLImageProcessorPil.from_pretrained(model, **extra)

@@ -1,0 +1,108 @@
+"""Convert what the 4D LangSplat release's evaluation writes into a bench4d predictions folder.
+
+The release's ``eval/eval.py`` scores its own renders; run with ``--visualize_results`` and
+``--detail_results`` it leaves, in its run folder ``<output_path>/<exp_name>/<timestamp>-<tag>/``:
+
+``<NNNNN>/chosen_<query>.png``
+    The mask it chose for ``<query>`` on one annotated image (the level with the highest relevance,
+    after its smoothing), 0 / 255, one channel. ``NNNNN`` is the COCO **image id** plus one, five digits.
+    A time-sensitive query has one on every annotated image (it inherits its base label's images).
+``video-query-results-<query>.csv`` (time-sensitive queries)
+    Rows ``Type, frame_<i>_iou, ...`` then ``clip similarity``, ``clip meaniou``, ``video similarity``,
+    ``video meaniou``: per frame (``i`` = 0-based time index, as the release derives it from the COCO
+    file name), the query's similarity to the rendered caption features (``video``) or to the CLIP
+    features (``clip``). The release says "present" where the similarity reaches its mean.
+
+:func:`convert_release_outputs` reads those files beside the release's annotation folder (for the image
+ids and frame numbers) and writes the masks and, as time-sensitive scores, the chosen similarity row;
+bench4d's temporal rule (``release`` protocol: threshold at the mean of the raw scores) then decides.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+from typing import Optional
+
+from benchmark.core.errors import InputError
+from benchmark.core.imageio import read_mask
+
+from .predictions import QueryPrediction, ScenePredictions, write_predictions
+
+SIMILARITY_ROWS = {"video": "video similarity", "clip": "clip similarity"}
+"""Which row of ``video-query-results-<query>.csv`` becomes the time-sensitive scores."""
+
+
+def image_folder(image_id: int) -> str:
+    """The release's per-image folder name: the COCO image id plus one, five digits."""
+    return f"{image_id + 1:05d}"
+
+
+def read_similarity_csv(path: Path, row: str) -> dict[int, float]:
+    """Time index -> similarity of row ``row`` of a ``video-query-results-<query>.csv``."""
+    with open(path, newline="", encoding="utf-8") as handle:
+        rows = list(csv.reader(handle))
+    if not rows or not rows[0] or rows[0][0] != "Type":
+        raise InputError(path, None, "expected the release's header 'Type, frame_<i>_iou, ...'")
+    indices = []
+    for column in rows[0][1:]:
+        number = column.removeprefix("frame_").removesuffix("_iou")
+        if not number.isdigit():
+            raise InputError(path, column, "expected a column named frame_<time index>_iou")
+        indices.append(int(number))
+    found = [r for r in rows[1:] if r and r[0] == row]
+    if not found:
+        raise InputError(path, row, f"no row {row!r} (rows: {[r[0] for r in rows[1:] if r]})")
+    values = found[0][1:]
+    if len(values) != len(indices):
+        raise InputError(path, row, f"{len(values)} values for {len(indices)} frames")
+    out = {}
+    for index, value in zip(indices, values):
+        try:
+            out[index] = float(value)
+        except ValueError:
+            raise InputError(path, f"{row}.frame_{index}", f"not a number: {value!r}") from None
+    return out
+
+
+def convert_release_outputs(run_folder: str | Path, annotation_folder: str | Path, out_dir: str | Path, *,
+                            frame_base: int, scene=None, scene_name: Optional[str] = None,
+                            similarity: str = "video", overwrite: bool = False) -> Path:
+    """Write the release run ``run_folder``'s masks and time decisions as a bench4d predictions folder.
+
+    ``annotation_folder`` is the release's ``annotations/`` folder the run was scored on; ``frame_base``
+    the number of its first frame (1 HyperNeRF, 0 Neu3D); ``scene`` (optional) names the frames as the
+    scene does (else the names an :func:`annotations.release.export_release` file records, else
+    ``{number:06d}``). ``similarity``: which feature's similarity scores the time-sensitive queries
+    (``"video"``, the paper's, or ``"clip"``). Returns the predictions file.
+    """
+    from annotations.release import import_release_folder
+
+    if similarity not in SIMILARITY_ROWS:
+        raise InputError(None, "similarity", f"must be one of {sorted(SIMILARITY_ROWS)}, got {similarity!r}")
+    run_folder = Path(run_folder)
+    if not run_folder.is_dir():
+        raise InputError(run_folder, None, "release run folder not found")
+    name = scene_name or (scene.name if scene is not None else Path(annotation_folder).parent.name)
+    aset = import_release_folder(annotation_folder, scene_name=name, frame_base=frame_base, frame_names=scene)
+    by_time = {f.time_index: f for f in aset.frames}
+    preds = ScenePredictions(scene=name, method="4d-langsplat (release)",
+                             info={"converted_from": str(run_folder), "similarity": similarity})
+    for query in aset.queries:
+        pred = QueryPrediction(text=query.text, kind=query.kind)
+        for frame in aset.frames:
+            path = run_folder / image_folder(frame.id) / f"chosen_{query.text}.png"
+            if path.is_file():
+                pred.masks[frame.name] = read_mask(path, (frame.height, frame.width)) > 0
+        if not pred.masks:
+            raise InputError(run_folder, query.text, f"no chosen_{query.text}.png in any image folder "
+                                                     "(run the release's eval.py with --visualize_results)")
+        if query.kind == "sensitive":
+            table = run_folder / f"video-query-results-{query.text}.csv"
+            if not table.is_file():
+                raise InputError(table, None, "missing (run the release's eval.py with --detail_results)")
+            for index, value in read_similarity_csv(table, SIMILARITY_ROWS[similarity]).items():
+                if index in by_time:
+                    pred.scores[by_time[index].name] = value
+        preds.add(pred)
+    return write_predictions(out_dir, preds, overwrite=overwrite)

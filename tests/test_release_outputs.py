@@ -1,0 +1,97 @@
+"""The 4D LangSplat release's evaluation outputs converted to bench4d predictions and scored."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from benchmark.core.annotation import decode_mask
+from benchmark.core.errors import InputError
+from benchmark.core.imageio import write_image
+
+
+def release_run_folder(aset, folder, *, flip_time=False):
+    """What the release's eval.py writes with --visualize_results --detail_results, made from ``aset``'s
+    truth: ``<image id + 1>/chosen_<query>.png`` and ``video-query-results-<query>.csv`` (similarity 0.9
+    inside a time query's intervals, 0.1 outside; swapped with ``flip_time``)."""
+    for (qid, fid), rle in aset.masks.items():
+        query = aset.query(qid)
+        texts = [query.text] + [q.text for q in aset.sensitive_queries if q.base == qid]
+        for text in texts:
+            write_image(folder / f"{fid + 1:05d}" / f"chosen_{text}.png", decode_mask(rle).astype(np.uint8) * 255)
+    for q in aset.sensitive_queries:
+        times = sorted(f.time_index for f in aset.frames)
+        inside = [any(lo <= t <= hi for lo, hi in q.intervals) != flip_time for t in times]
+        with open(folder / f"video-query-results-{q.text}.csv", "w", newline="", encoding="utf-8") as handle:
+            writer = csv.writer(handle)
+            writer.writerow(["Type"] + [f"frame_{t}_iou" for t in times])
+            writer.writerow(["clip similarity"] + [0.5] * len(times))
+            writer.writerow(["clip meaniou"] + [1.0] * len(times))
+            writer.writerow(["video similarity"] + [0.9 if yes else 0.1 for yes in inside])
+            writer.writerow(["video meaniou"] + [1.0] * len(times))
+    return folder
+
+
+@pytest.fixture(scope="module")
+def release_scene(tmp_path_factory):
+    from annotations.format import load_annotations
+    from annotations.release import export_release
+    from benchmark.synthetic.generate import generate
+
+    folder = generate("smoke", tmp_path_factory.mktemp("release") / "smoke", size=48)
+    aset = load_annotations(folder / "annotations.json")
+    export_release(aset, folder / "annotations", frame_base=1)
+    return folder, aset
+
+
+def score(gt, pred, out):
+    from benchmark.cli import main
+
+    assert main(["score", "--gt", str(gt), "--pred", str(pred), "--out", str(out), "--quiet"]) == 0
+    return json.loads(out.read_text())["metrics"]["dataset"]
+
+
+def test_release_outputs_of_the_truth_convert_and_score_perfectly(release_scene, tmp_path):
+    from benchmark.cli import main
+    from benchmark.predictions import read_predictions
+
+    folder, aset = release_scene
+    run = release_run_folder(aset, tmp_path / "run")
+    assert main(["convert", "release", "--run", str(run), "--annotations", str(folder / "annotations"),
+                 "--dataset", "hypernerf", "--scene", str(folder), "--out", str(tmp_path / "preds")]) == 0
+    preds = read_predictions(tmp_path / "preds")
+    assert set(preds.queries) == {q.text for q in aset.queries}
+    sensitive = aset.sensitive_queries[0]
+    assert preds.queries[sensitive.text].kind == "sensitive" and len(preds.queries[sensitive.text].scores) > 0
+    metrics = score(folder / "annotations.json", tmp_path / "preds", tmp_path / "scored.json")
+    assert metrics["mIoU"] == pytest.approx(100.0) and metrics["mAcc"] == pytest.approx(100.0)
+    assert metrics["AUC"] == pytest.approx(100.0)  # the similarities rank every present frame first
+
+    # time decisions turned around: the masks still score, the decisions no longer do
+    flipped = release_run_folder(aset, tmp_path / "flipped", flip_time=True)
+    from benchmark.release_outputs import convert_release_outputs
+
+    convert_release_outputs(flipped, folder / "annotations", tmp_path / "preds-flipped", frame_base=1)
+    worse = score(folder / "annotations.json", tmp_path / "preds-flipped", tmp_path / "scored-flipped.json")
+    assert worse["mIoU"] == pytest.approx(100.0)
+    assert worse["Acc"] < metrics["Acc"] and worse["AUC"] < metrics["AUC"]
+
+
+def test_missing_release_outputs_are_one_line_errors(release_scene, tmp_path):
+    from benchmark.release_outputs import convert_release_outputs, read_similarity_csv
+
+    folder, aset = release_scene
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match="--visualize_results"):
+        convert_release_outputs(tmp_path / "empty", folder / "annotations", tmp_path / "out", frame_base=1)
+    with pytest.raises(InputError, match="release run folder not found"):
+        convert_release_outputs(tmp_path / "nowhere", folder / "annotations", tmp_path / "out", frame_base=1)
+    bad = tmp_path / "bad.csv"
+    bad.write_text("Type,frame_0_iou\nvideo similarity,abc\n")
+    with pytest.raises(InputError, match="not a number"):
+        read_similarity_csv(bad, "video similarity")
+    with pytest.raises(InputError, match="no row"):
+        read_similarity_csv(bad, "clip similarity")
