@@ -33,6 +33,19 @@ STATE_FILE = "time_varying.pt"
 INFO_FILE = "time_varying.json"
 
 
+def caption_text_encoder(captions, run_encoder, device: str):
+    """The text encoder of captions and time-sensitive queries: ``captions.text_encoder`` when set (e.g. the
+    paper's e5-mistral), else the run's."""
+    if captions.text_encoder is None:
+        return run_encoder
+    import inspect
+
+    from .text_encoders import TEXT_ENCODERS, get_text_encoder
+
+    takes_device = "device" in inspect.signature(TEXT_ENCODERS.load(captions.text_encoder)).parameters
+    return get_text_encoder(captions.text_encoder, **({"device": str(device)} if takes_device else {}))
+
+
 class _FieldHead(TimeVaryingHead):
     kind: ClassVar[str] = "status"
 
@@ -47,7 +60,8 @@ class _FieldHead(TimeVaryingHead):
         captions, tracks = build_captions(context.scene, context.supervision.track, cfg.captions,
                                           cache_root=context.cache_root, device=context.device,
                                           progress=context.progress)
-        sup = embed_captions(captions, tracks, context.supervision.text_encoder)
+        encoder = caption_text_encoder(cfg.captions, context.supervision.text_encoder, context.device)
+        sup = embed_captions(captions, tracks, encoder)
         with StagePeak(context.device) as peak:
             field = fit_time_varying_field(context.shared.geometry, context.scene, sup, cfg, kind=cls.kind,
                                            seed=context.seed, device=context.device, progress=context.progress,
@@ -57,7 +71,7 @@ class _FieldHead(TimeVaryingHead):
         context.progress.log(f"{cls.name}: K = {field.info['num_states']}, {field.info['dynamic_gaussians']} of "
                              f"{mem['gaussians']} Gaussians carry states, {mem['bytes_per_gaussian']:.1f} B/Gaussian, "
                              f"{field.info['train']['seconds']:.1f} s")
-        return cls(field, context.supervision.text_encoder)
+        return cls(field, encoder)
 
     def query_embedding(self, text: str) -> np.ndarray:
         if text not in self._queries:
@@ -76,7 +90,8 @@ class _FieldHead(TimeVaryingHead):
     @classmethod
     def load(cls, directory: Path, *, model: LanguageFieldModel, device: str) -> "_FieldHead":
         state = torch.load(Path(directory) / STATE_FILE, map_location=device, weights_only=True)
-        return cls(load_time_varying_field(state, model.geometry, device), model.text_encoder)
+        encoder = caption_text_encoder(model.config.captions, model.text_encoder, device)
+        return cls(load_time_varying_field(state, model.geometry, device), encoder)
 
 
 class StatusHead(_FieldHead):

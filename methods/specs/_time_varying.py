@@ -42,6 +42,9 @@ class CaptionConfig:
     """Text prompt of the captioner: ``"none"``, ``"video"`` or ``"video+image"`` (release)."""
     seed: int = 0
     """Seed of the template captioner's paraphrase draw (fixed: every method and seed sees the same captions)."""
+    text_encoder: Optional[str] = None
+    """Text encoder of the captions and the time-sensitive queries (paper: ``e5-mistral``); ``None``: the
+    run's text encoder (the image-text source's text tower on the real track)."""
 
     def __post_init__(self) -> None:
         if self.captioner not in CAPTIONER_CHOICES:
