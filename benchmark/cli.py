@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "paper-tables": ("paper_tables", "every table of the paper with the published numbers beside ours"),
     "plot": ("plot", "charts: pareto (accuracy vs speed), timeline (similarity over time)"),
     "annotate": ("annotate", "local web app to annotate query masks and time segments"),
+    "annotate-bench": ("annotate_bench", "the annotation tool measured by a simulated annotator against exact truth"),
     "models": ("models", "the real track's model backends: hub ids, sizes, where weights are looked for, present or not"),
     "doctor": ("doctor", "before a long run: CUDA, gsplat, libraries, weights, free disk and memory, one line each"),
     "demo": ("demo", "the main job: a synthetic scene end to end, printing metrics and timings"),

@@ -11,6 +11,10 @@ Each finding names a query, a frame and a kind; the reviewer jumps there and dec
 * ``empty``: a mask with no pixel ("absent in this frame"): confirm the object is really gone.
 * ``tiny``: fewer than :attr:`ReviewConfig.tiny_pixels` pixels.
 * ``fragmented``: more than :attr:`ReviewConfig.max_components` connected pieces of meaningful size.
+* ``not-annotated``: a run of frames of the evaluated split where a query that is annotated
+  elsewhere has no annotation (one finding per run: those frames cannot be scored).
+* ``area-jump``: a mask whose area differs from the previous annotated frame's (same camera) by
+  more than :attr:`ReviewConfig.area_jump` times (a proposal that filled a gap, a lost part).
 """
 
 from __future__ import annotations
@@ -36,6 +40,8 @@ class ReviewConfig:
     """Pieces smaller than this are counted as specks (always flagged, see ``specks``)."""
     edge_frames: int = 2
     """``mask-outside-interval`` looks this many time steps beyond each interval edge."""
+    area_jump: float = 1.5
+    """``area-jump``: consecutive non-empty masks whose areas differ by more than this factor."""
 
 
 class _FrameRef(NamedTuple):
@@ -85,6 +91,8 @@ def review(aset: AnnotationSet, tool_frames: Sequence[tuple[int, str, int, str]]
         elif specks:
             add("fragmented", qid, frame, f"{specks} speck(s) under {config.min_component_pixels} pixels")
 
+    _coverage_checks(aset, tool_frames, evaluated, config, add)
+
     # interval checks for time-sensitive queries (their masks are their base's)
     for q in aset.sensitive_queries:
         if q.base is None:
@@ -112,3 +120,32 @@ def review(aset: AnnotationSet, tool_frames: Sequence[tuple[int, str, int, str]]
                         "confirm the state does not hold here")
     findings.sort(key=lambda f: (f["query"], f["time_index"], f["frame_name"], f["kind"]))
     return findings
+
+
+def _coverage_checks(aset: AnnotationSet, tool_frames: Sequence[tuple[int, str, int, str]], evaluated: set,
+                     config: ReviewConfig, add) -> None:
+    """``not-annotated`` runs and ``area-jump`` masks of each annotated time-agnostic query, walking
+    the tool's frames of the evaluated split in order."""
+    id_by_name = {f.name: f.id for f in aset.frames}
+    walk = [(name, t) for _, name, t, split in tool_frames if split in evaluated]
+    for q in aset.agnostic_queries:
+        if not any(k[0] == q.id for k in aset.masks):
+            continue
+        run: list[_FrameRef] = []
+        previous = None
+        for name, t in walk + [(None, None)]:  # a sentinel closes the last run
+            rle = None if name is None else aset.masks.get((q.id, id_by_name.get(name, -1)))
+            if name is not None and rle is None:
+                run.append(_FrameRef(name, t))
+                continue
+            if run:
+                span = f"t={run[0].time_index}..{run[-1].time_index}" if len(run) > 1 else f"t={run[0].time_index}"
+                add("not-annotated", q.id, run[0], f"{len(run)} frame(s) ({span}) have no annotation of {q.text!r}")
+                run = []
+            if rle is None:
+                continue
+            area = int(decode_mask(rle).sum())
+            if previous and area and max(area, previous) > config.area_jump * min(area, previous):
+                add("area-jump", q.id, _FrameRef(name, t),
+                    f"{area} pixels against {previous} on the previous annotated frame (x{area / previous:.2f})")
+            previous = area or previous

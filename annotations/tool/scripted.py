@@ -69,7 +69,7 @@ class Plan:
 class _Tool:
     def __init__(self, scene_dir: Path, out: Path, method: str):
         cmd = [sys.executable, "-m", "benchmark.cli", "annotate", str(scene_dir), "--annotations", str(out),
-               "--annotator", "scripted", "--method", method, "--no-timing"]
+               "--annotator", "scripted", "--method", method, "--no-timing", "--split", "all"]
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         self.url = None
         end = time.monotonic() + 120

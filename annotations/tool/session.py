@@ -44,6 +44,10 @@ from ..propagate import PropagationConfig, propagate_between, propagate_chain
 from .review import ReviewConfig, review
 
 TOOL_NAME = "bench4d annotate"
+SCORED = "scored"
+"""The ``split`` that offers the frames the benchmark scores (the held-out test frames)."""
+MADE_BY = ("drawn", "box", "clicks", "propagated", "corrected", "absent")
+"""How a mask was made, as a save may state it (kept in ``info.made_by[query id][frame name]``)."""
 MAX_CLICKS = 1000
 """Most corrective clicks one segmentation request may carry."""
 MAX_COORDINATE = 1e6
@@ -67,10 +71,15 @@ class Locked(InputError):
 class SessionConfig:
     """Settings of one annotation session."""
 
-    split: str = "all"
-    """Frames offered for annotation: ``all`` or a comma list of splits (``test``, ``train,val``)."""
+    split: str = "scored"
+    """Frames offered for annotation: ``scored`` (the held-out test frames the benchmark scores; every
+    frame if the scene has none), ``all``, or a comma list of splits (``test``, ``train,val``)."""
     annotator: str = "human"
-    """Recorded in ``info.annotator`` (a scripted session must say so, e.g. ``"scripted"``)."""
+    """Recorded in ``info.annotator``: ``human`` (a person), ``simulated`` (a simulated annotator
+    against exact truth; :attr:`protocol` says how) or ``scripted`` (a fixed plan)."""
+    protocol: Optional[dict] = None
+    """Recorded in ``info.protocol`` when given: how a simulated annotator chose its interactions and
+    its target IoU."""
     method: Optional[str] = None
     """Recorded in ``info.method`` when given (how masks were made, for scripted sessions)."""
     record_timing: bool = True
@@ -256,10 +265,13 @@ class AnnotationSession:
     def _select_frames(scene: Scene, split: str) -> list[Frame]:
         if split in ("", "all"):
             return list(scene.frames)
+        if split == SCORED:
+            scored = [f for f in scene.frames if f.split == "test"]
+            return scored or list(scene.frames)
         wanted = {s.strip() for s in split.split(",") if s.strip()}
         unknown = wanted - {"train", "val", "test"}
         if unknown:
-            raise InputError(None, "--split", f"unknown split(s) {sorted(unknown)} (train, val, test or all)")
+            raise InputError(None, "--split", f"unknown split(s) {sorted(unknown)} (train, val, test, scored or all)")
         return [f for f in scene.frames if f.split in wanted]
 
     def _open(self, path: Path) -> AnnotationSet:
@@ -383,17 +395,33 @@ class AnnotationSession:
                 "export_formats": EXPORT_FORMATS,
                 "import_formats": IMPORT_FORMATS,
                 "annotator": self.aset.info.get("annotator", self.config.annotator),
+                "frames_offered": self._frames_offered(),
             }
+
+    def _frames_offered(self) -> str:
+        """One line for the page: which frames the session offers and whether they are the scored ones."""
+        n, total = len(self.frames), len(self.scene.frames)
+        scored = sum(f.split == "test" for f in self.scene.frames)
+        if self.config.split == SCORED and scored:
+            return f"{n} scored frames (the test split the benchmark scores) of {total}"
+        if self.config.split == SCORED:
+            return f"all {n} frames (the scene has no test split)"
+        return f"{n} of {total} frames (split {self.config.split}); the benchmark scores the {scored} test frames"
 
     def masks_of_frame(self, index: int) -> dict:
         """Masks of every mask-owning query on frame ``index`` in the page's RLE format."""
         frame = self.frame(index)
         with self._lock:
             af = self._annotated_frame(index)
+            made_by = self.aset.info.get("made_by", {})
             out = {}
             for q in self.aset.agnostic_queries:
                 rle = None if af is None else self.aset.masks.get((q.id, af.id))
-                out[str(q.id)] = _mask_payload(rle)
+                payload = _mask_payload(rle)
+                how = made_by.get(str(q.id), {}).get(frame.name)
+                if payload is not None and how is not None:
+                    payload["made_by"] = how
+                out[str(q.id)] = payload
             return {"frame": index, "name": frame.name, "time_index": frame.time_index,
                     "width": frame.camera.width, "height": frame.camera.height, "revision": self.revision,
                     "masks": out}
@@ -429,6 +457,8 @@ class AnnotationSession:
             who.append(self.config.annotator)
         if self.config.method:
             info["method"] = self.config.method
+        if self.config.protocol:
+            info["protocol"] = self.config.protocol
         info["segmenter"] = self.segmenter.name
         try:
             save_annotations(self.aset, self.path, overwrite=True)
@@ -441,7 +471,8 @@ class AnnotationSession:
         """Apply a batch of edits atomically; returns the new revision.
 
         ``changes``: list of ``{"type": "mask", "query": id, "frame": index, "mask": {"counts": [...]}
-        | {"absent": true} | null}`` (``null`` = back to "not annotated") and
+        | {"absent": true} | null, "made_by": optional, one of MADE_BY}`` (``null`` = back to "not
+        annotated") and
         ``{"type": "intervals", "query": id, "intervals": [[l, r], ...]}``. ``timing``: optional
         ``{frame index: seconds}`` of active annotation time to add to ``info``.
         """
@@ -454,7 +485,7 @@ class AnnotationSession:
             return self._apply_staged(staged, timing)
 
     def _stage_change(self, field_name: str, ch: Any) -> tuple:
-        """One change, checked: ``("mask", query id, frame index, RLE or None)`` or
+        """One change, checked: ``("mask", query id, frame index, RLE or None, made_by or None)`` or
         ``("intervals", query id, intervals)``."""
         if not isinstance(ch, dict):
             raise InputError(None, field_name, "expected an object")
@@ -470,8 +501,11 @@ class AnnotationSession:
         frame = self.frame(index)
         owner = self.owner(ch.get("query"))
         payload = ch.get("mask")
+        made_by = ch.get("made_by")
+        if made_by is not None and made_by not in MADE_BY:
+            raise InputError(None, f"{field_name}.made_by", f"expected one of {', '.join(MADE_BY)} or null")
         if payload is None:
-            return ("mask", owner.id, index, None)
+            return ("mask", owner.id, index, None, None)
         if not isinstance(payload, dict):
             raise InputError(None, f"{field_name}.mask", "expected an object or null")
         h, w = frame.camera.height, frame.camera.width
@@ -479,7 +513,7 @@ class AnnotationSession:
             mask = np.zeros((h, w), bool)
         else:
             mask = runs_to_mask(payload.get("counts"), h, w, f"{field_name}.mask")
-        return ("mask", owner.id, index, encode_mask(mask))
+        return ("mask", owner.id, index, encode_mask(mask), made_by)
 
     def _stage_intervals(self, field_name: str, ch: dict) -> tuple:
         q = self.query(ch.get("query"))
@@ -509,7 +543,8 @@ class AnnotationSession:
         try:
             for item in staged:
                 if item[0] == "mask":
-                    _, qid, index, rle = item
+                    _, qid, index, rle, made_by = item
+                    self._note_made_by(qid, index, made_by)
                     if rle is None:
                         af = self._annotated_frame(index)
                         if af is not None:
@@ -529,6 +564,20 @@ class AnnotationSession:
                 q.intervals = backup_intervals.get(q.id, [])
             self.aset.info = backup_info
             raise
+
+    def _note_made_by(self, qid: int, index: int, made_by: Optional[str]) -> None:
+        """Keep how the mask of ``qid`` on frame ``index`` was made; a change that does not say
+        forgets the earlier note (an edited proposal is no longer "propagated")."""
+        per_query = self.aset.info.setdefault("made_by", {})
+        notes = per_query.setdefault(str(qid), {})
+        if made_by is None:
+            notes.pop(self.frames[index].name, None)
+        else:
+            notes[self.frames[index].name] = made_by
+        if not notes:
+            per_query.pop(str(qid))
+        if not per_query:
+            self.aset.info.pop("made_by")
 
     def _add_timing(self, timing: Any) -> None:
         if not timing or not self.config.record_timing:
@@ -584,10 +633,15 @@ class AnnotationSession:
             backup = (list(self.aset.queries), dict(self.aset.masks))
             self.aset.queries = [x for x in self.aset.queries if x.id != q.id]
             self.aset.masks = {k: v for k, v in self.aset.masks.items() if k[0] != q.id}
+            made_by = self.aset.info.get("made_by", {}).pop(str(q.id), None)
+            if made_by is not None and not self.aset.info["made_by"]:
+                del self.aset.info["made_by"]
             try:
                 return self._commit()
             except BaseException:
                 self.aset.queries, self.aset.masks = backup
+                if made_by is not None:
+                    self.aset.info.setdefault("made_by", {})[str(q.id)] = made_by
                 raise
 
     # -- assistance -----------------------------------------------------------------------------
@@ -619,12 +673,13 @@ class AnnotationSession:
                 "segmenter": self.segmenter.name}
 
     def _neighbour(self, index: int, step: int) -> Optional[int]:
-        """Next frame in the list in direction ``step`` from the same camera and split."""
+        """Next frame being annotated (the session's frames, whatever their split) in direction
+        ``step`` from the same camera."""
         f = self.frames[index]
         j = index + step
         while 0 <= j < len(self.frames):
             g = self.frames[j]
-            if g.camera_id == f.camera_id and g.split == f.split:
+            if g.camera_id == f.camera_id:
                 return j
             j += step
         return None

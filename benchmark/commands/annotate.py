@@ -24,15 +24,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="address to bind (default 127.0.0.1; anything else exposes the tool to the network, "
                              "and then every request, reads included, needs the printed token)")
     parser.add_argument("--port", type=int, default=0, help="port (default 0: a free one)")
-    parser.add_argument("--split", default="all",
-                        help="frames to offer: all, or a comma list of train/val/test (default all)")
+    parser.add_argument("--split", default="scored",
+                        help="frames to offer: scored (the test frames the benchmark scores), all, or a comma "
+                             "list of train/val/test (default scored)")
     parser.add_argument("--scale", default=None, help="image scale passed to the scene loader (e.g. 0.5)")
     parser.add_argument("--segmenter", choices=["grabcut", "sam"], default="grabcut",
                         help="assisted segmentation backend (default grabcut; sam needs --sam-checkpoint)")
     parser.add_argument("--sam-checkpoint", type=Path, default=None, help="path to SAM weights (segmenter sam)")
     parser.add_argument("--sam-model", default="vit_b", help="SAM architecture of the checkpoint (vit_b, vit_l, vit_h)")
     parser.add_argument("--annotator", default="human",
-                        help="recorded in the file's info (use 'scripted' for automated sessions)")
+                        help="recorded in the file's info.annotator: human (default), simulated or scripted")
     parser.add_argument("--method", default=None,
                         help="recorded in the file's info.method (how masks were made; for scripted sessions)")
     parser.add_argument("--no-timing", action="store_true",

@@ -53,6 +53,8 @@ const S = {
   polygon: [],
   hover: null,
   zoom: 1,
+  overlayAll: true,    // outline every query's mask, not only the selected one's
+  overlayDrawn: [],    // owners drawn in the overlay at the last render
 };
 
 // ------------------------------------------------------------------------------------------
@@ -65,9 +67,20 @@ function keyOf(owner, frame) { return `${owner}:${frame}`; }
 function curKey() { return S.qid === null ? null : keyOf(ownerOf(S.qid), S.cur); }
 function entry(key) { return S.store.get(key); }
 function colourOf(owner) {
-  const idx = S.queries.filter((q) => q.kind === "agnostic").findIndex((q) => q.id === owner);
-  return COLOURS[(idx < 0 ? 0 : idx) % COLOURS.length];
+  const idx = Math.max(0, S.queries.filter((q) => q.kind === "agnostic").findIndex((q) => q.id === owner));
+  if (idx < COLOURS.length) return COLOURS[idx];
+  // past the fixed palette: hues a golden angle apart, so no two queries share a colour
+  const hue = ((idx - COLOURS.length) * 137.508 + 20) % 360;
+  return hslToRgb(hue, 0.85, idx % 2 ? 0.62 : 0.5);
 }
+function hslToRgb(h, s, l) {
+  const c = (1 - Math.abs(2 * l - 1)) * s, x = c * (1 - Math.abs(((h / 60) % 2) - 1)), m = l - c / 2;
+  const [r, g, b] = h < 60 ? [c, x, 0] : h < 120 ? [x, c, 0] : h < 180 ? [0, c, x] : h < 240 ? [0, x, c]
+    : h < 300 ? [x, 0, c] : [c, 0, x];
+  return [r, g, b].map((v) => Math.round((v + m) * 255));
+}
+// frames of the session where ``owner`` has an annotation (a mask or "absent")
+function doneCount(owner) { return Object.keys(S.status[owner] || {}).length; }
 function message(text) { $("#message").textContent = text; }
 function timeOfFrame(i) { return S.frames[i].time_index; }
 
@@ -100,6 +113,7 @@ function applyState(state) {
   }
   if (S.qid === null || !queryById(S.qid)) S.qid = S.queries.length ? S.queries[0].id : null;
   $("#scene-name").textContent = `${state.scene} · ${state.file}`;
+  $("#frames-offered").textContent = state.frames_offered || "";
   $("#scrubber").max = String(S.frames.length - 1);
   fillFormatSelect("#export-format", state.export_formats);
   fillFormatSelect("#import-format", state.import_formats);
@@ -139,7 +153,7 @@ async function loadMasks(i) {
   for (const [q, payload] of Object.entries(res.masks)) {
     const key = keyOf(+q, i);
     if (S.store.has(key)) continue; // a local edit is newer than the server's copy
-    S.store.set(key, { mask: payload ? M.decodeRuns(payload.counts, w, h) : null });
+    S.store.set(key, { mask: payload ? M.decodeRuns(payload.counts, w, h) : null, madeBy: payload?.made_by ?? null });
   }
   S.loaded.add(i);
 }
@@ -181,6 +195,26 @@ function fitCanvas() {
   c.style.height = `${Math.round(h * scale)}px`;
 }
 
+// Zoom to ``zoom`` keeping the image point under (clientX, clientY) where it is on screen.
+function zoomAt(zoom, clientX, clientY) {
+  const wrap = $("#canvas-wrap");
+  const before = view().getBoundingClientRect();
+  const fx = (clientX - before.left) / before.width, fy = (clientY - before.top) / before.height;
+  S.zoom = Math.max(1, Math.min(8, zoom));
+  fitCanvas();
+  const after = view().getBoundingClientRect();
+  wrap.scrollLeft += after.left + fx * after.width - clientX;
+  wrap.scrollTop += after.top + fy * after.height - clientY;
+  message(S.zoom > 1 ? `zoom ${S.zoom.toFixed(2)}x (Z resets, middle-drag pans)` : "zoom: fit");
+}
+
+function resetZoom() {
+  S.zoom = 1;
+  fitCanvas();
+  $("#canvas-wrap").scrollTo(0, 0);
+  message("zoom: fit");
+}
+
 function render() {
   const c = view();
   const g = c.getContext("2d");
@@ -199,8 +233,21 @@ function render() {
     overlayData.data.fill(0);
     const e = key ? entry(key) : null;
     const prop = key ? S.proposals.get(key) : null;
+    S.overlayDrawn = [];
+    if (S.overlayAll) {
+      // every other query's mask on this frame as an outline in its colour, under the selected one
+      for (const q of S.queries) {
+        if (q.kind !== "agnostic" || q.id === ownerOf(S.qid)) continue;
+        const other = entry(keyOf(q.id, S.cur));
+        if (other && other.mask && !M.isEmpty(other.mask)) {
+          M.paintOutline(overlayData, other.mask, colourOf(q.id));
+          S.overlayDrawn.push(q.id);
+        }
+      }
+    }
     if (e && e.mask) {
       const rgb = colourOf(ownerOf(S.qid));
+      S.overlayDrawn.push(ownerOf(S.qid));
       M.paint(overlayData, e.mask, rgb, 110);
       M.paintOutline(overlayData, e.mask, rgb);
     } else if (prop) {
@@ -264,6 +311,12 @@ function updateMaskState() {
 function renderQueries() {
   const ul = $("#queries");
   ul.textContent = "";
+  if (!S.queries.length) {
+    const hint = document.createElement("li");
+    hint.className = "hint";
+    hint.textContent = "Start here: add a query below (e.g. \"cookie\"), then drag a box around it on the image.";
+    ul.append(hint);
+  }
   S.queries.forEach((q, n) => {
     const li = document.createElement("li");
     li.dataset.qid = String(q.id);
@@ -273,7 +326,7 @@ function renderQueries() {
     const rgb = colourOf(ownerOf(q.id));
     sw.style.background = `rgb(${rgb.join(",")})`;
     const label = document.createElement("span");
-    label.textContent = `${n < 9 ? n + 1 + ". " : ""}${q.text}`;
+    label.textContent = `${queryKey(n)}${q.text}`;
     const kind = document.createElement("span");
     kind.className = "kind";
     kind.textContent = q.kind === "sensitive" ? `when · masks of "${queryById(q.base)?.text}"` : (q.level || "");
@@ -281,10 +334,15 @@ function renderQueries() {
     st.className = "qstate";
     const v = S.status[ownerOf(q.id)]?.[S.cur];
     st.textContent = v === 1 ? "mask" : v === 0 ? "absent" : "–";
-    li.append(sw, label, kind, st);
+    const progress = document.createElement("span");
+    progress.className = "progress";
+    progress.textContent = `${doneCount(ownerOf(q.id))}/${S.frames.length}`;
+    progress.title = "frames annotated (mask or absent) of the frames offered";
+    li.append(sw, label, kind, st, progress);
     li.addEventListener("click", () => selectQuery(q.id));
     ul.append(li);
   });
+  drawScrubberMarks();
   const base = $("#new-base");
   base.textContent = "";
   for (const q of S.queries.filter((x) => x.kind === "agnostic")) {
@@ -292,6 +350,33 @@ function renderQueries() {
     o.value = String(q.id); o.textContent = `base: ${q.text}`;
     base.append(o);
   }
+}
+
+// "1. " .. "9. ", "0. " for the tenth; later queries are reached with Q / Shift+Q
+function queryKey(n) { return n < 9 ? `${n + 1}. ` : n === 9 ? "0. " : ""; }
+
+// One tick per frame under the scrubber: the selected query's mask (its colour), absent (grey),
+// not annotated (nothing).
+function drawScrubberMarks() {
+  const c = $("#scrubber-marks");
+  if (!c || !S.frames.length) return;
+  c.width = S.frames.length;
+  const g = c.getContext("2d");
+  g.clearRect(0, 0, c.width, c.height);
+  const owner = S.qid === null ? null : ownerOf(S.qid);
+  const st = owner === null ? {} : S.status[owner] || {};
+  const rgb = owner === null ? [0, 0, 0] : colourOf(owner);
+  for (const [f, v] of Object.entries(st)) {
+    g.fillStyle = v ? `rgb(${rgb.join(",")})` : "#888";
+    g.fillRect(+f, 0, 1, c.height);
+  }
+  c.dataset.done = String(Object.keys(st).length);
+}
+
+function cycleQuery(step) {
+  if (!S.queries.length) return;
+  const i = S.queries.findIndex((q) => q.id === S.qid);
+  selectQuery(S.queries[(i + step + S.queries.length) % S.queries.length].id);
 }
 
 function selectQuery(qid) {
@@ -316,16 +401,25 @@ function hist(key) {
 
 function copyMask(m) { return m ? m.slice() : null; }
 
-function setMask(key, mask, { record = true, before = undefined } = {}) {
+// Each undo step keeps the box and clicks shown before the edit: undoing a click takes its marker
+// back too, so the next click does not silently redo it.
+// How a mask was made, saved with it (``made_by``): an edit of a propagated mask makes it "corrected".
+function madeByAfter(previous, how) {
+  if (how === null || how === "absent" || how === "propagated") return how;
+  return previous === "propagated" || previous === "corrected" ? "corrected" : how;
+}
+
+function setMask(key, mask, { record = true, before = undefined, assistBefore = undefined, how = null } = {}) {
   const e = entry(key) || { mask: null };
   const prev = before !== undefined ? before : copyMask(e.mask);
   if (record) {
     const h = hist(key);
-    h.undo.push({ stamp: ++S.stamp, value: prev });
+    const assist = assistBefore !== undefined ? assistBefore : (S.assist.get(key) || null);
+    h.undo.push({ stamp: ++S.stamp, value: prev, assist });
     if (h.undo.length > UNDO_LIMIT) h.undo.shift();
     h.redo = [];
   }
-  S.store.set(key, { mask });
+  S.store.set(key, { mask, madeBy: mask === null ? null : madeByAfter(e.madeBy ?? null, how) });
   markMaskDirty(key);
 }
 
@@ -338,7 +432,7 @@ function markMaskDirty(key) {
   S.dirtyMasks.add(key);
   S.overlayDirty = true;
   scheduleSave();
-  if (frame === S.cur) { render(); renderQueries(); }
+  if (frame === S.cur) { render(); renderQueries(); } else drawScrubberMarks();
   S.timeline.draw();
 }
 
@@ -385,7 +479,9 @@ function undoRedo(which) {
     S.timeline.draw();
   } else {
     const e = entry(k) || { mask: null };
-    h[other].push({ stamp: ++S.stamp, value: copyMask(e.mask) });
+    h[other].push({ stamp: ++S.stamp, value: copyMask(e.mask), assist: S.assist.get(k) || null });
+    if (item.assist) S.assist.set(k, item.assist);
+    else S.assist.delete(k);
     S.store.set(k, { mask: item.value });
     markMaskDirty(k);
   }
@@ -403,7 +499,7 @@ function markAbsent() {
   const key = editableKey();
   if (!key) return;
   const [w, h] = frameSize(S.cur);
-  setMask(key, M.emptyMask(w, h));
+  setMask(key, M.emptyMask(w, h), { how: "absent" });
   S.assist.delete(key);
   message("marked absent in this frame");
 }
@@ -430,10 +526,11 @@ function buildChanges(keys, qids) {
   for (const key of keys) {
     const [owner, frame] = key.split(":").map(Number);
     const [w, h] = frameSize(frame);
-    const m = entry(key)?.mask ?? null;
+    const e = entry(key);
+    const m = e?.mask ?? null;
     let mask = null;
     if (m) mask = M.isEmpty(m) ? { absent: true } : { counts: M.encodeRuns(m, w, h) };
-    changes.push({ type: "mask", query: owner, frame, mask });
+    changes.push({ type: "mask", query: owner, frame, mask, made_by: m ? e.madeBy ?? null : null });
   }
   for (const qid of qids) changes.push({ type: "intervals", query: qid, intervals: queryById(qid).intervals });
   return changes;
@@ -492,14 +589,14 @@ function noteActivity() {
 // ------------------------------------------------------------------------------------------
 // assisted segmentation and propagation
 // ------------------------------------------------------------------------------------------
-async function runSegment(key, frame, assist) {
+async function runSegment(key, frame, assist, assistBefore = null) {
   const [w, h] = frameSize(frame);
   const cur = entry(key)?.mask;
   const current = assist.clicks.length && cur && !M.isEmpty(cur) ? { counts: M.encodeRuns(cur, w, h) } : null;
   message("segmenting…");
   try {
     const res = await S.api.post("/api/segment", { frame, box: assist.box, clicks: assist.clicks, current });
-    setMask(key, M.decodeRuns(res.counts, w, h));
+    setMask(key, M.decodeRuns(res.counts, w, h), { assistBefore, how: assist.clicks.length ? "clicks" : "box" });
     message(`${res.segmenter}: ${(res.seconds * 1000).toFixed(0)} ms`);
   } catch (err) {
     message(`segmentation failed: ${err.message}`);
@@ -536,19 +633,51 @@ function acceptProposal() {
   if (!key) return;
   const p = S.proposals.get(key);
   if (!p) { message("no proposal on this frame"); return; }
-  setMask(key, p);
+  setMask(key, p, { how: "propagated" });
   S.proposals.delete(key);
   message("proposal accepted");
 }
 
+const AREA_JUMP = 1.5; // a proposal whose area changes more than this from its neighbour needs a look
+
+// Frames whose proposal's area jumps from the frame before it (the mask or proposal there), in
+// frame order: a proposal that bridged a gap or lost a part.
+function areaJumps(owner) {
+  const frames = [...S.proposals.keys()].filter((k) => k.startsWith(`${owner}:`))
+    .map((k) => Number(k.split(":")[1])).sort((a, b) => a - b);
+  const jumps = [];
+  for (const f of frames) {
+    const prev = S.proposals.get(keyOf(owner, f - 1)) || entry(keyOf(owner, f - 1))?.mask
+      || S.proposals.get(keyOf(owner, f + 1)) || entry(keyOf(owner, f + 1))?.mask;
+    const a = M.area(S.proposals.get(keyOf(owner, f)));
+    const b = prev ? M.area(prev) : 0;
+    if (a && b && Math.max(a, b) > AREA_JUMP * Math.min(a, b)) jumps.push({ frame: f, area: a, neighbour: b });
+  }
+  return jumps;
+}
+
+// "Accept all" stores every proposal of the selected query. When some proposal's area jumps, the
+// first press only lists those frames (the proposals stay shown hatched, to be looked at); a second
+// press with the same proposals accepts them.
 function acceptAll() {
   const owner = ownerOf(S.qid);
+  const jumps = areaJumps(owner);
+  const armed = jumps.map((j) => `${j.frame}:${j.area}`).join(",");
+  if (jumps.length && S.acceptAllArmed !== armed) {
+    S.acceptAllArmed = armed;
+    const list = jumps.slice(0, 6).map((j) => `frame ${j.frame + 1} (${j.area} px against ${j.neighbour})`).join(", ");
+    message(`area jumps: ${list}${jumps.length > 6 ? ", …" : ""}; look at them, then press Accept all again`);
+    $("#accept-all-btn").dataset.warned = "1";
+    return;
+  }
+  S.acceptAllArmed = null;
+  delete $("#accept-all-btn").dataset.warned;
   let n = 0;
   for (const [key, p] of [...S.proposals]) {
     if (!key.startsWith(`${owner}:`)) continue;
     const e = entry(key);
     if (e && e.mask) { S.proposals.delete(key); continue; } // annotated meanwhile: keep the annotation
-    setMask(key, p, { before: null });
+    setMask(key, p, { before: null, how: "propagated" });
     S.proposals.delete(key);
     n++;
   }
@@ -579,6 +708,13 @@ function cancelInteraction() {
 function onPointerDown(e) {
   noteActivity();
   view().focus();
+  if (e.button === 1) {  // middle button: pan the zoomed image
+    e.preventDefault();
+    const wrap = $("#canvas-wrap");
+    S.drag = { kind: "pan", x: e.clientX, y: e.clientY, left: wrap.scrollLeft, top: wrap.scrollTop };
+    view().setPointerCapture(e.pointerId);
+    return;
+  }
   const key = editableKey();
   if (!key) return;
   const p = imagePoint(e);
@@ -591,7 +727,7 @@ function onPointerDown(e) {
     const before = copyMask(entry(key)?.mask ?? null);
     const mask = entry(key)?.mask ? entry(key).mask.slice() : M.emptyMask(w, h);
     M.stampDisk(mask, w, h, p[0], p[1], S.brush, value);
-    S.store.set(key, { mask });
+    S.store.set(key, { mask, madeBy: entry(key)?.madeBy ?? null });
     S.drag = { kind: "stroke", last: p, value, before, key };
     S.overlayDirty = true;
     view().setPointerCapture(e.pointerId);
@@ -605,6 +741,12 @@ function onPointerDown(e) {
 function onPointerMove(e) {
   S.hover = imagePoint(e);
   const d = S.drag;
+  if (d && d.kind === "pan") {
+    const wrap = $("#canvas-wrap");
+    wrap.scrollLeft = d.left - (e.clientX - d.x);
+    wrap.scrollTop = d.top - (e.clientY - d.y);
+    return;
+  }
   if (d && d.kind === "box") d.end = S.hover;
   if (d && d.kind === "stroke") {
     const [w, h] = frameSize(S.cur);
@@ -619,18 +761,19 @@ function onPointerMove(e) {
 function onPointerUp(e) {
   const d = S.drag;
   S.drag = null;
-  if (!d) return;
+  if (!d || d.kind === "pan") return;
   if (d.kind === "stroke") {
     const after = entry(d.key).mask;
     if (d.before && M.equal(d.before, after)) { render(); return; }
     // one stroke = one undo step
-    setMask(d.key, after, { before: d.before });
+    setMask(d.key, after, { before: d.before, how: "drawn" });
     return;
   }
   if (d.kind === "box") {
     const [x0, y0] = d.start, [x1, y1] = d.end;
     const isBox = Math.abs(x1 - x0) > 3 && Math.abs(y1 - y0) > 3 && d.button === 0;
     let a = S.assist.get(d.key);
+    const assistBefore = a || null;
     if (isBox) {
       a = { box: [Math.min(x0, x1), Math.min(y0, y1), Math.max(x0, x1), Math.max(y0, y1)], clicks: [] };
     } else {
@@ -639,7 +782,7 @@ function onPointerUp(e) {
     }
     S.assist.set(d.key, a);
     render();
-    runSegment(d.key, S.cur, a);
+    runSegment(d.key, S.cur, a, assistBefore);
   }
 }
 
@@ -650,7 +793,7 @@ function closePolygon(subtract) {
   const mask = entry(key)?.mask ? entry(key).mask.slice() : M.emptyMask(w, h);
   M.fillPolygon(mask, w, h, S.polygon, subtract ? 0 : 1);
   S.polygon = [];
-  setMask(key, mask);
+  setMask(key, mask, { how: "drawn" });
 }
 
 // ------------------------------------------------------------------------------------------
@@ -709,12 +852,21 @@ function intervalKey(kind) {
   S.timeline.draw();
 }
 
+// keys that only move, select or switch modes: the ones left on in review mode
+const REVIEW_KEYS = /^(Arrow(Left|Right)|[.,]|Page(Up|Down)|Home|End|[nNvVqQoOzZ0-9]|Escape)$/;
+
 function onKey(e) {
   if (e.target.closest && e.target.closest("input, select, textarea") && e.target.type !== "range" && e.target.type !== "radio") return;
   noteActivity();
   const k = e.key;
   const ctrl = e.ctrlKey || e.metaKey;
   let handled = true;
+  if (!$("#review").hidden && (ctrl || !REVIEW_KEYS.test(k))) {
+    // review is for looking: a stray key must not edit the frame being reviewed
+    if (!["Shift", "Control", "Alt", "Meta"].includes(k)) message("review mode: editing keys are off (V to edit)");
+    e.preventDefault();
+    return;
+  }
   if (ctrl && (k === "z" || k === "Z")) undoRedo(e.shiftKey ? "redo" : "undo");
   else if (ctrl && (k === "y" || k === "Y")) undoRedo("redo");
   else if (ctrl) handled = false;
@@ -746,7 +898,10 @@ function onKey(e) {
   else if (k === "-") setBrush(S.brush - 1);
   else if (k === "=" || k === "+") setBrush(S.brush + 1);
   else if (k === "v" || k === "V") toggleReview();
-  else if (/^[1-9]$/.test(k)) { const q = S.queries[+k - 1]; if (q) selectQuery(q.id); }
+  else if (k === "z" || k === "Z") resetZoom();
+  else if (/^[0-9]$/.test(k)) { const q = S.queries[k === "0" ? 9 : +k - 1]; if (q) selectQuery(q.id); }
+  else if (k === "q" || k === "Q") cycleQuery(e.shiftKey ? -1 : 1);
+  else if (k === "o" || k === "O") { S.overlayAll = !S.overlayAll; S.overlayDirty = true; render(); }
   else handled = false;
   if (handled) e.preventDefault();
 }
@@ -901,9 +1056,11 @@ async function main() {
   $("#canvas-wrap").addEventListener("wheel", (e) => {
     if (!e.ctrlKey) return;
     e.preventDefault();
-    S.zoom = Math.max(1, Math.min(8, S.zoom * (e.deltaY < 0 ? 1.25 : 0.8)));
-    fitCanvas();
+    zoomAt(S.zoom * (e.deltaY < 0 ? 1.25 : 0.8), e.clientX, e.clientY);
   }, { passive: false });
+  // the canvas follows its frame's size, not the window's alone: the header or side bar changing
+  // height must not resize the image between frames
+  new ResizeObserver(() => fitCanvas()).observe($("#canvas-wrap"));
   window.addEventListener("keydown", onKey);
   window.addEventListener("resize", () => { fitCanvas(); S.timeline.draw(); });
   window.addEventListener("beforeunload", (e) => {

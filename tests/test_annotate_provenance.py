@@ -1,0 +1,85 @@
+"""How a mask was made, which frames a session offers, and the review's coverage checks (no HTTP)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from annotations.format import load_annotations
+from annotations.tool.review import review
+from annotations.tool.session import AnnotationSession, SessionConfig, mask_to_runs
+from annotations.tool.synthetic import rigid_sequence, write_dnerf_scene
+from benchmark.core.annotation import AnnotatedFrame, AnnotationSet, Query
+from benchmark.core.errors import InputError
+from benchmark.loaders import load_scene
+
+W, H = 96, 64
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """The same motion in a test and a train split, interleaved in time."""
+    seq = rigid_sequence(5, W, H, seed=1, travel_frac=0.2, radius_frac=0.2)
+    out = write_dnerf_scene(seq, tmp_path_factory.mktemp("two") / "two", split="test")
+    return load_scene(write_dnerf_scene(seq, out, split="train"))
+
+
+def _mask(x0=10, x1=40):
+    m = np.zeros((H, W), bool)
+    m[10:40, x0:x1] = True
+    return m
+
+
+def test_the_default_session_offers_the_scored_frames(scene, tmp_path):
+    s = AnnotationSession(scene, tmp_path / "a.json")
+    try:
+        assert [f.split for f in s.frames] == ["test"] * 5
+        assert "scored" in s.state()["frames_offered"]
+    finally:
+        s.close()
+
+
+def test_propagation_walks_the_offered_frames_across_splits(scene, tmp_path):
+    s = AnnotationSession(scene, tmp_path / "a.json", config=SessionConfig(split="all"))
+    try:
+        qid, rev = s.add_query(s.revision, "blob")
+        s.apply(rev, [{"type": "mask", "query": qid, "frame": 0, "mask": {"counts": mask_to_runs(_mask())}}])
+        out = s.propagate(qid, 0, 1, 3)
+        assert [p["frame"] for p in out["proposals"]] == [1, 2, 3]
+        assert [s.frames[i].split for i in (1, 2)] == ["train", "test"]
+    finally:
+        s.close()
+
+
+def test_made_by_is_kept_per_mask_forgotten_on_an_unsaid_edit_and_checked(scene, tmp_path):
+    path = tmp_path / "a.json"
+    s = AnnotationSession(scene, path, config=SessionConfig(annotator="simulated",
+                                                            protocol={"target_iou": 0.9}))
+    try:
+        qid, rev = s.add_query(s.revision, "blob")
+        change = {"type": "mask", "query": qid, "mask": {"counts": mask_to_runs(_mask())}}
+        rev = s.apply(rev, [{**change, "frame": 0, "made_by": "box"}, {**change, "frame": 1, "made_by": "propagated"}])
+        info = load_annotations(path).info
+        assert info["made_by"] == {str(qid): {s.frames[0].name: "box", s.frames[1].name: "propagated"}}
+        assert info["annotator"] == "simulated" and info["protocol"] == {"target_iou": 0.9}
+        rev = s.apply(rev, [{**change, "frame": 1}])  # edited by hand: no longer "propagated"
+        assert load_annotations(path).info["made_by"] == {str(qid): {s.frames[0].name: "box"}}
+        with pytest.raises(InputError, match="made_by"):
+            s.apply(rev, [{**change, "frame": 2, "made_by": "magic"}])
+        s.delete_query(rev, qid)
+        assert "made_by" not in load_annotations(path).info
+    finally:
+        s.close()
+
+
+def test_review_lists_unannotated_runs_and_area_jumps():
+    frames = [AnnotatedFrame(id=k + 1, name=f"f{k}", time_index=k, width=W, height=H) for k in range(6)]
+    aset = AnnotationSet(scene="s", frames=frames, queries=[Query(id=1, text="blob")], num_time_steps=6)
+    for k, mask in ((0, _mask()), (1, _mask()), (4, _mask(10, 90))):
+        aset.set_mask(1, k + 1, mask)
+    tool = [(k, f"f{k}", k, "test") for k in range(6)]
+    found = review(aset, tool)
+    gaps = [f for f in found if f["kind"] == "not-annotated"]
+    assert [(f["frame"], f["message"].split(" (")[0]) for f in gaps] == [(2, "2 frame(s)"), (5, "1 frame(s)")]
+    jumps = [f for f in found if f["kind"] == "area-jump"]
+    assert [f["frame"] for f in jumps] == [4]

@@ -1,0 +1,151 @@
+"""The simulated annotator: its clicks, its measurements, and what it leaves in the annotation file,
+through the tool's real server on a generated scene with exact truth."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from annotations.assist import GrabCutSegmenter, PromptedSamConfig, PromptedSamSegmenter
+from annotations.format import load_annotations
+from benchmark.commands.annotate_bench import tool_launcher
+from benchmark.studies import annotation_bench as bench
+from benchmark.synthetic import generate
+
+
+def test_the_click_goes_to_the_centre_of_the_largest_error_region():
+    truth = np.zeros((40, 60), bool)
+    truth[5:35, 5:45] = True
+    pred = truth.copy()
+    pred[5:35, 5:25] = False  # a missed region 30 tall, 20 wide: its centre line is x = 15
+    pred[36:39, 50:53] = True  # a small false region
+    x, y, label = bench.corrective_click(pred, truth)
+    assert label == 1 and 13 <= x <= 17 and 14 <= y <= 26
+    pred = truth.copy()
+    pred[0:40, 46:60] = True  # a false strip 40 x 14 touching the border, larger than any miss
+    pred[10:12, 10:12] = False
+    x, y, label = bench.corrective_click(pred, truth)
+    assert label == 0 and 50 <= x <= 56  # the border counts as the region's edge
+    assert bench.corrective_click(truth, truth) is None
+
+
+def test_noc_counts_interactions_to_the_threshold_and_caps():
+    log = bench.FrameLog("f", [0.7, 0.86, 0.88, 0.93], [0.0] * 4, "clicks")
+    assert log.noc(0.85, 20) == 2 and log.noc(0.90, 20) == 4 and log.noc(0.95, 20) == 20
+
+
+def test_boundary_error_is_the_worst_boundary_in_frames():
+    assert bench.boundary_error([(3, 10)], [(4, 10)]) == 1
+    assert bench.boundary_error([(3, 10), (20, 22)], [(3, 10), (20, 25)]) == 3
+    assert bench.boundary_error([(3, 10)], [(3, 10), (20, 25)]) is None
+
+
+def test_page_runs_round_trip():
+    rng = np.random.default_rng(0)
+    for shape in [(7, 5), (1, 1), (16, 9)]:
+        m = rng.random(shape) > 0.5
+        assert np.array_equal(bench.runs_to_mask(bench.mask_to_runs(m), *shape), m)
+
+
+class BoxPredictor:
+    """A tiny stand-in for SAM's predictor: the mask is the box, points set their pixel. Random
+    weights would measure nothing more; this keeps the SAM path of the tool exercised."""
+
+    def __init__(self):
+        self.features = self.original_size = self.input_size = None
+        self.is_image_set = False
+
+    def set_image(self, image):
+        import torch
+
+        self.features = torch.tensor(image.reshape(-1, 3).mean(0))
+        self.original_size = self.input_size = image.shape[:2]
+        self.is_image_set = True
+
+    def predict(self, point_coords=None, point_labels=None, box=None, multimask_output=False):
+        h, w = self.original_size
+        m = np.zeros((1, h, w), bool)
+        if box is not None:
+            x0, y0, x1, y1 = (int(v) for v in box)
+            m[0, y0:y1, x0:x1] = True
+        if point_coords is not None:
+            for (x, y), lbl in zip(point_coords, point_labels):
+                m[0, int(y), int(x)] = bool(lbl)
+        return m, np.ones(1), np.zeros((1, 256, 256))
+
+
+@pytest.fixture(scope="module")
+def smoke(tmp_path_factory):
+    base = tmp_path_factory.mktemp("bench")
+    scene_dir = generate("smoke", base / "smoke", size=48)
+    config = bench.BenchConfig(max_interactions=6, propagation_frames=5)
+    segmenters = {"grabcut": GrabCutSegmenter(),
+                  "sam": PromptedSamSegmenter(PromptedSamConfig(memory_cache=4), predictor=BoxPredictor())}
+    truth = bench.synthetic_truth(scene_dir)
+    result = bench.bench_scene(truth, tool_launcher(segmenters, config), base / "work", ["grabcut", "sam"], config)
+    return base, truth, config, result
+
+
+def test_the_bench_measures_both_backends_and_both_workflows(smoke):
+    base, truth, config, result = smoke
+    summary = bench.summarise([result], config)
+    rows = {r["backend"]: r for r in summary["rows"]}
+    assert set(rows) == {"grabcut", "sam"}
+    for r in rows.values():
+        assert r["frames"] > 0 and 1 <= r["noc90"] <= config.max_interactions
+        assert r["human_s_per_frame_every"] > 0 and r["human_s_per_frame_propagation"] > 0
+    # the box-only stand-in cannot follow the object's outline as GrabCut does
+    assert rows["grabcut"]["final_iou"] > rows["sam"]["final_iou"]
+    paths = bench.write([result], config, base / "report")
+    text = paths[1].read_text()
+    assert "NoC@90" in text and "Papadopoulos" in text and "smoke" in text
+
+
+def test_intervals_are_marked_within_one_frame_of_the_truth(smoke):
+    _, truth, _, result = smoke
+    sensitive = [q for q in truth.queries if q.kind == "sensitive"]
+    assert len(result["intervals"]) == len(sensitive) > 0
+    assert all(r["boundary_error"] is not None and r["boundary_error"] <= 1 for r in result["intervals"])
+
+
+def test_the_saved_masks_are_the_annotators_and_say_how_they_were_made(smoke):
+    base, truth, config, result = smoke
+    path = base / "work" / "smoke.every-frame.grabcut.json"
+    aset = load_annotations(path)
+    info = aset.info
+    assert info["annotator"] == "simulated" and info["protocol"]["target_iou"] == config.target_iou
+    logs = result["backends"]["grabcut"]["every_frame"]
+    for text, frames in logs.items():
+        q = aset.query(text)
+        made = info["made_by"][str(q.id)]
+        for f in frames:
+            mask = aset.get_mask(q.id, aset.frame(f["frame"]).id)
+            assert abs(bench.iou(mask, truth.mask(text, f["frame"])) - f["ious"][-1]) < 1e-3
+            assert made[f["frame"]] == f["made_by"]
+    # the file is still plain JSON the format reads; info.made_by is optional
+    doc = json.loads(path.read_text())
+    del doc["info"]["made_by"]
+    path.write_text(json.dumps(doc))
+    assert load_annotations(path).masks
+
+
+def test_propagation_curve_covers_the_asked_frames(smoke):
+    _, _, config, result = smoke
+    curve = result["propagation_curve"]
+    assert curve and all(len(c["ious"]) <= config.propagation_frames for c in curve)
+    assert max(c["ious"][0] for c in curve) > 0.8  # one frame on: the propagation follows the object
+
+
+def test_the_command_writes_the_report_and_refuses_unknown_backends(tmp_path, capsys):
+    from benchmark.cli import main
+
+    out = tmp_path / "report"
+    assert main(["annotate-bench", "--backends", "magic", "--presets", "none", "--dnerf", "", "--out", str(out)]) == 2
+    assert "--backends" in capsys.readouterr().err
+    assert main(["annotate-bench", "--presets", "smoke", "--size", "48", "--dnerf", "", "--work", str(tmp_path / "w"),
+                 "--out", str(out)]) == 0
+    doc = json.loads((out / "annotation_bench.json").read_text())
+    assert [r["scene"] for r in doc["scenes"]] == ["smoke"] and doc["human_seconds"]["box"] == bench.BOX_SECONDS
+    assert "| smoke | grabcut |" in (out / "annotation_bench.md").read_text()
