@@ -33,9 +33,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "cache": ("cache", "what the cache folder holds; prune leftovers of interrupted runs or unreferenced fits"),
     "ablate": ("ablate", "analyses: protocol ceiling, rescore under another protocol, gap, autoencoder, states (K), "
                          "delta-sim (caption prompts), decisions, speed, query-speed"),
+    "stress": ("stress", "the stress suite: perturbation families x strengths x methods x seeds, breaking points"),
 }
 
-RECORDING_COMMANDS = frozenset({"eval", "run-all", "recon", "ablate", "demo"})
+RECORDING_COMMANDS = frozenset({"eval", "run-all", "recon", "ablate", "demo", "stress"})
 """Commands whose outputs record the git state of the code that produced them."""
 
 

@@ -382,8 +382,11 @@ def test_head_scores_inside_the_chosen_spatial_mask(world, status_field, tmp_pat
         _scores(world, status_field, "box open", [frame])[0], abs=1e-6)
     assert np.isnan(head.score("box open", frame, spatial, unfiltered))  # the release's mask is empty here
     head.save(tmp_path)
-    again = StatusHead.load(tmp_path, model=SimpleNamespace(geometry=world.geometry, text_encoder=world.encoder),
-                            device="cpu")
+    from methods.specs._time_varying import CaptionConfig
+
+    model = SimpleNamespace(geometry=world.geometry, text_encoder=world.encoder,
+                            config=SimpleNamespace(captions=CaptionConfig()))
+    again = StatusHead.load(tmp_path, model=model, device="cpu")
     assert again.score("box open", frame, spatial, filtered) == pytest.approx(
         head.score("box open", frame, spatial, filtered), abs=1e-6)
 

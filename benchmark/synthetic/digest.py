@@ -145,5 +145,5 @@ def scene_version(root: str | Path) -> Optional[dict[str, Any]]:
     digest = scene_digest(root)
     expected = expected_digest(preset, size, seed) if preset and size else None
     return {"preset": preset, "size": size, "seed": seed, "generator_version": meta.get("generator_version"),
-            "digest": digest, "committed_digest": expected,
+            "digest": digest, "committed_digest": expected, "perturbation": meta.get("perturbation"),
             "current": None if expected is None else digest == expected}

@@ -26,6 +26,7 @@ from benchmark.core.errors import InputError
 from . import layouts
 from .gt import build_annotations
 from .model import Catalogue, FrameContext
+from .perturb import parse as parse_perturbation
 from .presets import PRESETS, PresetSpec
 from .render import SurfaceLayer, background_instances, instances, render, surfaces
 from benchmark.core.truth import TRUTH_DIR, TruthFrame, save_levels, write_truth
@@ -100,7 +101,7 @@ def preset_rng(preset: str, seed: int) -> np.random.Generator:
 
 def generate(preset: str, out_dir: str | Path, *, size: Optional[int] = None, frames: Optional[int] = None,
              views: Optional[int] = None, layout: Optional[str] = None, seed: int = 0, overwrite: bool = False,
-             shadows: bool = True) -> Path:
+             shadows: bool = True, perturbation=None) -> Path:
     """Render preset ``preset`` into ``out_dir`` and return the folder.
 
     ``size`` is the image width in pixels (default: the preset's, 128); ``frames`` the video length;
@@ -108,20 +109,27 @@ def generate(preset: str, out_dir: str | Path, *, size: Optional[int] = None, fr
     (default: the preset's). The same arguments and ``seed`` give identical files, on any x86-64 CPU with
     AVX2: where numpy's BLAS runs other kernels than the committed scene versions were made with, the
     scene is rendered in a child process that runs theirs (:mod:`benchmark.core.openblas`).
+    ``perturbation``: a stress-suite knob ``(family, strength)`` applied to the preset
+    (:mod:`benchmark.synthetic.perturb`; strength 0 is the clean scene).
     """
+    perturbation = parse_perturbation(perturbation)
     spec, size, frames, views, layout = resolve_settings(preset, size, frames, views, layout)
     out = Path(out_dir)
     _check_target(out, overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
     if openblas.generation_needs_pinned_process():
         _generate_in_pinned_process(dict(preset=preset, out_dir=str(out), size=size, frames=frames, views=views,
-                                         layout=layout, seed=int(seed), overwrite=overwrite, shadows=shadows))
+                                         layout=layout, seed=int(seed), overwrite=overwrite, shadows=shadows,
+                                         perturbation=None if perturbation is None else
+                                         [perturbation.family, perturbation.strength]))
         return out
 
     rng = preset_rng(preset, seed)
     scene = spec.build(rng, frames)
-    catalogue = Catalogue.build(scene.wholes)
     records = layouts.plan(layout, scene, size, frames, views, rng)
+    if perturbation is not None:
+        scene, records = perturbation.apply(scene, records, seed)
+    catalogue = Catalogue.build(scene.wholes)
     by_time: dict[int, list[layouts.FrameRecord]] = defaultdict(list)
     for rec in records:
         by_time[rec.time_index].append(rec)
@@ -158,6 +166,8 @@ def generate(preset: str, out_dir: str | Path, *, size: Optional[int] = None, fr
         near_far = {cam: (lo * NEAR_FAR_MARGIN[0], hi * NEAR_FAR_MARGIN[1]) for cam, (lo, hi) in depth_range.items()}
         info = {"generator": GENERATOR, "generator_version": GENERATOR_VERSION, "preset": preset, "seed": int(seed),
                 "size": size, "num_views": views, "time_sensitive": spec.time_sensitive}
+        if perturbation is not None and not perturbation.is_clean:
+            info["perturbation"] = perturbation.describe()  # in the truth too: the digest names it
         all_near = min(v[0] for v in near_far.values())
         all_far = max(v[1] for v in near_far.values())
         layouts.write_metadata(staging, layout, records, near_far, frames,

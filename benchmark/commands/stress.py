@@ -1,0 +1,91 @@
+"""``bench4d stress``: the stress suite (where methods fail), written to ``reports/stability/``.
+
+    bench4d stress [--preset smoke] [--size 48] [--frames 16] [--methods M ...] [--families F ...]
+                   [--strengths S ...] [--seeds 0 1] [--schedule short] [--set [METHOD:]KEY=VALUE ...]
+
+Families x strengths x methods x seeds (:mod:`benchmark.studies.stress`); a run whose results file
+exists is read, not redone (``--force`` redoes it), so an interrupted suite resumes. ``--report-only``
+writes the charts, galleries and tables from the runs present.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from benchmark.core.errors import InputError
+from ._common import add_threads_argument, check_device, parse_overrides, set_threads
+
+SHORT_SCHEDULES: dict[str, dict[str, str]] = {
+    "langsplat": {"geometry.static_iterations": "300", "geometry.deformation_iterations": "300",
+                  "autoencoder.min_steps": "1500", "autoencoder.max_steps": "2000", "field.iterations": "400"},
+    "4d-langsplat": {"geometry.static_iterations": "300", "geometry.deformation_iterations": "300",
+                     "autoencoder.min_steps": "1500", "autoencoder.max_steps": "2000", "field.iterations": "400",
+                     "caption_autoencoder.min_steps": "1500", "caption_autoencoder.max_steps": "2000",
+                     "status.static_iterations": "100", "status.iterations": "800"},
+}
+"""``--schedule short``: option overrides per method that make a CPU suite finish (geometry, autoencoder
+and field steps cut about fivefold)."""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from benchmark.synthetic.perturb import FAMILIES
+
+    parser.add_argument("--preset", default="smoke", help="base preset every perturbation is applied to")
+    parser.add_argument("--size", type=int, default=48, help="image width of the generated scenes")
+    parser.add_argument("--frames", type=int, default=16, help="video length of the generated scenes")
+    parser.add_argument("--methods", nargs="+", default=["nearest-frame", "langsplat"])
+    parser.add_argument("--families", nargs="+", default=list(FAMILIES), metavar="FAMILY",
+                        help=f"perturbation families (default: all: {', '.join(FAMILIES)})")
+    parser.add_argument("--strengths", nargs="+", type=float, default=None,
+                        help="strengths of every family (default: each family's own; 0 is always run)")
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1])
+    parser.add_argument("--schedule", choices=("short", "default"), default="short",
+                        help="short: the methods' step counts cut for a CPU suite (SHORT_SCHEDULES); default: "
+                             "the methods' own")
+    parser.add_argument("--set", action="append", default=[], metavar="[METHOD:]KEY=VALUE",
+                        help="a method option by its dotted path, for METHOD only or every method (repeatable)")
+    parser.add_argument("--out-dir", type=Path, default=Path("reports/stability"))
+    parser.add_argument("--cache-dir", type=Path, default=Path("cache"),
+                        help="generated scenes, fits and the suite's results files (<cache>/stress/...)")
+    parser.add_argument("--device", default="cpu", help="cpu or cuda[:N]")
+    parser.add_argument("--force", action="store_true", help="rerun even where a results file exists")
+    parser.add_argument("--report-only", action="store_true", help="write the reports from the runs present")
+    add_threads_argument(parser)
+
+
+def method_options(methods: list[str], schedule: str, items: list[str]) -> dict[str, dict[str, str]]:
+    """Method -> option overrides: the schedule's, then ``--set`` (``METHOD:KEY=VALUE`` for one method)."""
+    out = {m: dict(SHORT_SCHEDULES.get(m, {})) if schedule == "short" else {} for m in methods}
+    for item in items:
+        scope, sep, rest = item.partition(":")
+        if sep and "=" not in scope:
+            if scope not in out:
+                raise InputError(None, "--set", f"{scope!r} is not one of --methods {methods}")
+            out[scope].update(parse_overrides([rest]))
+        else:
+            for m in methods:
+                out[m].update(parse_overrides([item]))
+    return {m: o for m, o in out.items() if o}
+
+
+def run(args: argparse.Namespace) -> int:
+    from benchmark.studies import stress, stress_plots
+    from benchmark.synthetic.perturb import family
+
+    for name in args.families:
+        family(name)
+    check_device(args.device)
+    set_threads(args.threads)
+    config = stress.SuiteConfig(
+        preset=args.preset, size=args.size, frames=args.frames, methods=tuple(args.methods),
+        families=tuple(args.families), strengths=None if args.strengths is None else tuple(args.strengths),
+        seeds=tuple(args.seeds), method_options=method_options(args.methods, args.schedule, args.set),
+        out_dir=args.out_dir, cache_dir=args.cache_dir, device=args.device, force=args.force)
+    start = time.perf_counter()
+    scores = stress.collect(config) if args.report_only else stress.run_suite(config)
+    wall = None if args.report_only else time.perf_counter() - start
+    for path in stress_plots.write_reports(config, scores, wall_seconds=wall):
+        print(path)
+    return 0

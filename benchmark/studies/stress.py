@@ -1,0 +1,440 @@
+"""The stress suite: where methods fail. Families x strengths x methods x seeds on one base preset.
+
+Every run is an ordinary evaluation (:mod:`benchmark.runner`), written as a results file under
+``<runs>/<family>/<strength>/`` (the clean runs, strength 0 of every family, once under
+``<runs>/clean/``); a run whose results file exists is read, not redone, so the suite resumes where
+it stopped. Scene-side families are generated scenes (:mod:`benchmark.synthetic.perturb`); the
+supervision-side families put noise on what the oracle track gives a method, here, so no method
+changes:
+
+* ``mask-erode`` / ``mask-dilate``: every mask of every level shrinks or grows by a radius (pixels at
+  48 px, scaled with the image width); a dilated mask grows only into pixels no mask covers;
+* ``mask-id-swap``: in a share of the training frames the masks' features are shuffled (each mask
+  carries the label of another);
+* ``mask-drop``: a share of the masks is removed (their pixels carry no mask);
+* ``caption-swap``: a share of the template captions is replaced by a caption the same object had in
+  another state (methods with a ``captions`` group, fed through the ``file`` captioner);
+* ``query-paraphrase``: a share of the queries is put to the model in other words (a synonym of the
+  object, a caption of the state) and scored against the query's ground truth.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+import zlib
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Callable, Optional, Sequence
+
+import numpy as np
+
+from benchmark.core.atomic import read_json
+from benchmark.core.errors import InputError
+from benchmark.synthetic.perturb import FAMILIES, family
+
+METRICS = ("mIoU", "Acc", "vIoU")
+"""Scores the suite charts and breaks down (higher is better)."""
+REFERENCE_WIDTH = 48
+"""Image width the mask-noise radii are given at."""
+CLEAN = "clean"
+
+
+@dataclass
+class SuiteConfig:
+    """One stress suite."""
+
+    preset: str = "smoke"
+    """Base preset every perturbation is applied to."""
+    size: int = 48
+    """Image width of the generated scenes."""
+    frames: int = 16
+    """Video length of the generated scenes."""
+    methods: tuple[str, ...] = ("nearest-frame", "langsplat")
+    families: tuple[str, ...] = tuple(FAMILIES)
+    strengths: Optional[tuple[float, ...]] = None
+    """Strengths run for every family (None: each family's own, :data:`FAMILIES`)."""
+    seeds: tuple[int, ...] = (0, 1)
+    """Seeds of the fits (and of the supervision noise)."""
+    method_options: dict[str, dict[str, str]] = field(default_factory=dict)
+    """Method -> dotted config overrides (short schedules)."""
+    out_dir: Path = Path("reports/stability")
+    """Where the tables, charts and galleries go."""
+    cache_dir: Path = Path("cache")
+    device: str = "cpu"
+    force: bool = False
+    """Run again where a results file exists."""
+
+    @property
+    def stress_dir(self) -> Path:
+        return Path(self.cache_dir) / "stress" / f"{self.preset}-{self.size}px-{self.frames}f"
+
+    @property
+    def runs_dir(self) -> Path:
+        return self.stress_dir / "runs"
+
+    def strengths_of(self, name: str) -> tuple[float, ...]:
+        chosen = self.strengths if self.strengths is not None else family(name).strengths
+        return tuple(sorted({0.0, *map(float, chosen)}))
+
+
+@dataclass(frozen=True)
+class RunKey:
+    """One cell of the suite."""
+
+    family: str
+    strength: float
+    method: str
+    seed: int
+
+    @property
+    def clean(self) -> bool:
+        return self.strength == 0
+
+    def folder(self, runs: Path) -> Path:
+        return runs / CLEAN if self.clean else runs / self.family / strength_label(self.strength)
+
+
+def strength_label(strength: float) -> str:
+    return f"{strength:g}"
+
+
+# -- scenes ---------------------------------------------------------------------------------------------
+def scene_folder(config: SuiteConfig, family_name: str, strength: float) -> Path:
+    """The generated scene a run of (family, strength) reads (the clean scene for supervision families)."""
+    from benchmark.synthetic.generate import generate
+
+    scene_side = strength != 0 and family(family_name).side == "scene"
+    name = f"{config.preset}-{family_name}-{strength_label(strength)}" if scene_side else f"{config.preset}-clean"
+    folder = config.stress_dir / "scenes" / name
+    if not (folder / "annotations.json").is_file():
+        generate(config.preset, folder, size=config.size, frames=config.frames, seed=0, overwrite=True,
+                 perturbation=(family_name, strength) if scene_side else None)
+    return folder
+
+
+# -- supervision noise ----------------------------------------------------------------------------------
+def _noise_rng(family_name: str, strength: float, seed: int, frame: str = "") -> np.random.Generator:
+    return np.random.default_rng([int(seed), zlib.crc32(family_name.encode()), int(round(strength * 1e6)),
+                                  zlib.crc32(frame.encode())])
+
+
+def _disk(radius: int) -> np.ndarray:
+    import cv2
+
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+
+
+def erode_levels(levels: np.ndarray, radius: int) -> np.ndarray:
+    """(3, H, W) mask indices with every mask eroded by ``radius`` pixels (removed pixels: -1)."""
+    import cv2
+
+    out = levels.copy()
+    if radius <= 0:
+        return out
+    kernel = _disk(radius)
+    for lv in range(levels.shape[0]):
+        for index in np.unique(levels[lv][levels[lv] >= 0]):
+            mask = (levels[lv] == index).astype(np.uint8)
+            out[lv][(mask > 0) & (cv2.erode(mask, kernel, borderType=cv2.BORDER_REPLICATE) == 0)] = -1
+    return out
+
+
+def dilate_levels(levels: np.ndarray, radius: int) -> np.ndarray:
+    """(3, H, W) mask indices with every mask grown by ``radius`` pixels into pixels no mask covers
+    (where two masks reach one pixel, the lower index takes it)."""
+    import cv2
+
+    out = levels.copy()
+    if radius <= 0:
+        return out
+    kernel = _disk(radius)
+    for lv in range(levels.shape[0]):
+        for index in np.unique(levels[lv][levels[lv] >= 0]):
+            grown = cv2.dilate((levels[lv] == index).astype(np.uint8), kernel) > 0
+            out[lv][grown & (out[lv] < 0)] = index
+    return out
+
+
+def drop_masks(levels: np.ndarray, share: float, rng: np.random.Generator) -> np.ndarray:
+    """(3, H, W) mask indices with each mask removed (its pixels -1) with probability ``share``."""
+    out = levels.copy()
+    for lv in range(levels.shape[0]):
+        for index in np.unique(levels[lv][levels[lv] >= 0]):
+            if rng.random() < share:
+                out[lv][levels[lv] == index] = -1
+    return out
+
+
+def shuffle_features(features: tuple, rng: np.random.Generator) -> tuple:
+    """Per level, the mask features moved round a random cycle: every mask (of two or more) carries the
+    feature of another."""
+    out = []
+    for feats in features:
+        cycle = rng.permutation(feats.shape[0])
+        source = np.empty_like(cycle)
+        source[cycle] = np.roll(cycle, -1)
+        out.append(feats[source])
+    return tuple(out)
+
+
+def noisy_frame(frame, family_name: str, strength: float, seed: int, width: int):
+    """One :class:`methods.supervision.base.FrameSupervision` with the family's noise."""
+    rng = _noise_rng(family_name, strength, seed, frame.name)
+    radius = int(round(strength * width / REFERENCE_WIDTH))
+    if family_name == "mask-erode":
+        return replace(frame, levels=erode_levels(frame.levels, radius))
+    if family_name == "mask-dilate":
+        return replace(frame, levels=dilate_levels(frame.levels, radius))
+    if family_name == "mask-drop":
+        return replace(frame, levels=drop_masks(frame.levels, strength, rng))
+    if family_name == "mask-id-swap":
+        return replace(frame, features=shuffle_features(frame.features, rng)) if rng.random() < strength else frame
+    raise InputError(None, "family", f"{family_name!r} is no mask-noise family")
+
+
+MASK_FAMILIES = ("mask-erode", "mask-dilate", "mask-id-swap", "mask-drop")
+
+
+def noisy_supervision(supervision, family_name: str, strength: float, seed: int):
+    """``supervision`` with the family's noise on every training frame, under a fingerprint of its own
+    (fits on it are cached apart from the clean ones). Strength 0 returns it as it is."""
+    if strength == 0:
+        return supervision
+    width = max(int(f.levels.shape[-1]) for f in supervision.frames)
+    frames = [noisy_frame(f, family_name, strength, seed, width) for f in supervision.frames]
+    tag = f"{supervision.fingerprint}|{family_name}|{strength!r}|{seed}"
+    return replace(supervision, frames=frames, fingerprint=hashlib.sha256(tag.encode()).hexdigest()[:24])
+
+
+# -- caption noise ----------------------------------------------------------------------------------------
+def _state_signature(truth, stateful: list[str], time_index: int) -> tuple:
+    return tuple(truth.state_at(name, time_index)["state"] for name in stateful)
+
+
+def swapped_captions(scene, share: float, seed: int, captions_seed: int = 0):
+    """(captions, tracks): the template captioner's captions of ``scene`` with a ``share`` of them (per
+    frame and object, drawn with ``seed``) replaced by a caption the object had in another state."""
+    from methods.captioners import get_captioner
+    from methods.captioners.base import caption_objects
+    from methods.captioners.tracks import truth_tracks, whole_of
+    from methods.supervision.truth_access import open_truth
+
+    tracks = truth_tracks(scene)
+    captions = caption_objects(get_captioner("template", scene, seed=captions_seed), scene, tracks)
+    truth = open_truth(scene)
+    stateful: dict[int, list[str]] = {}
+    for name in truth.stateful_objects:
+        level, ids = truth.ids_named(name)
+        for id_ in ids:
+            stateful.setdefault(whole_of(truth, level, id_), []).append(name)
+    time_of = {f.name: f.time_index for f in scene.frames}
+    frames = dict(captions.frames)
+    for (frame, obj), text in sorted(captions.frames.items()):
+        names = stateful.get(obj)
+        rng = _noise_rng("caption-swap", share, seed, f"{frame}|{obj}")
+        if not names or rng.random() >= share:
+            continue
+        own = _state_signature(truth, names, time_of[frame])
+        others = sorted(f for (f, o) in captions.frames if o == obj
+                        and _state_signature(truth, names, time_of[f]) != own)
+        if others:
+            frames[(frame, obj)] = captions.frames[(others[int(rng.integers(len(others)))], obj)]
+    return replace(captions, frames=frames), tracks
+
+
+def caption_options(config: SuiteConfig, key: RunKey, scene_root: Path) -> dict[str, str]:
+    """The method options that feed a run of ``caption-swap`` its noisy captions (a captions file)."""
+    from benchmark.loaders import load_scene
+    from methods.captioners.file import write_captions_file
+
+    path = config.stress_dir / "captions" / f"swap-{strength_label(key.strength)}-seed{key.seed}.json"
+    if not path.is_file():
+        captions, tracks = swapped_captions(load_scene(scene_root), key.strength, key.seed)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_captions_file(path, captions, tracks, overwrite=True)
+    return {"captions.captioner": "file", "captions.file": str(path.resolve()), "captions.object_tracks": "truth"}
+
+
+def reads_captions(method: str) -> bool:
+    """Whether ``method``'s config has a ``captions`` group (a method fitted on captions)."""
+    from methods import registry
+
+    return hasattr(registry.get(method).make_config({}), "captions")
+
+
+# -- query wording ----------------------------------------------------------------------------------------
+def paraphrases(root: Path, aset) -> dict[str, list[str]]:
+    """Query text -> other words for it: an object's synonyms, a state's captions."""
+    from benchmark.core.truth import load_truth
+
+    truth = load_truth(root)
+    out: dict[str, list[str]] = {}
+    for query in aset.queries:
+        if query.kind == "agnostic":
+            level, ids = truth.ids_named(query.text)
+            out[query.text] = sorted({s for id_ in ids for s in truth.synonyms(level, id_)} - {query.text})
+    for timeline in truth.timelines(allow_eval=True):  # wording only: the captions, not the intervals
+        for state in timeline["states"]:
+            out[state["phrase"]] = [c for c in state["captions"] if c != state["phrase"]]
+    return out
+
+
+def reworded_queries(root: Path, aset, share: float, seed: int) -> dict[str, str]:
+    """Query text -> the words it is asked in, for a ``share`` of the queries (drawn with ``seed``)."""
+    options = paraphrases(root, aset)
+    out = {}
+    for query in aset.queries:
+        rng = _noise_rng("query-paraphrase", share, seed, query.text)
+        words = options.get(query.text) or []
+        if words and rng.random() < share:
+            out[query.text] = words[int(rng.integers(len(words)))]
+    return out
+
+
+class RewordedModel:
+    """A fitted model asked its queries in other words (answers are scored as the original query's)."""
+
+    def __init__(self, model, wording: dict[str, str]) -> None:
+        self._model = model
+        self._wording = dict(wording)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._model, name)
+
+    def prepare(self, texts: Sequence[str]) -> None:
+        if hasattr(self._model, "prepare"):
+            self._model.prepare([self._wording.get(t, t) for t in texts])
+
+    def query_agnostic(self, text: str, frames):
+        return self._model.query_agnostic(self._wording.get(text, text), frames)
+
+    def query_sensitive(self, text: str, frames):
+        return self._model.query_sensitive(self._wording.get(text, text), frames)
+
+
+# -- runs ---------------------------------------------------------------------------------------------------
+def run_keys(config: SuiteConfig) -> list[RunKey]:
+    """Every run of the suite, clean runs once, in the order they are run (cheap families first)."""
+    keys: list[RunKey] = []
+    seen: set = set()
+    for method in config.methods:
+        for seed in config.seeds:
+            for fam in config.families:
+                for strength in config.strengths_of(fam):
+                    key = RunKey(CLEAN if strength == 0 else fam, strength, method, seed)
+                    if key not in seen:
+                        seen.add(key)
+                        keys.append(key)
+    return keys
+
+
+def applies(key: RunKey) -> bool:
+    """Whether the family changes anything for the method (caption noise needs a captioned method)."""
+    return key.clean or key.family != "caption-swap" or reads_captions(key.method)
+
+
+def results_file(config: SuiteConfig, key: RunKey) -> Optional[Path]:
+    """The run's results file, if it was written."""
+    found = sorted(key.folder(config.runs_dir).glob(f"*/*/{key.method}/oracle/seed{key.seed}.json"))
+    return found[0] if found else None
+
+
+def run_one(config: SuiteConfig, key: RunKey, log: Callable[[str], None] = print) -> Optional[Path]:
+    """The run's results file: read where it exists (unless ``force``), else the run is made."""
+    if not applies(key):
+        return None
+    existing = results_file(config, key)
+    if existing is not None and not config.force:
+        return existing
+    from benchmark.runner import EvalOptions, answer_queries, obtain_fit, prepare_run, score_and_write
+
+    start = time.perf_counter()
+    root = scene_folder(config, key.family, key.strength)
+    options = dict(config.method_options.get(key.method, {}))
+    if key.family == "caption-swap" and not key.clean:
+        options.update(caption_options(config, key, root))
+    prepared = prepare_run(EvalOptions(
+        method=key.method, scene=str(root), seed=key.seed, results_dir=key.folder(config.runs_dir),
+        cache_dir=Path(config.cache_dir), device=config.device, method_options=options, quiet=True,
+        timing_frames=1, timing_repeats=1, refit=config.force))
+    if key.family in MASK_FAMILIES:
+        prepared.supervision = noisy_supervision(prepared.supervision, key.family, key.strength, key.seed)
+    fit = obtain_fit(prepared)
+    model = fit.model
+    if key.family == "query-paraphrase" and not key.clean:
+        model = RewordedModel(model, reworded_queries(prepared.root, prepared.annotations, key.strength, key.seed))
+    outcome = score_and_write(prepared, fit, answer_queries(prepared, model))
+    log(f"{key.method} {key.family} {strength_label(key.strength)} seed{key.seed}: "
+        + ", ".join(f"{m} {outcome.results['metrics'].get(m, float('nan')) or 0:.1f}" for m in METRICS)
+        + f" ({time.perf_counter() - start:.0f} s)")
+    return outcome.path
+
+
+# -- collected scores ----------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Score:
+    """One run's scores."""
+
+    family: str
+    strength: float
+    method: str
+    seed: int
+    metrics: dict
+    """Metric name -> value (None where the scene has no query of that kind)."""
+    path: Path
+    """Its results file."""
+    wall_seconds: float
+
+
+def collect(config: SuiteConfig) -> list[Score]:
+    """The scores of every run of the suite that has a results file, the clean runs under every family."""
+    out = []
+    for method in config.methods:
+        for seed in config.seeds:
+            for fam in config.families:
+                for strength in config.strengths_of(fam):
+                    key = RunKey(CLEAN if strength == 0 else fam, strength, method, seed)
+                    if not applies(RunKey(fam, strength, method, seed)):
+                        continue
+                    path = results_file(config, key)
+                    if path is None:
+                        continue
+                    doc = read_json(path)
+                    out.append(Score(fam, strength, method, seed, {m: doc["metrics"].get(m) for m in METRICS},
+                                     path, float(doc.get("wall_seconds") or 0.0)))
+    return out
+
+
+def mean_by_strength(scores: Sequence[Score], fam: str, method: str, metric: str) -> dict[float, list[float]]:
+    """Strength -> the seeds' values of ``metric`` (runs without a value left out)."""
+    out: dict[float, list[float]] = {}
+    for s in scores:
+        value = s.metrics.get(metric)
+        if s.family == fam and s.method == method and value is not None:
+            out.setdefault(s.strength, []).append(float(value))
+    return dict(sorted(out.items()))
+
+
+def breaking_point(values: dict[float, list[float]]) -> Optional[float]:
+    """The first strength whose mean score falls below half the clean (strength 0) mean; None if none
+    does (or there is no clean score)."""
+    if 0.0 not in values or not values[0.0]:
+        return None
+    clean = float(np.mean(values[0.0]))
+    for strength, seeds in values.items():
+        if strength > 0 and seeds and float(np.mean(seeds)) < 0.5 * clean:
+            return strength
+    return None
+
+
+def run_suite(config: SuiteConfig, log: Callable[[str], None] = print) -> list[Score]:
+    """Run (or read) every run of the suite, then return the scores."""
+    keys = run_keys(config)
+    for k, key in enumerate(keys, start=1):
+        if not applies(key):
+            continue
+        if results_file(config, key) is None or config.force:
+            log(f"[{k}/{len(keys)}] {key.method} {key.family} {strength_label(key.strength)} seed{key.seed}")
+        run_one(config, key, log)
+    return collect(config)

@@ -1,0 +1,297 @@
+"""What the stress suite writes: per family a chart of each metric against strength (one line per
+method, its seed band shaded), the breaking-point table, a failure gallery per family, and the README
+that ties them together (``reports/stability/``).
+
+A gallery shows, at the family's strongest strength run, the whole-object queries and frames where
+the methods did worst: the frame, the ground truth, and each method's mask (with its IoU); below, the
+timeline of the first time-sensitive query: its ground truth and each method's decision per frame.
+"""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+from benchmark.core.atomic import read_json, write_bytes, write_text
+from benchmark.synthetic.perturb import FAMILIES
+from ._report import markdown_table, number_cell
+from .stress import METRICS, Score, SuiteConfig, breaking_point, mean_by_strength, strength_label
+
+GALLERY_FRAMES = 3
+"""(query, frame) pairs a gallery shows."""
+DPI = 72
+"""Resolution of the PNGs (kept small: the charts are committed)."""
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save_png(fig, path: Path) -> Path:
+    plt = _pyplot()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=DPI, bbox_inches="tight", metadata={"Software": None})
+    plt.close(fig)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_bytes(path, buffer.getvalue())
+    return path
+
+
+def family_chart(scores: Sequence[Score], fam: str, methods: Sequence[str], path: Path) -> Optional[Path]:
+    """One panel per metric: the seeds' mean against strength per method, the seeds' range shaded."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, len(METRICS), figsize=(3.2 * len(METRICS), 2.6), squeeze=False)
+    drawn = False
+    for ax, metric in zip(axes[0], METRICS):
+        for method in methods:
+            values = mean_by_strength(scores, fam, method, metric)
+            if not values:
+                continue
+            x = np.array(list(values))
+            ax.plot(x, [np.mean(v) for v in values.values()], marker="o", ms=3, label=method)
+            ax.fill_between(x, [min(v) for v in values.values()], [max(v) for v in values.values()], alpha=0.2)
+            drawn = True
+        ax.set_title(metric, fontsize=9)
+        ax.set_xlabel(FAMILIES[fam].unit, fontsize=7)
+        ax.tick_params(labelsize=7)
+        ax.set_ylim(0, 100)
+    if not drawn:
+        plt.close(fig)
+        return None
+    axes[0][0].legend(fontsize=7)
+    fig.suptitle(fam, fontsize=10, y=1.05)
+    return _save_png(fig, path)
+
+
+def breaking_rows(scores: Sequence[Score], families: Sequence[str], methods: Sequence[str],
+                  metrics: Sequence[str] = ("mIoU", "Acc")) -> tuple[list[str], list[list[str]]]:
+    """The breaking-point table: per family, per method and metric, the strength at which the seeds'
+    mean falls below half the clean mean (``≤ s`` when weaker strengths were not run, ``> s`` when it
+    holds up to the strongest ``s`` run, ``–`` when there is no clean score or no run past it)."""
+    header = ["family", "unit"] + [f"{m} {metric}" for m in methods for metric in metrics]
+    rows = []
+    for fam in families:
+        row = [fam, FAMILIES[fam].unit]
+        for method in methods:
+            for metric in metrics:
+                values = mean_by_strength(scores, fam, method, metric)
+                point = breaking_point(values)
+                strongest = max((s for s in values if s > 0), default=None)
+                if point is not None:
+                    # strengths below it that were not run: it breaks there or earlier
+                    skipped = any(0 < s < point and s not in values for s in FAMILIES[fam].strengths)
+                    row.append(("≤ " if skipped else "") + strength_label(point))
+                elif strongest is None or not values.get(0.0) or float(np.mean(values[0.0])) == 0:
+                    row.append("–")
+                else:
+                    row.append(f"> {strength_label(strongest)}")
+        rows.append(row)
+    return header, rows
+
+
+def _overlay(image: np.ndarray, mask: np.ndarray, color=(1.0, 0.2, 0.2)) -> np.ndarray:
+    out = np.asarray(image, dtype=np.float32)[..., :3].copy()
+    out[mask] = 0.45 * out[mask] + 0.55 * np.asarray(color, dtype=np.float32)
+    return out
+
+
+def _frame_rows(doc: dict) -> list[dict]:
+    frames = doc["scores"]["frames"]
+    return [dict(zip(frames["columns"], r)) for r in frames["rows"]]
+
+
+def _worst_pairs(docs: dict[str, dict], aset) -> list[tuple[str, str]]:
+    """The (query, frame) pairs of whole-object queries with ground truth where the methods' mean IoU is
+    lowest."""
+    wholes = {q.text for q in aset.queries if q.kind == "agnostic" and q.level == "whole"}
+    ious: dict[tuple[str, str], list[float]] = {}
+    for doc in docs.values():
+        for row in _frame_rows(doc):
+            if row["query"] in wholes and row["gt_pixels"]:
+                ious.setdefault((row["query"], row["frame"]), []).append(float(row["iou"]))
+    return sorted(ious, key=lambda k: (np.mean(ious[k]), k))[:GALLERY_FRAMES]
+
+
+def _timeline_panel(ax, docs: dict[str, dict]) -> None:
+    """Label and each method's decision per evaluated frame of the first time-sensitive query."""
+    rows = {m: [r for r in _frame_rows(doc) if r["kind"] == "sensitive"] for m, doc in docs.items()}
+    first = next((r[0]["query"] for r in rows.values() if r), None)
+    ax.set_axis_off()
+    if first is None:
+        return
+    names = ["truth"] + list(docs)
+    grid = []
+    for k, method in enumerate(docs):
+        chosen = sorted((r for r in rows[method] if r["query"] == first), key=lambda r: r["time_index"])
+        if k == 0:
+            grid.append([float(bool(r["label"])) for r in chosen])
+        grid.append([np.nan if r["decision"] is None else float(bool(r["decision"])) for r in chosen])
+    width = max(len(g) for g in grid)
+    grid = [g + [np.nan] * (width - len(g)) for g in grid]
+    ax.set_axis_on()
+    ax.imshow(np.array(grid), aspect="auto", cmap="Greens", vmin=0, vmax=1, interpolation="nearest")
+    ax.set_yticks(range(len(names)), names, fontsize=7)
+    ax.set_xticks([])
+    ax.set_title(f"'{first}' over the evaluated frames (dark: state holds / decided)", fontsize=8)
+
+
+def gallery(runs: dict[str, Path], scene_root: Path, title: str, path: Path) -> Optional[Path]:
+    """The failure gallery of one (family, strength, seed): ``runs`` maps method -> results file."""
+    from annotations.format import load_annotations
+    from benchmark.loaders import load_scene
+    from benchmark.predictions import read_predictions
+
+    if not runs:
+        return None
+    plt = _pyplot()
+    docs = {m: read_json(p) for m, p in runs.items()}
+    aset = load_annotations(scene_root / "annotations.json")
+    pairs = _worst_pairs(docs, aset)
+    if not pairs:
+        return None
+    predictions = {m: read_predictions((p.parent / docs[m]["predictions"]).parent) for m, p in runs.items()}
+    scene = load_scene(scene_root)
+    query_id = {q.text: q.id for q in aset.queries}
+    frame_id = {f.name: f.id for f in aset.frames}
+    columns = 2 + len(runs)
+    fig, axes = plt.subplots(len(pairs) + 1, columns, figsize=(1.9 * columns, 1.7 * (len(pairs) + 1)), squeeze=False)
+    for row, (text, frame) in enumerate(pairs):
+        image = scene.frame(frame).image()
+        truth = aset.get_mask(query_id[text], frame_id[frame])
+        truth = np.zeros(image.shape[:2], bool) if truth is None else truth.astype(bool)
+        panels = [(image[..., :3], f"{frame}"), (_overlay(image, truth, (0.2, 0.9, 0.2)), f"truth: {text}")]
+        for method, preds in predictions.items():
+            found = preds.find(text)
+            mask = found.mask(frame, truth.shape) if found is not None else np.zeros_like(truth)
+            iou = next((r["iou"] for r in _frame_rows(docs[method]) if r["query"] == text and r["frame"] == frame), None)
+            panels.append((_overlay(image, mask.astype(bool)), f"{method} IoU {number_cell(100 * iou if iou is not None else None, 0)}"))
+        for ax, (picture, caption) in zip(axes[row], panels):
+            ax.imshow(np.clip(picture, 0, 1), interpolation="nearest")
+            ax.set_title(caption, fontsize=7)
+            ax.set_axis_off()
+    for ax in axes[-1][1:]:
+        ax.set_axis_off()
+    grid = axes[-1][0].get_gridspec()
+    axes[-1][0].remove()
+    _timeline_panel(fig.add_subplot(grid[-1, :]), docs)
+    fig.suptitle(title, fontsize=9)
+    return _save_png(fig, path)
+
+
+def family_gallery(config: SuiteConfig, scores: Sequence[Score], fam: str, path: Path) -> Optional[Path]:
+    """The gallery of ``fam`` at its strongest strength run (first seed)."""
+    from .stress import scene_folder
+
+    strengths = sorted({s.strength for s in scores if s.family == fam and s.strength > 0})
+    if not strengths:
+        return None
+    strongest, seed = strengths[-1], min(config.seeds)
+    runs = {s.method: s.path for s in scores
+            if s.family == fam and s.strength == strongest and s.seed == seed}
+    title = f"{fam} at {strength_label(strongest)} ({FAMILIES[fam].unit}), seed {seed}"
+    return gallery(runs, scene_folder(config, fam, strongest), title, path)
+
+
+def _clean_table(scores: Sequence[Score], methods: Sequence[str]) -> str:
+    rows = []
+    for method in methods:
+        clean = [s for s in scores if s.method == method and s.strength == 0]
+        by_seed = {s.seed: s for s in clean}
+        cells = [number_cell(np.mean([s.metrics[m] for s in by_seed.values() if s.metrics.get(m) is not None])
+                             if any(s.metrics.get(m) is not None for s in by_seed.values()) else None, 1)
+                 for m in METRICS]
+        rows.append([method, str(len(by_seed))] + cells)
+    return markdown_table(["method", "seeds", *METRICS], rows)
+
+
+def findings(scores: Sequence[Score], families: Sequence[str], methods: Sequence[str], metric: str = "mIoU") -> str:
+    """Per family, from the measurements: each method's clean and strongest mean, where it falls below
+    half its clean score, and which method breaks first (else which keeps the least of its clean score)."""
+    lines = []
+    for fam in families:
+        parts, order = [], []
+        for method in methods:
+            values = mean_by_strength(scores, fam, method, metric)
+            strongest = max((s for s in values if s > 0), default=None)
+            if strongest is None or 0.0 not in values:
+                continue
+            point = breaking_point(values)
+            clean, last = float(np.mean(values[0.0])), float(np.mean(values[strongest]))
+            fate = f"below half from {strength_label(point)}" if point is not None else "never below half"
+            parts.append(f"{method} {clean:.1f} -> {last:.1f} at {strength_label(strongest)} ({fate})")
+            order.append((point if point is not None else np.inf, last / max(clean, 1e-9), method))
+        if not parts:
+            continue
+        first = min(order)
+        if np.isfinite(first[0]):
+            lead = f"{first[2]} breaks first"
+        elif len(order) > 1:
+            lead = f"no method breaks; {first[2]} keeps the least of its clean {metric}"
+        else:
+            lead = "no break"
+        lines.append(f"* **{fam}** ({FAMILIES[fam].unit}): {lead}. {metric}: " + "; ".join(parts) + ".")
+    return "\n".join(lines) + "\n"
+
+
+NOTES_FILE = "notes.md"
+"""A hand-written reading of the measurements in the report folder, copied into README.md when present."""
+
+
+def write_reports(config: SuiteConfig, scores: Sequence[Score], *, wall_seconds: Optional[float] = None,
+                  notes: Optional[str] = None) -> list[Path]:
+    """Charts, galleries, the scores table and README.md under ``config.out_dir``; returns the paths.
+    ``notes`` (default: the folder's :data:`NOTES_FILE`, if any) is copied into the README."""
+    out = Path(config.out_dir)
+    if notes is None:
+        notes = (out / NOTES_FILE).read_text() if (out / NOTES_FILE).is_file() else ""
+    written: list[Path] = []
+    families = [f for f in config.families if any(s.family == f and s.strength > 0 for s in scores)]
+    for fam in families:
+        for made in (family_chart(scores, fam, config.methods, out / "charts" / f"{fam}.png"),
+                     family_gallery(config, scores, fam, out / "galleries" / f"{fam}.png")):
+            if made is not None:
+                written.append(made)
+    written.append(_write_scores_csv(scores, out / "scores.csv"))
+    header, rows = breaking_rows(scores, families, config.methods)
+    text = _readme(config, scores, families, markdown_table(header, rows), wall_seconds, notes)
+    write_text(out / "README.md", text)
+    return written + [out / "README.md"]
+
+
+def _write_scores_csv(scores: Sequence[Score], path: Path) -> Path:
+    lines = ["family,strength,method,seed," + ",".join(METRICS) + ",wall_seconds"]
+    for s in sorted(scores, key=lambda s: (s.family, s.strength, s.method, s.seed)):
+        cells = ["" if s.metrics.get(m) is None else f"{s.metrics[m]:.3f}" for m in METRICS]
+        lines.append(f"{s.family},{strength_label(s.strength)},{s.method},{s.seed}," + ",".join(cells)
+                     + f",{s.wall_seconds:.1f}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_text(path, "\n".join(lines) + "\n")
+    return path
+
+
+def _readme(config: SuiteConfig, scores: Sequence[Score], families: Sequence[str], table: str,
+            wall_seconds: Optional[float], notes: str) -> str:
+    options = "; ".join(f"`{m}`: " + ", ".join(f"{k}={v}" for k, v in sorted(o.items()))
+                        for m, o in sorted(config.method_options.items())) or "defaults"
+    seeds = " ".join(map(str, config.seeds))
+    wall = f"{wall_seconds / 60:.1f} min" if wall_seconds is not None else "not measured"
+    charts = "\n".join(f"* [{f}](charts/{f}.png), gallery [{f}](galleries/{f}.png)" for f in families)
+    return (f"# Where methods fail: the stress suite\n\n"
+            f"Base preset `{config.preset}` at {config.size} px, {config.frames} frames; methods "
+            f"{', '.join(config.methods)}; seeds {seeds}; device {config.device}. Method options: {options}.\n"
+            f"Wall time of this invocation: {wall} (runs already present are read, not redone). "
+            f"Every run's scores: [scores.csv](scores.csv).\n\n"
+            f"## Clean scores (strength 0, mean over seeds)\n\n{_clean_table(scores, config.methods)}\n"
+            f"## Breaking points\n\nThe strength at which a method's mean over seeds falls below half of its "
+            f"clean score (`≤ s`: weaker strengths were not run; `> s`: it holds up to the strongest strength run; `–`: not run, or no clean score to halve).\n\n"
+            f"{table}\n## Findings per family (measured)\n\n{findings(scores, families, config.methods)}\n"
+            + (f"{notes.strip()}\n\n" if notes.strip() else "")
+            + f"## Charts and galleries\n\n{charts}\n")

@@ -1,0 +1,346 @@
+"""The stress suite: every perturbation family reproduces the clean scene or supervision at strength 0
+and, stronger, changes what it names and nothing else; breaking points; the command's options; a small
+suite end to end, resumed."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from benchmark.core.errors import InputError
+from benchmark.core.truth import load_truth
+from benchmark.studies import stress
+from benchmark.synthetic.digest import scene_digest, scene_version
+from benchmark.synthetic.generate import generate
+from benchmark.synthetic.perturb import FAMILIES, SCENE_FAMILIES, Perturbation
+
+SIZE, FRAMES = 32, 12
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory) -> dict:
+    """The clean smoke scene and, per scene family, the scene at its strongest strength."""
+    root = tmp_path_factory.mktemp("stress-scenes")
+    out = {"clean": generate("smoke", root / "clean", size=SIZE, frames=FRAMES)}
+    for fam in SCENE_FAMILIES:
+        out[fam] = generate("smoke", root / fam, size=SIZE, frames=FRAMES, perturbation=(fam, FAMILIES[fam].strengths[-1]))
+    return out
+
+
+def _annotations(root: Path) -> dict:
+    """Query text -> (kind, level, intervals) of the scene's ground truth."""
+    from annotations.format import load_annotations
+
+    aset = load_annotations(root / "annotations.json")
+    return {q.text: {"kind": q.kind, "level": q.level, "intervals": [list(i) for i in q.intervals or []]}
+            for q in aset.queries}
+
+
+def _ids(root: Path, name: str, level: str = "whole") -> np.ndarray:
+    return load_truth(root).levels(name, allow_eval=True)[level]
+
+
+def _whole_id(root: Path, name: str) -> int:
+    return load_truth(root).ids_named(name)[1][0]
+
+
+def test_every_family_has_a_clean_end_and_four_strengths():
+    for fam in FAMILIES.values():
+        assert fam.strengths[0] == 0 and len(fam.strengths) >= 5
+        assert list(fam.strengths) == sorted(set(fam.strengths))
+
+
+@pytest.mark.parametrize("fam", SCENE_FAMILIES)
+def test_strength_zero_is_the_clean_scene(fam, scenes, tmp_path):
+    zero = generate("smoke", tmp_path / fam, size=SIZE, frames=FRAMES, perturbation=(fam, 0.0))
+    assert scene_digest(zero) == scene_digest(scenes["clean"])
+
+
+@pytest.mark.parametrize("fam", SCENE_FAMILIES)
+def test_the_digest_names_knob_and_strength(fam, scenes):
+    version = scene_version(scenes[fam])
+    assert version["perturbation"] == {"family": fam, "strength": FAMILIES[fam].strengths[-1]}
+    assert version["digest"] != scene_digest(scenes["clean"])
+    assert scene_version(scenes["clean"])["perturbation"] is None
+
+
+def test_a_supervision_family_is_refused_by_the_generator():
+    with pytest.raises(InputError, match="supervision"):
+        Perturbation("mask-drop", 0.5)
+    with pytest.raises(InputError, match="unknown perturbation family"):
+        Perturbation("wobble", 0.5)
+
+
+@pytest.mark.parametrize("fam", ["motion-speed", "motion-amplitude"])
+def test_motion_changes_the_free_mover_only(fam, scenes):
+    clean, moved = scenes["clean"], scenes[fam]
+    assert _annotations(moved) == _annotations(clean)
+    ball = _whole_id(clean, "ball")
+    changed = 0
+    for name in load_truth(clean).evaluated_frames + load_truth(clean).training_frames:
+        a, b = _ids(clean, name), _ids(moved, name)
+        differs = a != b
+        changed += int(differs.sum())
+        assert np.all((a[differs] == ball) | (b[differs] == ball)), "only pixels the ball covers may change"
+    assert changed > 0
+
+
+def test_frames_dropped_keeps_the_test_frames_and_drops_training_frames(scenes):
+    clean, dropped = load_truth(scenes["clean"]), load_truth(scenes["frames-dropped"])
+    assert dropped.evaluated_frames == clean.evaluated_frames
+    kept = set(dropped.training_frames)
+    assert kept < set(clean.training_frames)
+    wanted = round(0.9 * len(clean.training_frames))
+    assert wanted - 2 <= len(clean.training_frames) - len(kept) <= wanted  # the first and last frame stay
+    for name in kept:
+        assert np.array_equal(_ids(scenes["clean"], name), _ids(scenes["frames-dropped"], name))
+    assert _annotations(scenes["frames-dropped"]) == _annotations(scenes["clean"])
+
+
+def test_state_gap_drops_the_training_frames_around_the_state_change(scenes):
+    clean, gap = load_truth(scenes["clean"]), load_truth(scenes["state-gap"])
+    missing = set(clean.training_frames) - set(gap.training_frames)
+    assert missing and gap.evaluated_frames == clean.evaluated_frames
+    times = {n: int(n) for n in clean.training_frames}
+    ann = _annotations(scenes["clean"])
+    boundary = ann["closed box"]["intervals"][0][1] + 0.5
+    assert all(abs(times[n] - boundary) <= 0.5 * 0.5 * FRAMES + 0.5 for n in missing)
+
+
+def _camera_centres(root: Path) -> dict[str, tuple]:
+    out = {}
+    for path in sorted((root / "camera").glob("*.json")):
+        out[path.stem] = tuple(np.round(json.loads(path.read_text())["position"], 9))
+    return out
+
+
+def test_camera_slow_at_full_strength_is_a_still_camera(scenes):
+    centres = _camera_centres(scenes["camera-slow"])
+    assert len(set(centres.values())) == 1
+    assert len(set(_camera_centres(scenes["clean"]).values())) == FRAMES
+    assert _annotations(scenes["camera-slow"]).keys() == _annotations(scenes["clean"]).keys()
+
+
+def test_camera_teleport_reuses_the_clean_path_out_of_order(scenes):
+    clean, moved = _camera_centres(scenes["clean"]), _camera_centres(scenes["camera-teleport"])
+    assert set(moved.values()) <= set(clean.values())
+    assert moved != clean
+    ann_clean, ann = _annotations(scenes["clean"]), _annotations(scenes["camera-teleport"])
+    assert ann == ann_clean
+
+
+def test_occluder_adds_one_object_that_hides_the_queried_one(scenes):
+    clean, occluded = scenes["clean"], scenes["occluder"]
+    assert set(_annotations(occluded)) == set(_annotations(clean)) | {"occluder"}
+    box, ball = _whole_id(clean, "box"), _whole_id(occluded, "occluder")
+    hidden = 0
+    for name in load_truth(clean).evaluated_frames + load_truth(clean).training_frames:
+        a, b = _ids(clean, name), _ids(occluded, name)
+        differs = a != b
+        assert np.all(b[differs] == ball), "pixels change only where the occluder is"
+        hidden += int(((a == box) & (b == ball)).sum())
+    assert hidden > 0
+
+
+def test_appearance_changes_colours_not_ids(scenes):
+    import cv2
+
+    clean, tinted = scenes["clean"], scenes["appearance"]
+    truth = load_truth(clean)
+    for name in truth.training_frames + truth.evaluated_frames:
+        assert np.array_equal(_ids(clean, name, "subpart"), _ids(tinted, name, "subpart"))
+    assert _annotations(tinted) == _annotations(clean)
+    a = cv2.imread(str(clean / "rgb" / "1x" / "000003.png"))
+    b = cv2.imread(str(tinted / "rgb" / "1x" / "000003.png"))
+    assert np.abs(a.astype(int) - b.astype(int)).max() > 30
+
+
+def test_semantic_subtle_keeps_the_states_and_hides_their_change(scenes):
+    clean, subtle = scenes["clean"], scenes["semantic-subtle"]
+    assert _annotations(subtle) == _annotations(clean)
+    truth = load_truth(clean)
+    first, last = truth.training_frames[0], truth.training_frames[-1]
+    # before the change the scenes agree; after it the lid of the clean scene is open, the other's is not
+    assert np.array_equal(_ids(clean, first, "part"), _ids(subtle, first, "part"))
+    assert not np.array_equal(_ids(clean, last, "part"), _ids(subtle, last, "part"))
+    assert scene_digest(subtle) != scene_digest(clean)
+
+
+def test_topology_moves_parts_apart_and_back(scenes):
+    clean, split = scenes["clean"], scenes["topology"]
+    assert _annotations(split) == _annotations(clean)
+    truth = load_truth(clean)
+    first = truth.training_frames[0]
+    assert np.array_equal(_ids(clean, first, "part"), _ids(split, first, "part")), "no gap at the start"
+    moved = sum(int((_ids(clean, n, "part") != _ids(split, n, "part")).sum()) for n in truth.training_frames)
+    assert moved > 0
+
+
+# -- supervision side ------------------------------------------------------------------------------------
+def _supervision():
+    from methods.supervision.base import FrameSupervision, Supervision
+
+    levels = np.full((3, 24, 24), -1, np.int16)
+    levels[:, 4:14, 4:14] = 0
+    levels[:, 10:20, 15:22] = 1
+    levels[0, 16:20, 2:6] = 2
+    feats = tuple(np.eye(4, dtype=np.float32)[: int(levels[k].max()) + 1] for k in range(3))
+    frames = [FrameSupervision(f"{i:06d}", i / 5, i, "0", levels.copy(), feats) for i in range(6)]
+    return Supervision("oracle", {"segmenter": "gt"}, frames, text_encoder=None, fingerprint="clean")
+
+
+@pytest.mark.parametrize("fam", stress.MASK_FAMILIES)
+def test_mask_noise_at_zero_is_the_clean_supervision(fam):
+    sup = _supervision()
+    assert stress.noisy_supervision(sup, fam, 0.0, seed=0) is sup
+    noisy = stress.noisy_supervision(sup, fam, FAMILIES[fam].strengths[-1], seed=0)
+    assert noisy.fingerprint != sup.fingerprint
+    assert [f.name for f in noisy.frames] == [f.name for f in sup.frames]
+
+
+def test_erosion_shrinks_and_dilation_grows_each_mask():
+    sup = _supervision()
+    eroded = stress.noisy_supervision(sup, "mask-erode", 2.0, seed=0).frames[0].levels
+    grown = stress.noisy_supervision(sup, "mask-dilate", 2.0, seed=0).frames[0].levels
+    clean = sup.frames[0].levels
+    for index in (0, 1):
+        assert (eroded[1] == index).sum() < (clean[1] == index).sum()
+        assert np.all(clean[1][eroded[1] == index] == index)
+        assert (grown[1] == index).sum() > (clean[1] == index).sum()
+    # dilation takes only pixels no mask covered; the features stay
+    assert np.all(grown[clean >= 0] == clean[clean >= 0])
+    assert np.array_equal(stress.noisy_supervision(sup, "mask-dilate", 2.0, seed=0).frames[0].features[0],
+                          sup.frames[0].features[0])
+
+
+def test_dropped_masks_lose_all_their_pixels_and_the_rest_stay():
+    sup = _supervision()
+    noisy = stress.noisy_supervision(sup, "mask-drop", 0.5, seed=3)
+    total_dropped = 0
+    for before, after in zip(sup.frames, noisy.frames):
+        kept = after.levels >= 0
+        assert np.array_equal(after.levels[kept], before.levels[kept])
+        for lv in range(3):
+            for index in np.unique(before.levels[lv][before.levels[lv] >= 0]):
+                share = (after.levels[lv][before.levels[lv] == index] == index).mean()
+                assert share in (0.0, 1.0)
+                total_dropped += share == 0.0
+    assert total_dropped > 0
+
+
+def test_id_swap_gives_every_mask_another_masks_feature():
+    sup = _supervision()
+    noisy = stress.noisy_supervision(sup, "mask-id-swap", 1.0, seed=0)
+    for before, after in zip(sup.frames, noisy.frames):
+        assert np.array_equal(after.levels, before.levels)
+        for lv in range(3):
+            rows_before = [tuple(r) for r in before.features[lv]]
+            rows_after = [tuple(r) for r in after.features[lv]]
+            assert sorted(rows_before) == sorted(rows_after)
+            assert all(a != b for a, b in zip(rows_before, rows_after))
+    half = stress.noisy_supervision(sup, "mask-id-swap", 0.1, seed=0)
+    assert any(np.array_equal(a.features[0], b.features[0]) for a, b in zip(sup.frames, half.frames))
+
+
+def test_caption_swap_replaces_captions_with_another_states(scenes):
+    from benchmark.loaders import load_scene
+
+    scene = load_scene(scenes["clean"])
+    from methods.captioners import get_captioner
+    from methods.captioners.base import caption_objects
+    from methods.captioners.tracks import truth_tracks
+
+    clean, _ = stress.swapped_captions(scene, 0.0, seed=0)
+    template = caption_objects(get_captioner("template", scene, seed=0), scene, truth_tracks(scene))
+    assert clean.frames == template.frames
+    swapped, _ = stress.swapped_captions(scene, 1.0, seed=0)
+    assert clean.frames.keys() == swapped.frames.keys()
+    truth = load_truth(scenes["clean"])
+    box = _whole_id(scenes["clean"], "box")
+    time_of = {f.name: f.time_index for f in scene.frames}
+    changed = 0
+    for (frame, obj), text in swapped.frames.items():
+        if obj != box:
+            continue
+        state = truth.state_at("box", time_of[frame])
+        assert text not in state["captions"], "a swapped caption describes another state"
+        changed += text != clean.frames[(frame, obj)]
+    assert changed > 0
+
+
+def test_query_paraphrases_come_from_synonyms_and_state_captions(scenes):
+    from annotations.format import load_annotations
+
+    root = scenes["clean"]
+    aset = load_annotations(root / "annotations.json")
+    assert stress.reworded_queries(root, aset, 0.0, seed=0) == {}
+    every = stress.reworded_queries(root, aset, 1.0, seed=0)
+    assert every["box"] in ("wooden box", "crate")
+    assert every["open box"] in ("an open box", "the lid is up", "a box with its lid raised", "the box is open",
+                                 "an opened wooden box")
+
+    class Echo:
+        supports = ("agnostic",)
+
+        def query_agnostic(self, text, frames):
+            return text
+
+    model = stress.RewordedModel(Echo(), every)
+    assert model.query_agnostic("box", []) == every["box"]
+    assert model.supports == ("agnostic",)
+
+
+# -- breaking points, options, the suite -----------------------------------------------------------------
+def test_breaking_point_is_the_first_strength_below_half_the_clean_score():
+    assert stress.breaking_point({0.0: [80, 60], 1.0: [50, 40], 2.0: [30, 36], 4.0: [10, 0]}) == 2.0
+    assert stress.breaking_point({0.0: [80], 1.0: [60]}) is None
+    assert stress.breaking_point({1.0: [10]}) is None
+
+
+def test_method_options_apply_the_schedule_then_scoped_settings():
+    from benchmark.commands.stress import method_options
+
+    out = method_options(["nearest-frame", "langsplat"], "short", ["langsplat:field.iterations=7", "answer.x=1"])
+    assert out["langsplat"]["field.iterations"] == "7"
+    assert out["nearest-frame"] == {"answer.x": "1"} and out["langsplat"]["answer.x"] == "1"
+    with pytest.raises(InputError):
+        method_options(["langsplat"], "default", ["4d-langsplat:field.iterations=7"])
+
+
+def test_a_small_suite_runs_resumes_and_reports(tmp_path):
+    config = stress.SuiteConfig(preset="smoke", size=SIZE, frames=FRAMES, methods=("nearest-frame",),
+                                families=("occluder", "mask-drop"), strengths=(0.45,), seeds=(0,),
+                                out_dir=tmp_path / "report", cache_dir=tmp_path / "cache")
+    scores = stress.run_suite(config, log=lambda _: None)
+    assert {(s.family, s.strength) for s in scores} == {("occluder", 0.0), ("occluder", 0.45), ("mask-drop", 0.0),
+                                                        ("mask-drop", 0.45)}
+    clean = [s for s in scores if s.strength == 0]
+    assert clean[0].path == clean[1].path, "the clean run is shared by every family"
+    stamps = {s.path: s.path.stat().st_mtime_ns for s in scores}
+    again = stress.run_suite(config, log=lambda _: pytest.fail("a present run was redone"))
+    assert {s.path: s.path.stat().st_mtime_ns for s in again} == stamps
+    from benchmark.studies.stress_plots import write_reports
+
+    written = write_reports(config, again, wall_seconds=1.0)
+    readme = (tmp_path / "report" / "README.md").read_text()
+    assert "## Breaking points" in readme and "| occluder |" in readme
+    for fam in ("occluder", "mask-drop"):
+        assert (tmp_path / "report" / "charts" / f"{fam}.png") in written
+        assert (tmp_path / "report" / "galleries" / f"{fam}.png").stat().st_size < 200_000
+
+
+def test_breaking_table_marks_held_and_unprobed_strengths():
+    from benchmark.studies.stress_plots import breaking_rows
+
+    def score(method, strength, value):
+        return stress.Score("occluder", strength, method, 0, {"mIoU": value, "Acc": None, "vIoU": None},
+                            Path("x.json"), 0.0)
+
+    scores = [score("a", 0.0, 60), score("a", 0.1, 50), score("a", 0.2, 20), score("a", 0.45, 10),
+              score("b", 0.0, 60), score("b", 0.45, 10), score("c", 0.0, 60), score("c", 0.45, 40)]
+    header, rows = breaking_rows(scores, ["occluder"], ["a", "b", "c"], metrics=("mIoU",))
+    assert header == ["family", "unit", "a mIoU", "b mIoU", "c mIoU"]
+    assert rows[0][2:] == ["0.2", "≤ 0.45", "> 0.45"]
