@@ -43,3 +43,31 @@ def hypernerf_json_dir(shared_dir: Path) -> Path:
     if not path.is_dir():
         pytest.skip(f"{path} is absent")
     return path
+
+
+def tiny_clip_model(folder: Path, max_positions: int = 77) -> Path:
+    """A randomly initialised transformers CLIP (16-wide, one layer, a 54-token letter vocabulary) with its
+    tokenizer, saved in ``folder``: the real class at a size a test can run."""
+    import json
+    import string
+
+    import torch
+    from transformers import CLIPConfig, CLIPModel, CLIPTokenizer
+
+    folder.mkdir(parents=True, exist_ok=True)
+    vocab = {c: i for i, c in enumerate(string.ascii_lowercase)}
+    vocab.update({c + "</w>": 26 + i for i, c in enumerate(string.ascii_lowercase)})
+    vocab["<|startoftext|>"], vocab["<|endoftext|>"] = 52, 53
+    (folder / "vocab.json").write_text(json.dumps(vocab))
+    (folder / "merges.txt").write_text("#version: 0.2\n")
+    CLIPTokenizer(str(folder / "vocab.json"), str(folder / "merges.txt")).save_pretrained(folder)
+    torch.manual_seed(0)
+    cfg = CLIPConfig(
+        text_config=dict(vocab_size=54, hidden_size=16, intermediate_size=32, num_hidden_layers=1,
+                         num_attention_heads=2, max_position_embeddings=max_positions, bos_token_id=52,
+                         eos_token_id=53, pad_token_id=53),
+        vision_config=dict(image_size=32, patch_size=8, hidden_size=16, intermediate_size=32, num_hidden_layers=1,
+                           num_attention_heads=2),
+        projection_dim=8)
+    CLIPModel(cfg).save_pretrained(folder)
+    return folder

@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import json
 import shutil
-import string
 
 import numpy as np
 import pytest
+from conftest import tiny_clip_model
 import torch
 
 from benchmark.core.annotation import decode_mask, encode_mask
@@ -90,27 +90,6 @@ def test_release_annotations_beside_a_scene_are_found_and_read_as_shipped(releas
 # ---------------------------------------------------------------------------------------------
 # tiny random models of the real classes
 # ---------------------------------------------------------------------------------------------
-def tiny_clip(folder):
-    from transformers import CLIPConfig, CLIPModel, CLIPTokenizer
-
-    folder.mkdir(parents=True)
-    vocab = {c: i for i, c in enumerate(string.ascii_lowercase)}
-    vocab.update({c + "</w>": 26 + i for i, c in enumerate(string.ascii_lowercase)})
-    vocab["<|startoftext|>"], vocab["<|endoftext|>"] = 52, 53
-    (folder / "vocab.json").write_text(json.dumps(vocab))
-    (folder / "merges.txt").write_text("#version: 0.2\n")
-    CLIPTokenizer(str(folder / "vocab.json"), str(folder / "merges.txt")).save_pretrained(folder)
-    torch.manual_seed(0)
-    cfg = CLIPConfig(
-        text_config=dict(vocab_size=54, hidden_size=16, intermediate_size=32, num_hidden_layers=1,
-                         num_attention_heads=2, max_position_embeddings=77, bos_token_id=52, eos_token_id=53,
-                         pad_token_id=53),
-        vision_config=dict(image_size=32, patch_size=8, hidden_size=16, intermediate_size=32, num_hidden_layers=1,
-                           num_attention_heads=2),
-        projection_dim=8)
-    CLIPModel(cfg).save_pretrained(folder)
-    return folder
-
 
 def tiny_sam(folder):
     from transformers import SamConfig, SamModel
@@ -194,7 +173,7 @@ def object_tracks_file(scene, path):
 @pytest.fixture(scope="module")
 def tiny_models(tmp_path_factory):
     root = tmp_path_factory.mktemp("models")
-    return {"BENCH4D_CLIP": tiny_clip(root / "clip"), "BENCH4D_SAM": tiny_sam(root / "sam"),
+    return {"BENCH4D_CLIP": tiny_clip_model(root / "clip"), "BENCH4D_SAM": tiny_sam(root / "sam"),
             "BENCH4D_QWEN2VL": tiny_qwen2vl(root / "qwen2vl")}
 
 

@@ -5,11 +5,10 @@ answer."""
 
 from __future__ import annotations
 
-import json
-import string
 
 import numpy as np
 import pytest
+from conftest import tiny_clip_model
 import torch
 
 from benchmark.core.errors import InputError
@@ -111,30 +110,11 @@ def test_prepare_crops_masks_boxes_pads_and_normalises():
     assert torch.allclose(crops[1, :, 7, 7], colour, atol=1e-5)       # one pixel blown up to 20 x 20
 
 
-def _tiny_clip(folder):
-    from transformers import CLIPConfig, CLIPModel, CLIPTokenizer
-
-    vocab = {c: i for i, c in enumerate(string.ascii_lowercase)}
-    vocab.update({c + "</w>": 26 + i for i, c in enumerate(string.ascii_lowercase)})
-    vocab["<|startoftext|>"], vocab["<|endoftext|>"] = 52, 53
-    (folder / "vocab.json").write_text(json.dumps(vocab))
-    (folder / "merges.txt").write_text("#version: 0.2\n")
-    CLIPTokenizer(str(folder / "vocab.json"), str(folder / "merges.txt")).save_pretrained(folder)
-    torch.manual_seed(0)
-    cfg = CLIPConfig(
-        text_config=dict(vocab_size=54, hidden_size=16, intermediate_size=32, num_hidden_layers=1,
-                         num_attention_heads=2, max_position_embeddings=24, bos_token_id=52, eos_token_id=53,
-                         pad_token_id=53),
-        vision_config=dict(image_size=32, patch_size=8, hidden_size=16, intermediate_size=32, num_hidden_layers=1,
-                           num_attention_heads=2),
-        projection_dim=8)
-    CLIPModel(cfg).save_pretrained(folder)
-
 
 def test_hf_clip_encoder_on_a_tiny_random_model(tmp_path):
     from methods.supervision.clip import create
 
-    _tiny_clip(tmp_path)
+    tiny_clip_model(tmp_path, max_positions=24)
     img = blocks_image()
     frame = make_frame(img)
     enc = create(None, text_encoder=None, backend="hf", model=str(tmp_path))
