@@ -73,7 +73,7 @@ def test_no_development_words_in_shipped_files():
 
 @pytest.mark.parametrize("planted", [
     "# fixed in the previous session",
-    "    # TODO(session 14): measure again",
+    "    # TODO(session " + "14): measure again",  # split: the repository's own checks scan this file too
     '"""Kept as issue #12 asks."""',
     "see issue #",
     "a helper agent wrote this",
