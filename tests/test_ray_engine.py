@@ -112,3 +112,13 @@ def test_ray_engine_errors_are_one_line(tmp_path, capsys):
                  "--results-dir", str(tmp_path / "r"), "--cache-dir", str(tmp_path / "c")])
     assert code == 2
     assert "--address" in capsys.readouterr().err
+
+
+def test_a_sweep_leaves_the_cluster_when_it_ends(cluster, tmp_path):
+    """run-all disconnects from Ray when done: a process left connected is ended by Ray when the cluster
+    stops, which would take the caller (here, the test process) with it."""
+    import ray
+
+    assert main(_sweep("nearest-frame", "--engine", "ray", "--address", cluster, "--seeds", "0",
+                       "--results-dir", str(tmp_path / "r"), "--cache-dir", str(tmp_path / "c"))) == 0
+    assert not ray.is_initialized()

@@ -68,6 +68,15 @@ def connect(address: Optional[str], *, quiet: bool) -> dict:
     return dict(ray.cluster_resources())
 
 
+def disconnect() -> None:
+    """Leave the cluster (a local instance this process started stops with it): a process that stays
+    connected is ended by Ray when the cluster goes away."""
+    import ray
+
+    if ray.is_initialized():
+        ray.shutdown()
+
+
 def run_groups(groups: list[list], *, address: Optional[str], threads: int, gpus: int, git: dict,
                keep_going: bool, quiet: bool, report: Callable[[list[dict]], None],
                stop: Callable[[], bool], retries: int = RAY_RETRIES) -> None:

@@ -265,10 +265,13 @@ def _run_on_ray(args: argparse.Namespace, groups: list[list], threads: int, tall
     if not groups:
         return
     cpus = ray_engine.connect(args.address, quiet=args.quiet).get("CPU", 1)
-    _set_concurrency(groups, max(1, min(len(groups), int(cpus // threads))))
-    ray_engine.run_groups(groups, address=args.address, threads=threads,
-                          gpus=1 if args.device.startswith("cuda") else 0, git=checkout_at_start(),
-                          keep_going=tally.keep_going, quiet=args.quiet, report=tally.report, stop=tally.stop)
+    try:
+        _set_concurrency(groups, max(1, min(len(groups), int(cpus // threads))))
+        ray_engine.run_groups(groups, address=args.address, threads=threads,
+                              gpus=1 if args.device.startswith("cuda") else 0, git=checkout_at_start(),
+                              keep_going=tally.keep_going, quiet=args.quiet, report=tally.report, stop=tally.stop)
+    finally:
+        ray_engine.disconnect()
     if tally.stop():
         raise tally.failed[0][3]
 
