@@ -71,3 +71,20 @@ def tiny_clip_model(folder: Path, max_positions: int = 77) -> Path:
         projection_dim=8)
     CLIPModel(cfg).save_pretrained(folder)
     return folder
+
+
+def tiny_sam_model(folder: Path) -> Path:
+    """A randomly initialised transformers SAM (16-wide, one layer, 32 px input) saved in ``folder``."""
+    import torch
+    from transformers import SamConfig, SamModel
+
+    torch.manual_seed(0)
+    cfg = SamConfig(
+        vision_config=dict(hidden_size=16, output_channels=16, num_hidden_layers=1, num_attention_heads=2,
+                           image_size=32, patch_size=8, window_size=2, global_attn_indexes=[0], num_pos_feats=8,
+                           mlp_dim=32),
+        prompt_encoder_config=dict(hidden_size=16, image_size=32, patch_size=8, mask_input_channels=4),
+        mask_decoder_config=dict(hidden_size=16, mlp_dim=32, num_hidden_layers=1, num_attention_heads=2,
+                                 iou_head_hidden_dim=16))
+    SamModel(cfg).save_pretrained(folder)
+    return folder

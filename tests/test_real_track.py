@@ -13,7 +13,7 @@ import shutil
 
 import numpy as np
 import pytest
-from conftest import tiny_clip_model
+from conftest import tiny_clip_model, tiny_sam_model
 import torch
 
 from benchmark.core.annotation import decode_mask, encode_mask
@@ -91,21 +91,6 @@ def test_release_annotations_beside_a_scene_are_found_and_read_as_shipped(releas
 # tiny random models of the real classes
 # ---------------------------------------------------------------------------------------------
 
-def tiny_sam(folder):
-    from transformers import SamConfig, SamModel
-
-    torch.manual_seed(0)
-    cfg = SamConfig(
-        vision_config=dict(hidden_size=16, output_channels=16, num_hidden_layers=1, num_attention_heads=2,
-                           image_size=32, patch_size=8, window_size=2, global_attn_indexes=[0], num_pos_feats=8,
-                           mlp_dim=32),
-        prompt_encoder_config=dict(hidden_size=16, image_size=32, patch_size=8, mask_input_channels=4),
-        mask_decoder_config=dict(hidden_size=16, mlp_dim=32, num_hidden_layers=1, num_attention_heads=2,
-                                 iou_head_hidden_dim=16))
-    SamModel(cfg).save_pretrained(folder)
-    return folder
-
-
 def tiny_qwen2vl(folder):
     from methods.captioners.qwen2vl import tiny_random_components
 
@@ -173,7 +158,7 @@ def object_tracks_file(scene, path):
 @pytest.fixture(scope="module")
 def tiny_models(tmp_path_factory):
     root = tmp_path_factory.mktemp("models")
-    return {"BENCH4D_CLIP": tiny_clip_model(root / "clip"), "BENCH4D_SAM": tiny_sam(root / "sam"),
+    return {"BENCH4D_CLIP": tiny_clip_model(root / "clip"), "BENCH4D_SAM": tiny_sam_model(root / "sam"),
             "BENCH4D_QWEN2VL": tiny_qwen2vl(root / "qwen2vl")}
 
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import tiny_clip_model
+from conftest import tiny_clip_model, tiny_sam_model
 import torch
 
 from benchmark.core.errors import InputError
@@ -203,19 +203,9 @@ def test_release_mask_nms_drops_duplicates_low_scores_and_nested_masks():
 
 
 def test_hf_sam_predictor_on_a_tiny_random_model(tmp_path):
-    from transformers import SamConfig as HFSamConfig, SamModel
-
     from methods.supervision.sam import SamConfig, create
 
-    torch.manual_seed(0)
-    cfg = HFSamConfig(
-        vision_config=dict(hidden_size=16, output_channels=16, num_hidden_layers=1, num_attention_heads=2,
-                           image_size=32, patch_size=8, window_size=2, global_attn_indexes=[0], num_pos_feats=8,
-                           mlp_dim=32),
-        prompt_encoder_config=dict(hidden_size=16, image_size=32, patch_size=8, mask_input_channels=4),
-        mask_decoder_config=dict(hidden_size=16, mlp_dim=32, num_hidden_layers=1, num_attention_heads=2,
-                                 iou_head_hidden_dim=16))
-    SamModel(cfg).save_pretrained(tmp_path)
+    tiny_sam_model(tmp_path)
     # random weights: let every mask through the filters so the whole flow runs
     seg = create(None, text_encoder=None, backend="hf", model=str(tmp_path), points_per_side=3,
                  pred_iou_thresh=-1e9, stability_score_thresh=0.0, min_mask_region_area=0,
