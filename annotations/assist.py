@@ -3,9 +3,11 @@
 Two backends share one call, :meth:`Segmenter.segment`:
 
 * :class:`GrabCutSegmenter` (default, offline, no weights): OpenCV GrabCut on a crop around the
-  box, downscaled to a bounded size so one call stays well under a second at 960x540. Corrective
-  clicks (left = "this is the object", right = "this is not") become hard labels in a disk and
-  GrabCut is re-run from the current mask.
+  box, downscaled to a bounded size so one call stays well under a second at 960x540. A corrective
+  click (left = "this is the object", right = "this is not") on a mask edits it locally: GrabCut
+  runs in a disk around the click sized by the click's distance to the mask's edge, with the mask
+  beyond it fixed, and only the connected change that holds the click is kept, so a click never
+  undoes what earlier clicks fixed elsewhere.
 * :class:`PromptedSamSegmenter` (optional): Segment Anything prompted with the box and clicks, the model
   loaded from a path the user gives by the ``sam`` segmenter's loader
   (:func:`methods.supervision.sam.load_segment_anything`). Image embeddings are computed per frame in a
@@ -73,8 +75,19 @@ class GrabCutConfig:
     """GrabCut iterations for a new box."""
     refine_iterations: int = 3
     """GrabCut iterations after corrective clicks."""
-    click_radius_px: float = 6.0
-    """Radius of the hard-labelled disk around a corrective click, in full-resolution pixels."""
+    click_radius_px: float = 0.5
+    """Radius of the hard-labelled disk around a click, in full-resolution pixels (0.5: the clicked
+    pixel alone; a wider disk crosses the edges of thin parts and small objects)."""
+    click_box_px: float = 48.0
+    """Without a box or a mask, positive clicks are segmented in a box this many pixels around them."""
+    click_reach: float = 8.0
+    """A click on an existing mask may change it only within this many times the click's distance to
+    the nearest pixel of the other label (the click sits inside an error region about that wide)."""
+    click_min_reach_px: float = 4.0
+    """That disk is at least this wide (pixels), so a click on a one-pixel error still has room."""
+    click_tolerance: float = 15.0
+    """Around a click on an existing mask, the connected region whose CIELAB channels stay within this
+    of the clicked colour starts on the click's side ("probably")."""
     flood_tolerance: float = 8.0
     """A click also claims the connected region around it whose CIELAB channels stay within this
     of the clicked colour (as "probably" labels); 0 disables."""
@@ -105,6 +118,8 @@ class GrabCutSegmenter:
         height, width = image.shape[:2]
         current = None if current is None else _check_mask(current, (height, width))
         clicks = [(float(x), float(y), int(lbl)) for x, y, lbl in clicks]
+        if current is not None and current.any() and clicks:
+            return self._edit(image, current, clicks)
         box = self._box_for(box, clicks, current)
         if box is None:  # no box, no mask to refine, no positive click: nothing to segment
             return np.zeros((height, width), bool) if current is None else current.copy()
@@ -112,13 +127,12 @@ class GrabCutSegmenter:
         if bx1 - bx0 < 2 or by1 - by0 < 2:
             raise InputError(None, "box", f"box {box} covers less than 2x2 pixels of the {width}x{height} image")
         crop = self._crop(image, (bx0, by0, bx1, by1), clicks)
-        refine = current is not None and bool(current[crop.rows, crop.cols].any()) and bool(clicks)
-        labels = self._initial_labels(crop, current if refine else None)
+        labels = self._initial_labels(crop)
         self._label_clicks(labels, crop, clicks)
         fg_possible = np.isin(labels, (cv2.GC_FGD, cv2.GC_PR_FGD))
         if not fg_possible.any():
             return np.zeros((height, width), bool)
-        iterations = self.config.refine_iterations if (refine or clicks) else self.config.iterations
+        iterations = self.config.refine_iterations if clicks else self.config.iterations
         bgd_model = np.zeros((1, 65), np.float64)
         fgd_model = np.zeros((1, 65), np.float64)
         try:
@@ -131,13 +145,85 @@ class GrabCutSegmenter:
             if crop.scale < 1.0 else fg_small > 0.5
         out = np.zeros((height, width), bool)
         out[crop.rows, crop.cols] = fg_crop
-        if current is not None and refine:
-            # the crop holds the box, clicks and context; keep the user's mask beyond it untouched
-            keep = current.copy()
-            keep[crop.rows, crop.cols] = False
-            out |= keep
         _stamp_clicks(out, clicks, self.config.click_radius_px)
         return out
+
+    def _edit(self, image: np.ndarray, current: np.ndarray, clicks: Sequence[Click]) -> np.ndarray:
+        """``current`` with each click applied in order; a click whose pixel already has its label was
+        applied before (the page sends every click of the mask with the mask they made) and is skipped."""
+        height, width = current.shape
+        out = current.copy()
+        lab = None
+        for x, y, lbl in clicks:
+            col, row = int(np.clip(x, 0, width - 1)), int(np.clip(y, 0, height - 1))
+            if out[row, col] == bool(lbl == 1):
+                continue
+            if lab is None:
+                lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB)
+            out = self._edit_one(image, lab, out, (col, row), lbl == 1, clicks)
+        _stamp_clicks(out, clicks, self.config.click_radius_px)
+        return out
+
+    def _edit_one(self, image: np.ndarray, lab: np.ndarray, mask: np.ndarray, at: tuple[int, int],
+                  positive: bool, clicks: Sequence[Click]) -> np.ndarray:
+        """One click at pixel ``at`` (column, row) on ``mask``: GrabCut in a disk around it whose radius
+        follows the click's distance to the other label, the mask fixed outside the disk; the connected
+        piece of change that holds the click is kept."""
+        height, width = mask.shape
+        col, row = at
+        same = np.pad((mask == mask[row, col]).astype(np.uint8), 1, constant_values=1)
+        edge_distance = float(cv2.distanceTransform(same, cv2.DIST_L2, 5)[row + 1, col + 1])
+        reach = int(np.ceil(max(self.config.click_min_reach_px, self.config.click_reach * edge_distance)))
+        x0, y0 = max(0, col - reach), max(0, row - reach)
+        x1, y1 = min(width, col + reach + 1), min(height, row + reach + 1)
+        window = mask[y0:y1, x0:x1]
+        labels = np.where(window, cv2.GC_PR_FGD, cv2.GC_PR_BGD).astype(np.uint8)
+        yy, xx = np.mgrid[y0:y1, x0:x1]
+        beyond = (xx - col) ** 2 + (yy - row) ** 2 > reach ** 2
+        labels[beyond] = np.where(window[beyond], cv2.GC_FGD, cv2.GC_BGD)
+        if self.config.click_tolerance > 0:
+            region = _flood(np.ascontiguousarray(lab[y0:y1, x0:x1]), (col - x0, row - y0),
+                            self.config.click_tolerance, reach)
+            labels[region & ~beyond] = cv2.GC_PR_FGD if positive else cv2.GC_PR_BGD
+        labels[row - y0, col - x0] = cv2.GC_FGD if positive else cv2.GC_BGD
+        # every click so far holds its label in the window (GrabCut may not trade one fix for another)
+        radius = max(1, int(round(self.config.click_radius_px)))
+        for x, y, lbl in clicks:
+            cv2.circle(labels, (int(x) - x0, int(y) - y0), radius, int(cv2.GC_FGD if lbl == 1 else cv2.GC_BGD), -1)
+        result = np.where(beyond, window, self._grabcut_window(image[y0:y1, x0:x1], labels))
+        edited = mask.copy()
+        edited[y0:y1, x0:x1] = result
+        change = (edited != mask).astype(np.uint8)
+        if change[row, col]:
+            _, pieces = cv2.connectedComponents(change, connectivity=8)
+            edited = np.where(pieces == pieces[row, col], edited, mask)
+        return edited
+
+    def _grabcut_window(self, image: np.ndarray, labels: np.ndarray) -> np.ndarray:
+        """(h, w) bool: GrabCut from ``labels`` on ``image``, downscaled to ``max_side`` when larger."""
+        h, w = labels.shape
+        scale = min(1.0, self.config.max_side / max(h, w))
+        if scale < 1.0:
+            size = (max(2, int(round(w * scale))), max(2, int(round(h * scale))))
+            small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+            work = cv2.resize(labels, size, interpolation=cv2.INTER_NEAREST)
+        else:
+            small, work = np.ascontiguousarray(image), labels.copy()
+        fg = np.isin(work, (cv2.GC_FGD, cv2.GC_PR_FGD))
+        if fg.any() and not fg.all():
+            bgd_model = np.zeros((1, 65), np.float64)
+            fgd_model = np.zeros((1, 65), np.float64)
+            try:
+                cv2.grabCut(small, work, None, bgd_model, fgd_model, self.config.refine_iterations,
+                            cv2.GC_INIT_WITH_MASK)
+            except cv2.error:
+                pass  # degenerate colour statistics: keep the prior labelling
+        fg = np.isin(work, (cv2.GC_FGD, cv2.GC_PR_FGD))
+        if scale < 1.0:
+            fg = cv2.resize(fg.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR) >= 0.5
+            fg[labels == cv2.GC_FGD] = True
+            fg[labels == cv2.GC_BGD] = False
+        return fg
 
     def _box_for(self, box: Optional[Box], clicks: Sequence[Click], current: Optional[np.ndarray]) -> Optional[Box]:
         """The box to segment in: ``box``, else the current mask's bounds, else a box around the positive
@@ -149,7 +235,7 @@ class GrabCutSegmenter:
             if not any(lbl == 1 for _, _, lbl in clicks):
                 return None
             pos = np.array([(x, y) for x, y, lbl in clicks if lbl == 1])
-            pad = 8 * self.config.click_radius_px
+            pad = self.config.click_box_px
             box = (pos[:, 0].min() - pad, pos[:, 1].min() - pad, pos[:, 0].max() + pad, pos[:, 1].max() + pad)
         return box
 
@@ -174,30 +260,22 @@ class GrabCutSegmenter:
                  int(np.floor((bx0 - cx0) * sx)), int(np.ceil((bx1 - cx0) * sx)))
         return _Crop(cx0, cy0, cx1, cy1, small, scale, sx, sy, inner)
 
-    def _initial_labels(self, crop: "_Crop", current: Optional[np.ndarray]) -> np.ndarray:
-        """GrabCut's starting labels on the downscaled crop: outside the box background; inside, the
-        ``current`` mask when refining it, else "probably object" (less the ring-coloured pixels)."""
+    def _initial_labels(self, crop: "_Crop") -> np.ndarray:
+        """GrabCut's starting labels on the downscaled crop: outside the box background; inside "probably
+        object", less the pixels coloured like the context ring."""
         sh, sw = crop.small.shape[:2]
         r0, r1, c0, c1 = crop.inner
         labels = np.full((sh, sw), cv2.GC_BGD, np.uint8)
-        if current is not None:
-            cur = cv2.resize(current[crop.rows, crop.cols].astype(np.uint8), (sw, sh), interpolation=cv2.INTER_NEAREST)
-            labels[:] = np.where(cur > 0, cv2.GC_PR_FGD, cv2.GC_PR_BGD)
-            outside = np.ones((sh, sw), bool)
-            outside[r0:r1, c0:c1] = False
-            # far from the box and from the current mask: background for sure
-            labels[outside & (cur == 0)] = cv2.GC_BGD
-        else:
-            labels[r0:r1, c0:c1] = cv2.GC_PR_FGD
-            if self.config.background_prior:
-                # inside the box, pixels coloured like the context ring start as "probably background":
-                # otherwise a box around a thin or spread-out object (limbs, a person with arms
-                # out) teaches GrabCut's object model the background colour seen between the limbs
-                like_bg = _like_ring(crop.small, labels == cv2.GC_BGD, self.config.ring_colours,
-                                     self.config.ring_distance)
-                inside = np.zeros((sh, sw), bool)
-                inside[r0:r1, c0:c1] = True
-                labels[inside & like_bg] = cv2.GC_PR_BGD
+        labels[r0:r1, c0:c1] = cv2.GC_PR_FGD
+        if self.config.background_prior:
+            # inside the box, pixels coloured like the context ring start as "probably background":
+            # otherwise a box around a thin or spread-out object (limbs, a person with arms
+            # out) teaches GrabCut's object model the background colour seen between the limbs
+            like_bg = _like_ring(crop.small, labels == cv2.GC_BGD, self.config.ring_colours,
+                                 self.config.ring_distance)
+            inside = np.zeros((sh, sw), bool)
+            inside[r0:r1, c0:c1] = True
+            labels[inside & like_bg] = cv2.GC_PR_BGD
         if not (labels == cv2.GC_BGD).any():
             # the box fills the whole image: let the crop's border ring stand in for background
             ring = np.zeros((sh, sw), bool)

@@ -24,7 +24,8 @@ Schema (``"version": 1``)
       "categories": [                          # the queries
         {"id": 1, "name": "cookie",            # id int unique; name = query text, non-empty, unique
          "kind": "agnostic",                   # "agnostic" | "sensitive" (optional, default "agnostic")
-         "level": "whole"},                    # optional string or null (informational)
+         "level": "whole",                     # optional string or null (informational)
+         "review": "draft"},                   # optional: "draft" (not yet checked) or null/absent (reviewed)
         {"id": 2, "name": "cracked cookie", "kind": "sensitive",
          "base": 1}                            # sensitive only, required: id of an agnostic category
       ],
@@ -34,7 +35,8 @@ Schema (``"version": 1``)
          "area": 1234,                         # optional on load; when given must equal the mask's area
          "bbox": [x, y, w, h],                 # optional, informational (COCO toBbox of the mask)
          "iscrowd": 1,                         # optional, informational (COCO: RLE masks are "crowd")
-         "absent": false}                      # optional on load; see "absent" below
+         "absent": false,                      # optional on load; see "absent" below
+         "made_by": "box"}                     # optional: how the mask was made (see "Provenance")
       ],
       "time_segments": {"2": [[0, 10], [40, 55]]}   # category id (as a JSON string key) -> intervals
     }
@@ -48,6 +50,14 @@ Rules
   and, when given on load, must agree with the mask (``true`` exactly when the RLE is empty). A
   hand-written file may give ``"absent": true`` with no ``segmentation`` at all: that is an empty
   mask of the image's size.
+* **Provenance.** ``made_by`` of an annotation says how its mask was made, one of
+  :data:`benchmark.core.annotation.MADE_BY`: ``drawn``, ``box``, ``clicks``, ``propagated``,
+  ``corrected``, ``absent`` (marked absent by hand) or ``scripted`` (computed by a program, e.g. from an
+  alpha channel); absent or null = not recorded. A category with ``"review": "draft"`` has masks and
+  intervals nobody has checked yet (made by a program or a person); without it the category is reviewed.
+  Older files keep these notes in ``info.made_by = {category id: {frame name: how}}``: such a file
+  loads with each note moved onto its annotation (a note must name an annotated pair and agree with
+  the annotation's own ``made_by``), and ``info.made_by`` is not written back.
 * Only time-agnostic categories own masks; a time-sensitive category inherits the masks of its
   ``base`` (the release's rule) and owns its ``time_segments``. At most one annotation per
   (category, image).
@@ -81,8 +91,8 @@ from pycocotools import mask as mask_utils
 from benchmark.core.atomic import json_ready, read_json, write_text
 from benchmark.core.errors import InputError, short_repr
 
-from benchmark.core.annotation import (MAX_MASK_PIXELS, AnnotatedFrame, AnnotationSet, Query, check_rle,
-                    rle_runs, runs_to_string)
+from benchmark.core.annotation import (DRAFT, MADE_BY, MAX_MASK_PIXELS, AnnotatedFrame, AnnotationSet, Query,
+                                       check_rle, rle_runs, runs_to_string)
 
 FORMAT_NAME = "bench4d-annotations"
 FORMAT_VERSION = 1
@@ -158,6 +168,8 @@ def annotation_set_to_dict(aset: AnnotationSet) -> dict:
             cat["base"] = int(q.base)
         if q.level is not None:
             cat["level"] = q.level
+        if q.review is not None:
+            cat["review"] = q.review
         categories.append(cat)
     annotations = []
     frame_order = {f.id: i for i, f in enumerate(aset.frames)}
@@ -165,13 +177,20 @@ def annotation_set_to_dict(aset: AnnotationSet) -> dict:
     keys = sorted(aset.masks, key=lambda k: (frame_order.get(k[1], math.inf), query_order.get(k[0], math.inf),
                                               k[1], k[0]))
     frame_by_id = {f.id: f for f in aset.frames}
+    orphans = sorted(set(aset.made_by) - set(aset.masks))
+    if orphans:
+        raise InputError("<in-memory AnnotationSet>", f"made_by[{orphans[0][0]}, {orphans[0][1]}]",
+                         "records how a mask was made but the pair has no mask")
     for ann_id, (qid, fid) in enumerate(keys, start=1):
         frame = frame_by_id.get(fid)
         size = None if frame is None else (int(frame.height), int(frame.width))
         # in-memory masks are checked like a file's before pycocotools computes the bbox
         seg, area = _checked_rle(aset.masks[(qid, fid)], "<in-memory AnnotationSet>", f"masks[{qid}, {fid}]", size)
-        annotations.append({"id": ann_id, "image_id": int(fid), "category_id": int(qid), "segmentation": seg,
-                            "area": area, "bbox": rle_bbox(seg), "iscrowd": 1, "absent": area == 0})
+        ann = {"id": ann_id, "image_id": int(fid), "category_id": int(qid), "segmentation": seg,
+               "area": area, "bbox": rle_bbox(seg), "iscrowd": 1, "absent": area == 0}
+        if (qid, fid) in aset.made_by:
+            ann["made_by"] = aset.made_by[(qid, fid)]
+        annotations.append(ann)
     for q in aset.queries:
         if q.kind != "sensitive" and q.intervals:
             raise InputError("<in-memory AnnotationSet>", f"queries[{q.id}].intervals",
@@ -213,10 +232,13 @@ def annotation_set_from_dict(doc: Any, file: str | Path | None = None) -> Annota
     queries = _parse_categories(doc["categories"], file)
     frame_by_id = {f.id: f for f in frames}
     query_by_id = {q.id: q for q in queries}
-    masks = _parse_annotations(doc["annotations"], frame_by_id, query_by_id, file)
+    masks, made_by = _parse_annotations(doc["annotations"], frame_by_id, query_by_id, file)
     _parse_time_segments(doc.get("time_segments", {}), query_by_id, nts, file)
+    if "made_by" in info:
+        _move_info_made_by(info["made_by"], frames, query_by_id, masks, made_by, file)
+        info = {k: v for k, v in info.items() if k != "made_by"}  # a copy: the caller's document is left as it was
     return AnnotationSet(scene=scene, frames=frames, queries=queries, masks=masks,
-                         num_time_steps=None if nts is None else int(nts), info=info)
+                         num_time_steps=None if nts is None else int(nts), info=info, made_by=made_by)
 
 
 def _require_list(value: Any, file, field: str) -> list:
@@ -287,6 +309,8 @@ def _parse_categories(categories: Any, file) -> list[Query]:
         kind = _get(cat, "kind", file, field, types=(str,), default="agnostic",
                     check=lambda v: v in ("agnostic", "sensitive"), expect="'agnostic' or 'sensitive'")
         level = _get(cat, "level", file, field, types=(str, type(None)), default=None)
+        review = _get(cat, "review", file, field, types=(str, type(None)), default=None,
+                      check=lambda v: v is None or v == DRAFT, expect=f"{DRAFT!r} or null")
         base = _get(cat, "base", file, field, types=(int, type(None)), default=None)
         if isinstance(base, bool):
             raise InputError(file, f"{field}.base", f"expected a category id, got {base!r}")
@@ -303,7 +327,7 @@ def _parse_categories(categories: Any, file) -> list[Query]:
         seen_ids[qid] = i
         seen_names[name] = i
         queries.append(Query(id=int(qid), text=name, kind=kind, base=None if base is None else int(base),
-                             level=level))
+                             level=level, review=review))
     by_id = {q.id: (i, q) for i, q in enumerate(queries)}
     for i, q in enumerate(queries):
         if q.base is None:
@@ -316,9 +340,11 @@ def _parse_categories(categories: Any, file) -> list[Query]:
     return queries
 
 
-def _parse_annotations(annotations: Any, frame_by_id: dict[int, AnnotatedFrame],
-                       query_by_id: dict[int, Query], file) -> dict[tuple[int, int], dict]:
+def _parse_annotations(annotations: Any, frame_by_id: dict[int, AnnotatedFrame], query_by_id: dict[int, Query],
+                       file) -> tuple[dict[tuple[int, int], dict], dict[tuple[int, int], str]]:
+    """(masks, made_by) of the ``annotations`` list, both keyed by (category id, image id)."""
     masks: dict[tuple[int, int], dict] = {}
+    made_by: dict[tuple[int, int], str] = {}
     seen_ids: dict[int, int] = {}
     where: dict[tuple[int, int], int] = {}
     for i, ann in enumerate(_require_list(annotations, file, "annotations")):
@@ -327,6 +353,8 @@ def _parse_annotations(annotations: Any, frame_by_id: dict[int, AnnotatedFrame],
         fid = _get(ann, "image_id", file, field, types=(int,))
         qid = _get(ann, "category_id", file, field, types=(int,))
         absent = _get(ann, "absent", file, field, types=(bool,), default=None)
+        how = _get(ann, "made_by", file, field, types=(str, type(None)), default=None,
+                   check=lambda v: v is None or v in MADE_BY, expect=f"one of {', '.join(MADE_BY)} or null")
         if aid in seen_ids:
             raise InputError(file, f"{field}.id", f"duplicate annotation id {aid} (also annotations[{seen_ids[aid]}])")
         seen_ids[aid] = i
@@ -366,7 +394,37 @@ def _parse_annotations(annotations: Any, frame_by_id: dict[int, AnnotatedFrame],
                     or not all(_is_finite_number(v) for v in bbox)):
                 raise InputError(file, f"{field}.bbox", f"expected [x, y, w, h] finite numbers, got {short_repr(bbox)}")
         masks[(qid, fid)] = rle
-    return masks
+        if how is not None:
+            made_by[(qid, fid)] = how
+    return masks, made_by
+
+
+def _move_info_made_by(notes: Any, frames: list[AnnotatedFrame], query_by_id: dict[int, Query],
+                       masks: dict[tuple[int, int], dict], made_by: dict[tuple[int, int], str], file) -> None:
+    """Move the older ``info.made_by = {category id: {frame name: how}}`` onto ``made_by`` (in place)."""
+    expect = "expected an object {category id: {frame name: how the mask was made}}"
+    if not isinstance(notes, dict):
+        raise InputError(file, "info.made_by", f"{expect}, got {type(notes).__name__}")
+    frame_id = {f.name: f.id for f in frames}
+    for key, per_frame in notes.items():
+        field = f"info.made_by.{key}"
+        qid = int(key) if _is_int(key) or (isinstance(key, str) and key.isascii() and key.isdigit()) else None
+        if qid not in query_by_id:
+            raise InputError(file, field, f"{short_repr(key)} is not a category id of this file")
+        if not isinstance(per_frame, dict):
+            raise InputError(file, field, f"{expect}, got {type(per_frame).__name__}")
+        for name, how in per_frame.items():
+            where = f"{field}.{name}"
+            if name not in frame_id:
+                raise InputError(file, where, f"{short_repr(name)} is not the file_name of an image")
+            if how not in MADE_BY:
+                raise InputError(file, where, f"expected one of {', '.join(MADE_BY)}, got {short_repr(how)}")
+            pair = (qid, frame_id[name])
+            if pair not in masks:
+                raise InputError(file, where, f"category {qid} has no annotation on image {pair[1]}")
+            if made_by.get(pair, how) != how:
+                raise InputError(file, where, f"says {how!r} but the annotation says {made_by[pair]!r}")
+            made_by[pair] = how
 
 
 def _empty_counts(height: int, width: int) -> str:

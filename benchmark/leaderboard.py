@@ -7,14 +7,17 @@ ceiling was measured: ``reports/ablations/protocol-ceiling.json``), with query F
 accuracy. A floor (a method that answers from training-frame supervision, not through the query) has its
 own labelled row and is never ranked. Values are mean ± std over seeds (the dataset mean averages scenes within a seed
 first). Best of *our* runs per column in bold. The paper's numbers are printed in their own
-tables marked "paper, reported": they are never mixed into our ranking or bolding.
+tables marked "paper, reported": they are never mixed into our ranking or bolding. A "See also" line links
+the stress suite's breaking points (``reports/stability/README.md``) and the capacity curves
+(``reports/capacity/README.md``) where those reports exist.
 """
 
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Sequence
 
 import pandas as pd
 
@@ -46,6 +49,9 @@ printed, not ranked (few near-threshold decisions is no merit of scores that sep
 UNRANKED = {"nearTau"}
 PRIMARY = {"agnostic": "mIoU", "sensitive": "Acc"}
 KIND_TITLE = {"agnostic": "Time-agnostic queries", "sensitive": "Time-sensitive queries"}
+SEE_ALSO = (("stability/README.md", "where methods break (stress suite)"),
+            ("capacity/README.md", "accuracy and cost against capacity"))
+"""Reports under the reports folder the leaderboard links, each where it exists: (path, what it shows)."""
 
 
 def _arrow(column: str) -> str:
@@ -276,7 +282,9 @@ def _protocol_order(name: str) -> tuple[int, str]:
 
 
 def render_markdown(runs: pd.DataFrame, results_dir_label: str,
-                    ceilings: Optional[dict[str, dict[str, dict[str, float]]]] = None) -> str:
+                    ceilings: Optional[dict[str, dict[str, dict[str, float]]]] = None,
+                    see_also: Sequence[tuple[str, str]] = ()) -> str:
+    """The leaderboard's Markdown; ``see_also``: (link, what it shows) of other reports, on one line."""
     from methods.registry import paper_reference
 
     PAPER_NUMBERS = paper_reference().numbers
@@ -315,6 +323,8 @@ def render_markdown(runs: pd.DataFrame, results_dir_label: str,
            "  same scenes (`bench4d ablate ceiling`: mIoU for time-agnostic, vIoU for time-sensitive queries).",
            f"* _{FLOOR_LABEL}_: answers from the training frames' 2D supervision, not through the query; a",
            "  reference every 3D/4D method should clear, never ranked.", ""]
+    if see_also:
+        out += ["See also: " + " · ".join(f"[{label}]({link})" for link, label in see_also) + ".", ""]
     if len(stale):
         out += [f"**{len(stale)} result file(s) left out**: measured on a synthetic scene other than the version the",
                 "committed generator makes (`benchmark/synthetic/digests.json`), so not comparable with these tables:",
@@ -364,6 +374,13 @@ def paper_numbers_table() -> pd.DataFrame:
     return pd.DataFrame(rows, columns=["method", "dataset", "scene", "metric", "value", "source"])
 
 
+def see_also_links(reports_dir: str | Path, markdown: str | Path) -> list[tuple[str, str]]:
+    """(link from ``markdown``'s folder, what it shows) of every :data:`SEE_ALSO` report that exists."""
+    base = Path(markdown).parent.resolve()
+    return [(Path(os.path.relpath((Path(reports_dir) / path).resolve(), base)).as_posix(), label)
+            for path, label in SEE_ALSO if (Path(reports_dir) / path).is_file()]
+
+
 def build_leaderboard(results_dir: str | Path = "results", *, markdown: str | Path = "leaderboard.md",
                       reports_dir: str | Path = "reports", ceiling: Optional[str | Path] = None) -> dict[str, Path]:
     """Regenerate the leaderboard and CSVs; returns the files written (name -> path). ``ceiling``: the
@@ -374,7 +391,7 @@ def build_leaderboard(results_dir: str | Path = "results", *, markdown: str | Pa
     written: dict[str, Path] = {}
     md_path = Path(markdown)
     ceilings = load_ceilings(Path(reports_dir) / CEILING_FILE if ceiling is None else ceiling)
-    write_text(md_path, render_markdown(runs, results_dir.as_posix(), ceilings))
+    write_text(md_path, render_markdown(runs, results_dir.as_posix(), ceilings, see_also_links(reports_dir, md_path)))
     written["leaderboard"] = md_path
     reports = Path(reports_dir)
     write_text(reports / "runs.csv", _csv(runs))  # every run, with its scene_current flag

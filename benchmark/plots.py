@@ -298,3 +298,49 @@ def timeline(method: str | Sequence[str], scene: str, query: str, *, results_dir
     written = _save(fig, stem)
     plt.close(fig)
     return written
+
+
+def metric_curves(stem: Path, lines: "dict[str, pd.DataFrame]", *, x: str, x_label: str,
+                  panels: Sequence[tuple[str, str]], title: str = "", log_x: bool = False,
+                  columns: int = 4) -> list[Path]:
+    """One figure of small charts, one per ``panels`` entry (column, title), each drawing that column against
+    ``x`` with one line per entry of ``lines`` (label -> table of points); written as ``stem``.png / .pdf.
+    A panel whose column no table has a value in says so instead of drawing."""
+    plt = _pyplot()
+    rows = max(1, math.ceil(len(panels) / columns))
+    fig, axes = plt.subplots(rows, columns, figsize=(3.2 * columns, 2.8 * rows), squeeze=False, layout="constrained")
+    for ax, (column, name) in zip(axes.flat, panels):
+        drawn = False
+        for label, table in lines.items():
+            xs = table[x].to_numpy(float)
+            ys = table[column].to_numpy(float) if column in table else np.full(len(table), np.nan)
+            ok = np.isfinite(xs) & np.isfinite(ys) & ((xs > 0) if log_x else True)
+            if ok.any():
+                ax.plot(xs[ok], ys[ok], marker="o", linewidth=1.2, markersize=4, label=label)
+                drawn = True
+        if not drawn:
+            ax.text(0.5, 0.5, "not recorded", ha="center", va="center", transform=ax.transAxes, color="0.5")
+        if log_x and drawn:
+            ax.set_xscale("log")
+            ax.xaxis.set_minor_formatter(NullFormatter())
+        if drawn:  # a tick at every value the knob took
+            ticks = sorted({float(v) for t in lines.values() for v in t[x].to_numpy(float)
+                            if np.isfinite(v) and (v > 0 or not log_x)})
+            ax.set_xticks(ticks, [f"{v:g}" for v in ticks])
+        ax.set_title(name, fontsize=9)
+        ax.set_xlabel(x_label, fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.grid(True, which="both", alpha=0.3)
+    for ax in list(axes.flat)[len(panels):]:
+        ax.set_visible(False)
+    for ax in axes.flat:  # the first panel with lines gives the legend
+        handles, labels = ax.get_legend_handles_labels()
+        if handles:
+            break
+    if handles:
+        fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 6), fontsize=8)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    written = _save(fig, Path(stem))
+    plt.close(fig)
+    return written

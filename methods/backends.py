@@ -109,6 +109,8 @@ def module_available(name: str) -> bool:
 # Memory plans of the large models
 # ---------------------------------------------------------------------------------------------------
 GIB = 1024 ** 3
+WEIGHT_DTYPES = ("float32", "bfloat16", "float16")
+"""torch dtype names the vision backends load their weights in."""
 WEIGHT_MARGIN = 1.15
 """GPU memory a model takes beyond its half-precision weights (CUDA context, buffers), as a factor."""
 
@@ -145,19 +147,22 @@ def half_dtype(device: str) -> str:
 
 
 def plan_memory(backend: Backend, device: str, *, per_item_gb: float, max_batch: int = 64,
-                free_bytes: Optional[int] = None, dtype: Optional[str] = None) -> MemoryPlan:
+                free_bytes: Optional[int] = None, dtype: Optional[str] = None, cpu_batch: Optional[int] = None,
+                offload: bool = True) -> MemoryPlan:
     """The :class:`MemoryPlan` of ``backend`` on ``device``.
 
-    On the CPU: full precision, ``max_batch``. On CUDA: half precision; the weights
+    On the CPU: full precision, ``cpu_batch`` (default ``max_batch``). On CUDA: half precision; the weights
     (``backend.gpu_memory_gb`` x :data:`WEIGHT_MARGIN`) plus one input (``per_item_gb``) must fit in the free
     memory (``free_bytes``, else :func:`gpu_free_bytes`), and the batch is what the rest holds, at most
     ``max_batch``. A model that does not fit is offloaded (``device_map="auto"``, one input at a time) when
-    ``accelerate`` is installed; otherwise an :class:`~benchmark.core.errors.InputError` says what to do.
+    ``offload`` is allowed and ``accelerate`` is installed; otherwise an
+    :class:`~benchmark.core.errors.InputError` says what to do.
     """
     from benchmark.core.errors import InputError
 
     if not str(device).startswith("cuda"):
-        return MemoryPlan(device=device, dtype=None, batch_size=max_batch, offload=False)
+        return MemoryPlan(device=device, dtype=None, batch_size=max_batch if cpu_batch is None else cpu_batch,
+                          offload=False)
     dtype = dtype or half_dtype(device)
     free = gpu_free_bytes(device) if free_bytes is None else int(free_bytes)
     weights = backend.gpu_memory_gb * WEIGHT_MARGIN * GIB
@@ -166,6 +171,9 @@ def plan_memory(backend: Backend, device: str, *, per_item_gb: float, max_batch:
         batch = int(max(1, min(max_batch, (free - weights) // per_item)))
         return MemoryPlan(device=device, dtype=dtype, batch_size=batch, offload=False)
     need = f"{backend.model} needs about {(weights + per_item) / GIB:.1f} GB of GPU memory and {free / GIB:.1f} GB is free"
+    if not offload:
+        raise InputError(None, f"{backend.name} memory",
+                         f"{need}: free GPU memory (another process may hold it) or run on the CPU (--device cpu)")
     if not module_available("accelerate"):
         raise InputError(None, f"{backend.name} memory",
                          f"{need}: install accelerate (pip install accelerate) to offload layers to the CPU, or run "

@@ -63,8 +63,8 @@ from benchmark.core.scene import Frame, Scene
 from .api import AgnosticAnswer, Method, Model, Progress, SensitiveAnswer
 from .fields.autoencoder import AutoencoderConfig, FeatureAutoencoder, train_autoencoder
 from .fields.configs import AE_SAMPLE_WEIGHTINGS
-from .fields.language_field import (FieldTarget, FrozenGeometry, LanguageField, LanguageFieldConfig,
-                                    decode_for_relevance, make_target, project_phrases,
+from .fields.language_field import (DecodeTable, FieldTarget, FrozenGeometry, LanguageField, LanguageFieldConfig,
+                                    decode_for_relevance, matmul_precision, make_target, project_phrases,
                                     relevance_basis, train_language_field)
 from .fields.relevance import AgnosticResult, encode_canonical, query_levels
 from .specs._language import LanguageMethodConfig
@@ -97,12 +97,13 @@ def device_kind(device: str | torch.device) -> str:
 def recon_config(config: LanguageMethodConfig, seed: int):
     """The Gaussian core's :class:`~methods.gaussians.config.ReconConfig` for the ``geometry`` group of
     ``config`` (the core's recipe constants are its own defaults)."""
-    from methods.gaussians.config import GaussianConfig, ReconConfig
+    from methods.gaussians.config import DeformationConfig, GaussianConfig, HexPlaneConfig, ReconConfig
 
     g = config.geometry
     gaussians = GaussianConfig(max_gaussians=g.max_gaussians,
                                gaussians_per_foreground_pixel=g.gaussians_per_foreground_pixel)
-    return ReconConfig(gaussians=gaussians, static_iterations=g.static_iterations,
+    deformation = DeformationConfig(hexplane=HexPlaneConfig(spatial_resolution=g.hexplane_resolution))
+    return ReconConfig(gaussians=gaussians, deformation=deformation, static_iterations=g.static_iterations,
                        deformation_iterations=g.deformation_iterations, reference_iterations=g.static_model_iterations,
                        seed=seed)
 
@@ -456,6 +457,7 @@ class LanguageFieldModel(Model):
         self._background: dict[str, torch.Tensor] = {}
         self._prepared: Optional[tuple[tuple[str, ...], torch.Tensor]] = None  # (texts, [D, k] shared basis)
         self._reduced_cache: dict[str, torch.Tensor] = {}  # frame name -> [L, H, W, k + 1]
+        self._decode_tables: dict[int, DecodeTable] = {}  # id(basis) -> its table (answer.decode_table)
 
     def use_answer_options(self, config: LanguageMethodConfig) -> None:
         """Answer with ``config``'s ``answer`` group, the fitted state unchanged; memoised query state is
@@ -474,6 +476,7 @@ class LanguageFieldModel(Model):
         self._phrases.clear()
         self._prepared = None
         self._reduced_cache.clear()
+        self._decode_tables.clear()
 
     @property
     def relevance_cfg(self):
@@ -496,6 +499,7 @@ class LanguageFieldModel(Model):
 
     # -- evaluation-wide sharing --------------------------------------------------------------------------
     MAX_CACHE_BYTES: ClassVar[int] = 1 << 30
+    MAX_DECODE_TABLES: ClassVar[int] = 8
     """Memory for reduced decoded frames kept between queries (each is [3, H, W, k + 1] floats with
     k <= queries + 4: 3.5 MiB at 128x170 with 13 queries, 140 MiB at 960x536 with 20); the oldest frames
     are dropped beyond it."""
@@ -539,11 +543,15 @@ class LanguageFieldModel(Model):
         ``latents`` [L, H, W, d], with the pixels of ``alpha`` [H, W] below ``config.answer.uncovered_alpha`` set to the
         reduced ``extensions.unmasked_text`` embedding (see the config field). Only covered pixels are decoded:
         the others would be overwritten (object-centric scenes such as D-NeRF are mostly uncovered)."""
+        with matmul_precision("high" if self.config.answer.decode_tf32 and latents.device.type == "cuda" else None):
+            return self._decode_reduced(latents, alpha, basis)
+
+    def _decode_reduced(self, latents: torch.Tensor, alpha: torch.Tensor, basis: torch.Tensor) -> torch.Tensor:
         chunk = self.config.answer.decode_chunk_for(latents.device)
         text = self.config.extensions.unmasked_text
         uncovered = alpha < self.config.answer.uncovered_alpha
         if not text or not bool(uncovered.any()):
-            return decode_for_relevance(latents, self.autoencoder.decoder, basis, chunk)
+            return self._decode(latents, basis, chunk)
         if text not in self._background:
             self._background[text] = F.normalize(torch.as_tensor(
                 self.text_encoder.encode([text], kind="passage")[0], dtype=torch.float32, device=self.device), dim=0)
@@ -553,8 +561,31 @@ class LanguageFieldModel(Model):
         reduced = g.to(latents.dtype).expand(*latents.shape[:-1], g.shape[0]).clone()
         covered = ~uncovered
         if bool(covered.any()):
-            reduced[:, covered] = decode_for_relevance(latents[:, covered], self.autoencoder.decoder, basis, chunk)
+            reduced[:, covered] = self._decode(latents[:, covered], basis, chunk)
         return reduced
+
+    def _decode(self, latents: torch.Tensor, basis: torch.Tensor, chunk: int) -> torch.Tensor:
+        """[..., d] latents -> [..., k + 1] reduced features: exactly, or through the query's decode table
+        (``answer.decode_table``, 3-d latents)."""
+        resolution = self.config.answer.decode_table
+        if resolution <= 0 or latents.shape[-1] != 3:
+            return decode_for_relevance(latents, self.autoencoder.decoder, basis, chunk)
+        key = id(basis)
+        if key not in self._decode_tables:
+            if len(self._decode_tables) >= self.MAX_DECODE_TABLES:
+                self._decode_tables.pop(next(iter(self._decode_tables)))
+            lo, hi = self._latent_box()
+            # the table keeps ``basis`` alive, so its id is not reused while the entry exists
+            self._decode_tables[key] = DecodeTable(self.autoencoder.decoder, basis, lo, hi, resolution, chunk)
+        return self._decode_tables[key](latents)
+
+    def _latent_box(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per-channel bounds of every rendered latent of every level: the extremes of the Gaussians' latents
+        and the zero background (a rendered latent is their alpha blend)."""
+        d = self.field.cfg.latent_dim
+        features = self.field.features.detach().reshape(-1, d)
+        zero = features.new_zeros(d)
+        return torch.minimum(features.min(0).values, zero), torch.maximum(features.max(0).values, zero)
 
     @torch.no_grad()
     def render_latents_and_alpha(self, frame: Frame) -> tuple[torch.Tensor, torch.Tensor]:

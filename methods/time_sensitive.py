@@ -58,8 +58,8 @@ class _FieldHead(TimeVaryingHead):
     def fit(cls, context: FitContext) -> "_FieldHead":
         cfg = context.config
         captions, tracks = build_captions(context.scene, context.supervision.track, cfg.captions,
-                                          cache_root=context.cache_root, device=context.device,
-                                          progress=context.progress)
+                                          supervision=context.supervision, cache_root=context.cache_root,
+                                          device=context.device, progress=context.progress)
         encoder = caption_text_encoder(cfg.captions, context.supervision.text_encoder, context.device)
         sup = embed_captions(captions, tracks, encoder)
         with StagePeak(context.device) as peak:

@@ -19,10 +19,11 @@ from urllib.parse import urlsplit
 import numpy as np
 import pytest
 
-from annotations.format import load_annotations
+from annotations.format import load_annotations, save_annotations
 from annotations.propagate import iou
 from annotations.tool.exchange import same_content
 from annotations.tool.synthetic import rigid_sequence, write_dnerf_scene
+from benchmark.core.annotation import AnnotationSet, Query
 
 CHROMIUM = Path(os.environ.get("BENCH4D_CHROMIUM", "/usr/bin/chromium"))
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
@@ -619,9 +620,31 @@ def test_the_page_saves_how_each_mask_was_made(browser, scene_dir, seq, tmp_path
         pg.goto(5)
         pg.key("a")
         pg.flush()
-        made = saved(ann).info["made_by"][str(qid)]
+        back = saved(ann)
+        made = {back.frame(fid).name: how for (q, fid), how in back.made_by.items() if q == qid}
         assert made == {"train_r_000": "box", "train_r_001": "propagated", "train_r_002": "corrected",
                         "train_r_005": "absent"}
+        pg.close()
+    finally:
+        srv.stop()
+
+
+def test_a_draft_query_is_labelled_and_can_be_marked_reviewed(browser, scene_dir, tmp_path):
+    ann = tmp_path / "draft.json"
+    save_annotations(AnnotationSet(scene="blob", queries=[Query(1, "blob", review="draft"), Query(2, "dot")]), ann)
+    srv = Server(scene_dir, ann)
+    try:
+        pg = Page(browser, srv.url)
+        labels = "[...document.querySelectorAll('#queries li')].map(li => li.querySelector('.draft')?.textContent ?? null)"
+        assert pg.js(labels) == ["draft", None]
+        assert pg.page.is_visible("#mark-reviewed")  # the selected query is the draft
+        pg.js("window.bench4d.select(2)")
+        assert pg.page.is_hidden("#mark-reviewed")
+        pg.js("window.bench4d.select(1)")
+        pg.page.click("#mark-reviewed")
+        pg.page.wait_for_function("window.bench4d.S.queries[0].review === null")
+        assert pg.js(labels) == [None, None] and pg.page.is_hidden("#mark-reviewed")
+        assert saved(ann).draft_queries() == []
         pg.close()
     finally:
         srv.stop()

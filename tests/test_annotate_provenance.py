@@ -1,11 +1,13 @@
-"""How a mask was made, which frames a session offers, and the review's coverage checks (no HTTP)."""
+"""How a mask was made, draft queries, which frames a session offers, and the review's coverage checks (no HTTP)."""
 
 from __future__ import annotations
+
+import json
 
 import numpy as np
 import pytest
 
-from annotations.format import load_annotations
+from annotations.format import load_annotations, save_annotations
 from annotations.tool.review import review
 from annotations.tool.session import AnnotationSession, SessionConfig, mask_to_runs
 from annotations.tool.synthetic import rigid_sequence, write_dnerf_scene
@@ -59,15 +61,75 @@ def test_made_by_is_kept_per_mask_forgotten_on_an_unsaid_edit_and_checked(scene,
         qid, rev = s.add_query(s.revision, "blob")
         change = {"type": "mask", "query": qid, "mask": {"counts": mask_to_runs(_mask())}}
         rev = s.apply(rev, [{**change, "frame": 0, "made_by": "box"}, {**change, "frame": 1, "made_by": "propagated"}])
-        info = load_annotations(path).info
-        assert info["made_by"] == {str(qid): {s.frames[0].name: "box", s.frames[1].name: "propagated"}}
-        assert info["annotator"] == "simulated" and info["protocol"] == {"target_iou": 0.9}
+        saved = load_annotations(path)
+        fid = {f.name: f.id for f in saved.frames}
+        first, second = (fid[s.frames[k].name] for k in (0, 1))
+        assert saved.made_by == {(qid, first): "box", (qid, second): "propagated"}
+        assert "made_by" not in saved.info
+        assert saved.info["annotator"] == "simulated" and saved.info["protocol"] == {"target_iou": 0.9}
+        assert s.masks_of_frame(1)["masks"][str(qid)]["made_by"] == "propagated"
         rev = s.apply(rev, [{**change, "frame": 1}])  # edited by hand: no longer "propagated"
-        assert load_annotations(path).info["made_by"] == {str(qid): {s.frames[0].name: "box"}}
+        assert load_annotations(path).made_by == {(qid, first): "box"}
+        assert "made_by" not in s.masks_of_frame(1)["masks"][str(qid)]
         with pytest.raises(InputError, match="made_by"):
             s.apply(rev, [{**change, "frame": 2, "made_by": "magic"}])
+        rev = s.apply(rev, [{**change, "frame": 2, "made_by": "scripted"}, {**change, "frame": 0, "mask": None}])
+        saved = load_annotations(path)  # a removed mask takes its note along
+        assert saved.made_by == {(qid, saved.frame(s.frames[2].name).id): "scripted"}
         s.delete_query(rev, qid)
-        assert "made_by" not in load_annotations(path).info
+        assert load_annotations(path).made_by == {}
+    finally:
+        s.close()
+
+
+def test_a_failed_commit_restores_the_notes(scene, tmp_path, monkeypatch):
+    from annotations.tool import session as session_module
+
+    s = AnnotationSession(scene, tmp_path / "a.json")
+    try:
+        qid, rev = s.add_query(s.revision, "blob")
+        change = {"type": "mask", "query": qid, "frame": 0, "mask": {"counts": mask_to_runs(_mask())}}
+        rev = s.apply(rev, [{**change, "made_by": "box"}])
+        before = dict(s.aset.made_by)
+
+        def fail(*args, **kwargs):
+            raise OSError("disk full")
+
+        monkeypatch.setattr(session_module, "save_annotations", fail)
+        with pytest.raises(OSError):
+            s.apply(rev, [{**change, "made_by": "clicks"}])
+        assert s.aset.made_by == before
+        with pytest.raises(OSError):
+            s.delete_query(rev, qid)
+        assert s.aset.made_by == before and s.revision == rev
+    finally:
+        s.close()
+
+
+def test_an_older_file_keeps_its_notes_and_a_draft_query_can_be_marked_reviewed(scene, tmp_path):
+    path = tmp_path / "a.json"
+    aset = AnnotationSet(scene=scene.name, num_time_steps=scene.num_time_steps,
+                         queries=[Query(id=1, text="blob", review="draft"), Query(id=2, text="dot")])
+    frame = next(f for f in scene.frames if f.split == "test")
+    aset.frames = [AnnotatedFrame(id=1, name=frame.name, time_index=frame.time_index, width=W, height=H)]
+    aset.set_mask(1, 1, _mask())
+    save_annotations(aset, path)
+    doc = json.loads(path.read_text())
+    doc["info"]["made_by"] = {"1": {frame.name: "drawn"}}  # where the notes were kept before
+    path.write_text(json.dumps(doc))
+    s = AnnotationSession(scene, path)
+    try:
+        index = s.index_of[frame.name]
+        assert s.masks_of_frame(index)["masks"]["1"]["made_by"] == "drawn"
+        assert [q["review"] for q in s.state()["queries"]] == ["draft", None]
+        assert s.mark_reviewed(s.revision, 2) == s.revision  # not a draft: nothing to write
+        with pytest.raises(InputError, match="query"):
+            s.mark_reviewed(s.revision, 7)
+        rev = s.mark_reviewed(s.revision, 1)
+        back = load_annotations(path)
+        assert back.draft_queries() == [] and rev == s.revision
+        assert back.made_by == {(1, 1): "drawn"} and "made_by" not in back.info
+        assert '"made_by": "drawn"' in path.read_text() and '"review"' not in path.read_text()
     finally:
         s.close()
 

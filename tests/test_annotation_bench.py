@@ -119,14 +119,14 @@ def test_the_saved_masks_are_the_annotators_and_say_how_they_were_made(smoke):
     logs = result["backends"]["grabcut"]["every_frame"]
     for text, frames in logs.items():
         q = aset.query(text)
-        made = info["made_by"][str(q.id)]
         for f in frames:
             mask = aset.get_mask(q.id, aset.frame(f["frame"]).id)
             assert abs(bench.iou(mask, truth.mask(text, f["frame"])) - f["ious"][-1]) < 1e-3
-            assert made[f["frame"]] == f["made_by"]
-    # the file is still plain JSON the format reads; info.made_by is optional
+            assert aset.made_by[(q.id, aset.frame(f["frame"]).id)] == f["made_by"]
+    # the file is still plain JSON the format reads; made_by is optional
     doc = json.loads(path.read_text())
-    del doc["info"]["made_by"]
+    for ann in doc["annotations"]:
+        del ann["made_by"]
     path.write_text(json.dumps(doc))
     assert load_annotations(path).masks
 
@@ -149,3 +149,40 @@ def test_the_command_writes_the_report_and_refuses_unknown_backends(tmp_path, ca
     doc = json.loads((out / "annotation_bench.json").read_text())
     assert [r["scene"] for r in doc["scenes"]] == ["smoke"] and doc["human_seconds"]["box"] == bench.BOX_SECONDS
     assert "| smoke | grabcut |" in (out / "annotation_bench.md").read_text()
+
+
+def test_simulated_masks_are_adopted_only_where_they_reach_the_truth(tmp_path):
+    from annotations.format import load_annotations, save_annotations
+    from benchmark.core.annotation import AnnotatedFrame, AnnotationSet, Query
+    from benchmark.studies.annotation_bench import TruthQuery, TruthScene, adopt_simulated_masks
+
+    truth = np.zeros((2, 12, 12), bool)
+    truth[:, 2:8, 3:9] = True
+    frames = [AnnotatedFrame(1, "f0", 0, 12, 12), AnnotatedFrame(2, "f1", 1, 12, 12)]
+
+    def file_with(masks, made_by, extra_query=False):
+        queries = [Query(1, "ball", level="whole")] + ([Query(2, "stripe", level="part", review="draft")]
+                                                       if extra_query else [])
+        aset = AnnotationSet("toy", frames=list(frames), queries=queries, num_time_steps=2, info={"annotator": "x"})
+        for frame, mask in zip(frames, masks):
+            aset.set_mask(1, frame.id, mask, made_by=made_by)
+            if extra_query:
+                aset.set_mask(2, frame.id, mask[:, ::-1].copy(), made_by="scripted")
+        return aset
+
+    shipped = save_annotations(file_with(truth, "scripted", extra_query=True), tmp_path / "toy.json")
+    good = truth[0].copy()
+    good[2, 3] = False  # 35 of 36 pixels: IoU 0.97
+    poor = np.zeros((12, 12), bool)
+    poor[2:5, 3:9] = True  # half the object: IoU 0.5
+    made = save_annotations(file_with([good, poor], "clicks"), tmp_path / "made.json")
+    scene = TruthScene("toy", tmp_path, "dnerf", [TruthQuery("ball", "agnostic", None, "whole")], ["f0", "f1"],
+                       lambda text, frame: truth[int(frame[1])])
+
+    assert adopt_simulated_masks(shipped, made, scene, 0.95) == {"adopted": 1, "kept": 1}
+    back = load_annotations(shipped)
+    assert np.array_equal(back.get_mask(1, 1), good) and back.made_by[(1, 1)] == "clicks"
+    assert np.array_equal(back.get_mask(1, 2), truth[1]) and back.made_by[(1, 2)] == "scripted"
+    # the query without exact truth is untouched, and stays a draft
+    assert np.array_equal(back.get_mask(2, 1), truth[0][:, ::-1]) and back.query(2).review == "draft"
+    assert "simulated" in back.info["annotators"] and back.info["simulated_protocol"]["min_iou_against_truth"] == 0.95

@@ -43,11 +43,11 @@ def make_set(rng: np.random.Generator, h: int = 24, w: int = 32, n_frames: int =
     aset = AnnotationSet(scene="toy", num_time_steps=20, info={"annotator": "test", "notes": ["a", "b"]})
     for k in range(n_frames):
         aset.frames.append(AnnotatedFrame(id=10 + k, name=f"{3 * k + 1:06d}", time_index=3 * k, width=w, height=h))
-    aset.queries = [Query(1, "cookie", level="whole"), Query(2, "cup"),
+    aset.queries = [Query(1, "cookie", level="whole"), Query(2, "cup", review="draft"),
                     Query(5, "cracked cookie", "sensitive", base=1, intervals=[(0, 4), (9, 19)]),
                     Query(6, "empty cup", "sensitive", base=2, intervals=[])]
     for f in aset.frames:
-        aset.set_mask(1, f.id, random_blobs(rng, h, w, noise=0.02))
+        aset.set_mask(1, f.id, random_blobs(rng, h, w, noise=0.02), made_by="box" if f.id != 12 else None)
         if f.id != 11:  # frame 11: "cup" not annotated
             aset.set_mask(2, f.id, np.zeros((h, w), bool) if f.id == 12 else random_blobs(rng, h, w))
     return aset
@@ -75,7 +75,8 @@ def test_save_load_round_trip_is_exact(tmp_path: Path) -> None:
     aset = make_set(np.random.default_rng(0))
     path = save_annotations(aset, tmp_path / "toy.json")
     back = load_annotations(path)
-    assert back == aset  # every field: frames, queries (+ intervals, level), RLEs, info, num_time_steps
+    assert back == aset  # every field: frames, queries (+ intervals, level, review), RLEs, made_by, info, ...
+    assert back.made_by and back.draft_queries() == [back.query("cup")]
     assert back.get_mask(5, 10) is not None and np.array_equal(back.get_mask(5, 10), back.get_mask(1, 10))
     assert back.get_mask(2, 11) is None  # not annotated
     assert not back.get_mask(2, 12).any()  # annotated, absent
@@ -208,6 +209,18 @@ BAD_DOCS = [
     ("segment-unknown-category", _set("time_segments.99", [[0, 1]]), "time_segments.99"),
     ("segment-on-agnostic", _set("time_segments.1", [[0, 1]]), "time_segments.1"),
     ("segment-key-not-id", _set("time_segments.abc", [[0, 1]]), "time_segments.abc"),
+    ("made-by-unknown", _set("annotations.0.made_by", "magic"), "annotations[0].made_by"),
+    ("made-by-not-string", _set("annotations.1.made_by", 3), "annotations[1].made_by"),
+    ("review-unknown", _set("categories.0.review", "approved"), "categories[0].review"),
+    ("review-not-string", _set("categories.1.review", True), "categories[1].review"),
+    # the older place of the notes: info.made_by = {category id: {frame name: how}}
+    ("old-made-by-not-object", _set("info.made_by", []), "info.made_by"),
+    ("old-made-by-unknown-category", _set("info.made_by", {"77": {}}), "info.made_by.77"),
+    ("old-made-by-frame-not-object", _set("info.made_by", {"1": "box"}), "info.made_by.1"),
+    ("old-made-by-unknown-frame", _set("info.made_by", {"1": {"nope": "box"}}), "info.made_by.1.nope"),
+    ("old-made-by-bad-value", _set("info.made_by", {"1": {"000001": "magic"}}), "info.made_by.1.000001"),
+    ("old-made-by-not-annotated", _set("info.made_by", {"2": {"000004": "box"}}), "info.made_by.2.000004"),
+    ("old-made-by-disagrees", _set("info.made_by", {"1": {"000001": "drawn"}}), "info.made_by.1.000001"),
 ]
 
 
@@ -223,6 +236,44 @@ def test_bad_files_name_file_and_field(tmp_path: Path, mutate, field: str) -> No
     assert err.value.file == str(path)
     assert err.value.field is not None and err.value.field.startswith(field), (err.value.field, str(err.value))
     assert str(path) in str(err.value) and field in str(err.value)
+
+
+def test_provenance_and_review_are_optional_and_the_older_notes_move_onto_the_masks(tmp_path: Path) -> None:
+    aset = make_set(np.random.default_rng(4), h=6, w=8, n_frames=3)
+    doc = annotation_set_to_dict(aset)
+    assert [a.get("made_by") for a in doc["annotations"] if a["category_id"] == 1] == ["box", "box", None]
+    assert [c.get("review") for c in doc["categories"]] == [None, "draft", None, None]
+    for ann in doc["annotations"]:
+        ann.pop("made_by", None)
+    for cat in doc["categories"]:
+        cat.pop("review", None)
+    plain = load_annotations_from(doc, tmp_path)  # a file without them loads as before
+    assert plain.made_by == {} and plain.draft_queries() == [] and plain.masks == aset.masks
+    doc["info"]["made_by"] = {"1": {"000001": "box", "000004": "box"}}
+    old = load_annotations_from(doc, tmp_path)
+    assert old.made_by == aset.made_by and "made_by" not in old.info
+    assert doc["info"]["made_by"]  # the parsed document is left as it was
+    save_annotations(old, tmp_path / "again.json")
+    again = json.loads((tmp_path / "again.json").read_text())
+    assert "made_by" not in again["info"] and load_annotations(tmp_path / "again.json").made_by == aset.made_by
+
+
+def test_the_writer_refuses_notes_it_cannot_keep() -> None:
+    aset = make_set(np.random.default_rng(5), h=6, w=8, n_frames=3)
+    orphan = copy.deepcopy(aset)
+    orphan.made_by[(2, 11)] = "box"  # "cup" is not annotated on frame 11
+    with pytest.raises(InputError, match=r"made_by\[2, 11\]"):
+        annotation_set_to_dict(orphan)
+    unknown = copy.deepcopy(aset)
+    unknown.made_by[(1, 10)] = "magic"
+    with pytest.raises(InputError, match="made_by"):
+        annotation_set_to_dict(unknown)
+    with pytest.raises(ValueError, match="magic"):
+        aset.set_mask(1, 10, np.zeros((6, 8), bool), made_by="magic")
+    aset.set_mask(1, 10, np.zeros((6, 8), bool))  # a replaced mask that does not say forgets the note
+    assert (1, 10) not in aset.made_by and (1, 11) in aset.made_by
+    aset.set_mask(1, 11, None)
+    assert (1, 11) not in aset.made_by and (1, 11) not in aset.masks
 
 
 def load_annotations_from(doc: dict, tmp_path: Path) -> AnnotationSet:

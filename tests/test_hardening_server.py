@@ -465,7 +465,8 @@ GET_PATHS = [b"/", b"/index.html", b"/static/app.js", b"/static/../session.py", 
              b"/api/frame/0.jpg", b"/api/frame/3.jpg", b"/api/frame/4.jpg", b"/api/masks/1", b"/api/thumb/2.jpg",
              b"/api/review", b"/api/frame/\xb2.jpg", b"/api/masks/" + b"9" * 5000, "/api/masks/\u0661".encode(),
              b"http://[bad/x", b"//evil/api/state", b"*", b"/api/frame/-1.jpg"]
-POST_PATHS = [b"/api/save", b"/api/queries/add", b"/api/queries/delete", b"/api/segment", b"/api/propagate",
+POST_PATHS = [b"/api/save", b"/api/queries/add", b"/api/queries/delete", b"/api/queries/reviewed", b"/api/segment",
+              b"/api/propagate",
               b"/api/export", b"/api/import", b"/api/none"]
 QUERIES = [b"", b"?query=1", b"?query=%C2%B2", b"?query=%D9%A1%D9%A2", b"?query=" + b"9" * 5000, b"?query=-1",
            b"?query=&query=2", b"?token=x", b"?%ff%fe=%00"]

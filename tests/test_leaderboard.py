@@ -366,3 +366,22 @@ def test_paper_tables_put_the_published_numbers_beside_ours_with_rank_agreement(
     # another protocol's runs are not this table's
     assert main(["paper-tables", "--results-dir", str(root), "--protocol", "paper-text", "--out", str(out)]) == 0
     assert "| 34.65 / – |" in out.read_text()
+
+
+def test_see_also_links_the_stability_and_capacity_reports_only_where_they_exist(tmp_path):
+    _write_all(tmp_path / "results", 0)
+    reports = tmp_path / "reports"
+
+    def see_also() -> list[str]:
+        build_leaderboard(tmp_path / "results", markdown=tmp_path / "leaderboard.md", reports_dir=reports)
+        return [line for line in (tmp_path / "leaderboard.md").read_text().splitlines() if line.startswith("See also")]
+
+    assert see_also() == []
+    (reports / "stability").mkdir(parents=True)
+    (reports / "stability" / "README.md").write_text("# breaking points\n")
+    lines = see_also()
+    assert len(lines) == 1 and "(reports/stability/README.md)" in lines[0] and "capacity" not in lines[0]
+    (reports / "capacity").mkdir()
+    (reports / "capacity" / "README.md").write_text("# capacity\n")
+    lines = see_also()
+    assert len(lines) == 1 and "(reports/stability/README.md)" in lines[0] and "(reports/capacity/README.md)" in lines[0]

@@ -8,7 +8,6 @@ run checks the flow (every stage runs, caches, resumes), never a score.
 
 from __future__ import annotations
 
-import json
 import shutil
 
 import numpy as np
@@ -16,7 +15,7 @@ import pytest
 from conftest import tiny_clip_model, tiny_sam_model
 import torch
 
-from benchmark.core.annotation import decode_mask, encode_mask
+from benchmark.core.annotation import decode_mask
 from benchmark.core.errors import InputError
 
 TINY_SCHEDULE = {
@@ -138,23 +137,6 @@ def test_e5_mistral_encoder_on_a_tiny_random_mistral(tmp_path):
     assert not np.allclose(query[0], passages[0]), "queries carry the instruction prompt, passages do not"
 
 
-def object_tracks_file(scene, path):
-    """A captions file whose masks are the object tracks (what a video segmenter run elsewhere brings
-    in): the left and right halves of every training frame, two objects tracked throughout."""
-    from methods.captioners.tracks import tracked_frames
-
-    objects = {"0": {"name": "left", "frames": {}}, "1": {"name": "right", "frames": {}}}
-    for frame in tracked_frames(scene):
-        h, w = frame.camera.height, frame.camera.width
-        left = np.zeros((h, w), dtype=bool)
-        left[:, : w // 2] = True
-        for obj, mask in (("0", left), ("1", ~left)):
-            objects[obj]["frames"][frame.name] = {"caption": "object", "mask": encode_mask(mask)}
-    path.write_text(json.dumps({"format": "bench4d-captions", "version": 1, "scene": scene.name,
-                                "objects": objects}))
-    return path
-
-
 @pytest.fixture(scope="module")
 def tiny_models(tmp_path_factory):
     root = tmp_path_factory.mktemp("models")
@@ -164,15 +146,13 @@ def tiny_models(tmp_path_factory):
 
 def test_real_track_runs_every_stage_on_tiny_models_and_resumes_from_the_caches(release_scene, tiny_models,
                                                                                tmp_path, monkeypatch):
-    from benchmark.loaders import load_scene
     from benchmark.runner import EvalOptions, evaluate
 
     folder, written = release_scene
     for name, path in tiny_models.items():
         monkeypatch.setenv(name, str(path))
-    tracks = object_tracks_file(load_scene(folder), tmp_path / "tracks.json")
-    options = dict(TINY_SCHEDULE, **{"captions.captioner": "qwen2-vl", "captions.object_tracks": "file",
-                                     "captions.file": str(tracks)})
+    # no tracks file: the captioned objects are the segmenter's ids followed over time
+    options = dict(TINY_SCHEDULE, **{"captions.captioner": "qwen2-vl", "captions.min_track_frames": "1"})
 
     def run():
         return evaluate(EvalOptions(method="4d-langsplat", scene=str(folder), track="real",
@@ -188,7 +168,8 @@ def test_real_track_runs_every_stage_on_tiny_models_and_resumes_from_the_caches(
     assert configs["segmenter"]["backend"] == configs["image_text"]["backend"] == "transformers"
     stages = record["fit"]["info"]
     assert stages["time_varying"]["captioner"] == "qwen2-vl"
-    assert stages["time_varying"]["objects"] == 2 and stages["time_varying"]["distinct_captions"] >= 1
+    assert stages["time_varying"]["object_tracks"] == "segments:sam"
+    assert stages["time_varying"]["objects"] >= 1 and stages["time_varying"]["distinct_captions"] >= 1
     assert stages["autoencoder"]["distinct_features"] > 0 and stages["field"]["iterations"] == 20
     assert record["metrics"]["agnostic_queries"] > 0 and record["metrics"]["sensitive_queries"] > 0
     assert record["fit"]["cached"] is False
@@ -200,6 +181,136 @@ def test_real_track_runs_every_stage_on_tiny_models_and_resumes_from_the_caches(
     assert second["metrics"] == record["metrics"]
     changed = [p for p, t in cache_files.items() if p.exists() and p.stat().st_mtime_ns != t]
     assert not changed, f"a second run redid a finished stage: {changed[:3]}"
+
+
+# ---------------------------------------------------------------------------------------------
+# object tracks from the run's segments
+# ---------------------------------------------------------------------------------------------
+def frame_named(name, camera_id="0", time_index=0, size=(8, 8)):
+    from types import SimpleNamespace
+
+    camera = SimpleNamespace(height=size[0], width=size[1])
+    return SimpleNamespace(name=name, camera_id=camera_id, time_index=time_index, camera=camera, image_path=None)
+
+
+def supervision_of(large_ids, segment_ids=True):
+    """A real-track supervision whose large level holds ``large_ids`` (per frame, (H, W) segmenter ids, -1 =
+    none), relabelled per frame as the cache stores them."""
+    from methods.supervision.base import FrameSupervision, Supervision, relabel_levels
+
+    frames = []
+    for t, ids in enumerate(large_ids):
+        levels, originals = relabel_levels(np.stack([np.full_like(ids, -1), np.full_like(ids, -1), ids]))
+        features = tuple(np.zeros((len(o), 4), dtype=np.float32) for o in originals)
+        frames.append(FrameSupervision(name=f"{t:06d}", time=t / 10, time_index=t, camera_id="0", levels=levels,
+                                       features=features, segment_ids=tuple(originals) if segment_ids else None))
+    return Supervision(track="real", sources={"segmenter": "sam", "image_text": "clip", "text_encoder": "clip-text"},
+                       frames=frames, text_encoder=None, fingerprint="test")
+
+
+def test_segment_tracks_follow_the_segmenters_ids_and_drop_short_lived_or_tiny_ones():
+    from methods.captioners.tracks import segment_tracks
+
+    maps = [np.full((8, 8), -1) for _ in range(3)]
+    for t, m in enumerate(maps):
+        m[:, :3] = 70             # an object the segmenter follows through all three frames
+        m[0, 7] = 110             # a one-pixel sliver in every frame
+        if t == 0:
+            m[4:, 4:] = 90        # seen in one frame only
+        else:
+            m[4:, 4:] = 130       # seen in the two later frames
+        if t == 2:
+            m[:2, 3:5] = 5        # a new, small-numbered id: the per-frame mask indices shift
+    frames = [frame_named(f"{t:06d}", time_index=t) for t in range(3)]
+    tracks = segment_tracks(None, supervision_of(maps), min_frames=2, min_area=2 / 64, frames=frames)
+    assert tracks.source == "segments:sam" and tracks.frame_names == ["000000", "000001", "000002"]
+    assert tracks.labels == {0: "sam segment 70", 1: "sam segment 130"}
+    for t, m in enumerate(maps):
+        expected = np.where(m == 70, 0, np.where(m == 130, 1, -1))
+        assert np.array_equal(tracks.ids[t], expected), t
+    assert tracks.frames_of(1) == [1, 2] and tracks.objects() == [0, 1]
+    # one frame is enough when asked: the one-frame id and the later id 5 are tracks too, the sliver is not
+    loose = segment_tracks(None, supervision_of(maps), min_frames=1, min_area=2 / 64, frames=frames)
+    assert sorted(loose.labels.values()) == ["sam segment 130", "sam segment 5", "sam segment 70", "sam segment 90"]
+    with pytest.raises(InputError, match="carry no segmenter ids"):
+        segment_tracks(None, supervision_of(maps, segment_ids=False), frames=frames)
+    with pytest.raises(InputError, match="no segments of training frame 'elsewhere'"):
+        segment_tracks(None, supervision_of(maps), frames=[frame_named("elsewhere")])
+
+
+def test_object_tracks_are_truth_on_the_oracle_track_the_file_when_given_else_the_segments(tmp_path):
+    from methods.fields.time_varying import object_tracks, resolve_captioning
+    from methods.specs._time_varying import CaptionConfig
+
+    assert resolve_captioning(CaptionConfig(), "real") == ("qwen2-vl", "segments")
+    assert resolve_captioning(CaptionConfig(file="captions.json"), "real") == ("file", "file")
+    assert resolve_captioning(CaptionConfig(), "oracle") == ("template", "truth")
+    assert resolve_captioning(CaptionConfig(object_tracks="segments"), "oracle") == ("template", "segments")
+    with pytest.raises(InputError, match="oracle track only"):
+        resolve_captioning(CaptionConfig(object_tracks="truth"), "real")
+    with pytest.raises(InputError, match="needs the run's supervision"):
+        object_tracks(None, "segments", CaptionConfig())
+    with pytest.raises(ValueError, match="min_track_frames"):
+        CaptionConfig(min_track_frames=0)
+
+
+def test_the_supervision_cache_keeps_the_segmenters_ids_and_rebuilds_a_file_without_them(tmp_path):
+    from methods.supervision.cache import _load_npz, _save_npz, cached_segments
+
+    class Counting:
+        calls = 0
+
+        def segment(self, frame):
+            Counting.calls += 1
+            ids = np.full((3, 8, 8), -1)
+            ids[2, :, :4] = 1000 + frame.time_index   # a large-level id the segmenter chose
+            ids[0, :2, :2] = 7
+            return ids
+
+    frames = [frame_named(f"{t:06d}", time_index=t) for t in range(2)]
+    path = tmp_path / "segments.npz"
+    levels, ids = cached_segments(path, frames, Counting(), "counting", lambda it, **_: it)
+    assert Counting.calls == 2
+    assert [i[2].tolist() for i in ids] == [[1000], [1001]] and [i[0].tolist() for i in ids] == [[7], [7]]
+    assert [i[1].size for i in ids] == [0, 0] and all(lv[2, 0, 0] == 0 for lv in levels)
+    again_levels, again_ids = cached_segments(path, frames, Counting(), "counting", lambda it, **_: it)
+    assert Counting.calls == 2  # read back, not segmented again
+    assert all(np.array_equal(a, b) for a, b in zip(again_levels, levels))
+    assert [[x.tolist() for x in i] for i in again_ids] == [[x.tolist() for x in i] for i in ids]
+    # a file written without the ids is not trusted: segmented again
+    _save_npz(path, {k: v for k, v in _load_npz(path).items() if not k.startswith("ids/")})
+    cached_segments(path, frames, Counting(), "counting", lambda it, **_: it)
+    assert Counting.calls == 4 and any(k.startswith("ids/") for k in _load_npz(path))
+
+
+def test_the_real_track_captions_the_segmenters_tracks_on_tiny_models_without_a_tracks_file(release_scene,
+                                                                                             tiny_models, tmp_path,
+                                                                                             monkeypatch):
+    from benchmark.loaders import load_scene
+    from methods.api import build_supervision
+    from methods.fields.time_varying import build_captions
+    from methods.specs._time_varying import CaptionConfig
+
+    folder, _ = release_scene
+    for name, path in tiny_models.items():
+        monkeypatch.setenv(name, str(path))
+    scene = load_scene(folder)
+    supervision = build_supervision(scene, "real", cache_dir=tmp_path / "cache", text_encoder="minilm",
+                                    source_options={"segmenter": RANDOM_SAM_FILTERS})
+    assert all(f.segment_ids is not None for f in supervision.frames)
+    config = CaptionConfig(min_track_frames=1)  # a random SAM's masks need not last
+    captions, tracks = build_captions(scene, "real", config, supervision=supervision, cache_root=tmp_path / "cache")
+    assert tracks.source == "segments:sam" and captions.captioner == "qwen2-vl"
+    assert tracks.objects() and captions.objects() and set(captions.objects()) <= set(tracks.objects())
+    for name, ids in zip(tracks.frame_names, tracks.ids):
+        large = supervision.frame(name).levels[2]
+        segment = supervision.frame(name).segment_ids[2]
+        for obj in np.unique(ids[ids >= 0]).tolist():  # each track is one large-level SAM mask, named by its id
+            masks = np.unique(large[ids == obj])
+            assert masks.size == 1 and np.array_equal(large == masks[0], ids == obj)
+            assert tracks.labels[obj] == f"sam segment {segment[masks[0]]}"
+    with pytest.raises(InputError, match="needs the run's supervision"):
+        build_captions(scene, "real", config)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -145,7 +145,8 @@ def test_grouped_options_are_dotted_paths_read_by_type_with_one_line_errors():
         spec.make_config({"captions.captioner": "gpt"})
     with pytest.raises(InputError, match="alternatives"):
         spec.make_config({"extensions.caption_window": "2", "extensions.caption_segments": "true"})
-    assert spec.answer_options() == {"answer.uncovered_alpha", "answer.decode_chunk", "answer.decode_chunk_cuda"}
+    assert spec.answer_options() == {"answer.uncovered_alpha", "answer.decode_chunk", "answer.decode_chunk_cuda",
+                                     "answer.decode_table", "answer.decode_tf32"}
     assert "captions.captioner" not in {o.path for o in registry.get("deformable-clip").options()}
 
 

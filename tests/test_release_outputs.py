@@ -95,3 +95,33 @@ def test_missing_release_outputs_are_one_line_errors(release_scene, tmp_path):
         read_similarity_csv(bad, "video similarity")
     with pytest.raises(InputError, match="no row"):
         read_similarity_csv(bad, "clip similarity")
+
+
+def test_score_reads_the_release_annotation_folder_against_its_scene(release_scene, tmp_path, capsys):
+    from benchmark.cli import main
+    from benchmark.release_outputs import convert_release_outputs
+
+    folder, aset = release_scene
+    # time decisions turned around, so the scores are not all 100
+    run = release_run_folder(aset, tmp_path / "run", flip_time=True)
+    preds = convert_release_outputs(run, folder / "annotations", tmp_path / "preds", frame_base=1)
+    from_json = score(folder / "annotations.json", preds, tmp_path / "from-json.json")
+    assert from_json["Acc"] < 100.0
+    for gt in (folder / "annotations", folder / "annotations" / "train" / "_annotations.coco.json"):
+        out = tmp_path / f"from-{gt.name}.json"
+        assert main(["score", "--gt", str(gt), "--scene", str(folder), "--pred", str(preds), "--out", str(out),
+                     "--quiet"]) == 0
+        assert json.loads(out.read_text())["metrics"]["dataset"] == from_json
+
+    capsys.readouterr()
+    assert main(["score", "--gt", str(folder / "annotations"), "--pred", str(preds), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--scene DIR" in err and "release" in err and "\n" not in err
+    assert main(["score", "--gt", str(folder / "annotations.json"), "--scene", str(folder), "--pred", str(preds)]) == 2
+    assert "--scene without a release-layout --gt" in capsys.readouterr().err
+    # the release's files are inputs: --out may not replace one
+    video = folder / "annotations" / "video_annotations.json"
+    before = video.read_bytes()
+    assert main(["score", "--gt", str(folder / "annotations"), "--scene", str(folder), "--pred", str(preds),
+                 "--out", str(video)]) == 2
+    assert "is an input of this command" in capsys.readouterr().err and video.read_bytes() == before

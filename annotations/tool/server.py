@@ -638,6 +638,9 @@ class _Handler(BaseHTTPRequestHandler):
         elif path == "/api/queries/delete":
             rev = s.delete_query(body.get("revision"), body.get("query"))
             self._json(HTTPStatus.OK, {"revision": rev, "state": s.state()})
+        elif path == "/api/queries/reviewed":
+            rev = s.mark_reviewed(body.get("revision"), body.get("query"))
+            self._json(HTTPStatus.OK, {"revision": rev, "state": s.state()})
         elif path == "/api/segment":
             self._json(HTTPStatus.OK, s.segment(body.get("frame"), body.get("box"), body.get("clicks", []),
                                                 body.get("current")))

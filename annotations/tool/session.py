@@ -39,15 +39,14 @@ from benchmark.core.scene import Frame, Scene
 
 from ..assist import GrabCutSegmenter, Segmenter
 from ..format import load_annotations, save_annotations, validate_against_scene
-from benchmark.core.annotation import AnnotatedFrame, AnnotationSet, Query, decode_mask, encode_mask, normalise_intervals
+from benchmark.core.annotation import (MADE_BY, AnnotatedFrame, AnnotationSet, Query, decode_mask, encode_mask,
+                                       normalise_intervals)
 from ..propagate import PropagationConfig, propagate_between, propagate_chain
 from .review import ReviewConfig, review
 
 TOOL_NAME = "bench4d annotate"
 SCORED = "scored"
 """The ``split`` that offers the frames the benchmark scores (the held-out test frames)."""
-MADE_BY = ("drawn", "box", "clicks", "propagated", "corrected", "absent")
-"""How a mask was made, as a save may state it (kept in ``info.made_by[query id][frame name]``)."""
 MAX_CLICKS = 1000
 """Most corrective clicks one segmentation request may carry."""
 MAX_COORDINATE = 1e6
@@ -388,7 +387,8 @@ class AnnotationSession:
                             "split": f.split, "width": f.camera.width, "height": f.camera.height}
                            for i, f in enumerate(self.frames)],
                 "queries": [{"id": q.id, "text": q.text, "kind": q.kind, "base": q.base, "level": q.level,
-                             "intervals": [list(iv) for iv in q.intervals]} for q in self.aset.queries],
+                             "review": q.review, "intervals": [list(iv) for iv in q.intervals]}
+                            for q in self.aset.queries],
                 "status": {str(q): {str(i): v for i, v in d.items()} for q, d in status.items()},
                 "autosave_delay_ms": self.config.autosave_delay_ms,
                 "segmenter": self.segmenter.name,
@@ -413,12 +413,11 @@ class AnnotationSession:
         frame = self.frame(index)
         with self._lock:
             af = self._annotated_frame(index)
-            made_by = self.aset.info.get("made_by", {})
             out = {}
             for q in self.aset.agnostic_queries:
                 rle = None if af is None else self.aset.masks.get((q.id, af.id))
                 payload = _mask_payload(rle)
-                how = made_by.get(str(q.id), {}).get(frame.name)
+                how = None if af is None else self.aset.made_by.get((q.id, af.id))
                 if payload is not None and how is not None:
                     payload["made_by"] = how
                 out[str(q.id)] = payload
@@ -537,6 +536,7 @@ class AnnotationSession:
     def _apply_staged(self, staged: list[tuple], timing: Any) -> int:
         """Apply checked changes and commit; on any failure the annotation set is restored."""
         backup_masks = dict(self.aset.masks)
+        backup_made_by = dict(self.aset.made_by)
         backup_frames = list(self.aset.frames)
         backup_intervals = {q.id: list(q.intervals) for q in self.aset.queries}
         backup_info = copy.deepcopy(self.aset.info)
@@ -544,14 +544,15 @@ class AnnotationSession:
             for item in staged:
                 if item[0] == "mask":
                     _, qid, index, rle, made_by = item
-                    self._note_made_by(qid, index, made_by)
                     if rle is None:
                         af = self._annotated_frame(index)
                         if af is not None:
                             self.aset.masks.pop((qid, af.id), None)
+                            self.aset.made_by.pop((qid, af.id), None)
                     else:
                         af = self._ensure_frame(index)
                         self.aset.masks[(qid, af.id)] = rle
+                        self._note_made_by((qid, af.id), made_by)
                 else:
                     _, qid, ivs = item
                     self.aset.query(qid).intervals = ivs
@@ -559,25 +560,20 @@ class AnnotationSession:
             return self._commit()
         except BaseException:
             self.aset.masks = backup_masks
+            self.aset.made_by = backup_made_by
             self.aset.frames = backup_frames
             for q in self.aset.queries:
                 q.intervals = backup_intervals.get(q.id, [])
             self.aset.info = backup_info
             raise
 
-    def _note_made_by(self, qid: int, index: int, made_by: Optional[str]) -> None:
-        """Keep how the mask of ``qid`` on frame ``index`` was made; a change that does not say
+    def _note_made_by(self, key: tuple[int, int], made_by: Optional[str]) -> None:
+        """Keep how the mask of (query id, frame id) ``key`` was made; a change that does not say
         forgets the earlier note (an edited proposal is no longer "propagated")."""
-        per_query = self.aset.info.setdefault("made_by", {})
-        notes = per_query.setdefault(str(qid), {})
         if made_by is None:
-            notes.pop(self.frames[index].name, None)
+            self.aset.made_by.pop(key, None)
         else:
-            notes[self.frames[index].name] = made_by
-        if not notes:
-            per_query.pop(str(qid))
-        if not per_query:
-            self.aset.info.pop("made_by")
+            self.aset.made_by[key] = made_by
 
     def _add_timing(self, timing: Any) -> None:
         if not timing or not self.config.record_timing:
@@ -630,18 +626,30 @@ class AnnotationSession:
             users = [s.text for s in self.aset.sensitive_queries if s.base == q.id]
             if users:
                 raise InputError(None, "query", f"{q.text!r} is the base of {users}; delete those first")
-            backup = (list(self.aset.queries), dict(self.aset.masks))
+            backup = (list(self.aset.queries), dict(self.aset.masks), dict(self.aset.made_by))
             self.aset.queries = [x for x in self.aset.queries if x.id != q.id]
             self.aset.masks = {k: v for k, v in self.aset.masks.items() if k[0] != q.id}
-            made_by = self.aset.info.get("made_by", {}).pop(str(q.id), None)
-            if made_by is not None and not self.aset.info["made_by"]:
-                del self.aset.info["made_by"]
+            self.aset.made_by = {k: v for k, v in self.aset.made_by.items() if k[0] != q.id}
             try:
                 return self._commit()
             except BaseException:
-                self.aset.queries, self.aset.masks = backup
-                if made_by is not None:
-                    self.aset.info.setdefault("made_by", {})[str(q.id)] = made_by
+                self.aset.queries, self.aset.masks, self.aset.made_by = backup
+                raise
+
+    def mark_reviewed(self, revision: Any, qid: Any) -> int:
+        """Clear the draft mark of a query (its masks and intervals have been checked); returns the
+        new revision (the current one when the query was not a draft: nothing is written)."""
+        with self._lock:
+            self._check_revision(revision)
+            q = self.query(qid)
+            before = q.review
+            if before is None:
+                return self.revision
+            q.review = None
+            try:
+                return self._commit()
+            except BaseException:
+                q.review = before
                 raise
 
     # -- assistance -----------------------------------------------------------------------------

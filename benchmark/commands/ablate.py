@@ -14,6 +14,9 @@
                            [--seeds N ...] [--refit]
     bench4d ablate gap [--methods langsplat deformable-clip] [--scenes S ...] [--seeds N ...]
     bench4d ablate decisions [--methods M ...] [--datasets D ...] [--scenes S ...] [--results-dir results]
+    bench4d ablate capacity [--method 4d-langsplat] [--presets split-cookie espresso americano] [--size 64]
+                            [--knobs gaussians states latent hexplane] [--values KNOB=V,V,...] [--seeds 0]
+                            [--set KEY=VALUE] [--no-release] [--jobs N] [--report-only] [--out reports/capacity]
 
 Each study lives in its own module under :mod:`benchmark.studies`; this command defines the options and
 calls it, importing the module only when its subcommand runs (a backend one study needs, missing, breaks that
@@ -78,7 +81,15 @@ time-sensitive Acc can be trusted and what the mean-threshold rule costs (:mod:`
 the Acc span when tau moves by 5 % of the score range, the scores' AUC, the share of decisions near tau,
 and Acc at the best single cut (an oracle) beside the same oracle on shuffled labels.
 
-All write a JSON and a Markdown table to ``--out`` (default ``reports/ablations``) and print the table.
+``capacity`` (:mod:`benchmark.studies.capacity`): accuracy (mIoU, Acc, vIoU, the geometry's PSNR where its fit
+records it) and cost (fit time, peak memory, query FPS, parameters) against one capacity knob at a time (the
+Gaussian budget, K, the latent dimension, the HexPlane resolution), each from the method's defaults, on every
+preset; plus the defaults (``auto``: the method's own per-scene choices) and the release's recipe. Runs go to
+``<cache-dir>/capacity/<method>-<size>px/runs/`` and are read, not redone, when present; ``--jobs N`` runs N groups
+of runs sharing a geometry at once, each in a worker process with ``--threads`` torch threads (default 1). It
+writes ``capacity.csv``, ``README.md`` and ``charts/`` to ``--out`` (default ``reports/capacity``).
+
+The others write a JSON and a Markdown table to ``--out`` (default ``reports/ablations``) and print the table.
 """
 
 from __future__ import annotations
@@ -100,7 +111,8 @@ REPORTS = Path("reports/ablations")
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="ablation", metavar="ABLATION", required=True)
     for add in (_delta_sim_arguments, _speed_arguments, _query_speed_arguments, _ceiling_arguments,
-                _autoencoder_arguments, _rescore_arguments, _gap_arguments, _decisions_arguments, _states_arguments):
+                _autoencoder_arguments, _rescore_arguments, _gap_arguments, _decisions_arguments, _states_arguments,
+                _capacity_arguments):
         add(sub)
     for study in sub.choices.values():
         add_threads_argument(study)
@@ -147,6 +159,10 @@ def _query_speed_arguments(sub) -> None:
     q.add_argument("--queries", type=int, default=1,
                    help="also time this many queries sharing one render + decode per frame (when > 1)")
     q.add_argument("--feature-dim", type=int, default=512, help="decoded feature size (CLIP ViT-B/16: 512)")
+    q.add_argument("--decode-table", type=int, default=0,
+                   help="decode through a table of N samples per latent axis (answer.decode_table; 0: every pixel)")
+    q.add_argument("--fp32-decode", action="store_true",
+                   help="decode in float32 on CUDA (default: TensorFloat-32, answer.decode_tf32)")
     q.add_argument("--decode-chunk", type=int, default=None,
                    help="pixels decoded per batch (default: the method config's answer.decode_chunk)")
 
@@ -232,6 +248,37 @@ def _states_arguments(sub) -> None:
                    help="override another method option, a dotted path (repeatable), e.g. status.iterations=2000")
 
 
+def _capacity_arguments(sub) -> None:
+    from benchmark.studies.capacity import KNOBS, CapacityConfig
+
+    default = CapacityConfig()
+    c = sub.add_parser("capacity", help="accuracy and cost against one capacity knob at a time (Gaussians, K, "
+                                        "latent dimension, HexPlane resolution), the automatic choice and the release's")
+    c.add_argument("--method", default=default.method)
+    c.add_argument("--presets", nargs="+", default=list(default.presets), help="synthetic presets (or scene folders)")
+    c.add_argument("--size", type=int, default=default.size, help="image width of the generated presets")
+    c.add_argument("--seeds", nargs="+", type=int, default=list(default.seeds))
+    c.add_argument("--knobs", nargs="+", default=list(default.knobs), choices=tuple(KNOBS),
+                   help="knobs moved, one at a time (default: all)")
+    c.add_argument("--values", action="append", default=[], metavar="KNOB=V,V,...",
+                   help="the values of a knob instead of its own (repeatable), e.g. states=2,3,4,5,6; defaults: "
+                        + "; ".join(f"{k} {','.join(v.values)}" for k, v in KNOBS.items()))
+    c.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a method option of every run, a dotted path (repeatable), e.g. geometry.static_iterations=300")
+    c.add_argument("--no-release", action="store_true", help="leave out the release's recipe (K = 3 on every "
+                                                             "Gaussian, 360k cap)")
+    c.add_argument("--jobs", type=int, default=1,
+                   help="groups of runs sharing a geometry run at once, each in a worker process (default 1: this "
+                        "process, in order)")
+    c.add_argument("--report-only", action="store_true", help="write the report from the runs present")
+    c.add_argument("--cache-dir", type=Path, default=default.cache_dir,
+                   help="generated scenes, fits and the study's results files (<cache>/capacity/...)")
+    c.add_argument("--device", default="cpu")
+    c.add_argument("--text-encoder", default=default.text_encoder)
+    c.add_argument("--out", type=Path, default=default.out_dir)
+    c.add_argument("--quiet", action="store_true")
+
+
 def _scale_arguments(p: argparse.ArgumentParser, gaussians: int, gaussians_help: str) -> None:
     """Size, device and output options of the speed measurements on random Gaussians."""
     p.add_argument("--gaussians", type=int, default=gaussians, help=gaussians_help)
@@ -309,7 +356,9 @@ def _query_speed(args) -> int:
     check_device(args.device)
     return _print_report(query_speed_report(
         args.gaussians, args.width, args.height, device=args.device, frames=args.frames, queries=args.queries,
-        feature_dim=args.feature_dim, decode_chunk=args.decode_chunk, out=args.out, quiet=args.quiet))
+        feature_dim=args.feature_dim, decode_chunk=args.decode_chunk, decode_tf32=not args.fp32_decode,
+        decode_table=args.decode_table,
+        out=args.out, quiet=args.quiet))
 
 
 def _ceiling(args) -> int:
@@ -349,6 +398,31 @@ def _decisions(args) -> int:
     return 0
 
 
+def _capacity(args) -> int:
+    from benchmark.studies.capacity import CapacityConfig, capacity_report
+
+    check_device(args.device)
+    if args.jobs < 1:
+        raise InputError(None, "--jobs", f"must be >= 1, got {args.jobs}")
+    values = {}
+    for item in args.values:
+        knob, sep, listed = item.partition("=")
+        if not sep or knob.strip() not in args.knobs or not listed.strip():
+            raise InputError(None, "--values", f"expected KNOB=V,V,... with KNOB one of --knobs, got {item!r}")
+        values[knob.strip()] = tuple(v.strip() for v in listed.split(",") if v.strip())
+    config = CapacityConfig(
+        method=args.method, presets=tuple(args.presets), size=args.size, seeds=tuple(args.seeds),
+        knobs=tuple(args.knobs), values=values, overrides=parse_overrides(args.set), release=not args.no_release,
+        jobs=args.jobs, threads=args.threads or 1, device=args.device, text_encoder=args.text_encoder,
+        cache_dir=args.cache_dir, out_dir=args.out)
+    report = capacity_report(config, report_only=args.report_only, log=stderr_log(args.quiet))
+    if not args.quiet:
+        print(report.table)
+    for path in report.paths:
+        print(path)
+    return 0
+
+
 # -- rescore: the same fits under other answer options -------------------------------------------------
 def _rescore(args) -> int:
     from benchmark.core.protocol import get_protocol
@@ -365,5 +439,6 @@ def _rescore(args) -> int:
 
 
 RUNS = {"delta-sim": _delta_sim, "speed": _speed, "query-speed": _query_speed, "ceiling": _ceiling,
-        "autoencoder": _autoencoder, "rescore": _rescore, "gap": _gap, "decisions": _decisions, "states": _states}
+        "autoencoder": _autoencoder, "rescore": _rescore, "gap": _gap, "decisions": _decisions, "states": _states,
+        "capacity": _capacity}
 """The function each subcommand runs."""

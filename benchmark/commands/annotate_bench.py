@@ -23,7 +23,8 @@ DNERF_ANNOTATIONS = Path(__file__).resolve().parents[2] / "annotations" / "scene
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--presets", default="all", help="comma list of synthetic presets, or all, or none")
-    parser.add_argument("--size", type=int, default=96, help="synthetic image width in pixels (default 96)")
+    parser.add_argument("--size", type=int, default=None,
+                        help="synthetic image width in pixels (default: each preset's own, the size it is scored at)")
     parser.add_argument("--dnerf", default=str(DNERF_ROOT),
                         help="folder of D-NeRF scenes with annotation files in annotations/scenes/dnerf ('' = none)")
     parser.add_argument("--backends", default="grabcut", help="comma list: grabcut, sam (sam needs --sam-checkpoint)")
@@ -31,6 +32,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--target-iou", type=float, default=0.90, help="IoU at which the annotator stops (0.90)")
     parser.add_argument("--work", type=Path, default=None, help="folder for scenes and annotation files (a temp dir)")
     parser.add_argument("--out", type=Path, default=Path("reports/annotation"), help="report folder")
+    parser.add_argument("--adopt-dnerf", action="store_true",
+                        help="afterwards, put the simulated annotator's whole-object masks into the D-NeRF files of "
+                             "annotations/scenes/dnerf where they reach --target-iou against the alpha masks")
 
 
 def tool_launcher(segmenters: dict, config):
@@ -77,7 +81,15 @@ def run(args: argparse.Namespace) -> int:
     launch = tool_launcher(segmenters, config)
     with contextlib.ExitStack() as stack:
         work = args.work or Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="annotate-bench-")))
-        results = [bench.bench_scene(scene, launch, work, backends, config) for scene in _scenes(args, work)]
+        results = []
+        for scene in _scenes(args, work):
+            results.append(bench.bench_scene(scene, launch, work, backends, config))
+            if args.adopt_dnerf and scene.kind == "dnerf":
+                made = work / f"{scene.name}.every-frame.{backends[0]}.json"
+                counts = bench.adopt_simulated_masks(DNERF_ANNOTATIONS / f"{scene.name}.json", made, scene,
+                                                     args.target_iou)
+                print(f"annotate-bench: dnerf/{scene.name}: {counts['adopted']} mask(s) adopted, "
+                      f"{counts['kept']} kept")
         for path in bench.write(results, config, args.out):
             print(path)
     return 0

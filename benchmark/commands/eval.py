@@ -3,16 +3,21 @@
     bench4d eval --method nearest-frame --scene smoke [--seed 0] [--track oracle]
                  [--results-dir results] [--cache-dir cache] [--threads 1] [--quiet]
                  [--<group>.<option> VALUE ...] [--set <group>.<option>=VALUE ...]
+                 [--source-option KIND.KEY=VALUE ...]
 
 ``--scene`` is a scene folder or a synthetic preset name (generated into the cache once). The method's
 options are flags derived from its config (``--autoencoder.latent-dim 4``; ``bench4d eval --method M --help``
 lists them with their help and default); ``--set autoencoder.latent_dim=4`` is the same for scripts.
+``--source-option segmenter.points_per_side=16`` is an option of a supervision source's factory
+(:func:`parse_source_options`).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
+from typing import Any
 
 from ._common import (add_run_arguments, check_device, check_run_folders, parse_overrides, print_run, set_threads,
                       splits)
@@ -26,7 +31,39 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--annotations", type=Path, default=None, help="ground-truth file, or the 4D LangSplat release's annotations/ folder (default: found beside the scene)")
     parser.add_argument("--refit", action="store_true", help="ignore a cached fit")
     add_run_arguments(parser)
+    add_source_option_argument(parser)
     _add_method_options_on_parse(parser)
+
+
+def add_source_option_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--source-option", action="append", default=[], metavar="KIND.KEY=VALUE",
+                        help="an option of the track's supervision source of KIND (segmenter or image_text), e.g. "
+                             "segmenter.points_per_side=16 or image_text.model=/weights/clip; VALUE is read as "
+                             "JSON when it parses, else as text (repeatable)")
+
+
+def parse_source_options(items: list[str]) -> dict[str, dict[str, Any]]:
+    """``--source-option KIND.KEY=VALUE`` items as :attr:`benchmark.runner.EvalOptions.source_options`
+    (kind -> key -> value). A value that parses as JSON (numbers, booleans, null, lists) is that; any other
+    is the text. A malformed item or an unknown kind is a one-line :class:`InputError`."""
+    from benchmark.core.errors import InputError
+    from methods.supervision.registry import SOURCE_KINDS
+
+    out: dict[str, dict[str, Any]] = {}
+    for item in items:
+        target, sep, text = item.partition("=")
+        kind, dot, key = target.strip().partition(".")
+        if not sep or not dot or not kind or not key.strip():
+            raise InputError(None, "--source-option", f"expected KIND.KEY=VALUE, got {item!r}")
+        if kind not in SOURCE_KINDS:
+            raise InputError(None, "--source-option", f"unknown source kind {kind!r} in {item!r}; "
+                             f"kinds: {', '.join(SOURCE_KINDS)}")
+        try:
+            value = json.loads(text)
+        except ValueError:
+            value = text.strip()
+        out.setdefault(kind, {})[key.strip()] = value
+    return out
 
 
 def _add_method_options_on_parse(parser: argparse.ArgumentParser) -> None:
@@ -69,11 +106,13 @@ def run(args: argparse.Namespace) -> int:
 
     check_device(args.device)
     check_run_folders(args)
+    source_options = parse_source_options(args.source_option)
     set_threads(args.threads)
     outcome = evaluate(EvalOptions(
         method=args.method, scene=args.scene, seed=args.seed, track=args.track, results_dir=args.results_dir,
         cache_dir=args.cache_dir, splits=splits(args), device=args.device, text_encoder=args.text_encoder,
-        method_options=method_options(args), annotations=args.annotations, preset_size=args.size,
+        source_options=source_options, method_options=method_options(args), annotations=args.annotations,
+        preset_size=args.size,
         scale=args.scale, protocol=args.protocol, object_query=args.object_query, refit=args.refit,
         quiet=args.quiet))
     print_run(outcome.results, outcome.path)

@@ -1,7 +1,7 @@
 """``bench4d run-all``: evaluate methods x scenes x seeds, then report mean and spread over seeds.
 
     bench4d run-all [--methods M ...] [--scenes S ...] [--seeds 0 1 2] [--force] [--jobs N] [--threads 1]
-                    [--engine local|ray] [--address HOST:PORT]
+                    [--engine local|ray] [--address HOST:PORT] [--source-option KIND.KEY=VALUE ...]
 
 Defaults: every registered method, every synthetic preset (except the tiny test preset ``smoke``),
 seeds 0 1 2. Runs whose results file exists are skipped (so an interrupted sweep resumes) unless
@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ._common import add_run_arguments, check_device, check_run_folders, parse_overrides, set_threads, splits
+from .eval import add_source_option_argument, parse_source_options
 
 TEST_PRESETS = ("smoke",)
 """Presets made for tests, left out of the default sweep."""
@@ -48,6 +49,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with --engine ray: the cluster to join (HOST:PORT, or auto); default: start a local "
                              "Ray instance")
     add_run_arguments(parser)
+    add_source_option_argument(parser)
     # a hidden second name of --threads, which sweep scripts spell
     parser.add_argument("--threads-per-job", dest="threads", type=int, default=argparse.SUPPRESS, help=argparse.SUPPRESS)
 
@@ -213,6 +215,7 @@ def _plan_groups(args: argparse.Namespace, runnable: list[str], tally: _Tally) -
     if not scenes:
         raise InputError(None, "--scenes", "no scenes given and no synthetic presets available")
     overrides = parse_overrides(args.set)
+    source_options = parse_source_options(args.source_option)
     groups: list[list] = []
     for scene_spec in scenes:
         root = resolve_scene(scene_spec, args.cache_dir, size=args.size,
@@ -228,7 +231,7 @@ def _plan_groups(args: argparse.Namespace, runnable: list[str], tally: _Tally) -
                 group.append(EvalOptions(
                     method=method, scene=str(root), seed=seed, track=args.track, results_dir=args.results_dir,
                     cache_dir=args.cache_dir, splits=splits(args), device=args.device, text_encoder=args.text_encoder,
-                    method_options=overrides, preset_size=args.size, scale=args.scale,
+                    source_options=source_options, method_options=overrides, preset_size=args.size, scale=args.scale,
                     protocol=args.protocol, object_query=args.object_query, quiet=args.quiet or args.jobs > 1 or args.engine == "ray"))
             if group:
                 groups.append(group)

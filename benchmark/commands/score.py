@@ -3,6 +3,11 @@
     bench4d score --gt scene.json --pred preds/scene [--out results.json]
     bench4d score --gt a.json --gt b.json --pred preds/          # preds/<scene>/ per GT scene
     bench4d score --gt a.json --pred pa --gt b.json --pred pb    # explicit pairs
+    bench4d score --gt scene/annotations --scene scene --pred preds/scene   # the release's annotation folder
+
+A ``--gt`` in the 4D LangSplat release's layout (its ``annotations/`` folder: ``train/_annotations.coco.json``
+and ``video_annotations.json``, or that COCO file) is read as ``bench4d eval --annotations`` reads it, against
+the frame names and sizes of its scene folder: one ``--scene`` per such ``--gt``, in order.
 
 Prediction folders are described in :mod:`benchmark.predictions`; the metrics and the temporal
 rule in :mod:`benchmark.metrics`. Prints a plain-text table; ``--out`` writes the results JSON
@@ -38,7 +43,11 @@ from ._common import add_protocol_argument
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--gt", action="append", required=True, metavar="ANNOTATIONS",
-                        help="ground-truth annotation file (bench4d JSON); repeat for several scenes")
+                        help="ground-truth annotation file (bench4d JSON), or the release's annotation folder "
+                             "(Roboflow COCO + video_annotations.json; needs --scene); repeat for several scenes")
+    parser.add_argument("--scene", action="append", default=[], metavar="DIR",
+                        help="scene folder of a release-layout --gt (its frame names and sizes), one per such "
+                             "--gt in order")
     parser.add_argument("--pred", action="append", required=True, metavar="DIR",
                         help="prediction folder, one per --gt; or one folder holding <scene>/ subfolders")
     parser.add_argument("--out", type=Path, default=None, help="write the results JSON here (atomically)")
@@ -102,7 +111,11 @@ def _folder(pred: Path) -> Path:
 def _input_files(args: argparse.Namespace) -> list[Path]:
     """Every file this command reads: ground truth, prediction files (either layout; under a folder of
     ``<scene>/`` folders too), the results file beside an eval folder, and the ``--eval-frames`` list."""
-    files = [Path(p) for p in args.gt]
+    files = []
+    for gt in map(Path, args.gt):
+        files += sorted(p for p in gt.rglob("*") if p.is_file()) if gt.is_dir() else [gt]
+        if is_release_layout(gt) and gt.is_file():  # the COCO file: video_annotations.json is read beside train/
+            files.append(gt.parent.parent / "video_annotations.json")
     if args.eval_frames.startswith("@"):
         files.append(Path(args.eval_frames[1:]))
     for pred in args.pred:
@@ -186,6 +199,35 @@ def _unanswered_from_results(predictions, folder: Path) -> bool:
     return True
 
 
+def is_release_layout(gt: Path) -> bool:
+    """Whether a ``--gt`` names the release's annotation folder or its COCO file (not a bench4d JSON file)."""
+    return gt.is_dir() or gt.name.endswith(".coco.json")
+
+
+def load_ground_truth(gts: list[str], scenes: list[str]) -> list:
+    """The annotation set of every ``--gt``: bench4d JSON as it is; one in the release's layout read against
+    the next of ``scenes`` (``--scene`` folders: the frame names and sizes it annotates)."""
+    from annotations.format import load_annotations
+
+    from ..loaders import load_scene
+    from ..runner import load_release_annotations
+
+    left = list(scenes)
+    out = []
+    for gt in map(Path, gts):
+        if not is_release_layout(gt):
+            out.append(load_annotations(gt))
+            continue
+        if not left:
+            raise InputError(gt, "--gt", "is in the release's layout, which names frames by number only: pass "
+                             "--scene DIR (its scene folder) for each such --gt, in order")
+        out.append(load_release_annotations(load_scene(Path(left.pop(0))), gt))
+    if left:
+        raise InputError(None, "--scene", f"{len(left)} --scene without a release-layout --gt to go with: "
+                         f"{', '.join(left)}")
+    return out
+
+
 def _pairs(gts: list[str], preds: list[str], asets: list) -> list[tuple[object, Path]]:
     if len(preds) == len(gts):
         return list(zip(asets, (Path(p) for p in preds)))
@@ -241,8 +283,6 @@ def report_text(dataset, quiet: bool = False) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from annotations.format import load_annotations
-
     from .. import __version__
     from ..metrics import ScoreConfig, aggregate_scenes, score_scene
     from ..predictions import read_predictions
@@ -255,7 +295,7 @@ def run(args: argparse.Namespace) -> int:
         folders += [sub for f in folders if f.is_dir() for sub in f.iterdir() if sub.is_dir()]
         check_out(args.out, _input_files(args), folders)
     wanted = _eval_frames(args.eval_frames)
-    asets = [load_annotations(Path(p)) for p in args.gt]
+    asets = load_ground_truth(args.gt, args.scene)
     pairs = _pairs(args.gt, args.pred, asets)
     if wanted is not None:
         every = set().union(*({f.name for f in a.frames} for a in asets))

@@ -18,6 +18,9 @@ Semantics
 * A **time-sensitive** query ("cracked cookie") names a ``base`` time-agnostic query whose masks it
   inherits (the release's rule), plus inclusive 0-based ``time_index`` intervals in which it holds.
   Its label at frame t is ``any(l <= t <= r)``.
+* **Provenance** is kept per mask: each may record how it was made (:data:`MADE_BY`). A query may be
+  a **draft** (:data:`DRAFT`): its masks or intervals were made by a program or a person and nobody
+  has checked them yet.
 """
 
 from __future__ import annotations
@@ -33,6 +36,14 @@ from .errors import InputError, short_repr
 
 QueryKind = Literal["agnostic", "sensitive"]
 Interval = tuple[int, int]
+
+MADE_BY = ("drawn", "box", "clicks", "propagated", "corrected", "absent", "scripted")
+"""How a mask was made: ``drawn`` by hand (brush, polygon), from a ``box`` (with no clicks), by a box and
+corrective ``clicks``, ``propagated`` from another frame and accepted as proposed, ``corrected`` (a
+proposal edited by hand), marked ``absent`` (the object is not in the frame), or ``scripted``: computed
+by a program with no person in the loop (an alpha channel, a colour rule)."""
+DRAFT = "draft"
+"""The review state of a query nobody has checked yet (``Query.review``); ``None`` = reviewed."""
 
 
 def encode_mask(mask: np.ndarray) -> dict:
@@ -244,6 +255,9 @@ class Query:
     """Inclusive 0-based ``time_index`` intervals where a time-sensitive query holds."""
     level: Optional[str] = None
     """Informational: the part level of the answer (``"subpart"``, ``"part"``, ``"whole"``)."""
+    review: Optional[str] = None
+    """:data:`DRAFT` while its masks and intervals are unchecked (made by a program or a person, not yet
+    reviewed); ``None`` once reviewed."""
 
     def holds_at(self, time_index: int) -> bool:
         return any(a <= time_index <= b for a, b in self.intervals)
@@ -279,6 +293,9 @@ class AnnotationSet:
     """Length of the video in frames (for time-sensitive labels); ``None`` = unknown."""
     info: dict = field(default_factory=dict)
     """Provenance: tool, source files, annotator, date, supervision notes."""
+    made_by: dict[tuple[int, int], str] = field(default_factory=dict)
+    """(query id, frame id) -> how that mask was made (one of :data:`MADE_BY`); a mask without an entry
+    has no record of it. Only annotated pairs (keys of :attr:`masks`) have one."""
 
     # -- lookups --------------------------------------------------------------------------------
     def query(self, key: int | str) -> Query:
@@ -301,6 +318,10 @@ class AnnotationSet:
     def sensitive_queries(self) -> list[Query]:
         return [q for q in self.queries if q.kind == "sensitive"]
 
+    def draft_queries(self) -> list[Query]:
+        """Queries not yet reviewed (``review == DRAFT``), in file order."""
+        return [q for q in self.queries if q.review == DRAFT]
+
     def mask_owner(self, query: Query) -> Query:
         """The query whose masks ``query`` uses (itself, or its base)."""
         return self.query(query.base) if query.kind == "sensitive" and query.base is not None else query
@@ -311,12 +332,22 @@ class AnnotationSet:
         rle = self.masks.get((owner.id, frame_id))
         return None if rle is None else decode_mask(rle)
 
-    def set_mask(self, query_id: int, frame_id: int, mask: Optional[np.ndarray]) -> None:
-        """Store a mask (an all-False mask means "absent"); ``None`` removes the annotation."""
+    def set_mask(self, query_id: int, frame_id: int, mask: Optional[np.ndarray],
+                 made_by: Optional[str] = None) -> None:
+        """Store a mask (an all-False mask means "absent") and how it was made (one of :data:`MADE_BY`;
+        ``None`` forgets an earlier record: a replaced mask is no longer what that said); ``mask=None``
+        removes the annotation and its record."""
+        if made_by is not None and made_by not in MADE_BY:
+            raise ValueError(f"made_by {made_by!r} is not one of {', '.join(MADE_BY)}")
+        key = (query_id, frame_id)
         if mask is None:
-            self.masks.pop((query_id, frame_id), None)
+            self.masks.pop(key, None)
         else:
-            self.masks[(query_id, frame_id)] = encode_mask(mask)
+            self.masks[key] = encode_mask(mask)
+        if mask is None or made_by is None:
+            self.made_by.pop(key, None)
+        else:
+            self.made_by[key] = made_by
 
     def annotated_frames(self, query_id: int) -> list[AnnotatedFrame]:
         """Frames where ``query_id`` (or its base) has a mask, sorted by time."""

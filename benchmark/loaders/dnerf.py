@@ -203,5 +203,5 @@ def object_annotations(scene: Scene, query_text: str, split: str = "test"):
         aset.frames.append(AnnotatedFrame(id=image_id, name=frame.name, time_index=frame.time_index,
                                           width=frame.camera.width, height=frame.camera.height,
                                           camera_id=frame.camera_id))
-        aset.set_mask(query.id, image_id, alpha)
+        aset.set_mask(query.id, image_id, alpha, made_by="scripted")
     return aset

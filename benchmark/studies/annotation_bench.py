@@ -477,7 +477,7 @@ def bench_scene(scene: TruthScene, launch: ToolLauncher, work: Path, backends: l
                 config: BenchConfig) -> dict:
     """Every measurement of one scene; annotation files are written under ``work``."""
     out: dict[str, Any] = {"scene": scene.name, "kind": scene.kind, "backends": {},
-                           "levels": {q.text: q.level for q in scene.queries}}
+                           "levels": {q.text: q.level for q in scene.queries}, "size": _image_size(scene)}
     work.mkdir(parents=True, exist_ok=True)
     for old in work.glob(f"{scene.name}.*.json"):  # each measurement starts from an empty file
         old.unlink()
@@ -493,6 +493,52 @@ def bench_scene(scene: TruthScene, launch: ToolLauncher, work: Path, backends: l
         out["propagation_curve"] = propagation_curve(c, scene, config)
         out["intervals"] = mark_intervals(c, scene)
     return out
+
+
+def adopt_simulated_masks(shipped: Path, simulated: Path, scene: TruthScene, min_iou: float) -> dict[str, int]:
+    """Put the simulated annotator's masks (``simulated``: a file the tool saved) into the annotation file
+    ``shipped`` for the queries of ``scene`` that have exact truth, frame by frame where they agree with
+    that truth at ``min_iou`` or better; the other masks stay as they were. Writes ``shipped`` atomically
+    and returns how many masks were taken and kept."""
+    from annotations.format import load_annotations, save_annotations
+
+    target = load_annotations(shipped)
+    made = load_annotations(simulated)
+    made_frames = {f.name: f for f in made.frames}
+    counts = {"adopted": 0, "kept": 0}
+    for truth_query in scene.queries:
+        if truth_query.kind != "agnostic":
+            continue
+        query, source = target.query(truth_query.text), made.query(truth_query.text)
+        for frame in target.frames:
+            other = made_frames.get(frame.name)
+            mask = None if other is None else made.get_mask(source.id, other.id)
+            truth = scene.mask(truth_query.text, frame.name)
+            if mask is None or truth is None or iou(mask, truth) < min_iou:
+                counts["kept"] += 1
+                continue
+            target.set_mask(query.id, frame.id, mask, made_by=made.made_by.get((source.id, other.id)))
+            counts["adopted"] += 1
+    if counts["adopted"]:
+        who = target.info.setdefault("annotators", [target.info.get("annotator", "scripted")])
+        if "simulated" not in who:
+            who.append("simulated")
+        target.info["simulated_protocol"] = dict(made.info.get("protocol") or {}, min_iou_against_truth=min_iou)
+        target.info["adopted"] = (f"masks of the queries with exact truth are the simulated annotator's where they "
+                                  f"reach IoU {min_iou:g} against that truth, else as before; each mask's made_by "
+                                  "says which")
+        save_annotations(target, shipped, overwrite=True)
+    return counts
+
+
+def _image_size(scene: TruthScene) -> Optional[list[int]]:
+    """``[width, height]`` of the scene's annotated frames (from the first truth mask found)."""
+    for q in scene.queries:
+        for frame in scene.scored_frames:
+            mask = scene.mask(q.text, frame) if q.kind == "agnostic" else None
+            if mask is not None:
+                return [int(mask.shape[1]), int(mask.shape[0])]
+    return None
 
 
 def _logs_doc(logs: dict[str, list[FrameLog]]) -> dict:
@@ -545,7 +591,9 @@ def summarise(results: list[dict], config: BenchConfig) -> dict:
     for r in results:
         for backend, b in r["backends"].items():
             every, prop = _all(b["every_frame"]), _all(b["propagation"])
-            rows.append({"scene": r["scene"], "kind": r["kind"], "backend": backend, **noc_summary(every, config),
+            size = r.get("size")
+            rows.append({"scene": r["scene"], "kind": r["kind"], "backend": backend,
+                         "size": None if size is None else f"{size[0]}x{size[1]}", **noc_summary(every, config),
                          "human_s_per_frame_every": human_seconds(every) / max(1, len(every)),
                          "human_s_per_frame_propagation": human_seconds(prop) / max(1, len(prop)),
                          "interactions_per_frame_every": _mean(len(f["ious"]) for f in every),
@@ -582,9 +630,9 @@ def _method_text(config: BenchConfig) -> str:
 
 
 def _noc_table(rows: list[dict]) -> str:
-    header = ["scene", "backend", "frames", "NoC@85", "NoC@90", "failed@90", "mean final IoU", "min final IoU",
+    header = ["scene", "size", "backend", "frames", "NoC@85", "NoC@90", "failed@90", "mean final IoU", "min final IoU",
               "compute s / interaction"]
-    body = [[r["scene"], r["backend"], str(r["frames"]), number_cell(r["noc85"]), number_cell(r["noc90"]),
+    body = [[r["scene"], r.get("size") or "", r["backend"], str(r["frames"]), number_cell(r["noc85"]), number_cell(r["noc90"]),
              str(r["failed90"]), number_cell(r["final_iou"], 3), number_cell(r["min_final_iou"], 3),
              number_cell(r["seconds_per_interaction"], 3)] for r in rows]
     synthetic = [r for r in rows if r["kind"] == "synthetic" and r["noc90"] is not None]

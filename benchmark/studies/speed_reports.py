@@ -47,7 +47,7 @@ def status_speed_report(gaussians: int, width: int, height: int, *, device: str 
 
 def query_speed_report(gaussians: int, width: int, height: int, *, device: str = "cpu", frames: int = 10,
                        queries: int = 1, feature_dim: int = 512, decode_chunk: Optional[int] = None,
-                       out: Path, quiet: bool = False) -> Report:
+                       decode_tf32: bool = True, decode_table: int = 0, out: Path, quiet: bool = False) -> Report:
     """Time the time-agnostic query on ``gaussians`` random Gaussians at ``width`` x ``height`` over
     ``frames`` frames (and ``queries`` queries sharing one render + decode per frame, when > 1), decoding
     ``decode_chunk`` pixels per batch (default: the method config's ``answer.decode_chunk``), and write
@@ -57,9 +57,13 @@ def query_speed_report(gaussians: int, width: int, height: int, *, device: str =
     config = LanguageMethodConfig()
     if decode_chunk is not None:
         config.answer.decode_chunk = config.answer.decode_chunk_cuda = decode_chunk
+    config.answer.decode_tf32 = decode_tf32
+    config.answer.decode_table = decode_table
     result = measure_query_speed(gaussians, width, height, frames=frames, queries=queries,
                                  feature_dim=feature_dim, device=device, config=config)
     result["decode_chunk"] = config.answer.decode_chunk_for(device)
+    result["decode_tf32"] = bool(decode_tf32 and str(device).startswith("cuda"))
+    result["decode_table"] = decode_table
     flat = {k: v for k, v in result.items() if k != "stage_seconds_per_frame"}
     flat.update({f"stage {k} (s/frame)": v for k, v in result["stage_seconds_per_frame"].items()})
     rows = [[k, f"{v:.4f}" if isinstance(v, float) else str(v)] for k, v in flat.items()]
@@ -67,8 +71,10 @@ def query_speed_report(gaussians: int, width: int, height: int, *, device: str =
           "an A100 at 960x536)\n\n" + markdown_table(["quantity", "value"], rows))
     settings = {"command": "ablate", "ablation": "query-speed", "gaussians": gaussians, "width": width,
                 "height": height, "device": device, "out": str(out), "quiet": quiet, "frames": frames,
-                "queries": queries, "feature_dim": feature_dim, "decode_chunk": decode_chunk}
-    suffix = "" if decode_chunk is None else f"-chunk{decode_chunk}"
+                "queries": queries, "feature_dim": feature_dim, "decode_chunk": decode_chunk,
+                "decode_tf32": decode_tf32, "decode_table": decode_table}
+    suffix = (("" if decode_chunk is None else f"-chunk{decode_chunk}") + ("" if decode_tf32 else "-fp32")
+              + (f"-table{decode_table}" if decode_table else ""))
     return _timing_report("query-speed", suffix, settings, result, md, out)
 
 

@@ -128,6 +128,14 @@ class ObjectTracks:
             if m.ndim != 2:
                 raise ValueError(f"id map of frame {name!r} must be (H, W), got {m.shape}")
         self._index = {n: i for i, n in enumerate(self.frame_names)}
+        self._counts: Optional[list[dict[int, int]]] = None
+
+    def pixel_counts(self) -> list[dict[int, int]]:
+        """Per frame, object id -> its pixels there (counted once: segment tracks have many objects)."""
+        if self._counts is None:
+            self._counts = [dict(zip(*(v.tolist() for v in np.unique(m[m >= 0], return_counts=True))))
+                            for m in self.ids]
+        return self._counts
 
     def index(self, frame_name: str) -> int:
         try:
@@ -137,10 +145,7 @@ class ObjectTracks:
 
     def objects(self) -> list[int]:
         """Every object id that appears in some frame, sorted."""
-        found: set[int] = set()
-        for m in self.ids:
-            found.update(int(v) for v in np.unique(m) if v >= 0)
-        return sorted(found)
+        return sorted(set().union(*self.pixel_counts()))
 
     def mask(self, frame_index: int, obj: int) -> np.ndarray:
         """(H, W) bool pixels of ``obj`` in frame ``frame_index``."""
@@ -148,7 +153,7 @@ class ObjectTracks:
 
     def frames_of(self, obj: int, min_pixels: int = 1) -> list[int]:
         """Indices of the frames where ``obj`` covers at least ``min_pixels`` pixels."""
-        return [i for i, m in enumerate(self.ids) if int((m == obj).sum()) >= min_pixels]
+        return [i for i, counts in enumerate(self.pixel_counts()) if counts.get(obj, 0) >= min_pixels]
 
     def fingerprint(self) -> str:
         """Hash of the frames and id maps (part of caption cache keys)."""

@@ -24,10 +24,11 @@ Everything takes a ``device`` and stays on it; numpy appears only where supervis
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Optional, Sequence
+from typing import Callable, Iterator, Optional, Sequence
 
 import numpy as np
 import torch
@@ -353,6 +354,63 @@ def relevance_basis(query: torch.Tensor, canon: torch.Tensor) -> torch.Tensor:
     q, r = torch.linalg.qr(stacked)
     keep = r.diagonal().abs() > 1e-6 * r.diagonal().abs().max().clamp_min(1e-12)
     return q[:, keep]
+
+
+@contextlib.contextmanager
+def matmul_precision(precision: Optional[str]) -> Iterator[None]:
+    """Run the block with ``torch.set_float32_matmul_precision(precision)`` (``"highest"``: float32,
+    ``"high"``: TensorFloat-32 on GPUs that have it), restoring the previous setting; ``None``: unchanged."""
+    if precision is None:
+        yield
+        return
+    before = torch.get_float32_matmul_precision()
+    torch.set_float32_matmul_precision(precision)
+    try:
+        yield
+    finally:
+        torch.set_float32_matmul_precision(before)
+
+
+class DecodeTable:
+    """:func:`decode_for_relevance` of 3-d latents through a lookup table: the reduced features decoded
+    once at ``resolution``^3 points spanning the box ``[lo, hi]`` and interpolated trilinearly per pixel.
+
+    A rendered latent is an alpha blend of the Gaussians' latents with a zero background, so it lies in
+    the convex hull of 0 and those latents: a box from their per-channel extremes and 0 holds every
+    pixel. The decoder is piecewise linear (ReLU), so the interpolation is exact inside the cells no
+    ReLU kink crosses; the norm channel is smooth. Latents outside the box are decoded exactly.
+    """
+
+    def __init__(self, decoder: Callable[[torch.Tensor], torch.Tensor], basis: torch.Tensor, lo: torch.Tensor,
+                 hi: torch.Tensor, resolution: int, chunk: int = 65536) -> None:
+        if lo.numel() != 3 or hi.numel() != 3:
+            raise ValueError(f"a decode table needs 3-d latents, got {lo.numel()}")
+        if resolution < 2:
+            raise ValueError(f"decode table resolution must be >= 2, got {resolution}")
+        self.decoder, self.basis, self.chunk = decoder, basis, chunk
+        self.lo = lo.to(basis.dtype)
+        self.hi = torch.maximum(hi.to(basis.dtype), self.lo + 1e-6)
+        axes = [torch.linspace(float(self.lo[i]), float(self.hi[i]), resolution, device=basis.device,
+                               dtype=basis.dtype) for i in range(3)]
+        points = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)  # [n^3, 3]
+        values = decode_for_relevance(points, decoder, basis, chunk)  # [n^3, C]
+        n, c = resolution, values.shape[-1]
+        self.table = values.reshape(n, n, n, c).permute(3, 0, 1, 2).unsqueeze(0).contiguous()  # [1, C, n, n, n]
+
+    @torch.no_grad()
+    def __call__(self, latents: torch.Tensor) -> torch.Tensor:
+        """[..., 3] latents -> [..., C] reduced features."""
+        shape = latents.shape[:-1]
+        flat = latents.reshape(-1, 3).to(self.table.dtype)
+        unit = 2.0 * (flat - self.lo) / (self.hi - self.lo) - 1.0
+        # grid_sample reads (x, y, z) as (last, middle, first) table axis
+        grid = unit.flip(-1).reshape(1, 1, 1, -1, 3)
+        out = F.grid_sample(self.table, grid, mode="bilinear", padding_mode="border", align_corners=True)
+        out = out.reshape(self.table.shape[1], -1).T.contiguous()  # [P, C]
+        outside = ((flat < self.lo) | (flat > self.hi)).any(-1)
+        if bool(outside.any()):
+            out[outside] = decode_for_relevance(flat[outside], self.decoder, self.basis, self.chunk)
+        return out.reshape(*shape, out.shape[-1])
 
 
 @torch.no_grad()

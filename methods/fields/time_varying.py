@@ -123,26 +123,26 @@ def resolve_captioning(captions, track: str) -> tuple[str, str]:
         raise InputError(None, "captioner", f"captioner {captioner!r} reads the generator's truth: oracle track only")
     tracks = captions.object_tracks
     if tracks == "auto":
-        tracks = "truth" if track == "oracle" else "file"
+        tracks = "truth" if track == "oracle" else ("file" if captions.file else "segments")
     if tracks == "truth" and track != "oracle":
         raise InputError(None, "captions.object_tracks", "truth tracks read the generator's truth: oracle track "
-                         "only (on the real track give the masks in captions.file)")
+                         "only (on the real track use the segments or give the masks in captions.file)")
     if tracks == "file" and not captions.file:
         raise InputError(None, "captions.file", "object_tracks='file' needs captions.file=<JSON with masks>")
     return captioner, tracks
 
 
-def build_captions(scene: Scene, track: str, captions, *, cache_root: Optional[Path] = None, device: str = "cpu",
-                   progress: Optional[Callable] = None):
+def build_captions(scene: Scene, track: str, captions, *, supervision=None, cache_root: Optional[Path] = None,
+                   device: str = "cpu", progress: Optional[Callable] = None):
     """(Captions, ObjectTracks) of ``scene``'s training frames per the ``captions`` group
-    (:class:`methods.specs._time_varying.CaptionConfig`)."""
+    (:class:`methods.specs._time_varying.CaptionConfig`); ``supervision``: the run's
+    :class:`~methods.supervision.base.Supervision`, whose segments are the object tracks of
+    ``object_tracks="segments"``."""
     from methods.captioners import get_captioner
     from methods.captioners.base import CaptionPromptConfig, caption_objects
-    from methods.captioners.file import tracks_from_file
-    from methods.captioners.tracks import truth_tracks
 
     captioner_name, tracks_kind = resolve_captioning(captions, track)
-    tracks = truth_tracks(scene) if tracks_kind == "truth" else tracks_from_file(scene, captions.file)
+    tracks = object_tracks(scene, tracks_kind, captions, supervision)
     if captioner_name == "template":
         captioner = get_captioner("template", scene, seed=captions.seed)
     elif captioner_name == "file":
@@ -154,6 +154,23 @@ def build_captions(scene: Scene, track: str, captions, *, cache_root: Optional[P
     prompt = CaptionPromptConfig(visual_prompt=captions.visual_prompt, text_prompt=captions.text_prompt)
     made = caption_objects(captioner, scene, tracks, prompt, cache_root=cache_root, progress=progress)
     return made, tracks
+
+
+def object_tracks(scene: Scene, kind: str, captions, supervision=None):
+    """The :class:`~methods.captioners.base.ObjectTracks` of ``kind`` (``"truth"``, ``"segments"`` or ``"file"``,
+    as :func:`resolve_captioning` gives it) on ``scene``'s training frames."""
+    from methods.captioners.file import tracks_from_file
+    from methods.captioners.tracks import segment_tracks, truth_tracks
+
+    if kind == "truth":
+        return truth_tracks(scene)
+    if kind == "file":
+        return tracks_from_file(scene, captions.file)
+    if supervision is None:
+        raise InputError(None, "captions.object_tracks", "object_tracks='segments' needs the run's supervision "
+                         "(its segments are the tracks); give the tracks in captions.file instead")
+    return segment_tracks(scene, supervision, min_frames=captions.min_track_frames,
+                          min_area=captions.min_track_area)
 
 
 def embed_captions(captions, tracks, text_encoder) -> CaptionSupervision:
@@ -876,6 +893,7 @@ def fit_time_varying_field(geometry: FrozenGeometry, scene: Scene, sup: CaptionS
     near = 0.01
     head, ext = config.status, config.extensions
     info: dict[str, Any] = {"kind": kind, "captioner": sup.captions.captioner, "captions_track": sup.captions.track,
+                            "object_tracks": sup.tracks.source,
                             "objects": len(sup.captions.objects()), "distinct_captions": len(sup.texts),
                             "caption_dim": sup.dim}
     sup, change_points = _shaped_caption_targets(scene, sup, config, info)

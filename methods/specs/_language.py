@@ -36,6 +36,9 @@ class GeometryConfig:
     """Upper bound of the scene-adaptive Gaussian cap (protocol: densification up to 360k)."""
     gaussians_per_foreground_pixel: float = 2.0
     """Gaussian cap = this x mean foreground pixels of a training view."""
+    hexplane_resolution: int = 64
+    """Base resolution of the spatial axes of the deformation field's HexPlane (protocol: 64; each of its
+    multi-resolution levels multiplies it)."""
     render_backend: str = "auto"
     """Rasterizer: ``"auto"`` (gsplat on CUDA when importable, else PyTorch), ``"torch"`` or ``"gsplat"``."""
 
@@ -45,6 +48,8 @@ class GeometryConfig:
         for name in ("static_iterations", "deformation_iterations"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0")
+        if self.hexplane_resolution < 2:
+            raise ValueError(f"hexplane_resolution must be >= 2, got {self.hexplane_resolution}")
 
 
 @dataclass
@@ -60,6 +65,12 @@ class AnswerConfig:
     """Pixels decoded at once on the CPU (bounds memory; no effect on results)."""
     decode_chunk_cuda: int = 1 << 20
     """Pixels decoded at once on a CUDA device (no effect on results)."""
+    decode_table: int = 0
+    """Decode 3-d latents through a table of this many samples per axis, interpolated per pixel, built
+    once per query (0: decode every pixel; :class:`methods.fields.language_field.DecodeTable`)."""
+    decode_tf32: bool = True
+    """On a CUDA device, decode with TensorFloat-32 matrix products (inputs rounded to 10 mantissa bits,
+    float32 sums): relevance moves in its third digit; the CPU always decodes in float32."""
 
     def decode_chunk_for(self, device: "str | object") -> int:
         """:attr:`decode_chunk_cuda` on a CUDA device, else :attr:`decode_chunk`."""

@@ -19,7 +19,7 @@ __all__ = ["CAPTIONER_CHOICES", "TRACK_CHOICES", "CaptionConfig", "TimeVaryingEx
 
 CAPTIONER_CHOICES = ("auto", "template", "qwen2-vl", "file")
 """Values of :attr:`CaptionConfig.captioner`."""
-TRACK_CHOICES = ("auto", "truth", "file")
+TRACK_CHOICES = ("auto", "truth", "segments", "file")
 """Values of :attr:`CaptionConfig.object_tracks`."""
 
 
@@ -35,7 +35,12 @@ class CaptionConfig:
     qwen_model: Optional[str] = None
     """Qwen2-VL folder or hub id (``None``: ``$BENCH4D_QWEN2VL`` or Qwen/Qwen2-VL-7B-Instruct)."""
     object_tracks: str = "auto"
-    """``"truth"`` (oracle track only) or ``"file"``; ``"auto"``: truth on the oracle track, else the file."""
+    """``"truth"`` (oracle track only), ``"segments"`` (the run's segmenter's ids at the large level) or ``"file"``;
+    ``"auto"``: truth on the oracle track, else the file when one is given, else the segments."""
+    min_track_frames: int = 3
+    """``object_tracks="segments"``: keep segment ids visible in at least this many training frames."""
+    min_track_area: float = 0.001
+    """``object_tracks="segments"``: a segment id is visible in a frame where it covers this share of the frame."""
     visual_prompt: str = "blur+gray+contour"
     """Visual prompt of the captioner (paper: all three cues)."""
     text_prompt: str = "video+image"
@@ -51,6 +56,8 @@ class CaptionConfig:
             raise ValueError(f"captioner must be one of {CAPTIONER_CHOICES}, got {self.captioner!r}")
         if self.object_tracks not in TRACK_CHOICES:
             raise ValueError(f"object_tracks must be one of {TRACK_CHOICES}, got {self.object_tracks!r}")
+        if self.min_track_frames < 1 or not 0 <= self.min_track_area < 1:
+            raise ValueError("min_track_frames must be >= 1 and min_track_area in [0, 1)")
 
 
 @dataclass

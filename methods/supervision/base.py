@@ -138,6 +138,9 @@ class FrameSupervision:
     """(3, H, W) int16: index of the mask each pixel belongs to, per level; -1 = no mask."""
     features: tuple[np.ndarray, np.ndarray, np.ndarray]
     """Per level, (M_l, D) float32 L2-normalised feature of mask ``i`` in row ``i``."""
+    segment_ids: Optional[tuple[np.ndarray, np.ndarray, np.ndarray]] = None
+    """Per level, (M_l,) int64: the id the segmenter gave mask ``i`` (ids the segmenter carries across
+    frames name the same thing in every frame); ``None`` where not recorded."""
 
     def mask(self, level: int, index: int) -> np.ndarray:
         """(H, W) bool mask ``index`` of ``level``."""

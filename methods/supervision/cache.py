@@ -3,13 +3,16 @@
 Layout under ``<cache_dir>/supervision/<dataset>/<scene>/``:
 
 * ``segments-<segmenter>-<key>.npz``: per training frame the (3, H, W) int16 mask-index map
-  (``levels/<i>``) and the frame names (``frame_names``). The key hashes the training frames
-  (names, times, cameras, image files' size and mtime) and the segmenter's config.
+  (``levels/<i>``), per level the segmenter's own id of each mask (``ids/<i>/<level>``: ids a
+  segmenter associates over time, the object tracks of :mod:`methods.captioners.tracks`) and the frame
+  names (``frame_names``). The key hashes the training frames (names, times, cameras, image files'
+  size and mtime) and the segmenter's config.
 * ``features-<image_text>-<key>.npz``: per training frame and level the (M_l, D) float32 features
   (``features/<i>/<level>``). The key hashes the segments' key and the image-text source's config
   (which includes its text encoder).
 
-Both files are written atomically; an unreadable or mismatched file is rebuilt, never trusted.
+Both files are written atomically; an unreadable, mismatched or incomplete file (a segments file
+without its ``ids/``) is rebuilt, never trusted.
 """
 
 from __future__ import annotations
@@ -90,15 +93,15 @@ def build_supervision(scene: Scene, track: str = "oracle", *, cache_dir: str | P
     folder = Path(cache_dir) / "supervision" / scene.dataset / scene.name
     seg_key = stable_hash({"format": CACHE_FORMAT, "frames": scene_fingerprint(scene, train),
                            "segmenter": segmenter.config()})
-    levels = cached_segments(folder / f"segments-{specs['segmenter'].name}-{seg_key}.npz", train, segmenter,
-                             specs["segmenter"].name, progress)
+    levels, segment_ids = cached_segments(folder / f"segments-{specs['segmenter'].name}-{seg_key}.npz", train,
+                                          segmenter, specs["segmenter"].name, progress)
     feat_key = stable_hash({"segments": seg_key, "image_text": image_text.config()})
     features = cached_features(folder / f"features-{specs['image_text'].name}-{feat_key}.npz", train, levels,
                                image_text, specs["image_text"].name, encoder.dim, progress)
 
     frames = [FrameSupervision(name=f.name, time=float(f.time), time_index=int(f.time_index),
-                               camera_id=f.camera_id, levels=lv, features=feats)
-              for f, lv, feats in zip(train, levels, features)]
+                               camera_id=f.camera_id, levels=lv, features=feats, segment_ids=ids)
+              for f, lv, feats, ids in zip(train, levels, features, segment_ids)]
     # queries must land in the space of the mask features: the image-text source says which encoder
     query_encoder = image_text.text_encoder
     sources_used = {"segmenter": specs["segmenter"].name, "image_text": specs["image_text"].name,
@@ -111,23 +114,29 @@ def build_supervision(scene: Scene, track: str = "oracle", *, cache_dir: str | P
 
 
 def cached_segments(path: Path, train: Sequence[Frame], segmenter: Segmenter, name: str,
-                    progress: ProgressFn) -> list[np.ndarray]:
-    """Per training frame, the (3, H, W) int16 mask-index map: read from ``path``, or segmented by
-    ``segmenter`` (registered as ``name``), relabelled and written there."""
+                    progress: ProgressFn) -> tuple[list[np.ndarray], list[tuple]]:
+    """Per training frame, the (3, H, W) int16 mask-index map and, per level, the (M_l,) int64 ids the
+    segmenter gave those masks: read from ``path``, or segmented by ``segmenter`` (registered as ``name``),
+    relabelled and written there."""
     names = [f.name for f in train]
-    levels = _load_segments(path, names)
-    if levels is not None:
-        return levels
-    levels = []
+    loaded = _load_segments(path, names)
+    if loaded is not None:
+        return loaded
+    levels, segment_ids = [], []
     for frame in progress(train, desc=f"segment ({name})", total=len(train)):
         ids = segmenter.segment(frame)
         if ids.shape[1:] != (frame.camera.height, frame.camera.width):
             raise InputError(frame.image_path, "segments",
                              f"segmenter {name!r} returned {ids.shape[1:]} for a "
                              f"{frame.camera.height}x{frame.camera.width} frame")
-        levels.append(relabel_levels(ids)[0])
-    _save_npz(path, {"frame_names": np.array(names), **{f"levels/{i}": lv for i, lv in enumerate(levels)}})
-    return levels
+        relabelled, originals = relabel_levels(ids)
+        levels.append(relabelled)
+        segment_ids.append(tuple(np.asarray(o, dtype=np.int64) for o in originals))
+    arrays = {"frame_names": np.array(names), **{f"levels/{i}": lv for i, lv in enumerate(levels)}}
+    arrays.update({f"ids/{i}/{level}": per_level[level]
+                   for i, per_level in enumerate(segment_ids) for level in range(len(LEVELS))})
+    _save_npz(path, arrays)
+    return levels, segment_ids
 
 
 def cached_features(path: Path, train: Sequence[Frame], levels: list[np.ndarray], image_text: ImageTextEncoder,
@@ -168,17 +177,23 @@ def _encode_frame_masks(frame: Frame, levels: np.ndarray, image_text: ImageTextE
     return tuple(feats[bounds[level]:bounds[level + 1]] for level in range(len(LEVELS)))
 
 
-def _load_segments(path: Path, names: list[str]) -> Optional[list[np.ndarray]]:
+def _load_segments(path: Path, names: list[str]) -> Optional[tuple[list[np.ndarray], list[tuple]]]:
     data = _load_npz(path)
     if data is None or "frame_names" not in data or list(data["frame_names"]) != names:
         return None
     try:
         levels = [data[f"levels/{i}"] for i in range(len(names))]
+        segment_ids = [tuple(data[f"ids/{i}/{level}"].astype(np.int64) for level in range(len(LEVELS)))
+                       for i in range(len(names))]
     except KeyError:
         return None
     if any(lv.ndim != 3 or lv.shape[0] != len(LEVELS) for lv in levels):
         return None
-    return levels
+    counts = [[int(lv[level].max()) + 1 if (lv[level] >= 0).any() else 0 for level in range(len(LEVELS))]
+              for lv in levels]
+    if any(ids[level].shape != (n[level],) for ids, n in zip(segment_ids, counts) for level in range(len(LEVELS))):
+        return None
+    return levels, segment_ids
 
 
 def _load_features(path: Path, names: list[str]) -> Optional[list[tuple]]:

@@ -36,6 +36,7 @@ import torch.nn.functional as F
 from benchmark.core.errors import InputError
 from benchmark.core.scene import Frame, Scene
 
+from ..backends import WEIGHT_DTYPES
 from .base import ImageTextEncoder, TextEncoder, TextKind
 
 CLIP_MEAN: tuple[float, float, float] = (0.48145466, 0.4578275, 0.40821073)
@@ -48,6 +49,13 @@ DEFAULT_MODEL = "laion/CLIP-ViT-B-16-laion2B-s34B-b88K"
 """Hub id of OpenCLIP ViT-B-16 laion2b_s34b_b88k in transformers format (loaded on a user's machine)."""
 OPENCLIP_ARCH = "ViT-B-16"
 OPENCLIP_PRETRAINED = "laion2b_s34b_b88k"
+CLIP_GB_PER_CROP = 0.01
+"""GPU memory of one crop through the image tower in half precision, GB: its input and one layer's attention
+and MLP activations at a time, with margin (an estimate)."""
+CLIP_CPU_BATCH = 32
+"""Crops encoded at once on the CPU."""
+CLIP_MAX_BATCH = 512
+"""Most crops encoded at once on CUDA (a frame rarely has more masks over its three levels)."""
 
 
 def mask_boxes(masks: torch.Tensor) -> torch.Tensor:
@@ -134,6 +142,8 @@ class HFCLIPBackend(CLIPBackend):
             from transformers import AutoTokenizer, CLIPModel
         except ImportError as err:  # pragma: no cover - transformers is a declared extra
             raise InputError(None, "clip", "package 'transformers' is not installed (pip install 'bench4d[captioner]')") from err
+        if dtype not in WEIGHT_DTYPES:
+            raise InputError(None, "clip dtype", f"unknown dtype {dtype!r}; use one of {', '.join(WEIGHT_DTYPES)}")
         self.model_name = str(model)
         self.device = torch.device(device)
         self.dtype = getattr(torch, dtype)
@@ -274,20 +284,36 @@ class HFCLIPImageTextEncoder(CLIPImageTextEncoder):
                          batch_size=batch_size)
 
 
+def plan_clip(device: str, *, free_bytes: Optional[int] = None, dtype: Optional[str] = None):
+    """The :class:`~methods.backends.MemoryPlan` of the CLIP image tower on ``device``: on the CPU full
+    precision and :data:`CLIP_CPU_BATCH` crops at once; on CUDA half precision (``dtype`` overrides it) and
+    the crops the free memory (``free_bytes``, else what the GPU reports) holds beside the weights, at most
+    :data:`CLIP_MAX_BATCH`. A GPU without room for the weights is a one-line
+    :class:`~benchmark.core.errors.InputError` (the model is small: no offloading)."""
+    from methods.backends import backend, plan_memory
+
+    return plan_memory(backend("clip"), device, per_item_gb=CLIP_GB_PER_CROP, max_batch=CLIP_MAX_BATCH,
+                       cpu_batch=CLIP_CPU_BATCH, free_bytes=free_bytes, dtype=dtype, offload=False)
+
+
 def create(scene: Scene, *, text_encoder: TextEncoder = None, device: str = "cpu", backend: str = "hf",
-           model: Optional[str] = None, batch_size: int = 32, **options: Any) -> CLIPImageTextEncoder:
+           model: Optional[str] = None, batch_size: Optional[int] = None, dtype: Optional[str] = None,
+           free_bytes: Optional[int] = None, **options: Any) -> CLIPImageTextEncoder:
     """Factory of the registry.
 
     ``backend="hf"`` (default): ``model`` = local folder or hub id (default :data:`DEFAULT_MODEL`; the
-    environment variable ``BENCH4D_CLIP`` overrides it), ``local_files_only`` (default True),
-    ``dtype``. ``backend="open_clip"``: ``arch``, ``pretrained``, ``precision``. The run's
+    environment variable ``BENCH4D_CLIP`` overrides it), ``local_files_only`` (default True).
+    ``backend="open_clip"``: ``arch``, ``pretrained``, ``precision``. ``batch_size`` and ``dtype`` (hf)
+    default to the memory plan (:func:`plan_clip`; ``free_bytes``: free GPU memory to plan with). The run's
     ``text_encoder`` is not used: queries must go through CLIP's own text tower.
     """
     import os
 
+    plan = plan_clip(device, free_bytes=free_bytes, dtype=dtype)
+    batch = int(batch_size) if batch_size is not None else plan.batch_size
     if backend == "hf":
         return HFCLIPImageTextEncoder(model or os.environ.get("BENCH4D_CLIP", DEFAULT_MODEL), device=device,
-                                      batch_size=batch_size, **options)
+                                      batch_size=batch, dtype=dtype or plan.dtype or "float32", **options)
     if backend == "open_clip":
-        return CLIPImageTextEncoder(OpenCLIPBackend(device=device, **options), batch_size=batch_size)
+        return CLIPImageTextEncoder(OpenCLIPBackend(device=device, **options), batch_size=batch)
     raise InputError(None, "clip backend", f"unknown backend {backend!r}; use 'hf' or 'open_clip'")

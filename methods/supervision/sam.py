@@ -38,6 +38,7 @@ import torch.nn.functional as F
 from benchmark.core.errors import InputError
 from benchmark.core.scene import Frame, Scene
 
+from ..backends import WEIGHT_DTYPES
 from .association import AssociationConfig, TemporalAssociator
 from .base import LEVELS, Segmenter
 
@@ -47,6 +48,12 @@ SAM_PIXEL_STD: tuple[float, float, float] = (58.395, 57.12, 57.375)
 """SAM's input standard deviation, 0-255 units."""
 DEFAULT_HF_MODEL = "facebook/sam-vit-huge"
 """Hub id of SAM ViT-H in transformers format (loaded on a user's machine)."""
+SAM_CPU_POINTS = 64
+"""Point prompts decoded at once on the CPU (SAM's automatic generator's default)."""
+SAM_MAX_POINTS = 256
+"""Most point prompts decoded at once on CUDA (a quarter of the 32 x 32 grid)."""
+SAM_INPUT_SIZE = 1024
+"""Side of SAM's square input (ViT-H)."""
 
 
 @dataclass
@@ -55,8 +62,9 @@ class SamConfig:
 
     points_per_side: int = 32
     """Point prompts per image side (release: 32)."""
-    points_per_batch: int = 64
-    """Point prompts decoded at once (memory only)."""
+    points_per_batch: Optional[int] = None
+    """Point prompts decoded at once (memory only, so not part of the cache key); ``None``: the memory plan's
+    (:func:`plan_sam`: :data:`SAM_CPU_POINTS` on the CPU, from the free memory on CUDA)."""
     pred_iou_thresh: float = 0.7
     """Keep masks whose predicted IoU exceeds this (release: 0.7)."""
     stability_score_thresh: float = 0.85
@@ -150,15 +158,20 @@ class SegmentAnythingPredictor(MultimaskPredictor):
 class HFSamPredictor(MultimaskPredictor):
     """``transformers.SamModel`` from a local folder or hub id, SAM's preprocessing done in torch."""
 
-    def __init__(self, model: str | Path = DEFAULT_HF_MODEL, *, device: str = "cpu", local_files_only: bool = True) -> None:
+    def __init__(self, model: str | Path = DEFAULT_HF_MODEL, *, device: str = "cpu", dtype: str = "float32",
+                 local_files_only: bool = True) -> None:
         try:
             from transformers import SamModel
         except ImportError as err:  # pragma: no cover - transformers is a declared extra
             raise InputError(None, "sam backend hf", "package 'transformers' is not installed") from err
+        if dtype not in WEIGHT_DTYPES:
+            raise InputError(None, "sam dtype", f"unknown dtype {dtype!r}; use one of {', '.join(WEIGHT_DTYPES)}")
         self.model_name = str(model)
         self.device = torch.device(device)
+        self.dtype = getattr(torch, dtype)
         try:
-            self.model = SamModel.from_pretrained(self.model_name, local_files_only=local_files_only).to(self.device).eval()
+            self.model = SamModel.from_pretrained(self.model_name, local_files_only=local_files_only,
+                                                  torch_dtype=self.dtype).to(self.device).eval()
         except (OSError, ValueError) as err:
             raise InputError(Path(self.model_name) if Path(self.model_name).exists() else None, "sam model",
                              f"cannot load SAM weights from {self.model_name!r} ({err.__class__.__name__}); pass "
@@ -178,7 +191,7 @@ class HFSamPredictor(MultimaskPredictor):
         x = F.interpolate(x, size=(nh, nw), mode="bilinear", align_corners=False, antialias=True)
         mean = torch.tensor(SAM_PIXEL_MEAN, device=self.device).view(1, 3, 1, 1)
         std = torch.tensor(SAM_PIXEL_STD, device=self.device).view(1, 3, 1, 1)
-        x = F.pad((x - mean) / std, (0, self.input_size - nw, 0, self.input_size - nh))
+        x = F.pad((x - mean) / std, (0, self.input_size - nw, 0, self.input_size - nh)).to(self.dtype)
         with torch.no_grad():
             self._embeddings = self.model.get_image_embeddings(x)
         self._size, self._resized = (h, w), (nh, nw)
@@ -199,7 +212,8 @@ class HFSamPredictor(MultimaskPredictor):
         return logits, out.iou_scores[0]
 
     def config(self) -> dict[str, Any]:
-        return {"backend": "transformers", "model": Path(self.model_name).name or self.model_name}
+        return {"backend": "transformers", "model": Path(self.model_name).name or self.model_name,
+                "dtype": str(self.dtype).replace("torch.", "")}
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -334,7 +348,8 @@ class SamSegmenter(Segmenter):
         self.associator = TemporalAssociator(AssociationConfig(min_iou=self.cfg.association_min_iou))
 
     def config(self) -> dict[str, Any]:
-        return {"name": self.name, **self.predictor.config(), **asdict(self.cfg)}
+        settings = {k: v for k, v in asdict(self.cfg).items() if k != "points_per_batch"}  # memory only
+        return {"name": self.name, **self.predictor.config(), **settings}
 
     def level_masks(self, image: np.ndarray) -> list[torch.Tensor]:
         """Per level, the [K, H, W] bool masks kept for one (H, W, 3) uint8 image."""
@@ -342,9 +357,10 @@ class SamSegmenter(Segmenter):
         h, w = image.shape[:2]
         self.predictor.set_image(image)
         grid = point_grid(c.points_per_side, h, w)
+        step = c.points_per_batch or SAM_CPU_POINTS
         kept: list[list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]] = [[] for _ in LEVELS]
-        for s in range(0, grid.shape[0], c.points_per_batch):
-            logits, iou = self.predictor.predict(grid[s:s + c.points_per_batch])
+        for s in range(0, grid.shape[0], step):
+            logits, iou = self.predictor.predict(grid[s:s + step])
             for level in range(len(LEVELS)):
                 lg, sc = logits[:, level], iou[:, level]
                 ok = sc > c.pred_iou_thresh
@@ -380,15 +396,50 @@ class SamSegmenter(Segmenter):
         return self.associator.associate(ids, frame.camera_id)
 
 
+def sam_point_gb(height: int, width: int, input_size: int = SAM_INPUT_SIZE) -> float:
+    """GPU memory of decoding one point prompt, GB: its three mask logits at the model's input size and at
+    the image's, each held in about three float32 copies at once (upsampling, cropping, thresholds); an
+    estimate."""
+    from methods.backends import GIB
+
+    return 3 * 3 * 4 * (input_size ** 2 + height * width) / GIB
+
+
+def plan_sam(device: str, *, height: int = SAM_INPUT_SIZE, width: int = SAM_INPUT_SIZE,
+             free_bytes: Optional[int] = None, dtype: Optional[str] = None, weights: str = "sam"):
+    """The :class:`~methods.backends.MemoryPlan` of SAM on ``device`` for ``height`` x ``width`` frames: on the
+    CPU full precision and :data:`SAM_CPU_POINTS` prompts at once; on CUDA half precision (``dtype``
+    overrides it) and the prompts the free memory (``free_bytes``, else what the GPU reports) holds beside
+    the weights (:func:`sam_point_gb` each), at most :data:`SAM_MAX_POINTS`. ``weights``: the
+    :data:`methods.backends.BACKENDS` entry of the weights. A GPU without room for the weights is a one-line
+    :class:`~benchmark.core.errors.InputError`."""
+    from methods.backends import backend, plan_memory
+
+    return plan_memory(backend(weights), device, per_item_gb=sam_point_gb(height, width), max_batch=SAM_MAX_POINTS,
+                       cpu_batch=SAM_CPU_POINTS, free_bytes=free_bytes, dtype=dtype, offload=False)
+
+
+def largest_frame(scene: Optional[Scene]) -> tuple[int, int]:
+    """(height, width) of the scene's largest training frame; SAM's input size without a scene."""
+    frames = scene.train_frames if scene is not None else []
+    if not frames:
+        return SAM_INPUT_SIZE, SAM_INPUT_SIZE
+    biggest = max(frames, key=lambda f: f.camera.height * f.camera.width)
+    return biggest.camera.height, biggest.camera.width
+
+
 def create(scene: Scene, *, text_encoder=None, device: str = "cpu", backend: str = "hf",
            model: Optional[str] = None, checkpoint: Optional[str] = None, model_type: str = "vit_h",
-           local_files_only: bool = True, **options: Any) -> SamSegmenter:
+           local_files_only: bool = True, dtype: Optional[str] = None, free_bytes: Optional[int] = None,
+           **options: Any) -> SamSegmenter:
     """Factory of the registry.
 
     ``backend="hf"`` (default): ``model`` = local folder or hub id of a transformers SAM (default
-    :data:`DEFAULT_HF_MODEL`; ``$BENCH4D_SAM`` overrides). ``backend="segment-anything"``:
-    ``checkpoint`` = local ``sam_vit_h_4b8939.pth`` (or ``$BENCH4D_SAM_CHECKPOINT``), ``model_type``.
-    Other ``options`` are fields of :class:`SamConfig`.
+    :data:`DEFAULT_HF_MODEL`; ``$BENCH4D_SAM`` overrides), ``dtype`` (default: the memory plan's).
+    ``backend="segment-anything"``: ``checkpoint`` = local ``sam_vit_h_4b8939.pth`` (or
+    ``$BENCH4D_SAM_CHECKPOINT``), ``model_type``; full precision (its predictor prepares float32 input).
+    Other ``options`` are fields of :class:`SamConfig`; ``points_per_batch`` defaults to the memory plan's
+    (:func:`plan_sam` for the scene's largest frame; ``free_bytes``: free GPU memory to plan with).
     """
     import os
 
@@ -396,15 +447,21 @@ def create(scene: Scene, *, text_encoder=None, device: str = "cpu", backend: str
         cfg = SamConfig(**options)
     except TypeError as err:
         raise InputError(None, "sam options", str(err)) from None
+    if backend not in ("hf", "segment-anything"):
+        raise InputError(None, "sam backend", f"unknown backend {backend!r}; use 'hf' or 'segment-anything'")
+    height, width = largest_frame(scene)
+    plan = plan_sam(device, height=height, width=width, free_bytes=free_bytes, dtype=dtype,
+                    weights="sam" if backend == "hf" else "sam-checkpoint")
+    if cfg.points_per_batch is None:
+        cfg.points_per_batch = plan.batch_size
     if backend == "hf":
         predictor: MultimaskPredictor = HFSamPredictor(model or os.environ.get("BENCH4D_SAM", DEFAULT_HF_MODEL),
-                                                       device=device, local_files_only=local_files_only)
-    elif backend == "segment-anything":
+                                                       device=device, dtype=dtype or plan.dtype or "float32",
+                                                       local_files_only=local_files_only)
+    else:
         ckpt = checkpoint or os.environ.get("BENCH4D_SAM_CHECKPOINT")
         if not ckpt:
             raise InputError(None, "sam checkpoint", "pass checkpoint=<path of sam_vit_h_4b8939.pth> or set "
                                                      "$BENCH4D_SAM_CHECKPOINT (weights load from a local path only)")
         predictor = SegmentAnythingPredictor(ckpt, model_type=model_type, device=device)
-    else:
-        raise InputError(None, "sam backend", f"unknown backend {backend!r}; use 'hf' or 'segment-anything'")
     return SamSegmenter(predictor, cfg)

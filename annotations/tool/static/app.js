@@ -327,6 +327,14 @@ function renderQueries() {
     sw.style.background = `rgb(${rgb.join(",")})`;
     const label = document.createElement("span");
     label.textContent = `${queryKey(n)}${q.text}`;
+    const parts = [sw, label];
+    if (q.review === "draft") {
+      const draft = document.createElement("span");
+      draft.className = "draft";
+      draft.textContent = "draft";
+      draft.title = "not yet reviewed: made by a program or a person and not checked";
+      parts.push(draft);
+    }
     const kind = document.createElement("span");
     kind.className = "kind";
     kind.textContent = q.kind === "sensitive" ? `when · masks of "${queryById(q.base)?.text}"` : (q.level || "");
@@ -338,10 +346,11 @@ function renderQueries() {
     progress.className = "progress";
     progress.textContent = `${doneCount(ownerOf(q.id))}/${S.frames.length}`;
     progress.title = "frames annotated (mask or absent) of the frames offered";
-    li.append(sw, label, kind, st, progress);
+    li.append(...parts, kind, st, progress);
     li.addEventListener("click", () => selectQuery(q.id));
     ul.append(li);
   });
+  $("#mark-reviewed").hidden = queryById(S.qid)?.review !== "draft";
   drawScrubberMarks();
   const base = $("#new-base");
   base.textContent = "";
@@ -943,6 +952,19 @@ async function deleteQuery() {
   }
 }
 
+async function markReviewed() {
+  const q = queryById(S.qid);
+  if (!q || q.review !== "draft") return;
+  if (!(await flushNow())) { message("save pending edits first"); return; }
+  try {
+    const res = await S.api.post("/api/queries/reviewed", { revision: S.revision, query: q.id });
+    mergeState(res.state);
+    message(`"${q.text}" marked reviewed`);
+  } catch (err) {
+    handleWriteError(err, "marking the query reviewed");
+  }
+}
+
 // Take the server's queries and revision, keeping local masks (the server's equal them: all saved).
 function mergeState(state) {
   applyState(state);
@@ -1081,6 +1103,7 @@ async function main() {
   $("#discard-btn").addEventListener("click", () => discardProposals(true));
   $("#add-query-form").addEventListener("submit", addQuery);
   $("#delete-query").addEventListener("click", deleteQuery);
+  $("#mark-reviewed").addEventListener("click", markReviewed);
   $("#export-btn").addEventListener("click", doExport);
   $("#import-file").addEventListener("change", doImport);
   $("#mode-toggle").addEventListener("click", () => toggleReview());
