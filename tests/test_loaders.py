@@ -604,14 +604,22 @@ def test_real_dnerf_object_annotations(dnerf_dir):
     aset = object_annotations(scene, "lego bulldozer")
     assert aset.queries[0].text == "lego bulldozer" and len(aset.frames) == len(scene.test_frames) == 20
     assert all(aset.get_mask(1, f.id).any() for f in aset.frames)
-    # the benchmark's own file for the scene holds exactly these masks, at full size
+    # the benchmark's own file for the scene: the simulated annotator's masks where they reach IoU 0.95
+    # against these alpha masks (made_by box / clicks), the alpha mask itself elsewhere (made_by scripted)
     from benchmark.runner import find_annotations
 
     shipped = find_annotations(load_scene(dnerf_dir / "lego"))
     full = object_annotations(load_scene(dnerf_dir / "lego"), "lego bulldozer")
     assert [q.text for q in shipped.queries] == ["lego bulldozer"]
-    assert all(np.array_equal(shipped.get_mask(1, a.id), full.get_mask(1, b.id))
-               for a, b in zip(shipped.frames, full.frames))
+    assert [a.name for a in shipped.frames] == [b.name for b in full.frames]
+    for a, b in zip(shipped.frames, full.frames):
+        mine, alpha = shipped.get_mask(1, a.id), full.get_mask(1, b.id)
+        how = shipped.made_by[(1, a.id)]
+        assert how in ("box", "clicks", "scripted")
+        if how == "scripted":
+            assert np.array_equal(mine, alpha)
+        else:
+            assert (mine & alpha).sum() / (mine | alpha).sum() >= 0.95
 
 
 def test_dnerf_near_far_from_generator_meta(tmp_path):
