@@ -13,10 +13,10 @@ per pixel into the scene's mask identities; a query selects the identities whose
   Masks whose features are equal (to 1e-6, as :func:`~methods.language_methods.distinct_features`
   merges them) are one identity on any track: on the oracle track each mask's feature is its object's
   name embedding, so this alone gives one identity per name. The supervision's per-frame mask indices
-  are NOT associated over time: the ``sam`` and ``classical`` segmenters associate their ids, but the
-  supervision cache relabels every frame to 0..M-1 (:func:`~methods.supervision.base.relabel_levels`),
-  dropping them. So on the real track masks of consecutive training frames of one camera are linked
-  here again by overlap, with the segmenters' own rule
+  are NOT associated over time: the supervision cache relabels every frame to 0..M-1
+  (:func:`~methods.supervision.base.relabel_levels`); the segmenters' associated ids are kept beside
+  them (``FrameSupervision.segment_ids``) but not used here. So on the real track masks of consecutive
+  training frames of one camera are linked here by overlap, with the segmenters' own rule
   (:class:`~methods.supervision.association.TemporalAssociator`, IoU above ``association.min_iou``).
   Cameras are not linked to each other. Pixels no mask covers are one more identity whose feature is
   the passage embedding of ``extensions.unmasked_text`` (:func:`~methods.language_methods.with_unmasked_as`).

@@ -152,8 +152,8 @@ def agnostic_gap(model, scene: Scene, annotations, frame_of: dict, *,
     return out
 
 
-def caption_targets(model, scene: Scene, track: str, cache_root,
-                    annotations) -> Optional[dict[str, tuple[np.ndarray, np.ndarray]]]:
+def caption_targets(model, scene: Scene, track: str, cache_root, annotations,
+                    supervision=None) -> Optional[dict[str, tuple[np.ndarray, np.ndarray]]]:
     """Base object's name -> ((N,) time indices, (N, D) caption embeddings) of the captions the model's
     time-varying field was fitted on (from the caption cache; averaged over the model's
     ``caption_window`` or over its ``caption_segments`` when it has one, as its targets were), for each
@@ -169,7 +169,9 @@ def caption_targets(model, scene: Scene, track: str, cache_root,
 
     from benchmark.core.truth import has_truth, load_truth
 
-    captions, tracks = build_captions(scene, track, model.config.captions, cache_root=cache_root)
+    # ``supervision``: the run's, whose segments are the object tracks on the real track without a captions file
+    captions, tracks = build_captions(scene, track, model.config.captions, supervision=supervision,
+                                      cache_root=cache_root)
     # a scene without generator truth (captions from a file) maps bases by track label; a broken truth file raises
     truth = load_truth(scene.root) if has_truth(scene.root) else None
     time_of = {f.name: f.time_index for f in scene.frames}
@@ -376,7 +378,7 @@ def _run_gap(path: Path, doc: dict, cache_dir: Path, shared: dict[tuple, dict], 
     aset = find_annotations(scene)
     gap = field_gap(model, scene, aset, doc["score_config"]["eval_frames"],
                     temporal=run_protocol.temporal, agnostic=shared.get(same_field) if same_field[1] else None,
-                    captions=caption_targets(model, scene, doc["track"], cache_dir, aset))
+                    captions=caption_targets(model, scene, doc["track"], cache_dir, aset, supervision))
     if same_field[1]:
         shared.setdefault(same_field, gap)
     gap.update({"method": doc["method"], "scene": doc["scene"], "seed": int(doc["seed"]), "track": doc["track"],
