@@ -191,6 +191,20 @@ def _table(summary: pd.DataFrame, kind: str, *, floors: frozenset[str] = frozens
     return lines
 
 
+def _draft_note(runs: pd.DataFrame, dataset: str, track: str, protocol: str) -> list[str]:
+    """The scenes of a table whose ground truth holds unreviewed draft queries, and those queries."""
+    if "draft_queries" not in runs:
+        return []
+    mine = runs[(runs["dataset"] == dataset) & (runs["track"] == track) & (runs["protocol"] == protocol)
+                & (runs["draft_queries"].fillna("") != "")]
+    if not len(mine):
+        return []
+    listed = "; ".join(f"{scene} ({drafts})" for scene, drafts in
+                       sorted(mine.groupby("scene")["draft_queries"].first().items()))
+    return [f"_Draft ground truth: {listed}: these queries are marked `review: \"draft\"` in the annotation "
+            "file (made by a program, not reviewed by a person); their scores count in the tables above._", ""]
+
+
 def _absent_note(summary: pd.DataFrame, kind: str) -> list[str]:
     """Methods that ran scenes of a (dataset, track) table yet have no ``kind`` number on any of them.
 
@@ -342,6 +356,7 @@ def render_markdown(runs: pd.DataFrame, results_dir_label: str,
             if lines is None:
                 continue
             out += [f"### {KIND_TITLE[kind]}", "", *lines, *_absent_note(group, kind), ""]
+        out += _draft_note(runs, dataset, track, protocol)
         if dataset not in datasets_done:  # the paper's numbers once per dataset, after its first table
             paper = _paper_tables(dataset)
             if paper:

@@ -43,7 +43,7 @@ scores' ROC AUC against the labels, and the share of decisions near the threshol
 RUN_COLUMNS = ["dataset", "track", "protocol", "method", "scene", "seed", "mIoU", "mAcc", "Acc", "vIoU", *DIAGNOSTIC_METRICS,
                "fps_agnostic", "fps_sensitive", "fit_seconds", "peak_cpu_mib", "peak_gpu_mib",
                "peak_cpu_needed_mib", "peak_gpu_needed_mib", "peak_measured", "device",
-               "git_commit", "git_dirty", "scene_digest", "scene_current", "path"]
+               "git_commit", "git_dirty", "scene_digest", "scene_current", "draft_queries", "path"]
 VALUE_COLUMNS = ["mIoU", "mAcc", "Acc", "vIoU", *DIAGNOSTIC_METRICS, "fps_agnostic", "fps_sensitive", "fit_seconds",
                  "peak_cpu_mib", "peak_gpu_mib", "peak_cpu_needed_mib", "peak_gpu_needed_mib"]
 MEAN_SCENE = "mean"
@@ -201,6 +201,9 @@ class SceneInfo(TypedDict):
     """Resolution multiplier it was loaded at; null: full size."""
     generated: NotRequired[Optional[dict[str, Any]]]
     """Preset, size, seed and digest of a generated scene (:func:`scene_status`); null for others."""
+    draft_queries: NotRequired[list[str]]
+    """Scored queries whose ground truth is an unreviewed draft (``review: "draft"``, or the base of a
+    time-sensitive query is): they count in the metrics, and the leaderboard names them."""
 
 
 class Scores(TypedDict):
@@ -694,6 +697,7 @@ def run_row(doc: dict, path: Optional[Path] = None) -> dict[str, Any]:
         "git_commit": (git.get("commit") or "")[:12],
         "git_dirty": git.get("dirty"),
         "scene_digest": digest, "scene_current": current,
+        "draft_queries": ", ".join((doc.get("scene_info") or {}).get("draft_queries") or []),
         "path": "" if path is None else str(path),
     }
 

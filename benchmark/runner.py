@@ -53,6 +53,7 @@ from typing import Any, Callable, Optional, Sequence
 import numpy as np
 
 from .core import memory
+from benchmark.core.annotation import AnnotationSet
 from benchmark.core.atomic import json_ready, read_json, write_json
 from benchmark.core.errors import InputError
 from benchmark.core.openblas import cpuinfo_value, openblas_core
@@ -256,6 +257,13 @@ def dataset_label(scene: Scene) -> str:
     if root is not None and ((root / "truth" / "scene_truth.json").is_file()):
         return "synthetic"
     return scene.dataset
+
+
+def draft_query_texts(aset: AnnotationSet) -> list[str]:
+    """Texts of the queries whose ground truth is an unreviewed draft: marked ``review: "draft"``, or a
+    time-sensitive query whose base (whose masks it scores) is."""
+    drafts = {q.id for q in aset.draft_queries()}
+    return [q.text for q in aset.queries if q.id in drafts or (q.base is not None and q.base in drafts)]
 
 
 def find_annotations(scene: Scene, explicit: Optional[Path] = None, object_query: Optional[str] = None):
@@ -942,7 +950,7 @@ def results_document(prepared: PreparedRun, fit: FitRecord, answers: Answers, sc
                      "torch_threads": _torch_threads(), "concurrent_runs": options.concurrent_runs},
         scene_info={"root": str(prepared.root), "summary": scene.summary(),
                     "annotations": prepared.annotations.info.get("source"), "scale": options.scale,
-                    "generated": prepared.generated},
+                    "generated": prepared.generated, "draft_queries": draft_query_texts(prepared.annotations)},
         protocol=prepared.protocol.to_dict(),
         score_config=score_config.to_dict(),
         scores={"queries": score_doc["queries"], "skipped": score_doc["skipped"], "frames": score_doc["frames"]},

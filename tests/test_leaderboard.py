@@ -385,3 +385,27 @@ def test_see_also_links_the_stability_and_capacity_reports_only_where_they_exist
     (reports / "capacity" / "README.md").write_text("# capacity\n")
     lines = see_also()
     assert len(lines) == 1 and "(reports/stability/README.md)" in lines[0] and "(reports/capacity/README.md)" in lines[0]
+
+
+def test_scenes_scored_on_draft_ground_truth_are_named_under_their_tables(tmp_path):
+    root = tmp_path / "results"
+    _write_all(root, 0)
+    build_leaderboard(root, markdown=tmp_path / "plain.md", reports_dir=tmp_path / "rep")
+    assert "Draft ground truth" not in (tmp_path / "plain.md").read_text()
+    doc = _doc("zeta", "s1", 0, 65.0)
+    doc.setdefault("scene_info", {})["draft_queries"] = ["denim shorts", "arms raised"]
+    write_results(results_path(root, "synthetic", "s1", "zeta", "oracle", 0), doc)
+    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
+    md = (tmp_path / "lb.md").read_text()
+    assert "_Draft ground truth: s1 (denim shorts, arms raised)" in md
+    assert md.count("Draft ground truth") == 1
+
+
+def test_runs_record_the_draft_queries_of_their_ground_truth():
+    from benchmark.core.annotation import AnnotationSet, Query
+    from benchmark.runner import draft_query_texts
+
+    aset = AnnotationSet("toy", queries=[Query(1, "person"), Query(2, "shorts", level="part", review="draft"),
+                                         Query(3, "jumping", kind="sensitive", base=1),
+                                         Query(4, "shorts up", kind="sensitive", base=2)])
+    assert draft_query_texts(aset) == ["shorts", "shorts up"]
