@@ -88,3 +88,41 @@ def tiny_sam_model(folder: Path) -> Path:
                                  iou_head_hidden_dim=16))
     SamModel(cfg).save_pretrained(folder)
     return folder
+
+
+class BoxSamPredictor:
+    """Stands in for ``segment_anything.SamPredictor``: the attributes ``PromptedSamSegmenter`` reads and
+    writes. ``set_image`` "embeds" an image as its mean colour (and records the call); ``predict`` returns
+    the box region at the embedded image's size with each point's pixel set to its label, so a test can
+    tell which embedding a prediction used. Random weights would measure nothing more."""
+
+    def __init__(self):
+        import threading
+
+        self.calls = []
+        self.lock = threading.Lock()
+        self.features = self.original_size = self.input_size = None
+        self.is_image_set = False
+
+    def set_image(self, image):
+        import torch
+
+        with self.lock:
+            self.calls.append(image.shape)
+        self.features = torch.tensor(image.reshape(-1, 3).mean(0))
+        self.original_size = self.input_size = image.shape[:2]
+        self.is_image_set = True
+
+    def predict(self, point_coords=None, point_labels=None, box=None, multimask_output=False):
+        import numpy as np
+
+        assert self.is_image_set
+        h, w = self.original_size
+        m = np.zeros((1, h, w), bool)
+        if box is not None:
+            x0, y0, x1, y1 = (int(v) for v in box)
+            m[0, y0:y1, x0:x1] = True
+        if point_coords is not None:
+            for (x, y), lbl in zip(point_coords, point_labels):
+                m[0, int(y), int(x)] = bool(lbl)
+        return m, np.ones(1), np.zeros((1, 256, 256))

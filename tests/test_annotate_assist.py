@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from annotations.assist import GrabCutSegmenter, PromptedSamConfig, PromptedSamSegmenter, make_segmenter
+from conftest import BoxSamPredictor
 from annotations.propagate import iou
 from annotations.tool.synthetic import rigid_sequence
 from benchmark.core.errors import InputError
@@ -91,7 +91,7 @@ def test_sam_model_comes_from_the_sam_segmenters_loader(tmp_path, monkeypatch):
 
     def fake_loader(checkpoint, model_type, device):
         calls.append((Path(checkpoint), model_type, device))
-        return FakePredictor()
+        return BoxSamPredictor()
 
     monkeypatch.setattr(sam, "load_segment_anything", fake_loader)
     seg = make_segmenter("sam", sam_checkpoint=weights, sam_model="vit_b", device="cpu")
@@ -102,46 +102,8 @@ def test_sam_model_comes_from_the_sam_segmenters_loader(tmp_path, monkeypatch):
         make_segmenter("sam", sam_checkpoint=weights)
 
 
-class FakePredictor:
-    """Stands in for segment_anything.SamPredictor: the attributes PromptedSamSegmenter reads and writes.
-
-    ``set_image`` "embeds" an image as its mean colour; ``predict`` returns the box region of the
-    embedded image's size, so the test can tell which embedding a prediction used.
-    """
-
-    def __init__(self):
-        self.calls = []
-        self.lock = threading.Lock()
-        self.features = None
-        self.original_size = None
-        self.input_size = None
-        self.is_image_set = False
-
-    def set_image(self, image):
-        import torch
-
-        with self.lock:
-            self.calls.append(image.shape)
-        self.features = torch.tensor(image.reshape(-1, 3).mean(0))
-        self.original_size = image.shape[:2]
-        self.input_size = image.shape[:2]
-        self.is_image_set = True
-
-    def predict(self, point_coords=None, point_labels=None, box=None, multimask_output=False):
-        assert self.is_image_set
-        h, w = self.original_size
-        m = np.zeros((1, h, w), bool)
-        if box is not None:
-            x0, y0, x1, y1 = (int(v) for v in box)
-            m[0, y0:y1, x0:x1] = True
-        if point_coords is not None:
-            for (x, y), lbl in zip(point_coords, point_labels):
-                m[0, int(y), int(x)] = bool(lbl)
-        return m, np.ones(1), np.zeros((1, 256, 256))
-
-
 def test_sam_embeddings_are_prefetched_and_cached(seq, tmp_path):
-    fake = FakePredictor()
+    fake = BoxSamPredictor()
     sam = PromptedSamSegmenter(PromptedSamConfig(memory_cache=2, cache_dir=tmp_path / "cache"), predictor=fake)
     sam.prefetch("a", lambda: seq.images[0])
     sam.prefetch("a", lambda: seq.images[0])  # asked twice, computed once

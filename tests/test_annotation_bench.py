@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from annotations.assist import GrabCutSegmenter, PromptedSamConfig, PromptedSamSegmenter
+from conftest import BoxSamPredictor
 from annotations.format import load_annotations
 from benchmark.commands.annotate_bench import tool_launcher
 from benchmark.studies import annotation_bench as bench
@@ -49,40 +50,13 @@ def test_page_runs_round_trip():
         assert np.array_equal(bench.runs_to_mask(bench.mask_to_runs(m), *shape), m)
 
 
-class BoxPredictor:
-    """A tiny stand-in for SAM's predictor: the mask is the box, points set their pixel. Random
-    weights would measure nothing more; this keeps the SAM path of the tool exercised."""
-
-    def __init__(self):
-        self.features = self.original_size = self.input_size = None
-        self.is_image_set = False
-
-    def set_image(self, image):
-        import torch
-
-        self.features = torch.tensor(image.reshape(-1, 3).mean(0))
-        self.original_size = self.input_size = image.shape[:2]
-        self.is_image_set = True
-
-    def predict(self, point_coords=None, point_labels=None, box=None, multimask_output=False):
-        h, w = self.original_size
-        m = np.zeros((1, h, w), bool)
-        if box is not None:
-            x0, y0, x1, y1 = (int(v) for v in box)
-            m[0, y0:y1, x0:x1] = True
-        if point_coords is not None:
-            for (x, y), lbl in zip(point_coords, point_labels):
-                m[0, int(y), int(x)] = bool(lbl)
-        return m, np.ones(1), np.zeros((1, 256, 256))
-
-
 @pytest.fixture(scope="module")
 def smoke(tmp_path_factory):
     base = tmp_path_factory.mktemp("bench")
     scene_dir = generate("smoke", base / "smoke", size=48)
     config = bench.BenchConfig(max_interactions=6, propagation_frames=5)
     segmenters = {"grabcut": GrabCutSegmenter(),
-                  "sam": PromptedSamSegmenter(PromptedSamConfig(memory_cache=4), predictor=BoxPredictor())}
+                  "sam": PromptedSamSegmenter(PromptedSamConfig(memory_cache=4), predictor=BoxSamPredictor())}
     truth = bench.synthetic_truth(scene_dir)
     result = bench.bench_scene(truth, tool_launcher(segmenters, config), base / "work", ["grabcut", "sam"], config)
     return base, truth, config, result
