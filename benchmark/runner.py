@@ -386,6 +386,24 @@ def adopt_git_state(state: Optional[dict[str, Any]]) -> None:
     _ADOPTED_GIT_STATE = None if state is None else dict(state)
 
 
+def use_threads(count: int) -> None:
+    """``count`` torch threads in this process, and OpenMP / MKL threads for the processes it starts."""
+    for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[name] = str(count)
+    import torch
+
+    torch.set_num_threads(count)
+
+
+def start_worker(threads: int, git: dict) -> None:
+    """Initializer of a process-pool worker that runs evaluations (``run-all --jobs``, studies): its torch
+    threads, and the commit it records: the parent command's (read as it started, with its code
+    fingerprint, so a run can tell that the code changed since), not the checkout's when the worker
+    happens to start."""
+    use_threads(threads)
+    adopt_git_state(git)
+
+
 def code_changed_since_start() -> Optional[bool]:
     """Whether the code of the checkout (:data:`CODE_PATHS`: their content at HEAD and the tracked changes)
     differs from what it was when the command started: modules a long run imports late (a ``--jobs``

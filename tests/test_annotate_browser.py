@@ -378,9 +378,10 @@ def _proposed_frames(pg):
     return sorted(int(k.split(":")[1]) for k in pg.js("[...window.bench4d.S.proposals.keys()]"))
 
 
-def _box_and_propagate(pg, count):
+def _box_and_propagate(pg, count, corners=((60, 30), (260, 150))):
+    """A query "blob", a box dragged between ``corners``, then ``count`` proposals propagated forward."""
     qid = pg.add_query("blob")
-    pg.drag((60, 30), (260, 150))
+    pg.drag(*corners)
     pg.page.wait_for_function(f"window.bench4d.maskArea({qid}, 0) > 0")
     pg.page.fill("#prop-count", str(count))
     pg.page.locator("#view").focus()
@@ -448,13 +449,7 @@ def test_accept_all_warns_on_an_area_jump_and_review_lists_gaps_and_jumps(browse
     try:
         pg = Page(browser, srv.url)
         x0, y0, x1, y1 = seq.boxes[0]
-        qid = pg.add_query("blob")
-        pg.drag((x0 - 8, y0 - 8), (x1 + 8, y1 + 8))
-        pg.page.wait_for_function(f"window.bench4d.maskArea({qid}, 0) > 0")
-        pg.page.fill("#prop-count", "3")
-        pg.page.locator("#view").focus()
-        pg.key("p")
-        pg.page.wait_for_function("window.bench4d.S.proposals.size === 3", timeout=30000)
+        qid = _box_and_propagate(pg, 3, ((x0 - 8, y0 - 8), (x1 + 8, y1 + 8)))
         # a proposal that filled the gap around the object: its area more than doubles
         pg.js(f"() => {{ const m = window.bench4d.S.proposals.get('{qid}:2'); m.fill(1, 0, {W * H // 3}); }}")
         pg.page.click("#accept-all-btn")
@@ -606,13 +601,7 @@ def test_the_page_saves_how_each_mask_was_made(browser, scene_dir, seq, tmp_path
     try:
         pg = Page(browser, srv.url)
         x0, y0, x1, y1 = seq.boxes[0]
-        qid = pg.add_query("blob")
-        pg.drag((x0 - 8, y0 - 8), (x1 + 8, y1 + 8))
-        pg.page.wait_for_function(f"window.bench4d.maskArea({qid}, 0) > 0")
-        pg.page.fill("#prop-count", "2")
-        pg.page.locator("#view").focus()
-        pg.key("p")
-        pg.page.wait_for_function("window.bench4d.S.proposals.size === 2", timeout=30000)
+        qid = _box_and_propagate(pg, 2, ((x0 - 8, y0 - 8), (x1 + 8, y1 + 8)))
         pg.page.click("#accept-all-btn")
         pg.goto(2)
         pg.key("r")

@@ -557,7 +557,7 @@ def test_the_code_fingerprint_follows_the_code_not_the_commit(tmp_path):
 def test_a_run_all_worker_records_its_parent_commands_git_state(env, monkeypatch):
     # workers start after the parent read its checkout: they must record that, not a later commit
     import benchmark.runner as runner
-    from benchmark.commands.run_all import _start_worker
+    from benchmark.runner import start_worker
 
     import torch
 
@@ -567,7 +567,7 @@ def test_a_run_all_worker_records_its_parent_commands_git_state(env, monkeypatch
     runner.device_description("cpu")  # platform caches its own `uname -p` call: not a git read, made first
     monkeypatch.setattr(runner.subprocess, "run", lambda *a, **k: (_ for _ in ()).throw(AssertionError("git read")))
     try:
-        _start_worker(1, {"commit": "3" * 40, "dirty": True})
+        start_worker(1, {"commit": "3" * 40, "dirty": True})
         assert evaluate(_options(env, seed=5)).results["environment"]["git"] == {"commit": "3" * 40, "dirty": True}
     finally:
         runner.adopt_git_state(None)
@@ -580,7 +580,7 @@ def test_a_run_says_whether_the_code_changed_since_its_command_started(env, monk
     import subprocess
 
     import benchmark.runner as runner
-    from benchmark.commands.run_all import _start_worker
+    from benchmark.runner import start_worker
 
     import torch
 
@@ -600,14 +600,14 @@ def test_a_run_says_whether_the_code_changed_since_its_command_started(env, monk
     monkeypatch.setattr(runner.subprocess, "run", fake_git)
     try:
         start = {"commit": "4" * 40, "dirty": False, "code": runner._code_fingerprint()}
-        _start_worker(1, start)
+        start_worker(1, start)
         same = evaluate(_options(env, seed=6)).results["environment"]
         assert same["git"] == {"commit": "4" * 40, "dirty": False} and same["code_changed_during_run"] is False
         checkout["diff"] = "diff --git a/benchmark/metrics/scoring.py b/benchmark/metrics/scoring.py\n+changed\n"
         changed = evaluate(_options(env, seed=7)).results["environment"]
         assert changed["git"] == {"commit": "4" * 40, "dirty": False} and changed["code_changed_during_run"] is True
         assert all(cmd[-len(runner.CODE_PATHS):] == list(runner.CODE_PATHS) for cmd in diffs)  # code paths only
-        _start_worker(1, {"commit": "4" * 40, "dirty": False})  # a start without a fingerprint: unknown
+        start_worker(1, {"commit": "4" * 40, "dirty": False})  # a start without a fingerprint: unknown
         assert evaluate(_options(env, seed=8)).results["environment"]["code_changed_during_run"] is None
     finally:
         runner.adopt_git_state(None)

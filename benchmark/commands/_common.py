@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 from pathlib import Path
 from typing import Optional
 
@@ -53,11 +52,9 @@ def set_threads(threads: Optional[int] = None) -> int:
     count = DEFAULT_THREADS if threads is None else threads
     if count < 1:
         raise InputError(None, "--threads", f"must be >= 1, got {count}")
-    for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ[name] = str(count)
-    import torch
+    from benchmark.runner import use_threads
 
-    torch.set_num_threads(count)
+    use_threads(count)
     return count
 
 

@@ -35,9 +35,11 @@ def _import_ray():
 
 def _ray_group(group: list, keep_going: bool, threads: int, git: dict) -> list[dict]:
     """One (scene, seed) group on a Ray worker: the local worker's set-up, then its runs in order."""
-    from .run_all import _run_group, _start_worker
+    from benchmark.runner import start_worker
 
-    _start_worker(threads, git)
+    from .run_all import _run_group
+
+    start_worker(threads, git)
     return _run_group(group, keep_going)
 
 

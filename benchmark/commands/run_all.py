@@ -100,16 +100,6 @@ def _portable(err: Exception) -> Exception:
         return RuntimeError(f"{type(err).__name__}: {err}")
 
 
-def _start_worker(threads: int, git: dict) -> None:
-    """A ``--jobs`` worker: its torch threads, and the commit it records: the parent command's (read as
-    ``bench4d`` started, with its code fingerprint, so a run can tell that the code changed since),
-    not the checkout's when the worker happens to start."""
-    set_threads(threads)
-    from ..runner import adopt_git_state
-
-    adopt_git_state(git)
-
-
 def run(args: argparse.Namespace) -> int:
     from ..results import runs_table, seed_summary
 
@@ -295,13 +285,13 @@ def _run_in_workers(groups: list[list], jobs: int, threads: int, tally: _Tally, 
     import concurrent.futures as cf
     import multiprocessing as mp
 
-    from ..runner import checkout_at_start
+    from ..runner import checkout_at_start, start_worker
 
     if not quiet:
         print(f"run-all: {sum(len(g) for g in groups)} run(s) in {len(groups)} (scene, seed) group(s), "
               f"{jobs} at a time, {threads} torch thread(s) each", file=sys.stderr)
     with cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
-                                initializer=_start_worker, initargs=(threads, checkout_at_start())) as pool:
+                                initializer=start_worker, initargs=(threads, checkout_at_start())) as pool:
         futures = {pool.submit(_run_group, group, tally.keep_going): group for group in groups}
         for future in cf.as_completed(futures):
             try:

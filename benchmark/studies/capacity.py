@@ -26,7 +26,6 @@ per knob (every metric against the value, one line per preset).
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional, Sequence
@@ -287,18 +286,6 @@ def _run_group(config: CapacityConfig, group: list[Run]) -> list[str]:
     return [str(run_one(config, run)) for run in group]
 
 
-def _start_worker(threads: int, git: dict) -> None:
-    """A worker process: ``threads`` torch threads, and the commit the parent read as it started."""
-    for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ[name] = str(threads)
-    import torch
-
-    from benchmark.runner import adopt_git_state
-
-    torch.set_num_threads(threads)
-    adopt_git_state(git)
-
-
 def run_study(config: CapacityConfig, log: Callable[[str], None] = print) -> list[Cell]:
     """Run (or read) every run of the study; returns its cells."""
     check_knobs(config)
@@ -316,10 +303,10 @@ def run_study(config: CapacityConfig, log: Callable[[str], None] = print) -> lis
     import concurrent.futures as cf
     import multiprocessing as mp
 
-    from benchmark.runner import checkout_at_start
+    from benchmark.runner import checkout_at_start, start_worker
 
     with cf.ProcessPoolExecutor(max_workers=config.jobs, mp_context=mp.get_context("spawn"),
-                                initializer=_start_worker, initargs=(config.threads, checkout_at_start())) as pool:
+                                initializer=start_worker, initargs=(config.threads, checkout_at_start())) as pool:
         futures = {pool.submit(_run_group, config, group): group for group in groups}
         for future in cf.as_completed(futures):
             group = futures[future]
