@@ -132,14 +132,7 @@ class GrabCutSegmenter:
         fg_possible = np.isin(labels, (cv2.GC_FGD, cv2.GC_PR_FGD))
         if not fg_possible.any():
             return np.zeros((height, width), bool)
-        iterations = self.config.refine_iterations if clicks else self.config.iterations
-        bgd_model = np.zeros((1, 65), np.float64)
-        fgd_model = np.zeros((1, 65), np.float64)
-        try:
-            cv2.grabCut(crop.small, labels, None, bgd_model, fgd_model, iterations, cv2.GC_INIT_WITH_MASK)
-        except cv2.error:
-            # degenerate colour statistics (e.g. a flat crop): keep the prior labelling
-            pass
+        _grabcut(crop.small, labels, self.config.refine_iterations if clicks else self.config.iterations)
         fg_small = np.isin(labels, (cv2.GC_FGD, cv2.GC_PR_FGD)).astype(np.float32)
         fg_crop = (cv2.resize(fg_small, (crop.width, crop.height), interpolation=cv2.INTER_LINEAR) >= 0.5) \
             if crop.scale < 1.0 else fg_small > 0.5
@@ -211,13 +204,7 @@ class GrabCutSegmenter:
             small, work = np.ascontiguousarray(image), labels.copy()
         fg = np.isin(work, (cv2.GC_FGD, cv2.GC_PR_FGD))
         if fg.any() and not fg.all():
-            bgd_model = np.zeros((1, 65), np.float64)
-            fgd_model = np.zeros((1, 65), np.float64)
-            try:
-                cv2.grabCut(small, work, None, bgd_model, fgd_model, self.config.refine_iterations,
-                            cv2.GC_INIT_WITH_MASK)
-            except cv2.error:
-                pass  # degenerate colour statistics: keep the prior labelling
+            _grabcut(small, work, self.config.refine_iterations)
         fg = np.isin(work, (cv2.GC_FGD, cv2.GC_PR_FGD))
         if scale < 1.0:
             fg = cv2.resize(fg.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR) >= 0.5
@@ -339,6 +326,16 @@ class _Crop:
     def point(self, x: float, y: float) -> tuple[int, int]:
         """Image coordinates -> ``small`` pixel (column, row)."""
         return int((x - self.x0) * self.sx), int((y - self.y0) * self.sy)
+
+
+def _grabcut(image: np.ndarray, labels: np.ndarray, iterations: int) -> None:
+    """GrabCut from ``labels`` (updated in place) on ``image``, a contiguous uint8 RGB array."""
+    bgd_model = np.zeros((1, 65), np.float64)
+    fgd_model = np.zeros((1, 65), np.float64)
+    try:
+        cv2.grabCut(image, labels, None, bgd_model, fgd_model, iterations, cv2.GC_INIT_WITH_MASK)
+    except cv2.error:
+        pass  # degenerate colour statistics (e.g. a flat crop): keep the prior labelling
 
 
 def _like_ring(image: np.ndarray, ring: np.ndarray, k: int, distance: float) -> np.ndarray:
