@@ -32,6 +32,16 @@ def test_the_click_goes_to_the_centre_of_the_largest_error_region():
     assert bench.corrective_click(truth, truth) is None
 
 
+def test_one_pixel_iou_is_the_lower_of_erosion_and_dilation():
+    square = np.zeros((20, 20), bool)
+    square[5:15, 5:15] = True  # 100 px; eroded 64, dilated 144
+    assert bench.one_pixel_iou(square) == pytest.approx(0.64)
+    big = np.zeros((200, 200), bool)
+    big[20:180, 20:180] = True
+    assert bench.one_pixel_iou(big) == pytest.approx(158 ** 2 / 160 ** 2)
+    assert bench.one_pixel_iou(np.zeros((4, 4), bool)) is None
+
+
 def test_noc_counts_interactions_to_the_threshold_and_caps():
     log = bench.FrameLog("f", [0.7, 0.86, 0.88, 0.93], [0.0] * 4, "clicks")
     assert log.noc(0.85, 20) == 2 and log.noc(0.90, 20) == 4 and log.noc(0.95, 20) == 20
@@ -75,6 +85,11 @@ def test_the_bench_measures_both_backends_and_both_workflows(smoke):
     paths = bench.write([result], config, base / "report")
     text = paths[1].read_text()
     assert "NoC@90" in text and "Papadopoulos" in text and "smoke" in text
+    tolerance = result["one_pixel_iou"]  # every mask query's, from the truth of the scored frames
+    assert set(tolerance) == {q.text for q in truth.queries if q.kind == "agnostic"} - {
+        q.text for q in truth.queries if q.kind == "agnostic"
+        and all(m is None or not m.any() for m in (truth.mask(q.text, f) for f in truth.scored_frames))}
+    assert all(0 < v < 1 for v in tolerance.values()) and "one-pixel IoU >= 0.9" in text
 
 
 def test_intervals_are_marked_within_one_frame_of_the_truth(smoke):
@@ -123,6 +138,39 @@ def test_the_command_writes_the_report_and_refuses_unknown_backends(tmp_path, ca
     doc = json.loads((out / "annotation_bench.json").read_text())
     assert [r["scene"] for r in doc["scenes"]] == ["smoke"] and doc["human_seconds"]["box"] == bench.BOX_SECONDS
     assert "| smoke | grabcut |" in (out / "annotation_bench.md").read_text()
+
+
+def test_truth_colours_paint_one_flat_distinct_colour_per_truth_region(tmp_path):
+    import cv2
+
+    from benchmark.core.truth import load_truth
+
+    scene_dir = generate("smoke", tmp_path / "smoke", size=32, frames=6)
+    regions = bench.paint_truth_regions(scene_dir)
+    truth = load_truth(scene_dir)
+    colour_of: dict = {}
+    for name, frame in truth.frames.items():
+        image = cv2.imread(str(scene_dir / frame.image_file))
+        ids = truth.id_maps(name, allow_eval=True)
+        for triple, colour in zip(ids.reshape(3, -1).T.tolist(), image.reshape(-1, 3).tolist()):
+            assert colour_of.setdefault(tuple(triple), tuple(colour)) == tuple(colour)  # flat within a region
+    assert len(colour_of) == regions > 3
+    assert len(set(colour_of.values())) == regions  # distinct regions, distinct colours: every boundary an edge
+
+
+def test_the_truth_colours_run_writes_its_own_report_and_leaves_dnerf_out(tmp_path, capsys):
+    from benchmark.cli import main
+
+    out = tmp_path / "report"
+    assert main(["annotate-bench", "--presets", "smoke", "--size", "32", "--images", "truth-colours",
+                 "--work", str(tmp_path / "w"), "--out", str(out)]) == 0
+    doc = json.loads((out / "annotation_bench_truth_colours.json").read_text())
+    assert doc["config"]["images"] == "truth-colours" and [r["scene"] for r in doc["scenes"]] == ["smoke"]
+    assert "Images: truth colours" in (out / "annotation_bench_truth_colours.md").read_text()
+    assert not (out / "annotation_bench.json").exists()
+    assert main(["annotate-bench", "--presets", "none", "--images", "truth-colours", "--adopt-dnerf",
+                 "--out", str(out)]) == 2
+    assert "--adopt-dnerf" in capsys.readouterr().err
 
 
 def test_simulated_masks_are_adopted_only_where_they_reach_the_truth(tmp_path):

@@ -32,6 +32,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--target-iou", type=float, default=0.90, help="IoU at which the annotator stops (0.90)")
     parser.add_argument("--work", type=Path, default=None, help="folder for scenes and annotation files (a temp dir)")
     parser.add_argument("--out", type=Path, default=Path("reports/annotation"), help="report folder")
+    parser.add_argument("--images", choices=("rendered", "truth-colours"), default="rendered",
+                        help="truth-colours: repaint the synthetic frames with one flat colour per truth region (every "
+                             "boundary an edge: the assistant's ceiling); D-NeRF scenes are left out. Writes "
+                             "annotation_bench_truth_colours.{json,md}")
     parser.add_argument("--adopt-dnerf", action="store_true",
                         help="afterwards, put the simulated annotator's whole-object masks into the D-NeRF files of "
                              "annotations/scenes/dnerf where they reach --target-iou against the alpha masks")
@@ -73,7 +77,9 @@ def run(args: argparse.Namespace) -> int:
     from benchmark.core.errors import InputError
     from benchmark.studies import annotation_bench as bench
 
-    config = bench.BenchConfig(target_iou=args.target_iou)
+    config = bench.BenchConfig(target_iou=args.target_iou, images=args.images)
+    if args.images == "truth-colours" and args.adopt_dnerf:
+        raise InputError(None, "--adopt-dnerf", "takes the rendered images' masks; not with --images truth-colours")
     backends = [b.strip() for b in args.backends.split(",") if b.strip()]
     if not backends or set(backends) - {"grabcut", "sam"}:
         raise InputError(None, "--backends", "expected a comma list of grabcut, sam")
@@ -90,24 +96,28 @@ def run(args: argparse.Namespace) -> int:
                                                      args.target_iou)
                 print(f"annotate-bench: dnerf/{scene.name}: {counts['adopted']} mask(s) adopted, "
                       f"{counts['kept']} kept")
-        for path in bench.write(results, config, args.out):
+        name = "annotation_bench" if args.images == "rendered" else "annotation_bench_truth_colours"
+        for path in bench.write(results, config, args.out, name=name):
             print(path)
     return 0
 
 
 def _scenes(args: argparse.Namespace, work: Path):
     """The truth scenes to measure, made or read one at a time."""
-    from benchmark.studies.annotation_bench import dnerf_truth, synthetic_truth
+    from benchmark.studies.annotation_bench import dnerf_truth, paint_truth_regions, synthetic_truth
     from benchmark.synthetic import generate, list_presets
 
     presets = list_presets() if args.presets == "all" else [p for p in args.presets.split(",") if p and p != "none"]
+    painted = args.images == "truth-colours"
     for preset in presets:
-        scene_dir = work / "scenes" / preset
+        scene_dir = work / ("scenes-truth-colours" if painted else "scenes") / preset
         if not (scene_dir / "annotations.json").exists():
             generate(preset, scene_dir, size=args.size, overwrite=True)
-        print(f"annotate-bench: {preset}", flush=True)
+            if painted:
+                paint_truth_regions(scene_dir)
+        print(f"annotate-bench: {preset}" + (" (truth colours)" if painted else ""), flush=True)
         yield synthetic_truth(scene_dir)
-    root = Path(args.dnerf) if args.dnerf else None
+    root = Path(args.dnerf) if args.dnerf and not painted else None
     for file in sorted(DNERF_ANNOTATIONS.glob("*.json")) if root is not None and root.is_dir() else []:
         if (root / file.stem).is_dir():
             print(f"annotate-bench: dnerf/{file.stem}", flush=True)

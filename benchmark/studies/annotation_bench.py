@@ -35,6 +35,7 @@ import cv2
 import numpy as np
 
 from benchmark.core.annotation import AnnotationSet, normalise_intervals
+from benchmark.core.errors import InputError
 
 from ._report import markdown_table, number_cell, write_report
 
@@ -65,6 +66,9 @@ class BenchConfig:
     """Pixels added on each side of the truth mask's bounding box (a person's box is not tight)."""
     restart_below_iou: float = 0.5
     """A propagated proposal below this IoU is redrawn from a box instead of corrected with clicks."""
+    images: str = "rendered"
+    """``rendered``: the scenes' own images; ``truth-colours``: every frame repainted with one flat colour per
+    truth region (:func:`paint_truth_regions`), the ceiling of a colour-driven assistant."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -104,6 +108,20 @@ def corrective_click(pred: np.ndarray, truth: np.ndarray) -> Optional[tuple[floa
         if best is None or dist[y, x] > best[0]:
             best = (float(dist[y, x]), (float(x) + 0.5, float(y) + 0.5, label))
     return None if best is None else best[1]
+
+
+def one_pixel_iou(truth: np.ndarray) -> Optional[float]:
+    """The IoU a one-pixel boundary error leaves: the lower of ``truth`` against itself eroded and dilated by
+    one pixel (3x3). Below the target IoU, reaching the target needs every boundary pixel right. ``None`` for
+    an empty mask."""
+    mask = np.asarray(truth, dtype=np.uint8)
+    area = int(mask.sum())
+    if area == 0:
+        return None
+    kernel = np.ones((3, 3), np.uint8)
+    eroded = int(cv2.erode(mask, kernel, borderType=cv2.BORDER_REPLICATE).sum())
+    dilated = int(cv2.dilate(mask, kernel, borderType=cv2.BORDER_REPLICATE).sum())
+    return min(eroded / area, area / dilated)
 
 
 def truth_box(truth: np.ndarray, margin: int) -> list[float]:
@@ -257,6 +275,33 @@ def synthetic_truth(scene_dir: Path) -> TruthScene:
     queries = [TruthQuery(q.text, q.kind, None if q.base is None else gt.query(q.base).text, q.level,
                           list(q.intervals)) for q in gt.queries]
     return TruthScene(gt.scene, scene_dir, "synthetic", queries, [f.name for f in gt.frames], mask)
+
+
+def paint_truth_regions(scene_dir: Path) -> int:
+    """Repaint every image of a generated scene with one flat colour per truth region (a distinct
+    (subpart, part, whole) id triple), so that every boundary of every level is a colour edge; returns the
+    number of regions. What a colour-driven assistant does on these images is its ceiling: whatever it
+    still needs there is not for want of image evidence."""
+    from benchmark.core.truth import load_truth
+
+    truth = load_truth(scene_dir)
+    keys = {}
+    for name, frame in truth.frames.items():
+        ids = truth.id_maps(name, allow_eval=True).astype(np.int64) + 1  # (3, H, W): subpart, part, whole
+        keys[scene_dir / frame.image_file] = (ids[0] << 32) | (ids[1] << 16) | ids[2]
+    if not keys:
+        raise InputError(scene_dir, None, "a generated scene without frames")
+    regions, inverse = np.unique(np.concatenate([k.ravel() for k in keys.values()]), return_inverse=True)
+    n = len(regions)
+    hsv = np.stack([(np.arange(n) * 0.618034 % 1.0) * 179, np.full(n, 220), 255 - 60 * (np.arange(n) % 3)], 1)
+    colours = cv2.cvtColor(hsv[None].astype(np.uint8), cv2.COLOR_HSV2BGR)[0]  # golden-ratio hues, 3 values
+    start = 0
+    for path, key in keys.items():
+        index = inverse[start:start + key.size].reshape(key.shape)
+        start += key.size
+        if not cv2.imwrite(str(path), colours[index]):
+            raise InputError(path, None, "could not write the repainted image")
+    return n
 
 
 def dnerf_truth(scene_dir: Path, annotations: Path) -> TruthScene:
@@ -477,7 +522,8 @@ def bench_scene(scene: TruthScene, launch: ToolLauncher, work: Path, backends: l
                 config: BenchConfig) -> dict:
     """Every measurement of one scene; annotation files are written under ``work``."""
     out: dict[str, Any] = {"scene": scene.name, "kind": scene.kind, "backends": {},
-                           "levels": {q.text: q.level for q in scene.queries}, "size": _image_size(scene)}
+                           "levels": {q.text: q.level for q in scene.queries}, "size": _image_size(scene),
+                           "one_pixel_iou": _one_pixel_ious(scene)}
     work.mkdir(parents=True, exist_ok=True)
     for old in work.glob(f"{scene.name}.*.json"):  # each measurement starts from an empty file
         old.unlink()
@@ -492,6 +538,17 @@ def bench_scene(scene: TruthScene, launch: ToolLauncher, work: Path, backends: l
     with launch(scene.scene_dir, work / f"{scene.name}.video.json", "all", backends[0]) as c:
         out["propagation_curve"] = propagation_curve(c, scene, config)
         out["intervals"] = mark_intervals(c, scene)
+    return out
+
+
+def _one_pixel_ious(scene: TruthScene) -> dict[str, float]:
+    """Query -> :func:`one_pixel_iou` of its truth masks, mean over the scored frames that show it."""
+    out = {}
+    for q in _mask_queries(scene):
+        values = [one_pixel_iou(m) for f in scene.scored_frames if (m := scene.mask(q.text, f)) is not None]
+        values = [v for v in values if v is not None]
+        if values:
+            out[q.text] = float(np.mean(values))
     return out
 
 
@@ -607,6 +664,7 @@ def render_markdown(results: list[dict], summary: dict, config: BenchConfig) -> 
     """The report: method, then one table per measurement."""
     parts = [_method_text(config), "## Interactive masks (every scored frame from scratch)\n",
              _noc_table(summary["rows"]), "\n### By part level (NoC@90)\n", _level_table(results, config),
+             "\n### How exact the target asks a mask to be\n", _tolerance_text(results, config),
              "\n## Propagation against annotating every frame\n",
              _workflow_table(summary["rows"]), "\n## IoU after propagation by frames propagated (uncorrected)\n",
              _curve_table(results, config), "\n## Time segments\n", _interval_table(results)]
@@ -622,6 +680,10 @@ def _method_text(config: BenchConfig) -> str:
         "(distance transform; positive in a missed region, negative in a false one), until IoU "
         f"{config.target_iou:g} or {config.max_interactions} interactions (NoC cap). Frames where the object is absent "
         "are marked absent and left out of NoC.\n\n"
+        + ("**Images: truth colours.** Every frame was repainted with one flat colour per truth region (a distinct "
+           "(subpart, part, whole) id triple), so every boundary of every level is a colour edge: what the assistant "
+           "still needs here is not for want of image evidence.\n\n" if config.images == "truth-colours" else "")
+        +
         f"Projected human time: box {BOX_SECONDS:g} s (Papadopoulos et al., ICCV 2017, extreme clicking), click "
         f"{CLICK_SECONDS:g} s (Bearman et al., ECCV 2016, point supervision), key (accept a proposal, absent, `[`/`]`) "
         f"{KEY_SECONDS:g} s (an assumption, no published source). Tool compute is the server's own seconds per "
@@ -660,6 +722,23 @@ def _level_table(results: list[dict], config: BenchConfig) -> str:
     return markdown_table(["scene", "backend"] + [f"{lv} (frames)" for lv in levels], body)
 
 
+def _tolerance_text(results: list[dict], config: BenchConfig) -> str:
+    """Per scene: how many queries' masks keep the target IoU after a one-pixel boundary error."""
+    body = []
+    for r in results:
+        values = list((r.get("one_pixel_iou") or {}).values())
+        if values:
+            body.append([r["scene"], str(len(values)), str(sum(v >= config.target_iou for v in values)),
+                         number_cell(float(np.median(values)), 3), number_cell(min(values), 3)])
+    if not body:
+        return "No query with a truth mask.\n"
+    return ("IoU a one-pixel boundary error leaves (the truth mask against itself eroded and dilated by one pixel, "
+            f"the lower; mean over the scored frames). A query below {config.target_iou:g} needs every boundary "
+            "pixel right to reach the target.\n\n"
+            + markdown_table(["scene", "queries", f"one-pixel IoU >= {config.target_iou:g}", "median one-pixel IoU",
+                              "lowest"], body))
+
+
 def _workflow_table(rows: list[dict]) -> str:
     header = ["scene", "backend", "interactions / frame: every frame", "propagation", "human s / frame: every frame",
               "propagation", "final IoU with propagation"]
@@ -691,13 +770,13 @@ def _interval_table(results: list[dict]) -> str:
     return markdown_table(header, body) if body else "No time-sensitive query with exact truth.\n"
 
 
-def write(results: list[dict], config: BenchConfig, out: Path) -> list[Path]:
-    """``<out>/annotation_bench.json`` (summary, per-frame outcomes, curves, intervals) and ``.md``
-    (the tables). The per-interaction logs behind them are what :func:`bench_scene` returns."""
+def write(results: list[dict], config: BenchConfig, out: Path, name: str = "annotation_bench") -> list[Path]:
+    """``<out>/<name>.json`` (summary, per-frame outcomes, curves, intervals) and ``.md`` (the tables).
+    The per-interaction logs behind them are what :func:`bench_scene` returns."""
     summary = summarise(results, config)
     doc = {"config": vars(config), "human_seconds": {"box": BOX_SECONDS, "click": CLICK_SECONDS, "key": KEY_SECONDS},
            "summary": summary, "scenes": [_compact(r, config) for r in results]}
-    return write_report(out, "annotation_bench", doc, render_markdown(results, summary, config))
+    return write_report(out, name, doc, render_markdown(results, summary, config))
 
 
 def _compact(result: dict, config: BenchConfig) -> dict:
