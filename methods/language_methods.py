@@ -76,6 +76,10 @@ META_FILE = "language_model.json"
 HEAD_DIR = "time_varying"
 CACHE_SUBDIR = "language"
 
+HELD_OUT_PSNR_FRAMES = 16
+"""At most this many held-out frames (evenly spaced over the test split) are rendered for the geometry's
+held-out PSNR (``info["test_psnr"]``)."""
+
 GEOMETRY_CODE = "methods.gaussians.train"
 """The module that runs a geometry fit: its code digest (with every module it imports) is part of the
 geometry cache key."""
@@ -222,9 +226,27 @@ def fit_geometry(scene: Scene, kind: str, config: LanguageMethodConfig, *, seed:
             "stages": [{k: v for k, v in s.items() if k != "events"} for s in result.stages]}
     if geometry.deformable is not None:
         info["dynamic_gaussians"] = geometry.deformable.num_dynamic()
+    info.update(held_out_psnr(result.model, scene, trainer.rasterize, device))
     if path is not None:
         _torch_save(path, {"key": key, "geometry": geometry.state_dict(), "info": json.dumps(info)})
     return GeometryFit(geometry, key, info, False)
+
+
+def held_out_psnr(model: object, scene: Scene, rasterize_fn, device: str) -> dict:
+    """``test_psnr`` (dB, mean over frames) and ``test_psnr_frames`` of a fitted geometry (colours still on)
+    on at most :data:`HELD_OUT_PSNR_FRAMES` of the scene's test frames; ``None`` without test frames.
+
+    A score for reports (the capacity study charts it against the Gaussian budget): it reads held-out
+    images once the fit is done and changes nothing fitted."""
+    from methods.gaussians.train import evaluate
+
+    frames = scene.test_frames
+    if len(frames) > HELD_OUT_PSNR_FRAMES:
+        frames = [frames[i] for i in np.linspace(0, len(frames) - 1, HELD_OUT_PSNR_FRAMES).round().astype(int)]
+    if not frames:
+        return {"test_psnr": None, "test_psnr_frames": 0}
+    scores = evaluate(model, frames, scene.background, rasterize_fn, device=device)
+    return {"test_psnr": scores["psnr"], "test_psnr_frames": len(frames)}
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -121,6 +121,7 @@ def test_a_tiny_study_runs_reports_resumes_and_its_table_reads_the_csv(tmp_path,
     table = pd.read_csv(out / "capacity.csv", dtype={"value": str})
     assert sorted(zip(table["knob"], table["value"].fillna(""))) == [(AUTO, ""), ("latent", "2"), ("latent", "3")]
     assert table["parameters"].gt(table["gaussians"]).all() and table["fit_seconds"].gt(0).all()
+    assert table["psnr"].gt(5).all()  # every run's geometry recorded its held-out PSNR
     files = {p: p.stat().st_mtime_ns for p in (tmp_path / "cache" / "capacity").rglob("seed0.json")}
     assert len(files) == 2
 
@@ -128,7 +129,7 @@ def test_a_tiny_study_runs_reports_resumes_and_its_table_reads_the_csv(tmp_path,
     row = _readme_row(readme, "## latent dimension", "2")
     csv_row = table[(table["knob"] == "latent") & (table["value"] == "2")].iloc[0]
     assert row[1] == f"{csv_row['mIoU']:.2f}" and row[2] == f"{csv_row['Acc']:.2f}"
-    assert row[8] == f"{csv_row['parameters']:,.0f}"
+    assert row[4] == f"{csv_row['psnr']:.2f}" and row[8] == f"{csv_row['parameters']:,.0f}"
     assert "Best fixed value: **" in readme and "## The automatic choice against the best fixed value" in readme
 
     # a second study resumes: nothing is evaluated again, no results file rewritten

@@ -258,6 +258,11 @@ def test_results_record_what_the_fit_did(smoke):
     doc = _eval(smoke, "4d-langsplat").results
     info = doc["fit"]["info"]
     assert info["geometry"]["kind"] == "4dgs" and info["geometry"]["gaussians"] > 0
+    held_out = smoke["scene"].test_frames
+    assert info["geometry"]["test_psnr_frames"] == min(16, len(held_out)) > 0
+    background = np.zeros(3) if smoke["scene"].background is None else np.asarray(smoke["scene"].background)
+    empty = np.mean([-10 * np.log10(np.mean((np.asarray(f.image(), np.float64) - background) ** 2)) for f in held_out])
+    assert info["geometry"]["test_psnr"] > empty + 3.0  # the held-out renders show the scene, not the background
     assert info["autoencoder"]["reconstruction_cosine"] > 0.0 and "seconds" in info["field"]
     tv = info["time_varying"]
     assert tv["memory"]["bytes_per_gaussian"] > 0 and tv["num_states"] >= 1
