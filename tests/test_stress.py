@@ -310,6 +310,21 @@ def test_method_options_apply_the_schedule_then_scoped_settings():
         method_options(["langsplat"], "default", ["4d-langsplat:field.iterations=7"])
 
 
+def test_every_fitted_method_has_a_short_schedule_of_its_own_options_and_the_4d_ones_share_a_geometry():
+    from benchmark.commands.stress import SHORT_SCHEDULES
+    from benchmark.core.config import with_overrides
+    from methods import registry
+
+    fitted = [name for name in registry.names() if name != "nearest-frame"]
+    assert sorted(SHORT_SCHEDULES) == sorted(fitted)
+    geometries = set()
+    for name in fitted:
+        spec = registry.get(name)
+        config = with_overrides(spec.config(), SHORT_SCHEDULES[name], what=name)  # an unknown option raises
+        geometries.add((config.geometry.static_iterations, config.geometry.deformation_iterations))
+    assert geometries == {(300, 300)}
+
+
 def test_a_small_suite_runs_resumes_and_reports(tmp_path):
     config = stress.SuiteConfig(preset="smoke", size=SIZE, frames=FRAMES, methods=("nearest-frame",),
                                 families=("occluder", "mask-drop"), strengths=(0.45,), seeds=(0,),

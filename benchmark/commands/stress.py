@@ -17,16 +17,22 @@ from pathlib import Path
 from benchmark.core.errors import InputError
 from ._common import add_threads_argument, check_device, parse_overrides, set_threads
 
+_SHORT_GEOMETRY = {"geometry.static_iterations": "300", "geometry.deformation_iterations": "300"}
+_SHORT_FIELD = {**_SHORT_GEOMETRY, "autoencoder.min_steps": "1500", "autoencoder.max_steps": "2000",
+                "field.iterations": "400"}
+_SHORT_TIME_VARYING = {**_SHORT_FIELD, "caption_autoencoder.min_steps": "1500", "caption_autoencoder.max_steps": "2000",
+                       "status.static_iterations": "100", "status.iterations": "800"}
 SHORT_SCHEDULES: dict[str, dict[str, str]] = {
-    "langsplat": {"geometry.static_iterations": "300", "geometry.deformation_iterations": "300",
-                  "autoencoder.min_steps": "1500", "autoencoder.max_steps": "2000", "field.iterations": "400"},
-    "4d-langsplat": {"geometry.static_iterations": "300", "geometry.deformation_iterations": "300",
-                     "autoencoder.min_steps": "1500", "autoencoder.max_steps": "2000", "field.iterations": "400",
-                     "caption_autoencoder.min_steps": "1500", "caption_autoencoder.max_steps": "2000",
-                     "status.static_iterations": "100", "status.iterations": "800"},
+    "langsplat": _SHORT_FIELD,
+    "deformable-clip": _SHORT_FIELD,
+    "4d-langsplat": _SHORT_TIME_VARYING,
+    "non-status-field": _SHORT_TIME_VARYING,
+    "feature-3dgs": {**_SHORT_GEOMETRY, "feature.iterations": "400"},
+    "gaussian-grouping": {**_SHORT_GEOMETRY, "identity.iterations": "500"},
 }
 """``--schedule short``: option overrides per method that make a CPU suite finish (geometry, autoencoder
-and field steps cut about fivefold)."""
+and field steps cut about fivefold). The 4D methods' geometry options are equal, so they share one 4D-GS
+fit per scene and seed, and ``deformable-clip`` / ``non-status-field`` share ``4d-langsplat``'s field."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
