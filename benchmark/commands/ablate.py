@@ -17,6 +17,7 @@
     bench4d ablate capacity [--method 4d-langsplat] [--presets split-cookie espresso americano] [--size 64]
                             [--knobs gaussians states latent hexplane] [--values KNOB=V,V,...] [--seeds 0]
                             [--set KEY=VALUE] [--no-release] [--jobs N] [--report-only] [--out reports/capacity]
+    bench4d ablate real-cost [--size full|tiny] [--device cuda] [--masks-per-frame 120] [--objects 3]
 
 Each study lives in its own module under :mod:`benchmark.studies`; this command defines the options and
 calls it, importing the module only when its subcommand runs (a backend one study needs, missing, breaks that
@@ -56,6 +57,12 @@ methods train it (:func:`methods.language_methods.autoencoder_inputs`, under eac
 (:class:`benchmark.studies.protocol_ceiling.ThroughAutoencoder`, :mod:`benchmark.studies.autoencoder_ceiling`). The drop from the ceiling is the autoencoder's
 share of the gap alone, measured without fitting any geometry (``ablate gap`` measures it on recorded
 runs' own autoencoders). Oracle track.
+
+``real-cost`` (:mod:`benchmark.studies.real_cost`): SAM ViT-H, CLIP ViT-B/16, Qwen2-VL-7B and e5-mistral-7b built
+from their published configurations with random weights (the real FLOPs and memory without the weights) and
+timed on the unit of work the real track gives each (a frame of automatic masks, a crop, a caption request, a
+caption embedding); the supervision time of the paper's 12 scenes is projected from these units and stated
+assumptions (masks per image, captioned objects). ``--size tiny`` runs the same classes at test size.
 
 ``rescore``: re-answers every results file of ``--results-dir`` (leaderboard runs) under another evaluation
 protocol (``--protocol paper-text``, :mod:`benchmark.core.protocol`) and/or with changed *answer options*
@@ -112,7 +119,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="ablation", metavar="ABLATION", required=True)
     for add in (_delta_sim_arguments, _speed_arguments, _query_speed_arguments, _ceiling_arguments,
                 _autoencoder_arguments, _rescore_arguments, _gap_arguments, _decisions_arguments, _states_arguments,
-                _capacity_arguments):
+                _capacity_arguments, _real_cost_arguments):
         add(sub)
     for study in sub.choices.values():
         add_threads_argument(study)
@@ -246,6 +253,25 @@ def _states_arguments(sub) -> None:
     s.add_argument("--device", default="cpu")
     s.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override another method option, a dotted path (repeatable), e.g. status.iterations=2000")
+
+
+def _real_cost_arguments(sub) -> None:
+    r = sub.add_parser("real-cost", help="seconds per unit of work of SAM ViT-H, CLIP ViT-B/16, Qwen2-VL-7B and "
+                                         "e5-mistral-7b on their architectures (random weights), and the paper's 12 "
+                                         "scenes' supervision time projected from them")
+    r.add_argument("--size", choices=("full", "tiny"), default="full",
+                   help="full: the published architectures; tiny: the same classes at test size")
+    r.add_argument("--device", default="cpu", help="cpu or cuda[:N] (half precision on CUDA)")
+    r.add_argument("--repeats", type=int, default=3, help="timed repetitions per unit after a warm-up (median kept)")
+    r.add_argument("--width", type=int, default=960, help="image width the captioner sees")
+    r.add_argument("--height", type=int, default=536)
+    r.add_argument("--points-per-side", type=int, default=32, help="SAM automatic grid (32: its default)")
+    r.add_argument("--masks-per-frame", type=int, default=120, help="assumed SAM masks (CLIP crops) per image")
+    r.add_argument("--objects", type=int, default=3, help="assumed captioned objects per time-sensitive scene")
+    r.add_argument("--caption-tokens", type=int, default=128, help="new tokens per caption request (release: 128)")
+    r.add_argument("--hypernerf-frames", type=int, default=456,
+                   help="frames per HyperNeRF scene (default: chickchicken's 456)")
+    _output_arguments(r)
 
 
 def _capacity_arguments(sub) -> None:
@@ -438,7 +464,22 @@ def _rescore(args) -> int:
         refit=args.refit, force=args.force, log=stderr_log(args.quiet)))
 
 
+def _real_cost(args) -> int:
+    from methods.backends import module_available
+
+    if not module_available("transformers"):
+        raise InputError(None, "real-cost", "needs transformers: pip install 'bench4d[captioner]'")
+    from benchmark.studies.real_cost import RealCostConfig, real_cost_report
+
+    check_device(args.device)
+    cfg = RealCostConfig(size=args.size, device=args.device, repeats=args.repeats, width=args.width,
+                         height=args.height, points_per_side=args.points_per_side,
+                         masks_per_frame=args.masks_per_frame, objects=args.objects,
+                         caption_tokens=args.caption_tokens, hypernerf_frames=args.hypernerf_frames)
+    return _print_report(real_cost_report(cfg, args.out, log=stderr_log(args.quiet)))
+
+
 RUNS = {"delta-sim": _delta_sim, "speed": _speed, "query-speed": _query_speed, "ceiling": _ceiling,
         "autoencoder": _autoencoder, "rescore": _rescore, "gap": _gap, "decisions": _decisions, "states": _states,
-        "capacity": _capacity}
+        "capacity": _capacity, "real-cost": _real_cost}
 """The function each subcommand runs."""
