@@ -134,6 +134,17 @@ def test_an_older_file_keeps_its_notes_and_a_draft_query_can_be_marked_reviewed(
         s.close()
 
 
+@pytest.mark.parametrize("annotator, review", [("scripted", "draft"), ("human", None), ("simulated", None)])
+def test_a_scripted_sessions_new_queries_are_drafts(scene, tmp_path, annotator, review):
+    path = tmp_path / f"{annotator}.json"
+    s = AnnotationSession(scene, path, config=SessionConfig(annotator=annotator))
+    try:
+        s.add_query(s.revision, "blob")
+    finally:
+        s.close()
+    assert [q.review for q in load_annotations(path).queries] == [review]
+
+
 def test_review_lists_unannotated_runs_and_area_jumps():
     frames = [AnnotatedFrame(id=k + 1, name=f"f{k}", time_index=k, width=W, height=H) for k in range(6)]
     aset = AnnotationSet(scene="s", frames=frames, queries=[Query(id=1, text="blob")], num_time_steps=6)

@@ -8,7 +8,8 @@ person would, so every mask is made by the tool and saved by its autosave. The f
 
 :func:`dnerf_plan` builds the plan used for the D-NeRF ``jumpingjacks`` and ``standup`` files:
 boxes and clicks from colour rules per part (the evaluated test frames), intervals read by eye from
-the training frames. Such a file is a *draft*: a person should review it in the tool.
+the training frames. Such a file is a *draft*: the session marks every query it creates ``review: "draft"``
+until a person reviews it in the tool.
 
     python -m annotations.tool.scripted ../shared/data/dnerf/jumpingjacks annotations/scenes/dnerf/jumpingjacks.json
 

@@ -611,7 +611,9 @@ class AnnotationSession:
             else:
                 base = None
             qid = max((q.id for q in self.aset.queries), default=0) + 1
-            self.aset.queries.append(Query(id=qid, text=text, kind=kind, base=base, level=level or None))
+            # a scripted session's queries are a program's guesses: drafts until a person reviews them
+            review = "draft" if self.config.annotator == "scripted" else None
+            self.aset.queries.append(Query(id=qid, text=text, kind=kind, base=base, level=level or None, review=review))
             try:
                 return qid, self._commit()
             except BaseException:
