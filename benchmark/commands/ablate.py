@@ -261,7 +261,7 @@ def _real_cost_arguments(sub) -> None:
                                          "scenes' supervision time projected from them")
     r.add_argument("--size", choices=("full", "tiny"), default="full",
                    help="full: the published architectures; tiny: the same classes at test size")
-    r.add_argument("--device", default="cpu", help="cpu or cuda[:N] (half precision on CUDA)")
+    r.add_argument("--device", default="cpu", help="cpu or cuda[:N] (bfloat16 on CUDA)")
     r.add_argument("--repeats", type=int, default=3, help="timed repetitions per unit after a warm-up (median kept)")
     r.add_argument("--width", type=int, default=960, help="image width the captioner sees")
     r.add_argument("--height", type=int, default=536)

@@ -155,14 +155,15 @@ BACKEND_NAMES = {"sam": "SAM ViT-H", "clip": "OpenCLIP ViT-B/16", "qwen2vl": "Qw
 
 
 def build(backend: str, size: str, device: str):
-    """The backend's network with random weights, on ``device``, half precision on CUDA, in eval mode."""
+    """The backend's network with random weights, on ``device``, in eval mode: bfloat16 on CUDA (the
+    checkpoints' own dtype; random weights overflow float16), float32 on the CPU."""
     import torch
     from transformers import CLIPVisionModelWithProjection, MistralModel, Qwen2VLForConditionalGeneration, SamModel
 
     classes = {"sam": SamModel, "clip": CLIPVisionModelWithProjection, "qwen2vl": Qwen2VLForConditionalGeneration,
                "e5": MistralModel}
     config = _configs(size)[backend]
-    dtype = torch.float16 if str(device).startswith("cuda") else torch.float32
+    dtype = torch.bfloat16 if str(device).startswith("cuda") else torch.float32
     torch.manual_seed(0)
     with torch.device(device):  # initialised where it runs: a 7B model never passes through host memory
         model = classes[backend](config)
@@ -379,7 +380,7 @@ def render(units: dict[str, dict], rows: list[dict], cfg: RealCostConfig, env: d
         "(`benchmark/studies/real_cost.py`). Each backend is its real architecture "
         + ("with random weights" if cfg.size == "full" else "at test size (tiny random weights: the flow, not "
            "the cost)") + f", on {device}"
-        + (" in half precision" if str(cfg.device).startswith("cuda") else " in float32")
+        + (" in bfloat16" if str(cfg.device).startswith("cuda") else " in float32")
         + "; median of " + f"{cfg.repeats} timed repetitions after a warm-up. Random weights never end an answer "
         "early, so each caption request is timed at its full length.\n",
         "## Seconds per unit of work\n",
