@@ -294,6 +294,20 @@ def test_query_paraphrases_come_from_synonyms_and_state_captions(scenes):
 
 
 # -- breaking points, options, the suite -----------------------------------------------------------------
+def test_findings_name_a_break_in_acc_and_leave_out_acc_at_the_floor():
+    from benchmark.studies.stress_plots import findings
+
+    def score(method, strength, miou, acc):
+        return stress.Score("caption-swap", strength, method, 0, {"mIoU": miou, "Acc": acc, "vIoU": None}, Path("x"), 1.0)
+
+    scores = [score("timed", 0.0, 40, 80), score("timed", 0.5, 40, 60), score("timed", 1.0, 40, 30),
+              score("untimed", 0.0, 60, 50), score("untimed", 0.5, 58, 20), score("untimed", 1.0, 57, 10)]
+    line = findings(scores, ["caption-swap"], ["timed", "untimed"])
+    assert "timed breaks first (Acc)" in line and "Acc: timed 80.0 -> 30.0 at 1 (below half from 1)." in line
+    assert "untimed 50.0" not in line  # its Acc sits at the floor: it never told the states apart
+    assert "mIoU: timed 40.0 -> 40.0 at 1 (never below half); untimed 60.0 -> 57.0" in line
+
+
 def test_breaking_point_is_the_first_strength_below_half_the_clean_score():
     assert stress.breaking_point({0.0: [80, 60], 1.0: [50, 40], 2.0: [30, 36], 4.0: [10, 0]}) == 2.0
     assert stress.breaking_point({0.0: [80], 1.0: [60]}) is None

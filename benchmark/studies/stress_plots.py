@@ -212,32 +212,53 @@ def _clean_table(scores: Sequence[Score], methods: Sequence[str]) -> str:
     return markdown_table(["method", "seeds", *METRICS], rows)
 
 
-def findings(scores: Sequence[Score], families: Sequence[str], methods: Sequence[str], metric: str = "mIoU") -> str:
-    """Per family, from the measurements: each method's clean and strongest mean, where it falls below
-    half its clean score, and which method breaks first (else which keeps the least of its clean score)."""
+ACC_FLOOR = 50.0
+"""Acc of a method that does not tell states apart (every frame one answer on a balanced query): below or at
+it, a method's Acc says nothing about a family and is left out of the findings."""
+
+
+def _family_parts(scores, fam: str, methods: Sequence[str], metric: str) -> tuple[list[str], list[tuple]]:
+    """Per method: the clean -> strongest sentence of ``metric`` and its (break strength, kept share, method)."""
+    parts, order = [], []
+    for method in methods:
+        values = mean_by_strength(scores, fam, method, metric)
+        strongest = max((s for s in values if s > 0), default=None)
+        if strongest is None or 0.0 not in values:
+            continue
+        clean, last = float(np.mean(values[0.0])), float(np.mean(values[strongest]))
+        if metric == "Acc" and clean <= ACC_FLOOR:
+            continue
+        point = breaking_point(values)
+        fate = f"below half from {strength_label(point)}" if point is not None else "never below half"
+        parts.append(f"{method} {clean:.1f} -> {last:.1f} at {strength_label(strongest)} ({fate})")
+        order.append((point if point is not None else np.inf, last / max(clean, 1e-9), method))
+    return parts, order
+
+
+def findings(scores: Sequence[Score], families: Sequence[str], methods: Sequence[str]) -> str:
+    """Per family, from the measurements: each method's clean and strongest mean mIoU (and Acc, for the
+    methods whose clean Acc is above :data:`ACC_FLOOR`), where it falls below half its clean score, and
+    which method breaks first on either (else which keeps the least of its clean mIoU)."""
     lines = []
     for fam in families:
-        parts, order = [], []
-        for method in methods:
-            values = mean_by_strength(scores, fam, method, metric)
-            strongest = max((s for s in values if s > 0), default=None)
-            if strongest is None or 0.0 not in values:
-                continue
-            point = breaking_point(values)
-            clean, last = float(np.mean(values[0.0])), float(np.mean(values[strongest]))
-            fate = f"below half from {strength_label(point)}" if point is not None else "never below half"
-            parts.append(f"{method} {clean:.1f} -> {last:.1f} at {strength_label(strongest)} ({fate})")
-            order.append((point if point is not None else np.inf, last / max(clean, 1e-9), method))
-        if not parts:
+        space, space_order = _family_parts(scores, fam, methods, "mIoU")
+        time_, time_order = _family_parts(scores, fam, methods, "Acc")
+        if not space and not time_:
             continue
-        first = min(order)
-        if np.isfinite(first[0]):
-            lead = f"{first[2]} breaks first"
-        elif len(order) > 1:
-            lead = f"no method breaks; {first[2]} keeps the least of its clean {metric}"
+        breaks = sorted([(o[0], o[1], o[2], "mIoU") for o in space_order]
+                        + [(o[0], o[1], o[2], "Acc") for o in time_order])
+        if breaks and np.isfinite(breaks[0][0]):
+            lead = f"{breaks[0][2]} breaks first ({breaks[0][3]})"
+        elif len(space_order) > 1:
+            lead = f"no method breaks; {min(space_order)[2]} keeps the least of its clean mIoU"
         else:
             lead = "no break"
-        lines.append(f"* **{fam}** ({FAMILIES[fam].unit}): {lead}. {metric}: " + "; ".join(parts) + ".")
+        text = f"* **{fam}** ({FAMILIES[fam].unit}): {lead}."
+        if space:
+            text += " mIoU: " + "; ".join(space) + "."
+        if time_:
+            text += " Acc: " + "; ".join(time_) + "."
+        lines.append(text)
     return "\n".join(lines) + "\n"
 
 
