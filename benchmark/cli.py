@@ -24,7 +24,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "run-all": ("run_all", "evaluate methods x scenes x seeds; mean and spread over seeds"),
     "leaderboard": ("leaderboard", "regenerate leaderboard.md and reports/*.csv from results"),
     "paper-tables": ("paper_tables", "every table of the paper with the published numbers beside ours"),
-    "plot": ("plot", "charts: pareto (accuracy vs speed), timeline (similarity over time)"),
+    "plot": ("plot", "charts: pareto (accuracy vs speed), timeline (similarity over time), capacity, stability"),
     "annotate": ("annotate", "local web app to annotate query masks and time segments"),
     "annotate-bench": ("annotate_bench", "the annotation tool measured by a simulated annotator against exact truth"),
     "models": ("models", "the real track's model backends: hub ids, sizes, where weights are looked for, present or not"),

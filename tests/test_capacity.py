@@ -131,6 +131,9 @@ def test_a_tiny_study_runs_reports_resumes_and_its_table_reads_the_csv(tmp_path,
     assert row[1] == f"{csv_row['mIoU']:.2f}" and row[2] == f"{csv_row['Acc']:.2f}"
     assert row[4] == f"{csv_row['psnr']:.2f}" and row[8] == f"{csv_row['parameters']:,.0f}"
     assert "Best fixed value: **" in readme and "## The automatic choice against the best fixed value" in readme
+    # the charts redraw from the written table alone
+    assert main(["plot", "capacity", "--table", str(out / "capacity.csv"), "--out", str(tmp_path / "redrawn")]) == 0
+    assert (tmp_path / "redrawn" / "charts" / "latent.png").stat().st_size > 0
 
     # a second study resumes: nothing is evaluated again, no results file rewritten
     capacity.capacity_report(config, log=lambda message: None)

@@ -308,6 +308,22 @@ def test_findings_name_a_break_in_acc_and_leave_out_acc_at_the_floor():
     assert "mIoU: timed 40.0 -> 40.0 at 1 (never below half); untimed 60.0 -> 57.0" in line
 
 
+def test_plot_stability_redraws_each_family_from_the_scores_table(tmp_path, capsys):
+    from benchmark.cli import main
+
+    table = tmp_path / "scores.csv"
+    rows = ["family,strength,method,seed,mIoU,Acc,vIoU,wall_seconds"]
+    for seed in (0, 1):
+        for strength, miou in ((0, 60), (0.5, 40), (1, 20)):
+            rows.append(f"mask-drop,{strength},m,{seed},{miou + seed},50,,1.0")
+    table.write_text("\n".join(rows) + "\n")
+    assert main(["plot", "stability", "--table", str(table), "--out", str(tmp_path / "out")]) == 0
+    assert [p.name for p in (tmp_path / "out" / "charts").glob("*.png")] == ["mask-drop.png"]
+    table.write_text(table.read_text().replace("mask-drop", "mask-melt"))
+    assert main(["plot", "stability", "--table", str(table), "--out", str(tmp_path / "out")]) == 2
+    assert "mask-melt" in capsys.readouterr().err
+
+
 def test_breaking_point_is_the_first_strength_below_half_the_clean_score():
     assert stress.breaking_point({0.0: [80, 60], 1.0: [50, 40], 2.0: [30, 36], 4.0: [10, 0]}) == 2.0
     assert stress.breaking_point({0.0: [80], 1.0: [60]}) is None

@@ -2,6 +2,11 @@
 
     bench4d plot pareto   [--results-dir results] [--reports-dir reports]
     bench4d plot timeline --method M [M ...] --scene S --query Q [--track oracle] [--seed 0]
+    bench4d plot capacity  [--table reports/capacity/capacity.csv] [--out reports/capacity]
+    bench4d plot stability [--table reports/stability/scores.csv] [--out reports/stability]
+
+``capacity`` and ``stability`` redraw the charts of ``bench4d ablate capacity`` and ``bench4d stress`` from
+their written tables, without running anything.
 """
 
 from __future__ import annotations
@@ -23,6 +28,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     t.add_argument("--track", default="oracle")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--dataset", default=None, help="dataset folder, when a scene name exists in several")
+    c = sub.add_parser("capacity", help="capacity curves (accuracy and cost against each knob) from capacity.csv")
+    c.add_argument("--table", type=Path, default=Path("reports/capacity/capacity.csv"))
+    c.add_argument("--out", type=Path, default=Path("reports/capacity"), help="charts go to <out>/charts/")
+    st = sub.add_parser("stability", help="stress-suite charts (each metric against strength) from scores.csv")
+    st.add_argument("--table", type=Path, default=Path("reports/stability/scores.csv"))
+    st.add_argument("--out", type=Path, default=Path("reports/stability"), help="charts go to <out>/charts/")
 
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -35,6 +46,14 @@ def run(args: argparse.Namespace) -> int:
 
     if args.chart == "pareto":
         written = plots.pareto(args.results_dir, args.reports_dir)
+    elif args.chart == "capacity":
+        from benchmark.studies.capacity import charts_from_csv
+
+        written = charts_from_csv(args.table, args.out)
+    elif args.chart == "stability":
+        from benchmark.studies.stress_plots import charts_from_csv
+
+        written = charts_from_csv(args.table, args.out)
     else:
         written = plots.timeline(args.method, args.scene, args.query, results_dir=args.results_dir,
                                  reports_dir=args.reports_dir, track=args.track, seed=args.seed, dataset=args.dataset)

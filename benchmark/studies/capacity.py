@@ -579,6 +579,28 @@ def write_charts(table, config: CapacityConfig) -> list[Path]:
     return paths
 
 
+def read_table(csv: Path):
+    """A written ``capacity.csv`` as the report reads it (values as text, ``""`` for the automatic run)."""
+    import pandas as pd
+
+    if not Path(csv).is_file():
+        raise InputError(csv, None, "no capacity table here: run bench4d ablate capacity first")
+    table = pd.read_csv(csv, dtype={"value": str, "preset": str, "knob": str, "run": str})
+    missing = [c for c in ("method", "preset", "knob", "value") if c not in table.columns]
+    if missing:
+        raise InputError(csv, missing[0], "column missing: not a capacity table")
+    table["value"] = table["value"].fillna("")
+    return table
+
+
+def charts_from_csv(csv: Path, out_dir: Path) -> list[Path]:
+    """Redraw every knob's chart of a written ``capacity.csv`` into ``<out_dir>/charts/``."""
+    table = read_table(csv)
+    knobs = tuple(k for k in KNOBS if (table["knob"] == k).any())
+    method = str(table["method"].iloc[0]) if len(table) else "method"
+    return write_charts(table, CapacityConfig(method=method, knobs=knobs, out_dir=Path(out_dir)))
+
+
 def write_report(config: CapacityConfig, cells: Sequence[Cell]) -> Report:
     """``capacity.csv``, ``README.md`` (read from the CSV) and the charts under ``config.out_dir``."""
     import pandas as pd
@@ -587,8 +609,7 @@ def write_report(config: CapacityConfig, cells: Sequence[Cell]) -> Report:
     out.mkdir(parents=True, exist_ok=True)
     table = collect(config, cells)
     write_text(out / "capacity.csv", table.to_csv(index=False, float_format="%.6g", lineterminator="\n"))
-    table = pd.read_csv(out / "capacity.csv", dtype={"value": str, "preset": str, "knob": str, "run": str})
-    table["value"] = table["value"].fillna("")
+    table = read_table(out / "capacity.csv")
     readme = render_readme(table, config)
     charts = write_charts(table, config)
     write_text(out / "README.md", readme)

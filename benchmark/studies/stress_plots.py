@@ -186,6 +186,36 @@ def gallery(runs: dict[str, Path], scene_root: Path, title: str, path: Path) -> 
     return _save_png(fig, path)
 
 
+def read_scores(csv: Path) -> list[Score]:
+    """The runs of a written ``scores.csv`` (:func:`write_reports`) as :class:`Score` records (no results
+    file behind them)."""
+    import pandas as pd
+
+    from benchmark.core.errors import InputError
+
+    if not Path(csv).is_file():
+        raise InputError(csv, None, "no stress scores here: run bench4d stress first")
+    table = pd.read_csv(csv, dtype={"family": str, "method": str})
+    for column in ("family", "strength", "method", "seed", *METRICS):
+        if column not in table.columns:
+            raise InputError(csv, column, "column missing: not a stress scores table")
+    unknown = sorted(set(table["family"]) - set(FAMILIES))
+    if unknown:
+        raise InputError(csv, "family", f"unknown family {unknown[0]!r}")
+    return [Score(r.family, float(r.strength), r.method, int(r.seed),
+                  {m: None if pd.isna(getattr(r, m)) else float(getattr(r, m)) for m in METRICS}, Path(csv),
+                  float(getattr(r, "wall_seconds", 0.0) or 0.0)) for r in table.itertuples(index=False)]
+
+
+def charts_from_csv(csv: Path, out_dir: Path) -> list[Path]:
+    """Redraw every family's chart of a written ``scores.csv`` into ``<out_dir>/charts/``."""
+    scores = read_scores(csv)
+    methods = list(dict.fromkeys(s.method for s in scores))
+    families = [f for f in FAMILIES if any(s.family == f and s.strength > 0 for s in scores)]
+    made = [family_chart(scores, fam, methods, Path(out_dir) / "charts" / f"{fam}.png") for fam in families]
+    return [p for p in made if p is not None]
+
+
 def family_gallery(config: SuiteConfig, scores: Sequence[Score], fam: str, path: Path) -> Optional[Path]:
     """The gallery of ``fam`` at its strongest strength run (first seed)."""
     from .stress import scene_folder
