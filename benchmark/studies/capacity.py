@@ -603,7 +603,6 @@ def charts_from_csv(csv: Path, out_dir: Path) -> list[Path]:
 
 def write_report(config: CapacityConfig, cells: Sequence[Cell]) -> Report:
     """``capacity.csv``, ``README.md`` (read from the CSV) and the charts under ``config.out_dir``."""
-
     out = Path(config.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     table = collect(config, cells)
