@@ -22,6 +22,33 @@ except ImportError:  # pragma: no cover
     pass
 
 
+SMOKE_SIZE = 48
+"""Image width of the runner tests' smoke scene."""
+
+
+@pytest.fixture(scope="session")
+def smoke_base(tmp_path_factory) -> dict:
+    """The smoke preset at :data:`SMOKE_SIZE`, generated once, and a cache holding its oracle supervision."""
+    from benchmark.loaders import load_scene
+    from benchmark.synthetic.generate import generate
+    from methods.supervision.cache import build_supervision
+
+    base = tmp_path_factory.mktemp("smoke")
+    scene_dir = Path(generate("smoke", base / "scenes" / "smoke", size=SMOKE_SIZE))
+    build_supervision(load_scene(scene_dir), "oracle", cache_dir=base / "cache")
+    return {"scene": scene_dir, "cache": base / "cache"}
+
+
+@pytest.fixture
+def env(smoke_base, tmp_path) -> dict:
+    """A test's own copy of the smoke cache's supervision, and its own results folder."""
+    import shutil
+
+    cache = tmp_path / "cache"
+    shutil.copytree(smoke_base["cache"] / "supervision", cache / "supervision")
+    return {"scene": smoke_base["scene"], "cache": cache, "results": tmp_path / "results"}
+
+
 @pytest.fixture(scope="session")
 def shared_dir() -> Path:
     if not SHARED.is_dir():

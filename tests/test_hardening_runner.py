@@ -20,29 +20,9 @@ from benchmark.cli import main
 from benchmark.core.errors import InputError
 from benchmark.predictions import QueryPrediction, ScenePredictions, read_predictions, write_predictions
 from benchmark.runner import EvalOptions, evaluate, evaluate_with_fit
+from conftest import SMOKE_SIZE
 
-SMOKE_SIZE = 48
 RUN = Path("synthetic") / "smoke" / "nearest-frame" / "oracle"
-
-
-@pytest.fixture(scope="module")
-def smoke_base(tmp_path_factory) -> dict:
-    """The smoke preset generated once, and a cache holding its oracle supervision."""
-    from benchmark.loaders import load_scene
-    from benchmark.synthetic.generate import generate
-    from methods.supervision.cache import build_supervision
-
-    base = tmp_path_factory.mktemp("smoke-hardening")
-    scene_dir = Path(generate("smoke", base / "scenes" / "smoke", size=SMOKE_SIZE))
-    build_supervision(load_scene(scene_dir), "oracle", cache_dir=base / "cache")
-    return {"scene": scene_dir, "cache": base / "cache"}
-
-
-@pytest.fixture
-def env(smoke_base, tmp_path) -> dict:
-    cache = tmp_path / "cache"
-    shutil.copytree(smoke_base["cache"] / "supervision", cache / "supervision")
-    return {"scene": smoke_base["scene"], "cache": cache, "results": tmp_path / "results"}
 
 
 def _options(env, **kw) -> EvalOptions:

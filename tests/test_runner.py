@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import os
 import platform
-import shutil
 import sys
 from pathlib import Path
 
@@ -17,29 +16,6 @@ from benchmark.core.errors import InputError
 from benchmark.core.protocol import PROTOCOLS
 from benchmark.core.openblas import cpuinfo_value, openblas_core
 from benchmark.runner import EvalOptions, evaluate
-
-SMOKE_SIZE = 48
-
-
-@pytest.fixture(scope="session")
-def smoke_base(tmp_path_factory) -> dict:
-    """The smoke scene generated once, and a cache holding its oracle supervision."""
-    from benchmark.synthetic.generate import generate
-
-    base = tmp_path_factory.mktemp("smoke")
-    scene_dir = Path(generate("smoke", base / "scenes" / "smoke", size=SMOKE_SIZE))
-    from benchmark.loaders import load_scene
-    from methods.supervision.cache import build_supervision
-
-    build_supervision(load_scene(scene_dir), "oracle", cache_dir=base / "cache")
-    return {"scene": scene_dir, "cache": base / "cache"}
-
-
-@pytest.fixture
-def env(smoke_base, tmp_path) -> dict:
-    cache = tmp_path / "cache"
-    shutil.copytree(smoke_base["cache"] / "supervision", cache / "supervision")
-    return {"scene": smoke_base["scene"], "cache": cache, "results": tmp_path / "results"}
 
 
 def _options(env, method="nearest-frame", **kw) -> EvalOptions:
