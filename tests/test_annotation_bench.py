@@ -168,6 +168,16 @@ def test_the_truth_colours_run_writes_its_own_report_and_leaves_dnerf_out(tmp_pa
     assert doc["config"]["images"] == "truth-colours" and [r["scene"] for r in doc["scenes"]] == ["smoke"]
     assert "Images: truth colours" in (out / "annotation_bench_truth_colours.md").read_text()
     assert not (out / "annotation_bench.json").exists()
+    painted = tmp_path / "w" / "scenes-truth-colours" / "smoke"
+    assert (painted / "truth-colours.done").is_file()
+    import cv2  # an interrupted repaint (no mark) is redone whole by the next run in the same --work
+
+    image = next((painted / "rgb" / "1x").glob("*.png"))
+    cv2.imwrite(str(image), np.zeros_like(cv2.imread(str(image))))
+    (painted / "truth-colours.done").unlink()
+    assert main(["annotate-bench", "--presets", "smoke", "--size", "32", "--images", "truth-colours",
+                 "--work", str(tmp_path / "w"), "--out", str(out)]) == 0
+    assert cv2.imread(str(image)).any() and (painted / "truth-colours.done").is_file()
     assert main(["annotate-bench", "--presets", "none", "--images", "truth-colours", "--adopt-dnerf",
                  "--out", str(out)]) == 2
     assert "--adopt-dnerf" in capsys.readouterr().err

@@ -19,6 +19,8 @@ from typing import Iterator
 DNERF_ROOT = Path("../shared/data/dnerf")
 DNERF_ANNOTATIONS = Path(__file__).resolve().parents[2] / "annotations" / "scenes" / "dnerf"
 """The D-NeRF annotation files whose whole-object queries are measured (their masks are not used)."""
+PAINTED_MARK = "truth-colours.done"
+"""Written in a generated scene's folder once every frame is repainted (``--images truth-colours``)."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -113,8 +115,9 @@ def _scenes(args: argparse.Namespace, work: Path):
         scene_dir = work / ("scenes-truth-colours" if painted else "scenes") / preset
         if not (scene_dir / "annotations.json").exists():
             generate(preset, scene_dir, size=args.size, overwrite=True)
-            if painted:
-                paint_truth_regions(scene_dir)
+        if painted and not (scene_dir / PAINTED_MARK).exists():  # an interrupted repaint is redone whole
+            paint_truth_regions(scene_dir)
+            (scene_dir / PAINTED_MARK).write_text("every frame repainted one flat colour per truth region\n")
         print(f"annotate-bench: {preset}" + (" (truth colours)" if painted else ""), flush=True)
         yield synthetic_truth(scene_dir)
     root = Path(args.dnerf) if args.dnerf and not painted else None

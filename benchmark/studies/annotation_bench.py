@@ -288,7 +288,7 @@ def paint_truth_regions(scene_dir: Path) -> int:
     keys = {}
     for name, frame in truth.frames.items():
         ids = truth.id_maps(name, allow_eval=True).astype(np.int64) + 1  # (3, H, W): subpart, part, whole
-        keys[scene_dir / frame.image_file] = (ids[0] << 32) | (ids[1] << 16) | ids[2]
+        keys[scene_dir / frame.image_file] = (ids[0] << 34) | (ids[1] << 17) | ids[2]  # ids + 1 < 2**17
     if not keys:
         raise InputError(scene_dir, None, "a generated scene without frames")
     regions, inverse = np.unique(np.concatenate([k.ravel() for k in keys.values()]), return_inverse=True)
