@@ -43,8 +43,6 @@ class PaperScene:
     dataset: str
     frames: int
     """Images the release's preprocessing segments, encodes and captions (every training image)."""
-    width: int
-    height: int
     time_sensitive: bool
     """Whether the paper has time-sensitive queries on it: only then are its objects captioned."""
 
@@ -56,13 +54,13 @@ HYPERNERF_FRAMES = 456
 scenes, whose other files are not shared here (``--hypernerf-frames`` for your own counts)."""
 
 PAPER_SCENES = tuple(
-    [PaperScene(n, "hypernerf", HYPERNERF_FRAMES, 536, 960, n in ("americano", "chickchicken", "split-cookie",
+    [PaperScene(n, "hypernerf", HYPERNERF_FRAMES, n in ("americano", "chickchicken", "split-cookie",
                                                                   "espresso"))
      for n in ("americano", "chickchicken", "split-cookie", "espresso", "keyboard", "torchocolate")]
-    + [PaperScene(n, "neu3d", NEU3D_FRAMES, 1352, 1014, False)
+    + [PaperScene(n, "neu3d", NEU3D_FRAMES, False)
        for n in ("coffee_martini", "cook_spinach", "cut_roasted_beef", "flame_salmon", "flame_steak", "sear_steak")])
-"""The paper's 12 scenes: HyperNeRF at the release's 2x images (536 x 960), Neu3D at full size; time-sensitive
-queries on the first four HyperNeRF scenes only (protocol.md)."""
+"""The paper's 12 scenes; time-sensitive queries on the first four HyperNeRF scenes only (protocol.md). Every
+caption request is timed at :attr:`RealCostConfig.width` x :attr:`RealCostConfig.height` (HyperNeRF's 2x)."""
 
 
 @dataclass
@@ -154,19 +152,24 @@ BACKEND_NAMES = {"sam": "SAM ViT-H", "clip": "OpenCLIP ViT-B/16", "qwen2vl": "Qw
                  "e5": "e5-mistral-7b-instruct"}
 
 
+def model_classes() -> dict[str, type]:
+    """Backend -> the transformers class of its network."""
+    from transformers import CLIPVisionModelWithProjection, MistralModel, Qwen2VLForConditionalGeneration, SamModel
+
+    return {"sam": SamModel, "clip": CLIPVisionModelWithProjection, "qwen2vl": Qwen2VLForConditionalGeneration,
+            "e5": MistralModel}
+
+
 def build(backend: str, size: str, device: str):
     """The backend's network with random weights, on ``device``, in eval mode: bfloat16 on CUDA (the
     checkpoints' own dtype; random weights overflow float16), float32 on the CPU."""
     import torch
-    from transformers import CLIPVisionModelWithProjection, MistralModel, Qwen2VLForConditionalGeneration, SamModel
 
-    classes = {"sam": SamModel, "clip": CLIPVisionModelWithProjection, "qwen2vl": Qwen2VLForConditionalGeneration,
-               "e5": MistralModel}
     config = _configs(size)[backend]
     dtype = torch.bfloat16 if str(device).startswith("cuda") else torch.float32
     torch.manual_seed(0)
     with torch.device(device):  # initialised where it runs: a 7B model never passes through host memory
-        model = classes[backend](config)
+        model = model_classes()[backend](config)
     return model.to(dtype=dtype).eval()
 
 
