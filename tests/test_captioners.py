@@ -341,7 +341,8 @@ def test_field_gap_caption_targets_follow_the_run_caption_window(monkeypatch):
     scene = types.SimpleNamespace(root=Path("/nonexistent"), frames=[])  # no generator truth: none used
     for window in (0, 1):
         model = types.SimpleNamespace(head=types.SimpleNamespace(field=types.SimpleNamespace(autoencoder=None)),
-                                      config=types.SimpleNamespace(extensions=TimeVaryingExtensions(caption_window=window), captions=CaptionConfig()), text_encoder=None)
+                                      config=types.SimpleNamespace(extensions=TimeVaryingExtensions(caption_window=window, caption_segments=False),
+                                                                            captions=CaptionConfig()), text_encoder=None)
         times, table = field_gap.caption_targets(model, scene, "oracle", None, None)["box"]
         want = raw if window == 0 else window_caption_embeddings(np.arange(4), raw, 1)
         np.testing.assert_array_equal(times, np.arange(4))

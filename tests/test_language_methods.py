@@ -398,7 +398,8 @@ def test_ablate_rescore_refit_of_a_head_option_keeps_the_recorded_geometry(smoke
     monkeypatch.setattr(MethodSpec, "code_digest", lambda self: "code changed since the run")  # keys move
     assert main(["ablate", "rescore", "--results-dir", str(smoke["results"]), "--cache-dir", str(smoke["cache"]),
                  "--methods", "4d-langsplat", "--out", str(tmp_path), "--quiet", "--refit",
-                 "--name", "window", "--set", "extensions.caption_window=2"]) == 0
+                 "--name", "window", "--set", "extensions.caption_window=2",
+                 "--set", "extensions.caption_segments=false"]) == 0
     assert not calls
     (path,) = (smoke["results"] / "ablations" / "window").rglob("seed0.json")
     new = json.loads(path.read_text())
@@ -411,20 +412,21 @@ def test_ablate_rescore_refit_of_a_head_option_keeps_the_recorded_geometry(smoke
     # a head option beside an answer option: the same head (its cache key ignores answer options), re-answered
     assert main(["ablate", "rescore", "--results-dir", str(smoke["results"]), "--cache-dir", str(smoke["cache"]),
                  "--methods", "4d-langsplat", "--out", str(tmp_path), "--quiet", "--refit", "--name", "window-release",
-                 "--set", "extensions.caption_window=2", "--protocol", "paper-text"]) == 0
+                 "--set", "extensions.caption_window=2", "--set", "extensions.caption_segments=false",
+                 "--protocol", "paper-text"]) == 0
     assert not calls
     (path,) = (smoke["results"] / "ablations" / "window-release").rglob("seed0.json")
     both = json.loads(path.read_text())
     assert both["fit"]["head_refit_of"] == recorded["fit"]["key"] and both["fit"]["key"] == new["fit"]["key"]
     assert both["fit"]["cached"] and both["protocol"]["name"] == "paper-text"
-    # a boolean option given as text is the recorded True: asked again, the run is kept, not answered anew
+    # a boolean option given as text is the recorded False: asked again, the run is kept, not answered anew
     seg = ["ablate", "rescore", "--results-dir", str(smoke["results"]), "--cache-dir", str(smoke["cache"]),
            "--methods", "4d-langsplat", "--out", str(tmp_path), "--quiet", "--refit", "--name", "segments",
-           "--set", "extensions.caption_segments=true"]
+           "--set", "extensions.caption_segments=false"]
     assert main(seg) == 0
     (path,) = (smoke["results"] / "ablations" / "segments").rglob("seed0.json")
     first = path.read_bytes()
-    assert json.loads(first)["method_config"]["extensions"]["caption_segments"] is True
+    assert json.loads(first)["method_config"]["extensions"]["caption_segments"] is False
     assert main(seg) == 0 and path.read_bytes() == first
     # the head's code has changed since: the kept file is stale, the head is refitted under the new code (the
     # runner keys a fit's code by the spec's digest and the class's ``code_version``, and records the latter)

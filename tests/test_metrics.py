@@ -460,3 +460,29 @@ def test_accuracy_at_threshold_and_best_cut_by_hand():
     assert best_cut_accuracy(np.array([0.5, 0.5]), np.array([False, False])) == 1.0  # all negative is a cut
     with pytest.raises(ValueError, match="shape"):
         accuracy_at_threshold(scores, labels[:3], 0.2)
+
+
+def test_caption_segments_leave_a_video_too_short_to_test_as_captioned():
+    """Below about 13 caption times no split is rarer than 1 % of the shuffles, so the change-point test
+    cannot find even the cleanest change: the captions stay their own targets (and the fit's spread test
+    decides), instead of one mean that erases the states."""
+    from methods.fields.caption_targets import caption_segments, change_points_testable
+
+    def two_states(n):
+        emb = np.zeros((n, 2))
+        emb[: n // 2, 0] = 1.0
+        emb[n // 2:, 1] = 1.0
+        return np.arange(float(n)), emb
+
+    assert not change_points_testable(9, 4) and change_points_testable(13, 4)
+    times, emb = two_states(9)
+    cuts, states, targets = caption_segments(times, emb, min_length=4)
+    assert cuts is None and states is None
+    np.testing.assert_array_equal(targets, emb)
+    times, emb = two_states(13)
+    cuts, states, targets = caption_segments(times, emb, min_length=4)
+    assert (cuts, states) == ([6.0], [0, 1])
+    np.testing.assert_array_equal(targets, emb)  # each state's captions agree: the means are the captions
+    # a testable length with no change is one state, its mean, not a fallback
+    cuts, states, targets = caption_segments(times, np.tile([0.6, 0.8], (13, 1)), min_length=4)
+    assert (cuts, states) == ([], [0])

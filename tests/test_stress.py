@@ -4,6 +4,8 @@ suite end to end, resumed."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 from pathlib import Path
 
@@ -367,6 +369,11 @@ def test_a_small_suite_runs_resumes_and_reports(tmp_path):
     stamps = {s.path: s.path.stat().st_mtime_ns for s in scores}
     again = stress.run_suite(config, log=lambda _: pytest.fail("a present run was redone"))
     assert {s.path: s.path.stat().st_mtime_ns for s in again} == stamps
+    # a run made under another method config (a default that moved since) is stale: not read, not reported
+    moved = dataclasses.replace(config, method_options={"nearest-frame": {"camera_weight": "0.5"}})
+    assert stress.collect(moved) == []
+    assert all(stress.results_file(moved, stress.RunKey(s.family if s.strength else stress.CLEAN, s.strength,
+                                                        s.method, s.seed)) is None for s in again)
     from benchmark.studies.stress_plots import write_reports
 
     written = write_reports(config, again, wall_seconds=1.0)

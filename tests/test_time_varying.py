@@ -7,6 +7,8 @@ its features vary with t (as a trained 4D-GS's do where things move); nothing mo
 
 from __future__ import annotations
 
+import functools
+
 import hashlib
 from types import SimpleNamespace
 from typing import Optional
@@ -281,6 +283,9 @@ def test_caption_segments_decide_which_objects_carry_states(world, monkeypatch):
         return [float(np.median(times))] if len(np.unique(np.round(emb, 6), axis=0)) > 1 else []
 
     monkeypatch.setattr(captions_module, "caption_change_points", fake_change_points)
+    # a cache of its own: what the fake says of short videos must not outlive this test
+    monkeypatch.setattr(captions_module, "change_points_testable",
+                        functools.lru_cache()(captions_module.change_points_testable.__wrapped__))
     opts = _options({"extensions.caption_segments": True, "extensions.semantic_change_tolerance": 2.0,
                      "status.iterations": 20, "status.static_iterations": 10})
     field = fit_time_varying_field(world.geometry, world.scene, world.sup, opts, kind="status", seed=0, backend="torch")
@@ -289,7 +294,8 @@ def test_caption_segments_decide_which_objects_carry_states(world, monkeypatch):
     assert field.info["num_states"] == 2 and field.info["dynamic_gaussians"] > 0
     # without segments the same tolerance freezes the box: the spread test is what decides there
     plain = fit_time_varying_field(world.geometry, world.scene, world.sup,
-                                   _options({"extensions.semantic_change_tolerance": 2.0, "status.iterations": 20,
+                                   _options({"extensions.caption_segments": False,
+                                             "extensions.semantic_change_tolerance": 2.0, "status.iterations": 20,
                                              "status.static_iterations": 10}),
                                    kind="status", seed=0, backend="torch")
     assert not plain.info["objects_semantics"]["0"]["dynamic"] and plain.info["num_states"] == 1
@@ -310,6 +316,8 @@ def test_blend_weights_assign_gaussians_to_their_objects(world):
 def test_status_field_answers_when_the_box_is_open(world, status_field):
     tv = status_field
     assert tv.info["num_states"] == 2
+    # 9 training times are too few for the default caption segments' test: both objects keep their captions
+    assert tv.info["caption_segments"] == {} and tv.info["caption_segments_untested"] == ["0", "1"]
     dyn = np.zeros(2 * N_PER, bool)
     dyn[tv.module.dynamic_index.numpy()] = True
     assert dyn[world.owner == 0].mean() > 0.8 and dyn[world.owner == 1].mean() < 0.1

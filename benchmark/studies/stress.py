@@ -243,13 +243,14 @@ def swapped_captions(scene, share: float, seed: int, captions_seed: int = 0):
     return replace(captions, frames=frames), tracks
 
 
-def caption_options(config: SuiteConfig, key: RunKey, scene_root: Path) -> dict[str, str]:
-    """The method options that feed a run of ``caption-swap`` its noisy captions (a captions file)."""
+def caption_options(config: SuiteConfig, key: RunKey, scene_root: Optional[Path]) -> dict[str, str]:
+    """The method options that feed a run of ``caption-swap`` its noisy captions (a captions file, written
+    from ``scene_root`` when missing; ``None``: only named)."""
     from benchmark.loaders import load_scene
     from methods.captioners.file import write_captions_file
 
     path = config.stress_dir / "captions" / f"swap-{strength_label(key.strength)}-seed{key.seed}.json"
-    if not path.is_file():
+    if scene_root is not None and not path.is_file():
         captions, tracks = swapped_captions(load_scene(scene_root), key.strength, key.seed)
         path.parent.mkdir(parents=True, exist_ok=True)
         write_captions_file(path, captions, tracks, overwrite=True)
@@ -334,10 +335,31 @@ def applies(key: RunKey) -> bool:
     return key.clean or key.family != "caption-swap" or reads_captions(key.method)
 
 
+def run_options(config: SuiteConfig, key: RunKey, scene_root: Optional[Path]) -> dict[str, str]:
+    """The method options of a run: the suite's for its method, and a caption-swap run's captions file
+    (:func:`caption_options`; ``scene_root`` None: named, not written)."""
+    options = dict(config.method_options.get(key.method, {}))
+    if key.family == "caption-swap" and not key.clean:
+        options.update(caption_options(config, key, scene_root))
+    return options
+
+
 def results_file(config: SuiteConfig, key: RunKey) -> Optional[Path]:
-    """The run's results file, if it was written."""
+    """The run's results file, if it was written with the method config the run has now: a file of a
+    config since changed (a default that moved) is stale, neither read nor reported, and is redone."""
     found = sorted(key.folder(config.runs_dir).glob(f"*/*/{key.method}/oracle/seed{key.seed}.json"))
-    return found[0] if found else None
+    return found[0] if found and _made_as_now(config, key, found[0]) else None
+
+
+def _made_as_now(config: SuiteConfig, key: RunKey, path: Path) -> bool:
+    from methods import registry
+
+    spec = registry.get(key.method)
+    try:
+        recorded = read_json(path).get("method_config")
+        return spec.config_from_record(recorded) == spec.make_config(run_options(config, key, None))
+    except (InputError, OSError, ValueError, AttributeError):
+        return False  # unreadable or from options this version refuses: made anew
 
 
 def run_one(config: SuiteConfig, key: RunKey, log: Callable[[str], None] = print) -> Optional[Path]:
@@ -351,9 +373,7 @@ def run_one(config: SuiteConfig, key: RunKey, log: Callable[[str], None] = print
 
     start = time.perf_counter()
     root = scene_folder(config, key.family, key.strength)
-    options = dict(config.method_options.get(key.method, {}))
-    if key.family == "caption-swap" and not key.clean:
-        options.update(caption_options(config, key, root))
+    options = run_options(config, key, root)
     prepared = prepare_run(EvalOptions(
         method=key.method, scene=str(root), seed=key.seed, results_dir=key.folder(config.runs_dir),
         cache_dir=Path(config.cache_dir), device=config.device, method_options=options, quiet=True,

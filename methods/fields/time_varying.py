@@ -224,12 +224,16 @@ def segment_caption_targets(scene: Scene, sup: CaptionSupervision, *, min_length
     and the change stays a step, where a window would blur it. Segments whose captions a permutation
     test cannot tell apart are one state (:func:`benchmark.metrics.caption_segment_states`: an egg
     closed, opened and closed again has two states, not three). An object whose captions show no
-    significant change gets one target, its mean."""
+    significant change gets one target, its mean. An object captioned at too few times for the test
+    to find any change, and in which it found none, keeps its captions as targets and is left out of
+    the change points (the spread tolerance decides whether it changes, as without segments)."""
     change_points: dict[int, list[float]] = {}
     states: dict[int, list[int]] = {}
 
     def segment(obj: int, times: np.ndarray, emb: np.ndarray) -> np.ndarray:
-        change_points[obj], states[obj], targets = caption_segments(times, emb, min_length=min_length, seed=seed)
+        cuts, labels, targets = caption_segments(times, emb, min_length=min_length, seed=seed)
+        if cuts is not None:
+            change_points[obj], states[obj] = cuts, labels
         return targets
 
     return _replace_object_embeddings(scene, sup, segment), change_points, states
@@ -948,6 +952,9 @@ def _shaped_caption_targets(scene: Scene, sup: CaptionSupervision, config,
             scene, sup, min_length=shaping["segment_min_length"], seed=shaping["seed"])
         info["caption_segments"] = {str(o): c for o, c in sorted(change_points.items())}
         info["caption_segment_states"] = {str(o): s for o, s in sorted(segment_states.items())}
+        untested = sorted(set(sup.captions.objects()) - set(change_points))
+        if untested:  # too few caption times for the change-point test: their own captions are targets
+            info["caption_segments_untested"] = [str(o) for o in untested]
         info["distinct_targets"] = len(sup.texts)
     return sup, change_points
 

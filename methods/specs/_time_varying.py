@@ -68,10 +68,10 @@ class TimeVaryingExtensions(LanguageExtensions):
 
     caption_window: int = 0
     """Average each object's caption embeddings over the training frames within this many time steps
-    before they become targets (0: off)."""
-    caption_segments: bool = False
-    """Replace each object's caption embeddings by the mean of their state (change points, segments of at
-    least ``min_state_run`` steps) before they become targets; excludes ``caption_window``."""
+    before they become targets (0: off; needs ``caption_segments=false``)."""
+    caption_segments: bool = True
+    """Targets are each object's caption embeddings averaged per state (change points, segments of at least
+    ``min_state_run`` steps); ``False``: each frame's own caption, as the paper."""
     choose_states: bool = True
     """Choose K per scene: the most caption states of any object, capped by ``status.num_states``
     (``False``: ``status.num_states`` as is)."""
@@ -106,7 +106,8 @@ class TimeVaryingExtensions(LanguageExtensions):
         if self.caption_window < 0:
             raise ValueError("caption_window must be >= 0 (time steps)")
         if self.caption_segments and self.caption_window:
-            raise ValueError("caption_segments and caption_window are alternatives: set one of them")
+            raise ValueError("caption_window and caption_segments are alternatives: set "
+                             "extensions.caption_segments=false to average over a window")
 
 
 @dataclass
