@@ -709,7 +709,7 @@ def _wants_head(config, scene: Scene, track: str, progress: Progress) -> bool:
     choice = config.status.fit
     if choice != "auto":
         return choice == "on"
-    from .fields.time_varying import resolve_captioning
+    from .captioners import resolve_captioning
 
     captioner, tracks = resolve_captioning(config.captions, track)
     if captioner == "template" or tracks == "truth":

@@ -153,14 +153,26 @@ class MethodSpec:
 
     def recorded_options(self, recorded: Optional[Mapping[str, Any]]) -> dict[str, Any]:
         """Dotted path -> value of this method's options in a recorded config (a results file's
-        ``method_config``, nested or in the flat form of older records); other keys are left out."""
+        ``method_config``, nested or in the flat form of older records); other keys are left out. An option
+        of :data:`BEFORE_THE_OPTION` that a (non-empty) record lacks gets the value it had before it existed."""
         from .specs._recorded import recorded_options
 
-        return recorded_options(self.config, recorded)
+        out = recorded_options(self.config, recorded)
+        if recorded:
+            known = {o.path for o in self.options()}
+            out.update({path: value for path, value in BEFORE_THE_OPTION.items() if path in known and path not in out})
+        return out
 
     def config_from_record(self, recorded: Optional[Mapping[str, Any]]):
         """The config a recorded ``method_config`` (nested or flat) describes, other options default."""
         return self.make_config(self.recorded_options(recorded))
+
+
+BEFORE_THE_OPTION: dict[str, Any] = {
+    "extensions.caption_segments": False,
+}
+"""Dotted path -> what a record that predates the option did, where that is not the option's default today
+(every frame's caption was its own target until caption segments became the default)."""
 
 
 # -- the registry ----------------------------------------------------------------------------------

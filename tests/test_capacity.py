@@ -3,6 +3,7 @@ model-size count, and a tiny study on ``smoke`` that runs, reports, resumes and 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pandas as pd
@@ -147,3 +148,7 @@ def test_a_tiny_study_runs_reports_resumes_and_its_table_reads_the_csv(tmp_path,
     assert main(args) == 0
     assert (tmp_path / "cli" / "capacity.csv").read_text() == (out / "capacity.csv").read_text()
     assert len(evaluated) == 2
+    # runs made under another method config (a default that moved since) are stale: not reported, redone
+    moved = dataclasses.replace(config, overrides={**TINY, "field.learning_rate": "0.02"})
+    assert all(capacity.results_file(moved, run) is None for run in capacity.distinct_runs(capacity.plan(moved)))
+    assert all(capacity.results_file(config, run) is not None for run in capacity.distinct_runs(capacity.plan(config)))

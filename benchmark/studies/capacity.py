@@ -260,10 +260,24 @@ def geometry_groups(runs: Sequence[Run]) -> list[list[Run]]:
 
 # -- running --------------------------------------------------------------------------------------------
 def results_file(config: CapacityConfig, run: Run) -> Optional[Path]:
-    """The run's results file, if it was written."""
+    """The run's results file, if it was written with the method config the run has now: a file of a config
+    since changed (a default that moved) is stale, neither read nor reported, and is redone (a cached geometry
+    and field the change does not touch are reused, so a changed head option refits the head alone)."""
     folder = config.runs_dir / run.label
     found = sorted(folder.glob(f"*/{Path(run.preset).name}/{config.method}/oracle/seed{run.seed}.json"))
-    return found[0] if found else None
+    return found[0] if found and _made_as_now(config, run, found[0]) else None
+
+
+def _made_as_now(config: CapacityConfig, run: Run, path: Path) -> bool:
+    from benchmark.core.atomic import read_json
+    from methods import registry
+
+    spec = registry.get(config.method)
+    try:
+        recorded = spec.config_from_record(read_json(path).get("method_config"))
+        return recorded == spec.make_config({**config.overrides, **dict(run.options)})
+    except (InputError, OSError, ValueError, AttributeError):
+        return False  # unreadable or from options this version refuses: made anew
 
 
 def run_one(config: CapacityConfig, run: Run) -> Path:

@@ -61,3 +61,23 @@ def get_captioner(name: str, scene, **options: Any):
     except TypeError as err:
         raise InputError(None, f"captioner {name}", f"bad options {sorted(options)}: {err}") from None
     return factory(scene, **options)
+
+
+def resolve_captioning(captions, track: str) -> tuple[str, str]:
+    """(captioner name, object-track source) of the ``captions`` group
+    (:class:`methods.specs._time_varying.CaptionConfig`) on ``track`` (``"auto"`` resolved)."""
+    captioner = captions.captioner
+    if captioner == "auto":
+        captioner = "template" if track == "oracle" else ("file" if captions.file else "qwen2-vl")
+    spec = captioner_spec(captioner)
+    if spec.track == "oracle" and track != "oracle":
+        raise InputError(None, "captioner", f"captioner {captioner!r} reads the generator's truth: oracle track only")
+    tracks = captions.object_tracks
+    if tracks == "auto":
+        tracks = "truth" if track == "oracle" else ("file" if captions.file else "segments")
+    if tracks == "truth" and track != "oracle":
+        raise InputError(None, "captions.object_tracks", "truth tracks read the generator's truth: oracle track "
+                         "only (on the real track use the segments or give the masks in captions.file)")
+    if tracks == "file" and not captions.file:
+        raise InputError(None, "captions.file", "object_tracks='file' needs captions.file=<JSON with masks>")
+    return captioner, tracks

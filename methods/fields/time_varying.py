@@ -64,6 +64,7 @@ from benchmark.core.scene import Camera, Frame, Scene
 
 from ..gaussians.rasterize import camera_tensors
 from .autoencoder import AutoencoderConfig, FeatureAutoencoder, train_autoencoder
+from ..captioners import resolve_captioning
 from .caption_targets import caption_segments, window_caption_embeddings
 from .language_field import FrozenGeometry, GaussianState
 from .status import NonStatusField, StatusField, StatusFieldConfig
@@ -108,28 +109,6 @@ class CaptionSupervision:
                 if n and row is not None:
                     out[row] += n
         return out
-
-
-def resolve_captioning(captions, track: str) -> tuple[str, str]:
-    """(captioner name, object-track source) of the ``captions`` group
-    (:class:`methods.specs._time_varying.CaptionConfig`) on ``track`` (``"auto"`` resolved)."""
-    from methods.captioners import captioner_spec
-
-    captioner = captions.captioner
-    if captioner == "auto":
-        captioner = "template" if track == "oracle" else ("file" if captions.file else "qwen2-vl")
-    spec = captioner_spec(captioner)
-    if spec.track == "oracle" and track != "oracle":
-        raise InputError(None, "captioner", f"captioner {captioner!r} reads the generator's truth: oracle track only")
-    tracks = captions.object_tracks
-    if tracks == "auto":
-        tracks = "truth" if track == "oracle" else ("file" if captions.file else "segments")
-    if tracks == "truth" and track != "oracle":
-        raise InputError(None, "captions.object_tracks", "truth tracks read the generator's truth: oracle track "
-                         "only (on the real track use the segments or give the masks in captions.file)")
-    if tracks == "file" and not captions.file:
-        raise InputError(None, "captions.file", "object_tracks='file' needs captions.file=<JSON with masks>")
-    return captioner, tracks
 
 
 def build_captions(scene: Scene, track: str, captions, *, supervision=None, cache_root: Optional[Path] = None,

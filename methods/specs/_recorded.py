@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from typing import Any, Mapping, Optional
 
-from benchmark.core.config import config_options
 from benchmark.core.config import recorded_options as _recorded_options
 from benchmark.core.config import with_overrides
 
@@ -102,25 +101,10 @@ query rules such records also hold (``threshold_variant``, ...) are the protocol
 :func:`benchmark.results.protocol_of`."""
 
 
-BEFORE_THE_OPTION: dict[str, Any] = {
-    "extensions.caption_segments": False,
-}
-"""Dotted path -> what a record that predates the option did, where that is not the option's default today
-(every frame's caption was its own target until segments became the default)."""
-
-
 def recorded_options(cls: type, recorded: Optional[Mapping[str, Any]]) -> dict[str, Any]:
     """Dotted path -> value of the options of config class ``cls`` in the recorded config ``recorded``
-    (nested, or flat as :data:`FLAT_OPTION_PATHS` reads it); other keys are left out. An option of
-    :data:`BEFORE_THE_OPTION` that a (non-empty) record lacks gets the value it had before it existed."""
-    out = _recorded_options(cls, recorded, renames=FLAT_OPTION_PATHS)
-    if recorded:
-        known = {o.path for o in config_options(cls)}
-        for path, value in BEFORE_THE_OPTION.items():
-            if path in known and path not in out:
-                out[path] = value
-    return out
-
+    (nested, or flat as :data:`FLAT_OPTION_PATHS` reads it); other keys are left out."""
+    return _recorded_options(cls, recorded, renames=FLAT_OPTION_PATHS)
 
 
 def config_from_record(cls: type, recorded: Optional[Mapping[str, Any]], *, what: str = "recorded config") -> Any:
