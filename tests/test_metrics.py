@@ -463,7 +463,7 @@ def test_accuracy_at_threshold_and_best_cut_by_hand():
 
 
 def test_caption_segments_leave_a_video_too_short_to_test_as_captioned():
-    """Below about 13 caption times no split is rarer than 1 % of the shuffles, so the change-point test
+    """Below 11 caption times no split is rarer than 1 % of the shuffles, so the change-point test
     cannot find even the cleanest change: the captions stay their own targets (and the fit's spread test
     decides), instead of one mean that erases the states."""
     from methods.fields.caption_targets import caption_segments, change_points_testable
