@@ -167,6 +167,17 @@ class MethodSpec:
         """The config a recorded ``method_config`` (nested or flat) describes, other options default."""
         return self.make_config(self.recorded_options(recorded))
 
+    def recorded_as(self, recorded: Optional[Mapping[str, Any]], overrides: Optional[Mapping[str, Any]] = None) -> bool:
+        """Whether a recorded ``method_config`` is the config these ``overrides`` give today (False when a
+        default has moved since, the record holds a value this version refuses, or there is no record): a
+        study's cached run is current only then."""
+        if not isinstance(recorded, Mapping):
+            return False
+        try:
+            return self.config_from_record(recorded) == self.make_config(overrides)
+        except InputError:
+            return False
+
 
 BEFORE_THE_OPTION: dict[str, Any] = {
     "extensions.caption_segments": False,

@@ -188,6 +188,11 @@ def test_recorded_configs_are_read_in_their_nested_and_their_flat_form():
     before = {k: v for k, v in flat.items() if k != "caption_segments"}
     assert changed.extensions.caption_segments and not spec.config_from_record(before).extensions.caption_segments
     assert spec.config_from_record({}) == spec.make_config()  # no record at all: the defaults
+    # a study's cached run is current only while its record is the config its options give today
+    options = {"geometry.static_iterations": 7, "autoencoder.learning_rate": 1e-3, "status.num_states": 5,
+               "extensions.min_state_run": 2.0, "captions.seed": 3}
+    assert spec.recorded_as(nested, options) and not spec.recorded_as(nested) and not spec.recorded_as(None, options)
+    assert not spec.recorded_as(before, options)  # recorded before segments became the default
     assert spec.recorded_options(flat)["autoencoder.hidden_dims"] == (256, 128, 64, 32)
     assert "threshold_variant" not in str(spec.recorded_options(flat))  # the protocol's, read elsewhere
     assert option_values(changed)["status.num_states"] == 5

@@ -272,12 +272,12 @@ def _made_as_now(config: CapacityConfig, run: Run, path: Path) -> bool:
     from benchmark.core.atomic import read_json
     from methods import registry
 
-    spec = registry.get(config.method)
     try:
-        recorded = spec.config_from_record(read_json(path).get("method_config"))
-        return recorded == spec.make_config({**config.overrides, **dict(run.options)})
-    except (InputError, OSError, ValueError, AttributeError):
-        return False  # unreadable or from options this version refuses: made anew
+        doc = read_json(path)
+    except InputError:
+        return False  # unreadable: made anew
+    recorded = doc.get("method_config") if isinstance(doc, dict) else None
+    return registry.get(config.method).recorded_as(recorded, {**config.overrides, **dict(run.options)})
 
 
 def run_one(config: CapacityConfig, run: Run) -> Path:

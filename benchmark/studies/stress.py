@@ -354,12 +354,12 @@ def results_file(config: SuiteConfig, key: RunKey) -> Optional[Path]:
 def _made_as_now(config: SuiteConfig, key: RunKey, path: Path) -> bool:
     from methods import registry
 
-    spec = registry.get(key.method)
     try:
-        recorded = read_json(path).get("method_config")
-        return spec.config_from_record(recorded) == spec.make_config(run_options(config, key, None))
-    except (InputError, OSError, ValueError, AttributeError):
-        return False  # unreadable or from options this version refuses: made anew
+        doc = read_json(path)
+    except InputError:
+        return False  # unreadable: made anew
+    recorded = doc.get("method_config") if isinstance(doc, dict) else None
+    return registry.get(key.method).recorded_as(recorded, run_options(config, key, None))
 
 
 def run_one(config: SuiteConfig, key: RunKey, log: Callable[[str], None] = print) -> Optional[Path]:
