@@ -59,14 +59,25 @@ def _cell(paper: Optional[float], ours: Optional[float]) -> str:
     return f"{p} / {o}"
 
 
+TIE_TOLERANCE = 1e-6
+"""Our means closer than this (percentage points) are one value: means of the same per-scene scores summed in
+another order differ in the last bits."""
+
+
 def _agreement(paper: dict[str, float], ours: dict[str, float], display: dict[str, str]) -> str:
     tau, n = kendall_tau(paper, ours)
     if n < 2:
         return f"_Rank agreement: not measurable ({n} method(s) with both numbers)._"
     common = [m for m in paper if m in ours and _finite(paper[m]) and _finite(ours[m])]
     paper_best = max(common, key=lambda m: paper[m])
-    our_best = max(common, key=lambda m: ours[m])
-    wins = "yes" if paper_best == our_best else f"no (best here: {display.get(our_best, our_best)})"
+    top = max(ours[m] for m in common)
+    best_here = [m for m in common if ours[m] >= top - TIE_TOLERANCE]  # equal means count as a shared best
+    names = [display.get(m, m) for m in best_here]
+    if paper_best in best_here:
+        others = [display.get(m, m) for m in best_here if m != paper_best]
+        wins = "yes" + (f" (tied with {', '.join(others)})" if others else "")
+    else:
+        wins = f"no (best here: {', '.join(names)})"
     return (f"_Rank agreement over {n} methods: Kendall's tau = {tau:+.2f}; the paper's best "
             f"({display.get(paper_best, paper_best)}) is best here: {wins}._")
 

@@ -344,6 +344,14 @@ def test_paper_tables_put_the_published_numbers_beside_ours_with_rank_agreement(
 
     assert kendall_tau({"a": 1, "b": 2, "c": 3}, {"a": 3, "b": 2, "c": 1}) == (pytest.approx(-1.0), 3)
     assert math.isnan(kendall_tau({"a": 1}, {"a": 2, "b": 1})[0])
+    # equal means are a shared best (the last bits of a mean depend on the order the scenes are summed in)
+    from benchmark.paper_tables import _agreement
+
+    paper, names = {"a": 90.0, "b": 80.0, "c": 70.0}, {"a": "A", "b": "B", "c": "C"}
+    tied = (100 + 100 + 96.66666666666667 + 93.33333333333333) / 4
+    assert "is best here: yes (tied with B)._" in _agreement(paper, {"a": tied, "b": 97.5, "c": 50.0}, names)
+    assert "is best here: no (best here: B)._" in _agreement(paper, {"a": 97.4, "b": 97.5, "c": 50.0}, names)
+    assert "is best here: yes._" in _agreement(paper, {"a": 97.6, "b": 97.5, "c": 50.0}, names)
     root = tmp_path / "results"
     presets = ("americano", "chickchicken", "split-cookie", "espresso", "keyboard", "torchocolate")
     # the paper's order reversed: Feature-3DGS best, 4D LangSplat worst
