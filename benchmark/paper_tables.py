@@ -72,12 +72,11 @@ def _agreement(paper: dict[str, float], ours: dict[str, float], display: dict[st
     paper_best = max(common, key=lambda m: paper[m])
     top = max(ours[m] for m in common)
     best_here = [m for m in common if ours[m] >= top - TIE_TOLERANCE]  # equal means count as a shared best
-    names = [display.get(m, m) for m in best_here]
     if paper_best in best_here:
         others = [display.get(m, m) for m in best_here if m != paper_best]
         wins = "yes" + (f" (tied with {', '.join(others)})" if others else "")
     else:
-        wins = f"no (best here: {', '.join(names)})"
+        wins = f"no (best here: {', '.join(display.get(m, m) for m in best_here)})"
     return (f"_Rank agreement over {n} methods: Kendall's tau = {tau:+.2f}; the paper's best "
             f"({display.get(paper_best, paper_best)}) is best here: {wins}._")
 

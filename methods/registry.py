@@ -178,6 +178,17 @@ class MethodSpec:
         except InputError:
             return False
 
+    def results_made_as(self, path: Path, overrides: Optional[Mapping[str, Any]] = None) -> bool:
+        """:meth:`recorded_as` of the ``method_config`` of the results file at ``path`` (False when the
+        file cannot be read: the run is made anew)."""
+        from benchmark.core.atomic import read_json
+
+        try:
+            doc = read_json(path)
+        except InputError:
+            return False
+        return self.recorded_as(doc.get("method_config") if isinstance(doc, dict) else None, overrides)
+
 
 BEFORE_THE_OPTION: dict[str, Any] = {
     "extensions.caption_segments": False,

@@ -264,20 +264,11 @@ def results_file(config: CapacityConfig, run: Run) -> Optional[Path]:
     since changed (a default that moved) is stale, neither read nor reported, and is redone (a cached geometry
     and field the change does not touch are reused, so a changed head option refits the head alone)."""
     folder = config.runs_dir / run.label
-    found = sorted(folder.glob(f"*/{Path(run.preset).name}/{config.method}/oracle/seed{run.seed}.json"))
-    return found[0] if found and _made_as_now(config, run, found[0]) else None
-
-
-def _made_as_now(config: CapacityConfig, run: Run, path: Path) -> bool:
-    from benchmark.core.atomic import read_json
     from methods import registry
 
-    try:
-        doc = read_json(path)
-    except InputError:
-        return False  # unreadable: made anew
-    recorded = doc.get("method_config") if isinstance(doc, dict) else None
-    return registry.get(config.method).recorded_as(recorded, {**config.overrides, **dict(run.options)})
+    found = sorted(folder.glob(f"*/{Path(run.preset).name}/{config.method}/oracle/seed{run.seed}.json"))
+    current = found and registry.get(config.method).results_made_as(found[0], {**config.overrides, **dict(run.options)})
+    return found[0] if current else None
 
 
 def run_one(config: CapacityConfig, run: Run) -> Path:

@@ -347,19 +347,11 @@ def run_options(config: SuiteConfig, key: RunKey, scene_root: Optional[Path]) ->
 def results_file(config: SuiteConfig, key: RunKey) -> Optional[Path]:
     """The run's results file, if it was written with the method config the run has now: a file of a
     config since changed (a default that moved) is stale, neither read nor reported, and is redone."""
-    found = sorted(key.folder(config.runs_dir).glob(f"*/*/{key.method}/oracle/seed{key.seed}.json"))
-    return found[0] if found and _made_as_now(config, key, found[0]) else None
-
-
-def _made_as_now(config: SuiteConfig, key: RunKey, path: Path) -> bool:
     from methods import registry
 
-    try:
-        doc = read_json(path)
-    except InputError:
-        return False  # unreadable: made anew
-    recorded = doc.get("method_config") if isinstance(doc, dict) else None
-    return registry.get(key.method).recorded_as(recorded, run_options(config, key, None))
+    found = sorted(key.folder(config.runs_dir).glob(f"*/*/{key.method}/oracle/seed{key.seed}.json"))
+    current = found and registry.get(key.method).results_made_as(found[0], run_options(config, key, None))
+    return found[0] if current else None
 
 
 def run_one(config: SuiteConfig, key: RunKey, log: Callable[[str], None] = print) -> Optional[Path]:
