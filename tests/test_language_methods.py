@@ -597,3 +597,52 @@ def test_an_interrupted_geometry_fit_resumes_from_its_checkpoint(smoke, tmp_path
         return a == b
 
     assert same(fresh.geometry.state_dict(), fit.geometry.state_dict())  # resumed = uninterrupted, exactly
+
+
+def test_the_geometry_rung_fits_latents_that_render_the_truth_closer_than_the_fitted_ones():
+    """The field gap's ``geometry`` rung: latents fitted on a frozen geometry to named codes per pixel render
+    those codes closer than the latents it starts from, through the blending operator or the rasterizer
+    alike, and a model answering with them gets its own latents back after the block."""
+    import types
+
+    from benchmark.studies.field_gap import _answering_with, geometry_latents
+    from methods.fields.language_field import LanguageField, LanguageFieldConfig, random_geometry
+
+    geometry, camera = random_geometry(300, 12, 8, seed=1)
+    cfg = LanguageFieldConfig(num_levels=3, latent_dim=3, learning_rate=0.05)
+    field = LanguageField(geometry.num_gaussians, cfg, generator=torch.Generator().manual_seed(0))
+    frames = [types.SimpleNamespace(time=t, camera=camera) for t in (0.0, 0.5)]
+    codes = torch.tensor([[0.0, 0.0, 0.0], [1.0, -1.0, 0.5], [-0.5, 1.0, 1.0]])
+    rows = [torch.zeros(3, 8, 12, dtype=torch.long) for _ in frames]
+    for r in rows:
+        r[:, :, 6:] = 1  # right half: name 1 at every level
+        r[2, :4, :] = 2  # top rows of the last level: name 2
+    answered = []
+
+    class Model:
+        config = None
+
+        def __init__(self):
+            self.field, self.geometry = field, geometry
+
+        def use_answer_options(self, config):
+            answered.append(self.field.features.detach().clone())
+
+    def error(latents):
+        with torch.no_grad():
+            out = []
+            for f, r in zip(frames, rows):
+                field.features.data, kept = latents, field.features.data
+                maps = field.render(geometry.at(f.time), f.camera)  # [L, H, W, d]
+                field.features.data = kept
+                out.append((maps - codes[r]).abs().mean())
+            return float(torch.stack(out).mean())
+
+    model = Model()
+    start = field.features.detach().clone()
+    fitted = geometry_latents(model, frames, rows, codes, steps=60)
+    assert error(fitted) < 0.6 * error(start)
+    assert torch.equal(field.features.detach(), start), "fitting the rung leaves the model's latents alone"
+    with _answering_with(model, fitted):
+        assert torch.equal(field.features.detach(), fitted)
+    assert torch.equal(field.features.detach(), start) and len(answered) == 2

@@ -462,7 +462,7 @@ def test_accuracy_at_threshold_and_best_cut_by_hand():
         accuracy_at_threshold(scores, labels[:3], 0.2)
 
 
-def test_caption_segments_leave_a_video_too_short_to_test_as_captioned():
+def test_caption_segments_leave_captions_without_a_found_change_as_captioned():
     """Below 11 caption times no split is rarer than 1 % of the shuffles, so the change-point test
     cannot find even the cleanest change: the captions stay their own targets (and the fit's spread test
     decides), instead of one mean that erases the states."""
@@ -483,6 +483,15 @@ def test_caption_segments_leave_a_video_too_short_to_test_as_captioned():
     cuts, states, targets = caption_segments(times, emb, min_length=4)
     assert (cuts, states) == ([6.0], [0, 1])
     np.testing.assert_array_equal(targets, emb)  # each state's captions agree: the means are the captions
-    # a testable length with no change is one state, its mean, not a fallback
-    cuts, states, targets = caption_segments(times, np.tile([0.6, 0.8], (13, 1)), min_length=4)
-    assert (cuts, states) == ([], [0])
+    # a testable length in which the test finds no change keeps its captions too: equal captions are their
+    # own mean, and one caption of the other state among twelve hides a change the test finds without it
+    same = np.tile([0.6, 0.8], (13, 1))
+    cuts, states, targets = caption_segments(times, same, min_length=4)
+    assert cuts is None and states is None
+    np.testing.assert_array_equal(targets, same)
+    times, emb = two_states(12)
+    assert caption_segments(times, emb, min_length=4)[:2] == ([6.0], [0, 1])
+    emb[2] = emb[-1]
+    cuts, states, targets = caption_segments(times, emb, min_length=4)
+    assert cuts is None and states is None
+    np.testing.assert_array_equal(targets, emb)  # not one mean: the spread tolerance still sees two states

@@ -76,8 +76,9 @@ the recorded fit (same geometry, time-agnostic field and autoencoder: the option
 difference); other options fit each run anew. The table is then recorded → refitted.
 
 ``gap``: for recorded runs on generated scenes, the time-agnostic query on perfect features, on
-perfect latents through the run's own autoencoder, and on its rendered field (:mod:`benchmark.studies.field_gap`):
-how much of the distance to the ceiling the autoencoder costs and how much the rendered field, and
+perfect latents through the run's own autoencoder, on latents fitted to the evaluated frames' truth on the
+run's own geometry, and on its rendered field (:mod:`benchmark.studies.field_gap`): how much of the distance
+to the ceiling the autoencoder costs, how much the geometry and how much the field's training, and
 per ground-truth name the pixels whose rendered latent is nearer another name's code; for time-sensitive
 queries, the state score inside the run's own mask, inside the object mask and on its caption targets.
 Reads the truth of evaluated frames: an analysis of fitted models. Analyses of unchanged runs are
@@ -218,8 +219,8 @@ def _rescore_arguments(sub) -> None:
 
 
 def _gap_arguments(sub) -> None:
-    g = sub.add_parser("gap", help="split a fitted field's distance to the ceiling into autoencoder and "
-                                   "rendered-field shares (recorded runs on generated scenes)")
+    g = sub.add_parser("gap", help="split a fitted field's distance to the ceiling into autoencoder, geometry "
+                                   "and field-training shares (recorded runs on generated scenes)")
     g.add_argument("--methods", nargs="+", default=None,
                    help="methods (default: the language-field methods; the 4D ones share one time-agnostic field)")
     g.add_argument("--scenes", nargs="+", default=None, help="scene names (default: every generated scene)")

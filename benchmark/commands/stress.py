@@ -17,9 +17,7 @@ from pathlib import Path
 from benchmark.core.errors import InputError
 from ._common import add_threads_argument, check_device, parse_overrides, set_threads
 
-_SHORT_GEOMETRY = {"geometry.static_iterations": "300", "geometry.deformation_iterations": "300"}
-_SHORT_FIELD = {**_SHORT_GEOMETRY, "autoencoder.min_steps": "1500", "autoencoder.max_steps": "2000",
-                "field.iterations": "400"}
+_SHORT_FIELD = {"autoencoder.min_steps": "1500", "autoencoder.max_steps": "2000", "field.iterations": "400"}
 _SHORT_TIME_VARYING = {**_SHORT_FIELD, "caption_autoencoder.min_steps": "1500", "caption_autoencoder.max_steps": "2000",
                        "status.static_iterations": "100", "status.iterations": "800"}
 SHORT_SCHEDULES: dict[str, dict[str, str]] = {
@@ -27,12 +25,17 @@ SHORT_SCHEDULES: dict[str, dict[str, str]] = {
     "deformable-clip": _SHORT_FIELD,
     "4d-langsplat": _SHORT_TIME_VARYING,
     "non-status-field": _SHORT_TIME_VARYING,
-    "feature-3dgs": {**_SHORT_GEOMETRY, "feature.iterations": "400"},
-    "gaussian-grouping": {**_SHORT_GEOMETRY, "identity.iterations": "500"},
+    "feature-3dgs": {"feature.iterations": "400"},
+    "gaussian-grouping": {"identity.iterations": "500"},
 }
-"""``--schedule short``: option overrides per method that make a CPU suite finish (geometry, autoencoder
-and field steps cut about fivefold). The 4D methods' geometry options are equal, so they share one 4D-GS
-fit per scene and seed, and ``deformable-clip`` / ``non-status-field`` share ``4d-langsplat``'s field."""
+"""``--schedule short``: option overrides per method that make a CPU suite cheaper: autoencoder, field and
+head steps cut about fivefold, the geometry left at the methods' own schedule. The geometry is what a cut
+breaks: on the suite's clean scene (``smoke``, 48 px, 16 frames, seed 0) ``4d-langsplat`` scores mIoU / Acc /
+vIoU 53.8 / 100 / 59.7 with its own schedule, 51.3 / 100 / 58.4 with these cuts, 44.8 / 100 / 42.5 with the
+geometry's 4D stage halved (500 + 1 000 iterations) and 10.1 / 68.8 / 9.3 with it at 300 + 300: a base that
+is already broken has no breaking point to find. The 4D methods' geometry options are equal, so they share
+one 4D-GS fit per scene and seed, and ``deformable-clip`` / ``non-status-field`` share ``4d-langsplat``'s
+field."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

