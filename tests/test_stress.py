@@ -381,6 +381,10 @@ def test_a_small_suite_runs_resumes_and_reports(tmp_path):
     written = write_reports(config, again, wall_seconds=1.0)
     readme = (tmp_path / "report" / "README.md").read_text()
     assert "## Breaking points" in readme and "| occluder |" in readme
+    # the run-time table counts the shared clean run once: 3 distinct runs, their own seconds summed
+    distinct = {s.path: s.wall_seconds for s in again}
+    assert len(distinct) == 3
+    assert f"| nearest-frame | 3 | {sum(distinct.values()) / 60:.1f} |" in readme
     for fam in ("occluder", "mask-drop"):
         assert (tmp_path / "report" / "charts" / f"{fam}.png") in written
         assert (tmp_path / "report" / "galleries" / f"{fam}.png").stat().st_size < 200_000

@@ -242,6 +242,18 @@ def _clean_table(scores: Sequence[Score], methods: Sequence[str]) -> str:
     return markdown_table(["method", "seeds", *METRICS], rows)
 
 
+def _run_time_table(scores: Sequence[Score], methods: Sequence[str]) -> str:
+    """Per method: its distinct runs (a clean run shared by families counts once) and the sum and median of
+    their own wall times, stages reused from the cache not included: the suite's cost on the machine that
+    ran it, whatever invocations it took."""
+    rows = []
+    for method in methods:
+        seconds = list({s.path: s.wall_seconds for s in scores if s.method == method}.values())
+        if seconds:
+            rows.append([method, str(len(seconds)), f"{sum(seconds) / 60:.1f}", f"{float(np.median(seconds)):.0f}"])
+    return markdown_table(["method", "runs", "run time (min)", "median run (s)"], rows)
+
+
 ACC_FLOOR = 50.0
 """Acc of a method that does not tell states apart (every frame one answer on a balanced query): below or at
 it, a method's Acc says nothing about a family and is left out of the findings."""
@@ -340,6 +352,8 @@ def _readme(config: SuiteConfig, scores: Sequence[Score], families: Sequence[str
             f"{', '.join(config.methods)}; seeds {seeds}; device {config.device}. Method options: {options}.\n"
             f"Wall time of this invocation: {wall} (runs already present are read, not redone). "
             f"Every run's scores: [scores.csv](scores.csv).\n\n"
+            f"Run time, each run on the core it ran on (a fit reused from the cache costs nothing here):\n\n"
+            f"{_run_time_table(scores, config.methods)}\n"
             f"## Clean scores (strength 0, mean over seeds)\n\n{_clean_table(scores, config.methods)}\n"
             f"## Breaking points\n\nThe strength at which a method's mean over seeds falls below half of its "
             f"clean score (`≤ s`: weaker strengths were not run; `> s`: it holds up to the strongest strength run; `–`: not run, or no clean score to halve).\n\n"
