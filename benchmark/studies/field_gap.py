@@ -18,10 +18,10 @@ training) are not the latents of the right name at every pixel. Each evaluated f
 
 ``perfect - autoencoder`` is the autoencoder's share of the gap, ``autoencoder - geometry`` the geometry's
 (Gaussians whose blend cannot draw the parts' boundaries, whatever latents they carry), ``geometry - fitted``
-the field training's (supervision from other frames and times, optimisation). All three rungs go through the method's own query path (its canonical phrases, relevance,
-windows, threshold), so they differ only in the features. It also counts, per level and ground-truth
-name, the pixels whose rendered latent lies nearer another name's code than its own: where the
-field's share is spent (moving objects, small parts).
+the field training's (supervision from other frames and times, optimisation). Every rung goes through
+the method's own query path (its canonical phrases, relevance, windows, threshold), so they differ only
+in the features. It also counts, per level and ground-truth name, the pixels whose rendered latent lies
+nearer another name's code than its own: where the rendered field loses (moving objects, small parts).
 
 Time-sensitive queries get the same split for their temporal half. The method's per-frame state score
 (4D LangSplat's status field, the Non-Status field, or the baselines' mean relevance) is taken inside
@@ -139,12 +139,7 @@ def agnostic_gap(model, scene: Scene, annotations, frame_of: dict, *,
         zq = model.query_embedding_cached(q.text)
         with torch.no_grad():
             rel_of = {r: relevance(f, zq, canon, cfg.temperature) for r, f in features.items()}  # [T] per rung
-        for af in annotations.annotated_frames(q.id):
-            frame = frame_of.get(af.name)
-            gt = annotations.get_mask(q.id, af.id) if frame is not None else None
-            if gt is None:
-                continue
-            gt = np.asarray(gt, dtype=bool)
+        for frame, gt in _scored_masks(annotations, q, frame_of):
             if frame.name not in rows_of:
                 rows_of[frame.name] = table.rows(frame).to(model.device)
             index = rows_of[frame.name]
@@ -154,21 +149,28 @@ def agnostic_gap(model, scene: Scene, annotations, frame_of: dict, *,
             fitted = model.agnostic(q.text, frame)
             per_query["fitted"].setdefault(q.text, []).append(float(iou(fitted.mask.cpu().numpy(), gt)))
     frames = [frame_of[n] for n in sorted(rows_of)]
-    with _answering_with(model, geometry_latents(model, frames, [rows_of[f.name] for f in frames], codes)):
+    with _answering_with(model, geometry_latents(model, frames, [rows_of[f.name] for f in frames], codes)
+                         if frames else model.field.features.detach()):
         for q in queries:
-            for af in annotations.annotated_frames(q.id):
-                frame = frame_of.get(af.name)
-                gt = annotations.get_mask(q.id, af.id) if frame is not None else None
-                if gt is not None:
-                    answer = model.agnostic(q.text, frame).mask.cpu().numpy()
-                    per_query["geometry"].setdefault(q.text, []).append(float(iou(answer, np.asarray(gt, bool))))
+            for frame, gt in _scored_masks(annotations, q, frame_of):
+                answer = model.agnostic(q.text, frame).mask.cpu().numpy()
+                per_query["geometry"].setdefault(q.text, []).append(float(iou(answer, gt)))
     out: dict[str, Any] = {"frames": len(rows_of), "background_text": background_text, "rungs": {}}
     for rung in RUNGS:
         means = {text: float(np.mean(v)) for text, v in per_query[rung].items()}
         out["rungs"][rung] = {"mIoU": float(np.mean(list(means.values()))) if means else float("nan"),
                               "per_query": means}
-    out["confusion"] = latent_confusion(model, table, codes, [frame_of[n] for n in sorted(rows_of)], rows_of)
+    out["confusion"] = latent_confusion(model, table, codes, frames, rows_of)
     return out
+
+
+def _scored_masks(annotations, query, frame_of: dict) -> Iterator[tuple[Any, np.ndarray]]:
+    """(frame, boolean ground-truth mask) of every evaluated frame ``frame_of`` annotated for ``query``."""
+    for af in annotations.annotated_frames(query.id):
+        frame = frame_of.get(af.name)
+        gt = annotations.get_mask(query.id, af.id) if frame is not None else None
+        if gt is not None:
+            yield frame, np.asarray(gt, dtype=bool)
 
 
 def geometry_latents(model, frames: Sequence, rows: Sequence[torch.Tensor], codes: torch.Tensor, *,
