@@ -620,13 +620,11 @@ def test_the_geometry_rung_fits_latents_that_render_the_truth_closer_than_the_fi
     answered = []
 
     class Model:
-        config = None
-
         def __init__(self):
             self.field, self.geometry = field, geometry
 
-        def use_answer_options(self, config):
-            answered.append(self.field.features.detach().clone())
+        def prepare(self, texts):
+            answered.append((list(texts), self.field.features.detach().clone()))
 
     def error(latents):
         with torch.no_grad():
@@ -643,6 +641,9 @@ def test_the_geometry_rung_fits_latents_that_render_the_truth_closer_than_the_fi
     fitted = geometry_latents(model, frames, rows, codes, steps=60)
     assert error(fitted) < 0.2 * error(start)
     assert torch.equal(field.features.detach(), start), "fitting the rung leaves the model's latents alone"
-    with _answering_with(model, fitted):
+    with _answering_with(model, fitted, ["box"]):
         assert torch.equal(field.features.detach(), fitted)
     assert torch.equal(field.features.detach(), start) and len(answered) == 2
+    # prepared for the runner's texts with the rung's latents on the way in, with its own on the way out
+    assert [t for t, _ in answered] == [["box"], ["box"]]
+    assert torch.equal(answered[0][1], fitted) and torch.equal(answered[1][1], start)

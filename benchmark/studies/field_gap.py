@@ -149,12 +149,13 @@ def agnostic_gap(model, scene: Scene, annotations, frame_of: dict, *,
             fitted = model.agnostic(q.text, frame)
             per_query["fitted"].setdefault(q.text, []).append(float(iou(fitted.mask.cpu().numpy(), gt)))
     frames = [frame_of[n] for n in sorted(rows_of)]
-    with _answering_with(model, geometry_latents(model, frames, [rows_of[f.name] for f in frames], codes)
-                         if frames else model.field.features.detach()):
-        for q in queries:
-            for frame, gt in _scored_masks(annotations, q, frame_of):
-                answer = model.agnostic(q.text, frame).mask.cpu().numpy()
-                per_query["geometry"].setdefault(q.text, []).append(float(iou(answer, gt)))
+    if frames:
+        latents = geometry_latents(model, frames, [rows_of[f.name] for f in frames], codes)
+        with _answering_with(model, latents, prepared_texts(annotations, frame_of, model.supports)):
+            for q in queries:
+                for frame, gt in _scored_masks(annotations, q, frame_of):
+                    answer = model.agnostic(q.text, frame).mask.cpu().numpy()
+                    per_query["geometry"].setdefault(q.text, []).append(float(iou(answer, gt)))
     out: dict[str, Any] = {"frames": len(rows_of), "background_text": background_text, "rungs": {}}
     for rung in RUNGS:
         means = {text: float(np.mean(v)) for text, v in per_query[rung].items()}
@@ -212,19 +213,21 @@ def geometry_latents(model, frames: Sequence, rows: Sequence[torch.Tensor], code
 
 
 @contextlib.contextmanager
-def _answering_with(model, latents: torch.Tensor) -> Iterator[None]:
-    """``model`` answers with the per-Gaussian ``latents`` in place of its fitted ones inside the block; its
-    memoised renderings are dropped on the way in and out."""
+def _answering_with(model, latents: torch.Tensor, texts: Sequence[str]) -> Iterator[None]:
+    """``model`` answers with the per-Gaussian ``latents`` in place of its fitted ones inside the block. It is
+    prepared for ``texts`` (the runner's, :func:`benchmark.runner.prepared_texts`) on the way in and out:
+    preparing drops the frames decoded from the other latents and keeps the decoding basis the runner's, so
+    what is answered after the block (the time-sensitive half) is what was recorded."""
     fitted = model.field.features.detach().clone()
     with torch.no_grad():
         model.field.features.copy_(latents)
-    model.use_answer_options(model.config)  # drops every rendering decoded from the fitted latents
+    model.prepare(texts)
     try:
         yield
     finally:
         with torch.no_grad():
             model.field.features.copy_(fitted)
-        model.use_answer_options(model.config)
+        model.prepare(texts)
 
 
 def caption_targets(model, scene: Scene, track: str, cache_root, annotations,

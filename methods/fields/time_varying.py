@@ -9,12 +9,12 @@ Pipeline (:func:`fit_time_varying_field`):
    object id map and the caption embedding of each object, i.e. pixel-aligned targets on each
    object's mask. By default (not in the paper) each object's embeddings are replaced by the mean of
    their state (``extensions.caption_segments``, :func:`segment_caption_targets`: temporal segments,
-   those a permutation test cannot tell apart merged; captions at too few times to test stay as they
-   are); alternatively averaged over neighbouring training times (``extensions.caption_window`` > 0,
+   those a permutation test cannot tell apart merged; the captions of an object in which the test finds
+   no change stay as they are); alternatively averaged over neighbouring training times (``extensions.caption_window`` > 0,
    :func:`smooth_caption_embeddings`), or each frame's own as the paper (both off).
 2. **Semantics per object** (:func:`object_semantics`): an object whose caption embeddings all lie
-   within ``extensions.semantic_change_tolerance`` of their mean (with ``caption_segments``: whose
-   captions have no change point) never changes; for the others the number of distinct caption states
+   within ``extensions.semantic_change_tolerance`` of their mean, and in whose captions (with
+   ``caption_segments``) the test found no change point, never changes; for the others the number of distinct caption states
    is the largest k (2..cap) whose k-means clusters each persist over consecutive frames (paraphrases
    alternate frame to frame, states hold). ``K`` per scene is the largest count (capped by
    ``status.num_states``), unless fixed (the K ablation).
