@@ -24,6 +24,33 @@ def test_the_full_architectures_have_the_published_sizes(backend):
     assert count == pytest.approx(PUBLISHED_PARAMETERS[backend], rel=0.02)
 
 
+def test_build_makes_the_model_in_its_run_dtype_and_restores_the_default(monkeypatch):
+    import torch
+
+    seen = []
+    real_classes = real_cost.model_classes
+
+    def recording_classes():
+        classes = dict(real_classes())
+        original = classes["clip"]
+
+        def make(config):
+            seen.append(torch.get_default_dtype())  # the dtype the weights are created in
+            return original(config)
+        classes["clip"] = make
+        return classes
+
+    monkeypatch.setattr(real_cost, "model_classes", recording_classes)
+    before = torch.get_default_dtype()
+    model = real_cost.build("clip", "tiny", "cpu", dtype=torch.bfloat16)  # as on CUDA
+    assert seen == [torch.bfloat16] and {p.dtype for p in model.parameters()} == {torch.bfloat16}
+    assert torch.get_default_dtype() == before
+    assert {p.dtype for p in real_cost.build("clip", "tiny", "cpu").parameters()} == {torch.float32}
+    assert seen[-1] == torch.float32
+    row = real_cost._measure_backend("clip", RealCostConfig(size="tiny", repeats=1, crops_per_batch=2), 56, 84)
+    assert row["weights_gpu_gib"] is None and row["peak_gpu_gib"] is None and row["crop_seconds"] > 0
+
+
 def _units(sam=2.0, crop=0.01, video=30.0, frame=12.0, text=0.05):
     return {"sam": {"frame_seconds": sam}, "clip": {"crop_seconds": crop},
             "qwen2vl": {"video_request_seconds": video, "frame_request_seconds": frame}, "e5": {"text_seconds": text}}

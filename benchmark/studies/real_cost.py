@@ -160,16 +160,24 @@ def model_classes() -> dict[str, type]:
             "e5": MistralModel}
 
 
-def build(backend: str, size: str, device: str):
-    """The backend's network with random weights, on ``device``, in eval mode: bfloat16 on CUDA (the
-    checkpoints' own dtype; random weights overflow float16), float32 on the CPU."""
+def build(backend: str, size: str, device: str, dtype=None):
+    """The backend's network with random weights, on ``device``, in eval mode, in ``dtype`` (default bfloat16 on
+    CUDA, the checkpoints' own dtype, as random weights overflow float16; float32 on the CPU)."""
     import torch
 
     config = _configs(size)[backend]
-    dtype = torch.bfloat16 if str(device).startswith("cuda") else torch.float32
+    if dtype is None:
+        dtype = torch.bfloat16 if str(device).startswith("cuda") else torch.float32
     torch.manual_seed(0)
-    with torch.device(device):  # initialised where it runs: a 7B model never passes through host memory
-        model = model_classes()[backend](config)
+    previous = torch.get_default_dtype()
+    # Initialised where it runs and in the dtype it runs in: a 7B model never passes through host memory, and
+    # its float32 copy (twice the bfloat16 weights) never sits on the GPU to inflate the measured peak.
+    torch.set_default_dtype(dtype)
+    try:
+        with torch.device(device):
+            model = model_classes()[backend](config)
+    finally:
+        torch.set_default_dtype(previous)
     return model.to(dtype=dtype).eval()
 
 
@@ -275,10 +283,41 @@ def _peak_reset(device: str) -> None:
         torch.cuda.reset_peak_memory_stats(device)
 
 
+def _allocated_gib(device: str) -> Optional[float]:
+    import torch
+
+    return torch.cuda.memory_allocated(device) / 2 ** 30 if str(device).startswith("cuda") else None
+
+
 def _peak_gib(device: str) -> Optional[float]:
     import torch
 
     return torch.cuda.max_memory_allocated(device) / 2 ** 30 if str(device).startswith("cuda") else None
+
+
+def _measure_backend(backend: str, cfg: RealCostConfig, width: int, height: int) -> dict[str, Any]:
+    """Build one backend, time its unit of work, and report its weights' and its peak GPU memory."""
+    _peak_reset(cfg.device)
+    t0 = time.perf_counter()
+    model = build(backend, cfg.size, cfg.device)
+    built = time.perf_counter() - t0
+    params = sum(p.numel() for p in model.parameters())
+    row: dict[str, Any] = {"backend": BACKEND_NAMES[backend], "parameters": params, "build_seconds": built,
+                           "weights_gpu_gib": _allocated_gib(cfg.device)}
+    if backend == "sam":
+        row["frame_seconds"] = _timed(sam_frame(model, cfg), cfg.repeats, cfg.device)
+    elif backend == "clip":
+        row["crop_seconds"] = _timed(clip_batch(model, cfg), cfg.repeats, cfg.device) / cfg.crops_per_batch
+    elif backend == "qwen2vl":
+        video, video_tokens = qwen_request(model, cfg, cfg.video_frames, width, height)
+        frame, frame_tokens = qwen_request(model, cfg, 3, width, height)
+        row.update(video_request_seconds=_timed(video, cfg.repeats, cfg.device), video_input_tokens=video_tokens,
+                   frame_request_seconds=_timed(frame, cfg.repeats, cfg.device), frame_input_tokens=frame_tokens,
+                   image_size=[width, height])
+    else:
+        row["text_seconds"] = _timed(e5_batch(model, cfg), cfg.repeats, cfg.device) / cfg.text_batch
+    row["peak_gpu_gib"] = _peak_gib(cfg.device)
+    return row
 
 
 def measure_units(cfg: RealCostConfig, log: Callable[[str], None] = print) -> dict[str, dict]:
@@ -289,29 +328,11 @@ def measure_units(cfg: RealCostConfig, log: Callable[[str], None] = print) -> di
     width, height = (cfg.width, cfg.height) if cfg.size == "full" else tiny_image
     units: dict[str, dict] = {}
     for backend in ("sam", "clip", "qwen2vl", "e5"):
-        _peak_reset(cfg.device)
-        t0 = time.perf_counter()
-        model = build(backend, cfg.size, cfg.device)
-        built = time.perf_counter() - t0
-        params = sum(p.numel() for p in model.parameters())
-        row: dict[str, Any] = {"backend": BACKEND_NAMES[backend], "parameters": params, "build_seconds": built}
-        if backend == "sam":
-            row["frame_seconds"] = _timed(sam_frame(model, cfg), cfg.repeats, cfg.device)
-        elif backend == "clip":
-            row["crop_seconds"] = _timed(clip_batch(model, cfg), cfg.repeats, cfg.device) / cfg.crops_per_batch
-        elif backend == "qwen2vl":
-            video, video_tokens = qwen_request(model, cfg, cfg.video_frames, width, height)
-            frame, frame_tokens = qwen_request(model, cfg, 3, width, height)
-            row.update(video_request_seconds=_timed(video, cfg.repeats, cfg.device), video_input_tokens=video_tokens,
-                       frame_request_seconds=_timed(frame, cfg.repeats, cfg.device), frame_input_tokens=frame_tokens,
-                       image_size=[width, height])
-        else:
-            row["text_seconds"] = _timed(e5_batch(model, cfg), cfg.repeats, cfg.device) / cfg.text_batch
-        row["peak_gpu_gib"] = _peak_gib(cfg.device)
-        units[backend] = row
-        log(f"real-cost: {row['backend']}: {params / 1e6:,.1f} M parameters, "
+        # one call per backend: its weights and the closures that hold them are gone before the next is built
+        units[backend] = _measure_backend(backend, cfg, width, height)
+        row = units[backend]
+        log(f"real-cost: {row['backend']}: {row['parameters'] / 1e6:,.1f} M parameters, "
             + ", ".join(f"{k} {v:.4g}" for k, v in row.items() if k.endswith("seconds")))
-        del model
         if str(cfg.device).startswith("cuda"):
             torch.cuda.empty_cache()
     return units
@@ -372,8 +393,8 @@ def render(units: dict[str, dict], rows: list[dict], cfg: RealCostConfig, env: d
         [units["e5"]["backend"], f"{units['e5']['parameters'] / 1e6:,.0f} M",
          f"one caption of {cfg.text_tokens} tokens (batches of {cfg.text_batch})",
          number_cell(units["e5"]["text_seconds"], 5)]]
-    peaks = ", ".join(f"{u['backend']} {u['peak_gpu_gib']:.1f} GiB" for u in units.values()
-                      if u.get("peak_gpu_gib") is not None)
+    peaks = ", ".join(f"{u['backend']} {u['weights_gpu_gib']:.1f} / {u['peak_gpu_gib']:.1f} GiB"
+                      for u in units.values() if u.get("peak_gpu_gib") is not None)
     scene_rows = [[r["scene"], r["dataset"], str(r["frames"]), str(r["captions"])]
                   + [_hours(r[f"{k}_seconds"]) for k in ("sam", "clip", "qwen2vl", "e5", "total")] for r in rows]
     total = sum(r["total_seconds"] for r in rows)
@@ -388,7 +409,8 @@ def render(units: dict[str, dict], rows: list[dict], cfg: RealCostConfig, env: d
         "early, so each caption request is timed at its full length.\n",
         "## Seconds per unit of work\n",
         markdown_table(["backend", "parameters", "unit", "seconds"], unit_rows),
-        "" if not peaks else f"\nPeak GPU memory (weights and the unit's activations): {peaks}.\n",
+        "" if not peaks else ("\nGPU memory, weights / peak of the unit (weights and activations), one backend at a "
+                              f"time: {peaks}.\n"),
         "## Projected supervision time of the paper's scenes (hours)\n",
         "Frames: the images the release's preprocessing segments, encodes and captions (Neu3D: 20 training cameras "
         f"x 300 frames; HyperNeRF: {cfg.hypernerf_frames} frames each, chickchicken's count in the shared files). "
