@@ -419,11 +419,26 @@ def test_generate_refuses_to_clobber_user_folders(tmp_path):
         generate("smoke", out, size=24, frames=5)
     generate("smoke", out, size=24, frames=6, overwrite=True)
     assert load_truth(out).num_frames == 6
-    for bad, field in (({"size": 25}, "size"), ({"frames": 2}, "frames"), ({"layout": "llff"}, "layout")):
+    for bad, field in (({"size": 25}, "size"), ({"frames": 2}, "frames"), ({"layout": "llff"}, "layout"),
+                       ({"height": 27}, "height"), ({"size": 24, "height": 200}, "height")):
         with pytest.raises(InputError, match=field):
             generate("smoke", tmp_path / "x", **bad)
     with pytest.raises(InputError, match="did you mean 'split-cookie'"):
         generate("split-cookies", tmp_path / "y")
+
+
+def test_generate_takes_an_image_height_and_the_scene_says_so(tmp_path):
+    from benchmark.loaders import load_scene
+
+    default = load_scene(generate("smoke", tmp_path / "default", size=24, frames=5))
+    tall = generate("smoke", tmp_path / "tall", size=24, height=44, frames=5)  # the HyperNeRF captures' 536:960
+    scene = load_scene(tall)
+    assert {(f.camera.width, f.camera.height) for f in scene.frames} == {(24, 44)}
+    assert {(f.camera.width, f.camera.height) for f in default.frames} == {(24, 32)}  # the layout's 3:4
+    assert json.loads((tall / "bench4d_meta.json").read_text())["height"] == 44
+    assert "height" not in json.loads((tmp_path / "default" / "bench4d_meta.json").read_text())
+    # the horizontal field of view stays the layout's: the same focal length in x
+    assert np.allclose([f.camera.fx for f in scene.frames], default.frames[0].camera.fx)
 
 
 # -- the bench4d data command ------------------------------------------------------------------------

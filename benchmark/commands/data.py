@@ -1,7 +1,7 @@
 """``bench4d data``: make, validate and show scenes.
 
     bench4d data presets                                   # list the synthetic presets
-    bench4d data make-synthetic PRESET --out DIR [--size 128] [--frames N] [--views N]
+    bench4d data make-synthetic PRESET --out DIR [--size 128] [--height H] [--frames N] [--views N]
                                 [--layout hypernerf|neu3d|dnerf] [--seed S] [--overwrite]
     bench4d data validate DIR [--annotations FILE]         # scene + annotations (+ generator truth)
     bench4d data show DIR [--out sheet.png] [--frames 4]   # contact sheet: frames with GT masks
@@ -33,6 +33,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     mk.add_argument("preset", help="preset name (see 'bench4d data presets')")
     mk.add_argument("--out", type=Path, required=True, help="scene folder to create")
     mk.add_argument("--size", type=int, default=None, help="image width in pixels (default: the preset's, 128)")
+    mk.add_argument("--height", type=int, default=None,
+                    help="image height in pixels (default: the layout's aspect; HyperNeRF captures: --size 536 "
+                         "--height 960)")
     mk.add_argument("--frames", type=int, default=None, help="video length (default: the preset's)")
     mk.add_argument("--views", type=int, default=None, help="cameras of the rig in the neu3d layout")
     mk.add_argument("--layout", choices=("hypernerf", "neu3d", "dnerf"), default=None,
@@ -90,7 +93,8 @@ def _make(args: argparse.Namespace) -> int:
 
     start = time.perf_counter()
     out = generate(args.preset, args.out, size=args.size, frames=args.frames, views=args.views,
-                   layout=args.layout, seed=args.seed, overwrite=args.overwrite, shadows=not args.no_shadows)
+                   layout=args.layout, seed=args.seed, overwrite=args.overwrite, shadows=not args.no_shadows,
+                   height=args.height)
     print(f"wrote {out} in {time.perf_counter() - start:.1f} s")
     return _validate(argparse.Namespace(scene=out, annotations=None))
 

@@ -73,8 +73,8 @@ def _publish(staging: Path, out: Path) -> None:
 
 
 def resolve_settings(preset: str, size: Optional[int], frames: Optional[int], views: Optional[int],
-                     layout: Optional[str]) -> tuple[PresetSpec, int, int, int, str]:
-    """(spec, size, frames, views, layout) with defaults filled in and values checked."""
+                     layout: Optional[str], height: Optional[int] = None) -> tuple[PresetSpec, int, int, int, str]:
+    """(spec, size, frames, views, layout) with defaults filled in and values checked (``height`` checked only)."""
     spec = _spec(preset)
     layout = layout or spec.default_layout
     if layout not in layouts.LAYOUTS:
@@ -82,6 +82,9 @@ def resolve_settings(preset: str, size: Optional[int], frames: Optional[int], vi
     size = spec.default_size if size is None else int(size)
     if size < 8 or size % 2:
         raise InputError(None, "size", f"image width must be an even number >= 8, got {size}")
+    if height is not None and (int(height) < 8 or int(height) % 2 or not 0.25 <= int(height) / size <= 4):
+        raise InputError(None, "height", f"image height must be an even number >= 8 within 1/4 to 4 times the "
+                                         f"width ({size}), got {height}")
     frames = spec.default_frames if frames is None else int(frames)
     if frames < MIN_FRAMES:
         raise InputError(None, "frames", f"need at least {MIN_FRAMES} frames, got {frames}")
@@ -101,32 +104,35 @@ def preset_rng(preset: str, seed: int) -> np.random.Generator:
 
 def generate(preset: str, out_dir: str | Path, *, size: Optional[int] = None, frames: Optional[int] = None,
              views: Optional[int] = None, layout: Optional[str] = None, seed: int = 0, overwrite: bool = False,
-             shadows: bool = True, perturbation=None) -> Path:
+             shadows: bool = True, perturbation=None, height: Optional[int] = None) -> Path:
     """Render preset ``preset`` into ``out_dir`` and return the folder.
 
     ``size`` is the image width in pixels (default: the preset's, 128); ``frames`` the video length;
     ``views`` the rig size in the Neu3D layout; ``layout`` one of ``hypernerf``, ``neu3d``, ``dnerf``
-    (default: the preset's). The same arguments and ``seed`` give identical files, on any x86-64 CPU with
+    (default: the preset's); ``height`` the image height in pixels (default: the layout's aspect, e.g. 536 wide
+    in the HyperNeRF layout is 714 high; 960 gives the real HyperNeRF captures' 536x960). The same arguments and ``seed`` give identical files, on any x86-64 CPU with
     AVX2: where numpy's BLAS runs other kernels than the committed scene versions were made with, the
     scene is rendered in a child process that runs theirs (:mod:`benchmark.core.openblas`).
     ``perturbation``: a stress-suite knob ``(family, strength)`` applied to the preset
     (:mod:`benchmark.synthetic.perturb`; strength 0 is the clean scene).
     """
     perturbation = parse_perturbation(perturbation)
-    spec, size, frames, views, layout = resolve_settings(preset, size, frames, views, layout)
+    spec, size, frames, views, layout = resolve_settings(preset, size, frames, views, layout, height)
+    height = None if height is None else int(height)
     out = Path(out_dir)
     _check_target(out, overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
     if openblas.generation_needs_pinned_process():
         _generate_in_pinned_process(dict(preset=preset, out_dir=str(out), size=size, frames=frames, views=views,
                                          layout=layout, seed=int(seed), overwrite=overwrite, shadows=shadows,
+                                         height=height,
                                          perturbation=None if perturbation is None else
                                          [perturbation.family, perturbation.strength]))
         return out
 
     rng = preset_rng(preset, seed)
     scene = spec.build(rng, frames)
-    records = layouts.plan(layout, scene, size, frames, views, rng)
+    records = layouts.plan(layout, scene, size, frames, views, rng, height=height)
     if perturbation is not None:
         scene, records = perturbation.apply(scene, records, seed)
     catalogue = Catalogue.build(scene.wholes)
@@ -166,6 +172,8 @@ def generate(preset: str, out_dir: str | Path, *, size: Optional[int] = None, fr
         near_far = {cam: (lo * NEAR_FAR_MARGIN[0], hi * NEAR_FAR_MARGIN[1]) for cam, (lo, hi) in depth_range.items()}
         info = {"generator": GENERATOR, "generator_version": GENERATOR_VERSION, "preset": preset, "seed": int(seed),
                 "size": size, "num_views": views, "time_sensitive": spec.time_sensitive}
+        if height is not None:
+            info["height"] = height  # in the truth too: the digest names it (absent: the layout's aspect)
         if perturbation is not None and not perturbation.is_clean:
             info["perturbation"] = perturbation.describe()  # in the truth too: the digest names it
         all_near = min(v[0] for v in near_far.values())

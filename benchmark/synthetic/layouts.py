@@ -21,10 +21,11 @@ Frame names, splits and times per layout
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Literal, Optional
 
 import cv2
 import numpy as np
@@ -105,9 +106,13 @@ class FrameRecord:
 
 
 def plan(layout: Layout, scene: SceneDef, width: int, num_frames: int, num_views: int,
-         rng: np.random.Generator, rule: SplitRule = SplitRule()) -> list[FrameRecord]:
-    """Cameras, names, splits and times of every image of the layout."""
+         rng: np.random.Generator, rule: SplitRule = SplitRule(), height: Optional[int] = None) -> list[FrameRecord]:
+    """Cameras, names, splits and times of every image of the layout; ``height`` replaces the layout's image
+    aspect (the horizontal field of view stays the layout's)."""
     spec = LAYOUT_SPECS[layout]
+    if height is not None:
+        intrinsics = dataclasses.replace(spec.setup.intrinsics, height_over_width=height / width)
+        spec = dataclasses.replace(spec, setup=dataclasses.replace(spec.setup, intrinsics=intrinsics))
     c, r = scene.focus_center, scene.focus_radius
     n = num_frames
     if layout == "hypernerf":
