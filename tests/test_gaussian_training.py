@@ -887,3 +887,16 @@ def test_a_fit_checkpoints_between_stages_but_not_as_it_completes(moving_scene, 
     saved.clear()
     Trainer(moving_scene, small_recon_config(5, 0), rasterize_fn=RAST, checkpoint=ck).fit_3dgs(5)
     assert saved == []
+
+
+def test_even_subsample_stays_in_range_where_float32_spacing_exceeds_one():
+    import torch
+
+    from methods.gaussians.train import even_subsample
+
+    n, k = 20_000_000, 1_000_000  # float32 spacing is 2 here: torch.linspace's last index rounds up to n
+    idx = even_subsample(n, k)
+    assert idx.dtype == torch.int64 and idx.shape == (k,)
+    assert int(idx[0]) == 0 and int(idx[-1]) == n - 1 and bool((idx[1:] > idx[:-1]).all())
+    gaps = idx[1:] - idx[:-1]
+    assert int(gaps.min()) >= (n - 1) // (k - 1) and int(gaps.max()) <= (n - 1) // (k - 1) + 1

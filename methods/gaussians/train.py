@@ -65,6 +65,19 @@ class RGBView:
     """(H, W) bool foreground mask when the scene has one."""
 
 
+QUANTILE_INPUT_LIMIT = 1_000_000
+"""Most points ``torch.quantile`` takes (its input limit is 2^24 elements: 1M points of 3 coordinates fit)."""
+
+
+def even_subsample(n: int, k: int, device: torch.device | str = "cpu") -> torch.Tensor:
+    """(k,) int64 indices spread evenly over ``range(n)``, first 0 and last ``n - 1`` (``k <= n``, ``k >= 2``).
+
+    Integer arithmetic: ``torch.linspace(0, n - 1, k)`` is float32, whose spacing above 2^24 is 2 or more,
+    so its last index can round up to ``n`` (n = 20 000 000 does) and overrun the array (a CUDA device-side
+    assert at 536x960, where 64 views give 33M candidate pixels)."""
+    return torch.arange(k, device=device, dtype=torch.int64) * (n - 1) // (k - 1)
+
+
 def make_views(frames: Sequence[Frame], device: torch.device | str = "cpu", with_images: bool = True) -> list[RGBView]:
     """Load ``frames`` as :class:`RGBView` objects (images decoded once; 128-px scenes hold easily in memory)."""
     views = []
@@ -508,8 +521,8 @@ class Trainer:
     def _robust_box(self, points: torch.Tensor, percentile: float) -> torch.Tensor:
         """(2, 3) box of the (N, 3) ``points`` between their ``percentile`` and ``100 - percentile``
         percentiles, widened by ``bounds_margin`` of its size on each side (the plane box and the motion box)."""
-        if points.shape[0] > 1_000_000:  # quantile's input limit; an even subsample keeps the percentiles
-            points = points[torch.linspace(0, points.shape[0] - 1, 1_000_000, device=points.device).long()]
+        if points.shape[0] > QUANTILE_INPUT_LIMIT:  # an even subsample keeps the percentiles
+            points = points[even_subsample(points.shape[0], QUANTILE_INPUT_LIMIT, points.device)]
         q = torch.tensor([percentile / 100.0, 1.0 - percentile / 100.0], device=points.device)
         lo, hi = torch.quantile(points, q, dim=0)
         pad = (hi - lo).clamp_min(1e-3 * self.extent) * self.cfg.deformation.hexplane.bounds_margin
