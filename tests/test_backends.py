@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from benchmark.cli import main
 from methods.backends import BACKENDS, locate
 
@@ -52,3 +54,16 @@ def test_models_lists_every_backend_and_doctor_says_what_is_missing(tmp_path, mo
     assert sum(line.startswith("[--] weights") for line in out) == len(BACKENDS)
     assert any(line.startswith("[ok] disk:") for line in out)
     assert out[-1].endswith("thing(s) missing")
+    memory = [line for line in out if line[5:].startswith("memory:")]
+    assert len(memory) == 1 and "PyTorch rasterizer" in memory[0]  # no gsplat on CUDA here
+
+
+def test_doctor_counts_the_pytorch_rasterizers_working_set_where_gsplat_cannot_run():
+    from benchmark.commands.doctor import GB, TORCH_RASTER_BYTES_PER_PIXEL, scene_needs
+
+    with_gsplat = scene_needs(960, 536, 200)
+    without = scene_needs(960, 536, 200, torch_rasterizer=True)
+    assert with_gsplat["rasterizer_gb"] == 0 and with_gsplat["disk_gb"] == without["disk_gb"]
+    raster = 960 * 536 * TORCH_RASTER_BYTES_PER_PIXEL / GB
+    assert without["rasterizer_gb"] == round(raster, 1) and 10 < raster < 25  # a 536x960 view: over 10 GB
+    assert without["memory_gb"] == pytest.approx(with_gsplat["memory_gb"] + raster, abs=0.11)

@@ -22,13 +22,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="real: check the model weights too (default)")
 
 
-def scene_needs(width: int, height: int, frames: int) -> dict[str, float]:
+TORCH_RASTER_BYTES_PER_PIXEL = 40 * 1024
+"""Working set of the PyTorch rasterizer's training step per pixel of the rendered view (its candidates and
+what autograd keeps of them). Measured 18-38 KB: 128x170 CPU fits (about 0.9 GB peak, 0.5 GB of it the
+process), the tiny real track at 536x714 on CUDA (8.8-14.5 GB of GPU memory); at 536x960 a CPU run was killed
+past 23 GB, so the upper end is what a check should assume. gsplat's CUDA kernels need a small fraction."""
+
+
+def scene_needs(width: int, height: int, frames: int, torch_rasterizer: bool = False) -> dict[str, float]:
     """Rough GB a scene needs: on disk (images, three mask levels, latent features, fits) and in memory
-    (its images and training views loaded at once)."""
+    (its images and training views loaded at once; with ``torch_rasterizer``, where gsplat cannot run, the
+    PyTorch rasterizer's working set as well, in host memory on a CPU and in GPU memory on CUDA)."""
     pixels = width * height * frames
     disk = pixels * (3 + 3 * 2 + 3 * 3 * 4) / GB + 2.0  # RGB, int16 masks, 3x3 float latents; fits and features
     memory = pixels * (3 * 4 + 3 * 2) / GB + 4.0  # float images and masks, plus models and working set
-    return {"disk_gb": round(disk, 1), "memory_gb": round(memory, 1)}
+    raster = width * height * TORCH_RASTER_BYTES_PER_PIXEL / GB if torch_rasterizer else 0.0
+    return {"disk_gb": round(disk, 1), "memory_gb": round(memory + raster, 1), "rasterizer_gb": round(raster, 1)}
 
 
 def _free_memory_gb() -> float:
@@ -46,11 +55,13 @@ def checks(args: argparse.Namespace) -> list[tuple[bool, str]]:
     from methods.backends import BACKENDS, locate, module_available
 
     out: list[tuple[bool, str]] = [(sys.version_info >= (3, 10), f"python {sys.version.split()[0]}")]
+    cuda_free = None  # GB free on the GPU, None without CUDA
     try:
         import torch
         out.append((True, f"torch {torch.__version__}"))
         if torch.cuda.is_available():
             free, total = torch.cuda.mem_get_info()
+            cuda_free = free / GB
             out.append((True, f"CUDA: {torch.cuda.get_device_name(0)}, {free / GB:.1f} of {total / GB:.1f} GB free"))
         else:
             out.append((False, "CUDA: not available (runs use the CPU: fine for the oracle track at small sizes)"))
@@ -69,7 +80,7 @@ def checks(args: argparse.Namespace) -> list[tuple[bool, str]]:
             found = locate(backend)
             where = found.source if found.path is None else f"{found.source}: {found.path}"
             out.append((found.present, f"weights {backend.name}: {'present' if found.present else 'missing'} ({where})"))
-    need = scene_needs(args.width, args.height, args.frames)
+    need = scene_needs(args.width, args.height, args.frames, torch_rasterizer=not (gsplat and cuda_free is not None))
     folder = args.cache_dir if args.cache_dir.exists() else args.cache_dir.resolve().parent
     while not folder.exists():
         folder = folder.parent
@@ -77,8 +88,17 @@ def checks(args: argparse.Namespace) -> list[tuple[bool, str]]:
     out.append((free >= need["disk_gb"], f"disk: {free:.1f} GB free under {folder}, a {args.width}x{args.height} scene "
                                          f"of {args.frames} training frames needs about {need['disk_gb']} GB"))
     memory = _free_memory_gb()
-    out.append((memory >= need["memory_gb"], f"memory: {memory:.1f} GB available, the scene needs about "
-                                             f"{need['memory_gb']} GB; {os.cpu_count()} CPU cores"))
+    raster = need["rasterizer_gb"]
+    hint = "gsplat on a CUDA GPU needs a small fraction of it; or --scale 0.5 for a quarter"
+    if raster and cuda_free is not None:  # the PyTorch rasterizer on CUDA: its working set is GPU memory
+        out.append((cuda_free >= raster, f"GPU memory: {cuda_free:.1f} GB free, the PyTorch rasterizer needs about "
+                                         f"{raster} GB at {args.width}x{args.height} ({hint})"))
+        host, raster_note = need["memory_gb"] - raster, ""
+    else:
+        host = need["memory_gb"]
+        raster_note = f", {raster} GB of it the PyTorch rasterizer's ({hint})" if raster else ""
+    out.append((memory >= host, f"memory: {memory:.1f} GB available, the scene needs about {host:.1f} GB"
+                                f"{raster_note}; {os.cpu_count()} CPU cores"))
     return out
 
 
