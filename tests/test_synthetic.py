@@ -441,6 +441,19 @@ def test_generate_takes_an_image_height_and_the_scene_says_so(tmp_path):
     assert np.allclose([f.camera.fx for f in scene.frames], default.frames[0].camera.fx)
 
 
+@pytest.mark.parametrize("layout", ["hypernerf", "neu3d"])
+def test_rendering_in_several_processes_writes_the_same_files(tmp_path, layout):
+    one = generate("smoke", tmp_path / "one" / "scene", size=24, frames=5, layout=layout, views=3)
+    three = generate("smoke", tmp_path / "three" / "scene", size=24, frames=5, layout=layout, views=3, jobs=3)
+    files = sorted(p.relative_to(one) for p in one.rglob("*") if p.is_file())
+    assert files == sorted(p.relative_to(three) for p in three.rglob("*") if p.is_file())
+    assert len(files) > 10
+    for rel in files:
+        assert (one / rel).read_bytes() == (three / rel).read_bytes(), rel
+    with pytest.raises(InputError, match="jobs"):
+        generate("smoke", tmp_path / "none", size=24, frames=5, jobs=0)
+
+
 # -- the bench4d data command ------------------------------------------------------------------------
 def test_cli_make_validate_show(tmp_path, capsys):
     from benchmark.cli import main

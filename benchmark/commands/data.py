@@ -2,7 +2,7 @@
 
     bench4d data presets                                   # list the synthetic presets
     bench4d data make-synthetic PRESET --out DIR [--size 128] [--height H] [--frames N] [--views N]
-                                [--layout hypernerf|neu3d|dnerf] [--seed S] [--overwrite]
+                                [--layout hypernerf|neu3d|dnerf] [--seed S] [--overwrite] [--jobs N]
     bench4d data validate DIR [--annotations FILE]         # scene + annotations (+ generator truth)
     bench4d data show DIR [--out sheet.png] [--frames 4]   # contact sheet: frames with GT masks
     bench4d data timing [--size 128] [--out reports/synthetic_generation.md]
@@ -43,6 +43,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     mk.add_argument("--seed", type=int, default=0, help="random seed (placement, colours, state times, cameras)")
     mk.add_argument("--overwrite", action="store_true", help="replace a previously generated scene in --out")
     mk.add_argument("--no-shadows", action="store_true", help="skip shadow rays (faster, fewer depth cues)")
+    mk.add_argument("--jobs", type=int, default=1,
+                    help="processes rendering the frames (the files are the same for any count; default 1)")
 
     va = sub.add_parser("validate", help="check that a scene and its annotations agree")
     va.add_argument("scene", type=Path, help="scene folder")
@@ -94,7 +96,7 @@ def _make(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     out = generate(args.preset, args.out, size=args.size, frames=args.frames, views=args.views,
                    layout=args.layout, seed=args.seed, overwrite=args.overwrite, shadows=not args.no_shadows,
-                   height=args.height)
+                   height=args.height, jobs=args.jobs)
     print(f"wrote {out} in {time.perf_counter() - start:.1f} s")
     return _validate(argparse.Namespace(scene=out, annotations=None))
 

@@ -16,8 +16,9 @@ import tempfile
 import time
 import zlib
 from collections import defaultdict
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 import numpy as np
 
@@ -104,7 +105,7 @@ def preset_rng(preset: str, seed: int) -> np.random.Generator:
 
 def generate(preset: str, out_dir: str | Path, *, size: Optional[int] = None, frames: Optional[int] = None,
              views: Optional[int] = None, layout: Optional[str] = None, seed: int = 0, overwrite: bool = False,
-             shadows: bool = True, perturbation=None, height: Optional[int] = None) -> Path:
+             shadows: bool = True, perturbation=None, height: Optional[int] = None, jobs: int = 1) -> Path:
     """Render preset ``preset`` into ``out_dir`` and return the folder.
 
     ``size`` is the image width in pixels (default: the preset's, 128); ``frames`` the video length;
@@ -114,61 +115,37 @@ def generate(preset: str, out_dir: str | Path, *, size: Optional[int] = None, fr
     AVX2: where numpy's BLAS runs other kernels than the committed scene versions were made with, the
     scene is rendered in a child process that runs theirs (:mod:`benchmark.core.openblas`).
     ``perturbation``: a stress-suite knob ``(family, strength)`` applied to the preset
-    (:mod:`benchmark.synthetic.perturb`; strength 0 is the clean scene).
+    (:mod:`benchmark.synthetic.perturb`; strength 0 is the clean scene). ``jobs``: processes that render
+    the frames (contiguous runs of time steps each); the files are the same for any count.
     """
     perturbation = parse_perturbation(perturbation)
     spec, size, frames, views, layout = resolve_settings(preset, size, frames, views, layout, height)
     height = None if height is None else int(height)
+    if int(jobs) < 1:
+        raise InputError(None, "jobs", f"must be at least 1, got {jobs}")
+    jobs = min(int(jobs), frames)
     out = Path(out_dir)
     _check_target(out, overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
     if openblas.generation_needs_pinned_process():
         _generate_in_pinned_process(dict(preset=preset, out_dir=str(out), size=size, frames=frames, views=views,
                                          layout=layout, seed=int(seed), overwrite=overwrite, shadows=shadows,
-                                         height=height,
+                                         height=height, jobs=jobs,
                                          perturbation=None if perturbation is None else
                                          [perturbation.family, perturbation.strength]))
         return out
 
-    rng = preset_rng(preset, seed)
-    scene = spec.build(rng, frames)
-    records = layouts.plan(layout, scene, size, frames, views, rng, height=height)
-    if perturbation is not None:
-        scene, records = perturbation.apply(scene, records, seed)
-    catalogue = Catalogue.build(scene.wholes)
-    by_time: dict[int, list[layouts.FrameRecord]] = defaultdict(list)
-    for rec in records:
-        by_time[rec.time_index].append(rec)
-    background = layouts.LAYOUT_SPECS[layout].background
+    plan = _Plan(preset, seed, frames, size, views, layout, height, perturbation)
+    scene, catalogue, records = plan.build()
 
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.staging-", dir=out.parent))
     try:
         truth_dir = staging / TRUTH_DIR
-        depth_range: dict[str, list[float]] = {}
-        evaluated = []
-        # The surroundings are static: a fixed camera (a rig) sees the same background every frame.
-        bg = background_instances(scene, FrameContext(0, frames)) if background else []
-        static_layers: dict[int, SurfaceLayer] = {}
-        for ti in range(frames):
-            insts = instances(scene, catalogue, FrameContext(ti, frames), background=False)
-            for rec in by_time[ti]:
-                static = None
-                if bg:
-                    key = id(rec.camera)  # rig frames share their camera object
-                    if key not in static_layers:
-                        if layout != "neu3d":
-                            static_layers.clear()  # a moving camera never sees the same layer twice
-                        static_layers[key] = surfaces(bg, rec.camera)
-                    static = static_layers[key]
-                res = render(insts, rec.camera, scene.light, shadows=shadows, static=static)
-                layouts.write_image(staging, layout, rec, res)
-                save_levels(truth_dir, rec.name, res.ids, res.depth)
-                finite = res.depth[np.isfinite(res.depth)]
-                if finite.size:
-                    lo, hi = depth_range.setdefault(rec.camera_id, [np.inf, 0.0])
-                    depth_range[rec.camera_id] = [min(lo, float(finite.min())), max(hi, float(finite.max()))]
-                if rec.split == "test":
-                    evaluated.append((rec.name, ti, rec.camera_id, res.ids))
+        if jobs == 1:
+            depth_range, evaluated = _render_frames(plan, staging, range(frames), shadows, built=(scene, catalogue,
+                                                                                                 records))
+        else:
+            depth_range, evaluated = _render_in_processes(plan, staging, jobs, shadows)
         near_far = {cam: (lo * NEAR_FAR_MARGIN[0], hi * NEAR_FAR_MARGIN[1]) for cam, (lo, hi) in depth_range.items()}
         info = {"generator": GENERATOR, "generator_version": GENERATOR_VERSION, "preset": preset, "seed": int(seed),
                 "size": size, "num_views": views, "time_sensitive": spec.time_sensitive}
@@ -195,6 +172,87 @@ def generate(preset: str, out_dir: str | Path, *, size: Optional[int] = None, fr
         if staging.exists():
             shutil.rmtree(staging, ignore_errors=True)
     return out
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """What a scene is built from: every process that renders its frames rebuilds the same scene from it."""
+
+    preset: str
+    seed: int
+    frames: int
+    size: int
+    views: int
+    layout: str
+    height: Optional[int]
+    perturbation: Any
+
+    def build(self):
+        """(scene, catalogue, frame records): the preset's random stream, its layout's plan, the knob."""
+        rng = preset_rng(self.preset, self.seed)
+        scene = _spec(self.preset).build(rng, self.frames)
+        records = layouts.plan(self.layout, scene, self.size, self.frames, self.views, rng, height=self.height)
+        if self.perturbation is not None:
+            scene, records = self.perturbation.apply(scene, records, self.seed)
+        return scene, Catalogue.build(scene.wholes), records
+
+
+def _render_frames(plan: _Plan, staging: Path, times, shadows: bool, built=None):
+    """Render the frames of the time steps ``times`` into ``staging`` (images and truth levels): their depth
+    range per camera and the evaluated frames' ``(name, time index, camera, ids)``, in time order."""
+    scene, catalogue, records = plan.build() if built is None else built
+    by_time: dict[int, list[layouts.FrameRecord]] = defaultdict(list)
+    for rec in records:
+        by_time[rec.time_index].append(rec)
+    truth_dir = staging / TRUTH_DIR
+    depth_range: dict[str, list[float]] = {}
+    evaluated = []
+    # The surroundings are static: a fixed camera (a rig) sees the same background every frame.
+    bg = background_instances(scene, FrameContext(0, plan.frames)) if layouts.LAYOUT_SPECS[plan.layout].background \
+        else []
+    static_layers: dict[int, SurfaceLayer] = {}
+    for ti in times:
+        insts = instances(scene, catalogue, FrameContext(ti, plan.frames), background=False)
+        for rec in by_time[ti]:
+            static = None
+            if bg:
+                key = id(rec.camera)  # rig frames share their camera object
+                if key not in static_layers:
+                    if plan.layout != "neu3d":
+                        static_layers.clear()  # a moving camera never sees the same layer twice
+                    static_layers[key] = surfaces(bg, rec.camera)
+                static = static_layers[key]
+            res = render(insts, rec.camera, scene.light, shadows=shadows, static=static)
+            layouts.write_image(staging, plan.layout, rec, res)
+            save_levels(truth_dir, rec.name, res.ids, res.depth)
+            finite = res.depth[np.isfinite(res.depth)]
+            if finite.size:
+                lo, hi = depth_range.setdefault(rec.camera_id, [np.inf, 0.0])
+                depth_range[rec.camera_id] = [min(lo, float(finite.min())), max(hi, float(finite.max()))]
+            if rec.split == "test":
+                evaluated.append((rec.name, ti, rec.camera_id, res.ids))
+    return depth_range, evaluated
+
+
+def _render_in_processes(plan: _Plan, staging: Path, jobs: int, shadows: bool):
+    """:func:`_render_frames` over ``jobs`` processes, each a contiguous run of time steps; merged in order."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    bounds = np.linspace(0, plan.frames, jobs + 1).round().astype(int)
+    chunks = [range(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+    # spawn: a fresh interpreter per worker (no forked BLAS threads), with this process's environment
+    with ProcessPoolExecutor(len(chunks), mp_context=multiprocessing.get_context("spawn")) as pool:
+        parts = list(pool.map(_render_frames, [plan] * len(chunks), [staging] * len(chunks), chunks,
+                              [shadows] * len(chunks)))
+    depth_range: dict[str, list[float]] = {}
+    evaluated = []
+    for part_range, part_evaluated in parts:
+        for cam, (lo, hi) in part_range.items():
+            old_lo, old_hi = depth_range.get(cam, [np.inf, 0.0])
+            depth_range[cam] = [min(old_lo, lo), max(old_hi, hi)]
+        evaluated += part_evaluated
+    return depth_range, evaluated
 
 
 def _generate_in_pinned_process(arguments: dict) -> None:
