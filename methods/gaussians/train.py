@@ -74,7 +74,7 @@ def even_subsample(n: int, k: int, device: torch.device | str = "cpu") -> torch.
 
     Integer arithmetic: ``torch.linspace(0, n - 1, k)`` is float32, whose spacing above 2^24 is 2 or more,
     so its last index can round up to ``n`` (n = 20 000 000 does) and overrun the array (a CUDA device-side
-    assert at 536x960, where 64 views give 33M candidate pixels)."""
+    assert at 536x960, where 36 training views give up to 18.5M candidate pixels)."""
     return torch.arange(k, device=device, dtype=torch.int64) * (n - 1) // (k - 1)
 
 
