@@ -134,6 +134,24 @@ def test_camera_teleport_reuses_the_clean_path_out_of_order(scenes):
     assert ann == ann_clean
 
 
+def test_camera_rig_adds_views_from_the_clean_path_at_every_training_time(scenes):
+    clean, rig = load_truth(scenes["clean"]), load_truth(scenes["camera-rig"])
+    extra = int(FAMILIES["camera-rig"].strengths[-1])
+    assert rig.evaluated_frames == clean.evaluated_frames  # the scored views stay monocular
+    assert set(clean.training_frames) < set(rig.training_frames)
+    assert len(rig.training_frames) == (1 + extra) * len(clean.training_frames)
+    clean_centres, rig_centres = _camera_centres(scenes["clean"]), _camera_centres(scenes["camera-rig"])
+    assert set(rig_centres.values()) <= set(clean_centres.values())
+    for name in clean.training_frames:
+        assert np.array_equal(_ids(scenes["clean"], name), _ids(scenes["camera-rig"], name))
+        views = {rig_centres[name]} | {rig_centres[f"{name}_rig{m}"] for m in range(1, extra + 1)}
+        assert len(views) == 1 + extra, "each time step is seen from distinct places"
+    meta = json.loads((scenes["camera-rig"] / "metadata.json").read_text())
+    assert {meta[f"{n}_rig{extra}"]["camera_id"] for n in clean.training_frames} == {extra}
+    assert {meta[n]["camera_id"] for n in clean.training_frames} == {0}
+    assert _annotations(scenes["camera-rig"]) == _annotations(scenes["clean"])
+
+
 def test_occluder_adds_one_object_that_hides_the_queried_one(scenes):
     clean, occluded = scenes["clean"], scenes["occluder"]
     assert set(_annotations(occluded)) == set(_annotations(clean)) | {"occluder"}

@@ -172,6 +172,11 @@ def write_metadata(root: Path, layout: Layout, records: list[FrameRecord], near_
     write_json(root / META_FILE, {**meta, "layout": layout, "num_frames": num_frames})
 
 
+def _camera_number(camera_id: str) -> int:
+    """HyperNeRF's integer ``camera_id`` (0: the monocular camera; a rig's extra cameras count up)."""
+    return int(camera_id) if camera_id.isdigit() else 0
+
+
 def _write_hypernerf(root: Path, records: list[FrameRecord], near_far: dict[str, tuple[float, float]]) -> None:
     near = min(v[0] for v in near_far.values())
     far = max(v[1] for v in near_far.values())
@@ -183,8 +188,9 @@ def _write_hypernerf(root: Path, records: list[FrameRecord], near_far: dict[str,
         "train_ids": [r.name for r in records if r.split == "train"],
         "val_ids": [r.name for r in records if r.split == "test"],
     })
-    write_json(root / "metadata.json", {r.name: {"warp_id": r.time_index, "camera_id": 0, "time_id": r.time_index,
-                                                 "appearance_id": r.time_index} for r in records})
+    write_json(root / "metadata.json", {r.name: {"warp_id": r.time_index, "camera_id": _camera_number(r.camera_id),
+                                                 "time_id": r.time_index, "appearance_id": r.time_index}
+                                        for r in records})
     for r in records:
         cam = r.camera
         write_json(root / "camera" / f"{r.name}.json", {

@@ -15,6 +15,8 @@ Families on the scene's side (strength units in :data:`FAMILIES`):
 * ``state-gap``: the training frames of a window centred on the first state change are left out;
 * ``camera-slow``: the monocular camera covers a shrinking part of its path (1: a still camera);
 * ``camera-teleport``: a share of the frames takes the camera of another, random frame;
+* ``camera-rig``: every training time step is also seen by extra cameras, placed where the monocular
+  camera is at evenly spaced other times (a rig moving along the path; the scored views stay monocular);
 * ``occluder``: a ball of growing radius crosses between the camera and the queried object
   (the first object with states) in the middle third of the video;
 * ``appearance``: every object's colour drifts towards a warm dark tint and back, twice (lighting
@@ -64,6 +66,8 @@ FAMILIES: dict[str, Family] = {f.name: f for f in (
            (0.0, 0.1, 0.2, 0.35, 0.5), "scene"),
     Family("camera-slow", "share of the camera path removed (1: still camera)", (0.0, 0.5, 0.75, 0.9, 1.0), "scene"),
     Family("camera-teleport", "share of frames with another frame's camera", (0.0, 0.25, 0.5, 0.75, 1.0), "scene"),
+    Family("camera-rig", "extra rig cameras per training time step (0: monocular)", (0.0, 1.0, 2.0, 4.0, 8.0),
+           "scene"),
     Family("occluder", "occluder radius (share of the scene radius)", (0.0, 0.1, 0.2, 0.3, 0.45), "scene"),
     Family("appearance", "colour shift without a state change (blend weight)", (0.0, 0.15, 0.3, 0.45, 0.6),
            "scene"),
@@ -287,6 +291,23 @@ def _camera_teleport(scene: SceneDef, records: list, strength: float, rng) -> tu
     return scene, out
 
 
+def _camera_rig(scene: SceneDef, records: list, strength: float, rng) -> tuple:
+    path = _monocular_path(records)
+    times = sorted(path)
+    n, extra = len(times), int(round(strength))
+    out = list(records)
+    for r in records:
+        if r.split != "train":
+            continue
+        k = times.index(r.time_index)
+        for m in range(1, extra + 1):
+            source = times[(k + int(round(m * n / (extra + 1)))) % n]
+            stem, dot, ext = r.image_file.rpartition(".")
+            out.append(replace(r, name=f"{r.name}_rig{m}", camera_id=str(m), camera=path[source],
+                               image_file=f"{stem}_rig{m}{dot}{ext}"))
+    return scene, out
+
+
 def _occluder(scene: SceneDef, records: list, strength: float, rng) -> tuple:
     target = _queried_object(scene)
     radius = strength * scene.focus_radius
@@ -381,5 +402,6 @@ def _topology(scene: SceneDef, records: list, strength: float, rng) -> tuple:
 _APPLY: dict[str, Callable] = {
     "motion-speed": _motion_speed, "motion-amplitude": _motion_amplitude, "frames-dropped": _frames_dropped,
     "state-gap": _state_gap, "camera-slow": _camera_slow, "camera-teleport": _camera_teleport,
+    "camera-rig": _camera_rig,
     "occluder": _occluder, "appearance": _appearance, "semantic-subtle": _semantic_subtle, "topology": _topology,
 }
