@@ -152,6 +152,17 @@ def test_camera_rig_adds_views_from_the_clean_path_at_every_training_time(scenes
     assert _annotations(scenes["camera-rig"]) == _annotations(scenes["clean"])
 
 
+def test_camera_rig_in_the_dnerf_layout_agrees_with_its_loader(tmp_path):
+    from benchmark.commands.data import check_truth
+    from benchmark.loaders import load_scene
+
+    root = generate("smoke", tmp_path / "rig", size=SIZE, frames=6, layout="dnerf", perturbation=("camera-rig", 2))
+    scene = load_scene(root)
+    assert {f.camera_id for f in scene.frames} == {"0"}  # D-NeRF files have no camera ids
+    assert len([f for f in scene.frames if f.name.endswith("_rig2")]) == len(load_truth(root).training_frames) // 3
+    assert "agree with the loader" in check_truth(scene, root / "truth")
+
+
 def test_occluder_adds_one_object_that_hides_the_queried_one(scenes):
     clean, occluded = scenes["clean"], scenes["occluder"]
     assert set(_annotations(occluded)) == set(_annotations(clean)) | {"occluder"}

@@ -194,6 +194,7 @@ class _Plan:
         records = layouts.plan(self.layout, scene, self.size, self.frames, self.views, rng, height=self.height)
         if self.perturbation is not None:
             scene, records = self.perturbation.apply(scene, records, self.seed)
+            records = layouts.as_layout_records(self.layout, records)
         return scene, Catalogue.build(scene.wholes), records
 
 

@@ -134,6 +134,14 @@ def plan(layout: Layout, scene: SceneDef, width: int, num_frames: int, num_views
     raise ValueError(f"unknown layout {layout!r} (valid: {', '.join(LAYOUTS)})")
 
 
+def as_layout_records(layout: Layout, records: list[FrameRecord]) -> list[FrameRecord]:
+    """``records`` with the camera ids the layout's files can say: D-NeRF's ``transforms_*.json`` have no
+    camera ids (its loader calls every frame camera ``"0"``), so a rig's extra views are ``"0"`` there too."""
+    if layout != "dnerf":
+        return records
+    return [r if r.camera_id == "0" else dataclasses.replace(r, camera_id="0") for r in records]
+
+
 def write_image(root: Path, layout: Layout, record: FrameRecord, result: RenderResult) -> None:
     """Write the frame's image file (RGBA with alpha = objects for D-NeRF)."""
     path = root / record.image_file
