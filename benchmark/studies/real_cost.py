@@ -283,16 +283,13 @@ def _peak_reset(device: str) -> None:
         torch.cuda.reset_peak_memory_stats(device)
 
 
-def _allocated_gib(device: str) -> Optional[float]:
+def _gpu_gib(device: str, peak: bool) -> Optional[float]:
+    """GiB of GPU memory allocated now (``peak=False``) or at most since the last reset; None off CUDA."""
     import torch
 
-    return torch.cuda.memory_allocated(device) / 2 ** 30 if str(device).startswith("cuda") else None
-
-
-def _peak_gib(device: str) -> Optional[float]:
-    import torch
-
-    return torch.cuda.max_memory_allocated(device) / 2 ** 30 if str(device).startswith("cuda") else None
+    if not str(device).startswith("cuda"):
+        return None
+    return (torch.cuda.max_memory_allocated(device) if peak else torch.cuda.memory_allocated(device)) / 2 ** 30
 
 
 def _measure_backend(backend: str, cfg: RealCostConfig, width: int, height: int) -> dict[str, Any]:
@@ -303,7 +300,7 @@ def _measure_backend(backend: str, cfg: RealCostConfig, width: int, height: int)
     built = time.perf_counter() - t0
     params = sum(p.numel() for p in model.parameters())
     row: dict[str, Any] = {"backend": BACKEND_NAMES[backend], "parameters": params, "build_seconds": built,
-                           "weights_gpu_gib": _allocated_gib(cfg.device)}
+                           "weights_gpu_gib": _gpu_gib(cfg.device, peak=False)}
     if backend == "sam":
         row["frame_seconds"] = _timed(sam_frame(model, cfg), cfg.repeats, cfg.device)
     elif backend == "clip":
@@ -316,7 +313,7 @@ def _measure_backend(backend: str, cfg: RealCostConfig, width: int, height: int)
                    image_size=[width, height])
     else:
         row["text_seconds"] = _timed(e5_batch(model, cfg), cfg.repeats, cfg.device) / cfg.text_batch
-    row["peak_gpu_gib"] = _peak_gib(cfg.device)
+    row["peak_gpu_gib"] = _gpu_gib(cfg.device, peak=True)
     return row
 
 

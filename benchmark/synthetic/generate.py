@@ -111,8 +111,8 @@ def generate(preset: str, out_dir: str | Path, *, size: Optional[int] = None, fr
     ``size`` is the image width in pixels (default: the preset's, 128); ``frames`` the video length;
     ``views`` the rig size in the Neu3D layout; ``layout`` one of ``hypernerf``, ``neu3d``, ``dnerf``
     (default: the preset's); ``height`` the image height in pixels (default: the layout's aspect, e.g. 536 wide
-    in the HyperNeRF layout is 714 high; 960 gives the real HyperNeRF captures' 536x960). The same arguments and ``seed`` give identical files, on any x86-64 CPU with
-    AVX2: where numpy's BLAS runs other kernels than the committed scene versions were made with, the
+    in the HyperNeRF layout is 714 high; 960 gives the real HyperNeRF captures' 536x960). The same arguments
+    and ``seed`` give identical files, on any x86-64 CPU with AVX2: where numpy's BLAS runs other kernels than the committed scene versions were made with, the
     scene is rendered in a child process that runs theirs (:mod:`benchmark.core.openblas`).
     ``perturbation``: a stress-suite knob ``(family, strength)`` applied to the preset
     (:mod:`benchmark.synthetic.perturb`; strength 0 is the clean scene). ``jobs``: processes that render
@@ -228,8 +228,7 @@ def _render_frames(plan: _Plan, staging: Path, times, shadows: bool, built=None)
             save_levels(truth_dir, rec.name, res.ids, res.depth)
             finite = res.depth[np.isfinite(res.depth)]
             if finite.size:
-                lo, hi = depth_range.setdefault(rec.camera_id, [np.inf, 0.0])
-                depth_range[rec.camera_id] = [min(lo, float(finite.min())), max(hi, float(finite.max()))]
+                _widen(depth_range, rec.camera_id, float(finite.min()), float(finite.max()))
             if rec.split == "test":
                 evaluated.append((rec.name, ti, rec.camera_id, res.ids))
     return depth_range, evaluated
@@ -250,10 +249,15 @@ def _render_in_processes(plan: _Plan, staging: Path, jobs: int, shadows: bool):
     evaluated = []
     for part_range, part_evaluated in parts:
         for cam, (lo, hi) in part_range.items():
-            old_lo, old_hi = depth_range.get(cam, [np.inf, 0.0])
-            depth_range[cam] = [min(old_lo, lo), max(old_hi, hi)]
+            _widen(depth_range, cam, lo, hi)
         evaluated += part_evaluated
     return depth_range, evaluated
+
+
+def _widen(depth_range: dict[str, list[float]], camera_id: str, lo: float, hi: float) -> None:
+    """Grow the camera's [near, far] depth range to take in [lo, hi]."""
+    old_lo, old_hi = depth_range.get(camera_id, [np.inf, 0.0])
+    depth_range[camera_id] = [min(old_lo, lo), max(old_hi, hi)]
 
 
 def _generate_in_pinned_process(arguments: dict) -> None:

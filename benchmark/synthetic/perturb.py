@@ -295,11 +295,12 @@ def _camera_rig(scene: SceneDef, records: list, strength: float, rng) -> tuple:
     path = _monocular_path(records)
     times = sorted(path)
     n, extra = len(times), int(round(strength))
+    position = {t: k for k, t in enumerate(times)}
     out = list(records)
     for r in records:
         if r.split != "train":
             continue
-        k = times.index(r.time_index)
+        k = position[r.time_index]
         for m in range(1, extra + 1):
             source = times[(k + int(round(m * n / (extra + 1)))) % n]
             stem, dot, ext = r.image_file.rpartition(".")

@@ -19,6 +19,7 @@ from typing import Any, Optional
 
 import numpy as np
 
+from benchmark.core.errors import InputError
 from benchmark.core.scene import Frame, Scene
 
 from .base import LEVELS, ImageTextEncoder, TextEncoder
@@ -38,8 +39,6 @@ class OracleTextEncoder(ImageTextEncoder):
         self._text_encoder = text_encoder
         self.background_text = background_text
         if not isinstance(state_phrases, bool):
-            from benchmark.core.errors import InputError
-
             raise InputError(None, "image_text.state_phrases", f"expected true or false, got {state_phrases!r}")
         self.state_phrases = state_phrases
         self._stateful = set(self.truth.stateful_objects) if state_phrases else set()
