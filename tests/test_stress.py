@@ -419,6 +419,12 @@ def test_a_small_suite_runs_resumes_and_reports(tmp_path):
         assert (tmp_path / "report" / "galleries" / f"{fam}.png").stat().st_size < 200_000
 
 
+def test_the_log_marks_a_metric_the_method_does_not_answer():
+    # Feature-3DGS answers no time query: its Acc is missing, which is not a score of 0
+    assert stress.score_line({"mIoU": 28.84, "Acc": None, "vIoU": float("nan")}) == "mIoU 28.8, Acc –, vIoU –"
+    assert stress.score_line({"mIoU": 0.0, "Acc": 100.0, "vIoU": 43.61}) == "mIoU 0.0, Acc 100.0, vIoU 43.6"
+
+
 def test_breaking_table_marks_held_and_unprobed_strengths():
     from benchmark.studies.stress_plots import breaking_rows
 

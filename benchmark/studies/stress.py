@@ -33,6 +33,8 @@ from benchmark.core.atomic import read_json
 from benchmark.core.errors import InputError
 from benchmark.synthetic.perturb import FAMILIES, family
 
+from ._report import number_cell
+
 METRICS = ("mIoU", "Acc", "vIoU")
 """Scores the suite charts and breaks down (higher is better)."""
 REFERENCE_WIDTH = 48
@@ -93,6 +95,11 @@ class RunKey:
 
     def folder(self, runs: Path) -> Path:
         return runs / CLEAN if self.clean else runs / self.family / strength_label(self.strength)
+
+
+def score_line(metrics: dict) -> str:
+    """The suite's scores of one run for the log; a metric the method does not answer is ``–``, not 0."""
+    return ", ".join(f"{m} {number_cell(metrics.get(m), 1)}" for m in METRICS)
 
 
 def strength_label(strength: float) -> str:
@@ -378,7 +385,7 @@ def run_one(config: SuiteConfig, key: RunKey, log: Callable[[str], None] = print
         model = RewordedModel(model, reworded_queries(prepared.root, prepared.annotations, key.strength, key.seed))
     outcome = score_and_write(prepared, fit, answer_queries(prepared, model))
     log(f"{key.method} {key.family} {strength_label(key.strength)} seed{key.seed}: "
-        + ", ".join(f"{m} {outcome.results['metrics'].get(m, float('nan')) or 0:.1f}" for m in METRICS)
+        + score_line(outcome.results["metrics"])
         + f" ({time.perf_counter() - start:.0f} s)")
     return outcome.path
 
