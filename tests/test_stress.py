@@ -176,6 +176,18 @@ def test_occluder_adds_one_object_that_hides_the_queried_one(scenes):
     assert hidden > 0
 
 
+def test_the_occluder_is_out_of_view_before_and_after_its_crossing(scenes):
+    truth = load_truth(scenes["occluder"])
+    ball = _whole_id(scenes["occluder"], "occluder")
+    seen = {}
+    for name in truth.evaluated_frames + truth.training_frames:
+        seen[truth.frames[name].time_index] = int((_ids(scenes["occluder"], name) == ball).sum())
+    times = sorted(seen)
+    first, last = times[: len(times) // 4], times[-(len(times) // 4):]
+    assert all(seen[t] == 0 for t in first + last), f"the occluder waits in view: {seen}"
+    assert sum(seen.values()) > 0
+
+
 def test_appearance_changes_colours_not_ids(scenes):
     import cv2
 
@@ -417,6 +429,31 @@ def test_a_small_suite_runs_resumes_and_reports(tmp_path):
     for fam in ("occluder", "mask-drop"):
         assert (tmp_path / "report" / "charts" / f"{fam}.png") in written
         assert (tmp_path / "report" / "galleries" / f"{fam}.png").stat().st_size < 200_000
+
+
+def test_a_generator_change_makes_stale_exactly_the_runs_of_the_scenes_it_changes(tmp_path, monkeypatch):
+    from benchmark.synthetic import digest, perturb
+
+    config = stress.SuiteConfig(preset="smoke", size=SIZE, frames=FRAMES, methods=("nearest-frame",),
+                                families=("occluder", "mask-drop"), strengths=(0.45,), seeds=(0,),
+                                out_dir=tmp_path / "report", cache_dir=tmp_path / "cache")
+    scores = stress.run_suite(config, log=lambda _: None)
+    keys = {(s.family, s.strength): stress.RunKey(s.family if s.strength else stress.CLEAN, s.strength, s.method,
+                                                  s.seed) for s in scores}
+    occluded = stress.scene_folder(config, "occluder", 0.45)
+    before = scene_digest(occluded)
+    # other code that makes the same scenes: each is made again, compared, and keeps its folder and its runs
+    monkeypatch.setattr(digest, "generator_code", lambda: "other code")
+    assert all(stress.results_file(config, key) is not None for key in keys.values())
+    assert scene_digest(occluded) == before
+    # code that moves the occluder: its scene is replaced and its run is stale; the clean scene's runs stand
+    monkeypatch.setattr(digest, "generator_code", lambda: "occluder moved")
+    monkeypatch.setattr(perturb, "OCCLUDER_DEPTH", 0.2)
+    assert stress.results_file(config, keys[("occluder", 0.45)]) is None
+    assert scene_digest(occluded) != before
+    assert stress.results_file(config, keys[("mask-drop", 0.45)]) is not None
+    assert stress.results_file(config, keys[("occluder", 0.0)]) is not None
+    assert not list(occluded.parent.glob(".*check*")) and not list(occluded.parent.glob(".*replaced*"))
 
 
 def test_the_log_marks_a_metric_the_method_does_not_answer():

@@ -21,6 +21,8 @@ changes:
 from __future__ import annotations
 
 import hashlib
+import os
+import shutil
 import time
 import zlib
 from dataclasses import dataclass, field, replace
@@ -108,16 +110,71 @@ def strength_label(strength: float) -> str:
 
 # -- scenes ---------------------------------------------------------------------------------------------
 def scene_folder(config: SuiteConfig, family_name: str, strength: float) -> Path:
-    """The generated scene a run of (family, strength) reads (the clean scene for supervision families)."""
-    from benchmark.synthetic.generate import generate
+    """The generated scene a run of (family, strength) reads (the clean scene for supervision families),
+    as the generator's code now makes it (:func:`current_scene`)."""
+    from benchmark.results import exclusive_lock
 
     scene_side = strength != 0 and family(family_name).side == "scene"
     name = f"{config.preset}-{family_name}-{strength_label(strength)}" if scene_side else f"{config.preset}-clean"
     folder = config.stress_dir / "scenes" / name
-    if not (folder / "annotations.json").is_file():
-        generate(config.preset, folder, size=config.size, frames=config.frames, seed=0, overwrite=True,
-                 perturbation=(family_name, strength) if scene_side else None)
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    with exclusive_lock(folder.parent / f".{name}.lock"):
+        return current_scene(folder, lambda out: _generate(config, out, (family_name, strength) if scene_side else None))
+
+
+def _generate(config: SuiteConfig, out: Path, perturbation: Optional[tuple]) -> Path:
+    from benchmark.synthetic.generate import generate
+
+    return Path(generate(config.preset, out, size=config.size, frames=config.frames, seed=0, overwrite=True,
+                         perturbation=perturbation))
+
+
+SCENE_STAMP = "stress_scene"
+"""Key of the suite's stamp in a scene's ``bench4d_meta.json``: the generator code that last checked the
+scene and the scene's digest then."""
+
+
+def current_scene(folder: Path, make: Callable[[Path], Path]) -> Path:
+    """``folder`` as ``make`` (the generator) makes it with today's code. A cached scene stamped by other
+    generator code is made again beside it and compared by digest: the same scene keeps its folder (and
+    so its runs); another replaces it, and the runs measured on the old one are stale (:func:`results_file`
+    compares the digest they recorded)."""
+    from benchmark.core.atomic import write_json
+    from benchmark.synthetic.digest import META_FILE, generator_code, scene_digest
+
+    code = generator_code()
+    stamp = _scene_stamp(folder)
+    if stamp is not None and stamp.get("code") == code:
+        return folder
+    if (folder / "annotations.json").is_file():
+        fresh = make(folder.parent / f".{folder.name}.check-{os.getpid()}")
+        try:
+            old = scene_digest(folder)
+        except Exception:  # noqa: BLE001 - a damaged cached scene is made again
+            old = None
+        if old != scene_digest(fresh):
+            trash = folder.parent / f".{folder.name}.replaced-{os.getpid()}"
+            os.replace(folder, trash)
+            os.replace(fresh, folder)
+            shutil.rmtree(trash, ignore_errors=True)
+        else:
+            shutil.rmtree(fresh, ignore_errors=True)
+    else:
+        make(folder)
+    meta = read_json(folder / META_FILE)
+    meta[SCENE_STAMP] = {"code": code, "digest": scene_digest(folder)}
+    write_json(folder / META_FILE, meta)
     return folder
+
+
+def _scene_stamp(folder: Path) -> Optional[dict]:
+    from benchmark.synthetic.digest import META_FILE
+
+    try:
+        stamp = read_json(folder / META_FILE).get(SCENE_STAMP)
+    except Exception:  # noqa: BLE001 - missing or unreadable: the scene is checked again
+        return None
+    return stamp if isinstance(stamp, dict) and (folder / "annotations.json").is_file() else None
 
 
 # -- supervision noise ----------------------------------------------------------------------------------
@@ -352,13 +409,18 @@ def run_options(config: SuiteConfig, key: RunKey, scene_root: Optional[Path]) ->
 
 
 def results_file(config: SuiteConfig, key: RunKey) -> Optional[Path]:
-    """The run's results file, if it was written with the method config the run has now: a file of a
-    config since changed (a default that moved) is stale, neither read nor reported, and is redone."""
+    """The run's results file, if it was written with the method config the run has now, on the scene the
+    generator makes now: a file of a config since changed (a default that moved) or of a scene since
+    changed is stale, neither read nor reported, and is redone."""
     from methods import registry
 
     found = sorted(key.folder(config.runs_dir).glob(f"*/*/{key.method}/oracle/seed{key.seed}.json"))
-    current = found and registry.get(key.method).results_made_as(found[0], run_options(config, key, None))
-    return found[0] if current else None
+    if not (found and registry.get(key.method).results_made_as(found[0], run_options(config, key, None))):
+        return None
+    # a run measured on a scene the generator no longer makes is stale too
+    scene = scene_folder(config, key.family, key.strength)
+    recorded = ((read_json(found[0]).get("scene_info") or {}).get("generated") or {}).get("digest")
+    return found[0] if recorded == (_scene_stamp(scene) or {}).get("digest") else None
 
 
 def run_one(config: SuiteConfig, key: RunKey, log: Callable[[str], None] = print) -> Optional[Path]:

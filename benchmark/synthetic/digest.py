@@ -104,6 +104,22 @@ def scene_digest(root: str | Path) -> str:
     return digest.hexdigest()[:24]
 
 
+GENERATOR_SOURCES = ("benchmark/synthetic", "benchmark/core", "annotations")
+"""Packages whose code can change what the generator writes (relative to the repository root)."""
+
+
+@functools.lru_cache(maxsize=1)
+def generator_code() -> str:
+    """Hash (hex, 16 chars) of the Python sources of :data:`GENERATOR_SOURCES` as they are now. A scene
+    stamped with another value may be one older code made: regenerate it and compare digests."""
+    root = Path(__file__).resolve().parents[2]
+    digest = hashlib.sha256()
+    for package in GENERATOR_SOURCES:
+        for path in sorted((root / package).rglob("*.py")):
+            digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
 def digest_key(size: int, seed: int) -> str:
     return f"{int(size)}px-seed{int(seed)}"
 

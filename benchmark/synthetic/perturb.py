@@ -18,7 +18,8 @@ Families on the scene's side (strength units in :data:`FAMILIES`):
 * ``camera-rig``: every training time step is also seen by extra cameras, placed where the monocular
   camera is at evenly spaced other times (a rig moving along the path; the scored views stay monocular);
 * ``occluder``: a ball of growing radius crosses between the camera and the queried object
-  (the first object with states) in the middle third of the video;
+  (the first object with states) in the middle third of the video, coming from beyond one edge of the
+  image and leaving beyond the other;
 * ``appearance``: every object's colour drifts towards a warm dark tint and back, twice (lighting
   and colour change with no change of state);
 * ``semantic-subtle``: states change when they did, but their visible change shrinks (1: none);
@@ -88,6 +89,8 @@ OCCLUDER_NAME = "occluder"
 """Query name of the occluding ball (a new object of the scene; its query is scored like any other)."""
 OCCLUDER_DEPTH = 0.4
 """Where the occluder stands on the line from the queried object to the camera (0: at the object)."""
+OCCLUDER_MARGIN = 1.5
+"""How far beyond the image edge the occluder waits before and after its crossing, in its radii."""
 CYCLES = 2
 """Back-and-forth cycles of the ``appearance`` and ``topology`` changes over the video."""
 
@@ -317,14 +320,22 @@ def _occluder(scene: SceneDef, records: list, strength: float, rng) -> tuple:
 
     def place(ctx: FrameContext) -> np.ndarray:
         anchor = np.asarray(resolve(target.pose, ctx), dtype=np.float64)[:3, 3] + lift
-        eye = np.asarray(cameras[ctx.time_index].center, dtype=np.float64)
+        cam = cameras[ctx.time_index]
+        eye = np.asarray(cam.center, dtype=np.float64)
         ahead = anchor + OCCLUDER_DEPTH * (eye - anchor)
-        view = eye - anchor
-        side = np.cross(view, (0.0, 0.0, 1.0))
-        side /= max(np.linalg.norm(side), 1e-9)
-        # crosses the object during the middle third of the video, far to the side before and after
-        sweep = np.clip((ctx.u - 1 / 3) * 3.0, 0.0, 1.0) * 2.0 - 1.0
-        return translation(ahead + side * sweep * 3.0 * max(radius, 1e-3))
+        # slide along the image's x axis at the occluder's depth, from beyond the left edge to beyond the
+        # right one: the scene is unoccluded before and after the crossing, so the family hides the queried
+        # object alone (parked in view, the ball hid another object for a third of the video)
+        w2c = np.asarray(cam.world_to_camera, dtype=np.float64)
+        right = w2c[0, :3]
+        depth = float(w2c[2, :3] @ ahead + w2c[2, 3])
+        column = cam.fx * float(w2c[0, :3] @ ahead + w2c[0, 3]) / max(depth, 1e-9) + cam.cx
+        margin = OCCLUDER_MARGIN * max(radius, 1e-3)
+        left_end = -(column / cam.fx * depth + margin)
+        right_end = (cam.width - column) / cam.fx * depth + margin
+        # crosses the object during the middle third of the video, out of view before and after
+        sweep = float(np.clip((ctx.u - 1 / 3) * 3.0, 0.0, 1.0))
+        return translation(ahead + right * (left_end + sweep * (right_end - left_end)))
 
     ball = whole(OCCLUDER_NAME, pose=place, pieces=[Piece(Sphere(radius), tx.Solid((0.35, 0.55, 0.35)))])
     return replace(scene, wholes=list(scene.wholes) + [ball]), records
