@@ -23,6 +23,7 @@ import pandas as pd
 
 from benchmark.core.atomic import read_json, write_text
 from benchmark.core.protocol import DEFAULT_PROTOCOL
+from benchmark.core.errors import InputError
 from .results import ACCURACY_METRICS, MEAN_SCENE, comparable_runs, find_results, runs_table, seed_summary
 
 CEILING_FILE = Path("ablations") / "protocol-ceiling.json"
@@ -401,6 +402,10 @@ def build_leaderboard(results_dir: str | Path = "results", *, markdown: str | Pa
     """Regenerate the leaderboard and CSVs; returns the files written (name -> path). ``ceiling``: the
     protocol ceiling's JSON (default: ``<reports_dir>/ablations/protocol-ceiling.json``)."""
     results_dir = Path(results_dir)
+    if not results_dir.is_dir():
+        # a mistyped folder would otherwise regenerate the leaderboard with no runs over the one there
+        raise InputError(results_dir, "results-dir", "no such folder (the leaderboard and reports were left as "
+                         "they are); an empty folder gives a leaderboard of the paper's numbers alone")
     paths = find_results(results_dir)
     runs = runs_table(paths, relative_to=results_dir)
     written: dict[str, Path] = {}

@@ -171,9 +171,18 @@ def test_leaderboard_is_deterministic_marks_best_and_separates_paper_numbers(tmp
 
 
 def test_empty_results_dir_still_renders_paper_numbers(tmp_path):
+    (tmp_path / "none").mkdir()
     build_leaderboard(tmp_path / "none", markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
     md = (tmp_path / "lb.md").read_text()
     assert "No results yet" in md and "Paper, reported" in md
+
+
+def test_a_missing_results_folder_is_an_error_and_leaves_the_leaderboard_as_it_was(tmp_path):
+    (tmp_path / "lb.md").write_text("the leaderboard a user has")
+    with pytest.raises(InputError, match="results-dir.*no such folder"):
+        build_leaderboard(tmp_path / "reslts", markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
+    assert (tmp_path / "lb.md").read_text() == "the leaderboard a user has"
+    assert not (tmp_path / "rep").exists()
 
 
 def test_bad_results_file_is_an_input_error_naming_the_field(tmp_path):

@@ -427,6 +427,20 @@ def test_generate_refuses_to_clobber_user_folders(tmp_path):
         generate("split-cookies", tmp_path / "y")
 
 
+def test_a_frame_too_large_for_the_memory_is_refused_before_anything_is_rendered(tmp_path, monkeypatch):
+    import importlib
+
+    gen = importlib.import_module("benchmark.synthetic.generate")  # the package exports the function by that name
+    monkeypatch.setattr(gen, "available_memory_gb", lambda: 1.0)
+    # 1024 x 1366 (the HyperNeRF aspect) at 2 KB per pixel: about 2.7 GB
+    with pytest.raises(InputError, match=r"size: rendering a 1024x1366 frame needs about 2\.7 GB; 1\.0 GB"):
+        generate("smoke", tmp_path / "big", size=1024, frames=4)
+    assert not (tmp_path / "big").exists()
+    generate("smoke", tmp_path / "small", size=32, frames=4)  # 32 x 42: fits
+    monkeypatch.setattr(gen, "available_memory_gb", lambda: float("nan"))  # unknown memory: tried
+    generate("smoke", tmp_path / "unknown", size=32, frames=4)
+
+
 def test_generate_takes_an_image_height_and_the_scene_says_so(tmp_path):
     from benchmark.loaders import load_scene
 

@@ -10,6 +10,8 @@ import shutil
 import sys
 from pathlib import Path
 
+from benchmark.core.memory import available_memory_gb
+
 GB = 1 << 30
 
 
@@ -38,16 +40,6 @@ def scene_needs(width: int, height: int, frames: int, torch_rasterizer: bool = F
     memory = pixels * (3 * 4 + 3 * 2) / GB + 4.0  # float images and masks, plus models and working set
     raster = width * height * TORCH_RASTER_BYTES_PER_PIXEL / GB if torch_rasterizer else 0.0
     return {"disk_gb": round(disk, 1), "memory_gb": round(memory + raster, 1), "rasterizer_gb": round(raster, 1)}
-
-
-def _free_memory_gb() -> float:
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) / (1 << 20)
-    except OSError:
-        pass
-    return float("nan")
 
 
 def checks(args: argparse.Namespace) -> list[tuple[bool, str]]:
@@ -87,7 +79,7 @@ def checks(args: argparse.Namespace) -> list[tuple[bool, str]]:
     free = shutil.disk_usage(folder).free / GB
     out.append((free >= need["disk_gb"], f"disk: {free:.1f} GB free under {folder}, a {args.width}x{args.height} scene "
                                          f"of {args.frames} training frames needs about {need['disk_gb']} GB"))
-    memory = _free_memory_gb()
+    memory = available_memory_gb()
     raster = need["rasterizer_gb"]
     hint = "gsplat on a CUDA GPU needs a small fraction of it; or --scale 0.5 for a quarter"
     if raster and cuda_free is not None:  # the PyTorch rasterizer on CUDA: its working set is GPU memory

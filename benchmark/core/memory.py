@@ -162,3 +162,14 @@ class StagePeak:
 
     def record(self) -> dict:
         return {"peak_cpu_mib": self.cpu_mib, "peak_gpu_mib": self.gpu_mib, "peak_window": window()}
+
+
+def available_memory_gb() -> float:
+    """Memory the system can still give (``MemAvailable``), in GB (2^30 bytes); NaN where unknown."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) / (1 << 20)
+    except (OSError, ValueError, IndexError):
+        pass
+    return float("nan")

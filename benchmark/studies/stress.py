@@ -119,7 +119,8 @@ def scene_folder(config: SuiteConfig, family_name: str, strength: float) -> Path
     folder = config.stress_dir / "scenes" / name
     folder.parent.mkdir(parents=True, exist_ok=True)
     with exclusive_lock(folder.parent / f".{name}.lock"):
-        return current_scene(folder, lambda out: _generate(config, out, (family_name, strength) if scene_side else None))
+        perturbation = (family_name, strength) if scene_side else None
+        return current_scene(folder, lambda out: _generate(config, out, perturbation))
 
 
 def _generate(config: SuiteConfig, out: Path, perturbation: Optional[tuple]) -> Path:

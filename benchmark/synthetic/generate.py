@@ -24,6 +24,7 @@ import numpy as np
 
 from ..core import openblas
 from benchmark.core.errors import InputError
+from benchmark.core.memory import available_memory_gb
 from . import layouts
 from .gt import build_annotations
 from .model import Catalogue, FrameContext
@@ -38,6 +39,9 @@ MIN_FRAMES = 4
 """Fewest frames a scene may have (a held-out frame and state changes need room)."""
 NEAR_FAR_MARGIN = (0.9, 1.1)
 """near/far written to the layout = (min depth * first, max depth * second) over what was rendered."""
+RENDER_BYTES_PER_PIXEL = 2048
+"""Memory the renderer holds per pixel of a frame, measured: 0.5 KB (smoke, 512 px) to 1.8 KB (cook-spinach,
+384 px). Checked against the memory available before anything is rendered."""
 
 
 def _spec(preset: str) -> PresetSpec:
@@ -86,6 +90,13 @@ def resolve_settings(preset: str, size: Optional[int], frames: Optional[int], vi
     if height is not None and (int(height) < 8 or int(height) % 2 or not 0.25 <= int(height) / size <= 4):
         raise InputError(None, "height", f"image height must be an even number >= 8 within 1/4 to 4 times the "
                                          f"width ({size}), got {height}")
+    layout_aspect = layouts.LAYOUT_SPECS[layout].setup.intrinsics.height_over_width
+    aspect = int(height) / size if height is not None else layout_aspect
+    need_gb = size * size * aspect * RENDER_BYTES_PER_PIXEL / (1 << 30)
+    have_gb = available_memory_gb()
+    if need_gb > have_gb:  # False for NaN: where the memory is unknown, the render is tried
+        raise InputError(None, "size", f"rendering a {size}x{2 * int(round(size * aspect / 2))} frame needs about "
+                                       f"{need_gb:.1f} GB; {have_gb:.1f} GB of memory is available")
     frames = spec.default_frames if frames is None else int(frames)
     if frames < MIN_FRAMES:
         raise InputError(None, "frames", f"need at least {MIN_FRAMES} frames, got {frames}")
