@@ -456,6 +456,13 @@ def test_a_generator_change_makes_stale_exactly_the_runs_of_the_scenes_it_change
     assert not list(occluded.parent.glob(".*check*")) and not list(occluded.parent.glob(".*replaced*"))
 
 
+def test_a_negative_strength_is_refused_before_any_run(tmp_path):
+    with pytest.raises(InputError, match="strengths: expected finite strengths >= 0, got -1"):
+        stress.SuiteConfig(strengths=(0.5, -1.0), cache_dir=tmp_path)
+    with pytest.raises(InputError, match="occludr"):
+        stress.SuiteConfig(families=("occludr",), cache_dir=tmp_path)
+
+
 def test_the_log_marks_a_metric_the_method_does_not_answer():
     # Feature-3DGS answers no time query: its Acc is missing, which is not a score of 0
     assert stress.score_line({"mIoU": 28.84, "Acc": None, "vIoU": float("nan")}) == "mIoU 28.8, Acc –, vIoU –"

@@ -69,6 +69,13 @@ class SuiteConfig:
     force: bool = False
     """Run again where a results file exists."""
 
+    def __post_init__(self) -> None:
+        for value in self.strengths or ():
+            if not np.isfinite(float(value)) or float(value) < 0:  # before any run starts, not at the first scene
+                raise InputError(None, "strengths", f"expected finite strengths >= 0, got {value!r}")
+        for name in self.families:
+            family(name)  # an unknown family: one line with the valid names
+
     @property
     def stress_dir(self) -> Path:
         return Path(self.cache_dir) / "stress" / f"{self.preset}-{self.size}px-{self.frames}f"
