@@ -177,6 +177,13 @@ def test_empty_results_dir_still_renders_paper_numbers(tmp_path):
     assert "No results yet" in md and "Paper, reported" in md
 
 
+def test_paper_tables_of_a_missing_results_folder_is_an_error(tmp_path):
+    from benchmark.paper_tables import render
+
+    with pytest.raises(InputError, match="results-dir.*no such folder"):
+        render(tmp_path / "reslts", tmp_path / "rep")
+
+
 def test_a_missing_results_folder_is_an_error_and_leaves_the_leaderboard_as_it_was(tmp_path):
     (tmp_path / "lb.md").write_text("the leaderboard a user has")
     with pytest.raises(InputError, match="results-dir.*no such folder"):

@@ -362,6 +362,20 @@ def test_demo_and_eval_commands_end_to_end(env, capsys, tmp_path):
         resolve_scene("smok", tmp_path / "c")
 
 
+@pytest.mark.parametrize("command", [["eval", "--method", "nearest-frame", "--scene", "smoke", "--seed"],
+                                     ["run-all", "--seeds", "0"], ["stress", "--report-only", "--seeds", "1"],
+                                     ["data", "make-synthetic", "smoke", "--out", "x", "--seed"]])
+@pytest.mark.parametrize("bad", ["-1", "4294967296", "999999999999999999999", "two"])
+def test_every_command_refuses_a_seed_out_of_range_in_one_line(command, bad, capsys):
+    from benchmark.cli import main
+
+    with pytest.raises(SystemExit) as shown:
+        main([*command, bad])
+    assert shown.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "a seed is an integer" in err and "Traceback" not in err
+
+
 def test_eval_takes_the_methods_options_as_flags_derived_from_its_config(env, capsys):
     from benchmark.cli import main
     from benchmark.results import load_results

@@ -34,6 +34,22 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bars or log lines")
 
 
+MAX_SEED = 2 ** 32 - 1
+"""Largest seed a command takes (numpy, torch and the cache keys all hold it)."""
+
+
+def seed(text: str) -> int:
+    """argparse type of ``--seed`` / ``--seeds``: an integer from 0 to :data:`MAX_SEED` (a larger one made
+    torch stop with an overflow deep inside its generator)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a seed is an integer, got {text!r}") from None
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"a seed is an integer from 0 to {MAX_SEED}, got {value}")
+    return value
+
+
 DEFAULT_THREADS = 1
 """Torch threads of a fitting process unless ``--threads`` says otherwise: on a loaded 2-core machine a
 second thread made fits about ten times slower, and ``run-all --jobs N`` runs N fitting processes."""
