@@ -34,6 +34,9 @@ def _cache(tmp_path: Path) -> tuple[Path, Path]:
     _file(lang / "geometry-4dgs-eee5.partial.pt")  # an interrupted geometry fit, two days old
     _file(lang / "geometry-4dgs-fff6.partial.pt", old=False)  # a fit running now
     _file(cache / "fits" / "4d-langsplat" / "hypernerf-smoke" / "fitgone.work" / "tmp.pt")
+    # a generator killed while it wrote a scene, and a stress scene killed while it was checked
+    _file(cache / "scenes" / "128px" / ".smoke.staging-abc" / "rgb.png")
+    _file(cache / "stress" / "smoke-48px-16f" / "scenes" / ".smoke-occluder-0.2.check-123" / "rgb.png")
     doc = {"method": "4d-langsplat", "fit": {"key": "fitused", "info": {"key": "bbb2", "geometry": {"key": "aaa1"}}}}
     _file(results / "synthetic" / "smoke" / "4d-langsplat" / "oracle" / "seed0.json", json.dumps(doc).encode())
     # an archived run still names its fit
@@ -65,7 +68,9 @@ def test_prune_leftovers_deletes_only_old_leftovers(tmp_path):
     assert main(["cache", "--cache-dir", str(cache), "--prune", "leftovers"]) == 0
     gone = before - _tree(cache)
     assert gone == {"language/hypernerf-smoke/geometry-4dgs-eee5.partial.pt",
-                    "fits/4d-langsplat/hypernerf-smoke/fitgone.work/tmp.pt"}
+                    "fits/4d-langsplat/hypernerf-smoke/fitgone.work/tmp.pt",
+                    "scenes/128px/.smoke.staging-abc/rgb.png",
+                    "stress/smoke-48px-16f/scenes/.smoke-occluder-0.2.check-123/rgb.png"}
     assert not (cache / "fits" / "4d-langsplat" / "hypernerf-smoke" / "fitgone.work").exists()
 
 

@@ -11,7 +11,9 @@ The cache holds generated presets, 2D supervision, captions, fitted geometries a
 work except two kinds of file, which pruning never touches unless asked:
 
 * **leftovers** of interrupted runs: a geometry fit's checkpoint (``*.partial.pt``, from which the
-  same command resumes), a fit's working folder (``*.work``) and a half-written fit (``.*.partial-*``).
+  same command resumes), a fit's working folder (``*.work``), a half-written fit (``.*.partial-*``), a
+  half-generated scene (``.*.staging-*``) and a scene being checked or replaced against the generator's
+  code (``.*.check-*``, ``.*.replaced-*``, ``.*.damaged-*``).
   Only those older than ``--older-than`` hours go: a running geometry fit rewrites its checkpoint
   every two minutes, so an old one belongs to no live process (it is still resumable: keep it if you
   mean to rerun that command).
@@ -32,7 +34,8 @@ import time
 from pathlib import Path
 from typing import Iterable, Optional
 
-LEFTOVER_PATTERNS = ("*.partial.pt", "*.work", ".*.partial-*")
+LEFTOVER_PATTERNS = ("*.partial.pt", "*.work", ".*.partial-*", ".*.staging-*", ".*.check-*", ".*.replaced-*",
+                     ".*.damaged-*")
 """Glob patterns of what interrupted runs leave behind (see the module docstring)."""
 _MODEL_FILE = re.compile(r"^(geometry|field)-(3dgs|4dgs)-([0-9a-f]+)\.pt$")
 
