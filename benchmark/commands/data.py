@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmark.core.errors import InputError
-from ._common import seed
+from ._common import parse_seed
 
 REPROJECTION_TOLERANCE_PX = 1e-3
 """A loaded camera must reproject points to within this many pixels of the generator's camera."""
@@ -41,7 +41,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     mk.add_argument("--views", type=int, default=None, help="cameras of the rig in the neu3d layout")
     mk.add_argument("--layout", choices=("hypernerf", "neu3d", "dnerf"), default=None,
                     help="on-disk layout (default: the preset's)")
-    mk.add_argument("--seed", type=seed, default=0, help="random seed (placement, colours, state times, cameras)")
+    mk.add_argument("--seed", type=parse_seed, default=0, help="random seed (placement, colours, state times, cameras)")
     mk.add_argument("--overwrite", action="store_true", help="replace a previously generated scene in --out")
     mk.add_argument("--no-shadows", action="store_true", help="skip shadow rays (faster, fewer depth cues)")
     mk.add_argument("--jobs", type=int, default=1,
@@ -68,7 +68,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                         "with the committed ones (benchmark/synthetic/digests.json)")
     dg.add_argument("--presets", default=None, help="comma-separated presets (default: all)")
     dg.add_argument("--sizes", type=int, nargs="+", default=[128], help="image widths (default: 128, the runner's)")
-    dg.add_argument("--seed", type=seed, default=0)
+    dg.add_argument("--seed", type=parse_seed, default=0)
     dg.add_argument("--write", action="store_true",
                     help="record the digests as the committed scene versions (after a deliberate generator change)")
 

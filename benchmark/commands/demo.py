@@ -34,12 +34,12 @@ every demo method whose config has the option; the methods' own defaults are the
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from ._common import add_protocol_argument, add_threads_argument, seed
+    from ._common import add_protocol_argument, add_threads_argument, parse_seed
 
     parser.add_argument("--scene", default=None, help="preset or folder (default: the generator's default preset)")
     parser.add_argument("--method", default=None,
                         help=f"run this method only (default: {DEMO_METHOD} and the 2D floor beside it)")
-    parser.add_argument("--seed", type=seed, default=0)
+    parser.add_argument("--seed", type=parse_seed, default=0)
     parser.add_argument("--size", type=int, default=DEMO_SIZE, help="image size of the generated preset")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a method config field on top of the demo's schedules (repeatable; applied "

@@ -19,7 +19,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from ._common import (add_run_arguments, check_device, check_run_folders, parse_overrides, print_run, seed,
+from ._common import (add_run_arguments, check_device, check_run_folders, parse_overrides, print_run, parse_seed,
                       set_threads, splits)
 
 
@@ -27,7 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--method", required=True, help="registered method (see bench4d methods); its options "
                         "are listed by bench4d eval --method M --help")
     parser.add_argument("--scene", required=True, help="scene folder or synthetic preset name")
-    parser.add_argument("--seed", type=seed, default=0)
+    parser.add_argument("--seed", type=parse_seed, default=0)
     parser.add_argument("--annotations", type=Path, default=None, help="ground-truth file, or the 4D LangSplat release's annotations/ folder (default: found beside the scene)")
     parser.add_argument("--refit", action="store_true", help="ignore a cached fit")
     add_run_arguments(parser)

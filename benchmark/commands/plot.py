@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ._common import seed
+from ._common import parse_seed
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -28,7 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     t.add_argument("--scene", required=True, help="scene name (as in the results folder)")
     t.add_argument("--query", required=True, help="time-sensitive query text")
     t.add_argument("--track", default="oracle")
-    t.add_argument("--seed", type=seed, default=0)
+    t.add_argument("--seed", type=parse_seed, default=0)
     t.add_argument("--dataset", default=None, help="dataset folder, when a scene name exists in several")
     c = sub.add_parser("capacity", help="capacity curves (accuracy and cost against each knob) from capacity.csv")
     c.add_argument("--table", type=Path, default=Path("reports/capacity/capacity.csv"))

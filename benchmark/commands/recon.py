@@ -25,7 +25,7 @@ from typing import Any, Optional
 
 from benchmark.core.atomic import json_ready
 
-from ._common import add_threads_argument, seed, set_threads
+from ._common import add_threads_argument, parse_seed, set_threads
 from benchmark.core.config import with_overrides
 from benchmark.core.errors import InputError
 
@@ -53,7 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "deformation.hexplane.multires=1,2 (repeatable)")
     parser.add_argument("--out", type=Path, default=None, help="output folder (default reports/recon/<scene>)")
     parser.add_argument("--cache-dir", type=Path, default=Path("cache"), help="where presets are generated")
-    parser.add_argument("--seed", type=seed, default=0)
+    parser.add_argument("--seed", type=parse_seed, default=0)
     add_threads_argument(parser)
     parser.add_argument("--device", default="cpu", help="cpu or cuda[:N]")
     parser.add_argument("--renders", type=int, default=3, help="test renders saved per model as PNG")

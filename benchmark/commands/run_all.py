@@ -25,7 +25,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ._common import add_run_arguments, check_device, check_run_folders, parse_overrides, seed, set_threads, splits
+from ._common import (add_run_arguments, check_device, check_run_folders, parse_overrides, parse_seed, set_threads,
+                      splits)
 from .eval import add_source_option_argument, parse_source_options
 
 TEST_PRESETS = ("smoke",)
@@ -36,7 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--methods", nargs="+", default=None, help="methods (default: all registered)")
     parser.add_argument("--scenes", nargs="+", default=None,
                         help="scene folders or synthetic presets (default: every synthetic preset but smoke)")
-    parser.add_argument("--seeds", nargs="+", type=seed, default=[0, 1, 2])
+    parser.add_argument("--seeds", nargs="+", type=parse_seed, default=[0, 1, 2])
     parser.add_argument("--force", action="store_true", help="rerun even where a results file exists")
     parser.add_argument("--keep-going", action="store_true", help="report a failing run and continue")
     parser.add_argument("--jobs", type=int, default=1,

@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 
 from benchmark.core.errors import InputError
-from ._common import add_threads_argument, check_device, parse_overrides, seed, set_threads
+from ._common import add_threads_argument, check_device, parse_overrides, parse_seed, set_threads
 
 _SHORT_FIELD = {"autoencoder.min_steps": "1500", "autoencoder.max_steps": "2000", "field.iterations": "400"}
 _SHORT_TIME_VARYING = {**_SHORT_FIELD, "caption_autoencoder.min_steps": "1500", "caption_autoencoder.max_steps": "2000",
@@ -49,7 +49,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"perturbation families (default: all: {', '.join(FAMILIES)})")
     parser.add_argument("--strengths", nargs="+", type=float, default=None,
                         help="strengths of every family (default: each family's own; 0 is always run)")
-    parser.add_argument("--seeds", nargs="+", type=seed, default=[0, 1])
+    parser.add_argument("--seeds", nargs="+", type=parse_seed, default=[0, 1])
     parser.add_argument("--schedule", choices=("short", "default"), default="short",
                         help="short: the methods' step counts cut for a CPU suite (SHORT_SCHEDULES); default: "
                              "the methods' own")
