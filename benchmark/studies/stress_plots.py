@@ -127,12 +127,13 @@ def _timeline_panel(ax, docs: dict[str, dict]) -> None:
     ax.set_axis_off()
     if first is None:
         return
-    names = ["truth"] + list(docs)
-    grid = []
-    for k, method in enumerate(docs):
+    # a method that answers no time query keeps its row, blank and named so (not read as "never decided")
+    names = ["truth"] + [m if rows[m] else f"{m} (no time answers)" for m in docs]
+    labelled = next(m for m in docs if rows[m])
+    truth = sorted((r for r in rows[labelled] if r["query"] == first), key=lambda r: r["time_index"])
+    grid = [[float(bool(r["label"])) for r in truth]]
+    for method in docs:
         chosen = sorted((r for r in rows[method] if r["query"] == first), key=lambda r: r["time_index"])
-        if k == 0:
-            grid.append([float(bool(r["label"])) for r in chosen])
         grid.append([np.nan if r["decision"] is None else float(bool(r["decision"])) for r in chosen])
     width = max(len(g) for g in grid)
     grid = [g + [np.nan] * (width - len(g)) for g in grid]
