@@ -27,7 +27,7 @@ def build_annotations(scene_name: str, catalogue: Catalogue, evaluated: Iterable
     aset = AnnotationSet(scene=scene_name, num_time_steps=num_frames, info=dict(info))
     query_of: dict[str, Query] = {}
     selectors: dict[int, tuple[int, np.ndarray]] = {}
-    for name in catalogue.names():
+    for name in catalogue.names(queried_only=True):
         level, ids = catalogue.ids_named(name)
         q = Query(id=len(aset.queries) + 1, text=name, kind="agnostic", level=level)
         aset.queries.append(q)

@@ -82,6 +82,9 @@ class Node:
     """4x4 transform of this node in its parent's frame (world for wholes)."""
     timeline: Optional["Timeline"] = None
     """Semantic states of this node over time, if any."""
+    queried: bool = True
+    """Whether its name becomes a query of the annotations. A distractor (the stress suite's occluder) is
+    in the scene, its truth and its supervision, but no query asks about it."""
 
     def __post_init__(self) -> None:
         if self.pieces and self.children:
@@ -91,9 +94,10 @@ class Node:
 
 
 def whole(name: str, *, parts: Sequence[Node] = (), pieces: Sequence[Piece] = (), synonyms: Sequence[str] = (),
-          pose: Animated[np.ndarray] = None, timeline: Optional["Timeline"] = None) -> Node:
+          pose: Animated[np.ndarray] = None, timeline: Optional["Timeline"] = None, queried: bool = True) -> Node:
     """An object (large level); ``parts`` are its parts, or ``pieces`` its geometry if it has none."""
-    return Node(name, tuple(synonyms), list(pieces), list(parts), np.eye(4) if pose is None else pose, timeline)
+    return Node(name, tuple(synonyms), list(pieces), list(parts), np.eye(4) if pose is None else pose, timeline,
+                queried)
 
 
 def part(name: str, *, parts: Sequence[Node] = (), pieces: Sequence[Piece] = (), synonyms: Sequence[str] = (),
@@ -326,12 +330,13 @@ class Catalogue:
         level = self.declared_level(name)
         return level, [e.id for e in self.entries[level] if e.name == name]
 
-    def names(self) -> list[str]:
-        """Every declared name, whole first, in declaration order, without repeats."""
+    def names(self, queried_only: bool = False) -> list[str]:
+        """Every declared name, whole first, in declaration order, without repeats (``queried_only``: of
+        the nodes a query asks about, :attr:`Node.queried`)."""
         seen: dict[str, None] = {}
         for level in ("whole", "part", "subpart"):
             for e in self.entries[level]:
-                if not e.implicit:
+                if not e.implicit and (e.node.queried or not queried_only):
                     seen.setdefault(e.name, None)
         return list(seen)
 

@@ -86,7 +86,7 @@ FAMILIES: dict[str, Family] = {f.name: f for f in (
 
 SCENE_FAMILIES = tuple(name for name, f in FAMILIES.items() if f.side == "scene")
 OCCLUDER_NAME = "occluder"
-"""Query name of the occluding ball (a new object of the scene; its query is scored like any other)."""
+"""Name of the occluding ball in the scene's truth and supervision (no query asks about it)."""
 OCCLUDER_DEPTH = 0.4
 """Where the occluder stands on the line from the queried object to the camera (0: at the object)."""
 OCCLUDER_MARGIN = 1.5
@@ -337,7 +337,10 @@ def _occluder(scene: SceneDef, records: list, strength: float, rng) -> tuple:
         sweep = float(np.clip((ctx.u - 1 / 3) * 3.0, 0.0, 1.0))
         return translation(ahead + right * (left_end + sweep * (right_end - left_end)))
 
-    ball = whole(OCCLUDER_NAME, pose=place, pieces=[Piece(Sphere(radius), tx.Solid((0.35, 0.55, 0.35)))])
+    # no query asks about the ball: the family's scores are those of the clean scene's queries, comparable
+    # with its clean scores (a query of the ball would score 0 wherever it is out of view, for every method)
+    ball = whole(OCCLUDER_NAME, pose=place, pieces=[Piece(Sphere(radius), tx.Solid((0.35, 0.55, 0.35)))],
+                 queried=False)
     return replace(scene, wholes=list(scene.wholes) + [ball]), records
 
 
