@@ -156,11 +156,12 @@ def current_scene(folder: Path, make: Callable[[Path], Path]) -> Path:
         return folder
     if (folder / "annotations.json").is_file():
         fresh = make(folder.parent / f".{folder.name}.check-{os.getpid()}")
+        digest = scene_digest(fresh)
         try:
             old = scene_digest(folder)
         except Exception:  # noqa: BLE001 - a damaged cached scene is made again
             old = None
-        if old != scene_digest(fresh):
+        if old != digest:
             trash = folder.parent / f".{folder.name}.replaced-{os.getpid()}"
             os.replace(folder, trash)
             os.replace(fresh, folder)
@@ -168,9 +169,9 @@ def current_scene(folder: Path, make: Callable[[Path], Path]) -> Path:
         else:
             shutil.rmtree(fresh, ignore_errors=True)
     else:
-        make(folder)
+        digest = scene_digest(make(folder))
     meta = read_json(folder / META_FILE)
-    meta[SCENE_STAMP] = {"code": code, "digest": scene_digest(folder)}
+    meta[SCENE_STAMP] = {"code": code, "digest": digest}
     write_json(folder / META_FILE, meta)
     return folder
 
