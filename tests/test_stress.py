@@ -471,6 +471,31 @@ def test_the_log_marks_a_metric_the_method_does_not_answer():
     assert stress.score_line({"mIoU": 0.0, "Acc": 100.0, "vIoU": 43.61}) == "mIoU 0.0, Acc 100.0, vIoU 43.6"
 
 
+def test_the_gallery_timeline_takes_the_truth_from_a_method_that_answers_time():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from benchmark.studies.stress_plots import _timeline_panel
+
+    columns = ["query", "kind", "frame", "time_index", "label", "decision"]
+
+    def doc(rows):
+        return {"scores": {"frames": {"columns": columns, "rows": rows}}}
+
+    answered = [["open box", "sensitive", f"{t:06d}", t, t >= 2, t >= 1] for t in range(4)]
+    agnostic_only = [["box", "agnostic", f"{t:06d}", t, None, None] for t in range(4)]
+    fig, ax = plt.subplots()
+    # the method listed first answers no time query: the truth row must still be the labels
+    _timeline_panel(ax, {"feature-3dgs": doc(agnostic_only), "4d-langsplat": doc(answered)})
+    grid = ax.get_images()[0].get_array()
+    assert [t.get_text() for t in ax.get_yticklabels()] == ["truth", "feature-3dgs (no time answers)", "4d-langsplat"]
+    assert list(grid[0]) == [0.0, 0.0, 1.0, 1.0] and list(grid[2]) == [0.0, 1.0, 1.0, 1.0]
+    assert np.isnan(np.asarray(grid[1], dtype=float)).all()
+    plt.close(fig)
+
+
 def test_breaking_table_marks_held_and_unprobed_strengths():
     from benchmark.studies.stress_plots import breaking_rows
 
