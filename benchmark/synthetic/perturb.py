@@ -326,10 +326,8 @@ def _occluder(scene: SceneDef, records: list, strength: float, rng) -> tuple:
         # slide along the image's x axis at the occluder's depth, from beyond the left edge to beyond the
         # right one: the scene is unoccluded before and after the crossing, so the family hides the queried
         # object alone (parked in view, the ball hid another object for a third of the video)
-        w2c = np.asarray(cam.world_to_camera, dtype=np.float64)
-        right = w2c[0, :3]
-        depth = float(w2c[2, :3] @ ahead + w2c[2, 3])
-        column = cam.fx * float(w2c[0, :3] @ ahead + w2c[0, 3]) / max(depth, 1e-9) + cam.cx
+        uv, z = cam.project(ahead)
+        right, column, depth = cam.R[0], float(uv[0, 0]), float(z[0])
         margin = OCCLUDER_MARGIN * max(radius, 1e-3)
         left_end = -(column / cam.fx * depth + margin)
         right_end = (cam.width - column) / cam.fx * depth + margin
