@@ -436,6 +436,11 @@ def test_a_frame_too_large_for_the_memory_is_refused_before_anything_is_rendered
     with pytest.raises(InputError, match=r"size: rendering a 1024x1366 frame needs about 2\.7 GB; 1\.0 GB"):
         generate("smoke", tmp_path / "big", size=1024, frames=4)
     assert not (tmp_path / "big").exists()
+    # each rendering process holds a frame: 256 x 342 is 0.17 GB, fits alone, 16 at once need 2.7 GB
+    gen._check_memory(256, None, "hypernerf", jobs=1)
+    with pytest.raises(InputError, match=r"256x342 frame in each of 16 processes needs about 2\.7 GB"):
+        generate("smoke", tmp_path / "many", size=256, frames=16, jobs=16)
+    assert not (tmp_path / "many").exists()
     generate("smoke", tmp_path / "small", size=32, frames=4)  # 32 x 42: fits
     monkeypatch.setattr(gen, "available_memory_gb", lambda: float("nan"))  # unknown memory: tried
     generate("smoke", tmp_path / "unknown", size=32, frames=4)

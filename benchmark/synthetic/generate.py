@@ -90,13 +90,6 @@ def resolve_settings(preset: str, size: Optional[int], frames: Optional[int], vi
     if height is not None and (int(height) < 8 or int(height) % 2 or not 0.25 <= int(height) / size <= 4):
         raise InputError(None, "height", f"image height must be an even number >= 8 within 1/4 to 4 times the "
                                          f"width ({size}), got {height}")
-    layout_aspect = layouts.LAYOUT_SPECS[layout].setup.intrinsics.height_over_width
-    aspect = int(height) / size if height is not None else layout_aspect
-    need_gb = size * size * aspect * RENDER_BYTES_PER_PIXEL / (1 << 30)
-    have_gb = available_memory_gb()
-    if need_gb > have_gb:  # False for NaN: where the memory is unknown, the render is tried
-        raise InputError(None, "size", f"rendering a {size}x{2 * int(round(size * aspect / 2))} frame needs about "
-                                       f"{need_gb:.1f} GB; {have_gb:.1f} GB of memory is available")
     frames = spec.default_frames if frames is None else int(frames)
     if frames < MIN_FRAMES:
         raise InputError(None, "frames", f"need at least {MIN_FRAMES} frames, got {frames}")
@@ -106,6 +99,18 @@ def resolve_settings(preset: str, size: Optional[int], frames: Optional[int], vi
     if layout != "neu3d":
         views = 1
     return spec, size, frames, views, layout
+
+
+def _check_memory(size: int, height: Optional[int], layout: str, jobs: int) -> None:
+    """An :class:`InputError` naming ``size`` when ``jobs`` processes, each rendering one frame, need more
+    memory than is available (nothing is checked where that is unknown)."""
+    aspect = height / size if height is not None else layouts.LAYOUT_SPECS[layout].setup.intrinsics.height_over_width
+    need_gb = jobs * size * size * aspect * RENDER_BYTES_PER_PIXEL / (1 << 30)
+    have_gb = available_memory_gb()
+    if need_gb > have_gb:  # False for NaN
+        per = "" if jobs == 1 else f" in each of {jobs} processes"
+        raise InputError(None, "size", f"rendering a {size}x{2 * int(round(size * aspect / 2))} frame{per} needs "
+                                       f"about {need_gb:.1f} GB; {have_gb:.1f} GB of memory is available")
 
 
 def preset_rng(preset: str, seed: int) -> np.random.Generator:
@@ -123,8 +128,9 @@ def generate(preset: str, out_dir: str | Path, *, size: Optional[int] = None, fr
     ``views`` the rig size in the Neu3D layout; ``layout`` one of ``hypernerf``, ``neu3d``, ``dnerf``
     (default: the preset's); ``height`` the image height in pixels (default: the layout's aspect, e.g. 536 wide
     in the HyperNeRF layout is 714 high; 960 gives the real HyperNeRF captures' 536x960). The same arguments
-    and ``seed`` give identical files, on any x86-64 CPU with AVX2: where numpy's BLAS runs other kernels than the committed scene versions were made with, the
-    scene is rendered in a child process that runs theirs (:mod:`benchmark.core.openblas`).
+    and ``seed`` give identical files, on any x86-64 CPU with AVX2: where numpy's BLAS runs other kernels than
+    the committed scene versions were made with, the scene is rendered in a child process that runs theirs
+    (:mod:`benchmark.core.openblas`).
     ``perturbation``: a stress-suite knob ``(family, strength)`` applied to the preset
     (:mod:`benchmark.synthetic.perturb`; strength 0 is the clean scene). ``jobs``: processes that render
     the frames (contiguous runs of time steps each); the files are the same for any count.
@@ -135,6 +141,7 @@ def generate(preset: str, out_dir: str | Path, *, size: Optional[int] = None, fr
     if int(jobs) < 1:
         raise InputError(None, "jobs", f"must be at least 1, got {jobs}")
     jobs = min(int(jobs), frames)
+    _check_memory(size, height, layout, jobs)
     out = Path(out_dir)
     _check_target(out, overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
