@@ -424,11 +424,18 @@ def results_file(config: SuiteConfig, key: RunKey) -> Optional[Path]:
     from methods import registry
 
     found = sorted(key.folder(config.runs_dir).glob(f"*/*/{key.method}/oracle/seed{key.seed}.json"))
-    if not (found and registry.get(key.method).results_made_as(found[0], run_options(config, key, None))):
+    if not found:
+        return None
+    try:
+        doc = read_json(found[0])
+    except InputError:  # a damaged results file: the run is made anew
+        return None
+    if not isinstance(doc, dict) or not registry.get(key.method).recorded_as(doc.get("method_config"),
+                                                                            run_options(config, key, None)):
         return None
     # a run measured on a scene the generator no longer makes is stale too
     scene = scene_folder(config, key.family, key.strength)
-    recorded = ((read_json(found[0]).get("scene_info") or {}).get("generated") or {}).get("digest")
+    recorded = ((doc.get("scene_info") or {}).get("generated") or {}).get("digest")
     return found[0] if recorded == (_scene_stamp(scene) or {}).get("digest") else None
 
 
