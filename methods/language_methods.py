@@ -381,7 +381,9 @@ def fit_language_field(scene: Scene, supervision: Supervision, config: LanguageM
         ae, ae_report = train_autoencoder(feats, ae_cfg, seed=seed, weights=areas, device=device)
     ae.eval().requires_grad_(False)
     with StagePeak(device) as field_peak:
+        start = time.perf_counter()
         targets = field_targets(scene, supervision, ae, device)
+        targets_seconds = time.perf_counter() - start
         fld, report = train_language_field(geo.geometry, targets, f_cfg, seed=seed, progress=progress)
     fld.requires_grad_(False)
     info = {"key": key,
@@ -390,7 +392,7 @@ def fit_language_field(scene: Scene, supervision: Supervision, config: LanguageM
                             "seconds": ae_report.seconds, **ae_peak.record()},
             "field": {"iterations": report.iterations, "seconds": report.seconds, "final_loss": report.final_loss,
                       "losses": report.losses, "supervised_fraction": report.supervised_fraction,
-                      "views": len(targets), **field_peak.record()}}
+                      "views": len(targets), "targets_seconds": targets_seconds, **field_peak.record()}}
     if path is not None:
         _torch_save(path, {"key": key, "input_dim": int(feats.shape[1]), "autoencoder": ae.state_dict(),
                            "features": fld.features.detach().cpu(), "info": json.dumps(info)})

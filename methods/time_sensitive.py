@@ -15,6 +15,7 @@ Captions are cached under ``<cache>/captions/`` (the runner's cache folder, or t
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import ClassVar
 
@@ -57,16 +58,26 @@ class _FieldHead(TimeVaryingHead):
     @classmethod
     def fit(cls, context: FitContext) -> "_FieldHead":
         cfg = context.config
-        captions, tracks = build_captions(context.scene, context.supervision.track, cfg.captions,
-                                          supervision=context.supervision, cache_root=context.cache_root,
-                                          device=context.device, progress=context.progress)
-        encoder = caption_text_encoder(cfg.captions, context.supervision.text_encoder, context.device)
-        sup = embed_captions(captions, tracks, encoder)
+        start = time.perf_counter()
+        with StagePeak(context.device) as caption_peak:
+            captions, tracks = build_captions(context.scene, context.supervision.track, cfg.captions,
+                                              supervision=context.supervision, cache_root=context.cache_root,
+                                              device=context.device, progress=context.progress)
+            captioned = time.perf_counter()
+            encoder = caption_text_encoder(cfg.captions, context.supervision.text_encoder, context.device)
+            sup = embed_captions(captions, tracks, encoder)
+        # captioning is outside fit_time_varying_field (it is cached per scene and shared by the heads),
+        # so its time is recorded here, where a run that captions pays it
+        captioning = {"seconds": time.perf_counter() - start, "caption_seconds": captioned - start,
+                      "embed_seconds": time.perf_counter() - captioned, "captioner": captions.captioner,
+                      "object_tracks": tracks.source, "captions": len(captions.frames),
+                      "video_descriptions": len(captions.video), **caption_peak.record()}
         with StagePeak(context.device) as peak:
             field = fit_time_varying_field(context.shared.geometry, context.scene, sup, cfg, kind=cls.kind,
                                            seed=context.seed, device=context.device, progress=context.progress,
                                            log=context.progress.log, backend=cfg.geometry.render_backend)
         field.info.update(peak.record())
+        field.info["captioning"] = captioning
         mem = field.memory()
         context.progress.log(f"{cls.name}: K = {field.info['num_states']}, {field.info['dynamic_gaussians']} of "
                              f"{mem['gaussians']} Gaussians carry states, {mem['bytes_per_gaussian']:.1f} B/Gaussian, "

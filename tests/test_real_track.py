@@ -173,12 +173,21 @@ def test_real_track_runs_every_stage_on_tiny_models_and_resumes_from_the_caches(
     assert stages["autoencoder"]["distinct_features"] > 0 and stages["field"]["iterations"] == 20
     assert record["metrics"]["agnostic_queries"] > 0 and record["metrics"]["sensitive_queries"] > 0
     assert record["fit"]["cached"] is False
+    # every stage says what it cost: the supervision's two stages and the captions (outside the head's field)
+    built = record["supervision"]["stages"]
+    assert built["segment"]["cached"] is False and built["encode"]["cached"] is False
+    assert built["segment"]["seconds"] > 0 and built["segment"]["masks_per_frame"] > 0
+    captioning = stages["time_varying"]["captioning"]
+    assert captioning["captioner"] == "qwen2-vl" and captioning["captions"] >= stages["time_varying"]["objects"]
+    assert 0 < captioning["caption_seconds"] <= captioning["seconds"]
+    assert 0 <= stages["field"]["targets_seconds"] < stages["field"]["seconds"] + 60
     cache_files = {p: p.stat().st_mtime_ns for p in (tmp_path / "cache").rglob("*") if p.is_file()}
     assert cache_files
 
     second = run().results
     assert second["fit"]["cached"] is True
     assert second["metrics"] == record["metrics"]
+    assert all(stage["cached"] for stage in second["supervision"]["stages"].values())
     changed = [p for p, t in cache_files.items() if p.exists() and p.stat().st_mtime_ns != t]
     assert not changed, f"a second run redid a finished stage: {changed[:3]}"
 

@@ -167,6 +167,9 @@ class Supervision:
     """Hash of the sources' configs and the scene's training data (part of fit cache keys)."""
     source_configs: dict[str, Any] = field(default_factory=dict)
     """Kind -> the source's :meth:`config` (recorded in results)."""
+    stages: dict[str, Any] = field(default_factory=dict)
+    """Stage -> ``{"seconds", "cached"}`` of building it in this process (``segment``, ``encode``):
+    the real track's supervision cost per stage, recorded in results; empty where it was not timed."""
 
     def __post_init__(self) -> None:
         self.frames = sorted(self.frames, key=lambda f: (f.time_index, f.camera_id, f.name))
@@ -190,7 +193,7 @@ class Supervision:
         """JSON-ready summary for results files."""
         return {"track": self.track, "sources": dict(self.sources), "source_configs": self.source_configs,
                 "fingerprint": self.fingerprint, "num_frames": len(self.frames),
-                "feature_dim": self.feature_dim}
+                "feature_dim": self.feature_dim, "stages": dict(self.stages)}
 
 
 def relabel_levels(ids: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:

@@ -18,6 +18,7 @@ without its ``ids/``) is rebuilt, never trusted.
 from __future__ import annotations
 
 import io
+import time
 from pathlib import Path
 from typing import Any, Callable, Iterable, Optional, Sequence
 
@@ -93,11 +94,12 @@ def build_supervision(scene: Scene, track: str = "oracle", *, cache_dir: str | P
     folder = Path(cache_dir) / "supervision" / scene.dataset / scene.name
     seg_key = stable_hash({"format": CACHE_FORMAT, "frames": scene_fingerprint(scene, train),
                            "segmenter": segmenter.config()})
+    stages: dict[str, dict] = {"segment": {}, "encode": {}}
     levels, segment_ids = cached_segments(folder / f"segments-{specs['segmenter'].name}-{seg_key}.npz", train,
-                                          segmenter, specs["segmenter"].name, progress)
+                                          segmenter, specs["segmenter"].name, progress, record=stages["segment"])
     feat_key = stable_hash({"segments": seg_key, "image_text": image_text.config()})
     features = cached_features(folder / f"features-{specs['image_text'].name}-{feat_key}.npz", train, levels,
-                               image_text, specs["image_text"].name, encoder.dim, progress)
+                               image_text, specs["image_text"].name, encoder.dim, progress, record=stages["encode"])
 
     frames = [FrameSupervision(name=f.name, time=float(f.time), time_index=int(f.time_index),
                                camera_id=f.camera_id, levels=lv, features=feats, segment_ids=ids)
@@ -110,17 +112,20 @@ def build_supervision(scene: Scene, track: str = "oracle", *, cache_dir: str | P
                "text_encoder": query_encoder.config()}
     fingerprint = stable_hash({"features": feat_key, "text_encoder": query_encoder.config(), "track": track}, 24)
     return Supervision(track=track, sources=sources_used, frames=frames, text_encoder=query_encoder,
-                       fingerprint=fingerprint, source_configs=configs)
+                       fingerprint=fingerprint, source_configs=configs, stages=stages)
 
 
 def cached_segments(path: Path, train: Sequence[Frame], segmenter: Segmenter, name: str,
-                    progress: ProgressFn) -> tuple[list[np.ndarray], list[tuple]]:
+                    progress: ProgressFn, record: Optional[dict] = None) -> tuple[list[np.ndarray], list[tuple]]:
     """Per training frame, the (3, H, W) int16 mask-index map and, per level, the (M_l,) int64 ids the
     segmenter gave those masks: read from ``path``, or segmented by ``segmenter`` (registered as ``name``),
-    relabelled and written there."""
+    relabelled and written there. ``record`` (when given) receives ``seconds`` and ``cached``."""
+    start = time.perf_counter()
+    record = {} if record is None else record
     names = [f.name for f in train]
     loaded = _load_segments(path, names)
     if loaded is not None:
+        record.update(seconds=time.perf_counter() - start, cached=True)
         return loaded
     levels, segment_ids = [], []
     for frame in progress(train, desc=f"segment ({name})", total=len(train)):
@@ -136,17 +141,22 @@ def cached_segments(path: Path, train: Sequence[Frame], segmenter: Segmenter, na
     arrays.update({f"ids/{i}/{level}": per_level[level]
                    for i, per_level in enumerate(segment_ids) for level in range(len(LEVELS))})
     _save_npz(path, arrays)
+    record.update(seconds=time.perf_counter() - start, cached=False, masks_per_frame=float(np.mean(
+        [sum(int(ids.size) for ids in per_level) for per_level in segment_ids])))
     return levels, segment_ids
 
 
 def cached_features(path: Path, train: Sequence[Frame], levels: list[np.ndarray], image_text: ImageTextEncoder,
-                    name: str, dim: int, progress: ProgressFn) -> list[tuple]:
+                    name: str, dim: int, progress: ProgressFn, record: Optional[dict] = None) -> list[tuple]:
     """Per training frame and level, the (M_l, D) float32 features of its masks: read from ``path``, or
     encoded by ``image_text`` (registered as ``name``; ``dim``: the width of a frame without masks) and
-    written there."""
+    written there. ``record`` (when given) receives ``seconds`` and ``cached``."""
+    start = time.perf_counter()
+    record = {} if record is None else record
     names = [f.name for f in train]
     features = _load_features(path, names)
     if features is not None:
+        record.update(seconds=time.perf_counter() - start, cached=True)
         return features
     features = [_encode_frame_masks(frame, lv, image_text, name, dim)
                 for frame, lv in progress(list(zip(train, levels)), desc=f"encode masks ({name})", total=len(train))]
@@ -155,6 +165,7 @@ def cached_features(path: Path, train: Sequence[Frame], levels: list[np.ndarray]
         for level, feats in enumerate(per_level):
             arrays[f"features/{i}/{level}"] = feats
     _save_npz(path, arrays)
+    record.update(seconds=time.perf_counter() - start, cached=False)
     return features
 
 
