@@ -472,6 +472,24 @@ def test_object_weights_from_operators_match_rendering(world):
     assert object_weights_from_operators(views, world.tracks, [0, 1]) is None
 
 
+def test_operators_stop_being_built_once_the_budget_is_full(world, monkeypatch):
+    from methods.fields import time_varying
+    from methods.fields.autoencoder import AutoencoderConfig, train_autoencoder
+
+    ae, _ = train_autoencoder(world.sup.embeddings, AutoencoderConfig(hidden_dims=(16,), latent_dim=6, max_steps=1))
+    targets = time_varying.caption_targets(world.scene, world.sup, ae, "cpu")
+    assert len(targets) >= 4
+    built = []
+    real = time_varying.blend_operator
+    monkeypatch.setattr(time_varying, "blend_operator", lambda *a, **k: built.append(1) or real(*a, **k))
+    one = real(world.geometry.at(targets[0].time), targets[0].camera, targets[0].pixels).nbytes()
+    views, info = time_varying.prepare_views(world.geometry, targets, budget_mib=2.5 * one / 2 ** 20)
+    assert 1 <= info["recorded"] < len(views) and info["budget_full"]
+    # the operator that did not fit is the last one built: the remaining views rasterize without one
+    assert len(built) == info["recorded"] + 1
+    assert [v.op is not None for v in views] == [True] * info["recorded"] + [False] * (len(views) - info["recorded"])
+
+
 def test_adjacent_times_groups_cameras_sharing_a_time():
     from methods.fields.time_varying import adjacent_times
 

@@ -744,27 +744,32 @@ class LatentView:
 def prepare_views(geometry: FrozenGeometry, targets: Sequence[ViewTarget], *, budget_mib: float,
                   use_operators: bool = True, near: float = 0.01,
                   progress: Optional[Callable] = None) -> tuple[list[LatentView], dict[str, Any]]:
-    """Record the views' :class:`BlendOperator` while they fit in ``budget_mib`` (the rest rasterize)."""
+    """Record the views' :class:`BlendOperator` while they fit in ``budget_mib`` (the rest rasterize).
+
+    Recording stops at the first operator that does not fit: the views of one scene have operators of
+    similar size, and each costs a rendering and a sort to build, which a view that is then rasterized
+    anyway would pay for nothing (at 268x480 that was most of the stage on the CPU)."""
     views = [LatentView(t) for t in targets]
     budget = budget_mib * 2 ** 20
-    used, recorded, failed = 0, 0, 0
+    used, recorded, failed, full = 0, 0, 0, False
     start = time.perf_counter()
     if use_operators and geometry.device.type == "cpu":
         items = progress(views, desc="blend operators", total=len(views)) if progress is not None else views
         for v in items:
-            if used >= budget or failed:
+            if full or failed:
                 continue
             op = blend_operator(geometry.at(v.target.time), v.target.camera, v.target.pixels, near=near)
             if op is None:
                 failed += 1  # the rasterizer's internals are not readable: rasterize throughout
                 continue
             if used + op.nbytes() > budget:
+                full = True
                 continue
             v.op = op
             used += op.nbytes()
             recorded += 1
     return views, {"recorded": recorded, "views": len(views), "bytes": used, "seconds": time.perf_counter() - start,
-                   "unreadable": bool(failed)}
+                   "unreadable": bool(failed), "budget_full": full}
 
 
 def adjacent_times(views: Sequence[LatentView]) -> list[list[int]]:
