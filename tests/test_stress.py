@@ -458,6 +458,40 @@ def test_a_generator_change_makes_stale_exactly_the_runs_of_the_scenes_it_change
     assert not list(occluded.parent.glob(".*check*")) and not list(occluded.parent.glob(".*replaced*"))
 
 
+def test_scores_kept_in_the_report_count_without_their_results_files_while_their_digests_are_current(tmp_path):
+    from benchmark.studies.stress_plots import write_reports
+
+    config = stress.SuiteConfig(preset="smoke", size=SIZE, frames=FRAMES, methods=("nearest-frame",),
+                                families=("occluder",), strengths=(0.45,), seeds=(0,),
+                                out_dir=tmp_path / "report", cache_dir=tmp_path / "cache")
+    first = stress.run_suite(config, log=lambda _: None)
+    write_reports(config, first)
+    table = (tmp_path / "report" / "scores.csv").read_text()
+    gallery = tmp_path / "report" / "galleries" / "occluder.png"
+    drawn = gallery.stat().st_mtime_ns
+    # the results files are gone (another machine, a cleared cache): the report's rows stand, nothing is redone
+    elsewhere = dataclasses.replace(config, cache_dir=tmp_path / "other-cache")
+    again = stress.run_suite(elsewhere, log=lambda _: pytest.fail("a kept run was redone"))
+    assert [s.run for s in again] == [s.run for s in first]
+    for kept, made in zip(again, first):  # the table keeps three decimals
+        assert kept.metrics == pytest.approx(made.metrics, abs=5e-4)
+    assert all(s.path is None and s.scene_digest and s.config_digest for s in again)
+    write_reports(elsewhere, again)
+    assert (tmp_path / "report" / "scores.csv").read_text() == table
+    assert gallery.stat().st_mtime_ns == drawn, "a gallery is not redrawn without its runs"
+    assert not list((tmp_path / "report").glob("scores-replaced-*"))
+    # another method config: no row is current; rewriting the table keeps the old one beside it
+    moved = dataclasses.replace(elsewhere, method_options={"nearest-frame": {"camera_weight": "0.5"}})
+    assert stress.collect(moved) == []
+    write_reports(moved, [])
+    assert [p.read_text() for p in (tmp_path / "report").glob("scores-replaced-*.csv")] == [table]
+    # a table written before the digests were recorded is read, but none of its rows is kept
+    legacy = "\n".join(",".join(line.split(",")[:-2]) for line in table.splitlines()) + "\n"
+    (tmp_path / "report" / "scores.csv").write_text(legacy)
+    assert len(stress.read_scores_table(tmp_path / "report" / "scores.csv")) == len(first)
+    assert stress.kept_scores(elsewhere) == {}
+
+
 def test_a_negative_strength_is_refused_before_any_run(tmp_path):
     with pytest.raises(InputError, match="strengths: expected finite strengths >= 0, got -1"):
         stress.SuiteConfig(strengths=(0.5, -1.0), cache_dir=tmp_path)

@@ -4,8 +4,11 @@
                    [--strengths S ...] [--seeds 0 1] [--schedule short] [--set [METHOD:]KEY=VALUE ...]
 
 Families x strengths x methods x seeds (:mod:`benchmark.studies.stress`); a run whose results file
-exists is read, not redone (``--force`` redoes it), so an interrupted suite resumes. ``--report-only``
-writes the charts, galleries and tables from the runs present.
+exists is read, not redone (``--force`` redoes it), so an interrupted suite resumes. So is a run the
+report's ``scores.csv`` keeps with today's scene and config digests: a suite split over machines, or run
+again after the cache was cleared, adds to the table rather than starting over. ``--report-only`` writes
+the charts, galleries and tables from the runs present (a gallery whose runs' results files are not here
+is kept as drawn).
 """
 
 from __future__ import annotations

@@ -3,7 +3,9 @@
 Every run is an ordinary evaluation (:mod:`benchmark.runner`), written as a results file under
 ``<runs>/<family>/<strength>/`` (the clean runs, strength 0 of every family, once under
 ``<runs>/clean/``); a run whose results file exists is read, not redone, so the suite resumes where
-it stopped. Scene-side families are generated scenes (:mod:`benchmark.synthetic.perturb`); the
+it stopped. The report's ``scores.csv`` keeps every run's scores with the digests of its scene and its
+method config, so a run whose results file is gone (another machine, a cleared cache) still counts, and is
+not redone, while both digests are those of today's scene and config. Scene-side families are generated scenes (:mod:`benchmark.synthetic.perturb`); the
 supervision-side families put noise on what the oracle track gives a method, here, so no method
 changes:
 
@@ -479,13 +481,24 @@ class Score:
     seed: int
     metrics: dict
     """Metric name -> value (None where the scene has no query of that kind)."""
-    path: Path
-    """Its results file."""
+    path: Optional[Path]
+    """Its results file (None: a score kept in the report's ``scores.csv`` whose results file is not here)."""
     wall_seconds: float
+    scene_digest: str = ""
+    """Digest of the generated scene it was measured on."""
+    config_digest: str = ""
+    """:func:`config_digest` of the method config it ran with."""
+
+    @property
+    def run(self) -> tuple:
+        """The run it is: a clean run shared by every family is one run."""
+        return (CLEAN if self.strength == 0 else self.family, self.strength, self.method, self.seed)
 
 
 def collect(config: SuiteConfig) -> list[Score]:
-    """The scores of every run of the suite that has a results file, the clean runs under every family."""
+    """The scores of every run of the suite, the clean runs under every family: from its results file, or
+    else kept from the report's ``scores.csv`` (:func:`kept_scores`) while its digests are current."""
+    kept = kept_scores(config)
     out = []
     for method in config.methods:
         for seed in config.seeds:
@@ -495,12 +508,113 @@ def collect(config: SuiteConfig) -> list[Score]:
                     if not applies(RunKey(fam, strength, method, seed)):
                         continue
                     path = results_file(config, key)
-                    if path is None:
-                        continue
-                    doc = read_json(path)
-                    out.append(Score(fam, strength, method, seed, {m: doc["metrics"].get(m) for m in METRICS},
-                                     path, float(doc.get("wall_seconds") or 0.0)))
+                    if path is not None:
+                        doc = read_json(path)
+                        scene = ((doc.get("scene_info") or {}).get("generated") or {}).get("digest") or ""
+                        out.append(Score(fam, strength, method, seed, {m: doc["metrics"].get(m) for m in METRICS},
+                                         path, float(doc.get("wall_seconds") or 0.0), scene,
+                                         config_digest(config, key)))
+                    elif (key.family, strength, method, seed) in kept:
+                        out.append(replace(kept[key.family, strength, method, seed], family=fam))
     return out
+
+
+def config_digest(config: SuiteConfig, key: RunKey) -> str:
+    """A digest of the method config the run has today (a caption-swap run's captions file by its name in
+    the suite's folder, so a moved cache keeps it)."""
+    from benchmark.core.cache_keys import stable_hash
+    from benchmark.runner import config_dict
+    from methods import registry
+
+    options = run_options(config, key, None)
+    if "captions.file" in options:
+        options["captions.file"] = Path(options["captions.file"]).name
+    return stable_hash(config_dict(registry.get(key.method).make_config(options)), 12)
+
+
+def scene_digest_now(config: SuiteConfig, key: RunKey) -> str:
+    """Digest of the scene the run reads, as the generator makes it today."""
+    return (_scene_stamp(scene_folder(config, key.family, key.strength)) or {}).get("digest") or ""
+
+
+def kept_scores(config: SuiteConfig) -> dict[tuple, Score]:
+    """The runs of the report's ``scores.csv`` (``config.out_dir``) that are current, by :attr:`Score.run`:
+    written with both digests, equal to today's scene and method config. A row without them (a table
+    written before they were recorded) or with another is not kept: the run is made again."""
+    csv = Path(config.out_dir) / SCORES_FILE
+    if not csv.is_file():
+        return {}
+    out = {}
+    for score in read_scores_table(csv):
+        if not score.scene_digest or not score.config_digest or score.method not in config.methods:
+            continue
+        key = RunKey(*score.run)
+        if (score.config_digest == config_digest(config, key)
+                and score.scene_digest == scene_digest_now(config, key)):
+            out[score.run] = score
+    return out
+
+
+SCORES_FILE = "scores.csv"
+"""The report's table of every run's scores (with the digests that keep a run current)."""
+_SCORE_COLUMNS = ("family", "strength", "method", "seed", *METRICS, "wall_seconds", "scene_digest", "config_digest")
+
+
+def read_scores_table(csv: Path) -> list[Score]:
+    """The runs of a written ``scores.csv`` as :class:`Score` records (no results file behind them); the
+    digest columns may be missing (a table written before they were recorded)."""
+    import pandas as pd
+
+    if not Path(csv).is_file():
+        raise InputError(csv, None, "no stress scores here: run bench4d stress first")
+    try:
+        table = pd.read_csv(csv, dtype={"family": str, "method": str, "scene_digest": str, "config_digest": str})
+    except (ValueError, pd.errors.ParserError) as exc:
+        raise InputError(csv, None, f"not a readable scores table ({exc})") from None
+    for column in ("family", "strength", "method", "seed", *METRICS):
+        if column not in table.columns:
+            raise InputError(csv, column, "column missing: not a stress scores table")
+    unknown = sorted(set(table["family"]) - set(FAMILIES))
+    if unknown:
+        raise InputError(csv, "family", f"unknown family {unknown[0]!r}")
+
+    def text(row, name: str) -> str:
+        value = getattr(row, name, "")
+        return "" if pd.isna(value) else str(value)
+
+    try:
+        return [Score(r.family, float(r.strength), r.method, int(r.seed),
+                      {m: None if pd.isna(getattr(r, m)) else float(getattr(r, m)) for m in METRICS}, None,
+                      float(getattr(r, "wall_seconds", 0.0) or 0.0), text(r, "scene_digest"),
+                      text(r, "config_digest")) for r in table.itertuples(index=False)]
+    except (TypeError, ValueError) as exc:
+        raise InputError(csv, None, f"a row that is not a score ({exc})") from None
+
+
+def write_scores_table(scores: Sequence[Score], path: Path) -> Path:
+    """``scores.csv``: one row per (family, strength, method, seed), the clean runs under every family. A
+    table there already whose runs this one drops (stale ones, or all of a table written without digests)
+    is kept beside it as ``scores-replaced-<UTC time>.csv``: no measurement is lost by rewriting."""
+    from benchmark.core.atomic import write_text
+
+    rows = sorted(scores, key=lambda s: (s.family, s.strength, s.method, s.seed))
+    lines = [",".join(_SCORE_COLUMNS)]
+    for s in rows:
+        cells = ["" if s.metrics.get(m) is None else f"{s.metrics[m]:.3f}" for m in METRICS]
+        lines.append(f"{s.family},{strength_label(s.strength)},{s.method},{s.seed}," + ",".join(cells)
+                     + f",{s.wall_seconds:.1f},{s.scene_digest},{s.config_digest}")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.is_file():
+        try:
+            before = {(s.family, s.strength, s.method, s.seed) for s in read_scores_table(path)}
+        except InputError:
+            before = {None}  # unreadable: kept as it is
+        if before - {(s.family, s.strength, s.method, s.seed) for s in rows}:
+            stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+            shutil.copy2(path, path.with_name(f"{path.stem}-replaced-{stamp}{path.suffix}"))
+    write_text(path, "\n".join(lines) + "\n")
+    return path
 
 
 def mean_by_strength(scores: Sequence[Score], fam: str, method: str, metric: str) -> dict[float, list[float]]:
@@ -526,10 +640,12 @@ def breaking_point(values: dict[float, list[float]]) -> Optional[float]:
 
 
 def run_suite(config: SuiteConfig, log: Callable[[str], None] = print) -> list[Score]:
-    """Run (or read) every run of the suite, then return the scores."""
+    """Run every run of the suite that has neither a results file nor a kept score (:func:`kept_scores`),
+    then return the scores."""
     keys = run_keys(config)
+    kept = {} if config.force else kept_scores(config)
     for k, key in enumerate(keys, start=1):
-        if not applies(key):
+        if not applies(key) or (key.family, key.strength, key.method, key.seed) in kept:
             continue
         if results_file(config, key) is None or config.force:
             log(f"[{k}/{len(keys)}] {key.method} {key.family} {strength_label(key.strength)} seed{key.seed}")

@@ -18,7 +18,8 @@ import numpy as np
 from benchmark.core.atomic import read_json, write_bytes, write_text
 from benchmark.synthetic.perturb import FAMILIES
 from ._report import markdown_table, number_cell
-from .stress import METRICS, Score, SuiteConfig, breaking_point, mean_by_strength, strength_label
+from .stress import (METRICS, SCORES_FILE, Score, SuiteConfig, breaking_point, mean_by_strength,
+                     read_scores_table, strength_label, write_scores_table)
 
 GALLERY_FRAMES = 3
 """(query, frame) pairs a gallery shows."""
@@ -190,22 +191,7 @@ def gallery(runs: dict[str, Path], scene_root: Path, title: str, path: Path) -> 
 def read_scores(csv: Path) -> list[Score]:
     """The runs of a written ``scores.csv`` (:func:`write_reports`) as :class:`Score` records (no results
     file behind them)."""
-    import pandas as pd
-
-    from benchmark.core.errors import InputError
-
-    if not Path(csv).is_file():
-        raise InputError(csv, None, "no stress scores here: run bench4d stress first")
-    table = pd.read_csv(csv, dtype={"family": str, "method": str})
-    for column in ("family", "strength", "method", "seed", *METRICS):
-        if column not in table.columns:
-            raise InputError(csv, column, "column missing: not a stress scores table")
-    unknown = sorted(set(table["family"]) - set(FAMILIES))
-    if unknown:
-        raise InputError(csv, "family", f"unknown family {unknown[0]!r}")
-    return [Score(r.family, float(r.strength), r.method, int(r.seed),
-                  {m: None if pd.isna(getattr(r, m)) else float(getattr(r, m)) for m in METRICS}, Path(csv),
-                  float(getattr(r, "wall_seconds", 0.0) or 0.0)) for r in table.itertuples(index=False)]
+    return read_scores_table(csv)
 
 
 def charts_from_csv(csv: Path, out_dir: Path) -> list[Path]:
@@ -225,8 +211,10 @@ def family_gallery(config: SuiteConfig, scores: Sequence[Score], fam: str, path:
     if not strengths:
         return None
     strongest, seed = strengths[-1], min(config.seeds)
-    runs = {s.method: s.path for s in scores
-            if s.family == fam and s.strength == strongest and s.seed == seed}
+    shown = [s for s in scores if s.family == fam and s.strength == strongest and s.seed == seed]
+    runs = {s.method: s.path for s in shown if s.path is not None}
+    if len(runs) < len(shown) and path.is_file():
+        return None  # drawn before with runs whose results files are not here: kept, not redrawn without them
     title = f"{fam} at {strength_label(strongest)} ({FAMILIES[fam].unit}), seed {seed}"
     return gallery(runs, scene_folder(config, fam, strongest), title, path)
 
@@ -249,7 +237,7 @@ def _run_time_table(scores: Sequence[Score], methods: Sequence[str]) -> str:
     ran it, whatever invocations it took."""
     rows = []
     for method in methods:
-        seconds = list({s.path: s.wall_seconds for s in scores if s.method == method}.values())
+        seconds = list({s.run: s.wall_seconds for s in scores if s.method == method}.values())
         if seconds:
             rows.append([method, str(len(seconds)), f"{sum(seconds) / 60:.1f}", f"{float(np.median(seconds)):.0f}"])
     return markdown_table(["method", "runs", "run time (min)", "median run (s)"], rows)
@@ -323,22 +311,11 @@ def write_reports(config: SuiteConfig, scores: Sequence[Score], *, wall_seconds:
                      family_gallery(config, scores, fam, out / "galleries" / f"{fam}.png")):
             if made is not None:
                 written.append(made)
-    written.append(_write_scores_csv(scores, out / "scores.csv"))
+    written.append(write_scores_table(scores, out / SCORES_FILE))
     header, rows = breaking_rows(scores, families, config.methods)
     text = _readme(config, scores, families, markdown_table(header, rows), wall_seconds, notes)
     write_text(out / "README.md", text)
     return written + [out / "README.md"]
-
-
-def _write_scores_csv(scores: Sequence[Score], path: Path) -> Path:
-    lines = ["family,strength,method,seed," + ",".join(METRICS) + ",wall_seconds"]
-    for s in sorted(scores, key=lambda s: (s.family, s.strength, s.method, s.seed)):
-        cells = ["" if s.metrics.get(m) is None else f"{s.metrics[m]:.3f}" for m in METRICS]
-        lines.append(f"{s.family},{strength_label(s.strength)},{s.method},{s.seed}," + ",".join(cells)
-                     + f",{s.wall_seconds:.1f}")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_text(path, "\n".join(lines) + "\n")
-    return path
 
 
 def _readme(config: SuiteConfig, scores: Sequence[Score], families: Sequence[str], table: str,
