@@ -540,9 +540,10 @@ def comparable_runs(runs: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
 
 
 @contextlib.contextmanager
-def exclusive_lock(lock_path: str | Path) -> Iterator[None]:
+def exclusive_lock(lock_path: str | Path, *, wait: bool = True) -> Iterator[bool]:
     """Hold an exclusive ``flock`` on ``lock_path`` (created if missing) until the block ends; other
-    processes locking the same path wait. The holder removes the file before it lets go, so no lock file
+    processes locking the same path wait (``wait=False``: the block runs at once and is given False when
+    another holds it, True when it holds it). The holder removes the file before it lets go, so no lock file
     outlives its writer (results folders are committed: one stray file per results file would litter
     them). A waiter that then wakes on the removed file finds the path gone or naming another file, and
     locks again. A process killed while holding it leaves the file behind: harmless, the next writer
@@ -552,16 +553,20 @@ def exclusive_lock(lock_path: str | Path) -> Iterator[None]:
     try:
         import fcntl
     except ImportError:  # no flock on this platform (Windows): writers are not serialised there
-        yield
+        yield True
         return
     while True:
         fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o666)
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX)
+            fcntl.flock(fd, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
             held, now = os.fstat(fd), os.stat(lock_path)
         except FileNotFoundError:  # removed by the holder we waited for: lock the path anew
             os.close(fd)
             continue
+        except BlockingIOError:  # held by another, and the caller does not wait
+            os.close(fd)
+            yield False
+            return
         except BaseException:
             os.close(fd)
             raise
@@ -569,7 +574,7 @@ def exclusive_lock(lock_path: str | Path) -> Iterator[None]:
             break
         os.close(fd)  # we locked a file its holder removed; another may hold the path's new file
     try:
-        yield
+        yield True
     finally:
         try:
             os.unlink(lock_path)

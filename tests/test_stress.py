@@ -492,6 +492,43 @@ def test_scores_kept_in_the_report_count_without_their_results_files_while_their
     assert stress.kept_scores(elsewhere) == {}
 
 
+def test_a_run_another_process_holds_is_left_to_it_and_read_at_the_end(tmp_path):
+    import threading
+
+    from benchmark.results import exclusive_lock
+
+    config = stress.SuiteConfig(preset="smoke", size=SIZE, frames=FRAMES, methods=("nearest-frame",),
+                                families=("mask-drop",), strengths=(0.5,), seeds=(0,),
+                                out_dir=tmp_path / "report", cache_dir=tmp_path / "cache")
+    clean = stress.RunKey(stress.CLEAN, 0.0, "nearest-frame", 0)
+    lines: list[str] = []
+    held, release = threading.Event(), threading.Event()
+
+    def other_process():  # holds the clean run's claim (flock: another open file conflicts, as another process)
+        with exclusive_lock(stress.claim_file(config, clean)):
+            held.set()
+            release.wait(60)
+            stress.run_one(config, clean, log=lines.append)
+
+    other = threading.Thread(target=other_process)
+    other.start()
+    assert held.wait(30)
+
+    def log(line: str) -> None:
+        lines.append(line)
+        if "another process runs it" in line:
+            release.set()
+
+    scores = stress.run_suite(config, log=log)
+    other.join(60)
+    deferred = [i for i, line in enumerate(lines) if "another process runs it" in line]
+    made = [i for i, line in enumerate(lines) if line.startswith("nearest-frame clean 0 seed0:")]
+    assert len(deferred) == 1 and len(made) == 1, lines  # the clean run was made once, by its holder
+    assert any(line.startswith("nearest-frame mask-drop 0.5 seed0:") for line in lines), "the free run was made"
+    assert {s.run for s in scores} == {("clean", 0.0, "nearest-frame", 0), ("mask-drop", 0.5, "nearest-frame", 0)}
+    assert not list(stress.claim_file(config, clean).parent.glob("*.lock")), "no claim outlives its holder"
+
+
 def test_a_negative_strength_is_refused_before_any_run(tmp_path):
     with pytest.raises(InputError, match="strengths: expected finite strengths >= 0, got -1"):
         stress.SuiteConfig(strengths=(0.5, -1.0), cache_dir=tmp_path)

@@ -6,7 +6,9 @@
 Families x strengths x methods x seeds (:mod:`benchmark.studies.stress`); a run whose results file
 exists is read, not redone (``--force`` redoes it), so an interrupted suite resumes. So is a run the
 report's ``scores.csv`` keeps with today's scene and config digests: a suite split over machines, or run
-again after the cache was cleared, adds to the table rather than starting over. ``--report-only`` writes
+again after the cache was cleared, adds to the table rather than starting over. Suites started side by
+side on one cache (one per core) share the runs out: a run another one is making is left to it and read at
+the end. ``--report-only`` writes
 the charts, galleries and tables from the runs present (a gallery whose runs' results files are not here
 is kept as drawn).
 """

@@ -642,12 +642,30 @@ def breaking_point(values: dict[float, list[float]]) -> Optional[float]:
 def run_suite(config: SuiteConfig, log: Callable[[str], None] = print) -> list[Score]:
     """Run every run of the suite that has neither a results file nor a kept score (:func:`kept_scores`),
     then return the scores."""
+    from benchmark.results import exclusive_lock
+
     keys = run_keys(config)
     kept = {} if config.force else kept_scores(config)
+    deferred: list[RunKey] = []
     for k, key in enumerate(keys, start=1):
         if not applies(key) or (key.family, key.strength, key.method, key.seed) in kept:
             continue
-        if results_file(config, key) is None or config.force:
-            log(f"[{k}/{len(keys)}] {key.method} {key.family} {strength_label(key.strength)} seed{key.seed}")
-        run_one(config, key, log)
+        name = f"{key.method} {key.family} {strength_label(key.strength)} seed{key.seed}"
+        with exclusive_lock(claim_file(config, key), wait=False) as claimed:
+            if not claimed:
+                log(f"[{k}/{len(keys)}] {name}: another process runs it; back to it at the end")
+                deferred.append(key)
+                continue
+            if results_file(config, key) is None or config.force:
+                log(f"[{k}/{len(keys)}] {name}")
+            run_one(config, key, log)
+    for key in deferred:  # wait for the other process, then read its results file (or run it, if it died)
+        with exclusive_lock(claim_file(config, key)):
+            run_one(replace(config, force=False), key, log)  # made just now, even under --force
     return collect(config)
+
+
+def claim_file(config: SuiteConfig, key: RunKey) -> Path:
+    """The lock a process holds while it makes a run, so two suites started on one cache (one per core)
+    share the runs out rather than make the same run side by side."""
+    return config.runs_dir / ".claims" / f"{key.family}-{strength_label(key.strength)}-{key.method}-seed{key.seed}.lock"
