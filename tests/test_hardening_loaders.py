@@ -93,3 +93,23 @@ def test_a_damaged_scene_folder_loads_or_fails_in_one_line(pristine, tmp_path_fa
     except InputError as err:
         message = str(err)
         assert "\n" not in message.strip() and message.strip(), message
+
+
+def test_a_camera_far_beyond_float_range_fails_in_one_line_without_numpy_warnings():
+    import warnings
+
+    import numpy as np
+
+    from benchmark.loaders import _common
+    from benchmark.loaders.hypernerf import NerfiesCamera, to_opencv
+
+    half = np.sqrt(0.5)
+    turn = np.array([[half, -half, 0.0], [half, half, 0.0], [0.0, 0.0, 1.0]])
+    far = NerfiesCamera(turn, np.array([1.5e308, 1.5e308, 0.0]), 100.0, np.array([8.0, 8.0]), 0.0, 1.0,
+                        np.zeros(3), np.zeros(2), 16, 16)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # an overflow inside numpy is a warning: it must not happen
+        with pytest.raises(InputError, match="position: camera position .* is not finite"):
+            to_opencv(far, np.zeros(3), 1.0, path=Path("camera/000.json"))
+        with pytest.raises(InputError, match="orientation: not a rotation matrix"):
+            _common.check_rotation(turn * 1e200, Path("camera/000.json"), "orientation")

@@ -81,10 +81,11 @@ def as_int(value: Any, file: Path, field: str, *, minimum: Optional[int] = None)
 
 def check_rotation(rot: np.ndarray, file: Path, field: str) -> np.ndarray:
     """Raise unless ``rot`` (3, 3) is a proper rotation (orthonormal, det +1)."""
-    err = float(np.abs(rot @ rot.T - np.eye(3)).max())
-    if err > ROTATION_TOLERANCE or np.linalg.det(rot) < 0:
-        raise InputError(file, field, f"not a rotation matrix (|R R^T - I| = {err:.2g}, "
-                                      f"det = {np.linalg.det(rot):.3f})")
+    with np.errstate(over="ignore", invalid="ignore"):  # huge entries: an inf error, refused below
+        err = float(np.abs(rot @ rot.T - np.eye(3)).max())
+        det = float(np.linalg.det(rot))
+    if not err <= ROTATION_TOLERANCE or not det > 0:
+        raise InputError(file, field, f"not a rotation matrix (|R R^T - I| = {err:.2g}, det = {det:.3f})")
     return rot
 
 

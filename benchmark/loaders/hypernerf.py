@@ -142,7 +142,11 @@ def to_opencv(cam: NerfiesCamera, center: np.ndarray, world_scale: float, *, pat
                                        "(pass ignore_skew=True to drop it)")
     w2c = np.eye(4)
     w2c[:3, :3] = cam.orientation
-    w2c[:3, 3] = -cam.orientation @ ((cam.position - center) * world_scale)
+    with np.errstate(over="ignore", invalid="ignore"):  # checked below, as one error naming the field
+        w2c[:3, 3] = -cam.orientation @ ((cam.position - center) * world_scale)
+    if not np.isfinite(w2c).all():
+        raise InputError(path, "position", f"camera position {cam.position.tolist()} is not finite once centred "
+                                           f"and scaled (scene centre {np.asarray(center).tolist()}, scale {world_scale})")
     k1, k2, k3 = cam.radial
     p1, p2 = cam.tangential
     return Camera(cam.width, cam.height, cam.focal_length, cam.focal_length * cam.pixel_aspect_ratio,
