@@ -228,3 +228,31 @@ def test_runs_through_the_evaluation_runner(smoke):
     again = run()
     assert again.results["timing"]["fit_cached"] is True
     assert again.results["metrics"] == doc["metrics"]
+
+
+def test_the_training_loss_is_the_same_whatever_the_pixel_chunk():
+    from types import SimpleNamespace
+
+    from methods import feature_3dgs as f3
+
+    gen = torch.Generator().manual_seed(0)
+    target = SimpleNamespace(index=torch.randint(-1, 5, (37, 53), generator=gen), table=torch.randn(5, 64, generator=gen))
+    features = torch.randn(37, 53, 8, generator=gen, requires_grad=True)
+    grads = []
+    for chunk in (None, 100, 37 * 53):  # the CPU's default, a ragged last chunk, one chunk
+        decoder = torch.nn.Linear(8, 64)
+        with torch.no_grad():
+            decoder.weight.copy_(torch.linspace(-1, 1, 512).reshape(64, 8))
+            decoder.bias.zero_()
+        features.grad = None
+        loss = f3.l1_backward(decoder, features * 1.0, target, chunk=chunk)
+        grads.append((loss, features.grad.clone(), decoder.weight.grad.clone(), decoder.bias.grad.clone()))
+    supervised = target.index >= 0
+    decoded = torch.nn.functional.linear(features.detach()[supervised], torch.linspace(-1, 1, 512).reshape(64, 8))
+    expected = float((decoded - target.table[target.index[supervised]]).abs().mean())
+    assert f3.TRAIN_PIXEL_CHUNK["cpu"] < 37 * 53, "the default chunks this map"
+    for loss, *tensors in grads:
+        assert loss == pytest.approx(expected, rel=1e-5)
+        for got, ref in zip(tensors, grads[-1][1:]):
+            assert torch.allclose(got, ref, rtol=1e-4, atol=1e-7)
+    assert grads[0][1][~supervised].abs().max() == 0, "pixels without a target get no gradient"
