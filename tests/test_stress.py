@@ -529,6 +529,19 @@ def test_a_run_another_process_holds_is_left_to_it_and_read_at_the_end(tmp_path)
     assert not list(stress.claim_file(config, clean).parent.glob("*.lock")), "no claim outlives its holder"
 
 
+def test_the_run_time_table_totals_the_distinct_runs_of_every_method():
+    from benchmark.studies.stress_plots import _run_time_table
+
+    def score(fam, strength, method, seconds):
+        return stress.Score(fam, strength, method, 0, {"mIoU": 1.0, "Acc": None, "vIoU": None}, None, seconds)
+
+    scores = [score("occluder", 0.0, "a", 60.0), score("topology", 0.0, "a", 60.0),  # one clean run, twice
+              score("occluder", 0.3, "a", 120.0), score("occluder", 0.0, "b", 1800.0), score("occluder", 0.3, "b", 1620.0)]
+    table = _run_time_table(scores, ["a", "b"])
+    assert "| a | 2 | 3.0 | 90 |" in table and "| b | 2 | 57.0 | 1710 |" in table
+    assert "| all (1.0 h) | 4 | 60.0 | 870 |" in table
+
+
 def test_a_negative_strength_is_refused_before_any_run(tmp_path):
     with pytest.raises(InputError, match="strengths: expected finite strengths >= 0, got -1"):
         stress.SuiteConfig(strengths=(0.5, -1.0), cache_dir=tmp_path)

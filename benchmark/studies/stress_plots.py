@@ -235,11 +235,15 @@ def _run_time_table(scores: Sequence[Score], methods: Sequence[str]) -> str:
     """Per method: its distinct runs (a clean run shared by families counts once) and the sum and median of
     their own wall times, stages reused from the cache not included: the suite's cost on the machine that
     ran it, whatever invocations it took."""
-    rows = []
+    rows, every = [], []
     for method in methods:
         seconds = list({s.run: s.wall_seconds for s in scores if s.method == method}.values())
         if seconds:
             rows.append([method, str(len(seconds)), f"{sum(seconds) / 60:.1f}", f"{float(np.median(seconds)):.0f}"])
+            every += seconds
+    if len(rows) > 1:
+        rows.append([f"all ({sum(every) / 3600:.1f} h)", str(len(every)), f"{sum(every) / 60:.1f}",
+                     f"{float(np.median(every)):.0f}"])
     return markdown_table(["method", "runs", "run time (min)", "median run (s)"], rows)
 
 
