@@ -542,6 +542,25 @@ def test_the_run_time_table_totals_the_distinct_runs_of_every_method():
     assert "| all (1.0 h) | 4 | 60.0 | 870 |" in table
 
 
+def test_a_method_keeps_its_colour_in_every_panel_of_a_family_chart(tmp_path, monkeypatch):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from benchmark.studies import stress_plots
+
+    def score(strength, method, acc):
+        return stress.Score("occluder", strength, method, 0, {"mIoU": 50.0, "Acc": acc, "vIoU": acc}, None, 1.0)
+
+    # the first method answers no time query: it is missing from the Acc and vIoU panels
+    scores = [score(s, m, None if m == "feature-3dgs" else 60.0) for s in (0.0, 0.3) for m in ("feature-3dgs", "4d-langsplat")]
+    figures = []
+    monkeypatch.setattr(stress_plots, "_save_png", lambda fig, path: figures.append(fig) or path)
+    stress_plots.family_chart(scores, "occluder", ["feature-3dgs", "4d-langsplat"], tmp_path / "c.png")
+    colours = [{line.get_label(): line.get_color() for line in ax.get_lines()} for ax in figures[0].axes]
+    assert set(colours[0]) == {"feature-3dgs", "4d-langsplat"} and set(colours[1]) == {"4d-langsplat"}
+    assert len({panel["4d-langsplat"] for panel in colours}) == 1
+
+
 def test_a_negative_strength_is_refused_before_any_run(tmp_path):
     with pytest.raises(InputError, match="strengths: expected finite strengths >= 0, got -1"):
         stress.SuiteConfig(strengths=(0.5, -1.0), cache_dir=tmp_path)

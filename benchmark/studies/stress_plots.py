@@ -52,22 +52,25 @@ def family_chart(scores: Sequence[Score], fam: str, methods: Sequence[str], path
     fig, axes = plt.subplots(1, len(METRICS), figsize=(3.2 * len(METRICS), 2.6), squeeze=False)
     drawn = False
     for ax, metric in zip(axes[0], METRICS):
-        for method in methods:
+        for k, method in enumerate(methods):
             values = mean_by_strength(scores, fam, method, metric)
             if not values:
                 continue
             x = np.array(list(values))
-            ax.plot(x, [np.mean(v) for v in values.values()], marker="o", ms=3, label=method)
-            ax.fill_between(x, [min(v) for v in values.values()], [max(v) for v in values.values()], alpha=0.2)
+            color = f"C{k % 10}"  # one colour per method in every panel (a panel may lack some methods)
+            ax.plot(x, [np.mean(v) for v in values.values()], marker="o", ms=3, label=method, color=color)
+            ax.fill_between(x, [min(v) for v in values.values()], [max(v) for v in values.values()], alpha=0.2,
+                            color=color)
             drawn = True
         ax.set_title(metric, fontsize=9)
-        ax.set_xlabel(FAMILIES[fam].unit, fontsize=7)
         ax.tick_params(labelsize=7)
         ax.set_ylim(0, 100)
     if not drawn:
         plt.close(fig)
         return None
-    axes[0][0].legend(fontsize=7)
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, labels, fontsize=7, loc="center left", bbox_to_anchor=(1.0, 0.5))  # beside, not over, the lines
+    fig.supxlabel(FAMILIES[fam].unit, fontsize=8)  # one axis title: the panels share it
     fig.suptitle(fam, fontsize=10, y=1.05)
     return _save_png(fig, path)
 
