@@ -152,3 +152,10 @@ def test_a_tiny_study_runs_reports_resumes_and_its_table_reads_the_csv(tmp_path,
     moved = dataclasses.replace(config, overrides={**TINY, "field.learning_rate": "0.02"})
     assert all(capacity.results_file(moved, run) is None for run in capacity.distinct_runs(capacity.plan(moved)))
     assert all(capacity.results_file(config, run) is not None for run in capacity.distinct_runs(capacity.plan(config)))
+    # a report written from an emptied cache keeps the table it replaces beside it: no measurement is lost
+    table_text = (out / "capacity.csv").read_text()
+    emptied = dataclasses.replace(config, cache_dir=tmp_path / "empty-cache")
+    capacity.capacity_report(emptied, report_only=True, log=lambda message: None)
+    assert [p.read_text() for p in out.glob("capacity-replaced-*.csv")] == [table_text]
+    capacity.capacity_report(config, report_only=True, log=lambda message: None)  # adds rows, drops none
+    assert len(list(out.glob("capacity-replaced-*.csv"))) == 1

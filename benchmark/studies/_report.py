@@ -22,6 +22,23 @@ class Report:
     """The files written: the JSON document, then the Markdown."""
 
 
+def keep_replaced_table(path: Path, before: set, after: set) -> Optional[Path]:
+    """Before a study's table at ``path`` is rewritten: when the rows it holds (``before``, their keys) are
+    not all among the new table's (``after``), copy it beside as ``<stem>-replaced-<UTC time><suffix>`` and
+    return that path, so no measurement is lost by rewriting (a report made from an emptied cache, a run
+    gone stale). None when nothing is dropped or there is no table."""
+    import shutil
+    import time
+
+    path = Path(path)
+    if not path.is_file() or before <= after:
+        return None
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    kept = path.with_name(f"{path.stem}-replaced-{stamp}{path.suffix}")
+    shutil.copy2(path, kept)
+    return kept
+
+
 def markdown_table(header: list[str], rows: list[list[str]]) -> str:
     """A Markdown table of string cells, one line per row, ending in a newline."""
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]

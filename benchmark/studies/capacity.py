@@ -33,7 +33,7 @@ from typing import Callable, Optional, Sequence
 from benchmark.core.atomic import write_text
 from benchmark.core.errors import InputError
 
-from ._report import Report, markdown_table, number_cell
+from ._report import Report, keep_replaced_table, markdown_table, number_cell
 
 AUTO = "auto"
 RELEASE = "release"
@@ -606,11 +606,23 @@ def charts_from_csv(csv: Path, out_dir: Path) -> list[Path]:
     return write_charts(table, CapacityConfig(method=method, knobs=knobs, out_dir=Path(out_dir)))
 
 
+def _row_keys(table) -> set:
+    """(preset, seed, knob, value) of every row of a capacity table."""
+    return set(zip(table["preset"].astype(str), table["seed"].astype(str), table["knob"].astype(str),
+                   table["value"].fillna("").astype(str)))
+
+
 def write_report(config: CapacityConfig, cells: Sequence[Cell]) -> Report:
     """``capacity.csv``, ``README.md`` (read from the CSV) and the charts under ``config.out_dir``."""
     out = Path(config.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     table = collect(config, cells)
+    if (out / "capacity.csv").is_file():
+        try:
+            before = _row_keys(read_table(out / "capacity.csv"))
+        except (InputError, KeyError):
+            before = {None}  # unreadable: kept as it is
+        keep_replaced_table(out / "capacity.csv", before, _row_keys(table) if len(table) else set())
     write_text(out / "capacity.csv", table.to_csv(index=False, float_format="%.6g", lineterminator="\n"))
     table = read_table(out / "capacity.csv")
     readme = render_readme(table, config)

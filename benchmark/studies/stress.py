@@ -37,7 +37,7 @@ from benchmark.core.atomic import read_json
 from benchmark.core.errors import InputError
 from benchmark.synthetic.perturb import FAMILIES, family
 
-from ._report import number_cell
+from ._report import keep_replaced_table, number_cell
 
 METRICS = ("mIoU", "Acc", "vIoU")
 """Scores the suite charts and breaks down (higher is better)."""
@@ -610,9 +610,7 @@ def write_scores_table(scores: Sequence[Score], path: Path) -> Path:
             before = {(s.family, s.strength, s.method, s.seed) for s in read_scores_table(path)}
         except InputError:
             before = {None}  # unreadable: kept as it is
-        if before - {(s.family, s.strength, s.method, s.seed) for s in rows}:
-            stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-            shutil.copy2(path, path.with_name(f"{path.stem}-replaced-{stamp}{path.suffix}"))
+        keep_replaced_table(path, before, {(s.family, s.strength, s.method, s.seed) for s in rows})
     write_text(path, "\n".join(lines) + "\n")
     return path
 
