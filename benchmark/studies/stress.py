@@ -5,9 +5,9 @@ Every run is an ordinary evaluation (:mod:`benchmark.runner`), written as a resu
 ``<runs>/clean/``); a run whose results file exists is read, not redone, so the suite resumes where
 it stopped. The report's ``scores.csv`` keeps every run's scores with the digests of its scene and its
 method config, so a run whose results file is gone (another machine, a cleared cache) still counts, and is
-not redone, while both digests are those of today's scene and config. Scene-side families are generated scenes (:mod:`benchmark.synthetic.perturb`); the
-supervision-side families put noise on what the oracle track gives a method, here, so no method
-changes:
+not redone, while both digests are those of today's scene and config. Scene-side families are generated
+scenes (:mod:`benchmark.synthetic.perturb`); the supervision-side families put noise on what the oracle
+track gives a method, here, so no method changes:
 
 * ``mask-erode`` / ``mask-dilate``: every mask of every level shrinks or grows by a radius (pixels at
   48 px, scaled with the image width); a dilated mask grows only into pixels no mask covers;
