@@ -191,15 +191,9 @@ def gallery(runs: dict[str, Path], scene_root: Path, title: str, path: Path) -> 
     return _save_png(fig, path)
 
 
-def read_scores(csv: Path) -> list[Score]:
-    """The runs of a written ``scores.csv`` (:func:`write_reports`) as :class:`Score` records (no results
-    file behind them)."""
-    return read_scores_table(csv)
-
-
 def charts_from_csv(csv: Path, out_dir: Path) -> list[Path]:
     """Redraw every family's chart of a written ``scores.csv`` into ``<out_dir>/charts/``."""
-    scores = read_scores(csv)
+    scores = read_scores_table(csv)
     methods = list(dict.fromkeys(s.method for s in scores))
     families = [f for f in FAMILIES if any(s.family == f and s.strength > 0 for s in scores)]
     made = [family_chart(scores, fam, methods, Path(out_dir) / "charts" / f"{fam}.png") for fam in families]
