@@ -4,7 +4,7 @@ One folder per (method, scene). Two layouts, read by :func:`read_predictions`:
 
 **JSON layout** (default; what :func:`write_predictions` writes)::
 
-    DIR/predictions.json
+    DIR/predictions.json       # or DIR/predictions.json.gz, the same JSON gzip-compressed (what a run writes)
     {
       "format": "bench4d-predictions", "version": 1,
       "scene": "split-cookie",            # optional; checked against the GT scene when given
@@ -73,6 +73,7 @@ from benchmark.core.imageio import read_mask, write_image
 FORMAT = "bench4d-predictions"
 VERSION = 1
 JSON_FILE = "predictions.json"
+JSON_GZ_FILE = JSON_FILE + ".gz"
 SCORES_FILE = "scores.json"
 MASKS_DIR = "masks"
 KINDS = ("agnostic", "sensitive")
@@ -191,18 +192,24 @@ def _header(preds: ScenePredictions) -> dict:
 
 
 def write_predictions(directory: str | Path, predictions: ScenePredictions, *, layout: str = "json",
-                      overwrite: bool = False) -> Path:
+                      overwrite: bool = False, compress: bool = False) -> Path:
     """Write ``predictions`` into ``directory`` (atomically, file by file); return the main file.
 
-    ``layout="json"`` writes ``predictions.json``; ``layout="png"`` writes ``masks/<slug>/<frame>.png``
-    and ``scores.json``. An existing main file is an error unless ``overwrite``.
+    ``layout="json"`` writes ``predictions.json`` (``predictions.json.gz`` with ``compress``: a third of
+    the size); ``layout="png"`` writes ``masks/<slug>/<frame>.png`` and ``scores.json``. An existing main
+    file is an error unless ``overwrite``, which also removes the other JSON file, so that the folder
+    holds one.
     """
     directory = Path(directory)
     if layout not in ("json", "png"):
         raise ValueError(f"layout must be 'json' or 'png', got {layout!r}")
-    main = directory / (JSON_FILE if layout == "json" else SCORES_FILE)
-    if main.exists() and not overwrite:
-        raise InputError(main, None, "already exists (pass overwrite=True to replace it)")
+    if compress and layout != "json":
+        raise ValueError("compress applies to layout='json' only")
+    main = directory / (SCORES_FILE if layout == "png" else JSON_GZ_FILE if compress else JSON_FILE)
+    other = directory / (JSON_FILE if compress else JSON_GZ_FILE) if layout == "json" else None
+    for existing in (main, other):
+        if existing is not None and existing.exists() and not overwrite:
+            raise InputError(existing, None, "already exists (pass overwrite=True to replace it)")
     for text, pred in predictions.queries.items():
         if pred.kind is not None and pred.kind not in KINDS:
             raise InputError(None, field_name(text, "kind"), f"must be one of {KINDS}, got {pred.kind!r}")
@@ -238,6 +245,8 @@ def write_predictions(directory: str | Path, predictions: ScenePredictions, *, l
         doc["masks"] = "png"
     doc["queries"] = queries
     write_json(main, doc, indent=None if layout == "json" else 2)
+    if other is not None and other.is_file():
+        other.unlink()
     return main
 
 
@@ -364,19 +373,22 @@ def read_predictions(directory: str | Path) -> ScenePredictions:
     predictions cover the ground truth is checked when scoring.
     """
     directory = Path(directory)
-    if directory.is_file() and directory.name in (JSON_FILE, SCORES_FILE):
+    if directory.is_file() and directory.name in (JSON_FILE, JSON_GZ_FILE, SCORES_FILE):
         directory = directory.parent
     if directory.is_file():
         raise InputError(directory, None,
                          f"is a file; expected a prediction folder (or its {JSON_FILE} / {SCORES_FILE})")
     if not directory.is_dir():
         raise InputError(directory, None, "prediction folder not found")
-    json_path = directory / JSON_FILE
+    json_paths = [directory / name for name in (JSON_FILE, JSON_GZ_FILE) if (directory / name).exists()]
     has_png = (directory / MASKS_DIR).is_dir() or (directory / SCORES_FILE).exists()
-    if json_path.exists() and has_png:
-        raise InputError(directory, None, f"holds both {JSON_FILE} and the PNG layout ({MASKS_DIR}/, {SCORES_FILE}); keep one")
-    if json_path.exists():
-        return _read_json_layout(json_path)
+    if len(json_paths) > 1:
+        raise InputError(directory, None, f"holds both {JSON_FILE} and {JSON_GZ_FILE}; keep one")
+    if json_paths and has_png:
+        raise InputError(directory, None, f"holds both {json_paths[0].name} and the PNG layout ({MASKS_DIR}/, "
+                                          f"{SCORES_FILE}); keep one")
+    if json_paths:
+        return _read_json_layout(json_paths[0])
     if has_png:
         return _read_png_layout(directory)
     raise InputError(directory, None, f"no {JSON_FILE} and no {MASKS_DIR}/ folder: not a prediction folder")

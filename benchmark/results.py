@@ -263,7 +263,8 @@ class RunResults(TypedDict):
     scores: NotRequired[Scores]
     """Per-query and per-frame scores."""
     predictions: NotRequired[str]
-    """Path of the run's ``predictions.json``, relative to this file."""
+    """Path of the run's predictions file (``predictions.json.gz``; older runs: ``predictions.json``),
+    relative to this file."""
     wall_seconds: NotRequired[float]
     """The whole run, start to written."""
     created: NotRequired[str]

@@ -906,6 +906,7 @@ def score_and_write(prepared: PreparedRun, fit: FitRecord, answers: Answers) -> 
     """Score the answers with the protocol's temporal rule, time the model's queries, and write the
     predictions and then the results file (module docstring, steps 4 to 6)."""
     from .metrics import ScoreConfig, aggregate_scenes, score_scene
+    from .predictions import JSON_GZ_FILE
 
     score_config = ScoreConfig(temporal=prepared.protocol.temporal,
                                eval_frames=tuple(sorted(answers.frame_of)), allow_extra=False)
@@ -919,7 +920,7 @@ def score_and_write(prepared: PreparedRun, fit: FitRecord, answers: Answers) -> 
                             options.seed)
     pred_dir = out_path.with_name(out_path.stem + ".predictions")
     results = results_document(prepared, fit, answers, score_config, score_doc, timing, peak_gpu_total,
-                               predictions=str(pred_dir.relative_to(out_path.parent) / "predictions.json"))
+                               predictions=str(pred_dir.relative_to(out_path.parent) / JSON_GZ_FILE))
     write_run(out_path, pred_dir, answers.predictions, results, prepared)
     return RunOutcome(out_path, results)
 
@@ -989,7 +990,7 @@ def write_run(out_path: Path, pred_dir: Path, predictions, results: RunResults, 
         if out_path.is_file():  # a rerun never destroys what was measured before
             moved = keep_replaced(out_path, prepared.options.results_dir)
             prepared.progress.log(f"{out_path}: an earlier run of this method, scene, track and seed moved to {moved}")
-        write_predictions(pred_dir, predictions, overwrite=True)
+        write_predictions(pred_dir, predictions, overwrite=True, compress=True)
         write_results(out_path, results)
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import gzip
 import io
 import json
 import math
@@ -671,6 +672,51 @@ def test_folder_where_a_file_is_expected(tmp_path, capsys):
     (tmp_path / "file").write_text("{}")
     with pytest.raises(InputError, match="file: is a file; expected a prediction folder"):
         read_predictions(tmp_path / "file")
+
+
+def test_compressed_predictions_read_as_the_plain_file_and_bad_gzip_is_an_input_error(tmp_path, capsys, monkeypatch):
+    aset, gt = _gt_file(tmp_path)
+    preds = read_predictions(write_predictions(tmp_path / "plain", read_predictions(_pred_folder(tmp_path))))
+    main = write_predictions(tmp_path / "gz", preds, compress=True)
+    assert main.name == "predictions.json.gz" and main.read_bytes()[:2] == b"\x1f\x8b"
+    assert read_json(main) == read_json(tmp_path / "plain" / "predictions.json")
+    again = write_predictions(tmp_path / "gz2", preds, compress=True)
+    assert again.read_bytes() == main.read_bytes()  # no timestamp inside: equal content, equal bytes
+    for source in (tmp_path / "gz", main):  # the folder or its main file
+        back = read_predictions(source)
+        assert {t: (q.kind, sorted(q.masks), q.scores) for t, q in back.queries.items()} == \
+            {t: (q.kind, sorted(q.masks), q.scores) for t, q in preds.queries.items()}
+    # rewriting a folder in the other form leaves one main file; without overwrite it is refused
+    with pytest.raises(InputError, match="predictions.json.gz: already exists"):
+        write_predictions(tmp_path / "gz", preds)
+    write_predictions(tmp_path / "gz", preds, overwrite=True)
+    assert sorted(p.name for p in (tmp_path / "gz").iterdir()) == ["predictions.json"]
+    write_predictions(tmp_path / "gz", preds, overwrite=True, compress=True)
+    assert sorted(p.name for p in (tmp_path / "gz").iterdir()) == ["predictions.json.gz"]
+    # both forms in one folder: which one counts is not guessed
+    (tmp_path / "gz" / "predictions.json").write_text("{}")
+    with pytest.raises(InputError, match="holds both predictions.json and predictions.json.gz"):
+        read_predictions(tmp_path / "gz")
+    (tmp_path / "gz" / "predictions.json").unlink()
+    # truncated, not gzip at all, or expanding past the limit: one line naming the file
+    whole = main.read_bytes()
+    for name, raw in (("cut", whole[: len(whole) // 2]), ("plain-bytes", b'{"format": 1}')):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "predictions.json.gz").write_bytes(raw)
+        with pytest.raises(InputError, match="predictions.json.gz: not valid gzip data"):
+            read_predictions(tmp_path / name)
+        assert "predictions.json.gz: not valid gzip data" in _score_cli(gt, tmp_path / name, capsys)
+    import benchmark.core.atomic as atomic
+    monkeypatch.setattr(atomic, "MAX_GZIP_JSON_BYTES", len(gzip.decompress(whole)) - 1)
+    with pytest.raises(InputError, match="predictions.json.gz: decompresses to more than"):
+        read_predictions(tmp_path / "gz")
+
+
+def _pred_folder(tmp_path: Path) -> Path:
+    """A valid plain prediction folder for :func:`small_set`."""
+    (tmp_path / "pf").mkdir()
+    (tmp_path / "pf" / "predictions.json").write_text(json.dumps(_pred_doc(tmp_path / "pd")))
+    return tmp_path / "pf"
 
 
 def test_wrong_types_in_release_coco_name_the_field(tmp_path):

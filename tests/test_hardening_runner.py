@@ -17,6 +17,7 @@ import pytest
 from annotations.format import save_annotations
 from benchmark.core.annotation import AnnotatedFrame, AnnotationSet, Query
 from benchmark.cli import main
+from benchmark.core.atomic import read_json
 from benchmark.core.errors import InputError
 from benchmark.predictions import QueryPrediction, ScenePredictions, read_predictions, write_predictions
 from benchmark.runner import EvalOptions, evaluate, evaluate_with_fit
@@ -357,11 +358,13 @@ def test_eval_and_score_of_its_folder_agree_when_queries_are_unanswered(env, tmp
     assert {u["kind"] for u in scored["unanswered"]} == {"sensitive"}
     assert scored["queries"] == doc["scores"]["queries"]
 
-    # a folder written before the predictions listed them: the results file beside it does
-    predictions_json = pred_dir / "predictions.json"
-    raw = json.loads(predictions_json.read_text())
+    # a folder written before the predictions listed them (and before they were compressed): the results
+    # file beside it does
+    compressed = pred_dir / "predictions.json.gz"
+    raw = read_json(compressed)
     del raw["info"]["unanswered_queries"]
-    predictions_json.write_text(json.dumps(raw))
+    compressed.unlink()
+    (pred_dir / "predictions.json").write_text(json.dumps(raw))
     assert main(["score", "--gt", str(gt), "--pred", str(pred_dir), "--out", str(out), "--quiet"]) == 0
     assert "listed by the results file" in capsys.readouterr().err
     assert json.loads(out.read_text())["metrics"]["dataset"]["mIoU"] == pytest.approx(doc["metrics"]["mIoU"])

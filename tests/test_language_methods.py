@@ -14,6 +14,7 @@ import numpy as np
 import torch
 import pytest
 
+from benchmark.core.atomic import read_json
 from benchmark.core.errors import InputError
 from benchmark.core.protocol import PROTOCOLS
 from benchmark.runner import EvalOptions, evaluate
@@ -133,7 +134,7 @@ def test_methods_share_one_4dgs_fit_answer_every_query_and_reload(smoke):
     assert len(model._reduced_cache) == len(frames)
     model.prepare(["box"])  # a new set drops what was kept
     assert not model._reduced_cache
-    preds = json.loads((first.path.parent / "seed0.predictions" / "predictions.json").read_text())
+    preds = read_json(first.path.parent / "seed0.predictions" / "predictions.json.gz")
     assert preds["method"] == "deformable-clip"
 
 

@@ -53,7 +53,7 @@ def test_eval_writes_one_complete_results_file_that_rescoring_reproduces(env):
     # only the results file and its predictions: no temporary leftovers
     files = _files(env["results"])
     assert files == ["synthetic/smoke/nearest-frame/oracle/seed0.json",
-                     "synthetic/smoke/nearest-frame/oracle/seed0.predictions/predictions.json"]
+                     "synthetic/smoke/nearest-frame/oracle/seed0.predictions/predictions.json.gz"]
     # bench4d score on the written predictions gives the same numbers (test frames only here)
     aset = load_annotations(env["scene"] / "annotations.json")
     preds = read_predictions(outcome.path.parent / doc["predictions"])
@@ -86,7 +86,7 @@ def test_rerun_reuses_the_cached_fit_and_a_new_config_refits(env, monkeypatch):
     kept = [p for p in _files(env["results"]) if p.startswith("archive/")]
     stamp = first.results["created"].replace("+00:00", "Z").replace(":", "").replace("-", "")
     rel = "synthetic/smoke/nearest-frame/oracle/seed0"
-    assert kept == [f"archive/replaced-{stamp}/{rel}.json", f"archive/replaced-{stamp}/{rel}.predictions/predictions.json"]
+    assert kept == [f"archive/replaced-{stamp}/{rel}.json", f"archive/replaced-{stamp}/{rel}.predictions/predictions.json.gz"]
     from benchmark.results import load_results
     assert load_results(env["results"] / kept[0])["created"] == first.results["created"]
     evaluate(_options(env, method_options={"camera_weight": "0"}))
@@ -118,7 +118,7 @@ def test_interrupted_runs_leave_no_results_file_and_a_rerun_completes(env, monke
         patch.setattr(runner, "write_results", crash)
         with pytest.raises(RuntimeError, match="disk full"):
             evaluate(_options(env))
-    assert not [f for f in _files(env["results"]) if not f.endswith("predictions.json")]
+    assert not [f for f in _files(env["results"]) if not f.endswith("predictions.json.gz")]
 
     outcome = evaluate(_options(env))
     assert outcome.results["timing"]["fit_cached"] is True  # the fit finished before the interruptions

@@ -131,7 +131,7 @@ def _input_files(args: argparse.Namespace) -> list[Path]:
 def check_out(out: Path, inputs: list[Path], folders: list[Path] = ()) -> None:
     """Refuse an ``--out`` that would replace an input, change how a prediction folder (``folders``) reads,
     or cannot be written, before anything is scored."""
-    from ..predictions import JSON_FILE, MASKS_DIR, SCORES_FILE
+    from ..predictions import JSON_FILE, JSON_GZ_FILE, MASKS_DIR, SCORES_FILE
 
     if out.is_dir():
         raise InputError(out, "--out", "is a folder; give the path of a results file (e.g. results.json)")
@@ -152,7 +152,7 @@ def check_out(out: Path, inputs: list[Path], folders: list[Path] = ()) -> None:
     for folder in folders:
         root = folder.resolve()
         # a second main file, or a file among the masks, would change what the folder holds when next read
-        if (target.parent == root and target.name in (JSON_FILE, SCORES_FILE)) or \
+        if (target.parent == root and target.name in (JSON_FILE, JSON_GZ_FILE, SCORES_FILE)) or \
                 target.is_relative_to(root / MASKS_DIR):
             raise InputError(out, "--out", f"would become part of the prediction folder {folder}; give another path")
     for parent in out.parents:

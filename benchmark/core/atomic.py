@@ -1,15 +1,20 @@
 """Atomic writes: temp file in the same folder, flush + fsync, then ``os.replace``.
 
 A reader never sees a partial file, and an interrupted run leaves the previous file intact.
+
+A JSON file whose name ends in ``.gz`` is gzip-compressed: :func:`write_json` compresses it (with a
+zero timestamp, so equal content gives equal bytes) and :func:`read_json` decompresses it.
 """
 
 from __future__ import annotations
 
 import contextlib
+import gzip
 import json
 import math
 import os
 import tempfile
+import zlib
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -48,8 +53,15 @@ def write_text(path: str | Path, text: str) -> None:
 
 
 def write_json(path: str | Path, obj: Any, indent: int | None = 2) -> None:
-    """Write ``obj`` as standard JSON: NaN and infinities become ``null`` (:func:`json_ready`)."""
-    write_text(path, dumps_json(obj, indent=indent) + "\n")
+    """Write ``obj`` as standard JSON: NaN and infinities become ``null`` (:func:`json_ready`); gzip-compressed
+    where the name ends in ``.gz``."""
+    data = (dumps_json(obj, indent=indent) + "\n").encode("utf-8")
+    write_bytes(path, gzip.compress(data, mtime=0) if is_gzip_name(path) else data)
+
+
+def is_gzip_name(path: str | Path) -> bool:
+    """Whether ``path`` names a gzip-compressed file (its name ends in ``.gz``)."""
+    return Path(path).name.endswith(".gz")
 
 
 def dumps_json(obj: Any, indent: int | None = None, **kwargs: Any) -> str:
@@ -80,6 +92,9 @@ def json_ready(obj: Any) -> Any:
 
 
 MAX_JSON_DEPTH = 100
+MAX_GZIP_JSON_BYTES = 1 << 30
+"""Largest decompressed size of a ``.gz`` JSON file :func:`read_json` accepts (a few bytes of gzip can
+expand to gigabytes)."""
 """Deepest nesting of arrays and objects :func:`read_json` accepts. No bench4d file nests more
 than about ten levels; the bound keeps every recursive consumer of a parsed document (writers,
 sanitisers) far from Python's recursion limit."""
@@ -99,6 +114,20 @@ def json_depth_exceeds(doc: Any, limit: int = MAX_JSON_DEPTH) -> bool:
     return False
 
 
+def _read_gzip(path: Path) -> bytes:
+    """The decompressed bytes of the gzip file ``path``, at most :data:`MAX_GZIP_JSON_BYTES` of them."""
+    from .errors import InputError
+
+    try:
+        with gzip.open(path, "rb") as fh:
+            data = fh.read(MAX_GZIP_JSON_BYTES + 1)
+    except (gzip.BadGzipFile, EOFError, zlib.error) as err:
+        raise InputError(path, None, f"not valid gzip data: {err or 'truncated'}") from None
+    if len(data) > MAX_GZIP_JSON_BYTES:
+        raise InputError(path, None, f"decompresses to more than {MAX_GZIP_JSON_BYTES} bytes")
+    return data
+
+
 def read_json(path: str | Path) -> Any:
     """Read JSON, turning every way a file can be missing or malformed into an :class:`InputError`
     naming the file: not found, a folder, unreadable, not UTF-8, invalid JSON, numbers Python
@@ -111,7 +140,7 @@ def read_json(path: str | Path) -> Any:
     if not path.is_file():
         raise InputError(path, None, "file not found")
     try:
-        text = path.read_text(encoding="utf-8")
+        text = (_read_gzip(path) if is_gzip_name(path) else path.read_bytes()).decode("utf-8")
     except UnicodeDecodeError as err:
         raise InputError(path, f"byte {err.start}", "not UTF-8 text") from None
     except OSError as err:
