@@ -43,16 +43,44 @@ def _save(fig, stem: Path) -> list[Path]:
     from benchmark.core.atomic import atomic_path
 
     stem.parent.mkdir(parents=True, exist_ok=True)
-    out = []
-    for ext in ("png", "pdf"):
-        path = stem.with_suffix(f".{ext}")
-        with atomic_path(path) as tmp:
-            # fixed metadata keeps files reproducible from the same results
-            meta = {"Software": "bench4d"} if ext == "png" else {"Creator": "bench4d", "Producer": "bench4d",
-                                                                 "CreationDate": None}
-            fig.savefig(tmp, format=ext, dpi=150, bbox_inches="tight", metadata=meta)
-        out.append(path)
-    return out
+    write_png(fig, stem.with_suffix(".png"), dpi=150)
+    pdf = stem.with_suffix(".pdf")
+    with atomic_path(pdf) as tmp:
+        # fixed metadata keeps files reproducible from the same results
+        fig.savefig(tmp, format="pdf", dpi=150, bbox_inches="tight",
+                    metadata={"Creator": "bench4d", "Producer": "bench4d", "CreationDate": None})
+    return [stem.with_suffix(".png"), pdf]
+
+
+def write_png(fig, path: Path, *, dpi: int) -> Path:
+    """Write ``fig`` (cropped to its contents) to ``path`` atomically as a PNG of at most 256 colours.
+
+    Charts and galleries hold few colours: the palette file is about a third of the RGBA one matplotlib
+    writes, with no visible change (on the committed charts and galleries no channel moves by more than 16
+    of 255 levels). Opaque (figures have a background), no dithering (a line keeps one colour) and no
+    timestamp (the same figure gives the same bytes).
+    """
+    import io
+
+    from benchmark.core.atomic import write_bytes
+
+    rgba = io.BytesIO()
+    fig.savefig(rgba, format="png", dpi=dpi, bbox_inches="tight", metadata={"Software": None})
+    write_bytes(path, palette_png(rgba.getvalue()))
+    return path
+
+
+def palette_png(png: bytes) -> bytes:
+    """The PNG ``png`` with its colours reduced to a palette of at most 256 (:func:`write_png`)."""
+    import io
+
+    from PIL import Image
+
+    with Image.open(io.BytesIO(png)) as image:
+        palette = image.convert("RGB").quantize(256, method=Image.Quantize.MAXCOVERAGE, dither=Image.Dither.NONE)
+    out = io.BytesIO()
+    palette.save(out, format="png", optimize=True)
+    return out.getvalue()
 
 
 def pareto_front(x: Sequence[float], y: Sequence[float], *, x_higher_better: bool) -> list[int]:

@@ -13,7 +13,7 @@ import pytest
 from benchmark.core.errors import InputError
 from benchmark.core.protocol import PROTOCOLS
 from benchmark.leaderboard import build_leaderboard
-from benchmark.plots import chart_points, label_groups, pareto, pareto_front, timeline
+from benchmark.plots import chart_points, label_groups, pareto, pareto_front, timeline, write_png
 from benchmark.results import MEAN_SCENE, find_results, load_results, results_path, runs_table, seed_summary, write_results
 
 # (method, scene, seed) -> mIoU; Acc = mIoU - 10; fps and fit time per method
@@ -232,6 +232,36 @@ def test_charts_are_written_as_png_and_pdf(tmp_path):
         timeline("beta", "s1", "no such query", results_dir=tmp_path / "results", reports_dir=tmp_path / "reports")
     with pytest.raises(InputError, match="no results file"):
         timeline("gamma", "s1", "cracked cookie", results_dir=tmp_path / "results", reports_dir=tmp_path / "reports")
+
+
+def test_chart_png_is_a_palette_image_close_to_the_full_colour_one_and_reproducible(tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+    from PIL import Image
+
+    fig, ax = plt.subplots(figsize=(3, 2))
+    # more colours than a palette holds, beside a line
+    ax.imshow(np.random.default_rng(0).random((32, 32, 3)), extent=(0.6, 1, 0, 0.4), aspect="auto")
+    ax.plot([0, 1], [0, 1], color="#d62728", linewidth=6)
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1)
+    ax.set_title("label")
+    write_png(fig, tmp_path / "a.png", dpi=100)
+    write_png(fig, tmp_path / "b.png", dpi=100)
+    rgba = tmp_path / "rgba.png"
+    fig.savefig(rgba, format="png", dpi=100, bbox_inches="tight")
+    plt.close(fig)
+    assert (tmp_path / "a.png").read_bytes() == (tmp_path / "b.png").read_bytes()
+    with Image.open(tmp_path / "a.png") as small, Image.open(rgba) as full:
+        assert small.mode == "P" and small.size == full.size
+        got, want = np.asarray(small.convert("RGB")), np.asarray(full.convert("RGB"))
+    # the line stays one colour (no dithering), and no pixel moves far, with random colours beside it
+    line = (want == (214, 39, 40)).all(-1)
+    assert line.sum() > 100 and len(np.unique(got[line], axis=0)) == 1
+    assert np.abs(got.astype(int) - want).max() < 40
+    assert (tmp_path / "a.png").stat().st_size < rgba.stat().st_size
 
 
 def test_chart_compares_methods_on_the_scenes_all_of_them_ran(tmp_path):

@@ -9,13 +9,12 @@ timeline of the first time-sensitive query: its ground truth and each method's d
 
 from __future__ import annotations
 
-import io
 from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
 
-from benchmark.core.atomic import read_json, write_bytes, write_text
+from benchmark.core.atomic import read_json, write_text
 from benchmark.synthetic.perturb import FAMILIES
 from ._report import markdown_table, number_cell
 from .stress import (METRICS, SCORES_FILE, Score, SuiteConfig, breaking_point, mean_by_strength,
@@ -37,12 +36,10 @@ def _pyplot():
 
 
 def _save_png(fig, path: Path) -> Path:
-    plt = _pyplot()
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=DPI, bbox_inches="tight", metadata={"Software": None})
-    plt.close(fig)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_bytes(path, buffer.getvalue())
+    from ..plots import write_png
+
+    write_png(fig, path, dpi=DPI)
+    _pyplot().close(fig)
     return path
 
 
