@@ -322,10 +322,10 @@ def run(args: argparse.Namespace) -> int:
         entry = run_job(job, isolate=not args.no_isolate)
         report["models"][job["label"]] = entry
         _print_entry(job["label"], entry)
-        write_json(out_dir / "report.json", report)  # partial report survives an interruption
+        write_json(out_dir / "report.json", report, indent=0)  # partial report survives an interruption
     _compare_models(report)
     report["total_seconds"] = time.perf_counter() - started
-    write_json(out_dir / "report.json", report)
+    write_json(out_dir / "report.json", report, indent=0)  # unindented: half the size, diffs still by line
     print(f"  report: {out_dir / 'report.json'}")
     return 0
 

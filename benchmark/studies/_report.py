@@ -47,10 +47,10 @@ def markdown_table(header: list[str], rows: list[list[str]]) -> str:
 
 
 def write_report(out: Path, stem: str, doc: dict, table: str) -> list[Path]:
-    """Write ``<out>/<stem>.json`` (``doc``) and ``<out>/<stem>.md`` (``table``) atomically, the folder
-    made if missing; returns both paths."""
+    """Write ``<out>/<stem>.json`` (``doc``; one value a line, unindented: half the size, diffs still by
+    line) and ``<out>/<stem>.md`` (``table``) atomically, the folder made if missing; returns both paths."""
     out.mkdir(parents=True, exist_ok=True)
-    write_json(out / f"{stem}.json", doc)
+    write_json(out / f"{stem}.json", doc, indent=0)
     write_text(out / f"{stem}.md", table)
     return [out / f"{stem}.json", out / f"{stem}.md"]
 
