@@ -84,7 +84,10 @@ def test_the_tiny_run_times_every_backend_and_writes_its_report(tmp_path):
 
     assert main(["ablate", "real-cost", "--size", "tiny", "--repeats", "1", "--points-per-side", "2",
                  "--caption-tokens", "2", "--out", str(tmp_path), "--quiet"]) == 0
-    doc = json.loads((tmp_path / "real-cost-tiny-cpu.json").read_text())
+    raw = (tmp_path / "real-cost-tiny-cpu.json").read_text()
+    doc = json.loads(raw)
+    # a study record: one value a line, unindented (half the size of an indented one)
+    assert len(raw.splitlines()) > 50 and not [line for line in raw.splitlines() if line.startswith(" ")]
     units = doc["units"]
     assert units["sam"]["frame_seconds"] > 0 and units["clip"]["crop_seconds"] > 0 and units["e5"]["text_seconds"] > 0
     qwen = units["qwen2vl"]
