@@ -415,8 +415,15 @@ def test_paper_tables_put_the_published_numbers_beside_ours_with_rank_agreement(
     row = next(line for line in agnostic.splitlines() if line.startswith("| Feature-3DGS |"))
     assert "| 34.65 / 80.00 |" in row and row.endswith("| 36.63 / 80.00 | 74.02 / 90.00 |")
     assert "Kendall's tau = -1.00" in agnostic and "is best here: no (best here: Feature-3DGS)" in agnostic
-    assert "protocol `release`" in text and "held-out frames" in text
+    assert "protocol `release`" in text and "held-out frames" in text and "track `oracle`, seeds 0; scored" in text
     assert "## Number of states K" in text and "## Query speed" in text
+    # a second seed on one cell: the means stay per cell, and the header says how many cells lack it
+    current = {"preset": "keyboard", "size": 128, "seed": 1, "digest": expected_digest("keyboard", 128)}
+    write_results(results_path(root, "synthetic", "keyboard", "langsplat", "oracle", 1),
+                  {**_doc("alpha", "keyboard", 1, 0.0), "method": "langsplat", "scene_info": {"generated": current}})
+    assert main(["paper-tables", "--results-dir", str(root), "--out", str(out)]) == 0
+    text = out.read_text()
+    assert "seeds 0, 1 (23 of 24 (method, preset) cells have fewer: each cell is the mean of the seeds it has)" in text
     # another protocol's runs are not this table's
     assert main(["paper-tables", "--results-dir", str(root), "--protocol", "paper-text", "--out", str(out)]) == 0
     assert "| 34.65 / – |" in out.read_text()
