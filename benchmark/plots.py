@@ -198,9 +198,12 @@ def pareto(results_dir: str | Path = "results", reports_dir: str | Path = "repor
                 ax = axes[row][col]
                 x = means[f"{xcol}_mean"].to_numpy(float)
                 xerr = np.nan_to_num(means[f"{xcol}_std"].to_numpy(float))
+                # on a log axis a bar reaches down to a thousandth of its value at most (a spread larger
+                # than the mean, as of a fit that lasts milliseconds, would reach zero)
+                x_low = np.minimum(xerr, x * 0.999)
                 ok = np.isfinite(x) & np.isfinite(y) & (x > 0)
                 for i in np.flatnonzero(ok):
-                    ax.errorbar(x[i], y[i], xerr=[[min(xerr[i], x[i] * 0.999)], [xerr[i]]], yerr=yerr[i],
+                    ax.errorbar(x[i], y[i], xerr=[[x_low[i]], [xerr[i]]], yerr=yerr[i],
                                 fmt="o", capsize=3, label=names[i], color=colour[names[i]])
                 front = pareto_front(np.where(ok, x, np.nan), y, x_higher_better=higher)
                 if len(front) >= 1:
@@ -209,7 +212,7 @@ def pareto(results_dir: str | Path = "results", reports_dir: str | Path = "repor
                             linewidth=1, label="Pareto front")
                 ax.set_xscale("log")
                 if ok.any():  # at least a decade each side of the data, labels on powers of ten only
-                    lo, hi = float(np.min(x[ok] - xerr[ok] * 0.999)), float(np.max(x[ok] + xerr[ok]))
+                    lo, hi = float(np.min(x[ok] - x_low[ok])), float(np.max(x[ok] + xerr[ok]))
                     ax.set_xlim(10 ** np.floor(np.log10(lo) - 0.5), 10 ** np.ceil(np.log10(hi) + 0.5))
                 ax.margins(y=0.12)
                 # one label per spot, placed after the limits are final: methods sharing a fit coincide

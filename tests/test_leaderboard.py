@@ -264,6 +264,20 @@ def test_chart_png_is_a_palette_image_close_to_the_full_colour_one_and_reproduci
     assert (tmp_path / "a.png").stat().st_size < rgba.stat().st_size
 
 
+def test_chart_draws_a_fit_time_whose_spread_over_seeds_exceeds_its_mean(tmp_path):
+    # a fit of milliseconds: 0.001 s on one seed, 0.1 s on the other (std 0.07 > mean 0.05); the axis
+    # limits once came out of log10 of a negative number
+    root = tmp_path / "results"
+    for seed, fit in enumerate((0.001, 0.1)):
+        for scene in ("s1", "s2"):
+            doc = _doc("alpha", scene, seed, 50.0)
+            doc["timing"]["fit_seconds"] = fit
+            write_results(results_path(root, "synthetic", scene, "alpha", "oracle", seed), doc)
+            write_results(results_path(root, "synthetic", scene, "beta", "oracle", seed), _doc("beta", scene, seed, 60.0))
+    written = pareto(root, tmp_path / "reports")
+    assert sorted(p.suffix for p in written) == [".pdf", ".png"] and all(p.stat().st_size > 1000 for p in written)
+
+
 def test_chart_compares_methods_on_the_scenes_all_of_them_ran(tmp_path):
     _write_all(tmp_path / "results", 0)
     # gamma ran s1 only: the chart's means for everyone are then over s1, not over each one's own scenes
