@@ -112,8 +112,9 @@ def _best(values: dict[str, float], higher: bool) -> set[str]:
 
 def _ceiling_shares(summary: pd.DataFrame, kind: str, ceiling: Optional[dict[str, float]],
                     methods: list[str]) -> dict[str, float]:
-    """Method -> 100 x its mean of :data:`CEILING_METRIC` over its scenes / the ceiling's mean over the same
-    scenes (NaN where the ceiling lacks one of them)."""
+    """Method -> 100 x its mean of :data:`CEILING_METRIC` over its scenes (the table's mean column: seeds
+    that ran only some of the scenes left out) / the ceiling's mean over the same scenes (NaN where the
+    ceiling lacks one of them)."""
     if not ceiling:
         return {}
     metric = CEILING_METRIC[kind]
@@ -126,7 +127,9 @@ def _ceiling_shares(summary: pd.DataFrame, kind: str, ceiling: Optional[dict[str
             out[m] = math.nan
             continue
         bound = sum(ceiling[sc] for sc in scenes) / len(scenes)  # a fraction; the means are percent
-        out[m] = float(rows[f"{metric}_mean"].mean()) / bound if bound > 0 else math.nan
+        mean_row = summary[(summary["method"] == m) & (summary["scene"] == MEAN_SCENE)]
+        mean = float(mean_row[f"{metric}_mean"].iloc[0]) if len(mean_row) else float(rows[f"{metric}_mean"].mean())
+        out[m] = mean / bound if bound > 0 else math.nan
     return out
 
 

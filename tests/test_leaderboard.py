@@ -86,6 +86,13 @@ def test_protocols_get_their_own_tables_floors_are_not_ranked_and_means_show_the
     beta = next(line for line in paper_table.splitlines() if line.startswith("| beta |")).split("|")
     assert beta[share].strip() == "60.00"  # against the paper-text ceiling, not the release one
     assert (reports / "leaderboard_synthetic_oracle_release.csv").is_file()
+    # a seed that ran s1 only is in s1's column, not in the mean, nor in the mean's share of the ceiling
+    write_results(results_path(root, "synthetic", "s1", "alpha", "oracle", 1),
+                  {**_doc("alpha", "s1", 1, 0.0), "protocol": PROTOCOLS["release"].to_dict()})
+    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=reports)
+    table = (tmp_path / "lb.md").read_text().split("### Time-agnostic queries")[1].split("###")[0]
+    alpha = next(line for line in table.splitlines() if line.startswith("| alpha |")).split("|")
+    assert alpha[2].strip().startswith("**28.00") and alpha[share].strip() == "**70.00**"
 
 
 def test_summary_means_stds_and_dataset_mean_per_seed(tmp_path):
