@@ -127,9 +127,9 @@ def _ceiling_shares(summary: pd.DataFrame, kind: str, ceiling: Optional[dict[str
             out[m] = math.nan
             continue
         bound = sum(ceiling[sc] for sc in scenes) / len(scenes)  # a fraction; the means are percent
-        mean_row = summary[(summary["method"] == m) & (summary["scene"] == MEAN_SCENE)]
-        mean = float(mean_row[f"{metric}_mean"].iloc[0]) if len(mean_row) else float(rows[f"{metric}_mean"].mean())
-        out[m] = mean / bound if bound > 0 else math.nan
+        # every method has a mean row (:func:`seed_summary`; NaN when no seed ran all of its scenes)
+        mean = summary[(summary["method"] == m) & (summary["scene"] == MEAN_SCENE)][f"{metric}_mean"].iloc[0]
+        out[m] = float(mean) / bound if bound > 0 else math.nan
     return out
 
 

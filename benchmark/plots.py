@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import io
 import math
 import textwrap
 from pathlib import Path
@@ -60,8 +61,6 @@ def write_png(fig, path: Path, *, dpi: int) -> Path:
     of 255 levels). Opaque (figures have a background), no dithering (a line keeps one colour) and no
     timestamp (the same figure gives the same bytes).
     """
-    import io
-
     from benchmark.core.atomic import write_bytes
 
     rgba = io.BytesIO()
@@ -72,8 +71,6 @@ def write_png(fig, path: Path, *, dpi: int) -> Path:
 
 def palette_png(png: bytes) -> bytes:
     """The PNG ``png`` with its colours reduced to a palette of at most 256 (:func:`write_png`)."""
-    import io
-
     from PIL import Image
 
     with Image.open(io.BytesIO(png)) as image:

@@ -377,7 +377,7 @@ def read_predictions(directory: str | Path) -> ScenePredictions:
         directory = directory.parent
     if directory.is_file():
         raise InputError(directory, None,
-                         f"is a file; expected a prediction folder (or its {JSON_FILE} / {SCORES_FILE})")
+                         f"is a file; expected a prediction folder (or its {JSON_FILE}[.gz] / {SCORES_FILE})")
     if not directory.is_dir():
         raise InputError(directory, None, "prediction folder not found")
     json_paths = [directory / name for name in (JSON_FILE, JSON_GZ_FILE) if (directory / name).exists()]
@@ -391,4 +391,4 @@ def read_predictions(directory: str | Path) -> ScenePredictions:
         return _read_json_layout(json_paths[0])
     if has_png:
         return _read_png_layout(directory)
-    raise InputError(directory, None, f"no {JSON_FILE} and no {MASKS_DIR}/ folder: not a prediction folder")
+    raise InputError(directory, None, f"no {JSON_FILE}[.gz] and no {MASKS_DIR}/ folder: not a prediction folder")

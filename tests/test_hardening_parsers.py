@@ -676,7 +676,8 @@ def test_folder_where_a_file_is_expected(tmp_path, capsys):
 
 def test_compressed_predictions_read_as_the_plain_file_and_bad_gzip_is_an_input_error(tmp_path, capsys, monkeypatch):
     aset, gt = _gt_file(tmp_path)
-    preds = read_predictions(write_predictions(tmp_path / "plain", read_predictions(_pred_folder(tmp_path))))
+    _pred_doc(tmp_path / "p")  # a valid plain folder, tmp_path/p/pred
+    preds = read_predictions(write_predictions(tmp_path / "plain", read_predictions(tmp_path / "p" / "pred")))
     main = write_predictions(tmp_path / "gz", preds, compress=True)
     assert main.name == "predictions.json.gz" and main.read_bytes()[:2] == b"\x1f\x8b"
     assert read_json(main) == read_json(tmp_path / "plain" / "predictions.json")
@@ -710,13 +711,6 @@ def test_compressed_predictions_read_as_the_plain_file_and_bad_gzip_is_an_input_
     monkeypatch.setattr(atomic, "MAX_GZIP_JSON_BYTES", len(gzip.decompress(whole)) - 1)
     with pytest.raises(InputError, match="predictions.json.gz: decompresses to more than"):
         read_predictions(tmp_path / "gz")
-
-
-def _pred_folder(tmp_path: Path) -> Path:
-    """A valid plain prediction folder for :func:`small_set`."""
-    (tmp_path / "pf").mkdir()
-    (tmp_path / "pf" / "predictions.json").write_text(json.dumps(_pred_doc(tmp_path / "pd")))
-    return tmp_path / "pf"
 
 
 def test_wrong_types_in_release_coco_name_the_field(tmp_path):
