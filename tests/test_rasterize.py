@@ -382,7 +382,7 @@ def test_sh_basis_is_orthonormal_and_colour_roundtrips():
 def test_gsplat_matches_torch_backend_on_cuda():
     if not gsplat_available():
         pytest.skip("gsplat is not importable")
-    from methods.gaussians.bench import surface_scene
+    from benchmark.studies.rasterizer_bench import surface_scene
 
     sc = surface_scene(3000, 64, 64, channels=6, seed=3)
     dev = torch.device("cuda")
