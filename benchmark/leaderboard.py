@@ -401,9 +401,11 @@ def see_also_links(reports_dir: str | Path, markdown: str | Path) -> list[tuple[
 
 
 def build_leaderboard(results_dir: str | Path = "results", *, markdown: str | Path = "leaderboard.md",
-                      reports_dir: str | Path = "reports", ceiling: Optional[str | Path] = None) -> dict[str, Path]:
+                      reports_dir: str | Path = "reports", ceiling: Optional[str | Path] = None,
+                      csv_dir: Optional[str | Path] = None) -> dict[str, Path]:
     """Regenerate the leaderboard and CSVs; returns the files written (name -> path). ``ceiling``: the
-    protocol ceiling's JSON (default: ``<reports_dir>/ablations/protocol-ceiling.json``)."""
+    protocol ceiling's JSON (default: ``<reports_dir>/ablations/protocol-ceiling.json``); ``csv_dir``: where
+    the CSVs go (default: ``reports_dir``)."""
     results_dir = Path(results_dir)
     if not results_dir.is_dir():
         # a mistyped folder would otherwise regenerate the leaderboard with no runs over the one there
@@ -416,7 +418,7 @@ def build_leaderboard(results_dir: str | Path = "results", *, markdown: str | Pa
     ceilings = load_ceilings(Path(reports_dir) / CEILING_FILE if ceiling is None else ceiling)
     write_text(md_path, render_markdown(runs, results_dir.as_posix(), ceilings, see_also_links(reports_dir, md_path)))
     written["leaderboard"] = md_path
-    reports = Path(reports_dir)
+    reports = Path(reports_dir if csv_dir is None else csv_dir)
     write_text(reports / "runs.csv", _csv(runs))  # every run, with its scene_current flag
     written["runs"] = reports / "runs.csv"
     summary = seed_summary(comparable_runs(runs)[0])

@@ -35,14 +35,26 @@ SENSITIVE_METHODS = ("langsplat", "deformable-clip", "non-status-field", "4d-lan
 
 def kendall_tau(paper: dict[str, float], ours: dict[str, float]) -> tuple[float, int]:
     """(Kendall's tau-b between the two scorings over the methods both give a finite value, that count);
-    NaN below two methods."""
+    NaN below two methods. Our means within :data:`TIE_TOLERANCE` of each other are one value (a tie), as
+    for the best-method verdict: otherwise the last bits of a sum would order two equal means."""
     from scipy.stats import kendalltau
 
     common = [m for m in paper if m in ours and _finite(paper[m]) and _finite(ours[m])]
     if len(common) < 2:
         return math.nan, len(common)
-    tau = kendalltau([paper[m] for m in common], [ours[m] for m in common]).statistic
+    tau = kendalltau([paper[m] for m in common], _merge_ties([ours[m] for m in common])).statistic
     return float(tau), len(common)
+
+
+def _merge_ties(values: Sequence[float]) -> list[float]:
+    """``values`` with each run of sorted values whose neighbours are within :data:`TIE_TOLERANCE` set to the
+    run's first value."""
+    merged = [float(v) for v in values]
+    order = sorted(range(len(merged)), key=lambda i: merged[i])
+    for prev, cur in zip(order, order[1:]):
+        if merged[cur] - float(values[prev]) <= TIE_TOLERANCE:
+            merged[cur] = merged[prev]
+    return merged
 
 
 def _finite(value: Any) -> bool:
