@@ -50,9 +50,9 @@ def _merge_ties(values: Sequence[float]) -> list[float]:
     """``values`` with each run of sorted values whose neighbours are within :data:`TIE_TOLERANCE` set to the
     run's first value."""
     merged = [float(v) for v in values]
-    order = sorted(range(len(merged)), key=lambda i: merged[i])
+    order = sorted(range(len(values)), key=lambda i: values[i])
     for prev, cur in zip(order, order[1:]):
-        if merged[cur] - float(values[prev]) <= TIE_TOLERANCE:
+        if values[cur] - values[prev] <= TIE_TOLERANCE:
             merged[cur] = merged[prev]
     return merged
 

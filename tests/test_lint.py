@@ -24,7 +24,7 @@ def _own_imports(path: Path) -> list[tuple[int, str, str | None]]:
     those inside functions too."""
     import ast
 
-    package = ".".join(path.relative_to(ROOT).with_suffix("").parts[:-1])
+    package = list(path.relative_to(ROOT).parts[:-1])
     found = []
     for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
         if isinstance(node, ast.Import):
@@ -32,8 +32,7 @@ def _own_imports(path: Path) -> list[tuple[int, str, str | None]]:
         elif isinstance(node, ast.ImportFrom):
             module = node.module or ""
             if node.level:
-                base = package.split(".")[:len(package.split(".")) - node.level + 1]
-                module = ".".join(base + ([module] if module else []))
+                module = ".".join(package[:len(package) - node.level + 1] + ([module] if module else []))
             found += [(node.lineno, module, a.name) for a in node.names]
     return [f for f in found if f[1].split(".")[0] in OWN_PACKAGES]
 
