@@ -35,24 +35,25 @@ SENSITIVE_METHODS = ("langsplat", "deformable-clip", "non-status-field", "4d-lan
 
 def kendall_tau(paper: dict[str, float], ours: dict[str, float]) -> tuple[float, int]:
     """(Kendall's tau-b between the two scorings over the methods both give a finite value, that count);
-    NaN below two methods. Our means within :data:`TIE_TOLERANCE` of each other are one value (a tie), as
-    for the best-method verdict: otherwise the last bits of a sum would order two equal means."""
+    NaN below two methods. Our tied means (:func:`_comparable`) are one value."""
     from scipy.stats import kendalltau
 
+    merged = _comparable(paper, ours)
+    if len(merged) < 2:
+        return math.nan, len(merged)
+    tau = kendalltau([paper[m] for m in merged], list(merged.values())).statistic
+    return float(tau), len(merged)
+
+
+def _comparable(paper: dict[str, float], ours: dict[str, float]) -> dict[str, float]:
+    """Our value of each method both give a finite value for (in ``paper``'s order), means within
+    :data:`TIE_TOLERANCE` of a neighbour in sorted order set to the first of their run: one tie rule for the
+    rank agreement and the best-method verdict."""
     common = [m for m in paper if m in ours and _finite(paper[m]) and _finite(ours[m])]
-    if len(common) < 2:
-        return math.nan, len(common)
-    tau = kendalltau([paper[m] for m in common], _merge_ties([ours[m] for m in common])).statistic
-    return float(tau), len(common)
-
-
-def _merge_ties(values: Sequence[float]) -> list[float]:
-    """``values`` with each run of sorted values whose neighbours are within :data:`TIE_TOLERANCE` set to the
-    run's first value."""
-    merged = [float(v) for v in values]
-    order = sorted(range(len(values)), key=lambda i: values[i])
+    merged = {m: float(ours[m]) for m in common}
+    order = sorted(common, key=lambda m: ours[m])
     for prev, cur in zip(order, order[1:]):
-        if values[cur] - values[prev] <= TIE_TOLERANCE:
+        if ours[cur] - ours[prev] <= TIE_TOLERANCE:
             merged[cur] = merged[prev]
     return merged
 
@@ -81,10 +82,10 @@ def _agreement(paper: dict[str, float], ours: dict[str, float], display: dict[st
     tau, n = kendall_tau(paper, ours)
     if n < 2:
         return f"_Rank agreement: not measurable ({n} method(s) with both numbers)._"
-    common = [m for m in paper if m in ours and _finite(paper[m]) and _finite(ours[m])]
-    paper_best = max(common, key=lambda m: paper[m])
-    top = max(ours[m] for m in common)
-    best_here = [m for m in common if ours[m] >= top - TIE_TOLERANCE]  # equal means count as a shared best
+    merged = _comparable(paper, ours)
+    paper_best = max(merged, key=lambda m: paper[m])
+    top = max(merged.values())
+    best_here = [m for m in merged if merged[m] == top]  # tied means count as a shared best
     if paper_best in best_here:
         others = [display.get(m, m) for m in best_here if m != paper_best]
         wins = "yes" + (f" (tied with {', '.join(others)})" if others else "")
