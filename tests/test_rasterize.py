@@ -16,11 +16,31 @@ import torch
 from benchmark.core.errors import InputError
 from benchmark.core.scene import Camera
 from methods.gaussians import camera_tensors, rasterize
-from methods.gaussians.backends import torch_cpu
+from methods.gaussians.backends import native_cpu, torch_cpu
 from methods.gaussians.backends.gsplat_cuda import gsplat_available
 from methods.gaussians.sh import eval_sh, num_sh_bases, rgb_to_sh0, sh0_to_rgb, sh_basis
 
 F64 = torch.float64
+
+
+@pytest.fixture(params=["native", "torch"])
+def compositor(request, monkeypatch):
+    """Runs a test with the compiled kernels (``native``, where a C compiler builds them) and with the
+    PyTorch passes (``torch``, as without a compiler)."""
+    if request.param == "torch":
+        monkeypatch.setenv("BENCH4D_NATIVE", "0")
+    else:
+        monkeypatch.delenv("BENCH4D_NATIVE", raising=False)
+        if native_cpu.kernels() is None:
+            pytest.skip(f"the compiled kernels do not build here: {native_cpu.unavailable_reason()}")
+    return request.param
+
+
+def _uses_native(scene) -> bool:
+    """Whether torch_cpu.render composites ``scene`` with the compiled kernels right now."""
+    means, quats, scales, opac, colors, viewmat, K, W, H, bg = scene
+    r = torch_cpu.render(means, quats, scales, opac, colors, viewmat, K, W, H, bg, 0.01, 50.0, 64, 0.3)
+    return isinstance(r.layout, native_cpu.NativeLayout)
 
 
 # --------------------------------------------------------------------------------------------
@@ -138,8 +158,9 @@ def _assert_matches_reference(scene, far=50.0, atol=1e-9, **kw):
 # exactness
 # --------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("channels,seed", [(3, 0), (6, 1), (16, 2), (512, 3)])
-def test_matches_brute_force(channels, seed):
+def test_matches_brute_force(channels, seed, compositor):
     scene = random_scene(seed, channels)
+    assert _uses_native(scene) == (compositor == "native")
     out, acc = _assert_matches_reference(scene)
     # the scene exercises what it claims: opaque regions, empty regions, culled and visible Gaussians
     assert acc.max() > 0.999 and acc.min() < 0.5
@@ -149,9 +170,10 @@ def test_matches_brute_force(channels, seed):
     assert out.n_pairs > 0 and out.n_candidates >= out.n_pairs
 
 
-def test_matches_brute_force_float32():
+def test_matches_brute_force_float32(compositor):
     scene = random_scene(4, 6)
     scene32 = tuple(t.float() if torch.is_tensor(t) else t for t in scene)
+    assert _uses_native(scene32) == (compositor == "native")
     means, quats, scales, opac, colors, viewmat, K, W, H, bg = scene32
     out = rasterize(means, quats, scales, opac, colors, viewmat, K, W, H, background=bg, far=50.0)
     img, acc, depth = reference_render(*[t.double() if torch.is_tensor(t) else t for t in scene32], far=50.0)
@@ -160,7 +182,7 @@ def test_matches_brute_force_float32():
     assert ((out.depth.double() - depth).abs() / depth.abs().clamp_min(1)).max() < 1e-5
 
 
-def test_many_layers_terminate_early():
+def test_many_layers_terminate_early(compositor):
     """A deep stack of opaque Gaussians: transmittance hits 1e-4 inside the stack, across chunks."""
     g = torch.Generator().manual_seed(7)
     n = 150
@@ -188,9 +210,9 @@ def test_layout_does_not_change_the_result(tile_size, slots, block_entries, cull
     means, quats, scales, opac, colors, viewmat, K, W, H, bg = random_scene(5, 5, n_overlap=40)
     params = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, colors)]
     results = []
-    for cfg in (torch_cpu.TorchRasterConfig(),
+    for cfg in (torch_cpu.TorchRasterConfig(native=False),
                 torch_cpu.TorchRasterConfig(tile_size=tile_size, slots=slots, cull_corners=cull,
-                                            block_entries=block_entries)):
+                                            block_entries=block_entries, native=False)):
         for p in params:
             p.grad = None
         r = torch_cpu.render(*params, viewmat, K, W, H, bg, 0.01, 50.0, 64, 0.3, config=cfg)
@@ -206,7 +228,7 @@ def test_layout_does_not_change_the_result(tile_size, slots, block_entries, cull
         assert torch.allclose(x, y, atol=1e-8, rtol=1e-8)
 
 
-def test_channel_chunks_equal_one_pass():
+def test_channel_chunks_equal_one_pass(compositor):
     means, quats, scales, opac, colors, viewmat, K, W, H, bg = random_scene(6, 512, n_overlap=30)
     outs = []
     for chunk in (64, 1024):
@@ -242,7 +264,7 @@ def _gradcheck_scene(channels: int, opaque_stack: bool):
 
 
 @pytest.mark.parametrize("channels,opaque_stack", [(3, False), (5, True)])
-def test_gradcheck(channels, opaque_stack):
+def test_gradcheck(channels, opaque_stack, compositor):
     """float64 finite differences for means, rotations, scales, opacities, colours / features."""
     means, quats, scales, opac, colors, K = _gradcheck_scene(channels, opaque_stack)
     viewmat = torch.eye(4, dtype=F64)
@@ -261,7 +283,7 @@ def test_gradcheck(channels, opaque_stack):
     assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
 
 
-def test_gradients_match_dense_reference():
+def test_gradients_match_dense_reference(compositor):
     """Analytic backward vs autograd through the dense reference on the hard random scene."""
     means, quats, scales, opac, colors, viewmat, K, W, H, bg = random_scene(8, 4, n_overlap=50)
     gen = torch.Generator().manual_seed(0)
@@ -281,7 +303,7 @@ def test_gradients_match_dense_reference():
         assert torch.allclose(a, b, atol=1e-8, rtol=1e-7), name
 
 
-def test_means2d_grad_for_densification():
+def test_means2d_grad_for_densification(compositor):
     means, quats, scales, opac, colors, viewmat, K, W, H, bg = random_scene(9, 3, n_overlap=20)
     ps = [t.float().requires_grad_(True) for t in (means, quats, scales, opac, colors)]
     out = rasterize(*ps, viewmat.float(), K.float(), W, H, far=50.0)
@@ -295,7 +317,7 @@ def test_means2d_grad_for_densification():
 # --------------------------------------------------------------------------------------------
 # edge cases, conventions, validation
 # --------------------------------------------------------------------------------------------
-def test_empty_and_fully_culled_scenes_render_background():
+def test_empty_and_fully_culled_scenes_render_background(compositor):
     K = torch.tensor([[10.0, 0, 5], [0, 10, 4.5], [0, 0, 1]])
     bg = torch.tensor([0.1, 0.2, 0.3])
     for n, z in ((0, 1.0), (3, -1.0)):
@@ -311,7 +333,7 @@ def test_empty_and_fully_culled_scenes_render_background():
         assert ps[0].grad is not None and ps[0].grad.abs().sum() == 0
 
 
-def test_camera_conventions_pixel_centres():
+def test_camera_conventions_pixel_centres(compositor):
     """A small Gaussian at a world point lands on the pixel whose centre Camera.project gives."""
     c2w = np.eye(4)
     c2w[:3, 3] = [0.3, -0.2, -4.0]
@@ -350,6 +372,77 @@ def test_invalid_inputs_raise_input_error():
         rasterize(**good, backend="gsplat")
     out = rasterize(**good)  # the good inputs do render
     assert out.image.shape == (4, 4, 3)
+
+
+# --------------------------------------------------------------------------------------------
+# the compiled kernels against the PyTorch passes
+# --------------------------------------------------------------------------------------------
+def _render_and_grads(scene, cfg, seed=0):
+    means, quats, scales, opac, colors, viewmat, K, W, H, bg = scene
+    params = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, colors)]
+    r = torch_cpu.render(*params, viewmat, K, W, H, bg, 0.01, 50.0, 64, 0.3, config=cfg)
+    r.proj.means2d.retain_grad()
+    gen = torch.Generator().manual_seed(seed)
+    weights = [torch.randn(t.shape, generator=gen, dtype=t.dtype) for t in (r.image, r.alpha, r.depth)]
+    sum(((t * w).sum() for t, w in zip((r.image, r.alpha, r.depth), weights))).backward()
+    return r, [r.image.detach(), r.alpha.detach(), r.depth.detach()], [p.grad for p in params] + [r.proj.means2d.grad]
+
+
+@pytest.mark.parametrize("tile_size", [3, 4, 8, 16])
+def test_native_kernels_equal_the_pytorch_passes_in_float64(tile_size):
+    """Image, alpha, depth and every gradient (the densification's means2d one too) agree to rounding,
+    whatever the tile size (3: lanes padded; 16: many pixels per list)."""
+    if native_cpu.kernels() is None:
+        pytest.skip(f"the compiled kernels do not build here: {native_cpu.unavailable_reason()}")
+    scene = random_scene(10 + tile_size, 5, n_overlap=60)
+    r_torch, out_torch, grads_torch = _render_and_grads(scene, torch_cpu.TorchRasterConfig(native=False))
+    r_nat, out_nat, grads_nat = _render_and_grads(scene, torch_cpu.TorchRasterConfig(native_tile_size=tile_size))
+    assert isinstance(r_nat.layout, native_cpu.NativeLayout) and isinstance(r_torch.layout, torch_cpu.TileLayout)
+    for a, b in zip(out_torch, out_nat):
+        assert torch.allclose(a, b, atol=1e-12, rtol=1e-12)
+    for name, a, b in zip(("means", "quats", "scales", "opacities", "colors", "means2d"), grads_torch, grads_nat):
+        assert torch.allclose(a, b, atol=1e-10, rtol=1e-9), name
+    assert torch.equal(r_torch.proj.visible, r_nat.proj.visible) and torch.equal(r_torch.proj.radii, r_nat.proj.radii)
+    assert r_nat.n_pairs > 0
+
+
+def test_native_kernels_agree_with_the_pytorch_passes_in_float32():
+    """A training-like float32 scene (10 000 surface Gaussians at 64 x 48): the kernels' float32 image and
+    gradients are those of the PyTorch passes up to float32 rounding."""
+    if native_cpu.kernels() is None:
+        pytest.skip(f"the compiled kernels do not build here: {native_cpu.unavailable_reason()}")
+    from benchmark.studies.rasterizer_bench import surface_scene
+
+    sc = surface_scene(10_000, 64, 48, channels=4, seed=1)
+    scene = (sc.means, sc.quats, sc.scales, sc.opacities, sc.colors, sc.viewmat, sc.K, sc.width, sc.height,
+             torch.zeros(4))
+    _, out_torch, grads_torch = _render_and_grads(scene, torch_cpu.TorchRasterConfig(native=False))
+    _, out_nat, grads_nat = _render_and_grads(scene, torch_cpu.TorchRasterConfig())
+    assert (out_torch[0] - out_nat[0]).abs().max() < 2e-5 and (out_torch[1] - out_nat[1]).abs().max() < 2e-5
+    for name, a, b in zip(("means", "quats", "scales", "opacities", "colors", "means2d"), grads_torch, grads_nat):
+        err = (a - b).norm() / a.norm()
+        assert err < 1e-4, (name, float(err))
+
+
+def test_the_pytorch_passes_serve_when_the_kernels_do_not_build(monkeypatch, tmp_path):
+    """No working C compiler: rendering goes on with the PyTorch passes, and the reason is kept."""
+    monkeypatch.setattr(native_cpu, "_STATE", {})
+    monkeypatch.setenv("BENCH4D_NATIVE_CACHE", str(tmp_path))
+    monkeypatch.setenv("CC", "false")  # a "compiler" that fails on every input
+    monkeypatch.setattr(native_cpu, "_compiler", lambda: shutil_which("false"))
+    assert native_cpu.kernels() is None
+    assert "failed" in native_cpu.unavailable_reason()
+    scene = random_scene(3, 3)
+    assert not _uses_native(scene)
+    _assert_matches_reference(scene)
+    monkeypatch.setenv("BENCH4D_NATIVE", "0")
+    assert "BENCH4D_NATIVE=0" in native_cpu.unavailable_reason()
+
+
+def shutil_which(name: str):
+    import shutil
+
+    return shutil.which(name)
 
 
 # --------------------------------------------------------------------------------------------

@@ -457,7 +457,7 @@ def blend_operator(state: GaussianState, camera: Camera, pixels: torch.Tensor, *
 
     The weight each Gaussian puts on the view's OTHER pixels is kept too (:attr:`BlendOperator.outside`).
     """
-    from methods.gaussians.backends import torch_cpu
+    from methods.gaussians.backends import native_cpu, torch_cpu
 
     device = state.means.device
     viewmat, K, width, height = camera_tensors(camera, device)
@@ -467,6 +467,8 @@ def blend_operator(state: GaussianState, camera: Camera, pixels: torch.Tensor, *
     try:
         r = torch_cpu.render(state.means, state.quats, state.scales, state.opacities, probe, viewmat, K, width,
                              height, probe.new_zeros(2), near, 1e10, 2, 0.3)
+        if isinstance(r.layout, native_cpu.NativeLayout):  # the compiled kernels list the pairs themselves
+            return _native_blend_operator(r, state.opacities, probe, pixels, width, height, check_tolerance)
         node, seen, todo = None, set(), [r.image.grad_fn]
         while todo and node is None:
             fn = todo.pop()
@@ -511,6 +513,32 @@ def blend_operator(state: GaussianState, camera: Camera, pixels: torch.Tensor, *
     if bool((cols_t >= n).any()):
         return None  # the padding slot carried weight: not the layout this reader expects
     op = BlendOperator(_csr32(rows_t, cols_t, vals_t, (p, n)), _csr32(cols_t, rows_t, vals_t, (n, p)), outside[:n])
+    with torch.no_grad():
+        got = op(probe.detach())
+    if not torch.allclose(got, want, atol=check_tolerance, rtol=check_tolerance):
+        return None
+    return op
+
+
+def _native_blend_operator(r, opacities: torch.Tensor, probe: torch.Tensor, pixels: torch.Tensor, width: int,
+                           height: int, check_tolerance: float) -> Optional[BlendOperator]:
+    """:func:`blend_operator` from a render ``r`` of the compiled kernels, whose pairs they list."""
+    from methods.gaussians.backends import native_cpu, torch_cpu
+
+    device = pixels.device
+    n = probe.shape[0]
+    proj = r.proj
+    params_t = torch.stack([proj.means2d[:, 0], proj.means2d[:, 1], *proj.conics.unbind(1), opacities]).detach()
+    pix, gid, weight = native_cpu.blend_weights(params_t, r.layout, width, height, torch_cpu.DEFAULT_RULE, r.n_pairs)
+    row_of = torch.full((height * width,), -1, dtype=torch.long, device=device)
+    row_of[pixels] = torch.arange(pixels.numel(), device=device)
+    row = row_of[pix]
+    keep = row >= 0
+    outside = torch.zeros(n, device=device).index_add_(0, gid[~keep], weight[~keep].to(torch.float32))
+    p = pixels.numel()
+    rows_t, cols_t, vals_t = row[keep], gid[keep], weight[keep].to(torch.float32)
+    op = BlendOperator(_csr32(rows_t, cols_t, vals_t, (p, n)), _csr32(cols_t, rows_t, vals_t, (n, p)), outside)
+    want = r.image.detach().reshape(-1, 2)[pixels]
     with torch.no_grad():
         got = op(probe.detach())
     if not torch.allclose(got, want, atol=check_tolerance, rtol=check_tolerance):

@@ -48,6 +48,8 @@ from typing import Optional
 import torch
 from torch import Tensor
 
+from . import native_cpu
+
 
 @dataclass(frozen=True)
 class CompositingRule:
@@ -86,6 +88,12 @@ class TorchRasterConfig:
     """At most about this many pixel-Gaussian candidates are processed by one autograd call (whole
     tiles per block; a tile with more candidates is a block of its own). Bounds the size of every
     temporary (8 MiB per float32 tensor at the default), keeping it in the allocator's reusable heap."""
+    native: bool = True
+    """On the CPU, lay out tiles and composite with the compiled kernels of :mod:`.native_cpu` where they
+    build (same function, several times faster); off, or without a C compiler: the PyTorch passes below."""
+    native_tile_size: int = 8
+    """Side of the pixel tiles of the compiled kernels (they walk each pixel's list, so larger tiles than
+    the PyTorch passes' pay: fewer rows to lay out, few candidates wasted)."""
 
 
 DEFAULT_CONFIG = TorchRasterConfig()
@@ -533,7 +541,8 @@ class TorchRender:
     depth: Tensor
     """[H, W] expected depth ``sum_i w_i z_i / alpha`` (0 where alpha is 0)."""
     proj: Projection
-    layout: TileLayout
+    layout: "TileLayout | native_cpu.NativeLayout"
+    """The PyTorch passes' chunked layout, or the compiled kernels' tile lists."""
     n_pairs: int
     """Pixel-Gaussian pairs composited."""
     n_candidates: int
@@ -560,6 +569,15 @@ def render(
 ) -> TorchRender:
     """Render one view (inputs already validated by the public wrapper)."""
     n, c = colors.shape
+    lib = native_cpu.kernels() if config.native and native_cpu.supports(means) else None
+    if lib is not None:
+        if viewmat.requires_grad or K.requires_grad:  # the kernels' projection has no camera gradients
+            proj = project_gaussians(means, quats, scales, opacities, viewmat, K, width, height, near, far, eps2d,
+                                     rule)
+        else:
+            proj = _project_native(means, quats, scales, opacities, viewmat, K, width, height, near, far, eps2d,
+                                   rule)
+        return _render_native(lib, proj, opacities, colors, width, height, background, config, rule)
     proj = project_gaussians(means, quats, scales, opacities, viewmat, K, width, height, near, far, eps2d, rule)
     lay = tile_layout(proj, width, height, config)
     ts, npix = lay.tile_size, lay.tile_size ** 2
@@ -575,6 +593,35 @@ def render(
     image = img[..., :c] + (1.0 - alpha)[..., None] * background
     depth = img[..., c] / alpha.clamp_min(1e-10)
     return TorchRender(image, alpha, depth, proj, lay, stats["pairs"], lay.n_rows * npix)
+
+
+def _project_native(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmat: Tensor, K: Tensor,
+                    width: int, height: int, near: float, far: float, eps2d: float,
+                    rule: CompositingRule) -> Projection:
+    """:func:`project_gaussians` by the compiled kernels (the same quantities, computed in double)."""
+    view, intr, lim = native_cpu.camera_constants(viewmat, K, width, height, rule.jacobian_fov_margin)
+    means2d, conics, depths, visible, radii, box, cull_q = native_cpu.Project.apply(
+        means, quats, scales, opacities, view, intr, lim, width, height, float(near), float(far), float(eps2d),
+        rule.alpha_min)
+    return Projection(means2d, conics, depths, visible, radii, box, cull_q)
+
+
+def _render_native(lib, proj: Projection, opacities: Tensor, colors: Tensor, width: int, height: int,
+                   background: Tensor, config: TorchRasterConfig, rule: CompositingRule) -> TorchRender:
+    """:func:`render`'s layout and compositing by the compiled kernels (:mod:`.native_cpu`)."""
+    c = colors.shape[1]
+    params_t = torch.stack([proj.means2d[:, 0], proj.means2d[:, 1], *proj.conics.unbind(1), opacities])  # [6, N]
+    with torch.no_grad():
+        vis = proj.visible.nonzero().squeeze(1)
+        # front to back; a stable sort breaks depth ties by index
+        order = vis.index_select(0, torch.sort(proj.depths.detach().index_select(0, vis), stable=True).indices)
+    lay = native_cpu.layout(lib, params_t, proj.cull_q, proj.pixel_box, order, width, height, config.native_tile_size)
+    feat = torch.cat([colors, proj.depths[:, None]], 1)  # [N, C + 1]: depth rides as a last channel
+    stats: dict = {"pairs": 0}
+    composited, alpha = native_cpu.Composite.apply(params_t, feat, lay, width, height, rule, stats)
+    image = composited[..., :c] + (1.0 - alpha)[..., None] * background
+    depth = composited[..., c] / alpha.clamp_min(1e-10)
+    return TorchRender(image, alpha, depth, proj, lay, stats["pairs"], lay.n_rows * lay.tile_size ** 2)
 
 
 def _blocks(lay: TileLayout, max_chunks: int) -> list[tuple[int, int]]:

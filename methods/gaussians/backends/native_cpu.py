@@ -1,0 +1,898 @@
+"""Compiled CPU kernels of the PyTorch backend: tile layout and compositing (forward and backward) in C.
+
+:mod:`.torch_cpu` spends most of a CPU training step in passes of PyTorch operations over padded
+``[chunks, pixels, slots]`` candidate arrays. The same compositing, written per pixel as the 3D-GS
+rasterizer is (front to back, stop at the transmittance floor; backward back to front, recovering the
+transmittance by division), does one pass over the pairs that matter and skips the padding. It is the
+same function of the same inputs (the rule of :class:`~.torch_cpu.CompositingRule`, the exact
+opacity-aware tile test), equal to the PyTorch path up to float rounding.
+
+The C source below is compiled on first use with the system C compiler (``cc``, or ``$CC``) into a
+shared library under the user's cache folder and loaded with :mod:`ctypes`: no Python or torch headers,
+about a second to build. Without a compiler (or with ``BENCH4D_NATIVE=0``) :func:`kernels` returns
+``None`` and :mod:`.torch_cpu` composites in PyTorch. The source lives in this module so that the
+geometry's code digest (cache keys) follows every change of it.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+HEADER = r"""
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+/* Pixels are processed in groups of LANES (vector lanes); per-lane partial sums keep reductions in a
+ * fixed order, so the results do not depend on the vector width the compiler picks. */
+#define LANES 8
+
+/* GCC builds the hot kernels twice, for AVX2 and for the x86-64 baseline, and picks one at load time.
+ * With -ffp-contract=off both do the same float operations in the same order: the same numbers. */
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__linux__)
+#define HOT __attribute__((target_clones("avx2", "default")))
+#else
+#define HOT
+#endif
+#if defined(__GNUC__)
+#define NOINLINE HOT __attribute__((noinline))
+#else
+#define NOINLINE
+#endif
+
+static inline int64_t min_i64(int64_t a, int64_t b) { return a < b ? a : b; }
+
+static inline double clamp_d(double x, double lo, double hi) { return x < lo ? lo : (x > hi ? hi : x); }
+
+/* exp(x) in float, within 2 ulp for x in [-87, 88] (clamped outside): range reduction by ln 2 (split in
+ * two parts) and a degree-7 polynomial, written so that it vectorises (no libm call). */
+static inline float exp_f32(float x) {
+    x = x < -87.0f ? -87.0f : x;
+    x = x > 88.0f ? 88.0f : x;
+    float t = x * 1.44269504088896341f + 12582912.0f;  /* adding 1.5 * 2^23 rounds to an integer */
+    float k = t - 12582912.0f;
+    float r = x - k * 0.693359375f;
+    r = r + k * 2.12194440e-4f;
+    float p = 1.9875691500e-4f;
+    p = p * r + 1.3981999507e-3f;
+    p = p * r + 8.3334519073e-3f;
+    p = p * r + 4.1665795894e-2f;
+    p = p * r + 1.6666665459e-1f;
+    p = p * r + 5.0000001201e-1f;
+    p = p * (r * r) + r + 1.0f;
+    union { int32_t i; float f; } scale;
+    scale.i = ((int32_t)k + 127) << 23;
+    return p * scale.f;
+}
+
+static inline double exp_f64(double x) { return exp(x); }
+
+/* Smallest q(x, y) = a x^2 + 2 b x y + c y^2 (positive definite) over the rectangle [x0, x1] x [y0, y1]:
+ * 0 when it holds the origin, else the smallest of the four edges' minima (a convex function's minimum
+ * over a rectangle not holding its unconstrained minimum lies on the boundary). */
+static inline double quad_min_rect(double a, double b, double c, double x0, double x1, double y0, double y1) {
+    if (x0 <= 0.0 && x1 >= 0.0 && y0 <= 0.0 && y1 >= 0.0) return 0.0;
+    double best = INFINITY, xs[2] = {x0, x1}, ys[2] = {y0, y1};
+    a = a > 1e-30 ? a : 1e-30;
+    c = c > 1e-30 ? c : 1e-30;
+    for (int k = 0; k < 2; ++k) {
+        double x = xs[k], y = clamp_d(-b * x / c, y0, y1);
+        double q = a * x * x + 2.0 * b * x * y + c * y * y;
+        if (q < best) best = q;
+        y = ys[k];
+        x = clamp_d(-b * y / a, x0, x1);
+        q = a * x * x + 2.0 * b * x * y + c * y * y;
+        if (q < best) best = q;
+    }
+    return best;
+}
+
+/* EWA projection of one Gaussian, in double (see torch_cpu.project_gaussians, which this mirrors):
+ * everything the forward and the backward need. view: [12] world-to-camera rows (R | t); intr: fx, fy,
+ * cx, cy; lim: the Jacobian's clamp of x / z and y / z (-neg_x, pos_x, -neg_y, pos_y). */
+typedef struct {
+    double x, y, z, zs, rx, ry, J00, J02, J11, J12, JW0[3], JW1[3], qn[4], nrm, Rq[3][3], M[3][3], F0[3], F1[3];
+    double ca, cb, cc, det, A, B, C, u, v;
+    int in_depth, ok, free_x, free_y;
+} Ewa;
+
+static inline void ewa(Ewa *e, const double *m, const double *q, const double *s, double o, const double *view,
+                       const double *intr, const double *lim, double near, double far, double eps2d,
+                       double alpha_min) {
+    const double fx = intr[0], fy = intr[1], cx = intr[2], cy = intr[3];
+    e->x = view[0] * m[0] + view[1] * m[1] + view[2] * m[2] + view[3];
+    e->y = view[4] * m[0] + view[5] * m[1] + view[6] * m[2] + view[7];
+    e->z = view[8] * m[0] + view[9] * m[1] + view[10] * m[2] + view[11];
+    e->in_depth = e->z > near && e->z < far;
+    e->zs = e->in_depth ? e->z : 1.0;  /* culled Gaussians get a harmless depth */
+    const double zs = e->zs;
+    e->u = fx * e->x / zs + cx;
+    e->v = fy * e->y / zs + cy;
+    double rx = e->x / zs, ry = e->y / zs;
+    e->free_x = rx > lim[0] && rx < lim[1];
+    e->free_y = ry > lim[2] && ry < lim[3];
+    e->rx = rx < lim[0] ? lim[0] : (rx > lim[1] ? lim[1] : rx);
+    e->ry = ry < lim[2] ? lim[2] : (ry > lim[3] ? lim[3] : ry);
+    e->J00 = fx / zs;
+    e->J02 = -fx * e->rx / zs;
+    e->J11 = fy / zs;
+    e->J12 = -fy * e->ry / zs;
+    for (int j = 0; j < 3; ++j) {
+        e->JW0[j] = e->J00 * view[j] + e->J02 * view[8 + j];
+        e->JW1[j] = e->J11 * view[4 + j] + e->J12 * view[8 + j];
+    }
+    double nq = sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+    e->nrm = nq > 1e-12 ? nq : 1e-12;
+    for (int k = 0; k < 4; ++k) e->qn[k] = q[k] / e->nrm;
+    const double w = e->qn[0], x = e->qn[1], y = e->qn[2], z = e->qn[3];
+    double R[3][3] = {{1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)},
+                      {2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)},
+                      {2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)}};
+    for (int i = 0; i < 3; ++i)
+        for (int k = 0; k < 3; ++k) {
+            e->Rq[i][k] = R[i][k];
+            e->M[i][k] = R[i][k] * s[k];
+        }
+    for (int k = 0; k < 3; ++k) {
+        e->F0[k] = e->JW0[0] * e->M[0][k] + e->JW0[1] * e->M[1][k] + e->JW0[2] * e->M[2][k];
+        e->F1[k] = e->JW1[0] * e->M[0][k] + e->JW1[1] * e->M[1][k] + e->JW1[2] * e->M[2][k];
+    }
+    e->ca = e->F0[0] * e->F0[0] + e->F0[1] * e->F0[1] + e->F0[2] * e->F0[2] + eps2d;
+    e->cb = e->F0[0] * e->F1[0] + e->F0[1] * e->F1[1] + e->F0[2] * e->F1[2];
+    e->cc = e->F1[0] * e->F1[0] + e->F1[1] * e->F1[1] + e->F1[2] * e->F1[2] + eps2d;
+    e->det = e->ca * e->cc - e->cb * e->cb;
+    e->ok = e->in_depth && e->det > 0.0 && o >= alpha_min;
+    double ds = e->ok ? e->det : 1.0;
+    e->A = e->cc / ds;
+    e->B = -e->cb / ds;
+    e->C = e->ca / ds;
+}
+
+static void *zalloc(size_t count, size_t size) {
+    /* 64-byte aligned, zeroed; count rounded up so that the size is a multiple of the alignment */
+    size_t bytes = (count * size + 63) / 64 * 64;
+    void *p = aligned_alloc(64, bytes ? bytes : 64);
+    if (p) memset(p, 0, bytes ? bytes : 64);
+    return p;
+}
+"""
+
+BODY = r"""
+/* Kernels for one scalar type: SCALAR (float or double), EXP (exp_f32 or exp_f64) and FN(name)
+ * (name_f32 or name_f64) are defined around this text.
+ *
+ * Conventions (those of torch_cpu.py): params is [6, N] row-major: u, v (pixel coordinates of the
+ * projected mean), a, b, c (conic [[a, b], [b, c]]) and opacity; feat is [N, C] row-major; pixel (i, j)
+ * has centre (j + 0.5, i + 0.5); sigma = (a dx^2 + c dy^2) / 2 + b dx dy with dx = x - u, dy = y - v;
+ * alpha = min(alpha_max, opacity exp(-sigma)), skipped below alpha_min; a pixel stops before the first
+ * Gaussian that would bring its transmittance below t_min.
+ */
+
+/* Forward projection of n Gaussians ([n, 3] means, [n, 4] raw quaternions (w, x, y, z), [n, 3] scales,
+ * [n] opacities): [n, 2] means2d, [n, 3] conics, [n] depths (camera z), and the no-gradient culling
+ * quantities of torch_cpu.Projection: visible, radii, pixel box [n, 4] and cull_q. */
+void FN(project_forward)(int64_t n, const SCALAR *means, const SCALAR *quats, const SCALAR *scales,
+                         const SCALAR *opac, const double *view, const double *intr, const double *lim,
+                         int64_t width, int64_t height, double near, double far, double eps2d, double alpha_min,
+                         SCALAR *means2d, SCALAR *conics, SCALAR *depths, uint8_t *visible, int32_t *radii,
+                         int64_t *box, SCALAR *cull_q) {
+    const double big = (double)(width > height ? width : height) + 1.0;
+    for (int64_t g = 0; g < n; ++g) {
+        double m[3] = {means[3 * g], means[3 * g + 1], means[3 * g + 2]};
+        double q[4] = {quats[4 * g], quats[4 * g + 1], quats[4 * g + 2], quats[4 * g + 3]};
+        double s[3] = {scales[3 * g], scales[3 * g + 1], scales[3 * g + 2]};
+        double o = opac[g];
+        Ewa e;
+        ewa(&e, m, q, s, o, view, intr, lim, near, far, eps2d, alpha_min);
+        means2d[2 * g] = (SCALAR)e.u;
+        means2d[2 * g + 1] = (SCALAR)e.v;
+        conics[3 * g] = (SCALAR)e.A;
+        conics[3 * g + 1] = (SCALAR)e.B;
+        conics[3 * g + 2] = (SCALAR)e.C;
+        depths[g] = (SCALAR)e.z;
+        /* alpha >= alpha_min  <=>  d^T conic d <= k, k = 2 ln(opacity / alpha_min); the ellipse's box has
+         * half-widths sqrt(k cov_xx), sqrt(k cov_yy), widened by relative and absolute margins */
+        double k = 2.0 * log((o > alpha_min ? o : alpha_min) / alpha_min);
+        double hw = sqrt(k * (e.ca > 0 ? e.ca : 0.0)) * (1 + 1e-5) + 1e-4;
+        double hh = sqrt(k * (e.cc > 0 ? e.cc : 0.0)) * (1 + 1e-5) + 1e-4;
+        double j0 = ceil(e.u - hw - 0.5), j1 = floor(e.u + hw - 0.5);
+        double i0 = ceil(e.v - hh - 0.5), i1 = floor(e.v + hh - 0.5);
+        int fin = isfinite(j0) && isfinite(j1) && isfinite(i0) && isfinite(i1);
+        int vis = e.ok && fin && j1 >= 0 && j0 <= (double)(width - 1) && i1 >= 0 && i0 <= (double)(height - 1)
+                  && j0 <= j1 && i0 <= i1;
+        visible[g] = (uint8_t)vis;
+        int64_t *b = box + 4 * g;
+        if (vis) {
+            b[0] = (int64_t)clamp_d(j0, 0, (double)(width - 1));
+            b[1] = (int64_t)clamp_d(j1, 0, (double)(width - 1));
+            b[2] = (int64_t)clamp_d(i0, 0, (double)(height - 1));
+            b[3] = (int64_t)clamp_d(i1, 0, (double)(height - 1));
+            double r = ceil(hw > hh ? hw : hh);
+            radii[g] = (int32_t)(r < big ? r : big);
+        } else {
+            b[0] = b[1] = b[2] = b[3] = 0;
+            radii[g] = 0;
+        }
+        cull_q[g] = (SCALAR)(k * (1 + 1e-4) + 1e-6);
+    }
+}
+
+/* Backward of project_forward: from the gradients of means2d [n, 2], conics [n, 3] and depths [n] (each
+ * may be NULL), WRITES those of means [n, 3], raw quaternions [n, 4] and scales [n, 3]. Gaussians with
+ * no incoming gradient are skipped (their outputs are zero). */
+void FN(project_backward)(int64_t n, const SCALAR *means, const SCALAR *quats, const SCALAR *scales,
+                          const SCALAR *opac, const double *view, const double *intr, const double *lim,
+                          double near, double far, double eps2d, double alpha_min, const SCALAR *g_means2d,
+                          const SCALAR *g_conics, const SCALAR *g_depths, SCALAR *g_means, SCALAR *g_quats,
+                          SCALAR *g_scales) {
+    const double fx = intr[0], fy = intr[1];
+    for (int64_t g = 0; g < n; ++g) {
+        double gu = g_means2d ? g_means2d[2 * g] : 0.0, gv = g_means2d ? g_means2d[2 * g + 1] : 0.0;
+        double gA = g_conics ? g_conics[3 * g] : 0.0, gB = g_conics ? g_conics[3 * g + 1] : 0.0;
+        double gC = g_conics ? g_conics[3 * g + 2] : 0.0, gz = g_depths ? g_depths[g] : 0.0;
+        for (int k = 0; k < 3; ++k) g_means[3 * g + k] = g_scales[3 * g + k] = (SCALAR)0;
+        for (int k = 0; k < 4; ++k) g_quats[4 * g + k] = (SCALAR)0;
+        if (gu == 0.0 && gv == 0.0 && gA == 0.0 && gB == 0.0 && gC == 0.0 && gz == 0.0) continue;
+        double m[3] = {means[3 * g], means[3 * g + 1], means[3 * g + 2]};
+        double q[4] = {quats[4 * g], quats[4 * g + 1], quats[4 * g + 2], quats[4 * g + 3]};
+        double s[3] = {scales[3 * g], scales[3 * g + 1], scales[3 * g + 2]};
+        Ewa e;
+        ewa(&e, m, q, s, opac[g], view, intr, lim, near, far, eps2d, alpha_min);
+        /* conic (A, B, C) = (cc, -cb, ca) / det, det = ca cc - cb^2 (det taken as 1 where culled) */
+        double gca, gcb, gcc;
+        if (e.ok) {
+            const double A = e.A, B = e.B, C = e.C;
+            gca = -(gA * A * A + gB * A * B + gC * B * B);
+            gcb = -(2.0 * gA * A * B + gB * (A * C + B * B) + 2.0 * gC * B * C);
+            gcc = -(gA * B * B + gB * B * C + gC * C * C);
+        } else {
+            gca = gC;
+            gcb = -gB;
+            gcc = gA;
+        }
+        /* cov = F F^T + eps2d I with F = [F0; F1] = JW M */
+        double dF0[3], dF1[3], dJW0[3], dJW1[3], dM[3][3];
+        for (int k = 0; k < 3; ++k) {
+            dF0[k] = 2.0 * gca * e.F0[k] + gcb * e.F1[k];
+            dF1[k] = gcb * e.F0[k] + 2.0 * gcc * e.F1[k];
+        }
+        for (int i = 0; i < 3; ++i) {
+            dJW0[i] = dF0[0] * e.M[i][0] + dF0[1] * e.M[i][1] + dF0[2] * e.M[i][2];
+            dJW1[i] = dF1[0] * e.M[i][0] + dF1[1] * e.M[i][1] + dF1[2] * e.M[i][2];
+            for (int k = 0; k < 3; ++k) dM[i][k] = e.JW0[i] * dF0[k] + e.JW1[i] * dF1[k];
+        }
+        /* M = Rq diag(s) */
+        double G[3][3];
+        for (int k = 0; k < 3; ++k) {
+            g_scales[3 * g + k] = (SCALAR)(dM[0][k] * e.Rq[0][k] + dM[1][k] * e.Rq[1][k] + dM[2][k] * e.Rq[2][k]);
+            for (int i = 0; i < 3; ++i) G[i][k] = dM[i][k] * s[k];
+        }
+        /* Rq of the normalised quaternion (w, x, y, z) */
+        const double w = e.qn[0], x = e.qn[1], y = e.qn[2], z = e.qn[3];
+        double dq[4];
+        dq[0] = 2.0 * (-z * G[0][1] + y * G[0][2] + z * G[1][0] - x * G[1][2] - y * G[2][0] + x * G[2][1]);
+        dq[1] = 2.0 * (y * G[0][1] + z * G[0][2] + y * G[1][0] - 2.0 * x * G[1][1] - w * G[1][2] + z * G[2][0]
+                       + w * G[2][1] - 2.0 * x * G[2][2]);
+        dq[2] = 2.0 * (-2.0 * y * G[0][0] + x * G[0][1] + w * G[0][2] + x * G[1][0] + z * G[1][2] - w * G[2][0]
+                       + z * G[2][1] - 2.0 * y * G[2][2]);
+        dq[3] = 2.0 * (-2.0 * z * G[0][0] - w * G[0][1] + x * G[0][2] + w * G[1][0] - 2.0 * z * G[1][1]
+                       + y * G[1][2] + x * G[2][0] + y * G[2][1]);
+        double dot = w * dq[0] + x * dq[1] + y * dq[2] + z * dq[3];
+        int normalised = e.nrm > 1e-12;  /* below, the norm is clamped: no gradient through it */
+        for (int k = 0; k < 4; ++k)
+            g_quats[4 * g + k] = (SCALAR)((dq[k] - (normalised ? e.qn[k] * dot : 0.0)) / e.nrm);
+        /* JW = J R_view; J = [[fx / zs, 0, -fx rx / zs], [0, fy / zs, -fy ry / zs]], rx = clamp(x / zs) */
+        double dJ00 = 0, dJ02 = 0, dJ11 = 0, dJ12 = 0;
+        for (int j = 0; j < 3; ++j) {
+            dJ00 += dJW0[j] * view[j];
+            dJ02 += dJW0[j] * view[8 + j];
+            dJ11 += dJW1[j] * view[4 + j];
+            dJ12 += dJW1[j] * view[8 + j];
+        }
+        const double zs = e.zs;
+        double gx = gu * fx / zs, gy = gv * fy / zs;
+        double gzs = -gu * fx * e.x / (zs * zs) - gv * fy * e.y / (zs * zs);
+        gzs += -dJ00 * fx / (zs * zs) - dJ11 * fy / (zs * zs);
+        gzs += dJ02 * fx * e.rx / (zs * zs) + dJ12 * fy * e.ry / (zs * zs);
+        double grx = -dJ02 * fx / zs, gry = -dJ12 * fy / zs;
+        if (e.free_x) {
+            gx += grx / zs;
+            gzs -= grx * e.x / (zs * zs);
+        }
+        if (e.free_y) {
+            gy += gry / zs;
+            gzs -= gry * e.y / (zs * zs);
+        }
+        double gzz = gz + (e.in_depth ? gzs : 0.0);
+        for (int k = 0; k < 3; ++k)
+            g_means[3 * g + k] = (SCALAR)(view[k] * gx + view[4 + k] * gy + view[8 + k] * gzz);
+    }
+}
+
+/* Pass 1 of the tile layout: for the visible Gaussians `order` (front to back), count the tiles of
+ * their pixel box whose pixel-centre rectangle meets the ellipse q(d) <= qmax. Adds to counts[n_tiles]
+ * (zeroed by the caller); returns the total number of (tile, Gaussian) rows. */
+int64_t FN(layout_count)(int64_t n_vis, const int64_t *order, const SCALAR *params, int64_t n,
+                          const SCALAR *qmax, const int64_t *box, int64_t ts, int64_t tiles_x,
+                          int64_t width, int64_t height, int64_t *counts) {
+    int64_t total = 0;
+    for (int64_t r = 0; r < n_vis; ++r) {
+        int64_t g = order[r];
+        double u = params[g], v = params[n + g], a = params[2 * n + g], b = params[3 * n + g];
+        double c = params[4 * n + g], q = qmax[g];
+        const int64_t *bx = box + 4 * g;
+        for (int64_t ty = bx[2] / ts; ty <= bx[3] / ts; ++ty) {
+            double y0 = (double)(ty * ts) + 0.5 - v;
+            double y1 = (double)(min_i64((ty + 1) * ts, height) - 1) + 0.5 - v;
+            for (int64_t tx = bx[0] / ts; tx <= bx[1] / ts; ++tx) {
+                double x0 = (double)(tx * ts) + 0.5 - u;
+                double x1 = (double)(min_i64((tx + 1) * ts, width) - 1) + 0.5 - u;
+                if (quad_min_rect(a, b, c, x0, x1, y0, y1) <= q) {
+                    counts[ty * tiles_x + tx] += 1;
+                    ++total;
+                }
+            }
+        }
+    }
+    return total;
+}
+
+/* Pass 2: the rows themselves, ordered by (tile, depth). tile_start[n_tiles + 1] is the exclusive
+ * prefix sum of pass 1's counts; cursor[n_tiles] is zeroed scratch. rows[total] receives Gaussian
+ * indices. */
+void FN(layout_fill)(int64_t n_vis, const int64_t *order, const SCALAR *params, int64_t n, const SCALAR *qmax,
+                     const int64_t *box, int64_t ts, int64_t tiles_x, int64_t width, int64_t height,
+                     const int64_t *tile_start, int64_t *cursor, int32_t *rows) {
+    for (int64_t r = 0; r < n_vis; ++r) {
+        int64_t g = order[r];
+        double u = params[g], v = params[n + g], a = params[2 * n + g], b = params[3 * n + g];
+        double c = params[4 * n + g], q = qmax[g];
+        const int64_t *bx = box + 4 * g;
+        for (int64_t ty = bx[2] / ts; ty <= bx[3] / ts; ++ty) {
+            double y0 = (double)(ty * ts) + 0.5 - v;
+            double y1 = (double)(min_i64((ty + 1) * ts, height) - 1) + 0.5 - v;
+            for (int64_t tx = bx[0] / ts; tx <= bx[1] / ts; ++tx) {
+                double x0 = (double)(tx * ts) + 0.5 - u;
+                double x1 = (double)(min_i64((tx + 1) * ts, width) - 1) + 0.5 - u;
+                if (quad_min_rect(a, b, c, x0, x1, y0, y1) <= q) {
+                    int64_t t = ty * tiles_x + tx;
+                    rows[tile_start[t] + cursor[t]] = (int32_t)g;
+                    cursor[t] += 1;
+                }
+            }
+        }
+    }
+}
+
+/* Forward compositing, tile by tile: for each Gaussian of the tile's list (front to back) all of the
+ * tile's pixels at once (vector lanes), until every pixel has stopped. Writes out[H * W, C],
+ * t_end[H * W] (final transmittance) and last[H * W] (one past the list position of the pixel's last
+ * composited Gaussian, 0 for none); returns the number of composited pairs, -1 when out of memory.
+ * With trip_pix non-NULL, also lists every composited pair: flat pixel index, Gaussian and weight
+ * alpha T (trip_cap long: the number of pairs, known from an earlier call). */
+HOT int64_t FN(forward)(const SCALAR *params, int64_t n, const SCALAR *feat, int64_t C, const int64_t *tile_start,
+                        const int32_t *rows, int64_t ts, int64_t tiles_x, int64_t tiles_y, int64_t width,
+                        int64_t height, double alpha_min, double alpha_max, double t_min, SCALAR *out,
+                        SCALAR *t_end, int32_t *last, int64_t *trip_pix, int32_t *trip_g, SCALAR *trip_w,
+                        int64_t trip_cap) {
+    int64_t n_trip = 0;
+    const int64_t P = ts * ts, PP = (P + LANES - 1) / LANES * LANES;
+    const SCALAR amin = (SCALAR)alpha_min, amax = (SCALAR)alpha_max, tmin = (SCALAR)t_min;
+    SCALAR *px = (SCALAR *)zalloc((size_t)PP * (4 + (size_t)C), sizeof(SCALAR));
+    int32_t *lj = (int32_t *)zalloc((size_t)PP * 3, sizeof(int32_t));
+    if (!px || !lj) {
+        free(px); free(lj);
+        return -1;
+    }
+    /* restrict: the buffers do not overlap, which lets the compiler vectorise without runtime checks */
+    SCALAR *restrict py = px + PP, *restrict T = py + PP, *restrict w = T + PP, *restrict acc = w + PP;
+    int32_t *restrict act = lj + PP, *restrict cnt = act + PP;  /* act: the pixel is still compositing (1) or has stopped */
+    for (int64_t ty = 0; ty < tiles_y; ++ty) {
+        for (int64_t tx = 0; tx < tiles_x; ++tx) {
+            const int64_t t = ty * tiles_x + tx, s0 = tile_start[t], m = tile_start[t + 1] - s0;
+            for (int64_t p = 0; p < PP; ++p) {
+                int64_t ix = tx * ts + p % ts, iy = ty * ts + p / ts;
+                px[p] = (SCALAR)ix + (SCALAR)0.5;
+                py[p] = (SCALAR)iy + (SCALAR)0.5;
+                act[p] = p < P && ix < width && iy < height;
+                T[p] = (SCALAR)1;
+                lj[p] = 0;
+            }
+            memset(acc, 0, sizeof(SCALAR) * (size_t)(C * PP));
+            for (int64_t j = 0; j < m; ++j) {
+                const int64_t g = rows[s0 + j];
+                const SCALAR u = params[g], v = params[n + g], a = params[2 * n + g], b = params[3 * n + g];
+                const SCALAR c = params[4 * n + g], o = params[5 * n + g];
+                const int32_t next = (int32_t)(j + 1);
+                for (int64_t p = 0; p < PP; ++p) {
+                    SCALAR dx = px[p] - u, dy = py[p] - v;
+                    SCALAR sig = (SCALAR)0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy;
+                    SCALAR al = o * EXP(-sig);
+                    al = al < amax ? al : amax;
+                    SCALAR tp = T[p], tn = tp * ((SCALAR)1 - al);
+                    /* int32 masks combined with & and ^: the form the vectoriser if-converts */
+                    int32_t ok = act[p] & (al >= amin);
+                    int32_t stop = ok & (tn < tmin);
+                    ok = ok ^ stop;
+                    act[p] = act[p] ^ stop;
+                    w[p] = ok ? al * tp : (SCALAR)0;
+                    T[p] = ok ? tn : tp;
+                    lj[p] = ok ? next : lj[p];
+                    cnt[p] += ok;
+                }
+                const SCALAR *f = feat + C * g;
+                for (int64_t k = 0; k < C; ++k) {
+                    const SCALAR fk = f[k];
+                    SCALAR *ak = acc + k * PP;
+                    for (int64_t p = 0; p < PP; ++p) ak[p] += w[p] * fk;
+                }
+                if (trip_pix) {
+                    for (int64_t p = 0; p < PP; ++p) {
+                        if (w[p] > (SCALAR)0 && n_trip < trip_cap) {
+                            trip_pix[n_trip] = (ty * ts + p / ts) * width + tx * ts + p % ts;
+                            trip_g[n_trip] = (int32_t)g;
+                            trip_w[n_trip] = w[p];
+                            ++n_trip;
+                        }
+                    }
+                }
+                if ((j & 7) == 7) {  /* every pixel stopped: the rest of the list is hidden */
+                    int32_t any = 0;
+                    for (int64_t p = 0; p < PP; ++p) any |= act[p];
+                    if (!any) break;
+                }
+            }
+            for (int64_t p = 0; p < P; ++p) {
+                int64_t ix = tx * ts + p % ts, iy = ty * ts + p / ts;
+                if (ix >= width || iy >= height) continue;
+                int64_t q = iy * width + ix;
+                for (int64_t k = 0; k < C; ++k) out[C * q + k] = acc[k * PP + p];
+                t_end[q] = T[p];
+                last[q] = lj[p];
+            }
+        }
+    }
+    int64_t pairs = 0;
+    for (int64_t p = 0; p < PP; ++p) pairs += cnt[p];
+    free(px); free(lj);
+    return pairs;
+}
+
+/* One list position of the backward, first part: for every lane (pixel), the pair's geometry, alpha, the
+ * transmittance before it (recovered by division), its weight and masks. Separate functions with
+ * restrict parameters, so that the compiler vectorises their loops without runtime overlap checks; not
+ * inlined: GCC 12 miscompiled them inlined into the list loop (wrong gradients at -O3 only). */
+NOINLINE static void FN(bw_alpha)(int64_t PP, const SCALAR *restrict px, const SCALAR *restrict py,
+                                const SCALAR *restrict T, const int32_t *restrict lj, int32_t j32, SCALAR u, SCALAR v,
+                                SCALAR a, SCALAR b, SCALAR c, SCALAR o, SCALAR amin, SCALAR amax,
+                                SCALAR *restrict dxs, SCALAR *restrict dys, SCALAR *restrict als,
+                                SCALAR *restrict oks, SCALAR *restrict frees, SCALAR *restrict oms,
+                                SCALAR *restrict tbs, SCALAR *restrict ws, SCALAR *restrict qs) {
+    for (int64_t p = 0; p < PP; ++p) {
+        SCALAR dx = px[p] - u, dy = py[p] - v;
+        SCALAR sig = (SCALAR)0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy;
+        SCALAR raw = o * EXP(-sig);
+        SCALAR al = raw < amax ? raw : amax;
+        int32_t ok = (j32 < lj[p]) & (al >= amin);
+        SCALAR om = (SCALAR)1 - al, tb = T[p] / om;
+        dxs[p] = dx;
+        dys[p] = dy;
+        als[p] = al;
+        oks[p] = ok ? (SCALAR)1 : (SCALAR)0;
+        frees[p] = (ok & (raw <= amax)) ? (SCALAR)1 : (SCALAR)0;  /* composited, alpha not clamped */
+        oms[p] = om;
+        tbs[p] = tb;
+        ws[p] = ok ? al * tb : (SCALAR)0;
+        qs[p] = (SCALAR)0;
+    }
+}
+
+/* Second part, for every channel k: q_p += g_p,k f_k, and the sum over lanes of w_p g_p,k (the gradient of
+ * the Gaussian's channel k) added to gf[k]. */
+NOINLINE static void FN(bw_channels)(int64_t PP, int64_t C, const SCALAR *restrict G, const SCALAR *restrict f,
+                                     const SCALAR *restrict ws, SCALAR *restrict qs, SCALAR *restrict part,
+                                     double *restrict gf) {
+    for (int64_t k = 0; k < C; ++k) {
+        const SCALAR fk = f[k];
+        const SCALAR *restrict gk = G + k * PP;
+        for (int64_t l = 0; l < LANES; ++l) part[l] = (SCALAR)0;
+        for (int64_t p0 = 0; p0 < PP; p0 += LANES) {
+            for (int64_t l = 0; l < LANES; ++l) {
+                qs[p0 + l] += gk[p0 + l] * fk;
+                part[l] += ws[p0 + l] * gk[p0 + l];
+            }
+        }
+        double sum = 0.0;
+        for (int64_t l = 0; l < LANES; ++l) sum += (double)part[l];
+        gf[k] += sum;
+    }
+}
+
+/* Third part: d loss / d alpha per lane, the running sums R and transmittances T moved past the pair,
+ * and the lanes' partial sums of the gradients of (u, v, a, b, c) and of opacity x opacity. */
+NOINLINE static void FN(bw_params)(int64_t PP, const SCALAR *restrict tbs, const SCALAR *restrict qs,
+                                 const SCALAR *restrict ga, const SCALAR *restrict oms, const SCALAR *restrict ws,
+                                 const SCALAR *restrict oks, const SCALAR *restrict frees,
+                                 const SCALAR *restrict als, const SCALAR *restrict dxs, const SCALAR *restrict dys,
+                                 SCALAR a, SCALAR b, SCALAR c, SCALAR *restrict R, SCALAR *restrict T,
+                                 SCALAR *restrict pu, SCALAR *restrict pv, SCALAR *restrict pa, SCALAR *restrict pb,
+                                 SCALAR *restrict pc, SCALAR *restrict po) {
+    for (int64_t l = 0; l < LANES; ++l) pu[l] = pv[l] = pa[l] = pb[l] = pc[l] = po[l] = (SCALAR)0;
+    for (int64_t p0 = 0; p0 < PP; p0 += LANES) {
+        for (int64_t l = 0; l < LANES; ++l) {
+            const int64_t p = p0 + l;
+            /* out = sum_i w_i f_i: d out / d alpha_i = T_i f_i - (sum_{j>i} w_j f_j) / (1 - alpha_i) */
+            SCALAR g_alpha = tbs[p] * qs[p] - (R[p] - ga[p]) / oms[p];
+            R[p] += ws[p] * qs[p];
+            T[p] = oks[p] > (SCALAR)0 ? tbs[p] : T[p];
+            SCALAR gal = frees[p] * als[p] * g_alpha;  /* d alpha / d sigma = -alpha */
+            SCALAR dx = dxs[p], dy = dys[p];
+            pu[l] += gal * (a * dx + b * dy);  /* d sigma / d u = -(a dx + b dy) */
+            pv[l] += gal * (b * dx + c * dy);
+            pa[l] -= gal * (SCALAR)0.5 * dx * dx;
+            pb[l] -= gal * dx * dy;
+            pc[l] -= gal * (SCALAR)0.5 * dy * dy;
+            po[l] += gal;  /* d alpha / d opacity = alpha / opacity */
+        }
+    }
+}
+
+/* Backward of forward(): with g_out[H * W, C] (may be NULL) the gradient of the composited channels and
+ * g_acc[H * W] (may be NULL) that of the accumulated alpha 1 - t_end, ADDS the gradients of params into
+ * grad_params[6, N] and of feat into grad_feat[N, C] (double). Walks each tile's list back to front with
+ * all its pixels at once, recovering each pixel's transmittance by division (1 - alpha >= 1 - alpha_max).
+ * Pairs whose alpha was clamped at alpha_max pass no gradient to the mean, conic or opacity. Returns 0,
+ * or -1 when out of memory. */
+HOT int FN(backward)(const SCALAR *params, int64_t n, const SCALAR *feat, int64_t C, const int64_t *tile_start,
+                     const int32_t *rows, int64_t ts, int64_t tiles_x, int64_t tiles_y, int64_t width, int64_t height,
+                     double alpha_min, double alpha_max, const SCALAR *t_end, const int32_t *last,
+                     const SCALAR *g_out, const SCALAR *g_acc, double *grad_params, double *grad_feat) {
+    const int64_t P = ts * ts, PP = (P + LANES - 1) / LANES * LANES;
+    const SCALAR amin = (SCALAR)alpha_min, amax = (SCALAR)alpha_max;
+    SCALAR *px = (SCALAR *)zalloc((size_t)PP * (14 + (size_t)C) + 7 * LANES, sizeof(SCALAR));
+    int32_t *lj = (int32_t *)zalloc((size_t)PP, sizeof(int32_t));
+    if (!px || !lj) {
+        free(px); free(lj);
+        return -1;
+    }
+    SCALAR *py = px + PP, *T = py + PP, *R = T + PP, *ga = R + PP, *dxs = ga + PP, *dys = dxs + PP;
+    SCALAR *als = dys + PP, *oks = als + PP, *frees = oks + PP, *oms = frees + PP, *tbs = oms + PP;
+    SCALAR *ws = tbs + PP, *qs = ws + PP, *G = qs + PP, *part = G + C * PP;
+    for (int64_t ty = 0; ty < tiles_y; ++ty) {
+        for (int64_t tx = 0; tx < tiles_x; ++tx) {
+            const int64_t t = ty * tiles_x + tx, s0 = tile_start[t];
+            int32_t jmax = 0;
+            for (int64_t p = 0; p < PP; ++p) {
+                int64_t ix = tx * ts + p % ts, iy = ty * ts + p / ts, q = iy * width + ix;
+                int inside = p < P && ix < width && iy < height;
+                px[p] = (SCALAR)ix + (SCALAR)0.5;
+                py[p] = (SCALAR)iy + (SCALAR)0.5;
+                lj[p] = inside ? last[q] : 0;
+                T[p] = inside ? t_end[q] : (SCALAR)1;
+                R[p] = (SCALAR)0;
+                /* accumulated alpha 1 - T_end: d / d alpha_i = T_end / (1 - alpha_i) */
+                ga[p] = (inside && g_acc) ? g_acc[q] * t_end[q] : (SCALAR)0;
+                for (int64_t k = 0; k < C; ++k) G[k * PP + p] = (inside && g_out) ? g_out[C * q + k] : (SCALAR)0;
+                jmax = lj[p] > jmax ? lj[p] : jmax;
+            }
+            for (int64_t j = (int64_t)jmax - 1; j >= 0; --j) {
+                const int64_t g = rows[s0 + j];
+                const SCALAR u = params[g], v = params[n + g], a = params[2 * n + g], b = params[3 * n + g];
+                const SCALAR c = params[4 * n + g], o = params[5 * n + g];
+                FN(bw_alpha)(PP, px, py, T, lj, (int32_t)j, u, v, a, b, c, o, amin, amax, dxs, dys, als, oks, frees,
+                             oms, tbs, ws, qs);
+                FN(bw_channels)(PP, C, G, feat + C * g, ws, qs, part, grad_feat + C * g);
+                FN(bw_params)(PP, tbs, qs, ga, oms, ws, oks, frees, als, dxs, dys, a, b, c, R, T, part,
+                              part + LANES, part + 2 * LANES, part + 3 * LANES, part + 4 * LANES, part + 5 * LANES);
+                for (int k = 0; k < 6; ++k) {
+                    double sum = 0.0;
+                    for (int64_t l = 0; l < LANES; ++l) sum += (double)part[k * LANES + l];
+                    grad_params[k * n + g] += k == 5 ? sum / (double)o : sum;
+                }
+            }
+        }
+    }
+    free(px); free(lj);
+    return 0;
+}
+"""
+
+COMPILE_FLAGS = ("-O3", "-shared", "-fPIC", "-std=c11", "-ffp-contract=off", "-fno-trapping-math")
+"""Portable optimisation only (no ``-march=native``, no ``-ffast-math``; no fused multiply-add, and
+``-fno-trapping-math`` only lets the vectoriser if-convert, every result is rounded as written): the
+library gives the same numbers on every x86-64 CPU, whichever vector width runs."""
+
+_TYPES = {torch.float32: ("float", "exp_f32", "f32"), torch.float64: ("double", "exp_f64", "f64")}
+
+
+def source() -> str:
+    """The whole C translation unit: the helpers, then the kernels for float and for double."""
+    parts = [HEADER]
+    for scalar, exp, suffix in _TYPES.values():
+        parts.append(f"#define SCALAR {scalar}\n#define EXP {exp}\n#define FN(name) name##_{suffix}\n"
+                     + BODY + "\n#undef SCALAR\n#undef EXP\n#undef FN\n")
+    return "\n".join(parts)
+
+
+def cache_folder() -> Path:
+    """Where the built library is kept: ``$BENCH4D_NATIVE_CACHE``, else ``$XDG_CACHE_HOME/bench4d/native``
+    (default ``~/.cache/bench4d/native``)."""
+    env = os.environ.get("BENCH4D_NATIVE_CACHE")
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "bench4d" / "native"
+
+
+def _compiler() -> Optional[str]:
+    for name in (os.environ.get("CC"), "cc", "gcc", "clang"):
+        if name and shutil.which(name):
+            return shutil.which(name)
+    return None
+
+
+def _build(folder: Path) -> Path:
+    """Compile :func:`source` into ``folder`` (once per source, flags and compiler) and return the
+    library's path. Concurrent builders each write a private file and rename it into place."""
+    cc = _compiler()
+    if cc is None:
+        raise OSError("no C compiler (cc, gcc or clang) on PATH")
+    text = source()
+    try:
+        version = subprocess.run([cc, "--version"], capture_output=True, text=True, timeout=60).stdout
+    except (OSError, subprocess.SubprocessError) as err:
+        raise OSError(f"{cc} --version failed: {err}") from err
+    key = hashlib.sha256("\0".join([text, " ".join(COMPILE_FLAGS), version, sys.platform]).encode()).hexdigest()[:16]
+    lib = folder / f"bench4d_raster_{key}.so"
+    if lib.is_file():
+        return lib
+    folder.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=folder, prefix=".build-") as tmp:
+        src, out = Path(tmp) / "raster.c", Path(tmp) / lib.name
+        src.write_text(text)
+        done = subprocess.run([cc, *COMPILE_FLAGS, "-o", str(out), str(src), "-lm"], capture_output=True, text=True,
+                              timeout=300)
+        if done.returncode != 0 or not out.is_file():
+            raise OSError(f"{cc} failed to build the rasterizer kernels: {done.stderr.strip()[-2000:]}")
+        os.replace(out, lib)
+    return lib
+
+
+_I64, _PTR, _F64 = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
+_SIGNATURES = {
+    "project_forward": (None, [_I64, _PTR, _PTR, _PTR, _PTR, _PTR, _PTR, _PTR, _I64, _I64, _F64, _F64, _F64, _F64,
+                               _PTR, _PTR, _PTR, _PTR, _PTR, _PTR, _PTR]),
+    "project_backward": (None, [_I64, _PTR, _PTR, _PTR, _PTR, _PTR, _PTR, _PTR, _F64, _F64, _F64, _F64, _PTR, _PTR,
+                                _PTR, _PTR, _PTR, _PTR]),
+    "layout_count": (_I64, [_I64, _PTR, _PTR, _I64, _PTR, _PTR, _I64, _I64, _I64, _I64, _PTR]),
+    "layout_fill": (None, [_I64, _PTR, _PTR, _I64, _PTR, _PTR, _I64, _I64, _I64, _I64, _PTR, _PTR, _PTR]),
+    "forward": (_I64, [_PTR, _I64, _PTR, _I64, _PTR, _PTR, _I64, _I64, _I64, _I64, _I64, _F64, _F64, _F64, _PTR,
+                       _PTR, _PTR, _PTR, _PTR, _PTR, _I64]),
+    "backward": (ctypes.c_int, [_PTR, _I64, _PTR, _I64, _PTR, _PTR, _I64, _I64, _I64, _I64, _I64, _F64, _F64, _PTR,
+                                _PTR, _PTR, _PTR, _PTR, _PTR]),
+}
+
+
+def _declare(lib: ctypes.CDLL, suffix: str) -> None:
+    # attribute access: ctypes caches the function object, so the declared types stick
+    for name, (restype, argtypes) in _SIGNATURES.items():
+        fn = getattr(lib, f"{name}_{suffix}")
+        fn.restype, fn.argtypes = restype, argtypes
+
+
+_LOCK = threading.Lock()
+_STATE: dict = {}
+
+
+def kernels() -> Optional[ctypes.CDLL]:
+    """The loaded library, building it on first use; ``None`` where it cannot be built or is switched
+    off (``BENCH4D_NATIVE=0``): :func:`unavailable_reason` says why."""
+    if os.environ.get("BENCH4D_NATIVE", "1").strip().lower() in ("0", "false", "no", "off"):
+        return None
+    with _LOCK:
+        if "lib" not in _STATE:
+            try:
+                lib = ctypes.CDLL(str(_build(cache_folder())))
+                for _, _, suffix in _TYPES.values():
+                    _declare(lib, suffix)
+                _STATE["lib"], _STATE["why"] = lib, ""
+            except (OSError, subprocess.SubprocessError, AttributeError) as err:
+                _STATE["lib"], _STATE["why"] = None, str(err)
+        return _STATE["lib"]
+
+
+def unavailable_reason() -> str:
+    """Why :func:`kernels` is ``None`` ("" when it is loaded or was not asked for yet)."""
+    if os.environ.get("BENCH4D_NATIVE", "1").strip().lower() in ("0", "false", "no", "off"):
+        return "switched off by BENCH4D_NATIVE=0"
+    return _STATE.get("why", "")
+
+
+def supports(t: Tensor) -> bool:
+    """Whether the kernels take tensors like ``t`` (CPU, float32 or float64)."""
+    return t.device.type == "cpu" and t.dtype in _TYPES
+
+
+def _ptr(t: Optional[Tensor]) -> Optional[int]:
+    return None if t is None else t.data_ptr()
+
+
+@dataclass
+class NativeLayout:
+    """Tiles' Gaussian lists in (tile, depth) order, as compressed rows (the no-gradient part)."""
+
+    tile_start: Tensor
+    """[tiles + 1] int64: tile ``t``'s Gaussians are ``rows[tile_start[t]:tile_start[t + 1]]``."""
+    rows: Tensor
+    """[R] int32 Gaussian indices, front to back within each tile."""
+    tiles_x: int
+    tiles_y: int
+    tile_size: int
+
+    @property
+    def n_rows(self) -> int:
+        return int(self.rows.numel())
+
+
+@torch.no_grad()
+def layout(lib: ctypes.CDLL, params_t: Tensor, cull_q: Tensor, pixel_box: Tensor, order: Tensor, width: int,
+           height: int, tile_size: int) -> NativeLayout:
+    """Rows of every (tile, visible Gaussian) whose tile's pixel-centre rectangle meets the Gaussian's
+    ``alpha >= alpha_min`` ellipse; ``order``: the visible Gaussians front to back (int64)."""
+    suffix = _TYPES[params_t.dtype][2]
+    ts = int(tile_size)
+    tiles_x, tiles_y = (width + ts - 1) // ts, (height + ts - 1) // ts
+    n = params_t.shape[1]
+    params_t, cull_q = params_t.detach().contiguous(), cull_q.detach().to(params_t.dtype).contiguous()
+    pixel_box, order = pixel_box.contiguous(), order.contiguous()
+    counts = torch.zeros(tiles_x * tiles_y, dtype=torch.int64)
+    args = (order.numel(), _ptr(order), _ptr(params_t), n, _ptr(cull_q), _ptr(pixel_box), ts, tiles_x, width, height)
+    total = getattr(lib, f"layout_count_{suffix}")(*args, _ptr(counts))
+    tile_start = torch.zeros(tiles_x * tiles_y + 1, dtype=torch.int64)
+    torch.cumsum(counts, 0, out=tile_start[1:])
+    rows = torch.empty(int(total), dtype=torch.int32)
+    cursor = torch.zeros(tiles_x * tiles_y, dtype=torch.int64)
+    getattr(lib, f"layout_fill_{suffix}")(*args, _ptr(tile_start), _ptr(cursor), _ptr(rows))
+    return NativeLayout(tile_start, rows, tiles_x, tiles_y, ts)
+
+
+class Composite(torch.autograd.Function):
+    """Front-to-back compositing of ``feat`` [N, C] by the Gaussians ``params_t`` [6, N] = (u, v, a, b, c,
+    opacity) on a :class:`NativeLayout`. Returns (composited channels [H, W, C] without background,
+    accumulated alpha [H, W])."""
+
+    @staticmethod
+    def forward(ctx, params_t: Tensor, feat: Tensor, lay: NativeLayout, width: int, height: int, rule,
+                stats: dict):  # type: ignore[override]
+        lib = kernels()
+        suffix = _TYPES[params_t.dtype][2]
+        params_t, feat = params_t.contiguous(), feat.contiguous()
+        n, c = feat.shape
+        out = torch.empty(height, width, c, dtype=feat.dtype)
+        t_end = torch.empty(height, width, dtype=feat.dtype)
+        last = torch.empty(height, width, dtype=torch.int32)
+        pairs = getattr(lib, f"forward_{suffix}")(
+            _ptr(params_t), n, _ptr(feat), c, _ptr(lay.tile_start), _ptr(lay.rows), lay.tile_size, lay.tiles_x,
+            lay.tiles_y, width, height, rule.alpha_min, rule.alpha_max, rule.transmittance_min,
+            _ptr(out), _ptr(t_end), _ptr(last), None, None, None, 0)
+        if pairs < 0:
+            raise MemoryError("the native compositing kernel could not allocate its tile buffers")
+        stats["pairs"] = int(pairs)
+        ctx.save_for_backward(params_t, feat, t_end, last)
+        ctx.meta = (lay, width, height, rule)
+        return out, 1.0 - t_end
+
+    @staticmethod
+    def backward(ctx, g_out: Optional[Tensor], g_acc: Optional[Tensor]):  # type: ignore[override]
+        params_t, feat, t_end, last = ctx.saved_tensors
+        lay, width, height, rule = ctx.meta
+        lib = kernels()
+        suffix = _TYPES[params_t.dtype][2]
+        n, c = feat.shape
+        grad_params = torch.zeros(6, n, dtype=torch.float64)
+        grad_feat = torch.zeros(n, c, dtype=torch.float64)
+        g_out = None if g_out is None else g_out.to(feat.dtype).contiguous()
+        g_acc = None if g_acc is None else g_acc.to(feat.dtype).contiguous()
+        status = getattr(lib, f"backward_{suffix}")(
+            _ptr(params_t), n, _ptr(feat), c, _ptr(lay.tile_start), _ptr(lay.rows), lay.tile_size, lay.tiles_x,
+            lay.tiles_y, width, height, rule.alpha_min, rule.alpha_max, _ptr(t_end), _ptr(last),
+            _ptr(g_out), _ptr(g_acc), _ptr(grad_params), _ptr(grad_feat))
+        if status != 0:
+            raise MemoryError("the native compositing kernel could not allocate its tile buffers")
+        need_params, need_feat = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+        return (grad_params.to(params_t.dtype) if need_params else None,
+                grad_feat.to(feat.dtype) if need_feat else None, None, None, None, None, None)
+
+
+def camera_constants(viewmat: Tensor, K: Tensor, width: int, height: int, fov_margin: float
+                     ) -> tuple[Tensor, Tensor, Tensor]:
+    """(view [12] = the world-to-camera rows (R | t), intrinsics [4] = (fx, fy, cx, cy), the Jacobian's
+    clamp of x / z and y / z [4] = (-neg_x, pos_x, -neg_y, pos_y)), in double for the kernels."""
+    view = viewmat.detach().double()[:3, :4].contiguous().reshape(-1)
+    k = K.detach().double()
+    fx, fy, cx, cy = (float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]))
+    intr = torch.tensor([fx, fy, cx, cy], dtype=torch.float64)
+    lim = torch.tensor([-(cx / fx + fov_margin * (0.5 * width / fx)), (width - cx) / fx + fov_margin * (0.5 * width / fx),
+                        -(cy / fy + fov_margin * (0.5 * height / fy)),
+                        (height - cy) / fy + fov_margin * (0.5 * height / fy)], dtype=torch.float64)
+    return view, intr, lim
+
+
+class Project(torch.autograd.Function):
+    """EWA projection and culling (:func:`~.torch_cpu.project_gaussians`) by the kernels: differentiable
+    in means, quaternions and scales; ``(means2d [N, 2], conics [N, 3], depths [N], visible [N] bool,
+    radii [N] int32, pixel_box [N, 4] int64, cull_q [N])``."""
+
+    @staticmethod
+    def forward(ctx, means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, view: Tensor, intr: Tensor,
+                lim: Tensor, width: int, height: int, near: float, far: float, eps2d: float,
+                alpha_min: float):  # type: ignore[override]
+        lib = kernels()
+        suffix = _TYPES[means.dtype][2]
+        means, quats, scales, opacities = (t.detach().contiguous() for t in (means, quats, scales, opacities))
+        n, dtype = means.shape[0], means.dtype
+        means2d, conics = torch.empty(n, 2, dtype=dtype), torch.empty(n, 3, dtype=dtype)
+        depths, cull_q = torch.empty(n, dtype=dtype), torch.empty(n, dtype=dtype)
+        visible, radii = torch.empty(n, dtype=torch.bool), torch.empty(n, dtype=torch.int32)
+        box = torch.empty(n, 4, dtype=torch.int64)
+        getattr(lib, f"project_forward_{suffix}")(
+            n, _ptr(means), _ptr(quats), _ptr(scales), _ptr(opacities), _ptr(view), _ptr(intr), _ptr(lim), width,
+            height, near, far, eps2d, alpha_min, _ptr(means2d), _ptr(conics), _ptr(depths), _ptr(visible),
+            _ptr(radii), _ptr(box), _ptr(cull_q))
+        ctx.save_for_backward(means, quats, scales, opacities)
+        ctx.meta = (view, intr, lim, near, far, eps2d, alpha_min)
+        ctx.mark_non_differentiable(visible, radii, box, cull_q)
+        return means2d, conics, depths, visible, radii, box, cull_q
+
+    @staticmethod
+    def backward(ctx, g_means2d, g_conics, g_depths, *_):  # type: ignore[override]
+        means, quats, scales, opacities = ctx.saved_tensors
+        view, intr, lim, near, far, eps2d, alpha_min = ctx.meta
+        lib = kernels()
+        suffix = _TYPES[means.dtype][2]
+        n, dtype = means.shape[0], means.dtype
+        grads = [None if g is None else g.to(dtype).contiguous() for g in (g_means2d, g_conics, g_depths)]
+        g_means, g_quats, g_scales = torch.empty(n, 3, dtype=dtype), torch.empty(n, 4, dtype=dtype), \
+            torch.empty(n, 3, dtype=dtype)
+        getattr(lib, f"project_backward_{suffix}")(
+            n, _ptr(means), _ptr(quats), _ptr(scales), _ptr(opacities), _ptr(view), _ptr(intr), _ptr(lim), near,
+            far, eps2d, alpha_min, *(_ptr(g) for g in grads), _ptr(g_means), _ptr(g_quats), _ptr(g_scales))
+        return (g_means, g_quats, g_scales) + (None,) * 10
+
+
+@torch.no_grad()
+def blend_weights(params_t: Tensor, lay: NativeLayout, width: int, height: int, rule,
+                  n_pairs: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Every composited pair of a render on ``lay`` (``n_pairs`` of them, as its forward counted):
+    ([P] int64 flat pixel index, [P] int64 Gaussian, [P] weight alpha T) -- with the geometry frozen,
+    rendering any channels is this sparse linear map."""
+    lib = kernels()
+    suffix = _TYPES[params_t.dtype][2]
+    params_t = params_t.detach().contiguous()
+    n = params_t.shape[1]
+    feat = params_t.new_zeros(n, 1)
+    out, t_end = params_t.new_empty(height, width, 1), params_t.new_empty(height, width)
+    last = torch.empty(height, width, dtype=torch.int32)
+    pix, gid = torch.empty(n_pairs, dtype=torch.int64), torch.empty(n_pairs, dtype=torch.int32)
+    weight = params_t.new_empty(n_pairs)
+    got = getattr(lib, f"forward_{suffix}")(
+        _ptr(params_t), n, _ptr(feat), 1, _ptr(lay.tile_start), _ptr(lay.rows), lay.tile_size, lay.tiles_x,
+        lay.tiles_y, width, height, rule.alpha_min, rule.alpha_max, rule.transmittance_min, _ptr(out), _ptr(t_end),
+        _ptr(last), _ptr(pix), _ptr(gid), _ptr(weight), n_pairs)
+    if got != n_pairs:
+        raise RuntimeError(f"the native kernels counted {got} composited pairs, expected {n_pairs}")
+    return pix, gid.long(), weight
