@@ -220,15 +220,31 @@ class LanguageField(nn.Module):
         """
         return self.render_with_alpha(state, camera)[0]
 
-    def render_with_alpha(self, state: GaussianState, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
-        """(:meth:`render`'s [L, H, W, d] latent maps, [H, W] accumulated opacity) from one rasterizer call."""
+    def render_with_alpha(self, state: GaussianState, camera: Camera,
+                          prepared=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(:meth:`render`'s [L, H, W, d] latent maps, [H, W] accumulated opacity) from one rasterizer call;
+        ``prepared``: the view's :meth:`prepare` (the same numbers, without projecting and laying out the
+        Gaussians again)."""
         from methods.gaussians.rasterize import rasterize
 
         viewmat, K, w, h = camera_tensors(camera, self.features.device)
-        out = rasterize(state.means, state.quats, state.scales, state.opacities, self.features, viewmat, K, w, h,
-                        near=self.cfg.near, backend=self.cfg.render_backend, channel_chunk=self.cfg.channels)
-        latents = out.image.view(h, w, self.cfg.num_levels, self.cfg.latent_dim).permute(2, 0, 1, 3)
-        return latents, out.alpha.reshape(h, w)
+        if prepared is not None:
+            image, alpha = prepared.render(self.features)
+        else:
+            out = rasterize(state.means, state.quats, state.scales, state.opacities, self.features, viewmat, K, w, h,
+                            near=self.cfg.near, backend=self.cfg.render_backend, channel_chunk=self.cfg.channels)
+            image, alpha = out.image, out.alpha
+        latents = image.view(h, w, self.cfg.num_levels, self.cfg.latent_dim).permute(2, 0, 1, 3)
+        return latents, alpha.reshape(h, w)
+
+    def prepare(self, state: GaussianState, camera: Camera):
+        """What rendering ``state`` at ``camera`` needs besides the features (projection and tile layout), or
+        ``None`` where the rasterizer has no such split (:func:`methods.gaussians.rasterize.prepare_view`)."""
+        from methods.gaussians.rasterize import prepare_view
+
+        viewmat, K, w, h = camera_tensors(camera, self.features.device)
+        return prepare_view(state.means, state.quats, state.scales, state.opacities, viewmat, K, w, h,
+                            near=self.cfg.near, backend=self.cfg.render_backend)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -303,8 +319,14 @@ def train_language_field(geometry: FrozenGeometry, targets: Sequence[FieldTarget
     gen = torch.Generator().manual_seed(seed)
     fld = LanguageField(geometry.num_gaussians, cfg, generator=gen, device=device)
     opt = torch.optim.Adam([fld.features], lr=cfg.learning_rate)
-    per_view_bytes = geometry.at(targets[0].time).nbytes()
-    cache_states = not geometry.is_dynamic or per_view_bytes * len(targets) <= cfg.cache_view_geometry_mib * 2 ** 20
+    first = geometry.at(targets[0].time)
+    first_prepared = fld.prepare(first, targets[0].camera)
+    # the geometry is frozen: each view's projection and tile layout (where the rasterizer splits them off)
+    # or deformed Gaussians are kept between steps, within the memory budget
+    per_view_bytes = first.nbytes() if first_prepared is None else first_prepared.nbytes()
+    cache_views = per_view_bytes * len(targets) <= cfg.cache_view_geometry_mib * 2 ** 20
+    cache_states = not geometry.is_dynamic or cache_views
+    prepared: dict[int, object] = {}
     states: dict[int, GaussianState] = {}
     static_state = None if geometry.is_dynamic else geometry.at(0.0)
     rng = np.random.default_rng(seed)
@@ -320,15 +342,21 @@ def train_language_field(geometry: FrozenGeometry, targets: Sequence[FieldTarget
             order = rng.permutation(len(targets)).tolist()
         v = order.pop()
         target = targets[v]
-        if static_state is not None:
-            state = static_state
-        elif v in states:
-            state = states[v]
-        else:
-            state = geometry.at(target.time)
-            if cache_states:
-                states[v] = state
-        pred = fld.render(state, target.camera)
+        view, state = prepared.get(v), static_state
+        if view is None:
+            if static_state is not None:
+                state = static_state
+            elif v in states:
+                state = states[v]
+            else:
+                state = geometry.at(target.time)
+                if cache_states and first_prepared is None:
+                    states[v] = state
+            if first_prepared is not None:
+                view = fld.prepare(state, target.camera)
+                if cache_views:
+                    prepared[v] = view
+        pred = fld.render_with_alpha(state, target.camera, view)[0]
         loss = cfg.loss_weight * masked_l1(pred, target)
         opt.zero_grad(set_to_none=True)
         loss.backward()

@@ -528,8 +528,8 @@ def _native_blend_operator(r, opacities: torch.Tensor, probe: torch.Tensor, pixe
     device = pixels.device
     n = probe.shape[0]
     proj = r.proj
-    params_t = torch.stack([proj.means2d[:, 0], proj.means2d[:, 1], *proj.conics.unbind(1), opacities]).detach()
-    pix, gid, weight = native_cpu.blend_weights(params_t, r.layout, width, height, torch_cpu.DEFAULT_RULE, r.n_pairs)
+    params = torch.cat([proj.means2d, proj.conics, opacities[:, None]], 1).detach()
+    pix, gid, weight = native_cpu.blend_weights(params, r.layout, width, height, torch_cpu.DEFAULT_RULE, r.n_pairs)
     row_of = torch.full((height * width,), -1, dtype=torch.long, device=device)
     row_of[pixels] = torch.arange(pixels.numel(), device=device)
     row = row_of[pix]

@@ -82,30 +82,11 @@ def _check(cond: bool, field: str, message: str) -> None:
         raise InputError(None, field, message)
 
 
-def rasterize(
-    means: Tensor,  # [N, 3] world positions
-    quats: Tensor,  # [N, 4] rotations (w, x, y, z), not necessarily normalised
-    scales: Tensor,  # [N, 3] scales (activated, > 0)
-    opacities: Tensor,  # [N] opacities in (0, 1) (activated)
-    colors: Tensor,  # [N, C] channels to composite, C >= 1
-    viewmat: Tensor,  # [4, 4] world-to-camera (OpenCV axes)
-    K: Tensor,  # [3, 3] intrinsics (pixel centres at +0.5)
-    width: int,
-    height: int,
-    *,
-    background: Optional[Tensor] = None,  # [C] composited behind (default zeros)
-    near: float = 0.01,
-    far: float = 1e10,
-    backend: str = "auto",
-    channel_chunk: int = 64,
-    eps2d: float = 0.3,
-) -> RenderOutput:
-    """Render N Gaussians into one [height, width] view; differentiable in every Gaussian input.
-
-    ``colors`` may hold any number of channels (RGB, features, or both concatenated); more than
-    ``channel_chunk`` channels are composited in chunks of that size (bounding memory, same result).
-    ``eps2d`` is the low-pass dilation added to the 2D covariance (3D-GS: 0.3).
-    """
+def _check_inputs(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, viewmat: Tensor,
+                  K: Tensor, width: int, height: int, background: Optional[Tensor], backend: str, channel_chunk: int,
+                  near: float, far: float) -> Tensor:
+    """Raise :class:`InputError` naming the first bad input of :func:`rasterize`; returns the background
+    ([C], zeros by default) on the inputs' device and dtype."""
     _check(isinstance(means, Tensor) and means.dim() == 2 and means.shape[1] == 3, "means",
            f"expected a [N, 3] tensor, got {tuple(getattr(means, 'shape', ()))}")
     n = means.shape[0]
@@ -131,6 +112,35 @@ def rasterize(
         background = torch.zeros(c, device=device, dtype=dtype)
     _check(background.shape == (c,), "background", f"expected [{c}], got {tuple(background.shape)}")
     background = background.to(device=device, dtype=dtype)
+    return background
+
+
+def rasterize(
+    means: Tensor,  # [N, 3] world positions
+    quats: Tensor,  # [N, 4] rotations (w, x, y, z), not necessarily normalised
+    scales: Tensor,  # [N, 3] scales (activated, > 0)
+    opacities: Tensor,  # [N] opacities in (0, 1) (activated)
+    colors: Tensor,  # [N, C] channels to composite, C >= 1
+    viewmat: Tensor,  # [4, 4] world-to-camera (OpenCV axes)
+    K: Tensor,  # [3, 3] intrinsics (pixel centres at +0.5)
+    width: int,
+    height: int,
+    *,
+    background: Optional[Tensor] = None,  # [C] composited behind (default zeros)
+    near: float = 0.01,
+    far: float = 1e10,
+    backend: str = "auto",
+    channel_chunk: int = 64,
+    eps2d: float = 0.3,
+) -> RenderOutput:
+    """Render N Gaussians into one [height, width] view; differentiable in every Gaussian input.
+
+    ``colors`` may hold any number of channels (RGB, features, or both concatenated); more than
+    ``channel_chunk`` channels are composited in chunks of that size (bounding memory, same result).
+    ``eps2d`` is the low-pass dilation added to the 2D covariance (3D-GS: 0.3).
+    """
+    background = _check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height, background,
+                               backend, channel_chunk, near, far)
     width, height = int(width), int(height)
 
     use = backend
@@ -149,7 +159,7 @@ def rasterize(
 
     from .backends import torch_cpu
 
-    if device.type == "cpu":
+    if means.device.type == "cpu":
         _ensure_flush_denormal()
         torch_cpu.tune_cpu_allocator()
     r = torch_cpu.render(means, quats, scales, opacities, colors, viewmat, K, width, height, background,
@@ -175,3 +185,24 @@ def camera_tensors(
     viewmat = torch.as_tensor(camera.world_to_camera, dtype=dtype, device=device)
     K = torch.as_tensor(camera.K, dtype=dtype, device=device)
     return viewmat, K, int(camera.width), int(camera.height)
+
+
+def prepare_view(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmat: Tensor, K: Tensor,
+                 width: int, height: int, *, near: float = 0.01, far: float = 1e10, backend: str = "auto",
+                 eps2d: float = 0.3):
+    """The part of :func:`rasterize` that does not depend on the colours (projection, culling, tile
+    layout) for Gaussians that stay fixed, so that several colour sets render on it:
+    :meth:`~methods.gaussians.backends.torch_cpu.FrozenView.render` composites ``colors`` [N, C] as
+    ``rasterize`` would with a zero background, differentiable in ``colors`` only (nothing flows to the
+    Gaussians). ``None`` where the compiled CPU kernels do not run (a CUDA tensor, another backend, no C
+    compiler): call :func:`rasterize` then."""
+    probe = means.new_zeros(means.shape[0], 1)
+    _check_inputs(means, quats, scales, opacities, probe, viewmat, K, width, height, None, backend, 1, near, far)
+    if means.device.type != "cpu" or backend == "gsplat":
+        return None
+    from .backends import torch_cpu
+
+    _ensure_flush_denormal()
+    torch_cpu.tune_cpu_allocator()
+    return torch_cpu.prepare_frozen(means.detach(), quats.detach(), scales.detach(), opacities.detach(), viewmat,
+                                    K, int(width), int(height), near, far, eps2d)

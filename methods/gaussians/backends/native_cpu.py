@@ -81,20 +81,19 @@ static inline float exp_f32(float x) {
 
 static inline double exp_f64(double x) { return exp(x); }
 
-/* Smallest q(x, y) = a x^2 + 2 b x y + c y^2 (positive definite) over the rectangle [x0, x1] x [y0, y1]:
- * 0 when it holds the origin, else the smallest of the four edges' minima (a convex function's minimum
- * over a rectangle not holding its unconstrained minimum lies on the boundary). */
-static inline double quad_min_rect(double a, double b, double c, double x0, double x1, double y0, double y1) {
+/* Smallest q(x, y) = a x^2 + 2 b x y + c y^2 (positive definite; ia = 1 / a, ic = 1 / c) over the
+ * rectangle [x0, x1] x [y0, y1]: 0 when it holds the origin, else the smallest of the four edges' minima (a
+ * convex function's minimum over a rectangle not holding its unconstrained minimum lies on the boundary). */
+static inline double quad_min_rect(double a, double b, double c, double ia, double ic, double x0, double x1,
+                                   double y0, double y1) {
     if (x0 <= 0.0 && x1 >= 0.0 && y0 <= 0.0 && y1 >= 0.0) return 0.0;
     double best = INFINITY, xs[2] = {x0, x1}, ys[2] = {y0, y1};
-    a = a > 1e-30 ? a : 1e-30;
-    c = c > 1e-30 ? c : 1e-30;
     for (int k = 0; k < 2; ++k) {
-        double x = xs[k], y = clamp_d(-b * x / c, y0, y1);
+        double x = xs[k], y = clamp_d(-b * x * ic, y0, y1);
         double q = a * x * x + 2.0 * b * x * y + c * y * y;
         if (q < best) best = q;
         y = ys[k];
-        x = clamp_d(-b * y / a, x0, x1);
+        x = clamp_d(-b * y * ia, x0, x1);
         q = a * x * x + 2.0 * b * x * y + c * y * y;
         if (q < best) best = q;
     }
@@ -323,75 +322,94 @@ void FN(project_backward)(int64_t n, const SCALAR *means, const SCALAR *quats, c
     }
 }
 
-/* Pass 1 of the tile layout: for the visible Gaussians `order` (front to back), count the tiles of
- * their pixel box whose pixel-centre rectangle meets the ellipse q(d) <= qmax. Adds to counts[n_tiles]
- * (zeroed by the caller); returns the total number of (tile, Gaussian) rows. */
-int64_t FN(layout_count)(int64_t n_vis, const int64_t *order, const SCALAR *params, int64_t n,
-                          const SCALAR *qmax, const int64_t *box, int64_t ts, int64_t tiles_x,
-                          int64_t width, int64_t height, int64_t *counts) {
+/* Upper bound of the layout's rows: the tiles of the visible Gaussians' pixel boxes. */
+int64_t FN(layout_bound)(int64_t n_vis, const int64_t *order, const int64_t *box, int64_t ts) {
     int64_t total = 0;
     for (int64_t r = 0; r < n_vis; ++r) {
-        int64_t g = order[r];
-        double u = params[g], v = params[n + g], a = params[2 * n + g], b = params[3 * n + g];
-        double c = params[4 * n + g], q = qmax[g];
-        const int64_t *bx = box + 4 * g;
-        for (int64_t ty = bx[2] / ts; ty <= bx[3] / ts; ++ty) {
-            double y0 = (double)(ty * ts) + 0.5 - v;
-            double y1 = (double)(min_i64((ty + 1) * ts, height) - 1) + 0.5 - v;
-            for (int64_t tx = bx[0] / ts; tx <= bx[1] / ts; ++tx) {
-                double x0 = (double)(tx * ts) + 0.5 - u;
-                double x1 = (double)(min_i64((tx + 1) * ts, width) - 1) + 0.5 - u;
-                if (quad_min_rect(a, b, c, x0, x1, y0, y1) <= q) {
-                    counts[ty * tiles_x + tx] += 1;
-                    ++total;
-                }
-            }
-        }
+        const int64_t *bx = box + 4 * order[r];
+        total += (bx[1] / ts - bx[0] / ts + 1) * (bx[3] / ts - bx[2] / ts + 1);
     }
     return total;
 }
 
-/* Pass 2: the rows themselves, ordered by (tile, depth). tile_start[n_tiles + 1] is the exclusive
- * prefix sum of pass 1's counts; cursor[n_tiles] is zeroed scratch. rows[total] receives Gaussian
- * indices. */
-void FN(layout_fill)(int64_t n_vis, const int64_t *order, const SCALAR *params, int64_t n, const SCALAR *qmax,
-                     const int64_t *box, int64_t ts, int64_t tiles_x, int64_t width, int64_t height,
-                     const int64_t *tile_start, int64_t *cursor, int32_t *rows) {
+/* The tile layout: for the visible Gaussians `order` (front to back), one row per tile of their pixel box
+ * whose pixel-centre rectangle meets the ellipse q(d) <= qmax (a box of one tile is kept untested),
+ * ordered by (tile, depth): tile t's Gaussians are rows[tile_start[t] .. tile_start[t + 1]).
+ * params is [n, 6] (u, v, a, b, c, opacity); rows has room for cap (>= layout_bound) entries. Returns the
+ * number of rows, -1 when out of memory. */
+int64_t FN(layout_build)(int64_t n_vis, const int64_t *order, const SCALAR *params, const SCALAR *qmax,
+                         const int64_t *box, int64_t ts, int64_t tiles_x, int64_t tiles_y, int64_t width,
+                         int64_t height, int64_t *tile_start, int32_t *rows, int64_t cap) {
+    const int64_t n_tiles = tiles_x * tiles_y;
+    int32_t *tile_of = (int32_t *)malloc(sizeof(int32_t) * (size_t)(cap > 0 ? cap : 1));
+    int32_t *kept = (int32_t *)malloc(sizeof(int32_t) * (size_t)(n_vis > 0 ? n_vis : 1));
+    int64_t *cursor = (int64_t *)calloc((size_t)n_tiles + 1, sizeof(int64_t));
+    if (!tile_of || !kept || !cursor) {
+        free(tile_of); free(kept); free(cursor);
+        return -1;
+    }
+    int64_t total = 0;
+    for (int64_t t = 0; t <= n_tiles; ++t) tile_start[t] = 0;
     for (int64_t r = 0; r < n_vis; ++r) {
-        int64_t g = order[r];
-        double u = params[g], v = params[n + g], a = params[2 * n + g], b = params[3 * n + g];
-        double c = params[4 * n + g], q = qmax[g];
+        const int64_t g = order[r];
+        const SCALAR *pg = params + 6 * g;
+        const double u = pg[0], v = pg[1], a = pg[2], b = pg[3], c = pg[4], q = qmax[g];
+        const double ia = 1.0 / (a > 1e-30 ? a : 1e-30), ic = 1.0 / (c > 1e-30 ? c : 1e-30);
         const int64_t *bx = box + 4 * g;
-        for (int64_t ty = bx[2] / ts; ty <= bx[3] / ts; ++ty) {
-            double y0 = (double)(ty * ts) + 0.5 - v;
-            double y1 = (double)(min_i64((ty + 1) * ts, height) - 1) + 0.5 - v;
-            for (int64_t tx = bx[0] / ts; tx <= bx[1] / ts; ++tx) {
-                double x0 = (double)(tx * ts) + 0.5 - u;
-                double x1 = (double)(min_i64((tx + 1) * ts, width) - 1) + 0.5 - u;
-                if (quad_min_rect(a, b, c, x0, x1, y0, y1) <= q) {
-                    int64_t t = ty * tiles_x + tx;
-                    rows[tile_start[t] + cursor[t]] = (int32_t)g;
-                    cursor[t] += 1;
+        const int64_t tx0 = bx[0] / ts, tx1 = bx[1] / ts, ty0 = bx[2] / ts, ty1 = bx[3] / ts;
+        const int single = tx0 == tx1 && ty0 == ty1;
+        int32_t k = 0;
+        for (int64_t ty = ty0; ty <= ty1; ++ty) {
+            const double y0 = (double)(ty * ts) + 0.5 - v;
+            const double y1 = (double)(min_i64((ty + 1) * ts, height) - 1) + 0.5 - v;
+            for (int64_t tx = tx0; tx <= tx1; ++tx) {
+                const double x0 = (double)(tx * ts) + 0.5 - u;
+                const double x1 = (double)(min_i64((tx + 1) * ts, width) - 1) + 0.5 - u;
+                if (single || quad_min_rect(a, b, c, ia, ic, x0, x1, y0, y1) <= q) {
+                    const int32_t t = (int32_t)(ty * tiles_x + tx);
+                    tile_of[total++] = t;
+                    tile_start[t + 1] += 1;
+                    ++k;
                 }
             }
         }
+        kept[r] = k;
     }
+    for (int64_t t = 0; t < n_tiles; ++t) tile_start[t + 1] += tile_start[t];
+    for (int64_t r = 0, e = 0; r < n_vis; ++r) {
+        const int32_t g = (int32_t)order[r];
+        for (int32_t k = 0; k < kept[r]; ++k, ++e) {
+            const int32_t t = tile_of[e];
+            rows[tile_start[t] + cursor[t]++] = g;
+        }
+    }
+    free(tile_of); free(kept); free(cursor);
+    return total;
+}
+
+/* Sum of LANES floats as a fixed tree (the same order at any vector width). */
+static inline double FN(lane_sum)(const SCALAR *x) {
+    return (double)(((x[0] + x[1]) + (x[2] + x[3])) + ((x[4] + x[5]) + (x[6] + x[7])));
 }
 
 /* Forward compositing, tile by tile: for each Gaussian of the tile's list (front to back) all of the
- * tile's pixels at once (vector lanes), until every pixel has stopped. Writes out[H * W, C],
- * t_end[H * W] (final transmittance) and last[H * W] (one past the list position of the pixel's last
- * composited Gaussian, 0 for none); returns the number of composited pairs, -1 when out of memory.
- * With trip_pix non-NULL, also lists every composited pair: flat pixel index, Gaussian and weight
- * alpha T (trip_cap long: the number of pairs, known from an earlier call). */
+ * tile's pixels at once (vector lanes), until every pixel has stopped. params is [N, 6] (u, v, a, b, c,
+ * opacity), feat [N, C]. Writes out[H * W, C], t_end[H * W] (final transmittance) and last[H * W] (one
+ * past the list position of the pixel's last composited Gaussian, 0 for none); returns the number of
+ * composited pairs, -1 when out of memory. contrib[rows] (zeroed by the caller) flags the rows that
+ * composite on at least one pixel: the backward skips the others. With trip_pix non-NULL, also lists every
+ * composited pair: flat
+ * pixel index, Gaussian and weight alpha T (trip_cap long: the number of pairs, known from an earlier
+ * call). */
 HOT int64_t FN(forward)(const SCALAR *params, int64_t n, const SCALAR *feat, int64_t C, const int64_t *tile_start,
                         const int32_t *rows, int64_t ts, int64_t tiles_x, int64_t tiles_y, int64_t width,
                         int64_t height, double alpha_min, double alpha_max, double t_min, SCALAR *out,
-                        SCALAR *t_end, int32_t *last, int64_t *trip_pix, int32_t *trip_g, SCALAR *trip_w,
-                        int64_t trip_cap) {
-    int64_t n_trip = 0;
+                        SCALAR *t_end, int32_t *last, uint8_t *contrib, int64_t *trip_pix, int32_t *trip_g,
+                        SCALAR *trip_w, int64_t trip_cap) {
     const int64_t P = ts * ts, PP = (P + LANES - 1) / LANES * LANES;
     const SCALAR amin = (SCALAR)alpha_min, amax = (SCALAR)alpha_max, tmin = (SCALAR)t_min;
+    int64_t n_trip = 0;
+    (void)n;
     SCALAR *px = (SCALAR *)zalloc((size_t)PP * (4 + (size_t)C), sizeof(SCALAR));
     int32_t *lj = (int32_t *)zalloc((size_t)PP * 3, sizeof(int32_t));
     if (!px || !lj) {
@@ -400,7 +418,7 @@ HOT int64_t FN(forward)(const SCALAR *params, int64_t n, const SCALAR *feat, int
     }
     /* restrict: the buffers do not overlap, which lets the compiler vectorise without runtime checks */
     SCALAR *restrict py = px + PP, *restrict T = py + PP, *restrict w = T + PP, *restrict acc = w + PP;
-    int32_t *restrict act = lj + PP, *restrict cnt = act + PP;  /* act: the pixel is still compositing (1) or has stopped */
+    int32_t *restrict act = lj + PP, *restrict cnt = act + PP;  /* act: the pixel is still compositing */
     for (int64_t ty = 0; ty < tiles_y; ++ty) {
         for (int64_t tx = 0; tx < tiles_x; ++tx) {
             const int64_t t = ty * tiles_x + tx, s0 = tile_start[t], m = tile_start[t + 1] - s0;
@@ -415,9 +433,10 @@ HOT int64_t FN(forward)(const SCALAR *params, int64_t n, const SCALAR *feat, int
             memset(acc, 0, sizeof(SCALAR) * (size_t)(C * PP));
             for (int64_t j = 0; j < m; ++j) {
                 const int64_t g = rows[s0 + j];
-                const SCALAR u = params[g], v = params[n + g], a = params[2 * n + g], b = params[3 * n + g];
-                const SCALAR c = params[4 * n + g], o = params[5 * n + g];
+                const SCALAR *pg = params + 6 * g;
+                const SCALAR u = pg[0], v = pg[1], a = pg[2], b = pg[3], c = pg[4], o = pg[5];
                 const int32_t next = (int32_t)(j + 1);
+                int32_t any_ok = 0;
                 for (int64_t p = 0; p < PP; ++p) {
                     SCALAR dx = px[p] - u, dy = py[p] - v;
                     SCALAR sig = (SCALAR)0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy;
@@ -433,7 +452,9 @@ HOT int64_t FN(forward)(const SCALAR *params, int64_t n, const SCALAR *feat, int
                     T[p] = ok ? tn : tp;
                     lj[p] = ok ? next : lj[p];
                     cnt[p] += ok;
+                    any_ok |= ok;
                 }
+                contrib[s0 + j] = (uint8_t)any_ok;
                 const SCALAR *f = feat + C * g;
                 for (int64_t k = 0; k < C; ++k) {
                     const SCALAR fk = f[k];
@@ -477,11 +498,11 @@ HOT int64_t FN(forward)(const SCALAR *params, int64_t n, const SCALAR *feat, int
  * restrict parameters, so that the compiler vectorises their loops without runtime overlap checks; not
  * inlined: GCC 12 miscompiled them inlined into the list loop (wrong gradients at -O3 only). */
 NOINLINE static void FN(bw_alpha)(int64_t PP, const SCALAR *restrict px, const SCALAR *restrict py,
-                                const SCALAR *restrict T, const int32_t *restrict lj, int32_t j32, SCALAR u, SCALAR v,
-                                SCALAR a, SCALAR b, SCALAR c, SCALAR o, SCALAR amin, SCALAR amax,
-                                SCALAR *restrict dxs, SCALAR *restrict dys, SCALAR *restrict als,
-                                SCALAR *restrict oks, SCALAR *restrict frees, SCALAR *restrict oms,
-                                SCALAR *restrict tbs, SCALAR *restrict ws, SCALAR *restrict qs) {
+                                  const SCALAR *restrict T, const int32_t *restrict lj, int32_t j32, SCALAR u,
+                                  SCALAR v, SCALAR a, SCALAR b, SCALAR c, SCALAR o, SCALAR amin, SCALAR amax,
+                                  SCALAR *restrict dxs, SCALAR *restrict dys, SCALAR *restrict als,
+                                  SCALAR *restrict oks, SCALAR *restrict frees, SCALAR *restrict oms,
+                                  SCALAR *restrict tbs, SCALAR *restrict ws, SCALAR *restrict qs) {
     for (int64_t p = 0; p < PP; ++p) {
         SCALAR dx = px[p] - u, dy = py[p] - v;
         SCALAR sig = (SCALAR)0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy;
@@ -501,36 +522,33 @@ NOINLINE static void FN(bw_alpha)(int64_t PP, const SCALAR *restrict px, const S
     }
 }
 
-/* Second part, for every channel k: q_p += g_p,k f_k, and the sum over lanes of w_p g_p,k (the gradient of
- * the Gaussian's channel k) added to gf[k]. */
+/* Second part, for every channel k: q_p += g_p,k f_k, and (with gf non-NULL) the sum over lanes of
+ * w_p g_p,k (the gradient of the Gaussian's channel k) added to gf[k]. */
 NOINLINE static void FN(bw_channels)(int64_t PP, int64_t C, const SCALAR *restrict G, const SCALAR *restrict f,
                                      const SCALAR *restrict ws, SCALAR *restrict qs, SCALAR *restrict part,
                                      double *restrict gf) {
     for (int64_t k = 0; k < C; ++k) {
         const SCALAR fk = f[k];
         const SCALAR *restrict gk = G + k * PP;
+        for (int64_t p = 0; p < PP; ++p) qs[p] += gk[p] * fk;
+        if (!gf) continue;
         for (int64_t l = 0; l < LANES; ++l) part[l] = (SCALAR)0;
-        for (int64_t p0 = 0; p0 < PP; p0 += LANES) {
-            for (int64_t l = 0; l < LANES; ++l) {
-                qs[p0 + l] += gk[p0 + l] * fk;
-                part[l] += ws[p0 + l] * gk[p0 + l];
-            }
-        }
-        double sum = 0.0;
-        for (int64_t l = 0; l < LANES; ++l) sum += (double)part[l];
-        gf[k] += sum;
+        for (int64_t p0 = 0; p0 < PP; p0 += LANES)
+            for (int64_t l = 0; l < LANES; ++l) part[l] += ws[p0 + l] * gk[p0 + l];
+        gf[k] += FN(lane_sum)(part);
     }
 }
 
 /* Third part: d loss / d alpha per lane, the running sums R and transmittances T moved past the pair,
  * and the lanes' partial sums of the gradients of (u, v, a, b, c) and of opacity x opacity. */
 NOINLINE static void FN(bw_params)(int64_t PP, const SCALAR *restrict tbs, const SCALAR *restrict qs,
-                                 const SCALAR *restrict ga, const SCALAR *restrict oms, const SCALAR *restrict ws,
-                                 const SCALAR *restrict oks, const SCALAR *restrict frees,
-                                 const SCALAR *restrict als, const SCALAR *restrict dxs, const SCALAR *restrict dys,
-                                 SCALAR a, SCALAR b, SCALAR c, SCALAR *restrict R, SCALAR *restrict T,
-                                 SCALAR *restrict pu, SCALAR *restrict pv, SCALAR *restrict pa, SCALAR *restrict pb,
-                                 SCALAR *restrict pc, SCALAR *restrict po) {
+                                   const SCALAR *restrict ga, const SCALAR *restrict oms, const SCALAR *restrict ws,
+                                   const SCALAR *restrict oks, const SCALAR *restrict frees,
+                                   const SCALAR *restrict als, const SCALAR *restrict dxs,
+                                   const SCALAR *restrict dys, SCALAR a, SCALAR b, SCALAR c, SCALAR *restrict R,
+                                   SCALAR *restrict T, SCALAR *restrict pu, SCALAR *restrict pv,
+                                   SCALAR *restrict pa, SCALAR *restrict pb, SCALAR *restrict pc,
+                                   SCALAR *restrict po) {
     for (int64_t l = 0; l < LANES; ++l) pu[l] = pv[l] = pa[l] = pb[l] = pc[l] = po[l] = (SCALAR)0;
     for (int64_t p0 = 0; p0 < PP; p0 += LANES) {
         for (int64_t l = 0; l < LANES; ++l) {
@@ -551,18 +569,26 @@ NOINLINE static void FN(bw_params)(int64_t PP, const SCALAR *restrict tbs, const
     }
 }
 
+/* Third part when the Gaussians' parameters want no gradient: only the transmittances move past the pair. */
+NOINLINE static void FN(bw_advance)(int64_t PP, const SCALAR *restrict tbs, const SCALAR *restrict oks,
+                                    SCALAR *restrict T) {
+    for (int64_t p = 0; p < PP; ++p) T[p] = oks[p] > (SCALAR)0 ? tbs[p] : T[p];
+}
+
 /* Backward of forward(): with g_out[H * W, C] (may be NULL) the gradient of the composited channels and
  * g_acc[H * W] (may be NULL) that of the accumulated alpha 1 - t_end, ADDS the gradients of params into
- * grad_params[6, N] and of feat into grad_feat[N, C] (double). Walks each tile's list back to front with
- * all its pixels at once, recovering each pixel's transmittance by division (1 - alpha >= 1 - alpha_max).
- * Pairs whose alpha was clamped at alpha_max pass no gradient to the mean, conic or opacity. Returns 0,
- * or -1 when out of memory. */
+ * grad_params[N, 6] and of feat into grad_feat[N, C] (double; either may be NULL: not wanted). Walks each
+ * tile's list back to front with all its pixels at once, recovering each pixel's transmittance by
+ * division (1 - alpha >= 1 - alpha_max). Pairs whose alpha was clamped at alpha_max pass no gradient to
+ * the mean, conic or opacity. Returns 0, or -1 when out of memory. */
 HOT int FN(backward)(const SCALAR *params, int64_t n, const SCALAR *feat, int64_t C, const int64_t *tile_start,
                      const int32_t *rows, int64_t ts, int64_t tiles_x, int64_t tiles_y, int64_t width, int64_t height,
                      double alpha_min, double alpha_max, const SCALAR *t_end, const int32_t *last,
-                     const SCALAR *g_out, const SCALAR *g_acc, double *grad_params, double *grad_feat) {
+                     const uint8_t *contrib, const SCALAR *g_out, const SCALAR *g_acc, double *grad_params,
+                     double *grad_feat) {
     const int64_t P = ts * ts, PP = (P + LANES - 1) / LANES * LANES;
     const SCALAR amin = (SCALAR)alpha_min, amax = (SCALAR)alpha_max;
+    (void)n;
     SCALAR *px = (SCALAR *)zalloc((size_t)PP * (14 + (size_t)C) + 7 * LANES, sizeof(SCALAR));
     int32_t *lj = (int32_t *)zalloc((size_t)PP, sizeof(int32_t));
     if (!px || !lj) {
@@ -590,18 +616,22 @@ HOT int FN(backward)(const SCALAR *params, int64_t n, const SCALAR *feat, int64_
                 jmax = lj[p] > jmax ? lj[p] : jmax;
             }
             for (int64_t j = (int64_t)jmax - 1; j >= 0; --j) {
+                if (!contrib[s0 + j]) continue;  /* composited nowhere: no gradient, T unchanged */
                 const int64_t g = rows[s0 + j];
-                const SCALAR u = params[g], v = params[n + g], a = params[2 * n + g], b = params[3 * n + g];
-                const SCALAR c = params[4 * n + g], o = params[5 * n + g];
+                const SCALAR *pg = params + 6 * g;
+                const SCALAR u = pg[0], v = pg[1], a = pg[2], b = pg[3], c = pg[4], o = pg[5];
                 FN(bw_alpha)(PP, px, py, T, lj, (int32_t)j, u, v, a, b, c, o, amin, amax, dxs, dys, als, oks, frees,
                              oms, tbs, ws, qs);
-                FN(bw_channels)(PP, C, G, feat + C * g, ws, qs, part, grad_feat + C * g);
-                FN(bw_params)(PP, tbs, qs, ga, oms, ws, oks, frees, als, dxs, dys, a, b, c, R, T, part,
-                              part + LANES, part + 2 * LANES, part + 3 * LANES, part + 4 * LANES, part + 5 * LANES);
-                for (int k = 0; k < 6; ++k) {
-                    double sum = 0.0;
-                    for (int64_t l = 0; l < LANES; ++l) sum += (double)part[k * LANES + l];
-                    grad_params[k * n + g] += k == 5 ? sum / (double)o : sum;
+                FN(bw_channels)(PP, C, G, feat + C * g, ws, qs, part, grad_feat ? grad_feat + C * g : NULL);
+                if (!grad_params) {
+                    FN(bw_advance)(PP, tbs, oks, T);
+                } else {
+                    FN(bw_params)(PP, tbs, qs, ga, oms, ws, oks, frees, als, dxs, dys, a, b, c, R, T, part,
+                                  part + LANES, part + 2 * LANES, part + 3 * LANES, part + 4 * LANES,
+                                  part + 5 * LANES);
+                    double *gp = grad_params + 6 * g;
+                    for (int k = 0; k < 5; ++k) gp[k] += FN(lane_sum)(part + k * LANES);
+                    gp[5] += FN(lane_sum)(part + 5 * LANES) / (double)o;
                 }
             }
         }
@@ -678,12 +708,12 @@ _SIGNATURES = {
                                _PTR, _PTR, _PTR, _PTR, _PTR, _PTR, _PTR]),
     "project_backward": (None, [_I64, _PTR, _PTR, _PTR, _PTR, _PTR, _PTR, _PTR, _F64, _F64, _F64, _F64, _PTR, _PTR,
                                 _PTR, _PTR, _PTR, _PTR]),
-    "layout_count": (_I64, [_I64, _PTR, _PTR, _I64, _PTR, _PTR, _I64, _I64, _I64, _I64, _PTR]),
-    "layout_fill": (None, [_I64, _PTR, _PTR, _I64, _PTR, _PTR, _I64, _I64, _I64, _I64, _PTR, _PTR, _PTR]),
+    "layout_bound": (_I64, [_I64, _PTR, _PTR, _I64]),
+    "layout_build": (_I64, [_I64, _PTR, _PTR, _PTR, _PTR, _I64, _I64, _I64, _I64, _I64, _PTR, _PTR, _I64]),
     "forward": (_I64, [_PTR, _I64, _PTR, _I64, _PTR, _PTR, _I64, _I64, _I64, _I64, _I64, _F64, _F64, _F64, _PTR,
-                       _PTR, _PTR, _PTR, _PTR, _PTR, _I64]),
+                       _PTR, _PTR, _PTR, _PTR, _PTR, _PTR, _I64]),
     "backward": (ctypes.c_int, [_PTR, _I64, _PTR, _I64, _PTR, _PTR, _I64, _I64, _I64, _I64, _I64, _F64, _F64, _PTR,
-                                _PTR, _PTR, _PTR, _PTR, _PTR]),
+                                _PTR, _PTR, _PTR, _PTR, _PTR, _PTR]),
 }
 
 
@@ -749,73 +779,74 @@ class NativeLayout:
 
 
 @torch.no_grad()
-def layout(lib: ctypes.CDLL, params_t: Tensor, cull_q: Tensor, pixel_box: Tensor, order: Tensor, width: int,
+def layout(lib: ctypes.CDLL, params: Tensor, cull_q: Tensor, pixel_box: Tensor, order: Tensor, width: int,
            height: int, tile_size: int) -> NativeLayout:
     """Rows of every (tile, visible Gaussian) whose tile's pixel-centre rectangle meets the Gaussian's
-    ``alpha >= alpha_min`` ellipse; ``order``: the visible Gaussians front to back (int64)."""
-    suffix = _TYPES[params_t.dtype][2]
+    ``alpha >= alpha_min`` ellipse; ``params`` [N, 6] = (u, v, a, b, c, opacity), ``order``: the visible
+    Gaussians front to back (int64)."""
+    suffix = _TYPES[params.dtype][2]
     ts = int(tile_size)
     tiles_x, tiles_y = (width + ts - 1) // ts, (height + ts - 1) // ts
-    n = params_t.shape[1]
-    params_t, cull_q = params_t.detach().contiguous(), cull_q.detach().to(params_t.dtype).contiguous()
+    params, cull_q = params.detach().contiguous(), cull_q.detach().to(params.dtype).contiguous()
     pixel_box, order = pixel_box.contiguous(), order.contiguous()
-    counts = torch.zeros(tiles_x * tiles_y, dtype=torch.int64)
-    args = (order.numel(), _ptr(order), _ptr(params_t), n, _ptr(cull_q), _ptr(pixel_box), ts, tiles_x, width, height)
-    total = getattr(lib, f"layout_count_{suffix}")(*args, _ptr(counts))
-    tile_start = torch.zeros(tiles_x * tiles_y + 1, dtype=torch.int64)
-    torch.cumsum(counts, 0, out=tile_start[1:])
-    rows = torch.empty(int(total), dtype=torch.int32)
-    cursor = torch.zeros(tiles_x * tiles_y, dtype=torch.int64)
-    getattr(lib, f"layout_fill_{suffix}")(*args, _ptr(tile_start), _ptr(cursor), _ptr(rows))
-    return NativeLayout(tile_start, rows, tiles_x, tiles_y, ts)
+    bound = int(getattr(lib, f"layout_bound_{suffix}")(order.numel(), _ptr(order), _ptr(pixel_box), ts))
+    tile_start = torch.empty(tiles_x * tiles_y + 1, dtype=torch.int64)
+    rows = torch.empty(bound, dtype=torch.int32)
+    total = getattr(lib, f"layout_build_{suffix}")(order.numel(), _ptr(order), _ptr(params), _ptr(cull_q),
+                                                   _ptr(pixel_box), ts, tiles_x, tiles_y, width, height,
+                                                   _ptr(tile_start), _ptr(rows), bound)
+    if total < 0:
+        raise MemoryError("the native layout kernel could not allocate its buffers")
+    return NativeLayout(tile_start, rows[:total], tiles_x, tiles_y, ts)
 
 
 class Composite(torch.autograd.Function):
-    """Front-to-back compositing of ``feat`` [N, C] by the Gaussians ``params_t`` [6, N] = (u, v, a, b, c,
+    """Front-to-back compositing of ``feat`` [N, C] by the Gaussians ``params`` [N, 6] = (u, v, a, b, c,
     opacity) on a :class:`NativeLayout`. Returns (composited channels [H, W, C] without background,
     accumulated alpha [H, W])."""
 
     @staticmethod
-    def forward(ctx, params_t: Tensor, feat: Tensor, lay: NativeLayout, width: int, height: int, rule,
+    def forward(ctx, params: Tensor, feat: Tensor, lay: NativeLayout, width: int, height: int, rule,
                 stats: dict):  # type: ignore[override]
         lib = kernels()
-        suffix = _TYPES[params_t.dtype][2]
-        params_t, feat = params_t.contiguous(), feat.contiguous()
+        suffix = _TYPES[params.dtype][2]
+        params, feat = params.detach().contiguous(), feat.detach().contiguous()
         n, c = feat.shape
         out = torch.empty(height, width, c, dtype=feat.dtype)
         t_end = torch.empty(height, width, dtype=feat.dtype)
         last = torch.empty(height, width, dtype=torch.int32)
+        contrib = torch.zeros(lay.n_rows, dtype=torch.uint8)
         pairs = getattr(lib, f"forward_{suffix}")(
-            _ptr(params_t), n, _ptr(feat), c, _ptr(lay.tile_start), _ptr(lay.rows), lay.tile_size, lay.tiles_x,
+            _ptr(params), n, _ptr(feat), c, _ptr(lay.tile_start), _ptr(lay.rows), lay.tile_size, lay.tiles_x,
             lay.tiles_y, width, height, rule.alpha_min, rule.alpha_max, rule.transmittance_min,
-            _ptr(out), _ptr(t_end), _ptr(last), None, None, None, 0)
+            _ptr(out), _ptr(t_end), _ptr(last), _ptr(contrib), None, None, None, 0)
         if pairs < 0:
             raise MemoryError("the native compositing kernel could not allocate its tile buffers")
         stats["pairs"] = int(pairs)
-        ctx.save_for_backward(params_t, feat, t_end, last)
+        ctx.save_for_backward(params, feat, t_end, last, contrib)
         ctx.meta = (lay, width, height, rule)
         return out, 1.0 - t_end
 
     @staticmethod
     def backward(ctx, g_out: Optional[Tensor], g_acc: Optional[Tensor]):  # type: ignore[override]
-        params_t, feat, t_end, last = ctx.saved_tensors
+        params, feat, t_end, last, contrib = ctx.saved_tensors
         lay, width, height, rule = ctx.meta
         lib = kernels()
-        suffix = _TYPES[params_t.dtype][2]
+        suffix = _TYPES[params.dtype][2]
         n, c = feat.shape
-        grad_params = torch.zeros(6, n, dtype=torch.float64)
-        grad_feat = torch.zeros(n, c, dtype=torch.float64)
+        need_params, need_feat = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+        grad_params = torch.zeros(n, 6, dtype=torch.float64) if need_params else None
+        grad_feat = torch.zeros(n, c, dtype=torch.float64) if need_feat else None
         g_out = None if g_out is None else g_out.to(feat.dtype).contiguous()
         g_acc = None if g_acc is None else g_acc.to(feat.dtype).contiguous()
         status = getattr(lib, f"backward_{suffix}")(
-            _ptr(params_t), n, _ptr(feat), c, _ptr(lay.tile_start), _ptr(lay.rows), lay.tile_size, lay.tiles_x,
-            lay.tiles_y, width, height, rule.alpha_min, rule.alpha_max, _ptr(t_end), _ptr(last),
+            _ptr(params), n, _ptr(feat), c, _ptr(lay.tile_start), _ptr(lay.rows), lay.tile_size, lay.tiles_x,
+            lay.tiles_y, width, height, rule.alpha_min, rule.alpha_max, _ptr(t_end), _ptr(last), _ptr(contrib),
             _ptr(g_out), _ptr(g_acc), _ptr(grad_params), _ptr(grad_feat))
         if status != 0:
             raise MemoryError("the native compositing kernel could not allocate its tile buffers")
-        need_params, need_feat = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
-        return (grad_params.to(params_t.dtype) if need_params else None,
-                grad_feat.to(feat.dtype) if need_feat else None, None, None, None, None, None)
+        return (None if grad_params is None else grad_params.to(params.dtype),
+                None if grad_feat is None else grad_feat.to(feat.dtype), None, None, None, None, None)
 
 
 def camera_constants(viewmat: Tensor, K: Tensor, width: int, height: int, fov_margin: float
@@ -875,24 +906,25 @@ class Project(torch.autograd.Function):
 
 
 @torch.no_grad()
-def blend_weights(params_t: Tensor, lay: NativeLayout, width: int, height: int, rule,
+def blend_weights(params: Tensor, lay: NativeLayout, width: int, height: int, rule,
                   n_pairs: int) -> tuple[Tensor, Tensor, Tensor]:
     """Every composited pair of a render on ``lay`` (``n_pairs`` of them, as its forward counted):
     ([P] int64 flat pixel index, [P] int64 Gaussian, [P] weight alpha T) -- with the geometry frozen,
     rendering any channels is this sparse linear map."""
     lib = kernels()
-    suffix = _TYPES[params_t.dtype][2]
-    params_t = params_t.detach().contiguous()
-    n = params_t.shape[1]
-    feat = params_t.new_zeros(n, 1)
-    out, t_end = params_t.new_empty(height, width, 1), params_t.new_empty(height, width)
+    suffix = _TYPES[params.dtype][2]
+    params = params.detach().contiguous()
+    n = params.shape[0]
+    feat = params.new_zeros(n, 1)
+    out, t_end = params.new_empty(height, width, 1), params.new_empty(height, width)
     last = torch.empty(height, width, dtype=torch.int32)
     pix, gid = torch.empty(n_pairs, dtype=torch.int64), torch.empty(n_pairs, dtype=torch.int32)
-    weight = params_t.new_empty(n_pairs)
+    weight = params.new_empty(n_pairs)
+    contrib = torch.zeros(lay.n_rows, dtype=torch.uint8)  # held here: the kernel writes into it
     got = getattr(lib, f"forward_{suffix}")(
-        _ptr(params_t), n, _ptr(feat), 1, _ptr(lay.tile_start), _ptr(lay.rows), lay.tile_size, lay.tiles_x,
+        _ptr(params), n, _ptr(feat), 1, _ptr(lay.tile_start), _ptr(lay.rows), lay.tile_size, lay.tiles_x,
         lay.tiles_y, width, height, rule.alpha_min, rule.alpha_max, rule.transmittance_min, _ptr(out), _ptr(t_end),
-        _ptr(last), _ptr(pix), _ptr(gid), _ptr(weight), n_pairs)
+        _ptr(last), _ptr(contrib), _ptr(pix), _ptr(gid), _ptr(weight), n_pairs)
     if got != n_pairs:
         raise RuntimeError(f"the native kernels counted {got} composited pairs, expected {n_pairs}")
     return pix, gid.long(), weight

@@ -610,15 +610,15 @@ def _render_native(lib, proj: Projection, opacities: Tensor, colors: Tensor, wid
                    background: Tensor, config: TorchRasterConfig, rule: CompositingRule) -> TorchRender:
     """:func:`render`'s layout and compositing by the compiled kernels (:mod:`.native_cpu`)."""
     c = colors.shape[1]
-    params_t = torch.stack([proj.means2d[:, 0], proj.means2d[:, 1], *proj.conics.unbind(1), opacities])  # [6, N]
+    params = torch.cat([proj.means2d, proj.conics, opacities[:, None]], 1)  # [N, 6]: one cache line per Gaussian
     with torch.no_grad():
         vis = proj.visible.nonzero().squeeze(1)
         # front to back; a stable sort breaks depth ties by index
         order = vis.index_select(0, torch.sort(proj.depths.detach().index_select(0, vis), stable=True).indices)
-    lay = native_cpu.layout(lib, params_t, proj.cull_q, proj.pixel_box, order, width, height, config.native_tile_size)
+    lay = native_cpu.layout(lib, params, proj.cull_q, proj.pixel_box, order, width, height, config.native_tile_size)
     feat = torch.cat([colors, proj.depths[:, None]], 1)  # [N, C + 1]: depth rides as a last channel
     stats: dict = {"pairs": 0}
-    composited, alpha = native_cpu.Composite.apply(params_t, feat, lay, width, height, rule, stats)
+    composited, alpha = native_cpu.Composite.apply(params, feat, lay, width, height, rule, stats)
     image = composited[..., :c] + (1.0 - alpha)[..., None] * background
     depth = composited[..., c] / alpha.clamp_min(1e-10)
     return TorchRender(image, alpha, depth, proj, lay, stats["pairs"], lay.n_rows * lay.tile_size ** 2)
@@ -639,3 +639,40 @@ def _blocks(lay: TileLayout, max_chunks: int) -> list[tuple[int, int]]:
         prev = st
     out.append((k0, k))
     return out
+
+
+@dataclass
+class FrozenView:
+    """Projection and tile layout of fixed Gaussians at one camera (see
+    :func:`methods.gaussians.rasterize.prepare_view`): renders any number of channel sets."""
+
+    params: Tensor
+    """[N, 6] (u, v, a, b, c, opacity) of the projected Gaussians."""
+    layout: native_cpu.NativeLayout
+    width: int
+    height: int
+    rule: CompositingRule
+
+    def render(self, colors: Tensor) -> tuple[Tensor, Tensor]:
+        """([H, W, C] composited ``colors`` over a zero background, [H, W] accumulated alpha)."""
+        return native_cpu.Composite.apply(self.params, colors, self.layout, self.width, self.height, self.rule, {})
+
+    def nbytes(self) -> int:
+        return sum(t.numel() * t.element_size() for t in (self.params, self.layout.rows, self.layout.tile_start))
+
+
+@torch.no_grad()
+def prepare_frozen(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmat: Tensor, K: Tensor,
+                   width: int, height: int, near: float, far: float, eps2d: float,
+                   config: TorchRasterConfig = DEFAULT_CONFIG,
+                   rule: CompositingRule = DEFAULT_RULE) -> Optional[FrozenView]:
+    """A :class:`FrozenView`, or ``None`` where the compiled kernels do not run."""
+    lib = native_cpu.kernels() if config.native and native_cpu.supports(means) else None
+    if lib is None:
+        return None
+    proj = _project_native(means, quats, scales, opacities, viewmat, K, width, height, near, far, eps2d, rule)
+    params = torch.cat([proj.means2d, proj.conics, opacities[:, None]], 1)
+    vis = proj.visible.nonzero().squeeze(1)
+    order = vis.index_select(0, torch.sort(proj.depths.index_select(0, vis), stable=True).indices)
+    lay = native_cpu.layout(lib, params, proj.cull_q, proj.pixel_box, order, width, height, config.native_tile_size)
+    return FrozenView(params, lay, width, height, rule)
