@@ -18,6 +18,8 @@
                             [--knobs gaussians states latent hexplane] [--values KNOB=V,V,...] [--seeds 0]
                             [--set KEY=VALUE] [--no-release] [--jobs N] [--report-only] [--out reports/capacity]
     bench4d ablate real-cost [--size full|tiny] [--device cuda] [--masks-per-frame 120] [--objects 3]
+    bench4d ablate timing --baseline REV [--candidate REV] [--method 4d-langsplat] [--scene split-cookie]
+                          [--size 128] [--set KEY=VALUE] [--rounds 1] [--out reports/fit-timing]
 
 Each study lives in its own module under :mod:`benchmark.studies`; this command defines the options and
 calls it, importing the module only when its subcommand runs (a backend one study needs, missing, breaks that
@@ -97,6 +99,12 @@ preset; plus the defaults (``auto``: the method's own per-scene choices) and the
 of runs sharing a geometry at once, each in a worker process with ``--threads`` torch threads (default 1). It
 writes ``capacity.csv``, ``README.md`` and ``charts/`` to ``--out`` (default ``reports/capacity``).
 
+``timing`` (:mod:`benchmark.studies.fit_timing`): the fit of one method on one scene, stage by stage, with the
+code of commit ``--baseline`` and with the candidate's (the working tree, or ``--candidate``), side by side in
+one run: each side in its own subprocess on its own exported tree, single-threaded, alternating which goes
+first each round; the table gives each stage's median seconds and the ratio new / old, and every run's
+scores. Writes ``<out>/<name>.json`` and ``.md`` (default ``reports/fit-timing/fit-timing``).
+
 The others write a JSON and a Markdown table to ``--out`` (default ``reports/ablations``) and print the table.
 """
 
@@ -120,7 +128,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="ablation", metavar="ABLATION", required=True)
     for add in (_delta_sim_arguments, _speed_arguments, _query_speed_arguments, _ceiling_arguments,
                 _autoencoder_arguments, _rescore_arguments, _gap_arguments, _decisions_arguments, _states_arguments,
-                _capacity_arguments, _real_cost_arguments):
+                _capacity_arguments, _real_cost_arguments, _timing_arguments):
         add(sub)
     for study in sub.choices.values():
         add_threads_argument(study)
@@ -330,6 +338,24 @@ def _generated_scenes_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--size", type=int, default=128, help="image size of generated synthetic presets")
 
 
+def _timing_arguments(sub) -> None:
+    t = sub.add_parser("timing", help="a fit's time stage by stage, old commit and new side by side in one run")
+    t.add_argument("--baseline", required=True, metavar="REV", help="the old commit (hash, branch, HEAD~N)")
+    t.add_argument("--candidate", default=None, metavar="REV",
+                   help="the new commit (default: this checkout's working tree as it is)")
+    t.add_argument("--method", default="4d-langsplat")
+    t.add_argument("--scene", default="split-cookie", help="synthetic preset or scene folder")
+    t.add_argument("--size", type=int, default=128, help="image size of a generated preset")
+    t.add_argument("--seed", type=parse_seed, default=0)
+    t.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a method option for both sides, e.g. geometry.deformation_iterations=600 (repeatable)")
+    t.add_argument("--rounds", type=int, default=1, help="fits per side (sides alternate the lead each round)")
+    t.add_argument("--cache-dir", type=Path, default=Path("cache"), help="where a generated preset is kept")
+    t.add_argument("--name", default="fit-timing", help="output file stem under --out")
+    _output_arguments(t)
+    t.set_defaults(out=Path("reports/fit-timing"))
+
+
 def _output_arguments(p: argparse.ArgumentParser, out_help: Optional[str] = None) -> None:
     p.add_argument("--out", type=Path, default=REPORTS, help=out_help)
     p.add_argument("--quiet", action="store_true")
@@ -480,7 +506,17 @@ def _real_cost(args) -> int:
     return _print_report(real_cost_report(cfg, args.out, log=stderr_log(args.quiet)))
 
 
+def _timing(args) -> int:
+    from benchmark.studies.fit_timing import TimingConfig, fit_timing_report
+
+    config = TimingConfig(baseline=args.baseline, candidate=args.candidate, method=args.method, scene=args.scene,
+                          size=args.size, overrides={k: str(v) for k, v in parse_overrides(args.set).items()},
+                          rounds=args.rounds, seed=args.seed, cache_dir=args.cache_dir, name=args.name,
+                          out=args.out)
+    return _print_report(fit_timing_report(config, log=stderr_log(args.quiet)))
+
+
 RUNS = {"delta-sim": _delta_sim, "speed": _speed, "query-speed": _query_speed, "ceiling": _ceiling,
         "autoencoder": _autoencoder, "rescore": _rescore, "gap": _gap, "decisions": _decisions, "states": _states,
-        "capacity": _capacity, "real-cost": _real_cost}
+        "capacity": _capacity, "real-cost": _real_cost, "timing": _timing}
 """The function each subcommand runs."""

@@ -111,13 +111,20 @@ class FrozenGeometry:
 
     @torch.no_grad()
     def at(self, t: float) -> GaussianState:
-        """The Gaussians at time ``t`` in [0, 1] (a static geometry ignores ``t``)."""
+        """The Gaussians at time ``t`` in [0, 1] (a static geometry ignores ``t``). The latest time's state is
+        kept: a time-sensitive answer deforms to its frame's time twice (the mask, then the status field)."""
+        key = 0.0 if self.deformable is None else float(t)
+        last = getattr(self, "_last_state", None)
+        if last is not None and last[0] == key:
+            return last[1]
         g = self.gaussians
         if self.deformable is None:
             means, quats, scales = g.means, g.quats, g.scales
         else:
-            means, quats, scales = self.deformable.deform(float(t), skip_static=True)
-        return GaussianState(means, quats, scales, g.opacities)
+            means, quats, scales = self.deformable.deform(key, skip_static=True)
+        state = GaussianState(means, quats, scales, g.opacities)
+        self._last_state = (key, state)
+        return state
 
     @torch.no_grad()
     def hexplane_features(self, t: float, means: Optional[torch.Tensor] = None) -> torch.Tensor:

@@ -23,6 +23,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .backends import native_cpu
 from .config import DeformationConfig, HexPlaneConfig
 
 # Axis pairs of the planes, (horizontal axis, vertical axis) in grid_sample's (x, y) order.
@@ -135,6 +136,11 @@ class HexPlane(nn.Module):
         p = self.normalise(xyz)
         tt = torch.as_tensor(t, dtype=p.dtype, device=p.device)
         tt = (tt * 2.0 - 1.0).expand(n) if tt.dim() == 0 else tt.reshape(n) * 2.0 - 1.0
+        if native_cpu.supports(p) and native_cpu.kernels() is not None:
+            # the compiled kernels: the same samples and products, several times faster on the CPU (above
+            # all the backward, grid_sample's scatter)
+            planes = [plane for level in zip(self.spatial, self.temporal) for plane in level]
+            return native_cpu.HexPlaneSample.apply(p, tt, *planes)
         # (3, 1, N, 2) sample coordinates for the three spatial and the three time planes
         sp_coords = torch.stack([p[:, [a, b]] for a, b in SPATIAL_PAIRS], 0).unsqueeze(1)
         tp_coords = torch.stack([torch.stack([p[:, a], tt], -1) for a, _ in TIME_PAIRS], 0).unsqueeze(1)
@@ -155,6 +161,11 @@ class HexPlane(nn.Module):
         ``time_smoothness``: mean squared second difference along t of each time plane;
         ``l1_time_planes``: mean |1 - value| of each time plane.
         """
+        if native_cpu.supports(self.box_min) and native_cpu.kernels() is not None:
+            # the compiled kernels: one pass per plane forward and one backward, in place of a dozen
+            # full-size temporaries per level
+            tv, smooth, l1 = native_cpu.PlaneRegularisers.apply(len(self.spatial), *self.spatial, *self.temporal)
+            return {"plane_tv": tv, "time_smoothness": smooth, "l1_time_planes": l1}
         tv = smooth = l1 = self.box_min.new_zeros(())
         for sp, tp in zip(self.spatial, self.temporal):
             dh = (sp[:, :, 1:, :] - sp[:, :, :-1, :]).square().mean(dim=(1, 2, 3))

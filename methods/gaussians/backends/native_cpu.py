@@ -639,6 +639,252 @@ HOT int FN(backward)(const SCALAR *params, int64_t n, const SCALAR *feat, int64_
     free(px); free(lj);
     return 0;
 }
+
+/* ---- HexPlane (methods/gaussians/hexplane.py) ----------------------------------------------------
+ * planes holds, per level l: the three spatial planes [3, R_l, R_l, C] then the three time planes
+ * [3, T, R_l, C], channels last, at offsets[2 l] and offsets[2 l + 1]; res[l] = R_l. A point's plane
+ * coordinates (x, y) in [-1, 1] (spatial planes xy, xz, yz; time planes (x, t), (y, t), (z, t)) are sampled
+ * as grid_sample does with align_corners=True, padding_mode="border", bilinear: i = (x + 1) / 2 (size - 1)
+ * clipped to [0, size - 1] (no gradient where clipped), corners past the last row or column count as 0.
+ * The feature of level l is the product over the six planes, channel by channel. */
+
+typedef struct { int64_t i0, j0; SCALAR fx, fy, gx, gy; int in_x, in_y; } FN(Corner);
+
+static inline void FN(locate)(FN(Corner) *k, SCALAR x, SCALAR y, int64_t w, int64_t h) {
+    SCALAR ix = (x + (SCALAR)1) / (SCALAR)2 * (SCALAR)(w - 1), iy = (y + (SCALAR)1) / (SCALAR)2 * (SCALAR)(h - 1);
+    /* d i / d x of the clipped coordinate: (size - 1) / 2 inside, 0 where clipped (as torch) */
+    k->gx = (ix <= (SCALAR)0 || ix >= (SCALAR)(w - 1)) ? (SCALAR)0 : (SCALAR)(w - 1) / (SCALAR)2;
+    k->gy = (iy <= (SCALAR)0 || iy >= (SCALAR)(h - 1)) ? (SCALAR)0 : (SCALAR)(h - 1) / (SCALAR)2;
+    ix = ix < (SCALAR)0 ? (SCALAR)0 : (ix > (SCALAR)(w - 1) ? (SCALAR)(w - 1) : ix);
+    iy = iy < (SCALAR)0 ? (SCALAR)0 : (iy > (SCALAR)(h - 1) ? (SCALAR)(h - 1) : iy);
+    SCALAR fx0 = floor(ix), fy0 = floor(iy);
+    k->j0 = (int64_t)fx0;
+    k->i0 = (int64_t)fy0;
+    k->fx = ix - fx0;
+    k->fy = iy - fy0;
+    k->in_x = k->j0 + 1 < w;  /* the next column exists */
+    k->in_y = k->i0 + 1 < h;
+}
+
+/* v[c] = the bilinear sample of plane [h, w, C] at k. */
+static inline void FN(sample)(const SCALAR *plane, int64_t w, int64_t C, const FN(Corner) *k, SCALAR *v) {
+    const SCALAR wnw = ((SCALAR)1 - k->fx) * ((SCALAR)1 - k->fy), wne = k->fx * ((SCALAR)1 - k->fy);
+    const SCALAR wsw = ((SCALAR)1 - k->fx) * k->fy, wse = k->fx * k->fy;
+    const SCALAR *nw = plane + (k->i0 * w + k->j0) * C;
+#pragma GCC ivdep
+    for (int64_t c = 0; c < C; ++c) v[c] = wnw * nw[c];
+    if (k->in_x) {
+#pragma GCC ivdep
+        for (int64_t c = 0; c < C; ++c) v[c] += wne * nw[C + c];
+    }
+    if (k->in_y) {
+        const SCALAR *sw = nw + w * C;
+#pragma GCC ivdep
+        for (int64_t c = 0; c < C; ++c) v[c] += wsw * sw[c];
+        if (k->in_x) {
+#pragma GCC ivdep
+            for (int64_t c = 0; c < C; ++c) v[c] += wse * sw[C + c];
+        }
+    }
+}
+
+/* Sum of x[0 .. C) in a fixed order (LANES partial sums, then a tree). */
+static inline SCALAR FN(chan_sum)(const SCALAR *x, int64_t C) {
+    SCALAR part[LANES] = {0};
+    int64_t c0 = 0;
+    for (; c0 + LANES <= C; c0 += LANES)
+        for (int l = 0; l < LANES; ++l) part[l] += x[c0 + l];
+    for (int l = 0; c0 + l < C; ++l) part[l] += x[c0 + l];
+    return ((part[0] + part[1]) + (part[2] + part[3])) + ((part[4] + part[5]) + (part[6] + part[7]));
+}
+
+/* One corner of one plane in the backward: the plane's gradient there, and per channel the corner's part
+ * of d loss / d fx and d loss / d fy (ax, ay: d weight / d fx, d fy). */
+static inline void FN(corner_bw)(int64_t C, const SCALAR *P, SCALAR *G, const SCALAR *gv, SCALAR wgt, SCALAR ax,
+                                 SCALAR ay, SCALAR *dx, SCALAR *dy) {
+#pragma GCC ivdep
+    for (int64_t c = 0; c < C; ++c) {
+        SCALAR pg = P[c] * gv[c];
+        G[c] += wgt * gv[c];
+        dx[c] += ax * pg;
+        dy[c] += ay * pg;
+    }
+}
+
+/* The six planes of level l: pointers, widths and heights, and the point's corners on them. */
+static inline void FN(hex_level)(const SCALAR *planes, const int64_t *offsets, const int64_t *res, int64_t T,
+                                 int64_t C, int64_t l, const SCALAR *q, SCALAR t, const SCALAR **pl, int64_t *pw,
+                                 FN(Corner) *k) {
+    const int64_t r = res[l];
+    static const int pairs[3][2] = {{0, 1}, {0, 2}, {1, 2}};
+    for (int m = 0; m < 3; ++m) {
+        pl[m] = planes + offsets[2 * l] + (int64_t)m * r * r * C;
+        pw[m] = r;
+        FN(locate)(&k[m], q[pairs[m][0]], q[pairs[m][1]], r, r);
+        pl[3 + m] = planes + offsets[2 * l + 1] + (int64_t)m * T * r * C;
+        pw[3 + m] = r;
+        FN(locate)(&k[3 + m], q[m], t, r, T);
+    }
+}
+
+/* feat[n, L * C]: level l's features in columns l C .. (l + 1) C. buf: 6 C scratch. */
+void FN(hex_forward)(int64_t n, const SCALAR *p, const SCALAR *tt, int64_t L, const SCALAR *planes,
+                     const int64_t *offsets, const int64_t *res, int64_t T, int64_t C, SCALAR *feat) {
+    SCALAR *v = (SCALAR *)malloc(sizeof(SCALAR) * 6 * (size_t)C);
+    if (!v) return;
+    for (int64_t i = 0; i < n; ++i) {
+        for (int64_t l = 0; l < L; ++l) {
+            const SCALAR *pl[6];
+            int64_t pw[6];
+            FN(Corner) k[6];
+            FN(hex_level)(planes, offsets, res, T, C, l, p + 3 * i, tt[i], pl, pw, k);
+            for (int m = 0; m < 6; ++m) FN(sample)(pl[m], pw[m], C, &k[m], v + m * C);
+            SCALAR *out = feat + i * L * C + l * C;
+            /* the order of hexplane.py: (s0 s1) (s2 t0) (t1 t2) */
+            for (int64_t c = 0; c < C; ++c)
+                out[c] = ((v[c] * v[C + c]) * (v[2 * C + c] * v[3 * C + c])) * (v[4 * C + c] * v[5 * C + c]);
+        }
+    }
+    free(v);
+}
+
+/* Backward of hex_forward: ADDS the planes' gradients into g_planes (same layout as planes) and WRITES
+ * those of p [n, 3] into g_p and of tt [n] into g_tt (NULL: not wanted). */
+void FN(hex_backward)(int64_t n, const SCALAR *p, const SCALAR *tt, int64_t L, const SCALAR *planes,
+                      const int64_t *offsets, const int64_t *res, int64_t T, int64_t C, const SCALAR *g_feat,
+                      SCALAR *g_planes, SCALAR *g_p, SCALAR *g_tt) {
+    SCALAR *v = (SCALAR *)malloc(sizeof(SCALAR) * 14 * (size_t)C);
+    if (!v) return;
+    SCALAR *gv = v + 6 * C, *dx = gv + 6 * C, *dy = dx + C;
+    static const int pairs[3][2] = {{0, 1}, {0, 2}, {1, 2}};
+    for (int64_t i = 0; i < n; ++i) {
+        SCALAR gq[4] = {0, 0, 0, 0};  /* x, y, z, t */
+        for (int64_t l = 0; l < L; ++l) {
+            const SCALAR *pl[6];
+            int64_t pw[6];
+            FN(Corner) k[6];
+            FN(hex_level)(planes, offsets, res, T, C, l, p + 3 * i, tt[i], pl, pw, k);
+            for (int m = 0; m < 6; ++m) FN(sample)(pl[m], pw[m], C, &k[m], v + m * C);
+            const SCALAR *g = g_feat + i * L * C + l * C;
+            /* d feat / d v_m = the product of the other five planes' samples */
+#pragma GCC ivdep
+            for (int64_t c = 0; c < C; ++c) {
+                const SCALAR a0 = v[c], a1 = v[C + c], a2 = v[2 * C + c], a3 = v[3 * C + c], a4 = v[4 * C + c];
+                const SCALAR a5 = v[5 * C + c], gc = g[c];
+                const SCALAR p01 = a0 * a1, p23 = a2 * a3, p45 = a4 * a5;
+                gv[c] = gc * (a1 * p23 * p45);
+                gv[C + c] = gc * (a0 * p23 * p45);
+                gv[2 * C + c] = gc * (p01 * a3 * p45);
+                gv[3 * C + c] = gc * (p01 * a2 * p45);
+                gv[4 * C + c] = gc * (p01 * p23 * a5);
+                gv[5 * C + c] = gc * (p01 * p23 * a4);
+            }
+            for (int m = 0; m < 6; ++m) {
+                const FN(Corner) *km = &k[m];
+                const SCALAR fx = km->fx, fy = km->fy, *gvm = gv + m * C;
+                const int64_t w = pw[m], base = (km->i0 * w + km->j0) * C;
+                const SCALAR *nw = pl[m] + base;
+                SCALAR *gnw = g_planes + (pl[m] - planes) + base;
+                for (int64_t c = 0; c < C; ++c) dx[c] = dy[c] = (SCALAR)0;
+                /* weights (1 - fx)(1 - fy), fx (1 - fy), (1 - fx) fy, fx fy and their fx, fy derivatives */
+                FN(corner_bw)(C, nw, gnw, gvm, ((SCALAR)1 - fx) * ((SCALAR)1 - fy), -((SCALAR)1 - fy),
+                              -((SCALAR)1 - fx), dx, dy);
+                if (km->in_x) FN(corner_bw)(C, nw + C, gnw + C, gvm, fx * ((SCALAR)1 - fy), (SCALAR)1 - fy, -fx, dx, dy);
+                if (km->in_y) {
+                    FN(corner_bw)(C, nw + w * C, gnw + w * C, gvm, ((SCALAR)1 - fx) * fy, -fy, (SCALAR)1 - fx, dx, dy);
+                    if (km->in_x) FN(corner_bw)(C, nw + w * C + C, gnw + w * C + C, gvm, fx * fy, fy, fx, dx, dy);
+                }
+                const SCALAR dfx = FN(chan_sum)(dx, C), dfy = FN(chan_sum)(dy, C);
+                if (m < 3) {
+                    gq[pairs[m][0]] += dfx * km->gx;
+                    gq[pairs[m][1]] += dfy * km->gy;
+                } else {
+                    gq[m - 3] += dfx * km->gx;
+                    gq[3] += dfy * km->gy;
+                }
+            }
+        }
+        for (int d = 0; d < 3; ++d) g_p[3 * i + d] = gq[d];
+        if (g_tt) g_tt[i] = gq[3];
+    }
+    free(v);
+}
+
+/* HexPlane regularisers (hexplane.py, HexPlane.regularisers) of one tensor of K planes [K, C, H, W]:
+ * spatial planes give the total variation 2 (mean (d_h)^2 + mean (d_w)^2) summed over the K planes; time
+ * planes ([K, C, T, R], t along H) the mean squared second difference along t and the mean |1 - P|, each
+ * summed over the K planes. out[0], out[1]: the two values of the kind asked (spatial: tv, 0). With grad
+ * non-NULL, ADDS instead their gradients scaled by g0 and g1. Sums in double. */
+void FN(plane_regularisers)(const SCALAR *P, int64_t K, int64_t C, int64_t H, int64_t W, int spatial, double *out,
+                            SCALAR *grad, double g0, double g1) {
+    double v0 = 0.0, v1 = 0.0;
+    for (int64_t k = 0; k < K; ++k) {
+        const SCALAR *q = P + k * C * H * W;
+        SCALAR *gq = grad ? grad + k * C * H * W : NULL;
+        if (spatial) {
+            const double nh = (double)(C * (H - 1) * W), nw = (double)(C * H * (W - 1));
+            double sh = 0.0, sw = 0.0;
+            for (int64_t c = 0; c < C; ++c)
+                for (int64_t i = 0; i < H; ++i)
+                    for (int64_t j = 0; j < W; ++j) {
+                        const int64_t at = (c * H + i) * W + j;
+                        if (i + 1 < H) {
+                            const double d = (double)q[at + W] - (double)q[at];
+                            if (gq) {
+                                const double gd = g0 * 2.0 * 2.0 * d / nh;
+                                gq[at + W] += (SCALAR)gd;
+                                gq[at] -= (SCALAR)gd;
+                            } else {
+                                sh += d * d;
+                            }
+                        }
+                        if (j + 1 < W) {
+                            const double d = (double)q[at + 1] - (double)q[at];
+                            if (gq) {
+                                const double gd = g0 * 2.0 * 2.0 * d / nw;
+                                gq[at + 1] += (SCALAR)gd;
+                                gq[at] -= (SCALAR)gd;
+                            } else {
+                                sw += d * d;
+                            }
+                        }
+                    }
+            if (H > 1) v0 += 2.0 * sh / nh;
+            if (W > 1) v0 += 2.0 * sw / nw;
+        } else {
+            const double ns = (double)(C * (H - 2) * W), nl = (double)(C * H * W);
+            double ss = 0.0, sl = 0.0;
+            for (int64_t c = 0; c < C; ++c)
+                for (int64_t i = 0; i < H; ++i)
+                    for (int64_t j = 0; j < W; ++j) {
+                        const int64_t at = (c * H + i) * W + j;
+                        const double one = 1.0 - (double)q[at];
+                        if (gq) {
+                            gq[at] -= (SCALAR)(g1 * (one > 0 ? 1.0 : (one < 0 ? -1.0 : 0.0)) / nl);
+                        } else {
+                            sl += fabs(one);
+                        }
+                        if (i + 2 < H) {
+                            const double d = ((double)q[at + 2 * W] - (double)q[at + W]) - ((double)q[at + W] - (double)q[at]);
+                            if (gq) {
+                                const double gd = g0 * 2.0 * d / ns;
+                                gq[at + 2 * W] += (SCALAR)gd;
+                                gq[at + W] -= (SCALAR)(2.0 * gd);
+                                gq[at] += (SCALAR)gd;
+                            } else {
+                                ss += d * d;
+                            }
+                        }
+                    }
+            if (H > 2) v0 += ss / ns;
+            v1 += sl / nl;
+        }
+    }
+    if (out) {
+        out[0] = v0;
+        out[1] = v1;
+    }
+}
 """
 
 COMPILE_FLAGS = ("-O3", "-shared", "-fPIC", "-std=c11", "-ffp-contract=off", "-fno-trapping-math")
@@ -704,6 +950,9 @@ def _build(folder: Path) -> Path:
 
 _I64, _PTR, _F64 = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
 _SIGNATURES = {
+    "plane_regularisers": (None, [_PTR, _I64, _I64, _I64, _I64, ctypes.c_int, _PTR, _PTR, _F64, _F64]),
+    "hex_forward": (None, [_I64, _PTR, _PTR, _I64, _PTR, _PTR, _PTR, _I64, _I64, _PTR]),
+    "hex_backward": (None, [_I64, _PTR, _PTR, _I64, _PTR, _PTR, _PTR, _I64, _I64, _PTR, _PTR, _PTR, _PTR]),
     "project_forward": (None, [_I64, _PTR, _PTR, _PTR, _PTR, _PTR, _PTR, _PTR, _I64, _I64, _F64, _F64, _F64, _F64,
                                _PTR, _PTR, _PTR, _PTR, _PTR, _PTR, _PTR]),
     "project_backward": (None, [_I64, _PTR, _PTR, _PTR, _PTR, _PTR, _PTR, _PTR, _F64, _F64, _F64, _F64, _PTR, _PTR,
@@ -928,3 +1177,94 @@ def blend_weights(params: Tensor, lay: NativeLayout, width: int, height: int, ru
     if got != n_pairs:
         raise RuntimeError(f"the native kernels counted {got} composited pairs, expected {n_pairs}")
     return pix, gid.long(), weight
+
+
+class HexPlaneSample(torch.autograd.Function):
+    """The HexPlane's multi-resolution features (:meth:`methods.gaussians.hexplane.HexPlane.forward` after
+    the normalisation) by the kernels: ``p`` [N, 3] plane coordinates in [-1, 1], ``tt`` [N] time
+    coordinates, then per level its spatial planes [3, C, R, R] and time planes [3, C, T, R]. Returns
+    [N, levels * C]; differentiable in ``p``, ``tt`` and every plane."""
+
+    @staticmethod
+    def forward(ctx, p: Tensor, tt: Tensor, *planes: Tensor):  # type: ignore[override]
+        lib = kernels()
+        suffix = _TYPES[p.dtype][2]
+        levels = len(planes) // 2
+        c, t = planes[0].shape[1], planes[1].shape[2]
+        res = torch.tensor([planes[2 * l].shape[2] for l in range(levels)], dtype=torch.int64)
+        # channels last: a sample's C values are one contiguous run
+        flat = [pl.detach().permute(0, 2, 3, 1).reshape(-1) for pl in planes]
+        offsets = torch.tensor([0] + [f.numel() for f in flat], dtype=torch.int64).cumsum(0)[:-1].contiguous()
+        packed = torch.cat(flat)
+        p, tt = p.detach().contiguous(), tt.detach().contiguous()
+        n = p.shape[0]
+        feat = p.new_empty(n, levels * c)
+        getattr(lib, f"hex_forward_{suffix}")(n, _ptr(p), _ptr(tt), levels, _ptr(packed), _ptr(offsets), _ptr(res),
+                                              t, c, _ptr(feat))
+        ctx.save_for_backward(p, tt, packed, offsets, res)
+        ctx.meta = (levels, c, t, [tuple(pl.shape) for pl in planes])
+        return feat
+
+    @staticmethod
+    def backward(ctx, g_feat: Tensor):  # type: ignore[override]
+        p, tt, packed, offsets, res = ctx.saved_tensors
+        levels, c, t, shapes = ctx.meta
+        lib = kernels()
+        suffix = _TYPES[p.dtype][2]
+        n = p.shape[0]
+        g_feat = g_feat.to(p.dtype).contiguous()
+        g_packed = torch.zeros_like(packed)
+        g_p = p.new_empty(n, 3)
+        g_tt = p.new_empty(n) if ctx.needs_input_grad[1] else None
+        getattr(lib, f"hex_backward_{suffix}")(n, _ptr(p), _ptr(tt), levels, _ptr(packed), _ptr(offsets),
+                                               _ptr(res), t, c, _ptr(g_feat), _ptr(g_packed), _ptr(g_p), _ptr(g_tt))
+        grads = []
+        for i, shape in enumerate(shapes):
+            start = int(offsets[i])
+            size = shape[0] * shape[1] * shape[2] * shape[3]
+            k, ch, h, w = shape
+            grads.append(g_packed[start:start + size].view(k, h, w, ch).permute(0, 3, 1, 2).contiguous())
+        return (g_p if ctx.needs_input_grad[0] else None, g_tt, *grads)
+
+
+class PlaneRegularisers(torch.autograd.Function):
+    """:meth:`methods.gaussians.hexplane.HexPlane.regularisers` by the kernels: ``(plane_tv,
+    time_smoothness, l1_time_planes)`` of the spatial planes (the first ``n_spatial`` tensors) and the
+    time planes (the rest), each tensor [3, C, H, W]."""
+
+    @staticmethod
+    def forward(ctx, n_spatial: int, *planes: Tensor):  # type: ignore[override]
+        lib = kernels()
+        suffix = _TYPES[planes[0].dtype][2]
+        fn = getattr(lib, f"plane_regularisers_{suffix}")
+        sums = [0.0, 0.0, 0.0]
+        out = torch.zeros(2, dtype=torch.float64)
+        kept = [pl.detach().contiguous() for pl in planes]
+        for i, pl in enumerate(kept):
+            spatial = i < n_spatial
+            fn(_ptr(pl), *pl.shape, int(spatial), _ptr(out), None, 0.0, 0.0)
+            if spatial:
+                sums[0] += float(out[0])
+            else:
+                sums[1] += float(out[0])
+                sums[2] += float(out[1])
+        ctx.save_for_backward(*kept)
+        ctx.n_spatial = n_spatial
+        dtype = planes[0].dtype
+        return tuple(torch.tensor(v, dtype=dtype) for v in sums)
+
+    @staticmethod
+    def backward(ctx, g_tv: Tensor, g_smooth: Tensor, g_l1: Tensor):  # type: ignore[override]
+        planes = ctx.saved_tensors
+        lib = kernels()
+        suffix = _TYPES[planes[0].dtype][2]
+        fn = getattr(lib, f"plane_regularisers_{suffix}")
+        grads = []
+        for i, pl in enumerate(planes):
+            g = torch.zeros_like(pl)
+            if i < ctx.n_spatial:
+                fn(_ptr(pl), *pl.shape, 1, None, _ptr(g), float(g_tv), 0.0)
+            else:
+                fn(_ptr(pl), *pl.shape, 0, None, _ptr(g), float(g_smooth), float(g_l1))
+            grads.append(g)
+        return (None, *grads)
