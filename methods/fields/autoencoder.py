@@ -17,6 +17,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from ..gaussians.optimizer import fast_adam
 from .configs import AutoencoderConfig
 
 __all__ = ["AutoencoderConfig", "AutoencoderReport", "FeatureAutoencoder", "train_autoencoder"]
@@ -80,7 +81,7 @@ def train_autoencoder(features: np.ndarray | torch.Tensor, cfg: Optional[Autoenc
     gen = torch.Generator(device="cpu").manual_seed(seed)
     torch.manual_seed(seed)
     model = FeatureAutoencoder(x.shape[1], cfg).to(device)
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.learning_rate)
+    opt = fast_adam(model.parameters(), lr=cfg.learning_rate)
     probs = None if weights is None else torch.as_tensor(np.asarray(weights, np.float64) / np.sum(weights))
     steps_per_epoch = max(1, int(np.ceil(x.shape[0] / cfg.batch_size)))
     total = cfg.epochs * steps_per_epoch

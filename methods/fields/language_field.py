@@ -36,6 +36,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from benchmark.core.scene import Camera
+from methods.gaussians.optimizer import fast_adam
 from methods.gaussians.rasterize import camera_tensors
 
 from .configs import LanguageFieldConfig
@@ -325,7 +326,7 @@ def train_language_field(geometry: FrozenGeometry, targets: Sequence[FieldTarget
     device = geometry.device
     gen = torch.Generator().manual_seed(seed)
     fld = LanguageField(geometry.num_gaussians, cfg, generator=gen, device=device)
-    opt = torch.optim.Adam([fld.features], lr=cfg.learning_rate)
+    opt = fast_adam([fld.features], lr=cfg.learning_rate)
     first = geometry.at(targets[0].time)
     first_prepared = fld.prepare(first, targets[0].camera)
     # the geometry is frozen: each view's projection and tile layout (where the rasterizer splits them off)

@@ -63,6 +63,7 @@ import torch.nn.functional as F
 from benchmark.core.errors import InputError
 from benchmark.core.scene import Camera, Frame, Scene
 
+from ..gaussians.optimizer import fast_adam
 from ..gaussians.rasterize import camera_tensors
 from .autoencoder import AutoencoderConfig, FeatureAutoencoder, train_autoencoder
 from ..captioners import resolve_captioning
@@ -834,7 +835,7 @@ def _optimise(module: nn.Module, views: Sequence[LatentView], geometry: FrozenGe
     groups = [{"params": per_gaussian, "lr": per_gaussian_lr}]
     if network:
         groups.append({"params": network, "lr": network_lr})
-    opt = torch.optim.Adam(groups)
+    opt = fast_adam(groups)
     rng = np.random.default_rng(seed)
     order: list[int] = []
     losses: list[float] = []

@@ -8,6 +8,17 @@ from .config import GaussianConfig
 from .model import PARAM_NAMES, GaussianModel
 
 
+def fast_adam(params, **kwargs) -> torch.optim.Adam:
+    """:class:`torch.optim.Adam` with its fused update (one kernel per step instead of a dozen passes per
+    tensor; several times faster on the CPU) where this torch has it for the parameters' device, else
+    the plain one: the same algorithm, rounded in another order."""
+    params = list(params)
+    try:
+        return torch.optim.Adam(params, fused=True, **kwargs)
+    except (RuntimeError, TypeError, ValueError):
+        return torch.optim.Adam(params, **kwargs)
+
+
 class GaussianOptimizer:
     """Adam over the Gaussian tensors, one group per tensor, whose moments follow densification."""
 
@@ -16,8 +27,8 @@ class GaussianOptimizer:
         lrs = {"means": cfg.position_lr_init * extent, "sh_dc": cfg.feature_lr,
                "sh_rest": cfg.feature_lr / cfg.feature_rest_lr_divisor, "opacity_logits": cfg.opacity_lr,
                "log_scales": cfg.scaling_lr, "quats": cfg.rotation_lr}
-        self.optim = torch.optim.Adam([{"params": [model.params[k]], "lr": lrs[k], "name": k} for k in PARAM_NAMES],
-                                      lr=0.0, eps=cfg.adam_eps)
+        self.optim = fast_adam([{"params": [model.params[k]], "lr": lrs[k], "name": k} for k in PARAM_NAMES],
+                               lr=0.0, eps=cfg.adam_eps)
         self.groups = {g["name"]: g for g in self.optim.param_groups}
 
     def set_lr(self, name: str, lr: float) -> None:

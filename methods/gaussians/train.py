@@ -28,7 +28,7 @@ from .checkpoint import Checkpointing, FitCheckpoints
 from .config import DeformationConfig, GaussianConfig, ReconConfig, Schedule, exponential_lr
 from .hexplane import DeformationField
 from .model import DeformableGaussians, GaussianModel
-from .optimizer import GaussianOptimizer
+from .optimizer import GaussianOptimizer, fast_adam
 from .rasterize import RenderOutput, camera_tensors
 from .strategy import DensificationStrategy
 
@@ -470,7 +470,7 @@ class Trainer:
                   {"params": field_.grid_parameters(), "lr": d.grid_lr_init * self.extent, "name": "grid"}]
         if field_.color_parameters():
             groups.append({"params": field_.color_parameters(), "lr": d.color_lr_init, "name": "color"})
-        net_opt = torch.optim.Adam(groups, lr=0.0, eps=c.gaussians.adam_eps)
+        net_opt = fast_adam(groups, lr=0.0, eps=c.gaussians.adam_eps)
         if resume is not None:
             field_.load_state_dict(resume["field"])
             net_opt.load_state_dict(resume["net_opt"])

@@ -1248,14 +1248,16 @@ class PlaneRegularisers(torch.autograd.Function):
             else:
                 sums[1] += float(out[0])
                 sums[2] += float(out[1])
-        ctx.save_for_backward(*kept)
+        # kept on ctx, not saved: each of the three terms may be differentiated on its own (the planes are
+        # the module's parameters, alive anyway)
+        ctx.planes = kept
         ctx.n_spatial = n_spatial
         dtype = planes[0].dtype
         return tuple(torch.tensor(v, dtype=dtype) for v in sums)
 
     @staticmethod
     def backward(ctx, g_tv: Tensor, g_smooth: Tensor, g_l1: Tensor):  # type: ignore[override]
-        planes = ctx.saved_tensors
+        planes = ctx.planes
         lib = kernels()
         suffix = _TYPES[planes[0].dtype][2]
         fn = getattr(lib, f"plane_regularisers_{suffix}")
