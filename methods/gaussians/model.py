@@ -119,6 +119,12 @@ class GaussianModel:
         if self.active_sh_degree == 0:
             # Degree 0 is view-independent: skip the directions entirely.
             return (SH_C0 * self.params["sh_dc"][:, 0] + 0.5).clamp_min(0.0)
+        from .backends import native_cpu
+
+        if native_cpu.supports(means) and self.active_sh_degree <= 3 and native_cpu.kernels() is not None:
+            # the compiled kernel: the same colours in one pass per Gaussian, forward and backward
+            return native_cpu.ShColor.apply(means, camera_center, self.params["sh_dc"], self.params["sh_rest"],
+                                            self.active_sh_degree)
         from .sh import eval_sh
 
         dirs = F.normalize(means - camera_center.reshape(1, 3), dim=-1)

@@ -522,20 +522,27 @@ NOINLINE static void FN(bw_alpha)(int64_t PP, const SCALAR *restrict px, const S
     }
 }
 
-/* Second part, for every channel k: q_p += g_p,k f_k, and (with gf non-NULL) the sum over lanes of
- * w_p g_p,k (the gradient of the Gaussian's channel k) added to gf[k]. */
-NOINLINE static void FN(bw_channels)(int64_t PP, int64_t C, const SCALAR *restrict G, const SCALAR *restrict f,
-                                     const SCALAR *restrict ws, SCALAR *restrict qs, SCALAR *restrict part,
-                                     double *restrict gf) {
-    for (int64_t k = 0; k < C; ++k) {
-        const SCALAR fk = f[k];
-        const SCALAR *restrict gk = G + k * PP;
-        for (int64_t p = 0; p < PP; ++p) qs[p] += gk[p] * fk;
-        if (!gf) continue;
-        for (int64_t l = 0; l < LANES; ++l) part[l] = (SCALAR)0;
-        for (int64_t p0 = 0; p0 < PP; p0 += LANES)
-            for (int64_t l = 0; l < LANES; ++l) part[l] += ws[p0 + l] * gk[p0 + l];
-        gf[k] += FN(lane_sum)(part);
+/* Second part: q_p = sum_k g_p,k f_k (with G [C, PP], channels first; for the parameters' gradients),
+ * and (gf non-NULL) the Gaussian's channel gradients gf[k] += sum_p w_p g_p,k (with Gt [PP, C], pixels
+ * first: the channels are the vector lanes, no reduction across lanes). acc: C scratch. */
+NOINLINE static void FN(bw_channels)(int64_t PP, int64_t C, const SCALAR *restrict G, const SCALAR *restrict Gt,
+                                     const SCALAR *restrict f, const SCALAR *restrict ws, SCALAR *restrict qs,
+                                     SCALAR *restrict acc, double *restrict gf) {
+    if (qs) {
+        for (int64_t k = 0; k < C; ++k) {
+            const SCALAR fk = f[k];
+            const SCALAR *restrict gk = G + k * PP;
+            for (int64_t p = 0; p < PP; ++p) qs[p] += gk[p] * fk;
+        }
+    }
+    if (gf) {
+        for (int64_t k = 0; k < C; ++k) acc[k] = (SCALAR)0;
+        for (int64_t p = 0; p < PP; ++p) {
+            const SCALAR wp = ws[p];
+            const SCALAR *restrict gp = Gt + p * C;
+            for (int64_t k = 0; k < C; ++k) acc[k] += wp * gp[k];
+        }
+        for (int64_t k = 0; k < C; ++k) gf[k] += (double)acc[k];
     }
 }
 
@@ -589,7 +596,7 @@ HOT int FN(backward)(const SCALAR *params, int64_t n, const SCALAR *feat, int64_
     const int64_t P = ts * ts, PP = (P + LANES - 1) / LANES * LANES;
     const SCALAR amin = (SCALAR)alpha_min, amax = (SCALAR)alpha_max;
     (void)n;
-    SCALAR *px = (SCALAR *)zalloc((size_t)PP * (14 + (size_t)C) + 7 * LANES, sizeof(SCALAR));
+    SCALAR *px = (SCALAR *)zalloc((size_t)PP * (14 + 2 * (size_t)C) + 7 * LANES + (size_t)C, sizeof(SCALAR));
     int32_t *lj = (int32_t *)zalloc((size_t)PP, sizeof(int32_t));
     if (!px || !lj) {
         free(px); free(lj);
@@ -597,7 +604,8 @@ HOT int FN(backward)(const SCALAR *params, int64_t n, const SCALAR *feat, int64_
     }
     SCALAR *py = px + PP, *T = py + PP, *R = T + PP, *ga = R + PP, *dxs = ga + PP, *dys = dxs + PP;
     SCALAR *als = dys + PP, *oks = als + PP, *frees = oks + PP, *oms = frees + PP, *tbs = oms + PP;
-    SCALAR *ws = tbs + PP, *qs = ws + PP, *G = qs + PP, *part = G + C * PP;
+    SCALAR *ws = tbs + PP, *qs = ws + PP, *G = qs + PP, *Gt = G + C * PP, *part = Gt + C * PP;
+    SCALAR *acc = part + 7 * LANES;
     for (int64_t ty = 0; ty < tiles_y; ++ty) {
         for (int64_t tx = 0; tx < tiles_x; ++tx) {
             const int64_t t = ty * tiles_x + tx, s0 = tile_start[t];
@@ -612,7 +620,10 @@ HOT int FN(backward)(const SCALAR *params, int64_t n, const SCALAR *feat, int64_
                 R[p] = (SCALAR)0;
                 /* accumulated alpha 1 - T_end: d / d alpha_i = T_end / (1 - alpha_i) */
                 ga[p] = (inside && g_acc) ? g_acc[q] * t_end[q] : (SCALAR)0;
-                for (int64_t k = 0; k < C; ++k) G[k * PP + p] = (inside && g_out) ? g_out[C * q + k] : (SCALAR)0;
+                for (int64_t k = 0; k < C; ++k) {
+                    G[k * PP + p] = (inside && g_out) ? g_out[C * q + k] : (SCALAR)0;
+                    Gt[p * C + k] = G[k * PP + p];
+                }
                 jmax = lj[p] > jmax ? lj[p] : jmax;
             }
             for (int64_t j = (int64_t)jmax - 1; j >= 0; --j) {
@@ -622,7 +633,8 @@ HOT int FN(backward)(const SCALAR *params, int64_t n, const SCALAR *feat, int64_
                 const SCALAR u = pg[0], v = pg[1], a = pg[2], b = pg[3], c = pg[4], o = pg[5];
                 FN(bw_alpha)(PP, px, py, T, lj, (int32_t)j, u, v, a, b, c, o, amin, amax, dxs, dys, als, oks, frees,
                              oms, tbs, ws, qs);
-                FN(bw_channels)(PP, C, G, feat + C * g, ws, qs, part, grad_feat ? grad_feat + C * g : NULL);
+                FN(bw_channels)(PP, C, G, Gt, feat + C * g, ws, grad_params ? qs : NULL, acc,
+                                grad_feat ? grad_feat + C * g : NULL);
                 if (!grad_params) {
                     FN(bw_advance)(PP, tbs, oks, T);
                 } else {
@@ -885,6 +897,110 @@ void FN(plane_regularisers)(const SCALAR *P, int64_t K, int64_t C, int64_t H, in
         out[1] = v1;
     }
 }
+
+/* ---- spherical harmonics colour (methods/gaussians/sh.py, GaussianModel.colors) ---------------------
+ * colour[n, c] = max(sum_k Y_k(d) coef_k[c] + 1/2, 0) with d = (mean - centre) / |mean - centre| (the
+ * norm clamped at 1e-12), k over the (degree + 1)^2 bases in the 3D-GS order and signs; coef_0 = dc[n],
+ * coef_k = rest[n, k - 1] (rest holds R rows per Gaussian, of which the first (degree + 1)^2 - 1 are used). */
+static inline void FN(sh_basis)(int degree, SCALAR x, SCALAR y, SCALAR z, SCALAR *Y, SCALAR (*dY)[3]) {
+    const SCALAR C0 = (SCALAR)0.28209479177387814, C1 = (SCALAR)0.4886025119029199;
+    const SCALAR C2[5] = {(SCALAR)1.0925484305920792, (SCALAR)-1.0925484305920792, (SCALAR)0.31539156525252005,
+                          (SCALAR)-1.0925484305920792, (SCALAR)0.5462742152960396};
+    const SCALAR C3[7] = {(SCALAR)-0.5900435899266435, (SCALAR)2.890611442640554, (SCALAR)-0.4570457994644658,
+                          (SCALAR)0.3731763325901154, (SCALAR)-0.4570457994644658, (SCALAR)1.445305721320277,
+                          (SCALAR)-0.5900435899266435};
+    const SCALAR xx = x * x, yy = y * y, zz = z * z, xy = x * y, yz = y * z, xz = x * z;
+    Y[0] = C0;
+    if (dY) dY[0][0] = dY[0][1] = dY[0][2] = 0;
+    if (degree < 1) return;
+    Y[1] = -C1 * y; Y[2] = C1 * z; Y[3] = -C1 * x;
+    if (dY) {
+        dY[1][0] = 0; dY[1][1] = -C1; dY[1][2] = 0;
+        dY[2][0] = 0; dY[2][1] = 0; dY[2][2] = C1;
+        dY[3][0] = -C1; dY[3][1] = 0; dY[3][2] = 0;
+    }
+    if (degree < 2) return;
+    Y[4] = C2[0] * xy; Y[5] = C2[1] * yz; Y[6] = C2[2] * (2 * zz - xx - yy); Y[7] = C2[3] * xz;
+    Y[8] = C2[4] * (xx - yy);
+    if (dY) {
+        dY[4][0] = C2[0] * y; dY[4][1] = C2[0] * x; dY[4][2] = 0;
+        dY[5][0] = 0; dY[5][1] = C2[1] * z; dY[5][2] = C2[1] * y;
+        dY[6][0] = C2[2] * -2 * x; dY[6][1] = C2[2] * -2 * y; dY[6][2] = C2[2] * 4 * z;
+        dY[7][0] = C2[3] * z; dY[7][1] = 0; dY[7][2] = C2[3] * x;
+        dY[8][0] = C2[4] * 2 * x; dY[8][1] = C2[4] * -2 * y; dY[8][2] = 0;
+    }
+    if (degree < 3) return;
+    Y[9] = C3[0] * y * (3 * xx - yy);
+    Y[10] = C3[1] * xy * z;
+    Y[11] = C3[2] * y * (4 * zz - xx - yy);
+    Y[12] = C3[3] * z * (2 * zz - 3 * xx - 3 * yy);
+    Y[13] = C3[4] * x * (4 * zz - xx - yy);
+    Y[14] = C3[5] * z * (xx - yy);
+    Y[15] = C3[6] * x * (xx - 3 * yy);
+    if (dY) {
+        dY[9][0] = C3[0] * 6 * xy; dY[9][1] = C3[0] * (3 * xx - 3 * yy); dY[9][2] = 0;
+        dY[10][0] = C3[1] * yz; dY[10][1] = C3[1] * xz; dY[10][2] = C3[1] * xy;
+        dY[11][0] = C3[2] * -2 * xy; dY[11][1] = C3[2] * (4 * zz - xx - 3 * yy); dY[11][2] = C3[2] * 8 * yz;
+        dY[12][0] = C3[3] * -6 * xz; dY[12][1] = C3[3] * -6 * yz; dY[12][2] = C3[3] * (6 * zz - 3 * xx - 3 * yy);
+        dY[13][0] = C3[4] * (4 * zz - 3 * xx - yy); dY[13][1] = C3[4] * -2 * xy; dY[13][2] = C3[4] * 8 * xz;
+        dY[14][0] = C3[5] * 2 * xz; dY[14][1] = C3[5] * -2 * yz; dY[14][2] = C3[5] * (xx - yy);
+        dY[15][0] = C3[6] * (3 * xx - 3 * yy); dY[15][1] = C3[6] * -6 * xy; dY[15][2] = 0;
+    }
+}
+
+void FN(sh_forward)(int64_t n, const SCALAR *means, const SCALAR *center, const SCALAR *dc, const SCALAR *rest,
+                    int64_t R, int degree, SCALAR *out) {
+    const int nb = (degree + 1) * (degree + 1);
+    for (int64_t i = 0; i < n; ++i) {
+        SCALAR v[3] = {means[3 * i] - center[0], means[3 * i + 1] - center[1], means[3 * i + 2] - center[2]};
+        SCALAR nrm = (SCALAR)sqrt((double)(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]));
+        nrm = nrm > (SCALAR)1e-12 ? nrm : (SCALAR)1e-12;
+        SCALAR Y[16];
+        FN(sh_basis)(degree, v[0] / nrm, v[1] / nrm, v[2] / nrm, Y, NULL);
+        for (int c = 0; c < 3; ++c) {
+            SCALAR acc = Y[0] * dc[3 * i + c];
+            for (int k = 1; k < nb; ++k) acc += Y[k] * rest[(i * R + k - 1) * 3 + c];
+            acc += (SCALAR)0.5;
+            out[3 * i + c] = acc > (SCALAR)0 ? acc : (SCALAR)0;
+        }
+    }
+}
+
+/* Backward of sh_forward: WRITES the gradients of means [n, 3] (NULL: not wanted), dc [n, 3] and rest
+ * [n, R, 3] (rows past the degree's: 0). The clamp at 0 passes the gradient where its input is >= 0. */
+void FN(sh_backward)(int64_t n, const SCALAR *means, const SCALAR *center, const SCALAR *dc, const SCALAR *rest,
+                     int64_t R, int degree, const SCALAR *g_out, SCALAR *g_means, SCALAR *g_dc, SCALAR *g_rest) {
+    const int nb = (degree + 1) * (degree + 1);
+    for (int64_t i = 0; i < n; ++i) {
+        SCALAR v[3] = {means[3 * i] - center[0], means[3 * i + 1] - center[1], means[3 * i + 2] - center[2]};
+        SCALAR len = (SCALAR)sqrt((double)(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]));
+        const SCALAR nrm = len > (SCALAR)1e-12 ? len : (SCALAR)1e-12;
+        const SCALAR d[3] = {v[0] / nrm, v[1] / nrm, v[2] / nrm};
+        SCALAR Y[16], dY[16][3];
+        FN(sh_basis)(degree, d[0], d[1], d[2], Y, dY);
+        SCALAR g[3];
+        for (int c = 0; c < 3; ++c) {
+            SCALAR acc = Y[0] * dc[3 * i + c];
+            for (int k = 1; k < nb; ++k) acc += Y[k] * rest[(i * R + k - 1) * 3 + c];
+            g[c] = acc + (SCALAR)0.5 >= (SCALAR)0 ? g_out[3 * i + c] : (SCALAR)0;
+            g_dc[3 * i + c] = Y[0] * g[c];
+        }
+        for (int64_t k = 1; k <= R; ++k)
+            for (int c = 0; c < 3; ++c) g_rest[(i * R + k - 1) * 3 + c] = k < nb ? Y[k] * g[c] : (SCALAR)0;
+        if (!g_means) continue;
+        SCALAR gd[3] = {0, 0, 0};  /* d loss / d direction */
+        for (int k = 1; k < nb; ++k) {
+            const SCALAR *cf = rest + (i * R + k - 1) * 3;
+            const SCALAR gk = g[0] * cf[0] + g[1] * cf[1] + g[2] * cf[2];
+            gd[0] += gk * dY[k][0];
+            gd[1] += gk * dY[k][1];
+            gd[2] += gk * dY[k][2];
+        }
+        /* d = v / max(|v|, 1e-12): (I - d d^T) / |v| where the norm is not clamped */
+        const SCALAR dot = len > (SCALAR)1e-12 ? d[0] * gd[0] + d[1] * gd[1] + d[2] * gd[2] : (SCALAR)0;
+        for (int c = 0; c < 3; ++c) g_means[3 * i + c] = (gd[c] - d[c] * dot) / nrm;
+    }
+}
 """
 
 COMPILE_FLAGS = ("-O3", "-shared", "-fPIC", "-std=c11", "-ffp-contract=off", "-fno-trapping-math")
@@ -950,6 +1066,8 @@ def _build(folder: Path) -> Path:
 
 _I64, _PTR, _F64 = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
 _SIGNATURES = {
+    "sh_forward": (None, [_I64, _PTR, _PTR, _PTR, _PTR, _I64, ctypes.c_int, _PTR]),
+    "sh_backward": (None, [_I64, _PTR, _PTR, _PTR, _PTR, _I64, ctypes.c_int, _PTR, _PTR, _PTR, _PTR]),
     "plane_regularisers": (None, [_PTR, _I64, _I64, _I64, _I64, ctypes.c_int, _PTR, _PTR, _F64, _F64]),
     "hex_forward": (None, [_I64, _PTR, _PTR, _I64, _PTR, _PTR, _PTR, _I64, _I64, _PTR]),
     "hex_backward": (None, [_I64, _PTR, _PTR, _I64, _PTR, _PTR, _PTR, _I64, _I64, _PTR, _PTR, _PTR, _PTR]),
@@ -1270,3 +1388,37 @@ class PlaneRegularisers(torch.autograd.Function):
                 fn(_ptr(pl), *pl.shape, 0, None, _ptr(g), float(g_smooth), float(g_l1))
             grads.append(g)
         return (None, *grads)
+
+
+class ShColor(torch.autograd.Function):
+    """3D-GS view-dependent colour (:meth:`methods.gaussians.model.GaussianModel.colors`) by the kernels:
+    ``max(SH_degree(normalise(means - centre)) + 0.5, 0)`` from ``sh_dc`` [N, 1, 3] and ``sh_rest``
+    [N, R, 3]; differentiable in ``means``, ``sh_dc`` and ``sh_rest``."""
+
+    @staticmethod
+    def forward(ctx, means: Tensor, center: Tensor, sh_dc: Tensor, sh_rest: Tensor,
+                degree: int):  # type: ignore[override]
+        lib = kernels()
+        suffix = _TYPES[means.dtype][2]
+        means, sh_dc, sh_rest = (t.detach().contiguous() for t in (means, sh_dc, sh_rest))
+        center = center.detach().to(means.dtype).reshape(3).contiguous()
+        n = means.shape[0]
+        out = means.new_empty(n, 3)
+        getattr(lib, f"sh_forward_{suffix}")(n, _ptr(means), _ptr(center), _ptr(sh_dc), _ptr(sh_rest),
+                                             sh_rest.shape[1], int(degree), _ptr(out))
+        ctx.save_for_backward(means, center, sh_dc, sh_rest)
+        ctx.degree = int(degree)
+        return out
+
+    @staticmethod
+    def backward(ctx, g_out: Tensor):  # type: ignore[override]
+        means, center, sh_dc, sh_rest = ctx.saved_tensors
+        lib = kernels()
+        suffix = _TYPES[means.dtype][2]
+        g_out = g_out.to(means.dtype).contiguous()
+        g_means = torch.empty_like(means) if ctx.needs_input_grad[0] else None
+        g_dc, g_rest = torch.empty_like(sh_dc), torch.empty_like(sh_rest)
+        getattr(lib, f"sh_backward_{suffix}")(means.shape[0], _ptr(means), _ptr(center), _ptr(sh_dc), _ptr(sh_rest),
+                                              sh_rest.shape[1], ctx.degree, _ptr(g_out), _ptr(g_means), _ptr(g_dc),
+                                              _ptr(g_rest))
+        return g_means, None, g_dc, g_rest, None
