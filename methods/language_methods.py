@@ -590,8 +590,8 @@ class LanguageFieldModel(Model):
 
     def _decode(self, latents: torch.Tensor, basis: torch.Tensor, chunk: int) -> torch.Tensor:
         """[..., d] latents -> [..., k + 1] reduced features: exactly, or through the query's decode table
-        (``answer.decode_table``, 3-d latents)."""
-        resolution = self.config.answer.decode_table
+        (``answer.decode_table`` / ``answer.decode_table_cuda``, 3-d latents)."""
+        resolution = self.config.answer.decode_table_for(latents.device)
         if resolution <= 0 or latents.shape[-1] != 3:
             return decode_for_relevance(latents, self.autoencoder.decoder, basis, chunk)
         key = id(basis)
@@ -599,8 +599,10 @@ class LanguageFieldModel(Model):
             if len(self._decode_tables) >= self.MAX_DECODE_TABLES:
                 self._decode_tables.pop(next(iter(self._decode_tables)))
             lo, hi = self._latent_box()
-            # the table keeps ``basis`` alive, so its id is not reused while the entry exists
-            self._decode_tables[key] = DecodeTable(self.autoencoder.decoder, basis, lo, hi, resolution, chunk)
+            # the table keeps ``basis`` alive, so its id is not reused while the entry exists; a CPU decodes
+            # only the grid points the latents reach (lazy), a GPU the whole grid at once
+            self._decode_tables[key] = DecodeTable(self.autoencoder.decoder, basis, lo, hi, resolution, chunk,
+                                                   lazy=latents.device.type != "cuda")
         return self._decode_tables[key](latents)
 
     def _latent_box(self) -> tuple[torch.Tensor, torch.Tensor]:

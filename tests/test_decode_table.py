@@ -77,3 +77,62 @@ def test_matmul_precision_is_restored_after_the_block():
     assert torch.get_float32_matmul_precision() == before
     with matmul_precision(None):
         assert torch.get_float32_matmul_precision() == before
+
+
+def test_lazy_table_equals_the_eager_one():
+    """Filled on demand (the CPU's way), the table gives the eager table's values, decoding only the grid
+    points the latents reach."""
+    decoder, basis = small_decoder(), basis_of()
+    lo, hi = torch.tensor([-1.0, -0.5, -1.2]), torch.tensor([1.0, 1.3, 0.8])
+    gen = torch.Generator().manual_seed(5)
+    latents = torch.rand(2000, 3, generator=gen) * 0.5 * (hi - lo) + lo  # the lower part of the box only
+    latents[0], latents[1], latents[2] = hi, lo, torch.tensor([1.5, 0.0, 0.0])  # corners; one outside
+    eager = DecodeTable(decoder, basis, lo, hi, resolution=33)
+    lazy = DecodeTable(decoder, basis, lo, hi, resolution=33, lazy=True)
+    assert torch.allclose(lazy(latents), eager(latents), atol=1e-6)
+    assert 0 < lazy.decoded_points < eager.decoded_points // 4
+    before = lazy.decoded_points
+    assert torch.allclose(lazy(latents[:50]), eager(latents[:50]), atol=1e-6)
+    assert lazy.decoded_points == before  # nothing decoded twice
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+    """A small fitted deformable-clip model on the smoke preset (autoencoder trained long enough to bend)."""
+    from benchmark.loaders import load_scene
+    from benchmark.runner import find_annotations
+    from benchmark.synthetic.generate import generate
+    from methods import registry
+    from methods.api import Progress
+    from methods.language_methods import LanguageFieldModel, fit_language_field
+    from methods.supervision.cache import build_supervision
+
+    base = tmp_path_factory.mktemp("table")
+    scene = load_scene(generate("smoke", base / "smoke", size=48))
+    supervision = build_supervision(scene, "oracle", cache_dir=base / "cache")
+    cfg = registry.get("deformable-clip").make_config({
+        "geometry.static_iterations": 100, "geometry.deformation_iterations": 100, "field.iterations": 400,
+        "autoencoder.min_steps": 1500, "autoencoder.max_steps": 1500, "geometry.render_backend": "torch"})
+    shared = fit_language_field(scene, supervision, cfg, kind="4dgs", seed=0, device="cpu", progress=Progress(True),
+                                cache_root=base / "cache")
+    model = LanguageFieldModel("deformable-clip", cfg, supervision.text_encoder, shared, sensitive="relevance")
+    texts = [q.text for q in find_annotations(scene).queries if q.kind == "agnostic"]
+    return model, texts, scene.test_frames
+
+
+@pytest.mark.slow
+def test_the_cuda_default_table_answers_as_decoding_every_pixel_on_a_fitted_model(fitted):
+    """The decode table is the CUDA default (``answer.decode_table_cuda``): on a fitted model at least
+    99.99 % of the masks' pixels equal those of decoding every pixel in float32 (the CPU fills the same
+    table lazily), where a coarse table does not reach that."""
+    from benchmark.studies.gpu_query_check import AGREEMENT_TARGET, table_agreement
+
+    model, texts, frames = fitted
+    answer = model.config.answer
+    assert answer.decode_table_for("cuda:0") == 257 and answer.decode_table_for("cpu") == 0
+    fine = table_agreement(model, texts, frames, answer.decode_table_cuda)
+    coarse = table_agreement(model, texts, frames, 3)
+    assert fine["mask_pixels"] > 0 and fine["pixels"] == coarse["pixels"] > 0
+    assert fine["pixel_agreement"] >= AGREEMENT_TARGET
+    assert coarse["pixel_agreement"] < fine["pixel_agreement"]
+    assert answer.decode_table == 0 and not model._decode_tables  # the measurement left the model as it was

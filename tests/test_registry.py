@@ -147,7 +147,7 @@ def test_grouped_options_are_dotted_paths_read_by_type_with_one_line_errors():
     with pytest.raises(InputError, match="alternatives: set extensions.caption_segments=false"):
         spec.make_config({"extensions.caption_window": "2"})  # segments are the default
     assert spec.answer_options() == {"answer.uncovered_alpha", "answer.decode_chunk", "answer.decode_chunk_cuda",
-                                     "answer.decode_table", "answer.decode_tf32"}
+                                     "answer.decode_table", "answer.decode_table_cuda", "answer.decode_tf32"}
     assert "captions.captioner" not in {o.path for o in registry.get("deformable-clip").options()}
 
 

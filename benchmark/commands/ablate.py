@@ -175,8 +175,9 @@ def _query_speed_arguments(sub) -> None:
     q.add_argument("--queries", type=int, default=1,
                    help="also time this many queries sharing one render + decode per frame (when > 1)")
     q.add_argument("--feature-dim", type=int, default=512, help="decoded feature size (CLIP ViT-B/16: 512)")
-    q.add_argument("--decode-table", type=int, default=0,
-                   help="decode through a table of N samples per latent axis (answer.decode_table; 0: every pixel)")
+    q.add_argument("--decode-table", type=int, default=None,
+                   help="decode through a table of N samples per latent axis (0: every pixel; default: the "
+                        "device's default, answer.decode_table or answer.decode_table_cuda)")
     q.add_argument("--fp32-decode", action="store_true",
                    help="decode in float32 on CUDA (default: TensorFloat-32, answer.decode_tf32)")
     q.add_argument("--decode-chunk", type=int, default=None,

@@ -21,7 +21,7 @@ import argparse
 import dataclasses
 import time
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Optional, Sequence
 
 import torch
 
@@ -35,6 +35,45 @@ SENSITIVE = {"gaussians": 360_000, "width": 536, "height": 714}
 """The time-sensitive target: at least 60 FPS here."""
 AGREEMENT_TARGET = 0.9999
 """Share of mask pixels that must equal the float32 decode's."""
+
+
+def table_agreement(model, texts: Sequence[str], frames: Sequence[Frame], resolution: int = 257) -> dict[str, Any]:
+    """How the time-agnostic answers of a fitted ``model`` (a :class:`methods.language_methods.LanguageFieldModel`)
+    through a decode table of ``resolution`` compare with decoding every pixel in float32, on ``frames`` and
+    ``texts``: the share of all pixels, and of mask pixels (those either answer marks), on which the masks
+    agree, and the worst frame's. On a CPU the model fills its tables lazily
+    (:class:`methods.fields.language_field.DecodeTable`): the same values as a GPU's eager table."""
+    answer = model.config.answer
+    saved = answer.decode_table
+    equal = total = mask_equal = mask_total = 0
+    worst = 1.0
+    try:
+        answers = {}
+        for resolution_used in (0, resolution):
+            answer.decode_table = resolution_used
+            model._decode_tables.clear()
+            model._reduced_cache.clear()
+            for text in texts:
+                for frame in frames:
+                    answers[(resolution_used, text, frame.name)] = model.agnostic(text, frame).mask.cpu().numpy()
+    finally:
+        answer.decode_table = saved
+        model._decode_tables.clear()
+        model._reduced_cache.clear()
+    for text in texts:
+        for frame in frames:
+            exact, table = answers[(0, text, frame.name)], answers[(resolution, text, frame.name)]
+            same = exact == table
+            union = exact | table
+            equal += int(same.sum())
+            total += same.size
+            mask_equal += int((same & union).sum())
+            mask_total += int(union.sum())
+            worst = min(worst, float(same.mean()))
+    return {"resolution": resolution, "texts": len(texts), "frames": len(frames), "pixels": total,
+            "pixel_agreement": equal / total if total else float("nan"),
+            "mask_pixels": mask_total, "mask_pixel_agreement": mask_equal / mask_total if mask_total else float("nan"),
+            "worst_frame_pixel_agreement": worst}
 
 
 def sensitive_speed(num_gaussians: int, width: int, height: int, *, device: str, frames: int = 10, warmup: int = 2,

@@ -73,15 +73,15 @@ def measure_query_speed(num_gaussians: int, width: int, height: int, *, frames: 
                     "prepared_answers_per_second": 1.0 / per_answer})
     if dev.type == "cuda":
         out["peak_gpu_mib"] = torch.cuda.max_memory_allocated(dev) / 2 ** 20
-    approximate = cfg.answer.decode_table > 0 or (dev.type == "cuda" and cfg.answer.decode_tf32)
+    approximate = cfg.answer.decode_table_for(dev) > 0 or (dev.type == "cuda" and cfg.answer.decode_tf32)
     if approximate:
         # what a decode table or TensorFloat-32 costs in answers: the same frames decoded exactly in float32
-        saved = (cfg.answer.decode_table, cfg.answer.decode_tf32)
-        cfg.answer.decode_table, cfg.answer.decode_tf32 = 0, False
+        saved = (cfg.answer.decode_table, cfg.answer.decode_table_cuda, cfg.answer.decode_tf32)
+        cfg.answer.decode_table, cfg.answer.decode_table_cuda, cfg.answer.decode_tf32 = 0, 0, False
         try:
             exact = [model.query_agnostic(texts[0], [frame])[0] for frame in timed]
         finally:
-            cfg.answer.decode_table, cfg.answer.decode_tf32 = saved
+            cfg.answer.decode_table, cfg.answer.decode_table_cuda, cfg.answer.decode_tf32 = saved
         same = [float((np.asarray(a.mask) == np.asarray(b.mask)).mean()) for a, b in zip(answers, exact)]
         out["mask_agreement_with_exact"] = float(np.mean(same))
         out["min_mask_agreement_with_exact"] = float(np.min(same))

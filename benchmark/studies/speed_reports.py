@@ -47,7 +47,8 @@ def status_speed_report(gaussians: int, width: int, height: int, *, device: str 
 
 def query_speed_report(gaussians: int, width: int, height: int, *, device: str = "cpu", frames: int = 10,
                        queries: int = 1, feature_dim: int = 512, decode_chunk: Optional[int] = None,
-                       decode_tf32: bool = True, decode_table: int = 0, out: Path, quiet: bool = False) -> Report:
+                       decode_tf32: bool = True, decode_table: Optional[int] = None, out: Path,
+                       quiet: bool = False) -> Report:
     """Time the time-agnostic query on ``gaussians`` random Gaussians at ``width`` x ``height`` over
     ``frames`` frames (and ``queries`` queries sharing one render + decode per frame, when > 1), decoding
     ``decode_chunk`` pixels per batch (default: the method config's ``answer.decode_chunk``), and write
@@ -58,12 +59,13 @@ def query_speed_report(gaussians: int, width: int, height: int, *, device: str =
     if decode_chunk is not None:
         config.answer.decode_chunk = config.answer.decode_chunk_cuda = decode_chunk
     config.answer.decode_tf32 = decode_tf32
-    config.answer.decode_table = decode_table
+    if decode_table is not None:
+        config.answer.decode_table = config.answer.decode_table_cuda = decode_table
     result = measure_query_speed(gaussians, width, height, frames=frames, queries=queries,
                                  feature_dim=feature_dim, device=device, config=config)
     result["decode_chunk"] = config.answer.decode_chunk_for(device)
     result["decode_tf32"] = bool(decode_tf32 and str(device).startswith("cuda"))
-    result["decode_table"] = decode_table
+    result["decode_table"] = config.answer.decode_table_for(device)
     flat = {k: v for k, v in result.items() if k != "stage_seconds_per_frame"}
     flat.update({f"stage {k} (s/frame)": v for k, v in result["stage_seconds_per_frame"].items()})
     rows = [[k, f"{v:.4f}" if isinstance(v, float) else str(v)] for k, v in flat.items()]
@@ -73,8 +75,9 @@ def query_speed_report(gaussians: int, width: int, height: int, *, device: str =
                 "height": height, "device": device, "out": str(out), "quiet": quiet, "frames": frames,
                 "queries": queries, "feature_dim": feature_dim, "decode_chunk": decode_chunk,
                 "decode_tf32": decode_tf32, "decode_table": decode_table}
+    table = config.answer.decode_table_for(device)  # the file says which decode ran, default or chosen
     suffix = (("" if decode_chunk is None else f"-chunk{decode_chunk}") + ("" if decode_tf32 else "-fp32")
-              + (f"-table{decode_table}" if decode_table else ""))
+              + (f"-table{table}" if table else ""))
     return _timing_report("query-speed", suffix, settings, result, md, out)
 
 

@@ -415,38 +415,84 @@ class DecodeTable:
     the convex hull of 0 and those latents: a box from their per-channel extremes and 0 holds every
     pixel. The decoder is piecewise linear (ReLU), so the interpolation is exact inside the cells no
     ReLU kink crosses; the norm channel is smooth. Latents outside the box are decoded exactly.
+
+    ``lazy``: decode a grid point only when a latent first falls into a cell it corners, and keep it
+    (the same table values and interpolation, without decoding the cells no latent visits: what the
+    CPU can afford at fine resolutions; the eager table suits a GPU, which decodes all at once).
     """
 
     def __init__(self, decoder: Callable[[torch.Tensor], torch.Tensor], basis: torch.Tensor, lo: torch.Tensor,
-                 hi: torch.Tensor, resolution: int, chunk: int = 65536) -> None:
+                 hi: torch.Tensor, resolution: int, chunk: int = 65536, lazy: bool = False) -> None:
         if lo.numel() != 3 or hi.numel() != 3:
             raise ValueError(f"a decode table needs 3-d latents, got {lo.numel()}")
         if resolution < 2:
             raise ValueError(f"decode table resolution must be >= 2, got {resolution}")
-        self.decoder, self.basis, self.chunk = decoder, basis, chunk
+        self.decoder, self.basis, self.chunk, self.resolution, self.lazy = decoder, basis, chunk, resolution, lazy
         self.lo = lo.to(basis.dtype)
         self.hi = torch.maximum(hi.to(basis.dtype), self.lo + 1e-6)
-        axes = [torch.linspace(float(self.lo[i]), float(self.hi[i]), resolution, device=basis.device,
-                               dtype=basis.dtype) for i in range(3)]
-        points = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)  # [n^3, 3]
+        self.axes = [torch.linspace(float(self.lo[i]), float(self.hi[i]), resolution, device=basis.device,
+                                    dtype=basis.dtype) for i in range(3)]
+        if lazy:
+            self.table = None
+            self._ids = torch.empty(0, dtype=torch.long, device=basis.device)  # sorted flat grid indices decoded
+            self._values = basis.new_empty(0, basis.shape[1] + 1)
+            return
+        points = torch.stack(torch.meshgrid(*self.axes, indexing="ij"), -1).reshape(-1, 3)  # [n^3, 3]
         values = decode_for_relevance(points, decoder, basis, chunk)  # [n^3, C]
         n, c = resolution, values.shape[-1]
         self.table = values.reshape(n, n, n, c).permute(3, 0, 1, 2).unsqueeze(0).contiguous()  # [1, C, n, n, n]
+
+    @property
+    def decoded_points(self) -> int:
+        """Grid points decoded so far."""
+        return self.resolution ** 3 if self.table is not None else int(self._ids.numel())
 
     @torch.no_grad()
     def __call__(self, latents: torch.Tensor) -> torch.Tensor:
         """[..., 3] latents -> [..., C] reduced features."""
         shape = latents.shape[:-1]
-        flat = latents.reshape(-1, 3).to(self.table.dtype)
+        flat = latents.reshape(-1, 3).to(self.basis.dtype)
         unit = 2.0 * (flat - self.lo) / (self.hi - self.lo) - 1.0
-        # grid_sample reads (x, y, z) as (last, middle, first) table axis
-        grid = unit.flip(-1).reshape(1, 1, 1, -1, 3)
-        out = F.grid_sample(self.table, grid, mode="bilinear", padding_mode="border", align_corners=True)
-        out = out.reshape(self.table.shape[1], -1).T.contiguous()  # [P, C]
+        if self.table is None:
+            out = self._interpolate(unit)
+        else:
+            # grid_sample reads (x, y, z) as (last, middle, first) table axis
+            grid = unit.flip(-1).reshape(1, 1, 1, -1, 3)
+            out = F.grid_sample(self.table, grid, mode="bilinear", padding_mode="border", align_corners=True)
+            out = out.reshape(self.table.shape[1], -1).T.contiguous()  # [P, C]
         outside = ((flat < self.lo) | (flat > self.hi)).any(-1)
         if bool(outside.any()):
             out[outside] = decode_for_relevance(flat[outside], self.decoder, self.basis, self.chunk)
         return out.reshape(*shape, out.shape[-1])
+
+    def _interpolate(self, unit: torch.Tensor) -> torch.Tensor:
+        """The eager table's trilinear interpolation (grid_sample's, align_corners, border), on grid
+        points decoded on demand."""
+        n = self.resolution
+        pos = ((unit + 1.0) / 2.0 * (n - 1)).clamp(0, n - 1)  # [P, 3] grid coordinates
+        base = pos.floor().clamp(max=n - 2).long()  # the cell's first corner (its last cell for pos = n - 1)
+        frac = pos - base.to(pos.dtype)
+        steps = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], device=unit.device)
+        corners = base[:, None, :] + steps[None]  # [P, 8, 3]
+        flat_ids = (corners[..., 0] * n + corners[..., 1]) * n + corners[..., 2]  # [P, 8]
+        self._fill(flat_ids.unique())
+        values = self._values[torch.searchsorted(self._ids, flat_ids)]  # [P, 8, C]
+        w = torch.where(steps[None].bool(), frac[:, None, :], 1.0 - frac[:, None, :]).prod(-1)  # [P, 8]
+        return (w[..., None] * values).sum(1)
+
+    def _fill(self, wanted: torch.Tensor) -> None:
+        """Decode the grid points of the sorted ``wanted`` flat indices not decoded yet."""
+        if self._ids.numel():
+            at = torch.searchsorted(self._ids, wanted).clamp(max=self._ids.numel() - 1)
+            wanted = wanted[self._ids[at] != wanted]
+        if not wanted.numel():
+            return
+        n = self.resolution
+        i, j, k = wanted // (n * n), (wanted // n) % n, wanted % n
+        points = torch.stack([self.axes[0][i], self.axes[1][j], self.axes[2][k]], -1)
+        values = decode_for_relevance(points, self.decoder, self.basis, self.chunk)
+        ids, order = torch.cat([self._ids, wanted]).sort()
+        self._ids, self._values = ids, torch.cat([self._values, values])[order]
 
 
 @torch.no_grad()

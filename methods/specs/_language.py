@@ -66,8 +66,12 @@ class AnswerConfig:
     decode_chunk_cuda: int = 1 << 20
     """Pixels decoded at once on a CUDA device (no effect on results)."""
     decode_table: int = 0
-    """Decode 3-d latents through a table of this many samples per axis, interpolated per pixel, built
-    once per query (0: decode every pixel; :class:`methods.fields.language_field.DecodeTable`)."""
+    """On the CPU, decode 3-d latents through a table of this many samples per axis, interpolated per
+    pixel, its points decoded as latents reach them (0: decode every pixel;
+    :class:`methods.fields.language_field.DecodeTable`)."""
+    decode_table_cuda: int = 257
+    """The same on a CUDA device, the whole table decoded once per query (about twice the FPS; 99.998 %
+    of mask pixels as decoding every pixel in float32 on a fitted model). 0: decode every pixel."""
     decode_tf32: bool = True
     """On a CUDA device, decode with TensorFloat-32 matrix products (inputs rounded to 10 mantissa bits,
     float32 sums): relevance moves in its third digit; the CPU always decodes in float32."""
@@ -75,6 +79,10 @@ class AnswerConfig:
     def decode_chunk_for(self, device: "str | object") -> int:
         """:attr:`decode_chunk_cuda` on a CUDA device, else :attr:`decode_chunk`."""
         return self.decode_chunk_cuda if str(device).startswith("cuda") else self.decode_chunk
+
+    def decode_table_for(self, device: "str | object") -> int:
+        """:attr:`decode_table_cuda` on a CUDA device, else :attr:`decode_table`."""
+        return self.decode_table_cuda if str(device).startswith("cuda") else self.decode_table
 
 
 @dataclass
