@@ -49,6 +49,11 @@ HEADER = r"""
 #define HOT
 #endif
 #if defined(__GNUC__)
+#define PREFETCH(address) __builtin_prefetch(address)
+#else
+#define PREFETCH(address) ((void)0)
+#endif
+#if defined(__GNUC__)
 #define NOINLINE HOT __attribute__((noinline))
 #else
 #define NOINLINE
@@ -80,25 +85,6 @@ static inline float exp_f32(float x) {
 }
 
 static inline double exp_f64(double x) { return exp(x); }
-
-/* Smallest q(x, y) = a x^2 + 2 b x y + c y^2 (positive definite; ia = 1 / a, ic = 1 / c) over the
- * rectangle [x0, x1] x [y0, y1]: 0 when it holds the origin, else the smallest of the four edges' minima (a
- * convex function's minimum over a rectangle not holding its unconstrained minimum lies on the boundary). */
-static inline double quad_min_rect(double a, double b, double c, double ia, double ic, double x0, double x1,
-                                   double y0, double y1) {
-    if (x0 <= 0.0 && x1 >= 0.0 && y0 <= 0.0 && y1 >= 0.0) return 0.0;
-    double best = INFINITY, xs[2] = {x0, x1}, ys[2] = {y0, y1};
-    for (int k = 0; k < 2; ++k) {
-        double x = xs[k], y = clamp_d(-b * x * ic, y0, y1);
-        double q = a * x * x + 2.0 * b * x * y + c * y * y;
-        if (q < best) best = q;
-        y = ys[k];
-        x = clamp_d(-b * y * ia, x0, x1);
-        q = a * x * x + 2.0 * b * x * y + c * y * y;
-        if (q < best) best = q;
-    }
-    return best;
-}
 
 /* EWA projection of one Gaussian, in double (see torch_cpu.project_gaussians, which this mirrors):
  * everything the forward and the backward need. view: [12] world-to-camera rows (R | t); intr: fx, fy,
@@ -160,6 +146,9 @@ static inline void ewa(Ewa *e, const double *m, const double *q, const double *s
     e->B = -e->cb / ds;
     e->C = e->ca / ds;
 }
+
+/* contrib bit of pixel block blk of nblk (with more than 8 blocks, bit 0 stands for all of them) */
+static inline uint8_t block_bit(int64_t blk, int64_t nblk) { return nblk > 8 ? (uint8_t)1 : (uint8_t)(1u << blk); }
 
 static void *zalloc(size_t count, size_t size) {
     /* 64-byte aligned, zeroed; count rounded up so that the size is a multiple of the alignment */
@@ -333,10 +322,13 @@ int64_t FN(layout_bound)(int64_t n_vis, const int64_t *order, const int64_t *box
 }
 
 /* The tile layout: for the visible Gaussians `order` (front to back), one row per tile of their pixel box
- * whose pixel-centre rectangle meets the ellipse q(d) <= qmax (a box of one tile is kept untested),
- * ordered by (tile, depth): tile t's Gaussians are rows[tile_start[t] .. tile_start[t + 1]).
- * params is [n, 6] (u, v, a, b, c, opacity); rows has room for cap (>= layout_bound) entries. Returns the
- * number of rows, -1 when out of memory. */
+ * whose pixel-centre rectangle meets the ellipse q(d) = a dx^2 + 2 b dx dy + c dy^2 <= qmax, ordered by
+ * (tile, depth): tile t's Gaussians are rows[tile_start[t] .. tile_start[t + 1]). Exact per band of tiles:
+ * over dy in the band's pixel-centre rows the ellipse's chord spans dx = (-b dy -+ sqrt(a qmax - D dy^2)) / a
+ * (D = ac - b^2); its right end is concave in dy and peaks at the rightmost point dy* = -b sqrt(qmax / (c D)),
+ * so the band's largest dx is at dy* clamped into the band, the smallest at -dy* clamped; a tile meets the
+ * ellipse iff its dx range overlaps the band's. params is [n, 6] (u, v, a, b, c, opacity); rows has room
+ * for cap (>= layout_bound) entries. Returns the number of rows, -1 when out of memory. */
 int64_t FN(layout_build)(int64_t n_vis, const int64_t *order, const SCALAR *params, const SCALAR *qmax,
                          const int64_t *box, int64_t ts, int64_t tiles_x, int64_t tiles_y, int64_t width,
                          int64_t height, int64_t *tile_start, int32_t *rows, int64_t cap) {
@@ -353,24 +345,34 @@ int64_t FN(layout_build)(int64_t n_vis, const int64_t *order, const SCALAR *para
     for (int64_t r = 0; r < n_vis; ++r) {
         const int64_t g = order[r];
         const SCALAR *pg = params + 6 * g;
-        const double u = pg[0], v = pg[1], a = pg[2], b = pg[3], c = pg[4], q = qmax[g];
-        const double ia = 1.0 / (a > 1e-30 ? a : 1e-30), ic = 1.0 / (c > 1e-30 ? c : 1e-30);
+        const double u = pg[0], v = pg[1], a = pg[2] > 1e-30 ? pg[2] : 1e-30, b = pg[3];
+        const double c = pg[4] > 1e-30 ? pg[4] : 1e-30, q = qmax[g];
+        const double det = a * c - b * b > 1e-30 ? a * c - b * b : 1e-30;
+        const double reach = sqrt(q * a / det), dy_star = -b * sqrt(q / (c * det)), aq = a * q;
         const int64_t *bx = box + 4 * g;
         const int64_t tx0 = bx[0] / ts, tx1 = bx[1] / ts, ty0 = bx[2] / ts, ty1 = bx[3] / ts;
         const int single = tx0 == tx1 && ty0 == ty1;
         int32_t k = 0;
         for (int64_t ty = ty0; ty <= ty1; ++ty) {
-            const double y0 = (double)(ty * ts) + 0.5 - v;
-            const double y1 = (double)(min_i64((ty + 1) * ts, height) - 1) + 0.5 - v;
-            for (int64_t tx = tx0; tx <= tx1; ++tx) {
-                const double x0 = (double)(tx * ts) + 0.5 - u;
-                const double x1 = (double)(min_i64((tx + 1) * ts, width) - 1) + 0.5 - u;
-                if (single || quad_min_rect(a, b, c, ia, ic, x0, x1, y0, y1) <= q) {
-                    const int32_t t = (int32_t)(ty * tiles_x + tx);
-                    tile_of[total++] = t;
-                    tile_start[t + 1] += 1;
-                    ++k;
-                }
+            int64_t first = tx0, end = tx1;  /* the band's tiles that meet the ellipse */
+            if (!single) {
+                const double y0 = (double)(ty * ts) + 0.5 - v;
+                const double y1 = (double)(min_i64((ty + 1) * ts, height) - 1) + 0.5 - v;
+                const double lo = y0 > -reach ? y0 : -reach, hi = y1 < reach ? y1 : reach;
+                if (lo > hi) continue;  /* the band misses the ellipse */
+                const double yr = clamp_d(dy_star, lo, hi), yl = clamp_d(-dy_star, lo, hi);
+                const double rr = aq - det * yr * yr, rl = aq - det * yl * yl;
+                const double x_max = (sqrt(rr > 0 ? rr : 0) - b * yr) / a;
+                const double x_min = (-sqrt(rl > 0 ? rl : 0) - b * yl) / a;
+                /* tile tx spans pixel centres dx in [tx ts + 0.5 - u, tx ts + ts - 0.5 - u] */
+                while (first <= end && (double)(first * ts + ts) - 0.5 - u < x_min) ++first;
+                while (end >= first && (double)(end * ts) + 0.5 - u > x_max) --end;
+            }
+            for (int64_t tx = first; tx <= end; ++tx) {
+                const int32_t t = (int32_t)(ty * tiles_x + tx);
+                tile_of[total++] = t;
+                tile_start[t + 1] += 1;
+                ++k;
             }
         }
         kept[r] = k;
@@ -392,33 +394,75 @@ static inline double FN(lane_sum)(const SCALAR *x) {
     return (double)(((x[0] + x[1]) + (x[2] + x[3])) + ((x[4] + x[5]) + (x[6] + x[7])));
 }
 
+/* The tile's pixels are processed in blocks of LANES lanes; a block is skipped for a Gaussian when none of
+ * its pixels is still compositing with sigma below the Gaussian's bound smax (alpha < alpha_min there for
+ * sure): an exact shortcut, as the skipped pairs change nothing. Blocks of a row that composite are flagged
+ * in contrib (block_bit). */
+
+/* One block of one Gaussian in the forward: returns whether any lane composited (and flags stops in
+ * *stopped). The arrays are the block's LANES lanes. */
+NOINLINE static int32_t FN(fw_block)(const SCALAR *restrict px, const SCALAR *restrict py, SCALAR *restrict T,
+                                   int32_t *restrict act, int32_t *restrict lj, int32_t *restrict cnt,
+                                   SCALAR *restrict w, SCALAR u, SCALAR v, SCALAR a, SCALAR b, SCALAR c, SCALAR o,
+                                   SCALAR amin, SCALAR amax, SCALAR tmin, int32_t next) {
+    int32_t any_ok = 0;
+    for (int64_t p = 0; p < LANES; ++p) {
+        SCALAR dx = px[p] - u, dy = py[p] - v;
+        SCALAR sig = (SCALAR)0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy;
+        SCALAR al = o * EXP(-sig);
+        al = al < amax ? al : amax;
+        SCALAR tp = T[p], tn = tp * ((SCALAR)1 - al);
+        /* int32 masks combined with & and ^: the form the vectoriser if-converts */
+        int32_t ok = act[p] & (al >= amin);
+        int32_t stop = ok & (tn < tmin);
+        ok = ok ^ stop;
+        act[p] = act[p] ^ stop;
+        w[p] = ok ? al * tp : (SCALAR)0;
+        T[p] = ok ? tn : tp;
+        lj[p] = ok ? next : lj[p];
+        cnt[p] += ok;
+        any_ok |= ok;
+    }
+    return any_ok;
+}
+
+/* Whether a block needs the Gaussian at all: some lane still compositing with sigma <= smax. */
+NOINLINE static int32_t FN(block_live)(const SCALAR *restrict px, const SCALAR *restrict py,
+                                     const int32_t *restrict act, SCALAR u, SCALAR v, SCALAR a, SCALAR b, SCALAR c,
+                                     SCALAR smax) {
+    int32_t live = 0;
+    for (int64_t p = 0; p < LANES; ++p) {
+        SCALAR dx = px[p] - u, dy = py[p] - v;
+        SCALAR sig = (SCALAR)0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy;
+        live |= act[p] & (sig <= smax);
+    }
+    return live;
+}
+
 /* Forward compositing, tile by tile: for each Gaussian of the tile's list (front to back) all of the
- * tile's pixels at once (vector lanes), until every pixel has stopped. params is [N, 6] (u, v, a, b, c,
- * opacity), feat [N, C]. Writes out[H * W, C], t_end[H * W] (final transmittance) and last[H * W] (one
- * past the list position of the pixel's last composited Gaussian, 0 for none); returns the number of
- * composited pairs, -1 when out of memory. contrib[rows] (zeroed by the caller) flags the rows that
- * composite on at least one pixel: the backward skips the others. With trip_pix non-NULL, also lists every
- * composited pair: flat
- * pixel index, Gaussian and weight alpha T (trip_cap long: the number of pairs, known from an earlier
- * call). */
-HOT int64_t FN(forward)(const SCALAR *params, int64_t n, const SCALAR *feat, int64_t C, const int64_t *tile_start,
-                        const int32_t *rows, int64_t ts, int64_t tiles_x, int64_t tiles_y, int64_t width,
-                        int64_t height, double alpha_min, double alpha_max, double t_min, SCALAR *out,
+ * tile's pixels at once (vector lanes, block by block), until every pixel has stopped. params is [N, 6]
+ * (u, v, a, b, c, opacity), smax [N] the sigma beyond which alpha < alpha_min, feat [N, C]. Writes
+ * out[H * W, C], t_end[H * W] (final transmittance) and last[H * W] (one past the list position of the
+ * pixel's last composited Gaussian, 0 for none), and contrib[rows] (zeroed by the caller; see above);
+ * returns the number of composited pairs, -1 when out of memory. With trip_pix non-NULL, also lists every
+ * composited pair: flat pixel index, Gaussian and weight alpha T (trip_cap long: the number of pairs,
+ * known from an earlier call). */
+HOT int64_t FN(forward)(const SCALAR *params, const SCALAR *smax, const SCALAR *feat, int64_t C,
+                        const int64_t *tile_start, const int32_t *rows, int64_t ts, int64_t tiles_x, int64_t tiles_y,
+                        int64_t width, int64_t height, double alpha_min, double alpha_max, double t_min, SCALAR *out,
                         SCALAR *t_end, int32_t *last, uint8_t *contrib, int64_t *trip_pix, int32_t *trip_g,
                         SCALAR *trip_w, int64_t trip_cap) {
-    const int64_t P = ts * ts, PP = (P + LANES - 1) / LANES * LANES;
+    const int64_t P = ts * ts, PP = (P + LANES - 1) / LANES * LANES, nblk = PP / LANES;
     const SCALAR amin = (SCALAR)alpha_min, amax = (SCALAR)alpha_max, tmin = (SCALAR)t_min;
     int64_t n_trip = 0;
-    (void)n;
     SCALAR *px = (SCALAR *)zalloc((size_t)PP * (4 + (size_t)C), sizeof(SCALAR));
     int32_t *lj = (int32_t *)zalloc((size_t)PP * 3, sizeof(int32_t));
     if (!px || !lj) {
         free(px); free(lj);
         return -1;
     }
-    /* restrict: the buffers do not overlap, which lets the compiler vectorise without runtime checks */
-    SCALAR *restrict py = px + PP, *restrict T = py + PP, *restrict w = T + PP, *restrict acc = w + PP;
-    int32_t *restrict act = lj + PP, *restrict cnt = act + PP;  /* act: the pixel is still compositing */
+    SCALAR *py = px + PP, *T = py + PP, *w = T + PP, *acc = w + PP;
+    int32_t *act = lj + PP, *cnt = act + PP;  /* act: the pixel is still compositing */
     for (int64_t ty = 0; ty < tiles_y; ++ty) {
         for (int64_t tx = 0; tx < tiles_x; ++tx) {
             const int64_t t = ty * tiles_x + tx, s0 = tile_start[t], m = tile_start[t + 1] - s0;
@@ -433,44 +477,42 @@ HOT int64_t FN(forward)(const SCALAR *params, int64_t n, const SCALAR *feat, int
             memset(acc, 0, sizeof(SCALAR) * (size_t)(C * PP));
             for (int64_t j = 0; j < m; ++j) {
                 const int64_t g = rows[s0 + j];
+                if (j + 2 < m) {  /* rows are in depth order, Gaussians anywhere in memory: fetch ahead */
+                    const int64_t g2 = rows[s0 + j + 2];
+                    PREFETCH(params + 6 * g2);
+                    PREFETCH(feat + C * g2);
+                    PREFETCH(smax + g2);
+                }
                 const SCALAR *pg = params + 6 * g;
-                const SCALAR u = pg[0], v = pg[1], a = pg[2], b = pg[3], c = pg[4], o = pg[5];
+                const SCALAR u = pg[0], v = pg[1], a = pg[2], b = pg[3], c = pg[4], o = pg[5], sm = smax[g];
                 const int32_t next = (int32_t)(j + 1);
-                int32_t any_ok = 0;
-                for (int64_t p = 0; p < PP; ++p) {
-                    SCALAR dx = px[p] - u, dy = py[p] - v;
-                    SCALAR sig = (SCALAR)0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy;
-                    SCALAR al = o * EXP(-sig);
-                    al = al < amax ? al : amax;
-                    SCALAR tp = T[p], tn = tp * ((SCALAR)1 - al);
-                    /* int32 masks combined with & and ^: the form the vectoriser if-converts */
-                    int32_t ok = act[p] & (al >= amin);
-                    int32_t stop = ok & (tn < tmin);
-                    ok = ok ^ stop;
-                    act[p] = act[p] ^ stop;
-                    w[p] = ok ? al * tp : (SCALAR)0;
-                    T[p] = ok ? tn : tp;
-                    lj[p] = ok ? next : lj[p];
-                    cnt[p] += ok;
-                    any_ok |= ok;
-                }
-                contrib[s0 + j] = (uint8_t)any_ok;
+                uint8_t bits = 0;
                 const SCALAR *f = feat + C * g;
-                for (int64_t k = 0; k < C; ++k) {
-                    const SCALAR fk = f[k];
-                    SCALAR *ak = acc + k * PP;
-                    for (int64_t p = 0; p < PP; ++p) ak[p] += w[p] * fk;
-                }
-                if (trip_pix) {
-                    for (int64_t p = 0; p < PP; ++p) {
-                        if (w[p] > (SCALAR)0 && n_trip < trip_cap) {
-                            trip_pix[n_trip] = (ty * ts + p / ts) * width + tx * ts + p % ts;
-                            trip_g[n_trip] = (int32_t)g;
-                            trip_w[n_trip] = w[p];
-                            ++n_trip;
+                for (int64_t blk = 0; blk < nblk; ++blk) {
+                    const int64_t b0 = blk * LANES;
+                    if (!FN(block_live)(px + b0, py + b0, act + b0, u, v, a, b, c, sm)) continue;
+                    if (!FN(fw_block)(px + b0, py + b0, T + b0, act + b0, lj + b0, cnt + b0, w + b0, u, v, a, b, c,
+                                      o, amin, amax, tmin, next))
+                        continue;  /* stops only (T unchanged, nothing added) */
+                    bits |= block_bit(blk, nblk);
+                    for (int64_t k = 0; k < C; ++k) {
+                        const SCALAR fk = f[k];
+                        SCALAR *restrict ak = acc + k * PP + b0;
+                        const SCALAR *restrict wb = w + b0;
+                        for (int64_t p = 0; p < LANES; ++p) ak[p] += wb[p] * fk;
+                    }
+                    if (trip_pix) {
+                        for (int64_t p = b0; p < b0 + LANES; ++p) {
+                            if (w[p] > (SCALAR)0 && n_trip < trip_cap) {
+                                trip_pix[n_trip] = (ty * ts + p / ts) * width + tx * ts + p % ts;
+                                trip_g[n_trip] = (int32_t)g;
+                                trip_w[n_trip] = w[p];
+                                ++n_trip;
+                            }
                         }
                     }
                 }
+                contrib[s0 + j] = bits;
                 if ((j & 7) == 7) {  /* every pixel stopped: the rest of the list is hidden */
                     int32_t any = 0;
                     for (int64_t p = 0; p < PP; ++p) any |= act[p];
@@ -493,119 +535,111 @@ HOT int64_t FN(forward)(const SCALAR *params, int64_t n, const SCALAR *feat, int
     return pairs;
 }
 
-/* One list position of the backward, first part: for every lane (pixel), the pair's geometry, alpha, the
- * transmittance before it (recovered by division), its weight and masks. Separate functions with
- * restrict parameters, so that the compiler vectorises their loops without runtime overlap checks; not
- * inlined: GCC 12 miscompiled them inlined into the list loop (wrong gradients at -O3 only). */
-NOINLINE static void FN(bw_alpha)(int64_t PP, const SCALAR *restrict px, const SCALAR *restrict py,
-                                  const SCALAR *restrict T, const int32_t *restrict lj, int32_t j32, SCALAR u,
-                                  SCALAR v, SCALAR a, SCALAR b, SCALAR c, SCALAR o, SCALAR amin, SCALAR amax,
-                                  SCALAR *restrict dxs, SCALAR *restrict dys, SCALAR *restrict als,
-                                  SCALAR *restrict oks, SCALAR *restrict frees, SCALAR *restrict oms,
-                                  SCALAR *restrict tbs, SCALAR *restrict ws, SCALAR *restrict qs) {
-    for (int64_t p = 0; p < PP; ++p) {
+/* One block of one list position in the backward, first part: for every lane (pixel), the pair's geometry,
+ * alpha, 1 / (1 - alpha), the transmittance before it (recovered from the one after), its weight and
+ * masks. Separate functions with restrict parameters, so that the compiler vectorises their loops without
+ * runtime overlap checks; not inlined: GCC 12 miscompiled them inlined into the list loop (wrong
+ * gradients at -O3 only). */
+NOINLINE static void FN(bw_alpha)(const SCALAR *restrict px, const SCALAR *restrict py, const SCALAR *restrict T,
+                                  const int32_t *restrict lj, int32_t j32, SCALAR u, SCALAR v, SCALAR a, SCALAR b,
+                                  SCALAR c, SCALAR o, SCALAR amin, SCALAR amax, SCALAR *restrict dxs,
+                                  SCALAR *restrict dys, SCALAR *restrict als, SCALAR *restrict oks,
+                                  SCALAR *restrict frees, SCALAR *restrict oms, SCALAR *restrict tbs,
+                                  SCALAR *restrict ws) {
+    for (int64_t p = 0; p < LANES; ++p) {
         SCALAR dx = px[p] - u, dy = py[p] - v;
         SCALAR sig = (SCALAR)0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy;
         SCALAR raw = o * EXP(-sig);
         SCALAR al = raw < amax ? raw : amax;
         int32_t ok = (j32 < lj[p]) & (al >= amin);
-        SCALAR om = (SCALAR)1 - al, tb = T[p] / om;
+        SCALAR inv = (SCALAR)1 / ((SCALAR)1 - al), tb = T[p] * inv;  /* one division per lane */
         dxs[p] = dx;
         dys[p] = dy;
         als[p] = al;
         oks[p] = ok ? (SCALAR)1 : (SCALAR)0;
         frees[p] = (ok & (raw <= amax)) ? (SCALAR)1 : (SCALAR)0;  /* composited, alpha not clamped */
-        oms[p] = om;
+        oms[p] = inv;
         tbs[p] = tb;
         ws[p] = ok ? al * tb : (SCALAR)0;
-        qs[p] = (SCALAR)0;
     }
 }
 
-/* Second part: q_p = sum_k g_p,k f_k (with G [C, PP], channels first; for the parameters' gradients),
- * and (gf non-NULL) the Gaussian's channel gradients gf[k] += sum_p w_p g_p,k (with Gt [PP, C], pixels
- * first: the channels are the vector lanes, no reduction across lanes). acc: C scratch. */
+/* Second part: qs_p = sum_k g_p,k f_k (with G [C, PP], channels first; for the parameters' gradients),
+ * and (acc non-NULL) acc[k] += sum_p w_p g_p,k (with Gt [PP, C], pixels first: the channels are the
+ * vector lanes). G and Gt point at the block's first lane. */
 NOINLINE static void FN(bw_channels)(int64_t PP, int64_t C, const SCALAR *restrict G, const SCALAR *restrict Gt,
                                      const SCALAR *restrict f, const SCALAR *restrict ws, SCALAR *restrict qs,
-                                     SCALAR *restrict acc, double *restrict gf) {
+                                     SCALAR *restrict acc) {
     if (qs) {
+        for (int64_t p = 0; p < LANES; ++p) qs[p] = (SCALAR)0;
         for (int64_t k = 0; k < C; ++k) {
             const SCALAR fk = f[k];
             const SCALAR *restrict gk = G + k * PP;
-            for (int64_t p = 0; p < PP; ++p) qs[p] += gk[p] * fk;
+            for (int64_t p = 0; p < LANES; ++p) qs[p] += gk[p] * fk;
         }
     }
-    if (gf) {
-        for (int64_t k = 0; k < C; ++k) acc[k] = (SCALAR)0;
-        for (int64_t p = 0; p < PP; ++p) {
+    if (acc) {
+        for (int64_t p = 0; p < LANES; ++p) {
             const SCALAR wp = ws[p];
             const SCALAR *restrict gp = Gt + p * C;
             for (int64_t k = 0; k < C; ++k) acc[k] += wp * gp[k];
         }
-        for (int64_t k = 0; k < C; ++k) gf[k] += (double)acc[k];
     }
 }
 
 /* Third part: d loss / d alpha per lane, the running sums R and transmittances T moved past the pair,
- * and the lanes' partial sums of the gradients of (u, v, a, b, c) and of opacity x opacity. */
-NOINLINE static void FN(bw_params)(int64_t PP, const SCALAR *restrict tbs, const SCALAR *restrict qs,
-                                   const SCALAR *restrict ga, const SCALAR *restrict oms, const SCALAR *restrict ws,
-                                   const SCALAR *restrict oks, const SCALAR *restrict frees,
-                                   const SCALAR *restrict als, const SCALAR *restrict dxs,
-                                   const SCALAR *restrict dys, SCALAR a, SCALAR b, SCALAR c, SCALAR *restrict R,
-                                   SCALAR *restrict T, SCALAR *restrict pu, SCALAR *restrict pv,
-                                   SCALAR *restrict pa, SCALAR *restrict pb, SCALAR *restrict pc,
-                                   SCALAR *restrict po) {
-    for (int64_t l = 0; l < LANES; ++l) pu[l] = pv[l] = pa[l] = pb[l] = pc[l] = po[l] = (SCALAR)0;
-    for (int64_t p0 = 0; p0 < PP; p0 += LANES) {
-        for (int64_t l = 0; l < LANES; ++l) {
-            const int64_t p = p0 + l;
-            /* out = sum_i w_i f_i: d out / d alpha_i = T_i f_i - (sum_{j>i} w_j f_j) / (1 - alpha_i) */
-            SCALAR g_alpha = tbs[p] * qs[p] - (R[p] - ga[p]) / oms[p];
-            R[p] += ws[p] * qs[p];
-            T[p] = oks[p] > (SCALAR)0 ? tbs[p] : T[p];
-            SCALAR gal = frees[p] * als[p] * g_alpha;  /* d alpha / d sigma = -alpha */
-            SCALAR dx = dxs[p], dy = dys[p];
-            pu[l] += gal * (a * dx + b * dy);  /* d sigma / d u = -(a dx + b dy) */
-            pv[l] += gal * (b * dx + c * dy);
-            pa[l] -= gal * (SCALAR)0.5 * dx * dx;
-            pb[l] -= gal * dx * dy;
-            pc[l] -= gal * (SCALAR)0.5 * dy * dy;
-            po[l] += gal;  /* d alpha / d opacity = alpha / opacity */
-        }
+ * and the lanes' partial sums of the gradients of (u, v, a, b, c) and of opacity x opacity (added). */
+NOINLINE static void FN(bw_params)(const SCALAR *restrict tbs, const SCALAR *restrict qs, const SCALAR *restrict ga,
+                                   const SCALAR *restrict oms, const SCALAR *restrict ws, const SCALAR *restrict oks,
+                                   const SCALAR *restrict frees, const SCALAR *restrict als,
+                                   const SCALAR *restrict dxs, const SCALAR *restrict dys, SCALAR a, SCALAR b,
+                                   SCALAR c, SCALAR *restrict R, SCALAR *restrict T, SCALAR *restrict pu,
+                                   SCALAR *restrict pv, SCALAR *restrict pa, SCALAR *restrict pb,
+                                   SCALAR *restrict pc, SCALAR *restrict po) {
+    for (int64_t p = 0; p < LANES; ++p) {
+        /* out = sum_i w_i f_i: d out / d alpha_i = T_i f_i - (sum_{j>i} w_j f_j) / (1 - alpha_i) */
+        SCALAR g_alpha = tbs[p] * qs[p] - (R[p] - ga[p]) * oms[p];  /* oms: 1 / (1 - alpha) */
+        R[p] += ws[p] * qs[p];
+        T[p] = oks[p] > (SCALAR)0 ? tbs[p] : T[p];
+        SCALAR gal = frees[p] * als[p] * g_alpha;  /* d alpha / d sigma = -alpha */
+        SCALAR dx = dxs[p], dy = dys[p];
+        pu[p] += gal * (a * dx + b * dy);  /* d sigma / d u = -(a dx + b dy) */
+        pv[p] += gal * (b * dx + c * dy);
+        pa[p] -= gal * (SCALAR)0.5 * dx * dx;
+        pb[p] -= gal * dx * dy;
+        pc[p] -= gal * (SCALAR)0.5 * dy * dy;
+        po[p] += gal;  /* d alpha / d opacity = alpha / opacity */
     }
 }
 
 /* Third part when the Gaussians' parameters want no gradient: only the transmittances move past the pair. */
-NOINLINE static void FN(bw_advance)(int64_t PP, const SCALAR *restrict tbs, const SCALAR *restrict oks,
-                                    SCALAR *restrict T) {
-    for (int64_t p = 0; p < PP; ++p) T[p] = oks[p] > (SCALAR)0 ? tbs[p] : T[p];
+NOINLINE static void FN(bw_advance)(const SCALAR *restrict tbs, const SCALAR *restrict oks, SCALAR *restrict T) {
+    for (int64_t p = 0; p < LANES; ++p) T[p] = oks[p] > (SCALAR)0 ? tbs[p] : T[p];
 }
 
 /* Backward of forward(): with g_out[H * W, C] (may be NULL) the gradient of the composited channels and
  * g_acc[H * W] (may be NULL) that of the accumulated alpha 1 - t_end, ADDS the gradients of params into
  * grad_params[N, 6] and of feat into grad_feat[N, C] (double; either may be NULL: not wanted). Walks each
- * tile's list back to front with all its pixels at once, recovering each pixel's transmittance by
- * division (1 - alpha >= 1 - alpha_max). Pairs whose alpha was clamped at alpha_max pass no gradient to
- * the mean, conic or opacity. Returns 0, or -1 when out of memory. */
-HOT int FN(backward)(const SCALAR *params, int64_t n, const SCALAR *feat, int64_t C, const int64_t *tile_start,
+ * tile's list back to front with all its pixels at once, block by block where the forward composited,
+ * recovering each pixel's transmittance by division (1 - alpha >= 1 - alpha_max). Pairs whose alpha was
+ * clamped at alpha_max pass no gradient to the mean, conic or opacity. Returns 0, or -1 when out of memory. */
+HOT int FN(backward)(const SCALAR *params, const SCALAR *feat, int64_t C, const int64_t *tile_start,
                      const int32_t *rows, int64_t ts, int64_t tiles_x, int64_t tiles_y, int64_t width, int64_t height,
                      double alpha_min, double alpha_max, const SCALAR *t_end, const int32_t *last,
                      const uint8_t *contrib, const SCALAR *g_out, const SCALAR *g_acc, double *grad_params,
                      double *grad_feat) {
-    const int64_t P = ts * ts, PP = (P + LANES - 1) / LANES * LANES;
+    const int64_t P = ts * ts, PP = (P + LANES - 1) / LANES * LANES, nblk = PP / LANES;
     const SCALAR amin = (SCALAR)alpha_min, amax = (SCALAR)alpha_max;
-    (void)n;
-    SCALAR *px = (SCALAR *)zalloc((size_t)PP * (14 + 2 * (size_t)C) + 7 * LANES + (size_t)C, sizeof(SCALAR));
+    SCALAR *px = (SCALAR *)zalloc((size_t)PP * (5 + 2 * (size_t)C) + 15 * LANES + (size_t)C, sizeof(SCALAR));
     int32_t *lj = (int32_t *)zalloc((size_t)PP, sizeof(int32_t));
     if (!px || !lj) {
         free(px); free(lj);
         return -1;
     }
-    SCALAR *py = px + PP, *T = py + PP, *R = T + PP, *ga = R + PP, *dxs = ga + PP, *dys = dxs + PP;
-    SCALAR *als = dys + PP, *oks = als + PP, *frees = oks + PP, *oms = frees + PP, *tbs = oms + PP;
-    SCALAR *ws = tbs + PP, *qs = ws + PP, *G = qs + PP, *Gt = G + C * PP, *part = Gt + C * PP;
-    SCALAR *acc = part + 7 * LANES;
+    SCALAR *py = px + PP, *T = py + PP, *R = T + PP, *ga = R + PP, *G = ga + PP, *Gt = G + C * PP;
+    SCALAR *dxs = Gt + C * PP, *dys = dxs + LANES, *als = dys + LANES, *oks = als + LANES, *frees = oks + LANES;
+    SCALAR *oms = frees + LANES, *tbs = oms + LANES, *ws = tbs + LANES, *qs = ws + LANES, *part = qs + LANES;
+    SCALAR *acc = part + 6 * LANES;
     for (int64_t ty = 0; ty < tiles_y; ++ty) {
         for (int64_t tx = 0; tx < tiles_x; ++tx) {
             const int64_t t = ty * tiles_x + tx, s0 = tile_start[t];
@@ -627,20 +661,41 @@ HOT int FN(backward)(const SCALAR *params, int64_t n, const SCALAR *feat, int64_
                 jmax = lj[p] > jmax ? lj[p] : jmax;
             }
             for (int64_t j = (int64_t)jmax - 1; j >= 0; --j) {
-                if (!contrib[s0 + j]) continue;  /* composited nowhere: no gradient, T unchanged */
+                const uint8_t bits = contrib[s0 + j];
+                if (j >= 2) {  /* fetch ahead the rows' Gaussians and their gradients (anywhere in memory) */
+                    const int64_t g2 = rows[s0 + j - 2];
+                    PREFETCH(params + 6 * g2);
+                    PREFETCH(feat + C * g2);
+                    if (grad_params) PREFETCH(grad_params + 6 * g2);
+                    if (grad_feat) PREFETCH(grad_feat + C * g2);
+                }
+                if (!bits) continue;  /* composited nowhere: no gradient, T unchanged */
                 const int64_t g = rows[s0 + j];
                 const SCALAR *pg = params + 6 * g;
                 const SCALAR u = pg[0], v = pg[1], a = pg[2], b = pg[3], c = pg[4], o = pg[5];
-                FN(bw_alpha)(PP, px, py, T, lj, (int32_t)j, u, v, a, b, c, o, amin, amax, dxs, dys, als, oks, frees,
-                             oms, tbs, ws, qs);
-                FN(bw_channels)(PP, C, G, Gt, feat + C * g, ws, grad_params ? qs : NULL, acc,
-                                grad_feat ? grad_feat + C * g : NULL);
-                if (!grad_params) {
-                    FN(bw_advance)(PP, tbs, oks, T);
-                } else {
-                    FN(bw_params)(PP, tbs, qs, ga, oms, ws, oks, frees, als, dxs, dys, a, b, c, R, T, part,
-                                  part + LANES, part + 2 * LANES, part + 3 * LANES, part + 4 * LANES,
-                                  part + 5 * LANES);
+                const SCALAR *f = feat + C * g;
+                for (int64_t l = 0; l < 6 * LANES; ++l) part[l] = (SCALAR)0;
+                for (int64_t k = 0; k < C; ++k) acc[k] = (SCALAR)0;
+                for (int64_t blk = 0; blk < nblk; ++blk) {
+                    if (nblk <= 8 && !(bits & (1u << blk))) continue;
+                    const int64_t b0 = blk * LANES;
+                    FN(bw_alpha)(px + b0, py + b0, T + b0, lj + b0, (int32_t)j, u, v, a, b, c, o, amin, amax, dxs,
+                                 dys, als, oks, frees, oms, tbs, ws);
+                    FN(bw_channels)(PP, C, G + b0, Gt + b0 * C, f, ws, grad_params ? qs : NULL,
+                                    grad_feat ? acc : NULL);
+                    if (!grad_params) {
+                        FN(bw_advance)(tbs, oks, T + b0);
+                    } else {
+                        FN(bw_params)(tbs, qs, ga + b0, oms, ws, oks, frees, als, dxs, dys, a, b, c, R + b0, T + b0,
+                                      part, part + LANES, part + 2 * LANES, part + 3 * LANES, part + 4 * LANES,
+                                      part + 5 * LANES);
+                    }
+                }
+                if (grad_feat) {
+                    double *gf = grad_feat + C * g;
+                    for (int64_t k = 0; k < C; ++k) gf[k] += (double)acc[k];
+                }
+                if (grad_params) {
                     double *gp = grad_params + 6 * g;
                     for (int k = 0; k < 5; ++k) gp[k] += FN(lane_sum)(part + k * LANES);
                     gp[5] += FN(lane_sum)(part + 5 * LANES) / (double)o;
@@ -651,7 +706,6 @@ HOT int FN(backward)(const SCALAR *params, int64_t n, const SCALAR *feat, int64_
     free(px); free(lj);
     return 0;
 }
-
 /* ---- HexPlane (methods/gaussians/hexplane.py) ----------------------------------------------------
  * planes holds, per level l: the three spatial planes [3, R_l, R_l, C] then the three time planes
  * [3, T, R_l, C], channels last, at offsets[2 l] and offsets[2 l + 1]; res[l] = R_l. A point's plane
@@ -1077,10 +1131,10 @@ _SIGNATURES = {
                                 _PTR, _PTR, _PTR, _PTR]),
     "layout_bound": (_I64, [_I64, _PTR, _PTR, _I64]),
     "layout_build": (_I64, [_I64, _PTR, _PTR, _PTR, _PTR, _I64, _I64, _I64, _I64, _I64, _PTR, _PTR, _I64]),
-    "forward": (_I64, [_PTR, _I64, _PTR, _I64, _PTR, _PTR, _I64, _I64, _I64, _I64, _I64, _F64, _F64, _F64, _PTR,
+    "forward": (_I64, [_PTR, _PTR, _PTR, _I64, _PTR, _PTR, _I64, _I64, _I64, _I64, _I64, _F64, _F64, _F64, _PTR,
                        _PTR, _PTR, _PTR, _PTR, _PTR, _PTR, _I64]),
-    "backward": (ctypes.c_int, [_PTR, _I64, _PTR, _I64, _PTR, _PTR, _I64, _I64, _I64, _I64, _I64, _F64, _F64, _PTR,
-                                _PTR, _PTR, _PTR, _PTR, _PTR, _PTR]),
+    "backward": (ctypes.c_int, [_PTR, _PTR, _I64, _PTR, _PTR, _I64, _I64, _I64, _I64, _I64, _F64, _F64, _PTR, _PTR,
+                                _PTR, _PTR, _PTR, _PTR, _PTR]),
 }
 
 
@@ -1167,6 +1221,15 @@ def layout(lib: ctypes.CDLL, params: Tensor, cull_q: Tensor, pixel_box: Tensor, 
     return NativeLayout(tile_start, rows[:total], tiles_x, tiles_y, ts)
 
 
+def sigma_bound(params: Tensor, alpha_min: float) -> Tensor:
+    """[N] sigma beyond which ``opacity exp(-sigma) < alpha_min`` for sure (margins keep rounding from ever
+    dropping a pair that composites; -1 where the opacity itself is below ``alpha_min``): lets the kernels
+    skip pixel blocks a Gaussian cannot reach."""
+    o = params[:, 5].detach().double()
+    bound = torch.log(o.clamp_min(alpha_min) / alpha_min) * (1 + 1e-4) + 1e-4
+    return torch.where(o >= alpha_min, bound, torch.full_like(bound, -1.0)).to(params.dtype).contiguous()
+
+
 class Composite(torch.autograd.Function):
     """Front-to-back compositing of ``feat`` [N, C] by the Gaussians ``params`` [N, 6] = (u, v, a, b, c,
     opacity) on a :class:`NativeLayout`. Returns (composited channels [H, W, C] without background,
@@ -1183,8 +1246,9 @@ class Composite(torch.autograd.Function):
         t_end = torch.empty(height, width, dtype=feat.dtype)
         last = torch.empty(height, width, dtype=torch.int32)
         contrib = torch.zeros(lay.n_rows, dtype=torch.uint8)
+        smax = sigma_bound(params, rule.alpha_min)
         pairs = getattr(lib, f"forward_{suffix}")(
-            _ptr(params), n, _ptr(feat), c, _ptr(lay.tile_start), _ptr(lay.rows), lay.tile_size, lay.tiles_x,
+            _ptr(params), _ptr(smax), _ptr(feat), c, _ptr(lay.tile_start), _ptr(lay.rows), lay.tile_size, lay.tiles_x,
             lay.tiles_y, width, height, rule.alpha_min, rule.alpha_max, rule.transmittance_min,
             _ptr(out), _ptr(t_end), _ptr(last), _ptr(contrib), None, None, None, 0)
         if pairs < 0:
@@ -1207,7 +1271,7 @@ class Composite(torch.autograd.Function):
         g_out = None if g_out is None else g_out.to(feat.dtype).contiguous()
         g_acc = None if g_acc is None else g_acc.to(feat.dtype).contiguous()
         status = getattr(lib, f"backward_{suffix}")(
-            _ptr(params), n, _ptr(feat), c, _ptr(lay.tile_start), _ptr(lay.rows), lay.tile_size, lay.tiles_x,
+            _ptr(params), _ptr(feat), c, _ptr(lay.tile_start), _ptr(lay.rows), lay.tile_size, lay.tiles_x,
             lay.tiles_y, width, height, rule.alpha_min, rule.alpha_max, _ptr(t_end), _ptr(last), _ptr(contrib),
             _ptr(g_out), _ptr(g_acc), _ptr(grad_params), _ptr(grad_feat))
         if status != 0:
@@ -1288,8 +1352,9 @@ def blend_weights(params: Tensor, lay: NativeLayout, width: int, height: int, ru
     pix, gid = torch.empty(n_pairs, dtype=torch.int64), torch.empty(n_pairs, dtype=torch.int32)
     weight = params.new_empty(n_pairs)
     contrib = torch.zeros(lay.n_rows, dtype=torch.uint8)  # held here: the kernel writes into it
+    smax = sigma_bound(params, rule.alpha_min)
     got = getattr(lib, f"forward_{suffix}")(
-        _ptr(params), n, _ptr(feat), 1, _ptr(lay.tile_start), _ptr(lay.rows), lay.tile_size, lay.tiles_x,
+        _ptr(params), _ptr(smax), _ptr(feat), 1, _ptr(lay.tile_start), _ptr(lay.rows), lay.tile_size, lay.tiles_x,
         lay.tiles_y, width, height, rule.alpha_min, rule.alpha_max, rule.transmittance_min, _ptr(out), _ptr(t_end),
         _ptr(last), _ptr(contrib), _ptr(pix), _ptr(gid), _ptr(weight), n_pairs)
     if got != n_pairs:
