@@ -11,7 +11,8 @@ import pytest
 
 from benchmark.core.errors import InputError
 from benchmark.studies import fit_timing
-from benchmark.studies.fit_timing import RunRecord, TimingConfig, read_run, summarize, timing_markdown
+from benchmark.studies.fit_timing import (RunRecord, TimingConfig, read_run, score_rows, score_summary, summarize,
+                                          timing_markdown)
 
 TINY = {"geometry.static_iterations": "6", "geometry.deformation_iterations": "6", "autoencoder.min_steps": "5",
         "autoencoder.max_steps": "5", "field.iterations": "5", "caption_autoencoder.min_steps": "5",
@@ -19,13 +20,14 @@ TINY = {"geometry.static_iterations": "6", "geometry.deformation_iterations": "6
 """A schedule that fits the smoke preset in seconds."""
 
 
-def _run(side: str, round_: int, deform: float, field_s: float, cpu: float, miou: float = 50.0) -> RunRecord:
+def _run(side: str, round_: int, deform: float, field_s: float, cpu: float, miou: float = 50.0,
+         scene: str = "a", seed: int = 0) -> RunRecord:
     stages = {label: None for label, _ in fit_timing.STAGES + fit_timing.CPU_STAGES}
     stages.update({"geometry: deformation stage": deform, "language field": field_s,
                    "whole fit": deform + field_s})
     scores = {label: None for label, _ in fit_timing.SCORES}
     scores["mIoU"] = miou
-    return RunRecord(side, round_, stages, scores, cpu, cpu + 1.0, f"/tmp/{side}{round_}.json")
+    return RunRecord(side, round_, scene, seed, stages, scores, cpu, cpu + 1.0, f"/tmp/{side}{round_}.json")
 
 
 def test_the_table_takes_medians_per_side_and_divides_new_by_old():
@@ -45,7 +47,27 @@ def test_the_table_takes_medians_per_side_and_divides_new_by_old():
                          summarize(runs), runs)
     assert "| geometry: deformation stage | 32.0 | 11.0 | 0.344 | 2.91 |" in md
     assert "| time-varying: status field | – | – | – | – |" in md
-    assert md.count("| baseline |") == 3 and md.count("| candidate |") == 3  # every run's scores
+    assert "| a | 0 | mIoU | 50.00 | 50.00 | 0.00 |" in md
+
+
+def test_several_scenes_and_seeds_average_their_medians_and_list_every_score():
+    runs = [_run("baseline", 0, 30.0, 10.0, 50.0, miou=60.0, scene="a", seed=0),
+            _run("candidate", 0, 10.0, 5.0, 20.0, miou=58.0, scene="a", seed=0),
+            _run("baseline", 0, 90.0, 30.0, 150.0, miou=70.0, scene="b", seed=0),
+            _run("candidate", 0, 45.0, 15.0, 75.0, miou=71.0, scene="b", seed=0),
+            _run("baseline", 0, 50.0, 10.0, 50.0, miou=64.0, scene="a", seed=1),
+            _run("candidate", 0, 20.0, 5.0, 20.0, miou=61.0, scene="a", seed=1)]
+    rows = {r["stage"]: r for r in summarize(runs)}
+    deform = rows["geometry: deformation stage"]
+    assert deform["baseline_seconds"] == pytest.approx((30 + 90 + 50) / 3)
+    assert deform["ratio"] == pytest.approx((10 + 45 + 20) / (30 + 90 + 50))
+    scores = [r for r in score_rows(runs) if r["score"] == "mIoU"]
+    assert [(r["scene"], r["seed"], r["difference"]) for r in scores] == [("a", 0, -2.0), ("a", 1, -3.0),
+                                                                          ("b", 0, 1.0)]
+    summary = {r["score"]: r for r in score_summary(score_rows(runs))}["mIoU"]
+    assert summary["mean_difference"] == pytest.approx(-4.0 / 3) and summary["min_difference"] == -3.0
+    # seed spread: scene a only has two seeds (64 - 60 old, 61 - 58 new)
+    assert summary["baseline_seed_spread"] == 4.0 and summary["candidate_seed_spread"] == 3.0
 
 
 def test_a_run_is_read_from_its_results_file(tmp_path):
@@ -57,7 +79,7 @@ def test_a_run_is_read_from_its_results_file(tmp_path):
     results = tmp_path / "results" / "synthetic" / "smoke" / "4d-langsplat" / "oracle"
     results.mkdir(parents=True)
     (results / "seed0.json").write_text(json.dumps(doc))
-    run = read_run(tmp_path / "results", "baseline", 0, 120.0, 130.0)
+    run = read_run(tmp_path / "results", "baseline", 0, 120.0, 130.0, "smoke", 0)
     assert run.stages["geometry: deformation stage"] == 55.0 and run.stages["geometry: static stage (CPU)"] == 9.5
     assert run.stages["language field"] == 12.0 and run.stages["whole fit"] == 100.0
     assert run.stages["time-varying: whole"] is None  # a fit without the stage
@@ -80,10 +102,12 @@ def test_head_against_the_working_tree_on_a_tiny_fit(tmp_path):
     if shutil.which("git") is None or subprocess.run(["git", "-C", str(fit_timing.REPO), "rev-parse", "HEAD"],
                                                      capture_output=True).returncode != 0:
         pytest.skip("needs a git checkout")
-    config = TimingConfig(baseline="HEAD", scene="smoke", size=24, overrides=TINY, rounds=1,
+    config = TimingConfig(baseline="HEAD", scenes=("smoke",), size=24, overrides=TINY, rounds=1,
                           cache_dir=tmp_path / "cache", out=tmp_path / "out", name="tiny")
     report = fit_timing.fit_timing_report(config)
     assert [p.name for p in report.paths] == ["tiny.json", "tiny.md"]
+    kept = sorted(p.name for p in (tmp_path / "out" / "tiny-runs").iterdir())
+    assert kept == ["baseline-smoke-seed0-round0.json", "candidate-smoke-seed0-round0.json"]
     doc = json.loads((tmp_path / "out" / "tiny.json").read_text())
     assert doc["commits"]["candidate"].startswith("working tree at ")
     runs = doc["runs"]

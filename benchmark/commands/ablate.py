@@ -18,8 +18,8 @@
                             [--knobs gaussians states latent hexplane] [--values KNOB=V,V,...] [--seeds 0]
                             [--set KEY=VALUE] [--no-release] [--jobs N] [--report-only] [--out reports/capacity]
     bench4d ablate real-cost [--size full|tiny] [--device cuda] [--masks-per-frame 120] [--objects 3]
-    bench4d ablate timing --baseline REV [--candidate REV] [--method 4d-langsplat] [--scene split-cookie]
-                          [--size 128] [--set KEY=VALUE] [--rounds 1] [--out reports/fit-timing]
+    bench4d ablate timing --baseline REV [--candidate REV] [--method 4d-langsplat] [--scenes split-cookie ...]
+                          [--seeds 0 ...] [--size 128] [--set KEY=VALUE] [--rounds 1] [--out reports/fit-timing]
 
 Each study lives in its own module under :mod:`benchmark.studies`; this command defines the options and
 calls it, importing the module only when its subcommand runs (a backend one study needs, missing, breaks that
@@ -99,11 +99,12 @@ preset; plus the defaults (``auto``: the method's own per-scene choices) and the
 of runs sharing a geometry at once, each in a worker process with ``--threads`` torch threads (default 1). It
 writes ``capacity.csv``, ``README.md`` and ``charts/`` to ``--out`` (default ``reports/capacity``).
 
-``timing`` (:mod:`benchmark.studies.fit_timing`): the fit of one method on one scene, stage by stage, with the
-code of commit ``--baseline`` and with the candidate's (the working tree, or ``--candidate``), side by side in
-one run: each side in its own subprocess on its own exported tree, single-threaded, alternating which goes
-first each round; the table gives each stage's median seconds and the ratio new / old, and every run's
-scores. Writes ``<out>/<name>.json`` and ``.md`` (default ``reports/fit-timing/fit-timing``).
+``timing`` (:mod:`benchmark.studies.fit_timing`): the fit of one method on each scene and seed, stage by stage,
+with the code of commit ``--baseline`` and with the candidate's (the working tree, or ``--candidate``), side by
+side in one run: each side in its own subprocess on its own exported tree, single-threaded, alternating which
+goes first; the table gives each stage's seconds and the ratio new / old, then both sides' scores per scene
+and seed. Writes ``<out>/<name>.json``, ``.md`` and the runs' results files (default
+``reports/fit-timing/fit-timing``).
 
 The others write a JSON and a Markdown table to ``--out`` (default ``reports/ablations``) and print the table.
 """
@@ -345,9 +346,9 @@ def _timing_arguments(sub) -> None:
     t.add_argument("--candidate", default=None, metavar="REV",
                    help="the new commit (default: this checkout's working tree as it is)")
     t.add_argument("--method", default="4d-langsplat")
-    t.add_argument("--scene", default="split-cookie", help="synthetic preset or scene folder")
+    t.add_argument("--scenes", nargs="+", default=["split-cookie"], help="synthetic presets or scene folders")
     t.add_argument("--size", type=int, default=128, help="image size of a generated preset")
-    t.add_argument("--seed", type=parse_seed, default=0)
+    t.add_argument("--seeds", nargs="+", type=parse_seed, default=[0])
     t.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="a method option for both sides, e.g. geometry.deformation_iterations=600 (repeatable)")
     t.add_argument("--rounds", type=int, default=1, help="fits per side (sides alternate the lead each round)")
@@ -510,10 +511,10 @@ def _real_cost(args) -> int:
 def _timing(args) -> int:
     from benchmark.studies.fit_timing import TimingConfig, fit_timing_report
 
-    config = TimingConfig(baseline=args.baseline, candidate=args.candidate, method=args.method, scene=args.scene,
-                          size=args.size, overrides={k: str(v) for k, v in parse_overrides(args.set).items()},
-                          rounds=args.rounds, seed=args.seed, cache_dir=args.cache_dir, name=args.name,
-                          out=args.out)
+    config = TimingConfig(baseline=args.baseline, candidate=args.candidate, method=args.method,
+                          scenes=tuple(args.scenes), size=args.size,
+                          overrides={k: str(v) for k, v in parse_overrides(args.set).items()}, rounds=args.rounds,
+                          seeds=tuple(args.seeds), cache_dir=args.cache_dir, name=args.name, out=args.out)
     return _print_report(fit_timing_report(config, log=stderr_log(args.quiet)))
 
 

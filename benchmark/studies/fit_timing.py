@@ -1,17 +1,19 @@
 """Fit time of a method, stage by stage, for two commits side by side on one machine in one run.
 
 ``bench4d ablate timing --baseline REV`` exports the commit ``REV`` (``git archive``, no ``.git``) into a
-temporary folder and runs the same fit -- ``bench4d eval`` of one method on one scene with the same
-options, single-threaded -- with that code and with the candidate's (the working tree, or
-``--candidate REV``), alternating which goes first in each round, in fresh subprocesses whose
-``PYTHONPATH`` is their own tree. Every run has a cache folder of its own, so nothing fitted is reused;
-the scene is generated once by the candidate's code and read by both. The stage times are the ones each
-results file records (:data:`STAGES`); per stage the report gives the median over rounds of both sides
-and their ratio, new over old: a measurement of the two codes under the same load, not a comparison of
-runs made on different days. It also lists the runs' scores, which a change of speed alone leaves alone
-up to the fits' own noise.
+temporary folder and runs the same fits -- ``bench4d eval`` of one method on each scene and seed with the
+same options, single-threaded -- with that code and with the candidate's (the working tree, or
+``--candidate REV``), one after the other in fresh subprocesses whose ``PYTHONPATH`` is their own tree,
+alternating which side goes first. Every run has a cache folder of its own, so nothing fitted is reused;
+each scene is generated once by the candidate's code and read by both. The stage times are the ones each
+results file records (:data:`STAGES`); per stage the report gives both sides' time (per scene and seed
+the median over rounds, then the mean over scenes and seeds) and their ratio, new over old: a
+measurement of the two codes under the same load, not a comparison of runs made on different days. It
+also lists every scene and seed's scores on both sides, which a change of speed alone moves only by the
+fits' own noise (the spread between seeds is given beside them).
 
-Writes ``<out>/<name>.json`` and ``<out>/<name>.md`` (default ``reports/fit-timing/fit-timing``) atomically.
+Writes ``<out>/<name>.json``, ``<out>/<name>.md`` (default ``reports/fit-timing/fit-timing``) and every
+run's results file under ``<out>/<name>-runs/`` atomically.
 """
 
 from __future__ import annotations
@@ -98,16 +100,16 @@ class TimingConfig:
     """The new commit; ``None``: the working tree of this checkout as it is."""
     method: str = "4d-langsplat"
     """The method fitted."""
-    scene: str = "split-cookie"
-    """A synthetic preset (generated once, by the candidate's code) or a scene folder."""
+    scenes: tuple[str, ...] = ("split-cookie",)
+    """Synthetic presets (generated once, by the candidate's code) or scene folders."""
     size: int = 128
     """Image size of a generated preset."""
     overrides: dict[str, str] = field(default_factory=dict)
     """Method options (``--set KEY=VALUE``) given to both sides, e.g. a shortened schedule."""
     rounds: int = 1
     """Runs per side; sides alternate which goes first from round to round."""
-    seed: int = 0
-    """The fit's seed."""
+    seeds: tuple[int, ...] = (0,)
+    """The fits' seeds (every scene with every seed)."""
     cache_dir: Path = Path("cache")
     """Where a generated preset is kept (fits never are: each run gets a cache of its own)."""
     timeout: float = 4 * 3600.0
@@ -125,6 +127,8 @@ class RunRecord:
     side: str
     """``"baseline"`` or ``"candidate"``."""
     round: int
+    scene: str
+    seed: int
     stages: dict[str, Optional[float]]
     """Stage label -> seconds (:data:`STAGES`, :data:`CPU_STAGES`; ``None``: not recorded by that code)."""
     scores: dict[str, Optional[float]]
@@ -160,18 +164,19 @@ def export_commit(commit: str, dest: Path, repo: Path = REPO) -> Path:
     return dest
 
 
-def eval_command(config: TimingConfig, scene_dir: Path, cache: Path, results: Path,
+def eval_command(config: TimingConfig, scene_dir: Path, seed: int, cache: Path, results: Path,
                  python: str = sys.executable) -> list[str]:
     """The ``bench4d eval`` command line both sides run (in their own tree)."""
     cmd = [python, "-m", "benchmark.cli", "eval", "--method", config.method, "--scene", str(scene_dir),
-           "--seed", str(config.seed), "--cache-dir", str(cache), "--results-dir", str(results), "--threads", "1",
+           "--seed", str(seed), "--cache-dir", str(cache), "--results-dir", str(results), "--threads", "1",
            "--quiet"]
     for key, value in config.overrides.items():
         cmd += ["--set", f"{key}={value}"]
     return cmd
 
 
-def read_run(results: Path, side: str, round_: int, cpu: float, wall: float) -> RunRecord:
+def read_run(results: Path, side: str, round_: int, cpu: float, wall: float, scene: str = "",
+             seed: int = 0) -> RunRecord:
     """The :class:`RunRecord` of the one results file under ``results``."""
     files = sorted(p for p in results.rglob("*.json") if p.parent.name != "ablations")
     if len(files) != 1:
@@ -179,17 +184,17 @@ def read_run(results: Path, side: str, round_: int, cpu: float, wall: float) -> 
     doc = json.loads(files[0].read_text())
     stages = {label: _path(doc, *keys) for label, keys in STAGES + CPU_STAGES}
     scores = {label: _path(doc, *keys) for label, keys in SCORES}
-    return RunRecord(side, round_, stages, scores, cpu, wall, str(files[0]))
+    return RunRecord(side, round_, scene, seed, stages, scores, cpu, wall, str(files[0]))
 
 
-def run_side(tree: Path, side: str, round_: int, config: TimingConfig, scene_dir: Path, work: Path,
-             log: Callable[[str], None]) -> RunRecord:
+def run_side(tree: Path, side: str, round_: int, config: TimingConfig, scene: str, scene_dir: Path, seed: int,
+             work: Path, log: Callable[[str], None]) -> RunRecord:
     """One fit with the code of ``tree`` in a subprocess; its CPU time from the children's usage."""
-    run_dir = work / f"{side}-round{round_}"
+    run_dir = work / f"{side}-{Path(scene).name}-seed{seed}-round{round_}"
     cache, results = run_dir / "cache", run_dir / "results"
     env = {**os.environ, "PYTHONPATH": str(tree), "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    cmd = eval_command(config, scene_dir, cache, results)
-    log(f"round {round_}: {side} ({tree})")
+    cmd = eval_command(config, scene_dir, seed, cache, results)
+    log(f"round {round_}: {side}, {scene} seed {seed} ({tree})")
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
     done = subprocess.run(cmd, cwd=str(tree), env=env, capture_output=True, text=True, timeout=config.timeout)
@@ -198,7 +203,7 @@ def run_side(tree: Path, side: str, round_: int, config: TimingConfig, scene_dir
     if done.returncode != 0:
         raise RuntimeError(f"the {side} fit failed (exit {done.returncode}): {done.stderr.strip()[-3000:]}")
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    return read_run(results, side, round_, cpu, wall)
+    return read_run(results, side, round_, cpu, wall, scene, seed)
 
 
 def _median(values: Sequence[Optional[float]]) -> Optional[float]:
@@ -206,27 +211,72 @@ def _median(values: Sequence[Optional[float]]) -> Optional[float]:
     return statistics.median(got) if got else None
 
 
+PROCESS_CPU = "process CPU (whole eval)"
+PROCESS_WALL = "process wall (whole eval)"
+
+
+def _value(run: RunRecord, label: str) -> Optional[float]:
+    if label == PROCESS_CPU:
+        return run.process_cpu_seconds
+    if label == PROCESS_WALL:
+        return run.process_wall_seconds
+    return run.stages.get(label)
+
+
+def _side_time(runs: Sequence[RunRecord], side: str, label: str) -> Optional[float]:
+    """Per (scene, seed) the median over rounds, then the mean over them; ``None`` where none recorded it."""
+    configs = sorted({(r.scene, r.seed) for r in runs})
+    per_config = [_median([_value(r, label) for r in runs if r.side == side and (r.scene, r.seed) == key])
+                  for key in configs]
+    got = [v for v in per_config if v is not None]
+    return sum(got) / len(got) if got else None
+
+
 def summarize(runs: Sequence[RunRecord]) -> list[dict]:
-    """Per stage (:data:`STAGES`, :data:`CPU_STAGES`, then the processes'): the median seconds of each side
-    over its runs and ``ratio`` = candidate / baseline (``speedup`` its inverse); ``None`` where a side
-    did not record the stage."""
-    labels = [label for label, _ in STAGES + CPU_STAGES] + ["process CPU (whole eval)", "process wall (whole eval)"]
-
-    def value(run: RunRecord, label: str) -> Optional[float]:
-        if label == "process CPU (whole eval)":
-            return run.process_cpu_seconds
-        if label == "process wall (whole eval)":
-            return run.process_wall_seconds
-        return run.stages.get(label)
-
+    """Per stage (:data:`STAGES`, :data:`CPU_STAGES`, then the processes'): each side's seconds (per scene and
+    seed the median over rounds, then the mean over scenes and seeds) and ``ratio`` = candidate / baseline
+    (``speedup`` its inverse); ``None`` where a side did not record the stage."""
     rows = []
-    for label in labels:
-        old = _median([value(r, label) for r in runs if r.side == "baseline"])
-        new = _median([value(r, label) for r in runs if r.side == "candidate"])
+    for label in [label for label, _ in STAGES + CPU_STAGES] + [PROCESS_CPU, PROCESS_WALL]:
+        old, new = _side_time(runs, "baseline", label), _side_time(runs, "candidate", label)
         ratio = new / old if old and new is not None else None
         rows.append({"stage": label, "baseline_seconds": old, "candidate_seconds": new, "ratio": ratio,
                      "speedup": (1.0 / ratio) if ratio else None})
     return rows
+
+
+def score_rows(runs: Sequence[RunRecord]) -> list[dict]:
+    """Per scene, seed and score (:data:`SCORES`): both sides' values (median over rounds) and new - old."""
+    out = []
+    for scene, seed in sorted({(r.scene, r.seed) for r in runs}):
+        for label, _ in SCORES:
+            old = _median([r.scores.get(label) for r in runs if r.side == "baseline" and (r.scene, r.seed) == (scene, seed)])
+            new = _median([r.scores.get(label) for r in runs if r.side == "candidate" and (r.scene, r.seed) == (scene, seed)])
+            out.append({"scene": scene, "seed": seed, "score": label, "baseline": old, "candidate": new,
+                        "difference": None if old is None or new is None else new - old})
+    return out
+
+
+def score_summary(rows: Sequence[dict]) -> list[dict]:
+    """Per score: the mean and range of new - old over scenes and seeds, beside the seed-to-seed spread of
+    each side (per scene the largest minus the smallest seed's value, averaged over scenes): a speed change
+    moves scores by about their spread between seeds, not beyond."""
+    out = []
+    for label, _ in SCORES:
+        mine = [r for r in rows if r["score"] == label]
+        diffs = [r["difference"] for r in mine if r["difference"] is not None]
+        spread = {}
+        for side in ("baseline", "candidate"):
+            per_scene = []
+            for scene in sorted({r["scene"] for r in mine}):
+                values = [r[side] for r in mine if r["scene"] == scene and r[side] is not None]
+                if len(values) > 1:
+                    per_scene.append(max(values) - min(values))
+            spread[side] = sum(per_scene) / len(per_scene) if per_scene else None
+        out.append({"score": label, "mean_difference": sum(diffs) / len(diffs) if diffs else None,
+                    "min_difference": min(diffs) if diffs else None, "max_difference": max(diffs) if diffs else None,
+                    "baseline_seed_spread": spread["baseline"], "candidate_seed_spread": spread["candidate"]})
+    return out
 
 
 def _cell(value: Optional[float], digits: int = 1) -> str:
@@ -235,51 +285,73 @@ def _cell(value: Optional[float], digits: int = 1) -> str:
 
 def timing_markdown(config: TimingConfig, commits: dict[str, str], rows: Sequence[dict],
                     runs: Sequence[RunRecord]) -> str:
-    """The report's Markdown: the stage table, then every run's scores."""
-    head = (f"# Fit time side by side: {config.method} on {config.scene} ({config.size} px)\n\n"
+    """The report's Markdown: the stage table, then the scores of every scene and seed."""
+    scenes = ", ".join(Path(s).name for s in config.scenes)
+    head = (f"# Fit time side by side: {config.method} on {scenes} ({config.size} px), seeds "
+            f"{', '.join(map(str, config.seeds))}\n\n"
             f"Baseline `{commits['baseline']}`, candidate `{commits['candidate']}`; {config.rounds} round(s), "
             f"sides alternating, one thread each, run one after the other on this machine. Options: "
             f"{', '.join(f'`{k}={v}`' for k, v in config.overrides.items()) or 'the method defaults'}.\n"
-            f"Seconds are medians over the rounds (wall time as each fit recorded it, unless marked CPU); "
-            f"ratio = candidate / baseline.\n\n")
+            f"Seconds: per scene and seed the median over rounds, then the mean over scenes and seeds (wall time as "
+            f"each fit recorded it, unless marked CPU); ratio = candidate / baseline.\n\n")
     table = markdown_table(["stage", "baseline s", "candidate s", "ratio", "speed-up"],
                            [[r["stage"], _cell(r["baseline_seconds"]), _cell(r["candidate_seconds"]),
                              _cell(r["ratio"], 3), _cell(r["speedup"], 2)] for r in rows])
-    score_labels = [label for label, _ in SCORES]
-    score_rows = [[r.side, str(r.round)] + [_cell(r.scores.get(k), 2) for k in score_labels] for r in runs]
-    scores = markdown_table(["side", "round"] + score_labels, score_rows)
-    return head + table + "\n## Scores of the runs\n\n" + scores
+    scores = score_rows(runs)
+    score_table = markdown_table(["scene", "seed", "score", "baseline", "candidate", "new - old"],
+                                 [[Path(r["scene"]).name, str(r["seed"]), r["score"], _cell(r["baseline"], 2),
+                                   _cell(r["candidate"], 2), _cell(r["difference"], 2)] for r in scores])
+    summary = markdown_table(["score", "mean new - old", "min", "max", "seed spread (old)", "seed spread (new)"],
+                             [[r["score"], _cell(r["mean_difference"], 2), _cell(r["min_difference"], 2),
+                               _cell(r["max_difference"], 2), _cell(r["baseline_seed_spread"], 2),
+                               _cell(r["candidate_seed_spread"], 2)] for r in score_summary(scores)])
+    return (head + table + "\n## Scores\n\n" + score_table + "\nAcross scenes and seeds (seed spread: per scene the "
+            "largest minus the smallest seed's value, averaged over scenes):\n\n" + summary)
 
 
 def fit_timing_report(config: TimingConfig, *, log: Callable[[str], None] = lambda m: None,
                       repo: Path = REPO) -> Report:
     """Run the comparison of :class:`TimingConfig` and write its report."""
+    from benchmark.core.atomic import write_bytes
     from benchmark.runner import resolve_scene
 
     if config.rounds < 1:
         raise InputError(None, "--rounds", f"must be >= 1, got {config.rounds}")
+    if not config.scenes or not config.seeds:
+        raise InputError(None, "--scenes/--seeds", "need at least one scene and one seed")
     commits = {"baseline": resolve_commit(config.baseline, repo)}
     commits["candidate"] = resolve_commit(config.candidate, repo) if config.candidate else "working tree"
     if config.candidate is None:
         head = resolve_commit("HEAD", repo)
         dirty = bool(_git("status", "--porcelain", "--untracked-files=no", repo=repo).stdout.strip())
         commits["candidate"] = f"working tree at {head}" + (" (with uncommitted changes)" if dirty else "")
-    scene_dir = resolve_scene(config.scene, Path(config.cache_dir), size=config.size, log=log)
+    scene_dirs = {scene: resolve_scene(scene, Path(config.cache_dir), size=config.size, log=log)
+                  for scene in config.scenes}
+    configs = [(scene, seed) for scene in config.scenes for seed in config.seeds]
     runs: list[RunRecord] = []
+    out = Path(config.out)
+    kept = out / f"{config.name}-runs"
     with tempfile.TemporaryDirectory(prefix="bench4d-fit-timing-") as tmp:
         work = Path(tmp)
         trees = {"baseline": export_commit(commits["baseline"], work / "baseline-code", repo)}
         trees["candidate"] = (export_commit(commits["candidate"], work / "candidate-code", repo) if config.candidate
                               else repo)
         for r in range(config.rounds):
-            order = ("baseline", "candidate") if r % 2 == 0 else ("candidate", "baseline")
-            for side in order:
-                runs.append(run_side(trees[side], side, r, config, scene_dir, work, log))
+            for i, (scene, seed) in enumerate(configs):
+                order = ("baseline", "candidate") if (r + i) % 2 == 0 else ("candidate", "baseline")
+                for side in order:
+                    run = run_side(trees[side], side, r, config, scene, scene_dirs[scene], seed, work, log)
+                    # the results file outlives the temporary folder, beside the report
+                    target = kept / f"{side}-{Path(scene).name}-seed{seed}-round{r}.json"
+                    write_bytes(target, Path(run.results_file).read_bytes())
+                    run.results_file = str(target)
+                    runs.append(run)
     rows = summarize(runs)
     doc = {"config": {**asdict(config), "cache_dir": str(config.cache_dir), "out": str(config.out)},
-           "commits": commits, "scene_dir": str(scene_dir), "stages": rows,
+           "commits": commits, "scene_dirs": {k: str(v) for k, v in scene_dirs.items()}, "stages": rows,
+           "scores": score_rows(runs), "score_summary": score_summary(score_rows(runs)),
            "runs": [asdict(r) for r in runs],
            "machine": {"cpu_count": os.cpu_count(), "load_average": list(os.getloadavg()),
                        "python": sys.version.split()[0]}}
     table = timing_markdown(config, commits, rows, runs)
-    return Report(table, write_report(Path(config.out), config.name, doc, table))
+    return Report(table, write_report(out, config.name, doc, table))
