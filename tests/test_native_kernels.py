@@ -139,3 +139,22 @@ def test_blend_operator_from_the_kernels_equals_the_pytorch_one(monkeypatch):
     native, plain = both(monkeypatch, run)
     assert native[0].count_nonzero() == plain[0].count_nonzero() > 1000
     _close(native, plain, atol=1e-6, rtol=1e-5)
+
+
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+def test_ssim_and_its_gradient(monkeypatch, dtype):
+    """The training loss's SSIM (zero-padded separable window): value and gradient in the rendered image."""
+    from methods.gaussians.train import gaussian_window, ssim
+
+    gen = torch.Generator().manual_seed(6)
+    img = torch.rand(37, 26, 3, generator=gen, dtype=dtype)
+    ref = (img + 0.2 * torch.randn(img.shape, generator=gen, dtype=dtype)).clamp(0, 1)
+
+    def run():
+        x = img.clone().requires_grad_(True)
+        value = ssim(x, ref, gaussian_window(11, 1.5))
+        (2.5 * value).backward()
+        return [value.detach(), x.grad]
+
+    native, plain = both(monkeypatch, run)
+    _close(native, plain, atol=1e-12 if dtype == F64 else 1e-6, rtol=1e-10 if dtype == F64 else 1e-4)

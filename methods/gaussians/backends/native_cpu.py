@@ -1055,6 +1055,98 @@ void FN(sh_backward)(int64_t n, const SCALAR *means, const SCALAR *center, const
         for (int c = 0; c < 3; ++c) g_means[3 * i + c] = (gd[c] - d[c] * dot) / nrm;
     }
 }
+
+/* ---- SSIM of the training loss (methods/gaussians/train.py, ssim) -----------------------------------
+ * Images [H, W, C] (channels last); the separable window k[K] (symmetric, odd K) blurs with zero padding.
+ * mean over channels and pixels of ((2 mx my + c1)(2 cov + c2)) / ((mx^2 + my^2 + c1)(vx + vy + c2)). */
+NOINLINE static void FN(blur)(const SCALAR *restrict in, SCALAR *restrict out, SCALAR *restrict tmp, int64_t H,
+                              int64_t W, const SCALAR *restrict k, int64_t K) {
+    const int64_t half = K / 2;
+    for (int64_t i = 0; i < H; ++i) {  /* along the columns of each row, tap by tap */
+        const SCALAR *row = in + i * W;
+        SCALAR *t = tmp + i * W;
+        for (int64_t j = 0; j < W; ++j) t[j] = 0;
+        for (int64_t q = 0; q < K; ++q) {
+            const int64_t shift = q - half;  /* t[j] += k[q] row[j + shift] where 0 <= j + shift < W */
+            const int64_t j0 = shift < 0 ? -shift : 0, j1 = shift > 0 ? W - shift : W;
+            const SCALAR kq = k[q];
+#pragma GCC ivdep
+            for (int64_t j = j0; j < j1; ++j) t[j] += kq * row[j + shift];
+        }
+    }
+    for (int64_t i = 0; i < H; ++i) {  /* then along the rows */
+        SCALAR *o = out + i * W;
+        for (int64_t j = 0; j < W; ++j) o[j] = 0;
+        const int64_t lo = i - half < 0 ? half - i : 0, hi = i + half >= H ? H - 1 - i + half : K - 1;
+        for (int64_t q = lo; q <= hi; ++q) {
+            const SCALAR kq = k[q], *t = tmp + (i + q - half) * W;
+#pragma GCC ivdep
+            for (int64_t j = 0; j < W; ++j) o[j] += kq * t[j];
+        }
+    }
+}
+
+/* Returns the mean SSIM; saves the five blurred moments [5, C, H, W] (mx, my, exx, eyy, exy) in saved. */
+HOT double FN(ssim_forward)(const SCALAR *x, const SCALAR *y, int64_t H, int64_t W, int64_t C, const SCALAR *k,
+                        int64_t K, SCALAR *saved) {
+    const int64_t HW = H * W;
+    SCALAR *buf = (SCALAR *)malloc(sizeof(SCALAR) * (size_t)(2 * HW));
+    if (!buf) return NAN;
+    SCALAR *plane = buf, *tmp = buf + HW;
+    const double c1 = 0.01 * 0.01, c2 = 0.03 * 0.03;
+    double total = 0.0;
+    for (int64_t c = 0; c < C; ++c) {
+        SCALAR *m[5];
+        for (int q = 0; q < 5; ++q) m[q] = saved + ((int64_t)q * C + c) * HW;
+        for (int q = 0; q < 5; ++q) {
+            const SCALAR *u = q == 1 || q == 3 ? y : x, *v = q == 0 || q == 1 ? NULL : (q == 2 ? x : y);
+            for (int64_t p = 0; p < HW; ++p) plane[p] = u[p * C + c] * (v ? v[p * C + c] : (SCALAR)1);
+            FN(blur)(plane, m[q], tmp, H, W, k, K);
+        }
+        for (int64_t p = 0; p < HW; ++p) {
+            const SCALAR mx = m[0][p], my = m[1][p];
+            const SCALAR vx = m[2][p] - mx * mx, vy = m[3][p] - my * my, cov = m[4][p] - mx * my;
+            const SCALAR s = (((SCALAR)2 * mx * my + (SCALAR)c1) * ((SCALAR)2 * cov + (SCALAR)c2))
+                             / ((mx * mx + my * my + (SCALAR)c1) * (vx + vy + (SCALAR)c2));
+            total += (double)s;
+        }
+    }
+    free(buf);
+    return total / (double)(C * HW);
+}
+
+/* Backward of ssim_forward (in x only): WRITES g_x [H, W, C] = d (g mean SSIM) / d x. */
+HOT void FN(ssim_backward)(const SCALAR *x, const SCALAR *y, int64_t H, int64_t W, int64_t C, const SCALAR *k, int64_t K,
+                       const SCALAR *saved, double g, SCALAR *g_x) {
+    const int64_t HW = H * W;
+    SCALAR *buf = (SCALAR *)malloc(sizeof(SCALAR) * (size_t)(5 * HW));
+    if (!buf) return;
+    SCALAR *dm = buf, *de = buf + HW, *dc = buf + 2 * HW, *tmp = buf + 3 * HW, *blurred = buf + 4 * HW;
+    const SCALAR c1 = (SCALAR)(0.01 * 0.01), c2 = (SCALAR)(0.03 * 0.03), scale = (SCALAR)(g / (double)(C * HW));
+    for (int64_t c = 0; c < C; ++c) {
+        const SCALAR *m[5];
+        for (int q = 0; q < 5; ++q) m[q] = saved + ((int64_t)q * C + c) * HW;
+        for (int64_t p = 0; p < HW; ++p) {
+            const SCALAR mx = m[0][p], my = m[1][p];
+            const SCALAR n1 = (SCALAR)2 * mx * my + c1, n2 = (SCALAR)2 * (m[4][p] - mx * my) + c2;
+            const SCALAR d1 = mx * mx + my * my + c1, d2 = (m[2][p] - mx * mx) + (m[3][p] - my * my) + c2;
+            const SCALAR s = (n1 * n2) / (d1 * d2);
+            /* s = n1 n2 / (d1 d2): its derivatives in mx, exx and exy (the reference y has no gradient) */
+            dm[p] = scale * ((SCALAR)2 * my * (n2 - n1) / (d1 * d2) - (SCALAR)2 * mx * s * ((SCALAR)1 / d1 - (SCALAR)1 / d2));
+            de[p] = scale * (-s / d2);
+            dc[p] = scale * ((SCALAR)2 * n1 / (d1 * d2));
+        }
+        /* the window is symmetric: the blur is its own transpose */
+        for (int64_t p = 0; p < HW; ++p) g_x[p * C + c] = 0;
+        FN(blur)(dm, blurred, tmp, H, W, k, K);
+        for (int64_t p = 0; p < HW; ++p) g_x[p * C + c] += blurred[p];
+        FN(blur)(de, blurred, tmp, H, W, k, K);
+        for (int64_t p = 0; p < HW; ++p) g_x[p * C + c] += (SCALAR)2 * x[p * C + c] * blurred[p];
+        FN(blur)(dc, blurred, tmp, H, W, k, K);
+        for (int64_t p = 0; p < HW; ++p) g_x[p * C + c] += y[p * C + c] * blurred[p];
+    }
+    free(buf);
+}
 """
 
 COMPILE_FLAGS = ("-O3", "-shared", "-fPIC", "-std=c11", "-ffp-contract=off", "-fno-trapping-math")
@@ -1120,6 +1212,8 @@ def _build(folder: Path) -> Path:
 
 _I64, _PTR, _F64 = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
 _SIGNATURES = {
+    "ssim_forward": (_F64, [_PTR, _PTR, _I64, _I64, _I64, _PTR, _I64, _PTR]),
+    "ssim_backward": (None, [_PTR, _PTR, _I64, _I64, _I64, _PTR, _I64, _PTR, _F64, _PTR]),
     "sh_forward": (None, [_I64, _PTR, _PTR, _PTR, _PTR, _I64, ctypes.c_int, _PTR]),
     "sh_backward": (None, [_I64, _PTR, _PTR, _PTR, _PTR, _I64, ctypes.c_int, _PTR, _PTR, _PTR, _PTR]),
     "plane_regularisers": (None, [_PTR, _I64, _I64, _I64, _I64, ctypes.c_int, _PTR, _PTR, _F64, _F64]),
@@ -1487,3 +1581,32 @@ class ShColor(torch.autograd.Function):
                                               sh_rest.shape[1], ctx.degree, _ptr(g_out), _ptr(g_means), _ptr(g_dc),
                                               _ptr(g_rest))
         return g_means, None, g_dc, g_rest, None
+
+
+class Ssim(torch.autograd.Function):
+    """Mean SSIM of two [H, W, C] images (:func:`methods.gaussians.train.ssim`: zero-padded separable
+    Gaussian window, K1 = 0.01, K2 = 0.03) by the kernels; differentiable in ``img`` only."""
+
+    @staticmethod
+    def forward(ctx, img: Tensor, ref: Tensor, window: Tensor):  # type: ignore[override]
+        lib = kernels()
+        suffix = _TYPES[img.dtype][2]
+        img, ref = img.detach().contiguous(), ref.detach().to(img.dtype).contiguous()
+        window = window.detach().to(img.dtype).contiguous()
+        h, w, c = img.shape
+        saved = img.new_empty(5, c, h, w)
+        value = getattr(lib, f"ssim_forward_{suffix}")(_ptr(img), _ptr(ref), h, w, c, _ptr(window), window.numel(),
+                                                       _ptr(saved))
+        ctx.save_for_backward(img, ref, window, saved)
+        return img.new_tensor(value)
+
+    @staticmethod
+    def backward(ctx, g: Tensor):  # type: ignore[override]
+        img, ref, window, saved = ctx.saved_tensors
+        lib = kernels()
+        suffix = _TYPES[img.dtype][2]
+        h, w, c = img.shape
+        g_img = torch.empty_like(img)
+        getattr(lib, f"ssim_backward_{suffix}")(_ptr(img), _ptr(ref), h, w, c, _ptr(window), window.numel(),
+                                                _ptr(saved), float(g), _ptr(g_img))
+        return g_img, None, None
