@@ -794,7 +794,7 @@ static inline void FN(hex_level)(const SCALAR *planes, const int64_t *offsets, c
 }
 
 /* feat[n, L * C]: level l's features in columns l C .. (l + 1) C. buf: 6 C scratch. */
-void FN(hex_forward)(int64_t n, const SCALAR *p, const SCALAR *tt, int64_t L, const SCALAR *planes,
+HOT void FN(hex_forward)(int64_t n, const SCALAR *p, const SCALAR *tt, int64_t L, const SCALAR *planes,
                      const int64_t *offsets, const int64_t *res, int64_t T, int64_t C, SCALAR *feat) {
     SCALAR *v = (SCALAR *)malloc(sizeof(SCALAR) * 6 * (size_t)C);
     if (!v) return;
@@ -816,7 +816,7 @@ void FN(hex_forward)(int64_t n, const SCALAR *p, const SCALAR *tt, int64_t L, co
 
 /* Backward of hex_forward: ADDS the planes' gradients into g_planes (same layout as planes) and WRITES
  * those of p [n, 3] into g_p and of tt [n] into g_tt (NULL: not wanted). */
-void FN(hex_backward)(int64_t n, const SCALAR *p, const SCALAR *tt, int64_t L, const SCALAR *planes,
+HOT void FN(hex_backward)(int64_t n, const SCALAR *p, const SCALAR *tt, int64_t L, const SCALAR *planes,
                       const int64_t *offsets, const int64_t *res, int64_t T, int64_t C, const SCALAR *g_feat,
                       SCALAR *g_planes, SCALAR *g_p, SCALAR *g_tt) {
     SCALAR *v = (SCALAR *)malloc(sizeof(SCALAR) * 14 * (size_t)C);
@@ -881,7 +881,7 @@ void FN(hex_backward)(int64_t n, const SCALAR *p, const SCALAR *tt, int64_t L, c
  * planes ([K, C, T, R], t along H) the mean squared second difference along t and the mean |1 - P|, each
  * summed over the K planes. out[0], out[1]: the two values of the kind asked (spatial: tv, 0). With grad
  * non-NULL, ADDS instead their gradients scaled by g0 and g1. Sums in double. */
-void FN(plane_regularisers)(const SCALAR *P, int64_t K, int64_t C, int64_t H, int64_t W, int spatial, double *out,
+HOT void FN(plane_regularisers)(const SCALAR *P, int64_t K, int64_t C, int64_t H, int64_t W, int spatial, double *out,
                             SCALAR *grad, double g0, double g1) {
     double v0 = 0.0, v1 = 0.0;
     for (int64_t k = 0; k < K; ++k) {
@@ -1002,7 +1002,7 @@ static inline void FN(sh_basis)(int degree, SCALAR x, SCALAR y, SCALAR z, SCALAR
     }
 }
 
-void FN(sh_forward)(int64_t n, const SCALAR *means, const SCALAR *center, const SCALAR *dc, const SCALAR *rest,
+HOT void FN(sh_forward)(int64_t n, const SCALAR *means, const SCALAR *center, const SCALAR *dc, const SCALAR *rest,
                     int64_t R, int degree, SCALAR *out) {
     const int nb = (degree + 1) * (degree + 1);
     for (int64_t i = 0; i < n; ++i) {
@@ -1022,7 +1022,7 @@ void FN(sh_forward)(int64_t n, const SCALAR *means, const SCALAR *center, const 
 
 /* Backward of sh_forward: WRITES the gradients of means [n, 3] (NULL: not wanted), dc [n, 3] and rest
  * [n, R, 3] (rows past the degree's: 0). The clamp at 0 passes the gradient where its input is >= 0. */
-void FN(sh_backward)(int64_t n, const SCALAR *means, const SCALAR *center, const SCALAR *dc, const SCALAR *rest,
+HOT void FN(sh_backward)(int64_t n, const SCALAR *means, const SCALAR *center, const SCALAR *dc, const SCALAR *rest,
                      int64_t R, int degree, const SCALAR *g_out, SCALAR *g_means, SCALAR *g_dc, SCALAR *g_rest) {
     const int nb = (degree + 1) * (degree + 1);
     for (int64_t i = 0; i < n; ++i) {
