@@ -399,17 +399,23 @@ static inline double FN(lane_sum)(const SCALAR *x) {
  * sure): an exact shortcut, as the skipped pairs change nothing. Blocks of a row that composite are flagged
  * in contrib (block_bit). */
 
-/* One block of one Gaussian in the forward: returns whether any lane composited (and flags stops in
- * *stopped). The arrays are the block's LANES lanes. */
+/* One block of one Gaussian in the forward: returns whether any lane composited. The arrays are the block's
+ * LANES lanes; nothing changes when no lane is still compositing with sigma <= smax. */
 NOINLINE static int32_t FN(fw_block)(const SCALAR *restrict px, const SCALAR *restrict py, SCALAR *restrict T,
-                                   int32_t *restrict act, int32_t *restrict lj, int32_t *restrict cnt,
-                                   SCALAR *restrict w, SCALAR u, SCALAR v, SCALAR a, SCALAR b, SCALAR c, SCALAR o,
-                                   SCALAR amin, SCALAR amax, SCALAR tmin, int32_t next) {
-    int32_t any_ok = 0;
+                                     int32_t *restrict act, int32_t *restrict lj, int32_t *restrict cnt,
+                                     SCALAR *restrict w, SCALAR *restrict sig, SCALAR u, SCALAR v, SCALAR a,
+                                     SCALAR b, SCALAR c, SCALAR o, SCALAR smax, SCALAR amin, SCALAR amax,
+                                     SCALAR tmin, int32_t next) {
+    int32_t live = 0;
     for (int64_t p = 0; p < LANES; ++p) {
         SCALAR dx = px[p] - u, dy = py[p] - v;
-        SCALAR sig = (SCALAR)0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy;
-        SCALAR al = o * EXP(-sig);
+        sig[p] = (SCALAR)0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy;
+        live |= act[p] & (sig[p] <= smax);
+    }
+    if (!live) return 0;
+    int32_t any_ok = 0;
+    for (int64_t p = 0; p < LANES; ++p) {
+        SCALAR al = o * EXP(-sig[p]);
         al = al < amax ? al : amax;
         SCALAR tp = T[p], tn = tp * ((SCALAR)1 - al);
         /* int32 masks combined with & and ^: the form the vectoriser if-converts */
@@ -424,19 +430,6 @@ NOINLINE static int32_t FN(fw_block)(const SCALAR *restrict px, const SCALAR *re
         any_ok |= ok;
     }
     return any_ok;
-}
-
-/* Whether a block needs the Gaussian at all: some lane still compositing with sigma <= smax. */
-NOINLINE static int32_t FN(block_live)(const SCALAR *restrict px, const SCALAR *restrict py,
-                                     const int32_t *restrict act, SCALAR u, SCALAR v, SCALAR a, SCALAR b, SCALAR c,
-                                     SCALAR smax) {
-    int32_t live = 0;
-    for (int64_t p = 0; p < LANES; ++p) {
-        SCALAR dx = px[p] - u, dy = py[p] - v;
-        SCALAR sig = (SCALAR)0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy;
-        live |= act[p] & (sig <= smax);
-    }
-    return live;
 }
 
 /* Forward compositing, tile by tile: for each Gaussian of the tile's list (front to back) all of the
@@ -455,13 +448,13 @@ HOT int64_t FN(forward)(const SCALAR *params, const SCALAR *smax, const SCALAR *
     const int64_t P = ts * ts, PP = (P + LANES - 1) / LANES * LANES, nblk = PP / LANES;
     const SCALAR amin = (SCALAR)alpha_min, amax = (SCALAR)alpha_max, tmin = (SCALAR)t_min;
     int64_t n_trip = 0;
-    SCALAR *px = (SCALAR *)zalloc((size_t)PP * (4 + (size_t)C), sizeof(SCALAR));
+    SCALAR *px = (SCALAR *)zalloc((size_t)PP * (4 + (size_t)C) + LANES, sizeof(SCALAR));
     int32_t *lj = (int32_t *)zalloc((size_t)PP * 3, sizeof(int32_t));
     if (!px || !lj) {
         free(px); free(lj);
         return -1;
     }
-    SCALAR *py = px + PP, *T = py + PP, *w = T + PP, *acc = w + PP;
+    SCALAR *py = px + PP, *T = py + PP, *w = T + PP, *acc = w + PP, *sig = acc + C * PP;
     int32_t *act = lj + PP, *cnt = act + PP;  /* act: the pixel is still compositing */
     for (int64_t ty = 0; ty < tiles_y; ++ty) {
         for (int64_t tx = 0; tx < tiles_x; ++tx) {
@@ -490,10 +483,9 @@ HOT int64_t FN(forward)(const SCALAR *params, const SCALAR *smax, const SCALAR *
                 const SCALAR *f = feat + C * g;
                 for (int64_t blk = 0; blk < nblk; ++blk) {
                     const int64_t b0 = blk * LANES;
-                    if (!FN(block_live)(px + b0, py + b0, act + b0, u, v, a, b, c, sm)) continue;
-                    if (!FN(fw_block)(px + b0, py + b0, T + b0, act + b0, lj + b0, cnt + b0, w + b0, u, v, a, b, c,
-                                      o, amin, amax, tmin, next))
-                        continue;  /* stops only (T unchanged, nothing added) */
+                    if (!FN(fw_block)(px + b0, py + b0, T + b0, act + b0, lj + b0, cnt + b0, w + b0, sig, u, v, a,
+                                      b, c, o, sm, amin, amax, tmin, next))
+                        continue;  /* nothing reachable, or stops only (T unchanged, nothing added) */
                     bits |= block_bit(blk, nblk);
                     for (int64_t k = 0; k < C; ++k) {
                         const SCALAR fk = f[k];
