@@ -1,17 +1,20 @@
-"""Compiled CPU kernels of the PyTorch backend: tile layout and compositing (forward and backward) in C.
+"""Compiled CPU kernels of the Gaussian core: the rasterizer's projection, tile layout and compositing
+(forward and backward), the HexPlane's sampling and regularisers, the SH colour and the training SSIM.
 
-:mod:`.torch_cpu` spends most of a CPU training step in passes of PyTorch operations over padded
-``[chunks, pixels, slots]`` candidate arrays. The same compositing, written per pixel as the 3D-GS
-rasterizer is (front to back, stop at the transmittance floor; backward back to front, recovering the
-transmittance by division), does one pass over the pairs that matter and skips the padding. It is the
-same function of the same inputs (the rule of :class:`~.torch_cpu.CompositingRule`, the exact
-opacity-aware tile test), equal to the PyTorch path up to float rounding.
+A CPU training step spent most of its time in passes of PyTorch operations over padded candidate arrays
+(``[chunks, pixels, slots]`` in :mod:`.torch_cpu`), in ``grid_sample``'s backward and in the autograd
+of small per-Gaussian formulas. The same functions written as loops -- compositing per tile as the
+3D-GS rasterizer does (front to back with all of a tile's pixels in vector lanes, stop at the
+transmittance floor; backward back to front, recovering the transmittance by division), each Gaussian's
+projection and SH with its analytic derivatives -- do one pass over what matters. Each is the same
+function of the same inputs as the PyTorch code it stands in for, equal up to float rounding
+(``tests/test_rasterize.py``, ``tests/test_native_kernels.py``).
 
 The C source below is compiled on first use with the system C compiler (``cc``, or ``$CC``) into a
 shared library under the user's cache folder and loaded with :mod:`ctypes`: no Python or torch headers,
-about a second to build. Without a compiler (or with ``BENCH4D_NATIVE=0``) :func:`kernels` returns
-``None`` and :mod:`.torch_cpu` composites in PyTorch. The source lives in this module so that the
-geometry's code digest (cache keys) follows every change of it.
+a few seconds to build. Without a compiler (or with ``BENCH4D_NATIVE=0``) :func:`kernels` returns
+``None`` and every caller runs its PyTorch code. The source lives in this module so that the code
+digests of cache keys follow every change of it.
 """
 
 from __future__ import annotations
