@@ -559,12 +559,11 @@ NOINLINE static void FN(bw_alpha)(const SCALAR *restrict px, const SCALAR *restr
     }
 }
 
-/* Second part: qs_p = sum_k g_p,k f_k (with G [C, PP], channels first; for the parameters' gradients),
- * and (acc non-NULL) acc[k] += sum_p w_p g_p,k (with Gt [PP, C], pixels first: the channels are the
- * vector lanes). G and Gt point at the block's first lane. */
-NOINLINE static void FN(bw_channels)(int64_t PP, int64_t C, const SCALAR *restrict G, const SCALAR *restrict Gt,
-                                     const SCALAR *restrict f, const SCALAR *restrict ws, SCALAR *restrict qs,
-                                     SCALAR *restrict acc) {
+/* Second part, channel by channel with the block's lanes as vector lanes: qs_p = sum_k g_p,k f_k (for the
+ * parameters' gradients; qs NULL: not wanted) and (accp non-NULL) the lanes' partial sums accp[k][l] +=
+ * w_l g_l,k of the Gaussian's channel gradients. G [C, PP] points at the block's first lane. */
+NOINLINE static void FN(bw_channels)(int64_t PP, int64_t C, const SCALAR *restrict G, const SCALAR *restrict f,
+                                     const SCALAR *restrict ws, SCALAR *restrict qs, SCALAR *restrict accp) {
     if (qs) {
         for (int64_t p = 0; p < LANES; ++p) qs[p] = (SCALAR)0;
         for (int64_t k = 0; k < C; ++k) {
@@ -573,11 +572,11 @@ NOINLINE static void FN(bw_channels)(int64_t PP, int64_t C, const SCALAR *restri
             for (int64_t p = 0; p < LANES; ++p) qs[p] += gk[p] * fk;
         }
     }
-    if (acc) {
-        for (int64_t p = 0; p < LANES; ++p) {
-            const SCALAR wp = ws[p];
-            const SCALAR *restrict gp = Gt + p * C;
-            for (int64_t k = 0; k < C; ++k) acc[k] += wp * gp[k];
+    if (accp) {
+        for (int64_t k = 0; k < C; ++k) {
+            const SCALAR *restrict gk = G + k * PP;
+            SCALAR *restrict ak = accp + k * LANES;
+            for (int64_t p = 0; p < LANES; ++p) ak[p] += ws[p] * gk[p];
         }
     }
 }
@@ -625,16 +624,16 @@ HOT int FN(backward)(const SCALAR *params, const SCALAR *feat, int64_t C, const 
                      double *grad_feat) {
     const int64_t P = ts * ts, PP = (P + LANES - 1) / LANES * LANES, nblk = PP / LANES;
     const SCALAR amin = (SCALAR)alpha_min, amax = (SCALAR)alpha_max;
-    SCALAR *px = (SCALAR *)zalloc((size_t)PP * (5 + 2 * (size_t)C) + 15 * LANES + (size_t)C, sizeof(SCALAR));
+    SCALAR *px = (SCALAR *)zalloc((size_t)PP * (5 + (size_t)C) + 15 * LANES + (size_t)C * LANES, sizeof(SCALAR));
     int32_t *lj = (int32_t *)zalloc((size_t)PP, sizeof(int32_t));
     if (!px || !lj) {
         free(px); free(lj);
         return -1;
     }
-    SCALAR *py = px + PP, *T = py + PP, *R = T + PP, *ga = R + PP, *G = ga + PP, *Gt = G + C * PP;
-    SCALAR *dxs = Gt + C * PP, *dys = dxs + LANES, *als = dys + LANES, *oks = als + LANES, *frees = oks + LANES;
+    SCALAR *py = px + PP, *T = py + PP, *R = T + PP, *ga = R + PP, *G = ga + PP;
+    SCALAR *dxs = G + C * PP, *dys = dxs + LANES, *als = dys + LANES, *oks = als + LANES, *frees = oks + LANES;
     SCALAR *oms = frees + LANES, *tbs = oms + LANES, *ws = tbs + LANES, *qs = ws + LANES, *part = qs + LANES;
-    SCALAR *acc = part + 6 * LANES;
+    SCALAR *accp = part + 6 * LANES;  /* [C, LANES] partial sums of the channel gradients */
     for (int64_t ty = 0; ty < tiles_y; ++ty) {
         for (int64_t tx = 0; tx < tiles_x; ++tx) {
             const int64_t t = ty * tiles_x + tx, s0 = tile_start[t];
@@ -649,10 +648,7 @@ HOT int FN(backward)(const SCALAR *params, const SCALAR *feat, int64_t C, const 
                 R[p] = (SCALAR)0;
                 /* accumulated alpha 1 - T_end: d / d alpha_i = T_end / (1 - alpha_i) */
                 ga[p] = (inside && g_acc) ? g_acc[q] * t_end[q] : (SCALAR)0;
-                for (int64_t k = 0; k < C; ++k) {
-                    G[k * PP + p] = (inside && g_out) ? g_out[C * q + k] : (SCALAR)0;
-                    Gt[p * C + k] = G[k * PP + p];
-                }
+                for (int64_t k = 0; k < C; ++k) G[k * PP + p] = (inside && g_out) ? g_out[C * q + k] : (SCALAR)0;
                 jmax = lj[p] > jmax ? lj[p] : jmax;
             }
             for (int64_t j = (int64_t)jmax - 1; j >= 0; --j) {
@@ -670,14 +666,14 @@ HOT int FN(backward)(const SCALAR *params, const SCALAR *feat, int64_t C, const 
                 const SCALAR u = pg[0], v = pg[1], a = pg[2], b = pg[3], c = pg[4], o = pg[5];
                 const SCALAR *f = feat + C * g;
                 for (int64_t l = 0; l < 6 * LANES; ++l) part[l] = (SCALAR)0;
-                for (int64_t k = 0; k < C; ++k) acc[k] = (SCALAR)0;
+                if (grad_feat)
+                    for (int64_t l = 0; l < C * LANES; ++l) accp[l] = (SCALAR)0;
                 for (int64_t blk = 0; blk < nblk; ++blk) {
                     if (nblk <= 8 && !(bits & (1u << blk))) continue;
                     const int64_t b0 = blk * LANES;
                     FN(bw_alpha)(px + b0, py + b0, T + b0, lj + b0, (int32_t)j, u, v, a, b, c, o, amin, amax, dxs,
                                  dys, als, oks, frees, oms, tbs, ws);
-                    FN(bw_channels)(PP, C, G + b0, Gt + b0 * C, f, ws, grad_params ? qs : NULL,
-                                    grad_feat ? acc : NULL);
+                    FN(bw_channels)(PP, C, G + b0, f, ws, grad_params ? qs : NULL, grad_feat ? accp : NULL);
                     if (!grad_params) {
                         FN(bw_advance)(tbs, oks, T + b0);
                     } else {
@@ -688,7 +684,7 @@ HOT int FN(backward)(const SCALAR *params, const SCALAR *feat, int64_t C, const 
                 }
                 if (grad_feat) {
                     double *gf = grad_feat + C * g;
-                    for (int64_t k = 0; k < C; ++k) gf[k] += (double)acc[k];
+                    for (int64_t k = 0; k < C; ++k) gf[k] += FN(lane_sum)(accp + k * LANES);
                 }
                 if (grad_params) {
                     double *gp = grad_params + 6 * g;
