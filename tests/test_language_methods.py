@@ -22,7 +22,7 @@ from methods.fields.language_field import decode_for_relevance
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = {"geometry.static_iterations": 20, "geometry.deformation_iterations": 20, "field.iterations": 30,
-        "autoencoder.max_steps": 60, "geometry.render_backend": "torch"}
+        "autoencoder.max_steps": 200, "geometry.render_backend": "torch"}
 
 
 @pytest.fixture(scope="module")
