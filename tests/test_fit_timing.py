@@ -108,6 +108,8 @@ def test_head_against_the_working_tree_on_a_tiny_fit(tmp_path):
     assert [p.name for p in report.paths] == ["tiny.json", "tiny.md"]
     kept = sorted(p.name for p in (tmp_path / "out" / "tiny-runs").iterdir())
     assert kept == ["baseline-smoke-seed0-round0.json", "candidate-smoke-seed0-round0.json"]
+    assert [r["results_file"] for r in json.loads((tmp_path / "out" / "tiny.json").read_text())["runs"]] == [
+        "tiny-runs/baseline-smoke-seed0-round0.json", "tiny-runs/candidate-smoke-seed0-round0.json"]
     doc = json.loads((tmp_path / "out" / "tiny.json").read_text())
     assert doc["commits"]["candidate"].startswith("working tree at ")
     runs = doc["runs"]

@@ -136,6 +136,7 @@ class RunRecord:
     """CPU seconds of the whole ``bench4d eval`` process (supervision, fit, answers)."""
     process_wall_seconds: float
     results_file: str
+    """The run's results file (relative to the report's folder once kept there)."""
 
 
 def _git(*args: str, repo: Path = REPO) -> subprocess.CompletedProcess:
@@ -344,7 +345,7 @@ def fit_timing_report(config: TimingConfig, *, log: Callable[[str], None] = lamb
                     # the results file outlives the temporary folder, beside the report
                     target = kept / f"{side}-{Path(scene).name}-seed{seed}-round{r}.json"
                     write_bytes(target, Path(run.results_file).read_bytes())
-                    run.results_file = str(target)
+                    run.results_file = str(target.relative_to(out))  # beside the report, wherever it moves
                     runs.append(run)
     rows = summarize(runs)
     doc = {"config": {**asdict(config), "cache_dir": str(config.cache_dir), "out": str(config.out)},
