@@ -119,12 +119,16 @@ def surface_scene(n: int, width: int = 128, height: int = 128, channels: int = 6
     )
 
 
-def time_forward_backward(scene: SurfaceScene, iters: int = 8, warmup: int = 2, threads: int = 1) -> dict:
+def time_forward_backward(scene: SurfaceScene, iters: int = 8, warmup: int = 2, threads: int = 1,
+                          native: bool = True) -> dict:
     """Forward+backward of :func:`rasterize` (torch backend) on ``scene``: median wall-clock ms, median
-    CPU ms (this thread's CPU time with 1 thread, the process' with more), forward-only (no grad) CPU ms."""
+    CPU ms (this thread's CPU time with 1 thread, the process' with more), forward-only (no grad) CPU ms.
+    ``native``: with the compiled kernels where they build (else the PyTorch passes, ``BENCH4D_NATIVE=0``)."""
     old = torch.get_num_threads()
     torch.set_num_threads(threads)
     cpu_clock = time.thread_time if threads == 1 else time.process_time
+    switch = os.environ.get("BENCH4D_NATIVE")
+    os.environ["BENCH4D_NATIVE"] = "1" if native else "0"
     try:
         params = [t.clone().requires_grad_(True) for t in
                   (scene.means, scene.quats, scene.scales, scene.opacities, scene.colors)]
@@ -160,6 +164,10 @@ def time_forward_backward(scene: SurfaceScene, iters: int = 8, warmup: int = 2, 
         }
     finally:
         torch.set_num_threads(old)
+        if switch is None:
+            os.environ.pop("BENCH4D_NATIVE", None)
+        else:
+            os.environ["BENCH4D_NATIVE"] = switch
 
 
 def _status_kib(field: str) -> int:
@@ -192,6 +200,9 @@ def run_benchmark(iters: int = 8, report: Path = REPORT, sizes: bool = True) -> 
     """Measure and write ``report`` (Markdown); returns the text."""
     torch.set_flush_denormal(True)
     load = os.getloadavg()
+    from methods.gaussians.backends import native_cpu
+
+    compiled = native_cpu.kernels() is not None
     lines = [
         "# CPU rasterizer timing (PyTorch backend)",
         "",
@@ -199,27 +210,33 @@ def run_benchmark(iters: int = 8, report: Path = REPORT, sizes: bool = True) -> 
         "`rasterize(..., backend=\"torch\")` with an L2 image loss plus a depth term; median of "
         f"{iters} iterations after 2 warm-up iterations. *wall* = elapsed time; *CPU* = CPU time of the "
         "iteration (the thread's with 1 thread, the whole process' with 2), which is what the "
-        "iteration costs when the machine is shared. Forward-only (no grad) CPU time in brackets.",
+        "iteration costs when the machine is shared. Forward-only (no grad) CPU time in brackets. "
+        "*kernels*: the compiled kernels (`native`, the default where a C compiler builds them) or the "
+        "PyTorch passes (`pytorch`, `BENCH4D_NATIVE=0`)"
+        + ("." if compiled else f" (the kernels did not build here: {native_cpu.unavailable_reason()})."),
         f"torch {torch.__version__}, Python {platform.python_version()}, {os.cpu_count()} CPUs, "
         f"load average at start {load[0]:.1f} (1 min) -- other jobs were running: wall times above the "
         "CPU times are waiting for a core.",
         "Scene: `surface_scene` (Gaussians on a wall, a floor and three spheres; 1-4 px footprints; "
         "opacity 0.5-0.9); 128x128 covers the image with about 31 composited Gaussians per pixel.",
         "",
-        "| Gaussians | image | channels | threads | wall ms | CPU ms | (fwd CPU ms) | composited pairs | candidates |",
-        "|---:|---|---:|---:|---:|---:|---:|---:|---:|",
+        "| kernels | Gaussians | image | channels | threads | wall ms | CPU ms | (fwd CPU ms) | composited pairs "
+        "| candidates |",
+        "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
+    kinds = (("native", True), ("pytorch", False)) if compiled else (("pytorch", False),)
     for channels, label in ((6, "6"), (9, "3+6")):
         scene = surface_scene(10_000, 128, 128, channels=channels)
         for threads in (1, 2):
-            r = time_forward_backward(scene, iters=iters, threads=threads)
-            lines.append(f"| 10000 | 128x128 | {label} | {threads} | {r['ms']:.1f} | {r['cpu_ms']:.1f} | "
-                         f"({r['forward_cpu_ms']:.1f}) | {r['pairs']} | {r['candidates']} |")
-            print(lines[-1], flush=True)
+            for kind, native in kinds:
+                r = time_forward_backward(scene, iters=iters, threads=threads, native=native)
+                lines.append(f"| {kind} | 10000 | 128x128 | {label} | {threads} | {r['ms']:.1f} | {r['cpu_ms']:.1f} | "
+                             f"({r['forward_cpu_ms']:.1f}) | {r['pairs']} | {r['candidates']} |")
+                print(lines[-1], flush=True)
     if sizes:
         lines += [
             "",
-            "## Size sweep (1 thread, C = 6): Gaussians and pixels grow together",
+            "## Size sweep (1 thread, C = 6, the default kernels): Gaussians and pixels grow together",
             "",
             "Extra memory = peak resident memory during one forward+backward minus the resident memory "
             "just before it (fresh process, peak reset through /proc/self/clear_refs).",
