@@ -116,4 +116,16 @@ def run(args: argparse.Namespace) -> int:
         scale=args.scale, protocol=args.protocol, object_query=args.object_query, refit=args.refit,
         quiet=args.quiet))
     print_run(outcome.results, outcome.path)
+    _say_if_unranked(outcome.results, outcome.path)
     return 0
+
+
+def _say_if_unranked(doc: dict, path) -> None:
+    """A run on a scene that is not one of the benchmark's official scenes: say where its results went and
+    that the leaderboard never ranks them."""
+    from benchmark.core.official import is_official, official_note
+
+    generated = (doc.get("scene_info") or {}).get("generated") or {}
+    dataset, scene = str(doc.get("dataset")), str(doc.get("scene"))
+    if not is_official(dataset, scene, generated.get("preset") if isinstance(generated, dict) else None):
+        print(f"results: {path}; {official_note(dataset, scene)}")
