@@ -26,8 +26,8 @@ from benchmark.core.atomic import read_json
 from benchmark.core.errors import InputError
 from benchmark.core.protocol import DEFAULT_PROTOCOL, RELEASE_DEFECTS_NOT_COPIED, SCORED_FRAMES_NOTE
 from . import stats
-from .leaderboard import (LEGACY_SPLIT, SPLIT_TITLE, _Cells, check_provenance, load_runs, md, ranked_values,
-                          split_order, with_defaults)
+from .leaderboard import (LEGACY_SPLIT, SPLIT_TITLE, _Cells, _machine_spread, check_provenance, load_runs, md,
+                          ranked_values, split_order, with_defaults)
 from .results import ACCURACY_METRICS, MEAN_SCENE, comparable_runs, load_results, protocol_of, seed_summary
 
 SYNTHETIC_ANALOGUE = {("hypernerf", s): s for s in
@@ -176,6 +176,14 @@ class OurNumbers:
             text += f"; {self.dirty} run(s) from a dirty or changing checkout included (`--allow-dirty`)"
         return text
 
+    def machine_spread(self, method: str, scenes: Sequence[str], metric: str) -> float:
+        """The spread of ``method``'s mean ``metric`` over ``scenes`` between the machine kinds its runs ran on
+        (:func:`benchmark.leaderboard._machine_spread`); NaN for one kind."""
+        if not len(self.runs):
+            return math.nan
+        mine = self.runs[(self.runs["method"] == method) & self.runs["scene"].isin(list(scenes))]
+        return _machine_spread(mine, metric)[1]
+
     def interval(self, methods: Sequence[str], scenes: Sequence[str], metric: str) -> dict[str, tuple[float, float]]:
         """Method -> the 95 % interval of its mean over ``scenes`` of its per-scene means (every seed it has on
         each): stratified bootstrap over seeds and queries (:func:`benchmark.stats.bootstrap_means`)."""
@@ -262,9 +270,13 @@ def _comparison(title: str, dataset: str, methods: Sequence[str], metrics: tuple
         intervals = ours.interval(methods, [p for _, p in shared], metric)
         lines.append(f"{metric}, mean over {where}: " + _agreement(paper_on, ours_on, display, intervals))
         lines.append("")
-        lines.append(f"Ours, mean {metric} over {where} with its 95 % interval: "
-                     + "; ".join(f"{display.get(m, m)} {ours_on[m]:.2f} {stats.interval_text(*intervals.get(m, (None, None)))}"
-                                 for m in methods if _finite(ours_on[m])) + ".")
+        spreads = {m: ours.machine_spread(m, [p for _, p in shared], metric) for m in methods}
+        lines.append(f"Ours, mean {metric} over {where} with its 95 % interval"
+                     + (" (Δ: its spread between machine kinds)" if any(_finite(v) for v in spreads.values()) else "")
+                     + ": " + "; ".join(f"{display.get(m, m)} {ours_on[m]:.2f} "
+                                        f"{stats.interval_text(*intervals.get(m, (None, None)))}"
+                                        + (f" (Δ {spreads[m]:.2f})" if _finite(spreads[m]) else "")
+                                        for m in methods if _finite(ours_on[m])) + ".")
         lines.append("")
     return lines
 
