@@ -234,13 +234,6 @@ def _text(value: Any) -> str:
     return value.strip() if isinstance(value, str) else ""
 
 
-def _count(metrics: Mapping[str, Any], name: str, kind: str) -> Optional[int]:
-    """A per-kind query count a results file may record, as ``metrics[name][kind]`` or ``metrics[kind_name]``."""
-    value = metrics.get(name)
-    value = value.get(kind) if isinstance(value, Mapping) else metrics.get(f"{kind}_{name}")
-    return int(value) if isinstance(value, int) and not isinstance(value, bool) and value >= 0 else None
-
-
 def run_extras(doc: dict, row: Mapping[str, Any]) -> dict[str, Any]:
     """The columns of :data:`EXTRA_COLUMNS` for one run: taken from ``row`` where the runs table already has
     them, else read from the results file (a file that records no split is of :data:`LEGACY_SPLIT`; no
