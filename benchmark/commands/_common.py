@@ -23,7 +23,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         help="resolution multiplier for scene folders (e.g. 0.5: D-NeRF 400 -> 200 px); answers are "
                              "upsampled (nearest) to the annotations' size for scoring")
     parser.add_argument("--score-train", action="store_true",
-                        help="also score annotated training frames (the release does; default: held-out only)")
+                        help="also score annotated training frames (default: held-out frames only)")
     add_protocol_argument(parser)
     parser.add_argument("--object-query", default=None, metavar="TEXT",
                         help="the object of a D-NeRF scene with no annotation file (its alpha masks are the truth "
