@@ -23,8 +23,9 @@ compose itself: :func:`prepare_run` (1, 2), :func:`obtain_fit` (3), :func:`answe
    keep their record.
 
 Queries of a kind the method does not answer are listed (``unanswered_queries`` in the results file and
-in the predictions' ``info``), not scored: :mod:`benchmark.metrics.scoring` states the rule, and
-``bench4d score`` of the predictions folder applies the same one.
+in the predictions' ``info``) and count 0 in the full means, beside means over the answered ones:
+:mod:`benchmark.metrics.scoring` states the rule, and ``bench4d score`` of the predictions folder applies
+the same one (the predictions' ``info.time_score`` carries the method's kind of time score too).
 
 Caches are checked when read: a damaged cached fit (its ``fit.json`` or a model the method cannot load)
 or a damaged generated preset is made again, with a one-line warning on stderr.

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from benchmark.core.protocol import (DEFAULT_PROTOCOL, PROTOCOLS, SCORED_FRAMES_NOTE, AgnosticQuery, Protocol,
-                                     ScoringRule, SensitiveQuery, TemporalRule, get_protocol)
+from benchmark.core.protocol import (DEFAULT_PROTOCOL, PROTOCOLS, SCORED_FRAMES_NOTE, SHARED_CHOICES,
+                                     WINDOW_SCALING_NOTE, AgnosticQuery, Protocol, ScoringRule, SensitiveQuery,
+                                     TemporalRule, get_protocol)
 from benchmark.results import protocol_of
 from methods.fields.relevance import AgnosticResult, answer_from_relevance
 
@@ -104,6 +105,9 @@ def test_release_is_the_default_everywhere():
     assert paper.temporal.weights == release.temporal.weights == (0.1, 0.8, 0.1)
     # tables say which frames were scored, and never that the release scores its training views
     assert "held-out" in SCORED_FRAMES_NOTE and "release" not in SCORED_FRAMES_NOTE
+    # the stated window sizes are the ones the query uses
+    assert release.agnostic.kernels_for(536, 960) == (29, 7) and release.agnostic.kernels_for(128, 170) == (5, 1)
+    assert "5 and 1" in WINDOW_SCALING_NOTE and WINDOW_SCALING_NOTE in SHARED_CHOICES
 
 
 def test_presets_round_trip_and_changes_are_named_custom():
