@@ -134,6 +134,11 @@ def print_run(results: dict, path) -> None:
     t = results["timing"]
     parts = [f"{results['method']} on {results['dataset']}/{results['scene']} ({results['track']}, seed {results['seed']}):"]
     parts.append(f"mIoU {fmt(m.get('mIoU'))}  mAcc {fmt(m.get('mAcc'))}  Acc {fmt(m.get('Acc'))}  vIoU {fmt(m.get('vIoU'))}")
+    short = [k for k in ("agnostic", "sensitive") if m.get(f"asked_{k}_queries", 0) > m.get(f"answered_{k}_queries", 0)]
+    if short:  # unanswered queries count 0 in the means above
+        parts.append("answered / asked: " + ", ".join(f"{k} {m[f'answered_{k}_queries']} / {m[f'asked_{k}_queries']}"
+                                                      for k in short) + "; answered only: " + "  ".join(
+            f"{name} {fmt(m.get(name + '_answered'))}" for name in ("mIoU", "mAcc", "Acc", "vIoU")))
     if m.get("AUC") is not None or m.get("nearTau") is not None:
         parts.append(f"time-sensitive scores: AUC {fmt(m.get('AUC'))}, decisions near the threshold "
                      f"{fmt(m.get('nearTau'), 1)} %")
