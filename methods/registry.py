@@ -44,6 +44,7 @@ from typing import Any, Iterator, Mapping, Optional
 from benchmark.core.cache_keys import code_digest
 from benchmark.core.config import ConfigOption, config_options, with_overrides
 from benchmark.core.errors import InputError
+from benchmark.core.protocol import TIME_SCORES
 
 from ._registry import Registry, entry_point_modules, import_entry_point
 
@@ -84,6 +85,10 @@ class MethodSpec:
     floor: bool = False
     """A floor, not a competitor: it answers from the training frames' 2D supervision without going
     through the protocol's query; the leaderboard shows it in its own labelled row and never ranks it."""
+    time_score: str = "feature"
+    """How its time-sensitive score is made, which picks the protocol's ``tau`` rule
+    (:data:`benchmark.core.protocol.TIME_SCORES`): ``"feature"`` (a time-varying feature's similarity to the
+    query) or ``"relevance-peak"`` (its time-agnostic relevance alone, as the release's CLIP-only baselines)."""
 
     def __post_init__(self) -> None:
         if not dataclasses.is_dataclass(self.config):
@@ -96,6 +101,8 @@ class MethodSpec:
         if "agnostic" not in self.queries:
             # a time-sensitive answer's mask is the time-agnostic answer of the same text
             raise ValueError(f"method {self.name!r}: every method answers time-agnostic queries")
+        if self.time_score not in TIME_SCORES:
+            raise ValueError(f"method {self.name!r}: time_score must be one of {TIME_SCORES}, got {self.time_score!r}")
         bad = set(self.tracks) - {"oracle", "real"}
         if bad:
             raise ValueError(f"method {self.name!r}: unknown tracks {sorted(bad)}")

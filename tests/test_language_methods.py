@@ -76,7 +76,9 @@ def test_specs_list_without_torch_and_declare_what_the_classes_support():
 def test_methods_share_one_4dgs_fit_answer_every_query_and_reload(smoke):
     first = _eval(smoke, "deformable-clip")
     doc = first.results
-    assert doc["metrics"]["agnostic_queries"] == 8 and doc["metrics"]["sensitive_queries"] == 4
+    # 7 of the 8: "lid knob" is absent on both held-out frames, not scored under the release's rule
+    assert doc["metrics"]["agnostic_queries"] == 7 and doc["metrics"]["sensitive_queries"] == 4
+    assert doc["metrics"]["absent_frames"] == 2 and doc["metrics"]["absentFP"] is not None
     assert all(0.0 <= doc["metrics"][k] <= 100.0 for k in ("mIoU", "mAcc", "Acc", "vIoU"))
     assert doc["timing"]["query_agnostic"]["fps"] > 0
 

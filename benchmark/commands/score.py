@@ -17,8 +17,9 @@ rule in :mod:`benchmark.metrics`. Prints a plain-text table; ``--out`` writes th
 file, a file of a prediction folder or the ``--eval-frames`` file is refused before anything is scored,
 and so is a folder; a path that cannot be written is a one-line error.
 
-Queries a method declined are listed, not scored (:mod:`benchmark.metrics.scoring`): a prediction folder
-names them in ``info.unanswered_queries``; a folder ``bench4d eval`` wrote before it did so
+Queries a method declined are listed and count 0 in the full means, which are printed beside the means
+over the answered queries and the answered / asked counts (:mod:`benchmark.metrics.scoring`): a prediction
+folder names them in ``info.unanswered_queries``; a folder ``bench4d eval`` wrote before it did so
 (``seed<N>.predictions/``) has them in the results file beside it (``seed<N>.json``), read instead.
 """
 
@@ -53,8 +54,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=None, help="write the results JSON here (atomically)")
     add_protocol_argument(parser)
     parser.add_argument("--tau-from", choices=("raw", "smoothed"), default=None,
-                        help="tau = mean of the raw scores (release) or of the smoothed ones (paper text); "
-                             "default: the protocol's")
+                        help="tau = mean of the raw scores or of the smoothed ones, for every method kind "
+                             "(default: the protocol's; release: raw for feature scores, smoothed for "
+                             "relevance peaks, as the predictions' info.time_score says)")
+    parser.add_argument("--absent-frames", choices=("skip", "score-empty"), default=None,
+                        help="frames where a query's object is absent: not scored (release) or scored against "
+                             "the empty mask; default: the protocol's")
     parser.add_argument("--smoothing-ends", choices=("renormalise", "keep", "replicate"), default=None,
                         help="missing neighbours in temporal smoothing (default: the protocol's; release: keep)")
     parser.add_argument("--smoothing-weights", default=None, metavar="W,W,W",
@@ -67,13 +72,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _protocol(args: argparse.Namespace):
-    """The protocol named by ``--protocol`` with the temporal flags applied (named ``custom`` if they change
-    it). Predictions hold masks already: only its temporal rule decides anything here."""
+    """The protocol named by ``--protocol`` with the temporal and absent-frame flags applied (named ``custom``
+    if they change it). Predictions hold masks already: only its temporal rule and absent-frame rule decide
+    anything here."""
     from benchmark.core.protocol import get_protocol
 
     changes: dict = {}
     if args.tau_from:
-        changes["temporal.tau_from"] = args.tau_from
+        changes["temporal.tau_from"] = changes["temporal.relevance_peak_tau_from"] = args.tau_from
+    if args.absent_frames:
+        changes["scoring.absent_frames"] = args.absent_frames
     if args.smoothing_ends:
         changes["temporal.ends"] = args.smoothing_ends
     if args.smoothing_weights:
@@ -263,10 +271,18 @@ def format_table(headers: list[str], rows: list[list[object]]) -> str:
     return "\n".join([line(headers), line(["-" * w for w in widths])] + [line(r) for r in cells])
 
 
-def report_text(dataset, quiet: bool = False) -> str:
-    """The printed report of a :class:`~benchmark.metrics.DatasetScore` (percent)."""
-    from ..metrics import REPORT_METRICS
+def _coverage(values: dict, kind: str) -> str:
+    """``answered / asked`` queries of ``kind`` in a summary."""
+    return f"{values[f'answered_{kind}_queries']} / {values[f'asked_{kind}_queries']}"
 
+
+def report_text(dataset, quiet: bool = False) -> str:
+    """The printed report of a :class:`~benchmark.metrics.DatasetScore` (percent): per query and per scene
+    (unless ``quiet``), then the dataset's full means (every asked query, an unanswered one counting 0) and
+    answered-only means, labelled, with the answered / asked counts."""
+    from ..metrics import ABSENT_FP, ANSWERED_SUFFIX, RANKED_METRICS
+
+    ranked = list(RANKED_METRICS)
     parts = []
     if not quiet:
         q = dataset.query_table()
@@ -274,11 +290,21 @@ def report_text(dataset, quiet: bool = False) -> str:
                 for r in q.itertuples()]
         parts.append(format_table(["scene", "query", "kind", "frames", "IoU", "pixAcc", "Acc", "vIoU"], rows))
         s = dataset.scene_table()
-        rows = [[r["scene"], *[r[m] for m in REPORT_METRICS], int(r["count"])] for r in s.to_dict(orient="records")]
-        parts.append(format_table(["scene", *REPORT_METRICS, "queries"], rows))
+        rows = [[r["scene"], *[r[m] for m in ranked], r["AUC"], r["nearTau"], r[ABSENT_FP],
+                 _coverage(r, "agnostic"), _coverage(r, "sensitive")] for r in s.to_dict(orient="records")]
+        parts.append(format_table(["scene", *ranked, "AUC", "nearTau", ABSENT_FP, "agnostic answered / asked",
+                                   "sensitive answered / asked"], rows))
     summary = dataset.summary()
-    parts.append(format_table(["dataset", *REPORT_METRICS, "scenes"],
-                              [["mean over scenes", *[summary[m] for m in REPORT_METRICS], summary["scenes"]]]))
+    parts.append(format_table(
+        [f"mean over {summary['scenes']} scene(s)", *ranked],
+        [["every asked query (unanswered = 0)", *[summary[m] for m in ranked]],
+         ["answered queries only", *[summary[m + ANSWERED_SUFFIX] for m in ranked]]]))
+    parts.append(f"queries answered / asked: time-agnostic {_coverage(summary, 'agnostic')}, time-sensitive "
+                 f"{_coverage(summary, 'sensitive')}\n"
+                 f"diagnostics of the answered time-sensitive queries: AUC {_fmt(summary['AUC'])}, "
+                 f"nearTau {_fmt(summary['nearTau'])}\n"
+                 f"absentFP (non-empty masks where the object is absent, time-agnostic queries): "
+                 f"{_fmt(summary[ABSENT_FP])} % of {summary['absent_frames']} (query, frame) pairs")
     return "\n\n".join(parts)
 
 
@@ -308,7 +334,7 @@ def run(args: argparse.Namespace) -> int:
     from_results = []
     for aset, folder in pairs:
         frames = None if wanted is None else tuple(sorted(wanted & {f.name for f in aset.frames}))
-        config = ScoreConfig(temporal=temporal, eval_frames=frames, allow_extra=args.allow_extra)
+        config = ScoreConfig.from_protocol(protocol, eval_frames=frames, allow_extra=args.allow_extra)
         predictions = read_predictions(folder)
         if _unanswered_from_results(predictions, folder):
             from_results.append(aset.scene)
@@ -319,7 +345,8 @@ def run(args: argparse.Namespace) -> int:
     print(report_text(dataset, quiet=args.quiet))
     records = sum(len(s.records) for s in scenes)
     print(f"\nscored {records} (query, frame) records in {seconds:.3f} s; protocol {protocol.name}: "
-          f"tau from {temporal.tau_from} scores, ends={temporal.ends}, weights={list(temporal.weights)}")
+          f"tau from {temporal.tau_from} scores (relevance peaks: {temporal.relevance_peak_tau_from}), "
+          f"ends={temporal.ends}, weights={list(temporal.weights)}, absent frames: {protocol.scoring.absent_frames}")
     for s in scenes:
         if s.skipped:
             print(f"note: {s.scene}: not scored (no evaluated frame): {', '.join(s.skipped)}", file=sys.stderr)
@@ -338,7 +365,7 @@ def run(args: argparse.Namespace) -> int:
             "numpy": np.__version__,
             "score_seconds": round(seconds, 4),
             "protocol": protocol.to_dict(),
-            "protocol_applied": "temporal rule only: the predictions' masks were made by the method",
+            "protocol_applied": "temporal and absent-frame rules only: the predictions' masks were made by the method",
         }
         try:
             write_json(args.out, dataset.to_json(provenance, include_frames=not args.no_frames))

@@ -22,4 +22,5 @@ SPEC = MethodSpec(
     paper="baseline defined in Li et al., 4D LangSplat, CVPR 2025",
     tracks=("oracle", "real"),
     queries=("agnostic", "sensitive"),
+    time_score="relevance-peak",
 )

@@ -22,4 +22,5 @@ SPEC = MethodSpec(
     paper="Qin et al., LangSplat: 3D Language Gaussian Splatting, CVPR 2024",
     tracks=("oracle", "real"),
     queries=("agnostic", "sensitive"),
+    time_score="relevance-peak",
 )
