@@ -450,14 +450,28 @@ def test_declaring_a_failed_query_unanswered_never_raises_the_full_mean(tmp_path
     assert (s["answered_agnostic_queries"], s["asked_agnostic_queries"]) == (2, 3)
     assert (s["answered_sensitive_queries"], s["asked_sensitive_queries"]) == (1, 1)
     assert scored.unanswered == ["cookie"] and "cookie" not in set(scored.query_table()["query"])
-    # a kind answered not at all: 0 in the full mean, undefined answered-only
+    # a kind declined as a whole on a scene: no full mean there (a time-agnostic-only method gets no
+    # time-sensitive row) ...
     none = perfect_predictions(aset)
     del none.queries["cracked cookie"]
     none.info["unanswered_queries"] = ["cracked cookie"]
-    s = score_scene(aset, none).summary()
-    assert (s["Acc"], s["vIoU"]) == (0.0, 0.0) and math.isnan(s["Acc_answered"]) and math.isnan(s["vIoU_answered"])
+    declined_kind = score_scene(aset, none)
+    s = declined_kind.summary()
+    assert math.isnan(s["Acc"]) and math.isnan(s["vIoU"])
+    assert math.isnan(s["Acc_answered"]) and math.isnan(s["vIoU_answered"])
     assert (s["answered_sensitive_queries"], s["asked_sensitive_queries"], s["mIoU"]) == (0, 1, 100.0)
     assert math.isnan(s["AUC"])  # diagnostics describe answered queries only
+    other = make_gt("c")
+    del_other = perfect_predictions(other)
+    del del_other.queries["cracked cookie"]
+    del_other.info["unanswered_queries"] = ["cracked cookie"]
+    both = aggregate_scenes([declined_kind, score_scene(other, del_other)]).summary()
+    assert math.isnan(both["Acc"]) and math.isnan(both["vIoU"])
+    # ... but declining it on one scene while answering it on another counts that scene 0: declining the
+    # hard scene never raises the dataset mean
+    mixed = aggregate_scenes([declined_kind, score_scene(make_gt("b"), perfect_predictions(make_gt("b")))]).summary()
+    assert (mixed["Acc"], mixed["vIoU"]) == (pytest.approx(50.0), pytest.approx(50.0))
+    assert mixed["Acc_answered"] == 100.0
     # a query with no scored frame is not asked: declining it costs nothing
     early = score_scene(aset, declined, ScoreConfig(eval_frames=("f000",)))
     assert early.skipped == ["plate"] and early.summary()["asked_agnostic_queries"] == 2  # cookie, spoon

@@ -31,7 +31,9 @@ query on a scene it has no state captions for, say). The predictions then list t
 unanswered query is *asked* (it has a scored frame) but not answered: it has no query row and no frame
 records, it is listed (:attr:`SceneScore.unanswered`, ``"unanswered"`` in the results document), and it
 **scores 0 in the full mean**: ``mIoU``, ``mAcc``, ``Acc`` and ``vIoU`` average every asked query of
-their kind, an unanswered one counting 0, so declining a query never raises a mean. The means over the
+their kind, an unanswered one counting 0, so declining a query never raises a mean. A kind declined on
+every scene (a method built for time-agnostic queries only) has no full mean (null): the method is not in
+that kind's table; declined on some scenes only, those scenes count 0 in the dataset mean. The means over the
 answered queries alone are reported beside them (``mIoU_answered`` ...), with the counts
 ``answered_<kind>_queries`` / ``asked_<kind>_queries``. (An unanswered query is not scored as if it had
 answered with empty masks and negative decisions: that would give a method that attempted no
@@ -312,7 +314,11 @@ class SceneScore:
         ``absentFP``; and counts: queries answered and asked per kind, (query, frame) pairs scored,
         absent (query, frame) pairs looked at, queries answered (``count``)."""
         rows, asked = self.query_table(), self.asked_table()
-        out: dict = {name: _percent_mean(asked.loc[asked["kind"] == kind, col])
+        # A kind declined as a whole (no query of it answered) is not this method's kind: NaN, so a method
+        # built for time-agnostic queries gets no time-sensitive row. The dataset mean then counts such a
+        # scene 0 if the method answers that kind on another scene (DatasetScore.summary).
+        out: dict = {name: (_percent_mean(asked.loc[asked["kind"] == kind, col])
+                            if (rows["kind"] == kind).any() else float("nan"))
                      for kind, cols in KIND_METRICS.items() for name, col in RANKED_METRICS.items() if col in cols}
         out.update({name: _percent_mean(rows.loc[rows["kind"] == kind, col])
                     for kind, cols in KIND_METRICS.items() for name, col in ANSWERED_METRICS.items() if col in cols})
@@ -357,6 +363,13 @@ class DatasetScore:
         """Each value the mean over scenes of the scenes' values (those defined), counts summed, ``scenes``."""
         table = self.scene_table()
         out: dict = {name: _defined_mean(table[name]) for name in MEAN_VALUES}
+        for kind, cols in KIND_METRICS.items():
+            # a scene whose asked queries of this kind were all declined counts 0 once the method answers the
+            # kind elsewhere: declining a hard scene never raises the dataset mean
+            declined = (table[f"answered_{kind}_queries"] == 0) & (table[f"asked_{kind}_queries"] > 0)
+            for name, col in RANKED_METRICS.items():
+                if col in cols and declined.any() and table[name].notna().any():
+                    out[name] = _defined_mean(table[name].where(~declined, 0.0))
         out.update({name: int(table[name].sum()) for name in SUMMED_COUNTS})
         out["scenes"] = len(self.scenes)
         return out
