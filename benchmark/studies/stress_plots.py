@@ -252,7 +252,9 @@ def gallery(runs: dict[str, Path], scene_root: Path, title: str, path: Path, *,
     for ax in axes[-1][1:]:
         ax.remove()
     _timeline_panel(fig.add_subplot(grid[-1, :]), docs)
-    fig.suptitle(title, fontsize=10)
+    import textwrap
+
+    fig.suptitle(textwrap.fill(title, width=max(40, int(columns * 1.9 * 10))), fontsize=10)  # no wider than the panels
     return _save_png(fig, path)
 
 
@@ -334,9 +336,10 @@ def coverage(config: SuiteConfig, scores: Sequence[Score]) -> str:
                     if (fam, strength, method, seed) not in present:
                         missing.setdefault(method, {}).setdefault((fam, seed), []).append(strength)
     done = {(CLEAN if s.strength == 0 else s.family, s.strength, s.method, s.seed) for s in scores} & expected
-    head = (f"{len(done)} distinct runs of the {len(expected)} the suite names ({len(config.methods)} methods, "
-            f"{len(families)} families at their strengths, {_seeds_text(config.seeds)}; a clean run shared by "
-            f"the families counts once)")
+    methods = f"{len(config.methods)} method" + ("s" if len(config.methods) != 1 else "")
+    fams = f"{len(families)} " + ("family" if len(families) == 1 else "families")
+    head = (f"{len(done)} distinct runs of the {len(expected)} the suite names ({methods}, {fams} at their "
+            f"strengths, {_seeds_text(config.seeds)}; a clean run shared by the families counts once)")
     if not missing:
         return head + ": complete, every method on every family at every strength with every seed.\n"
     lines = [head + f". Not run ({len(expected) - len(done)}):", ""]
