@@ -191,9 +191,13 @@ def machine_kinds(runs: "pd.DataFrame") -> "pd.Series":
     """The kind of machine each run was timed on: the runs table's ``machine_kind`` where it has one
     (prefixed with the ``device`` when it does not name it: a GPU run is never charted with CPU runs),
     else the ``device``, else :data:`UNKNOWN_MACHINE`."""
+    import pandas as pd
+
     def text(row, column: str) -> str:
         value = row.get(column)
-        return "" if value is None or (isinstance(value, float) and math.isnan(value)) else str(value).strip()
+        if value is None or (not isinstance(value, str) and bool(pd.isna(value))):  # None, NaN, pd.NA
+            return ""
+        return str(value).strip()
 
     kinds = []
     for row in runs.to_dict(orient="records"):
@@ -201,8 +205,6 @@ def machine_kinds(runs: "pd.DataFrame") -> "pd.Series":
         if kind and device and device.lower() not in kind.lower():
             kind = f"{device}: {kind}"
         kinds.append(kind or device or UNKNOWN_MACHINE)
-    import pandas as pd
-
     return pd.Series(kinds, index=runs.index, dtype=object)
 
 

@@ -186,3 +186,9 @@ def test_the_written_chart_draws_floor_and_ceiling_lines(tmp_path, monkeypatch):
     assert sum(label.startswith("2D floor floor (not ranked)") for label in labels) == 2  # one per panel
     ceilings = [ys for label, ys in drawn[0] if label.startswith("perfect-feature ceiling")]
     assert len(ceilings) == 2 and all(ys[0] == pytest.approx(85.0) for ys in ceilings)
+
+
+def test_a_missing_machine_kind_of_any_form_falls_back_to_the_device():
+    table = _table([_run("a", "s1", 0, miou=1.0, machine_kind="xeon"), _run("a", "s1", 1, miou=1.0)])
+    table["machine_kind"] = pd.array(["xeon", pd.NA], dtype="string")
+    assert machine_kinds(table).tolist() == ["cpu: xeon", "cpu"]
