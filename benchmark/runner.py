@@ -261,6 +261,15 @@ def dataset_label(scene: Scene) -> str:
     return scene.dataset
 
 
+def scene_line(scene: Scene) -> str:
+    """The scene's one-line summary under the dataset its results are filed under (a generated scene in the
+    HyperNeRF layout reads ``synthetic/<name> (hypernerf layout): ...``, as its results folder is named)."""
+    label = dataset_label(scene)
+    if label == scene.dataset:
+        return scene.summary()
+    return f"{label}/{scene.name} ({scene.dataset} layout): {scene.summary().partition(': ')[2]}"
+
+
 def draft_query_texts(aset: AnnotationSet) -> list[str]:
     """Texts of the queries whose ground truth is an unreviewed draft: marked ``review: "draft"``, or a
     time-sensitive query whose base (whose masks it scores) is."""
@@ -807,7 +816,7 @@ def prepare_run(options: EvalOptions) -> PreparedRun:
     scene = load_scene(root) if options.scale is None else load_scene(root, scale=options.scale)
     aset = find_annotations(scene, options.annotations, options.object_query)
     eval_frames = _evaluated_frames(scene, aset, options.splits)
-    progress.log(f"{scene.summary()}; scoring {len(eval_frames)} annotated frame(s) of split(s) "
+    progress.log(f"{scene_line(scene)}; scoring {len(eval_frames)} annotated frame(s) of split(s) "
                  f"{'+'.join(options.splits)}")
     supervision = _run_supervision(options, scene, aset, progress)
     return PreparedRun(options=options, spec=spec, config=config, protocol=protocol, progress=progress, root=root,

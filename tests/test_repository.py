@@ -164,6 +164,11 @@ def test_demo_fits_the_4d_method_and_the_floor_and_shows_their_share_of_the_ceil
     results = cache / "demo-results" / "synthetic" / "smoke"
     assert (results / "4d-langsplat" / "oracle" / "seed0.json").is_file()
     assert (results / "nearest-frame" / "oracle" / "seed0.json").is_file()
+    # the README's scoring example reads what the demo leaves (here at the test's scene and size)
+    gt, pred = readme_score_example()
+    assert main(["score", "--gt", str(demo_path(gt, cache, "smoke", 32)),
+                 "--pred", str(demo_path(pred, cache, "smoke", 32))]) == 0
+    assert "mean over scenes" in capsys.readouterr().out
 
     assert main(["demo", "--scene", "smoke", "--size", "32", "--cache-dir", str(cache), "--quiet",
                  "--method", "nearest-frame"]) == 0
@@ -171,6 +176,31 @@ def test_demo_fits_the_4d_method_and_the_floor_and_shows_their_share_of_the_ceil
     assert main(["demo", "--scene", "smoke", "--size", "32", "--cache-dir", str(cache), "--quiet",
                  "--set", "no_such_option=1"]) == 2
     assert "no_such_option" in capsys.readouterr().err
+
+
+def readme_score_example() -> tuple[str, str]:
+    """(--gt, --pred) of the README's first ``bench4d score`` command (a line may continue with ``\\``)."""
+    text = (ROOT / "README.md").read_text().replace("\\\n", " ")
+    command = next(line for line in text.splitlines() if line.startswith("bench4d score --gt cache/"))
+    args = command.split()
+    return args[args.index("--gt") + 1], args[args.index("--pred") + 1]
+
+
+def demo_path(path: str, cache: Path, scene: str, size: int) -> Path:
+    """A README path under ``cache/`` as the demo of ``scene`` at ``size`` px in ``cache`` leaves it."""
+    from benchmark.commands.demo import DEMO_SIZE, default_preset
+
+    preset = default_preset()
+    assert path.startswith("cache/") and (f"/{DEMO_SIZE}px/{preset}/" in path or f"/{preset}/" in path), path
+    return cache / path.removeprefix("cache/").replace(f"{DEMO_SIZE}px", f"{size}px").replace(f"/{preset}/", f"/{scene}/")
+
+
+def test_the_readme_scoring_example_names_the_demos_own_scene_and_method():
+    from benchmark.commands.demo import DEMO_METHOD, DEMO_SIZE, default_preset
+
+    gt, pred = readme_score_example()
+    assert gt == f"cache/scenes/{DEMO_SIZE}px/{default_preset()}/annotations.json"
+    assert pred.startswith(f"cache/demo-results/synthetic/{default_preset()}/{DEMO_METHOD}/oracle/seed0")
 
 
 def test_demo_table_without_a_ceiling_shows_no_share():

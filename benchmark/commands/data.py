@@ -4,7 +4,7 @@
     bench4d data make-synthetic PRESET --out DIR [--size 128] [--height H] [--frames N] [--views N]
                                 [--layout hypernerf|neu3d|dnerf] [--seed S] [--overwrite] [--jobs N]
     bench4d data validate DIR [--annotations FILE]         # scene + annotations (+ generator truth)
-    bench4d data show DIR [--out sheet.png] [--frames 4]   # contact sheet: frames with GT masks
+    bench4d data show DIR [--out sheet.png] [--frames 4]   # contact sheet beside DIR: frames with GT masks
     bench4d data timing [--size 128] [--out reports/synthetic_generation.md]
     bench4d data digests [--presets a,b] [--sizes 128] [--write]  # scene versions (synthetic/digests.json)
 """
@@ -33,7 +33,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     mk = sub.add_parser("make-synthetic", help="render a synthetic preset with exact ground truth")
     mk.add_argument("preset", help="preset name (see 'bench4d data presets')")
     mk.add_argument("--out", type=Path, required=True, help="scene folder to create")
-    mk.add_argument("--size", type=int, default=None, help="image width in pixels (default: the preset's, 128)")
+    mk.add_argument("--size", type=int, default=None,
+                    help=f"image width in pixels (default: the preset's: {_default_sizes_text()}; the height "
+                         "follows the layout's aspect, 'bench4d data presets' lists each preset's frame size)")
     mk.add_argument("--height", type=int, default=None,
                     help="image height in pixels (default: the layout's aspect; HyperNeRF captures: --size 536 "
                          "--height 960)")
@@ -55,7 +57,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sh = sub.add_parser("show", help="contact sheet of frames with ground-truth masks overlaid")
     sh.add_argument("scene", type=Path, help="scene folder")
     sh.add_argument("--annotations", type=Path, default=None, help="default: SCENE/annotations.json")
-    sh.add_argument("--out", type=Path, default=None, help="PNG to write (default: ./<scene>_sheet.png)")
+    sh.add_argument("--out", type=Path, default=None,
+                    help="PNG to write (default: <scene folder>_sheet.png beside the scene folder)")
     sh.add_argument("--frames", type=int, default=4, help="number of annotated frames to show")
     sh.add_argument("--queries", default=None, help="comma-separated query texts to overlay (default: all agnostic)")
 
@@ -79,13 +82,35 @@ def run(args: argparse.Namespace) -> int:
 
 
 # -- presets / make-synthetic -------------------------------------------------------------------------
+def default_frame_size(spec) -> tuple[int, int]:
+    """(width, height) of a preset generated without ``--size`` / ``--height``: its default width and the
+    height its default layout's aspect gives (as :func:`benchmark.synthetic.generate` makes it)."""
+    from ..synthetic import layouts
+
+    aspect = layouts.LAYOUT_SPECS[spec.default_layout].setup.intrinsics.height_over_width
+    return spec.default_size, 2 * int(round(spec.default_size * aspect / 2))
+
+
+def _default_sizes_text() -> str:
+    """The presets' default widths, e.g. "128, smoke 48" (the most common first, then the exceptions)."""
+    from collections import Counter
+
+    from ..synthetic import PRESETS
+
+    common = Counter(spec.default_size for spec in PRESETS.values()).most_common(1)[0][0]
+    others = [f"{spec.name} {spec.default_size}" for spec in PRESETS.values() if spec.default_size != common]
+    return ", ".join([str(common), *others])
+
+
 def _presets(args: argparse.Namespace) -> int:
     from ..synthetic import PRESETS
 
     for spec in PRESETS.values():
         ts = "time-sensitive" if spec.time_sensitive else "time-agnostic"
-        print(f"{spec.name:14s} {spec.default_layout:9s} {spec.default_frames:3d} frames  {ts:14s}  "
-              f"({spec.analogue}) {spec.description}")
+        width, height = default_frame_size(spec)
+        analogue = spec.analogue.strip("()")  # "(tests)" is printed in one pair of brackets, like the others
+        print(f"{spec.name:14s} {spec.default_layout:9s} {spec.default_frames:3d} frames  {width:3d}x{height:<3d}  "
+              f"{ts:14s}  ({analogue}) {spec.description}")
     return 0
 
 
@@ -94,6 +119,10 @@ def _make(args: argparse.Namespace) -> int:
 
     from ..synthetic import generate
 
+    out = Path(args.out)
+    if out.is_dir() and any(out.iterdir()) and not args.overwrite:  # in the command's words, not the function's
+        raise InputError(out, None, "folder exists and is not empty; pass --overwrite to replace a previously "
+                                    "generated scene")
     start = time.perf_counter()
     out = generate(args.preset, args.out, size=args.size, frames=args.frames, views=args.views,
                    layout=args.layout, seed=args.seed, overwrite=args.overwrite, shadows=not args.no_shadows,
@@ -191,11 +220,18 @@ def _show(args: argparse.Namespace) -> int:
     if path is None:
         raise InputError(Path(args.scene) / "annotations.json", None, "no annotations to show (pass --annotations)")
     aset = load_annotations(path, scene=scene)
-    out = args.out or Path(f"{scene.name}_sheet.png")
+    out = args.out or default_sheet_path(Path(args.scene))
     wanted = None if args.queries is None else [t.strip() for t in args.queries.split(",") if t.strip()]
     write_contact_sheet(scene, aset, out, num_frames=args.frames, queries=wanted)
     print(f"wrote {out}")
     return 0
+
+
+def default_sheet_path(scene_dir: Path) -> Path:
+    """Where ``data show`` writes without ``--out``: ``<folder>_sheet.png`` beside the scene folder, never
+    in the current folder (which may be a checkout), and never inside the scene (a loader reads it)."""
+    folder = Path(scene_dir).resolve()
+    return folder.parent / f"{folder.name}_sheet.png"
 
 
 def write_contact_sheet(scene, aset, out: Path, *, num_frames: int = 4, queries=None) -> Path:
