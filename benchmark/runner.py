@@ -56,6 +56,7 @@ from .core import memory
 from benchmark.core.annotation import AnnotationSet
 from benchmark.core.atomic import json_ready, read_json, write_json
 from benchmark.core.errors import InputError
+from benchmark.core.outputs import guard_output
 from benchmark.core.openblas import cpuinfo_value, openblas_core
 from benchmark.core.protocol import DEFAULT_PROTOCOL, get_protocol
 from .results import RunResults, exclusive_lock, results_lock, results_path, write_results
@@ -572,6 +573,38 @@ def _read_fit_record(path: Path, key: str) -> dict:
     return info
 
 
+MODEL_ARRAY_SUFFIXES = (".npz", ".npy", ".pt", ".pth")
+"""Files of a cached model whose arrays :func:`check_cached_arrays` reads."""
+
+
+def check_cached_arrays(folder: Path) -> None:
+    """Every entry of a cached model folder is a file or a folder (a FIFO, socket or device is refused before
+    anything opens it: a read would block), and every floating array of its ``.npz`` / ``.npy`` / ``.pt``
+    files is finite. An :class:`InputError` names the file (and array) otherwise: a model rewritten with
+    NaN, or a fit that diverged, is never used as if it were sound."""
+    from benchmark.core.strict import file_problem, non_finite_entry
+
+    for path in sorted(Path(folder).rglob("*")):
+        problem = file_problem(path)
+        if problem == "a folder":
+            continue
+        if problem is not None:
+            raise InputError(path, None, f"is {problem}, not a file")
+        if path.suffix not in MODEL_ARRAY_SUFFIXES:
+            continue
+        if path.suffix == ".npz":
+            with np.load(path, allow_pickle=False) as data:
+                bad = next((k for k in data.files if non_finite_entry(data[k]) is not None), None)
+        elif path.suffix == ".npy":
+            bad = non_finite_entry(np.load(path, allow_pickle=False), "array")
+        else:
+            import torch
+
+            bad = non_finite_entry(torch.load(path, map_location="cpu", weights_only=True))
+        if bad is not None:
+            raise InputError(path, bad, "holds non-finite values (NaN or infinity)")
+
+
 def fit_or_load(spec, config, scene: Scene, supervision, *, seed: int, device: str, cache_dir: Path,
                 progress, refit: bool = False, reuse_key: Optional[str] = None,
                 head_from: Optional[str] = None) -> FitRecord:
@@ -620,6 +653,7 @@ def _fit_or_load_locked(spec, method_cls, config, scene: Scene, supervision, *, 
     if info_path.is_file() and (not refit or reuse_key is not None):
         try:
             info = _read_fit_record(info_path, key)
+            check_cached_arrays(final / "model")  # before the method opens a file: a FIFO would block it
             model = method_cls.load(final / "model", supervision=supervision, device=device)
         except Exception as err:  # noqa: BLE001 - whatever a damaged fit raises, it is fitted again
             if reuse_key is not None:
@@ -658,6 +692,11 @@ def _fit_or_load_locked(spec, method_cls, config, scene: Scene, supervision, *, 
     (tmp / "model").mkdir(parents=True)
     try:
         model.save(tmp / "model")
+        try:
+            check_cached_arrays(tmp / "model")
+        except InputError as err:  # a fit that diverged is never cached, and never scored as if it were sound
+            raise InputError(None, "fit", f"the fit of {spec.name} on {scene.name} diverged: {err.message} in "
+                                          f"{Path(err.file).name if err.file else 'its model'}; it is not cached") from None
         info = {"method": spec.name, "key": key, "config": config_dict(config), "seed": seed, "device": device,
                 "fit_seconds": fit_seconds, "peak_cpu_mib": peak_cpu, "peak_gpu_mib": peak_gpu,
                 "peak_window": memory.window(),
@@ -804,6 +843,10 @@ def prepare_run(options: EvalOptions) -> PreparedRun:
     generated = _scene_version(root)  # before the fit: a damaged generated folder stops the run now
     scene = load_scene(root) if options.scale is None else load_scene(root, scale=options.scale)
     aset = find_annotations(scene, options.annotations, options.object_query)
+    # before the fit: the results (and predictions) never land in the scene folder or on the annotations
+    out_path = results_path(options.results_dir, dataset_label(scene), scene.name, spec.name, options.track,
+                            options.seed)
+    guard_output(out_path, [root, options.annotations], option="results_dir")
     eval_frames = _evaluated_frames(scene, aset, options.splits)
     progress.log(f"{scene.summary()}; scoring {len(eval_frames)} annotated frame(s) of split(s) "
                  f"{'+'.join(options.splits)}")
@@ -980,18 +1023,34 @@ def results_document(prepared: PreparedRun, fit: FitRecord, answers: Answers, sc
 
 
 def write_run(out_path: Path, pred_dir: Path, predictions, results: RunResults, prepared: PreparedRun) -> None:
-    """Write the predictions to ``pred_dir`` and then ``results`` to ``out_path``, each atomically; an
-    earlier file of the same run is moved to the archive first (:func:`keep_replaced`)."""
+    """Write the predictions to ``pred_dir`` and then ``results`` to ``out_path``; an earlier file of the
+    same run is moved to the archive (:func:`keep_replaced`) only once the new ones are complete on disk
+    (written beside their places first), so a full disk or a read-only folder leaves the current record
+    current, and nothing half written behind."""
     from .predictions import write_predictions
 
     # archive, predictions, results: one writer of this file at a time, so a run finishing beside an
     # identical one archives the other's record instead of overwriting it
     with results_lock(out_path):
-        if out_path.is_file():  # a rerun never destroys what was measured before
-            moved = keep_replaced(out_path, prepared.options.results_dir)
-            prepared.progress.log(f"{out_path}: an earlier run of this method, scene, track and seed moved to {moved}")
-        write_predictions(pred_dir, predictions, overwrite=True, compress=True)
-        write_results(out_path, results)
+        stage_pred = pred_dir.with_name(f".{pred_dir.name}.new-{os.getpid()}")
+        stage_out = out_path.with_name(f".{out_path.name}.new-{os.getpid()}")
+        try:
+            shutil.rmtree(stage_pred, ignore_errors=True)
+            write_predictions(stage_pred, predictions, overwrite=True, compress=True)
+            write_results(stage_out, results)
+            if out_path.is_file():  # a rerun never destroys what was measured before
+                moved = keep_replaced(out_path, prepared.options.results_dir)
+                prepared.progress.log(f"{out_path}: an earlier run of this method, scene, track and seed moved to "
+                                      f"{moved}")
+            if pred_dir.exists():  # predictions left without their results file: superseded
+                trash = pred_dir.with_name(f".{pred_dir.name}.old-{os.getpid()}")
+                os.replace(pred_dir, trash)
+                shutil.rmtree(trash, ignore_errors=True)
+            os.replace(stage_pred, pred_dir)
+            os.replace(stage_out, out_path)
+        finally:
+            shutil.rmtree(stage_pred, ignore_errors=True)
+            stage_out.unlink(missing_ok=True)
 
 
 def keep_replaced(path: Path, results_dir: str | Path) -> Path:

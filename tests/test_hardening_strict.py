@@ -310,7 +310,10 @@ def test_the_server_refuses_control_characters_and_case_variants_in_query_texts(
 def test_score_prints_no_raw_control_character(tmp_path, capfd):
     """Texts from files reach the terminal escaped (or the file is refused): never an ESC or CR that
     clears the screen or overwrites a row."""
-    gt, pred = _gt_and_preds(tmp_path, text="cup\x1b[2J\rX", scene="kitchen")
+    gt, pred = _gt_and_preds(tmp_path, text="cupX", scene="kitchen")
+    hostile = "cup\x1b[2J\rX"
+    for path in (gt, pred / "predictions.json"):  # written as another program would write them
+        path.write_text(path.read_text().replace('"cupX"', json.dumps(hostile)))
     rc = main(["score", "--gt", str(gt), "--pred", str(pred)])
     out, err = capfd.readouterr()
     assert rc in (0, 2)

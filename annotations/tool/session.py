@@ -24,6 +24,7 @@ import math
 import os
 import re
 import shutil
+import stat
 import threading
 import time
 import zipfile
@@ -35,6 +36,7 @@ import cv2
 import numpy as np
 
 from benchmark.core.errors import InputError
+from benchmark.core.strict import check_text, file_problem, text_key
 from benchmark.core.scene import Frame, Scene
 
 from ..assist import GrabCutSegmenter, Segmenter
@@ -94,8 +96,8 @@ class SessionConfig:
     """Width of review-mode thumbnails, in pixels."""
     max_propagation_frames: int = 60
     """Most frames one propagation request may fill."""
-    max_import_bytes: int = 256 * 1024 * 1024
-    """Largest import accepted (compressed upload)."""
+    max_import_bytes: int = 64 * 1024 * 1024
+    """Largest import accepted (the uploaded file; a release export of a scene is a few MiB)."""
     max_archive_members: int = 20000
     """Most entries an imported zip archive may have."""
     max_unpacked_bytes: int = 512 * 1024 * 1024
@@ -199,7 +201,17 @@ class LockFile:
 
     def acquire(self, note: dict) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        problem = file_problem(self.path)
+        if problem not in (None, "missing"):  # a FIFO would block the open, a folder cannot be locked
+            raise InputError(self.path, None, f"the lock file is {problem}, not a file: remove it (no session "
+                                              "holds a lock that is not a file)")
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NONBLOCK | os.O_NOFOLLOW, 0o644)
+        except OSError as err:
+            raise InputError(self.path, None, f"cannot open the lock file: {err.strerror or err}") from None
+        if not stat.S_ISREG(os.fstat(fd).st_mode):  # replaced between the check and the open
+            os.close(fd)
+            raise InputError(self.path, None, "the lock file is not a file")
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -594,15 +606,17 @@ class AnnotationSession:
         """Add a query; returns (new query id, new revision)."""
         if not isinstance(text, str) or not text.strip():
             raise InputError(None, "text", "the query text must be a non-empty string")
-        text = text.strip()
+        text = check_text(text.strip(), None, "text")
         if kind not in ("agnostic", "sensitive"):
             raise InputError(None, "kind", "expected 'agnostic' or 'sensitive'")
         if level is not None and not isinstance(level, str):
             raise InputError(None, "level", "expected a string or null")
         with self._lock:
             self._check_revision(revision)
-            if any(q.text == text for q in self.aset.queries):
-                raise InputError(None, "text", f"a query {text!r} exists already")
+            same = next((q for q in self.aset.queries if text_key(q.text) == text_key(text)), None)
+            if same is not None:  # "Ball" beside "ball" would read as one query in predictions (by slug)
+                raise InputError(None, "text", f"a query {same.text!r} exists already (texts are compared up to "
+                                               "case, spaces and Unicode form)")
             if kind == "sensitive":
                 b = self.query(base)
                 if b.kind != "agnostic":
@@ -779,7 +793,7 @@ class AnnotationSession:
                 validate_against_scene(new, self.scene, file=filename)
             except InputError:
                 raise
-            except (ValueError, TypeError, KeyError, IndexError, AttributeError, OverflowError, RecursionError) as err:
+            except (ValueError, TypeError, KeyError, IndexError, AttributeError, ArithmeticError, RecursionError) as err:
                 # the upload is untrusted data: whatever its parsers trip over is a malformed file, and
                 # nothing has changed yet
                 raise InputError(Path(filename).name, None,
