@@ -25,10 +25,10 @@ available as ``rasterizer="release_cv2"`` for reproducing the release's numbers.
 Hostile polygons
 ----------------
 Every polygon reaches a rasteriser through one checked path: :func:`check_polygon` (a flat list of
-finite numbers, every vertex within one image size of the image it was drawn on), then
-:func:`polygons_to_mask`, which checks again that the (scaled) vertices are finite and near the target
-image and that the polygons of one mask stay within :func:`polygon_budget` (edge lengths in pixels,
-max(|dx|, |dy|), plus one per vertex; about 0.2-3 x height x width for even noisy hand-drawn masks).
+finite numbers, every vertex within one image size of the image it was drawn on), the polygons of one
+mask within :func:`polygon_budget` (edge lengths in pixels, max(|dx|, |dy|), plus one per vertex; about
+0.2-3 x height x width for even noisy hand-drawn masks), then :func:`polygons_to_mask`, which checks again
+that the (scaled) vertices are finite and near the target image whoever calls it.
 pycocotools walks every edge point by point: a NaN vertex crashes it and a vertex at 4e8 makes it grow
 without bound, so nothing unchecked may reach it. :func:`checked_polygons_mask` is the whole path for a
 list of polygons from a file.
@@ -133,9 +133,6 @@ def polygons_to_mask(polygons: Sequence[Sequence[float]], height: int, width: in
             raise InputError(None, "polygon", f"vertices outside the {width}x{height} image by more than its size, "
                                               "or not finite")
         scaled.append(pts)
-    if polygon_cost(scaled) > polygon_budget(height, width):
-        raise InputError(None, "polygon", f"polygons longer than the {polygon_budget(height, width)} pixels a "
-                                          f"{width}x{height} mask allows")
     mask = np.zeros((height, width), dtype=bool)
     for pts in scaled:
         if pts.shape[0] < 3:

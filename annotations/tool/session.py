@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 
 from benchmark.core.errors import InputError
-from benchmark.core.strict import check_text, file_problem, text_key
+from benchmark.core.strict import check_keys, check_text, file_problem, text_key
 from benchmark.core.scene import Frame, Scene
 
 from ..assist import GrabCutSegmenter, Segmenter
@@ -54,6 +54,11 @@ MAX_CLICKS = 1000
 MAX_COORDINATE = 1e6
 """Box and click coordinates (pixels) beyond this are refused: far outside any frame, and near the
 limits of the integer pixel arithmetic of the segmenters."""
+
+
+MASK_KEYS = ("counts", "absent", "size", "state", "made_by")
+"""Keys of a mask object in a request (the page's ``{counts}`` / ``{absent}``, or a mask as the server sends
+it): any other key is refused."""
 
 
 class Conflict(Exception):
@@ -502,8 +507,10 @@ class AnnotationSession:
             raise InputError(None, field_name, "expected an object")
         kind = ch.get("type")
         if kind == "mask":
+            check_keys(ch, ("type", "query", "frame", "mask", "made_by"), None, field_name, allow_unknown=False)
             return self._stage_mask(field_name, ch)
         if kind == "intervals":
+            check_keys(ch, ("type", "query", "intervals"), None, field_name, allow_unknown=False)
             return self._stage_intervals(field_name, ch)
         raise InputError(None, f"{field_name}.type", f"unknown change type {kind!r} (mask or intervals)")
 
@@ -519,6 +526,7 @@ class AnnotationSession:
             return ("mask", owner.id, index, None, None)
         if not isinstance(payload, dict):
             raise InputError(None, f"{field_name}.mask", "expected an object or null")
+        check_keys(payload, MASK_KEYS, None, f"{field_name}.mask", allow_unknown=False)
         h, w = frame.camera.height, frame.camera.width
         if payload.get("absent") is True:
             mask = np.zeros((h, w), bool)
@@ -690,6 +698,7 @@ class AnnotationSession:
         if current is not None:
             if not isinstance(current, dict):
                 raise InputError(None, "current", "expected a mask object or null")
+            check_keys(current, MASK_KEYS, None, "current", allow_unknown=False)
             cur = runs_to_mask(current.get("counts"), h, w, "current")
         t0 = time.perf_counter()
         mask = self.segmenter.segment(frame.name, self.image(index), None if box is None else tuple(box), parsed, cur)

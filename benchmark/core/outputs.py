@@ -103,6 +103,6 @@ def guard_output(target: str | Path, inputs: Iterable[str | Path], *, option: st
     target = Path(target)
     inputs = InputSet(inputs)
     if inputs.holds(target):
-        raise InputError(target, option, "would replace or land among the command's own inputs (an input file, "
+        raise InputError(target, option, "is an input of this command or lies among its inputs (an input file, "
                                          "a hard or symbolic link of one, or a place inside an input folder); "
                                          "give a path outside them")
