@@ -213,7 +213,8 @@ class _Connection:
         self.trusted = False
         """Whether one of its requests has shown the token (then it is never closed for another)."""
         self.waiting = True
-        """Whether it only waits (for a request, or for a refused body to end): it may be closed for another."""
+        """Whether it only waits (for a request, for a refused body to end, or for the client to take an
+        answer): then, untrusted, it may be closed for another."""
         self.opened = time.monotonic()
         self.closed = False
 
@@ -559,7 +560,14 @@ class _Handler(socketserver.BaseRequestHandler):
     # -- answers ------------------------------------------------------------------------------------
     def _write(self, data: bytes) -> None:
         self.request.settimeout(self.server.write_timeout)
-        self.request.sendall(data)
+        # a client that does not take its answer only waits: an untrusted one may be closed for another
+        self.conn.waiting = True
+        try:
+            self.request.sendall(data)
+        finally:
+            self.conn.waiting = False
+        if self.conn.closed:
+            raise _Closed()
 
     def _send(self, status: int, body: bytes, content_type: str, cache: str = "no-store",
               extra: Optional[dict] = None, close: bool = False) -> None:

@@ -56,7 +56,9 @@ def warn(message: str) -> None:
     made again. Written through tqdm when it is there, so that a progress bar is not torn."""
     import sys
 
-    line = f"warning: {' '.join(str(message).split())}"
+    from .strict import terminal_text
+
+    line = f"warning: {terminal_text(' '.join(str(message).split()))}"
     try:
         from tqdm.auto import tqdm
     except ImportError:  # pragma: no cover - tqdm is a dependency
