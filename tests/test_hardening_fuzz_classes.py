@@ -128,14 +128,14 @@ def hostile_doc(draw, base, h: int, w: int):
             break
         parent, key = spots[draw(st.integers(0, len(spots) - 1))]
         op = draw(st.sampled_from(["value", "value", "value", "delete", "variant", "duplicate", "nest"]))
-        if op == "value":
-            parent[key] = draw(st.sampled_from(values))
+        if op == "value":  # a copy: a value drawn twice must not become its own element
+            parent[key] = copy.deepcopy(draw(st.sampled_from(values)))
         elif op == "delete":
             del parent[key]
         elif op == "variant" and isinstance(parent, dict) and isinstance(key, str):
             parent[_variant(key, draw)] = parent[key]
         elif op == "duplicate" and isinstance(parent, dict):
-            pairs = list(parent.items()) + [(key, draw(st.sampled_from(values)))]
+            pairs = list(parent.items()) + [(key, copy.deepcopy(draw(st.sampled_from(values))))]
             replacement = Dup(pairs)
             holder = next(((p, k) for p, k in _paths(doc) if p[k] is parent), None)
             if holder is None:
