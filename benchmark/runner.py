@@ -563,9 +563,10 @@ def _read_fit_record(path: Path, key: str) -> dict:
         if name not in info:
             raise InputError(path, name, "missing required key")
         value = info[name]
-        if (value is None and optional) or (isinstance(value, (int, float)) and not isinstance(value, bool)):
+        if (value is None and optional) or (isinstance(value, (int, float)) and not isinstance(value, bool)
+                                            and 0 <= value < float("inf")):  # NaN fails the comparison
             continue
-        raise InputError(path, name, f"expected a number{' or null' if optional else ''}, got {value!r}")
+        raise InputError(path, name, f"expected a number >= 0{' or null' if optional else ''}, got {value!r}")
     if info.get("key", key) != key:
         raise InputError(path, "key", f"records fit {info['key']!r}, its folder is {key!r}")
     if not isinstance(info.get("peak_window", "process"), str):
