@@ -156,7 +156,7 @@ def _validate(args: argparse.Namespace) -> int:
 
     scene = load_scene(args.scene)
     print(terminal_text(scene.summary()))
-    decode_every_image(scene)
+    print(decode_every_image(scene))
     path = _annotation_path(Path(args.scene), args.annotations)
     if path is None:
         print("annotations: none (no annotations.json)")
@@ -176,11 +176,20 @@ def _validate(args: argparse.Namespace) -> int:
     return 0
 
 
-def decode_every_image(scene) -> None:
+def decode_every_image(scene) -> str:
     """Decode every frame's image once, as a run would: a truncated or corrupt file is an :class:`InputError`
-    naming it now, not in the middle of a fit (reading headers alone passes a file cut in half)."""
+    naming it now, not in the middle of a fit (reading headers alone passes a file cut in half). Frames whose
+    image is not on disk at all (a cameras-only folder the loader accepted) are counted, not decoded.
+    Returns a one-line summary."""
+    decoded = absent = 0
     for frame in scene.frames:
+        path = getattr(frame, "image_path", None)
+        if path is not None and not Path(path).exists() and not Path(path).is_symlink():
+            absent += 1
+            continue
         frame.image()
+        decoded += 1
+    return f"images: {decoded} decoded" + (f", {absent} not on disk (cameras only)" if absent else "")
 
 
 def _rle_has_pixels(rle: dict) -> bool:
