@@ -199,13 +199,14 @@ def check_text(value: Any, file: str | Path | None, field: str, *, max_chars: in
 
 def check_name(value: Any, file: str | Path | None, field: str) -> str:
     """A name used as one path component (a scene's folder): non-empty, at most 255 bytes, not ``.`` or
-    ``..`` or starting with a dot, no ``/``, ``\\`` or NUL, no control character."""
+    ``..``, no ``/``, ``\\`` or NUL, no control character, no spaces at the ends."""
     if not isinstance(value, str) or not value:
         raise InputError(file, field, f"expected a non-empty name, got {short_repr(value)}")
-    if (value.startswith(".") or "/" in value or "\\" in value or len(value.encode("utf-8", "replace")) > 255
+    if (value in (".", "..") or "/" in value or "\\" in value or len(value.encode("utf-8", "replace")) > 255
             or any(_is_control(ch) for ch in value) or value != value.strip()):
         raise InputError(file, field, f"{terminal_text(short_repr(value))} is not usable as a name (one folder "
-                                      "name: no '/', '\\', leading dot, spaces at the ends or control characters)")
+                                      "name: not '.' or '..', no '/', '\\', spaces at the ends or control "
+                                      "characters)")
     return value
 
 
