@@ -57,6 +57,7 @@ from benchmark.core.annotation import AnnotationSet
 from benchmark.core.atomic import json_ready, read_json, write_json
 from benchmark.core.errors import InputError
 from benchmark.core.outputs import guard_output
+from benchmark.core.strict import check_cached_files
 from benchmark.core.openblas import cpuinfo_value, openblas_core
 from benchmark.core.protocol import DEFAULT_PROTOCOL, get_protocol
 from .results import RunResults, exclusive_lock, results_lock, results_path, write_results
@@ -574,38 +575,6 @@ def _read_fit_record(path: Path, key: str) -> dict:
     return info
 
 
-MODEL_ARRAY_SUFFIXES = (".npz", ".npy", ".pt", ".pth")
-"""Files of a cached model whose arrays :func:`check_cached_arrays` reads."""
-
-
-def check_cached_arrays(folder: Path) -> None:
-    """Every entry of a cached model folder is a file or a folder (a FIFO, socket or device is refused before
-    anything opens it: a read would block), and every floating array of its ``.npz`` / ``.npy`` / ``.pt``
-    files is finite. An :class:`InputError` names the file (and array) otherwise: a model rewritten with
-    NaN, or a fit that diverged, is never used as if it were sound."""
-    from benchmark.core.strict import file_problem, non_finite_entry
-
-    for path in sorted(Path(folder).rglob("*")):
-        problem = file_problem(path)
-        if problem == "a folder":
-            continue
-        if problem is not None:
-            raise InputError(path, None, f"is {problem}, not a file")
-        if path.suffix not in MODEL_ARRAY_SUFFIXES:
-            continue
-        if path.suffix == ".npz":
-            with np.load(path, allow_pickle=False) as data:
-                bad = next((k for k in data.files if non_finite_entry(data[k]) is not None), None)
-        elif path.suffix == ".npy":
-            bad = non_finite_entry(np.load(path, allow_pickle=False), "array")
-        else:
-            import torch
-
-            bad = non_finite_entry(torch.load(path, map_location="cpu", weights_only=True))
-        if bad is not None:
-            raise InputError(path, bad, "holds non-finite values (NaN or infinity)")
-
-
 def fit_or_load(spec, config, scene: Scene, supervision, *, seed: int, device: str, cache_dir: Path,
                 progress, refit: bool = False, reuse_key: Optional[str] = None,
                 head_from: Optional[str] = None) -> FitRecord:
@@ -654,7 +623,7 @@ def _fit_or_load_locked(spec, method_cls, config, scene: Scene, supervision, *, 
     if info_path.is_file() and (not refit or reuse_key is not None):
         try:
             info = _read_fit_record(info_path, key)
-            check_cached_arrays(final / "model")  # before the method opens a file: a FIFO would block it
+            check_cached_files(final / "model")  # before the method opens a file: a FIFO would block it
             model = method_cls.load(final / "model", supervision=supervision, device=device)
         except Exception as err:  # noqa: BLE001 - whatever a damaged fit raises, it is fitted again
             if reuse_key is not None:
@@ -694,7 +663,7 @@ def _fit_or_load_locked(spec, method_cls, config, scene: Scene, supervision, *, 
     try:
         model.save(tmp / "model")
         try:
-            check_cached_arrays(tmp / "model")
+            check_cached_files(tmp / "model")
         except InputError as err:  # a fit that diverged is never cached, and never scored as if it were sound
             raise InputError(None, "fit", f"the fit of {spec.name} on {scene.name} diverged: {err.message} in "
                                           f"{Path(err.file).name if err.file else 'its model'}; it is not cached") from None

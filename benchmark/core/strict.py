@@ -19,7 +19,8 @@ files, cached fits and the annotation server's request bodies share:
   (:func:`text_key`).
 * **Files** where a file is expected: a FIFO, socket, device or folder is refused before it is opened, so
   no read can block (:func:`file_problem`, :func:`open_regular`).
-* **Arrays** read from a cache: the shape and dtype kind expected, and finite (:func:`check_array`).
+* **Arrays** read from a cache: the shape and dtype kind expected, and finite (:func:`check_array`); a
+  cached model folder holds files and folders only, every floating array finite (:func:`check_cached_files`).
 
 And one rule for output: every text from a file printed to a terminal goes through :func:`terminal_text`,
 which escapes control and formatting characters (ESC, CR, bidi overrides) so that no file can clear
@@ -311,3 +312,35 @@ def non_finite_entry(obj: Any, prefix: str = "") -> Optional[str]:
             if node.is_floating_point() and node.numel() and not bool(node.isfinite().all()):
                 return where or "tensor"
     return None
+
+
+CACHED_ARRAY_SUFFIXES = (".npz", ".npy", ".pt", ".pth")
+"""Files of a cached model whose arrays :func:`check_cached_files` reads."""
+
+
+def check_cached_files(folder: str | Path) -> None:
+    """Every entry of a cached model folder is a file or a folder (a FIFO, socket or device is refused before
+    anything opens it: a read would block), and every floating array of its ``.npz`` / ``.npy`` / ``.pt``
+    files is finite. An :class:`InputError` names the file (and array) otherwise: a model rewritten with
+    NaN, or a fit that diverged, is never used as if it were sound."""
+    import numpy as np
+
+    for path in sorted(Path(folder).rglob("*")):
+        problem = file_problem(path)
+        if problem == "a folder":
+            continue
+        if problem is not None:
+            raise InputError(path, None, f"is {problem}, not a file")
+        if path.suffix not in CACHED_ARRAY_SUFFIXES:
+            continue
+        if path.suffix == ".npz":
+            with np.load(path, allow_pickle=False) as data:
+                bad = next((k for k in data.files if non_finite_entry(data[k]) is not None), None)
+        elif path.suffix == ".npy":
+            bad = non_finite_entry(np.load(path, allow_pickle=False), "array")
+        else:
+            import torch
+
+            bad = non_finite_entry(torch.load(path, map_location="cpu", weights_only=True))
+        if bad is not None:
+            raise InputError(path, bad, "holds non-finite values (NaN or infinity)")
