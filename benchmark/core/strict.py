@@ -124,6 +124,8 @@ def check_keys(obj: dict, known: Iterable[str], file: str | Path | None, field: 
                allow_unknown: bool = True) -> dict:
     """``obj`` with every key canonical: a key that equals a known one only up to :func:`text_key` (case,
     spaces, Unicode form) is refused; an unknown key is refused too unless ``allow_unknown``."""
+    if not isinstance(obj, dict):  # not an object at all: the caller's type check says so
+        return obj
     known = tuple(known)
     by_form = {text_key(k): k for k in known}
     for key in obj:
