@@ -57,6 +57,8 @@ from .core import memory
 from benchmark.core.annotation import AnnotationSet
 from benchmark.core.atomic import json_ready, read_json, write_json
 from benchmark.core.errors import InputError
+from benchmark.core.outputs import guard_output
+from benchmark.core.strict import check_cached_files
 from benchmark.core.openblas import cpuinfo_value, openblas_core
 from benchmark.core.protocol import DEFAULT_PROTOCOL, get_protocol
 from .results import RunResults, exclusive_lock, results_lock, results_path, write_results
@@ -573,9 +575,10 @@ def _read_fit_record(path: Path, key: str) -> dict:
         if name not in info:
             raise InputError(path, name, "missing required key")
         value = info[name]
-        if (value is None and optional) or (isinstance(value, (int, float)) and not isinstance(value, bool)):
+        if (value is None and optional) or (isinstance(value, (int, float)) and not isinstance(value, bool)
+                                            and 0 <= value < float("inf")):  # NaN fails the comparison
             continue
-        raise InputError(path, name, f"expected a number{' or null' if optional else ''}, got {value!r}")
+        raise InputError(path, name, f"expected a number >= 0{' or null' if optional else ''}, got {value!r}")
     if info.get("key", key) != key:
         raise InputError(path, "key", f"records fit {info['key']!r}, its folder is {key!r}")
     if not isinstance(info.get("peak_window", "process"), str):
@@ -631,6 +634,7 @@ def _fit_or_load_locked(spec, method_cls, config, scene: Scene, supervision, *, 
     if info_path.is_file() and (not refit or reuse_key is not None):
         try:
             info = _read_fit_record(info_path, key)
+            check_cached_files(final / "model")  # before the method opens a file: a FIFO would block it
             model = method_cls.load(final / "model", supervision=supervision, device=device)
         except Exception as err:  # noqa: BLE001 - whatever a damaged fit raises, it is fitted again
             if reuse_key is not None:
@@ -669,6 +673,11 @@ def _fit_or_load_locked(spec, method_cls, config, scene: Scene, supervision, *, 
     (tmp / "model").mkdir(parents=True)
     try:
         model.save(tmp / "model")
+        try:
+            check_cached_files(tmp / "model")
+        except InputError as err:  # a fit that diverged is never cached, and never scored as if it were sound
+            raise InputError(None, "fit", f"the fit of {spec.name} on {scene.name} diverged: {err.message} in "
+                                          f"{Path(err.file).name if err.file else 'its model'}; it is not cached") from None
         info = {"method": spec.name, "key": key, "config": config_dict(config), "seed": seed, "device": device,
                 "fit_seconds": fit_seconds, "peak_cpu_mib": peak_cpu, "peak_gpu_mib": peak_gpu,
                 "peak_window": memory.window(),
@@ -815,6 +824,10 @@ def prepare_run(options: EvalOptions) -> PreparedRun:
     generated = _scene_version(root)  # before the fit: a damaged generated folder stops the run now
     scene = load_scene(root) if options.scale is None else load_scene(root, scale=options.scale)
     aset = find_annotations(scene, options.annotations, options.object_query)
+    # before the fit: the results (and predictions) never land in the scene folder or on the annotations
+    out_path = results_path(options.results_dir, dataset_label(scene), scene.name, spec.name, options.track,
+                            options.seed)
+    guard_output(out_path, [root, options.annotations], option="results_dir")
     eval_frames = _evaluated_frames(scene, aset, options.splits)
     progress.log(f"{scene_line(scene)}; scoring {len(eval_frames)} annotated frame(s) of split(s) "
                  f"{'+'.join(options.splits)}")
@@ -993,18 +1006,34 @@ def results_document(prepared: PreparedRun, fit: FitRecord, answers: Answers, sc
 
 
 def write_run(out_path: Path, pred_dir: Path, predictions, results: RunResults, prepared: PreparedRun) -> None:
-    """Write the predictions to ``pred_dir`` and then ``results`` to ``out_path``, each atomically; an
-    earlier file of the same run is moved to the archive first (:func:`keep_replaced`)."""
+    """Write the predictions to ``pred_dir`` and then ``results`` to ``out_path``; an earlier file of the
+    same run is moved to the archive (:func:`keep_replaced`) only once the new ones are complete on disk
+    (written beside their places first), so a full disk or a read-only folder leaves the current record
+    current, and nothing half written behind."""
     from .predictions import write_predictions
 
     # archive, predictions, results: one writer of this file at a time, so a run finishing beside an
     # identical one archives the other's record instead of overwriting it
     with results_lock(out_path):
-        if out_path.is_file():  # a rerun never destroys what was measured before
-            moved = keep_replaced(out_path, prepared.options.results_dir)
-            prepared.progress.log(f"{out_path}: an earlier run of this method, scene, track and seed moved to {moved}")
-        write_predictions(pred_dir, predictions, overwrite=True, compress=True)
-        write_results(out_path, results)
+        stage_pred = pred_dir.with_name(f".{pred_dir.name}.new-{os.getpid()}")
+        stage_out = out_path.with_name(f".{out_path.name}.new-{os.getpid()}")
+        try:
+            shutil.rmtree(stage_pred, ignore_errors=True)
+            write_predictions(stage_pred, predictions, overwrite=True, compress=True)
+            write_results(stage_out, results)
+            if out_path.is_file():  # a rerun never destroys what was measured before
+                moved = keep_replaced(out_path, prepared.options.results_dir)
+                prepared.progress.log(f"{out_path}: an earlier run of this method, scene, track and seed moved to "
+                                      f"{moved}")
+            if pred_dir.exists():  # predictions left without their results file: superseded
+                trash = pred_dir.with_name(f".{pred_dir.name}.old-{os.getpid()}")
+                os.replace(pred_dir, trash)
+                shutil.rmtree(trash, ignore_errors=True)
+            os.replace(stage_pred, pred_dir)
+            os.replace(stage_out, out_path)
+        finally:
+            shutil.rmtree(stage_pred, ignore_errors=True)
+            stage_out.unlink(missing_ok=True)
 
 
 def keep_replaced(path: Path, results_dir: str | Path) -> Path:

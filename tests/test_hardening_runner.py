@@ -131,6 +131,8 @@ FIT_DAMAGE = {
     "fit.json with text for a number": lambda fit: (fit / "fit.json").write_text(
         json.dumps({**json.loads((fit / "fit.json").read_text()), "peak_cpu_mib": "lots"})),
     "model folder gone": lambda fit: shutil.rmtree(fit / "model"),
+    "fit.json with NaN seconds": lambda fit: (fit / "fit.json").write_text(
+        (fit / "fit.json").read_text().replace('"fit_seconds": ', '"fit_seconds": NaN, "was": ', 1)),
 }
 
 

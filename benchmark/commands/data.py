@@ -3,7 +3,7 @@
     bench4d data presets                                   # list the synthetic presets
     bench4d data make-synthetic PRESET --out DIR [--size 128] [--height H] [--frames N] [--views N]
                                 [--layout hypernerf|neu3d|dnerf] [--seed S] [--overwrite] [--jobs N]
-    bench4d data validate DIR [--annotations FILE]         # scene + annotations (+ generator truth)
+    bench4d data validate DIR [--annotations FILE]         # scene, every image decoded, annotations (+ truth)
     bench4d data show DIR [--out sheet.png] [--frames 4]   # contact sheet beside DIR: frames with GT masks
     bench4d data timing [--size 128] [--out reports/synthetic_generation.md]
     bench4d data digests [--presets a,b] [--sizes 128] [--write]  # scene versions (synthetic/digests.json)
@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmark.core.errors import InputError
+from benchmark.core.strict import terminal_text
 from ._common import parse_seed
 
 REPROJECTION_TOLERANCE_PX = 1e-3
@@ -183,7 +184,8 @@ def _validate(args: argparse.Namespace) -> int:
     from benchmark.core.truth import TRUTH_DIR
 
     scene = load_scene(args.scene)
-    print(scene.summary())
+    print(terminal_text(scene.summary()))
+    print(decode_every_image(scene))
     path = _annotation_path(Path(args.scene), args.annotations)
     if path is None:
         print("annotations: none (no annotations.json)")
@@ -195,12 +197,28 @@ def _validate(args: argparse.Namespace) -> int:
               f"queries, {len(aset.masks)} masks ({empty} absent), num_time_steps {aset.num_time_steps}")
         for q in aset.sensitive_queries:
             base = aset.query(q.base).text if q.base is not None else "?"
-            print(f"  {q.text!r} (base {base!r}): {q.intervals}")
+            print(terminal_text(f"  {q.text!r} (base {base!r}): {q.intervals}"))
     truth_dir = Path(args.scene) / TRUTH_DIR
     if truth_dir.is_dir():
         print(check_truth(scene, truth_dir))
     print("OK")
     return 0
+
+
+def decode_every_image(scene) -> str:
+    """Decode every frame's image once, as a run would: a truncated or corrupt file is an :class:`InputError`
+    naming it now, not in the middle of a fit (reading headers alone passes a file cut in half). Frames whose
+    image is not on disk at all (a cameras-only folder the loader accepted) are counted, not decoded.
+    Returns a one-line summary."""
+    decoded = absent = 0
+    for frame in scene.frames:
+        path = getattr(frame, "image_path", None)
+        if path is not None and not Path(path).exists() and not Path(path).is_symlink():
+            absent += 1
+            continue
+        frame.image()
+        decoded += 1
+    return f"images: {decoded} decoded" + (f", {absent} not on disk (cameras only)" if absent else "")
 
 
 def _rle_has_pixels(rle: dict) -> bool:
@@ -212,6 +230,7 @@ def _rle_has_pixels(rle: dict) -> bool:
 # -- show -------------------------------------------------------------------------------------------------
 def _show(args: argparse.Namespace) -> int:
     from annotations.format import load_annotations
+    from benchmark.core.outputs import guard_output
 
     from ..loaders import load_scene
 
@@ -219,11 +238,13 @@ def _show(args: argparse.Namespace) -> int:
     path = _annotation_path(Path(args.scene), args.annotations)
     if path is None:
         raise InputError(Path(args.scene) / "annotations.json", None, "no annotations to show (pass --annotations)")
-    aset = load_annotations(path, scene=scene)
     out = args.out or default_sheet_path(Path(args.scene))
+    # the sheet never replaces what it shows: a scene file (links followed) or the annotations
+    guard_output(out, [args.scene, path], option="--out")
+    aset = load_annotations(path, scene=scene)
     wanted = None if args.queries is None else [t.strip() for t in args.queries.split(",") if t.strip()]
     write_contact_sheet(scene, aset, out, num_frames=args.frames, queries=wanted)
-    print(f"wrote {out}")
+    print(f"wrote {terminal_text(out)}")
     return 0
 
 

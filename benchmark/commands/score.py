@@ -13,9 +13,12 @@ Prediction folders are described in :mod:`benchmark.predictions`; the metrics an
 rule in :mod:`benchmark.metrics`. Prints a plain-text table; ``--out`` writes the results JSON
 (metrics in percent, the per-query table, the per-frame records, the rule used, provenance).
 
-``--out`` never replaces an input: a path that is (or resolves to, or is a hard link of) a ground-truth
-file, a file of a prediction folder or the ``--eval-frames`` file is refused before anything is scored,
-and so is a folder; a path that cannot be written is a one-line error.
+``--out`` never replaces an input (:func:`benchmark.core.outputs.guard_output`): a path that is (or resolves
+to, or is a hard link of) a ground-truth file, the ``--eval-frames`` file or a results file read beside the
+predictions, or that lies in a prediction folder, a release annotation folder or a ``--scene`` folder (links
+followed), is refused before anything is scored, and so is a folder; a path that cannot be written is a
+one-line error. Texts from the files (query texts, scene names) are printed with control characters
+escaped (:func:`benchmark.core.strict.terminal_text`).
 
 Queries a method declined are listed and count 0 in the full means, which are printed beside the means
 over the answered queries and the answered / asked counts (:mod:`benchmark.metrics.scoring`): a prediction
@@ -39,6 +42,7 @@ import numpy as np
 
 from benchmark.core.atomic import write_json
 from benchmark.core.errors import InputError
+from benchmark.core.strict import check_name, terminal_text
 from ._common import add_protocol_argument
 
 
@@ -137,32 +141,14 @@ def _input_files(args: argparse.Namespace) -> list[Path]:
 
 
 def check_out(out: Path, inputs: list[Path], folders: list[Path] = ()) -> None:
-    """Refuse an ``--out`` that would replace an input, change how a prediction folder (``folders``) reads,
-    or cannot be written, before anything is scored."""
-    from ..predictions import JSON_FILE, JSON_GZ_FILE, MASKS_DIR, SCORES_FILE
+    """Refuse an ``--out`` that would replace an input file (``inputs``) or land in an input folder
+    (``folders``: prediction, annotation and scene folders), or that cannot be written, before anything is
+    scored (:func:`benchmark.core.outputs.guard_output`)."""
+    from benchmark.core.outputs import guard_output
 
     if out.is_dir():
         raise InputError(out, "--out", "is a folder; give the path of a results file (e.g. results.json)")
-    try:
-        target = out.resolve()
-        existing = out.stat() if out.exists() else None
-    except (OSError, RuntimeError) as err:  # a symlink loop, a folder we may not look into
-        raise InputError(out, "--out", f"cannot be resolved: {err}") from None
-    for path in inputs:
-        try:
-            # the same path once links are resolved, or the same file under another name (a hard link)
-            same = path.resolve() == target or (existing is not None and path.exists()
-                                                and os.path.samestat(existing, path.stat()))
-        except (OSError, RuntimeError):
-            same = False  # an input that cannot be resolved is reported when it is read
-        if same:
-            raise InputError(out, "--out", f"is an input of this command ({path}); give another path")
-    for folder in folders:
-        root = folder.resolve()
-        # a second main file, or a file among the masks, would change what the folder holds when next read
-        if (target.parent == root and target.name in (JSON_FILE, JSON_GZ_FILE, SCORES_FILE)) or \
-                target.is_relative_to(root / MASKS_DIR):
-            raise InputError(out, "--out", f"would become part of the prediction folder {folder}; give another path")
+    guard_output(out, [*inputs, *folders], option="--out")
     for parent in out.parents:
         if parent.exists():
             if not parent.is_dir():
@@ -243,6 +229,8 @@ def _pairs(gts: list[str], preds: list[str], asets: list) -> list[tuple[object, 
         root = Path(preds[0])
         pairs = []
         for gt, aset in zip(gts, asets):
+            # a scene name is one folder name (the annotation reader checks it); never a way out of --pred
+            check_name(aset.scene, gt, "scene")
             folder = root / aset.scene
             if not folder.is_dir():
                 raise InputError(folder, None, f"no prediction folder for scene {aset.scene!r} (from {gt})")
@@ -256,7 +244,7 @@ def _fmt(value: object, digits: int = 2) -> str:
         return "-"
     if isinstance(value, (float, np.floating)):
         return "-" if math.isnan(value) else f"{value:.{digits}f}"
-    return str(value)
+    return terminal_text(value)  # texts from files: no escape sequence reaches the terminal
 
 
 def format_table(headers: list[str], rows: list[list[object]]) -> str:
@@ -268,7 +256,8 @@ def format_table(headers: list[str], rows: list[list[object]]) -> str:
     def line(values: list[str]) -> str:
         return "  ".join(v.rjust(w) if num else v.ljust(w) for v, w, num in zip(values, widths, numeric)).rstrip()
 
-    return "\n".join([line(headers), line(["-" * w for w in widths])] + [line(r) for r in cells])
+    return "\n".join([line([terminal_text(h) for h in headers]), line(["-" * w for w in widths])]
+                     + [line(r) for r in cells])
 
 
 def _coverage(values: dict, kind: str) -> str:
@@ -316,9 +305,9 @@ def run(args: argparse.Namespace) -> int:
     protocol = _protocol(args)
     temporal = protocol.temporal
     if args.out is not None:  # before anything is read or scored: a refused path costs nothing
-        folders = [_folder(Path(p)) for p in args.pred]
-        # one folder of <scene>/ folders: each of those is a prediction folder too
-        folders += [sub for f in folders if f.is_dir() for sub in f.iterdir() if sub.is_dir()]
+        folders = [_folder(Path(p)) for p in args.pred] + [Path(s) for s in args.scene]
+        folders += [Path(g) for g in args.gt if Path(g).is_dir()]  # the release's annotation folder
+        folders += [Path(g).parent.parent for g in args.gt if is_release_layout(Path(g)) and Path(g).is_file()]
         check_out(args.out, _input_files(args), folders)
     wanted = _eval_frames(args.eval_frames)
     asets = load_ground_truth(args.gt, args.scene)
@@ -349,11 +338,12 @@ def run(args: argparse.Namespace) -> int:
           f"ends={temporal.ends}, weights={list(temporal.weights)}, absent frames: {protocol.scoring.absent_frames}")
     for s in scenes:
         if s.skipped:
-            print(f"note: {s.scene}: not scored (no evaluated frame): {', '.join(s.skipped)}", file=sys.stderr)
+            print(terminal_text(f"note: {s.scene}: not scored (no evaluated frame): {', '.join(s.skipped)}"),
+                  file=sys.stderr)
         if s.unanswered:
             where = "; listed by the results file beside the predictions" if s.scene in from_results else ""
-            print(f"note: {s.scene}: not scored (unanswered by the method{where}): {', '.join(s.unanswered)}",
-                  file=sys.stderr)
+            print(terminal_text(f"note: {s.scene}: not scored (unanswered by the method{where}): "
+                                f"{', '.join(s.unanswered)}"), file=sys.stderr)
     if args.out is not None:
         provenance = {
             "bench4d_version": __version__,
@@ -371,5 +361,5 @@ def run(args: argparse.Namespace) -> int:
             write_json(args.out, dataset.to_json(provenance, include_frames=not args.no_frames))
         except OSError as err:  # read-only place, full disk, a folder made there meanwhile
             raise InputError(args.out, "--out", f"cannot be written: {err.strerror or err}") from None
-        print(f"wrote {args.out}")
+        print(f"wrote {terminal_text(args.out)}")
     return 0
