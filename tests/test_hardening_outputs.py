@@ -161,3 +161,23 @@ def test_guard_output_follows_links_and_folders(tmp_path):
         guard_output(target, ins, option="--out")
     # an input folder's parent is not an input: writing beside it is fine, and so is a folder that holds one
     guard_output(tmp_path / "results.json", ins, option="--out")
+
+
+def test_leaderboard_and_paper_tables_never_write_over_a_results_file(tmp_path):
+    """``leaderboard --out`` / ``paper-tables --out`` pointed at a results file (or a link of one) is refused
+    before anything is read, and the file stays byte-identical."""
+    from benchmark.cli import main
+
+    committed = Path(__file__).resolve().parents[1] / "results" / "synthetic" / "americano" / "nearest-frame" / "oracle"
+    results = tmp_path / "results" / "synthetic" / "americano" / "nearest-frame" / "oracle"
+    results.mkdir(parents=True)
+    record = results / "seed0.json"
+    shutil.copy(committed / "seed0.json", record)
+    before = record.read_bytes()
+    link = tmp_path / "link.md"
+    link.symlink_to(record)
+    for command in (["leaderboard"], ["paper-tables"]):
+        for target in (record, link):
+            rc = main([*command, "--results-dir", str(tmp_path / "results"), "--allow-dirty", "--out", str(target)])
+            assert rc == 2
+            assert record.read_bytes() == before
