@@ -153,6 +153,8 @@ class NearestFrameModel(_NearestViewModel):
     """``nearest-frame``: the protocol's query rule on the nearest view's painted relevance; its captions
     replayed for time-sensitive queries (see the module docstring)."""
 
+    supports = frozenset({"agnostic", "sensitive"})
+
     def __init__(self, config: NearestFrameConfig, text_encoder: TextEncoder, *, caption_encoder=None,
                  caption_rows: Optional[list[np.ndarray]] = None, caption_embeddings: Optional[np.ndarray] = None,
                  caption_info: Optional[dict] = None, **views: Any) -> None:
@@ -161,7 +163,8 @@ class NearestFrameModel(_NearestViewModel):
         self.caption_rows = caption_rows              # N x (H, W) int32: row of caption_embeddings, -1 = none
         self.caption_embeddings = caption_embeddings  # (T, D) float32 unit passage embeddings
         self.caption_info = dict(caption_info or {})
-        self.supports = frozenset({"agnostic", "sensitive"} if caption_rows is not None else {"agnostic"})
+        if caption_rows is None:  # no captions to replay: time-agnostic answers only
+            self.supports = frozenset({"agnostic"})
 
     def painted_relevance(self, text: str, frame: Frame) -> torch.Tensor:
         """[L, H, W] relevance at ``frame``'s camera: each level's masks of the nearest training view painted

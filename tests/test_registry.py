@@ -420,3 +420,21 @@ def test_every_method_says_how_it_answers_and_meets_the_floor_of_its_rule():
     with pytest.raises(ValueError, match="no floor"):
         MethodSpec(name="bad", description="", entry_point="x.y:Z", config=NearestFrameMasksConfig, floor=True,
                    variant_of="nearest-frame")
+
+
+def test_paper_configs_and_variants_share_the_fits_their_configs_agree_on():
+    from types import SimpleNamespace
+
+    from methods.language_methods import autoencoder_config, config_to_dict, field_config, field_key, recon_config
+
+    def key(name: str) -> str:
+        config = registry.get(name).make_config()
+        return field_key("geometry", SimpleNamespace(fingerprint="supervision"), config, autoencoder_config(config),
+                         field_config(config), seed=0, device="cpu")
+
+    paper = {key(name) for name in ("4d-langsplat", "deformable-clip", "non-status-field")}
+    plus = {key(name) for name in ("4d-langsplat+", "deformable-clip+", "non-status-field+")}
+    assert len(paper) == 1 and len(plus) == 1 and paper != plus  # one time-agnostic field each
+    geometry = {json.dumps(config_to_dict(recon_config(registry.get(name).make_config(), 0)), sort_keys=True)
+                for name in registry.names() if not registry.get(name).floor}
+    assert len(geometry) == 1  # one geometry fit per scene and seed for all (a 3D-GS for the langsplats)
