@@ -840,17 +840,21 @@ def prepare_run(options: EvalOptions) -> PreparedRun:
 def _run_supervision(options: EvalOptions, scene: Scene, aset, progress):
     """The run's 2D supervision: the track's sources (``options.sources`` overriding the scene's defaults,
     :func:`default_sources`), built or read from the cache."""
-    from methods.api import build_supervision
+    from methods.api import build_supervision, training_states
 
     sources = dict(options.sources) or default_sources(scene, options.track)
     source_options = {kind: dict(opts) for kind, opts in options.source_options.items()}
-    if sources.get("image_text") == "object-name" and "object_name" not in source_options.get("image_text", {}):
-        source_options.setdefault("image_text", {})["object_name"] = whole_object_name(aset, options.object_query)
+    states = None
+    if sources.get("image_text") == "object-name":
+        if "object_name" not in source_options.get("image_text", {}):
+            source_options.setdefault("image_text", {})["object_name"] = whole_object_name(aset, options.object_query)
+        # the oracle captions of a scene without generator truth: its time segments at the training frames
+        states = training_states(scene, aset) or None
     if sources:
         progress.log(f"supervision sources: {sources}")
     return build_supervision(scene, options.track, cache_dir=options.cache_dir, text_encoder=options.text_encoder,
-                             sources=sources or None, source_options=source_options, device=options.device,
-                             progress=progress)
+                             sources=sources or None, source_options=source_options, states=states,
+                             device=options.device, progress=progress)
 
 
 def obtain_fit(prepared: PreparedRun, *, cached_key: Optional[str] = None,

@@ -122,7 +122,7 @@ def test_pixels_no_gaussian_covers_read_as_the_unmasked_text(smoke):
     from methods.fields.relevance import relevance
     from methods.specs._language import AnswerConfig
 
-    model = _fit(smoke, QUICK)
+    model = _fit(smoke, {**QUICK, "extensions.unmasked_text": "background"})  # the extension of feature-3dgs+
     frame = smoke["scene"].test_frames[0]
     query, canon = model.query_embedding("box"), model.canonical()
     rendered, _ = model.render(frame)

@@ -140,13 +140,14 @@ def test_methods_share_one_4dgs_fit_answer_every_query_and_reload(smoke):
     assert preds["method"] == "deformable-clip"
 
 
-def _deformable_clip_model(smoke):
-    """(config, shared fit, model) of a tiny deformable-clip on the smoke scene (fits cached per module)."""
+def _deformable_clip_model(smoke, name: str = "deformable-clip"):
+    """(config, shared fit, model) of a tiny deformable-clip (or its variant ``name``) on the smoke scene (fits
+    cached per module)."""
     from methods import registry
     from methods.api import Progress
     from methods.language_methods import LanguageFieldModel, fit_language_field
 
-    cfg = registry.get("deformable-clip").make_config(dict(TINY))
+    cfg = registry.get(name).make_config(dict(TINY))
     shared = fit_language_field(smoke["scene"], smoke["supervision"], cfg, kind="4dgs", seed=0, device="cpu",
                                 progress=Progress(True), cache_root=smoke["cache"])
     return cfg, shared, LanguageFieldModel("deformable-clip", cfg, smoke["supervision"].text_encoder, shared,
@@ -290,8 +291,16 @@ def test_4d_langsplat_on_a_dnerf_folder_answers_agnostic_queries_without_a_head(
 
 
 def test_pixels_no_gaussian_covers_show_the_background_text(smoke, monkeypatch):
-    """Zero latents decode to an arbitrary feature; an uncovered pixel must read as ``unmasked_text``."""
-    model = _deformable_clip_model(smoke)[2]
+    """Zero latents decode to an arbitrary feature; with the ``unmasked_text`` extension an uncovered pixel must
+    read as that text (and without it, as the release, it decodes as any other pixel)."""
+    paper = _deformable_clip_model(smoke)[2]
+    model = _deformable_clip_model(smoke, "deformable-clip+")[2]
+    assert paper.config.extensions.unmasked_text is None and model.config.extensions.unmasked_text == "background"
+    frame = smoke["scene"].test_frames[0]
+    latents, alpha = paper.render_latents_and_alpha(frame)
+    basis = paper._reduced_phrases("box")[0]
+    assert torch.equal(paper.decode_reduced(latents, torch.zeros_like(alpha), basis),
+                       decode_for_relevance(latents, paper.autoencoder.decoder, basis))
     frame = smoke["scene"].test_frames[0]
     latents, alpha = model.render_latents_and_alpha(frame)
     assert alpha.shape == (frame.camera.height, frame.camera.width)

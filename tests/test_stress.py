@@ -390,7 +390,7 @@ def test_every_fitted_method_has_a_short_schedule_of_its_own_options_and_the_4d_
     from benchmark.core.config import with_overrides
     from methods import registry
 
-    fitted = [name for name in registry.names() if name != "nearest-frame"]
+    fitted = [name for name in registry.names() if not registry.get(name).floor]
     assert sorted(SHORT_SCHEDULES) == sorted(fitted)
     geometries = set()
     for name in fitted:
@@ -415,7 +415,7 @@ def test_a_small_suite_runs_resumes_and_reports(tmp_path):
     again = stress.run_suite(config, log=lambda _: pytest.fail("a present run was redone"))
     assert {s.path: s.path.stat().st_mtime_ns for s in again} == stamps
     # a run made under another method config (a default that moved since) is stale: not read, not reported
-    moved = dataclasses.replace(config, method_options={"nearest-frame": {"camera_weight": "0.5"}})
+    moved = dataclasses.replace(config, method_options={"nearest-frame": {"time_weight": "0.5"}})
     assert stress.collect(moved) == []
     assert all(stress.results_file(moved, stress.RunKey(s.family if s.strength else stress.CLEAN, s.strength,
                                                         s.method, s.seed)) is None for s in again)
@@ -481,7 +481,7 @@ def test_scores_kept_in_the_report_count_without_their_results_files_while_their
     assert gallery.stat().st_mtime_ns == drawn, "a gallery is not redrawn without its runs"
     assert not list((tmp_path / "report").glob("scores-replaced-*"))
     # another method config: no row is current; rewriting the table keeps the old one beside it
-    moved = dataclasses.replace(elsewhere, method_options={"nearest-frame": {"camera_weight": "0.5"}})
+    moved = dataclasses.replace(elsewhere, method_options={"nearest-frame": {"time_weight": "0.5"}})
     assert stress.collect(moved) == []
     write_reports(moved, [])
     assert [p.read_text() for p in (tmp_path / "report").glob("scores-replaced-*.csv")] == [table]

@@ -14,7 +14,7 @@
                            [--seeds N ...] [--refit]
     bench4d ablate gap [--methods langsplat deformable-clip] [--scenes S ...] [--seeds N ...]
     bench4d ablate decisions [--methods M ...] [--datasets D ...] [--scenes S ...] [--results-dir results]
-    bench4d ablate capacity [--method 4d-langsplat] [--presets split-cookie espresso americano] [--size 64]
+    bench4d ablate capacity [--method 4d-langsplat+] [--presets split-cookie espresso americano] [--size 64]
                             [--knobs gaussians states latent hexplane] [--values KNOB=V,V,...] [--seeds 0]
                             [--set KEY=VALUE] [--no-release] [--jobs N] [--report-only] [--out reports/capacity]
     bench4d ablate real-cost [--size full|tiny] [--device cuda] [--masks-per-frame 120] [--objects 3]

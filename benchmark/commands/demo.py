@@ -1,8 +1,9 @@
 """``bench4d demo``: the main job, end to end on a small synthetic scene.
 
 Generates the default synthetic preset at :data:`DEMO_SIZE` px (once, into the cache), fits the 4D
-language method :data:`DEMO_METHOD` with demo-sized schedules (:data:`DEMO_OVERRIDES`) and the 2D floor
-beside it on the oracle track, answers and scores every annotated query, and prints how both stand
+language method :data:`DEMO_METHOD` with demo-sized schedules (:data:`DEMO_OVERRIDES`) and the 2D floors
+beside it (``nearest-frame``, which answers through the same query rule, and ``nearest-frame-masks``) on the
+oracle track, answers and scores every annotated query, and prints how both stand
 against the perfect-feature ceiling under the same protocol (:mod:`benchmark.studies.protocol_ceiling`).
 ``--method`` runs one chosen method only. Results go under the cache folder, never into ``results/``.
 """
@@ -18,7 +19,7 @@ from typing import Any, Optional
 from benchmark.core.errors import InputError
 
 DEMO_METHOD = "4d-langsplat"
-"""The 4D language method the demo fits (the floor runs beside it)."""
+"""The 4D language method the demo fits, in its paper config (the floors run beside it)."""
 
 DEMO_SIZE = 64
 """Image width of the demo's generated preset (the leaderboard's runs use 128 px)."""
@@ -38,7 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("--scene", default=None, help="preset or folder (default: the generator's default preset)")
     parser.add_argument("--method", default=None,
-                        help=f"run this method only (default: {DEMO_METHOD} and the 2D floor beside it)")
+                        help=f"run this method only (default: {DEMO_METHOD} and the 2D floors beside it)")
     parser.add_argument("--seed", type=parse_seed, default=0)
     parser.add_argument("--size", type=int, default=DEMO_SIZE, help="image size of the generated preset")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",

