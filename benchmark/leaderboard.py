@@ -306,6 +306,12 @@ def _resolve_kinds(queries: pd.DataFrame, runs: pd.DataFrame) -> pd.DataFrame:
     return out
 
 
+def _recorded_method(name: str, recorded: Any) -> str:
+    from methods import registry
+
+    return registry.recorded_method(name, recorded if isinstance(recorded, Mapping) else None)
+
+
 def load_runs(results_dir: str | Path, *, extra: Optional[Callable[[dict], dict[str, Any]]] = None
               ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """(one row per results file: :data:`RUN_COLUMNS` and :data:`EXTRA_COLUMNS`, sorted; one row per asked
@@ -319,6 +325,9 @@ def load_runs(results_dir: str | Path, *, extra: Optional[Callable[[dict], dict[
         check_run_values(doc, path)
         shown = path.relative_to(results_dir).as_posix()
         row = run_row(doc, shown)
+        # a run shows under the name its recorded config stands for today (a run made with the benchmark's
+        # extensions before the paper configs became the defaults is the variant's, e.g. 4d-langsplat+)
+        row["method"] = _recorded_method(str(row["method"]), doc.get("method_config"))
         row.update(run_extras(doc, row))
         if extra is not None:
             row.update(extra(doc))

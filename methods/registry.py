@@ -342,6 +342,29 @@ def variants_of(name: str) -> list[str]:
     return sorted(s.name for s in METHODS.entries() if s.variant_of == name)
 
 
+def recorded_method(name: str, recorded: Optional[Mapping[str, Any]]) -> str:
+    """The registered name a run of ``name`` made with the config ``recorded`` stands for today: ``name``
+    when that is its default config (or no variant's default matches either: the leaderboard marks such a
+    run), else the variant whose default config it is. A run made before the paper configs became the
+    defaults, with the benchmark's extensions on, is thereby shown as the variant it was (``4d-langsplat+``),
+    never as the paper's method."""
+    from .specs._recorded import RETIRED_AS
+
+    try:
+        spec = get(name)
+    except InputError:
+        return name
+    retired = [RETIRED_AS[key] for key in (recorded or {}) if key in RETIRED_AS]
+    if retired and retired[0] in METHODS:
+        return retired[0]
+    if spec.recorded_as(recorded):
+        return name
+    for variant in variants_of(name):
+        if get(variant).recorded_as(recorded):
+            return variant
+    return name
+
+
 def paper_base(name: str) -> str:
     """The paper method whose row a method's results belong beside: its :attr:`~MethodSpec.variant_of`, else
     ``name`` itself."""

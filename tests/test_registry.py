@@ -7,6 +7,7 @@ import subprocess
 import sys
 import textwrap
 import uuid
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -438,3 +439,19 @@ def test_paper_configs_and_variants_share_the_fits_their_configs_agree_on():
     geometry = {json.dumps(config_to_dict(recon_config(registry.get(name).make_config(), 0)), sort_keys=True)
                 for name in registry.names() if not registry.get(name).floor}
     assert len(geometry) == 1  # one geometry fit per scene and seed for all (a 3D-GS for the langsplats)
+
+
+def test_a_run_shows_under_the_name_its_recorded_config_stands_for_today():
+    """A record made with the benchmark's extensions (before the paper configs were the defaults) is the
+    ``+`` variant's run; a record of the paper config is the paper method's; one holding the old floor's
+    retired option is the mask-selection floor's; an unknown name or a config no method has stays as it is."""
+    from methods.registry import get, recorded_method
+
+    paper = dataclasses.asdict(get("4d-langsplat").default_config())
+    plus = dataclasses.asdict(get("4d-langsplat+").default_config())
+    assert paper != plus
+    assert recorded_method("4d-langsplat", paper) == "4d-langsplat"
+    assert recorded_method("4d-langsplat", plus) == "4d-langsplat+"
+    assert recorded_method("nearest-frame", {"camera_weight": 0.5}) == "nearest-frame-masks"
+    assert recorded_method("my-method", plus) == "my-method"
+    assert recorded_method("4d-langsplat", None) == "4d-langsplat"

@@ -107,6 +107,9 @@ RETIRED_OPTIONS: dict[str, str] = {
 }
 """Options records of retired code hold, and what they were: no option of today reads them, and a record
 holding one describes no config of today (:func:`holds_retired_options`)."""
+RETIRED_AS: dict[str, str] = {"camera_weight": "nearest-frame-masks"}
+"""Retired option -> the registered method whose answers a record holding it gave (the leaderboard shows the
+run under that name: :func:`methods.registry.recorded_method`)."""
 
 
 def holds_retired_options(recorded: Optional[Mapping[str, Any]]) -> bool:
