@@ -35,7 +35,8 @@ from .splits import split_records
 from benchmark.core.truth import TRUTH_DIR, TruthFrame, save_levels, write_truth
 
 GENERATOR = "bench4d.synthetic"
-GENERATOR_VERSION = "1.0"
+GENERATOR_VERSION = "1.1"
+"""1.1: the HyperNeRF layout trains on frames i % 4 == 0 (the paper's split) and renders a novel-view path."""
 MIN_FRAMES = 4
 """Fewest frames a scene may have (a held-out frame and state changes need room)."""
 NEAR_FAR_MARGIN = (0.9, 1.1)
