@@ -65,7 +65,8 @@ from benchmark.core.errors import InputError
 from benchmark.core.openblas import cpuinfo_value, openblas_core
 from benchmark.core.protocol import DEFAULT_PROTOCOL, get_protocol
 from .results import RunResults, exclusive_lock, results_lock, results_path, write_results
-from benchmark.core.scene import DEFAULT_EVAL_SPLIT, Frame, Scene, check_eval_split, scene_split_frames
+from benchmark.core.scene import (DEFAULT_EVAL_SPLIT, Frame, Scene, check_eval_split, paper_camera,
+                                  scene_split_frames)
 
 DEFAULT_PRESET_SIZE = 128
 PACKAGES = ("numpy", "torch", "pandas", "scikit-image", "opencv-contrib-python-headless", "pycocotools",
@@ -328,7 +329,8 @@ def load_release_annotations(scene: Scene, path: Path):
     """The release's annotation export of ``scene``: ``path`` is its ``annotations/`` folder or the COCO
     file in it (``video_annotations.json`` beside ``train/`` is read when present). Frames are matched
     to the scene by time index: the release numbers HyperNeRF frames from 1 and Neu3D frames from 0, and
-    annotates one camera (the test camera where the scene has several)."""
+    annotates one camera (where the scene has several: the camera of its ``paper`` split, Neu3D's test camera,
+    :func:`~benchmark.core.scene.paper_camera`)."""
     from annotations.release import COCO_RELATIVE_PATH, import_release_folder
 
     path = Path(path)
@@ -336,10 +338,8 @@ def load_release_annotations(scene: Scene, path: Path):
     if not (folder / COCO_RELATIVE_PATH).is_file():
         raise InputError(path, "annotations", f"not a release annotation folder: no {COCO_RELATIVE_PATH} in it")
     frame_base = 1 if scene.dataset == "hypernerf" else 0
-    test_cameras = sorted({str(f.camera_id) for f in scene.frames if f.split == "test"})
-    camera_id = test_cameras[0] if len({str(f.camera_id) for f in scene.frames}) > 1 and len(test_cameras) == 1 else None
     aset = import_release_folder(folder, scene_name=scene.name, frame_base=frame_base, frame_names=scene,
-                                 camera_id=camera_id)
+                                 camera_id=paper_camera(scene))
     aset.info["path"] = str(folder / COCO_RELATIVE_PATH)
     return aset
 

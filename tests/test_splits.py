@@ -243,3 +243,27 @@ def test_results_of_before_the_splits_read_as_legacy_dense_with_their_machine(tm
     assert scene_status(seeded) == ("b" * 24, True)
     seeded["scene_info"]["generated"]["seed"] = 0
     assert scene_status(seeded) == ("b" * 24, False)
+
+
+def test_run_all_takes_the_split_and_reruns_a_result_that_recorded_none(env, capsys):
+    from benchmark.cli import main
+    from benchmark.results import load_results, write_results
+
+    argv = ["run-all", "--methods", "nearest-frame", "--scenes", str(env["scene"]), "--seeds", "0",
+            "--results-dir", str(env["results"]), "--cache-dir", str(env["cache"]), "--quiet"]
+    assert main(argv + ["--split", "novel-view"]) == 0
+    assert main(argv) == 0
+    assert main(argv + ["--split", "novel-view"]) == 0
+    assert "1 run(s) (1 reused)" in capsys.readouterr().out
+    base = env["results"] / "synthetic" / "smoke" / "nearest-frame" / "oracle"
+    assert load_results(base / "novel-view" / "seed0.json")["split"] == "novel-view"
+    # a file written before splits were recorded (the dense split) is kept in the archive and run again
+    old = load_results(base / "seed0.json")
+    del old["split"]
+    write_results(base / "seed0.json", old)
+    assert main(argv) == 0
+    captured = capsys.readouterr()
+    assert "1 run(s) (0 reused)" in captured.out and "scored the legacy-dense split" in captured.err
+    assert (env["results"] / "archive" / "split-legacy-dense" / "synthetic" / "smoke" / "nearest-frame" / "oracle"
+            / "seed0.json").is_file()
+    assert load_results(base / "seed0.json")["split"] == "paper"

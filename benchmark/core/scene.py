@@ -385,6 +385,17 @@ def scene_split_frames(scene: "Scene", split: str) -> list[Frame]:
     return [f for f in scene.test_frames if f.name in wanted]
 
 
+def paper_camera(scene: "Scene") -> Optional[str]:
+    """The camera a single-camera annotation export (the release's COCO files, which number frames by video
+    frame) refers to in a scene of several cameras: the one camera of the ``paper`` split's frames (Neu3D's
+    held-out camera; a generated HyperNeRF-layout scene's video camera, not its novel-view path). None where
+    the scene has one camera, or that split spans several."""
+    if len(scene.camera_ids) < 2:
+        return None
+    cameras = {f.camera_id for f in scene_split_frames(scene, DEFAULT_EVAL_SPLIT)}
+    return next(iter(cameras)) if len(cameras) == 1 else None
+
+
 def eval_splits_of(frames: Sequence, *, held_out_cameras: bool) -> dict[str, list[str]]:
     """Frame names of each evaluation split (:data:`EVAL_SPLITS`) among the ``test``
     frames (:class:`Frame` or anything with ``name``, ``split`` and ``camera_id``), the record loaders keep in

@@ -222,7 +222,9 @@ class _Plan:
             novel = [r for r in records if r.camera_id == layouts.NOVEL_CAMERA_ID]
             video = [r for r in records if r.camera_id != layouts.NOVEL_CAMERA_ID]
             scene, records = self.perturbation.apply(scene, video, self.seed)
-            records = layouts.as_layout_records(self.layout, records) + novel
+            records = layouts.as_layout_records(self.layout, records)
+            if novel:  # back in video order, a time's novel view after its frames (strength 0: the clean plan)
+                records = sorted(records + novel, key=lambda rec: rec.time_index)
         return scene, Catalogue.build(scene.wholes), records
 
 
