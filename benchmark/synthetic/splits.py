@@ -16,7 +16,9 @@ names alone):
   - scene speed: every object pixel of training frame ``k`` is lifted to 3D from the truth depth and moved
     with its part's rigid motion (the poses of the part and the nodes above it) to the time of frame
     ``k + 1``; the mean distance moved by the pixels that move, per time step, averaged over the pairs in
-    which something moves. Shape and colour changes (a liquid rising, chocolate melting) are not motion here;
+    which something moves. Shape and colour changes (a liquid rising, chocolate melting) are not motion here:
+    where no part moves rigidly (espresso: its coffee rises and its stream appears in place) the scene speed
+    and the factor are null;
   - ``multi_view_factor`` = camera speed / scene speed (DyCheck's full EMF, in time steps rather than
     seconds: the ratio has no unit). ``camera_deg_per_step`` is the angular speed alone (DyCheck's angular
     EMF, per time step instead of per second). A rig sees a time step from several cameras at once: its
