@@ -11,16 +11,22 @@ compose itself: :func:`prepare_run` (1, 2), :func:`obtain_fit` (3), :func:`answe
    fingerprint, scene fingerprint, code digest and version). A fit is written to a temporary folder and renamed
    into place when complete; a resumable method keeps its checkpoints in a per-key work folder, so
    an interrupted fit continues where it stopped;
-4. answers every annotated query on the evaluated frames (the test split by default; annotated
-   training frames too with ``splits=("train", "test")``), turns per-frame scores into decisions
-   with the metrics core's shared temporal rule, and scores;
+4. answers every annotated query on the evaluated frames (the test frames of the run's evaluation split,
+   ``paper`` or ``novel-view`` (:mod:`benchmark.core.scene`); annotated training frames too with
+   ``splits=("train", "test")``), turns per-frame scores into decisions with the metrics core's shared
+   temporal rule, and scores;
 5. times the queries (warm-up, then the median of repeated single-frame calls, synchronising CUDA)
    and records fit time, peak memory, seeds, versions, git state, device, supervision;
 6. writes the predictions (``bench4d score`` format) and then ONE results JSON, each atomically:
-   ``<results>/<dataset>/<scene>/<method>/<track>/seed<N>.json``. A results file exists only for a
+   ``<results>/<dataset>/<scene>/<method>/<track>/seed<N>.json`` (the ``paper`` split; another split in
+   ``<track>/<split>/seed<N>.json``, :func:`benchmark.results.results_path`). A results file exists only for a
    complete run. Writers of one results file are serialised (:func:`benchmark.results.results_lock`): a
    file being replaced is moved to ``<results>/archive/`` first, so two runs finishing together both
    keep their record.
+
+Seeds sample scenes: a run of seed ``s`` on a synthetic preset generates the preset with generator seed ``s``
+(cached per preset, size and scene seed) and fits with seed ``s``; both seeds and the scene's digest are
+recorded. One fit answers every evaluation split: its cache key depends on the training frames only.
 
 Queries of a kind the method does not answer are listed (``unanswered_queries`` in the results file and
 in the predictions' ``info``) and count 0 in the full means, beside means over the answered ones:
@@ -62,7 +68,8 @@ from benchmark.core.strict import check_cached_files
 from benchmark.core.openblas import cpuinfo_value, openblas_core
 from benchmark.core.protocol import DEFAULT_PROTOCOL, get_protocol
 from .results import RunResults, exclusive_lock, results_lock, results_path, write_results
-from benchmark.core.scene import Frame, Scene
+from benchmark.core.scene import (DEFAULT_EVAL_SPLIT, Frame, Scene, check_eval_split, paper_camera,
+                                  scene_split_frames)
 
 DEFAULT_PRESET_SIZE = 128
 PACKAGES = ("numpy", "torch", "pandas", "scikit-image", "opencv-contrib-python-headless", "pycocotools",
@@ -79,7 +86,13 @@ class EvalOptions:
     scene: str
     """A scene folder, or the name of a synthetic preset (generated into ``cache_dir`` once)."""
     seed: int = 0
-    """Seed of the fit (Python, numpy and torch are seeded with it)."""
+    """Seed of the fit (Python, numpy and torch are seeded with it), and of the scene a synthetic preset is
+    generated with unless ``scene_seed`` says otherwise."""
+    scene_seed: Optional[int] = None
+    """Generator seed of a synthetic preset named by ``scene``; None: ``seed`` (seeds sample scenes)."""
+    split: str = DEFAULT_EVAL_SPLIT
+    """Evaluation split scored (:data:`benchmark.core.scene.EVAL_SPLITS`): ``paper`` (the dataset's held-out
+    frames) or ``novel-view`` (held-out frames seen from cameras no training frame uses)."""
     track: str = "oracle"
     """Supervision track: ``"oracle"`` or ``"real"``."""
     results_dir: Path = Path("results")
@@ -165,9 +178,18 @@ def _presets() -> dict:
     return dict(PRESETS)
 
 
-def resolve_scene(spec: str | Path, cache_dir: Path, *, size: int = DEFAULT_PRESET_SIZE,
+def preset_folder(cache_dir: Path, name: str, size: int, seed: int = 0) -> Path:
+    """Where preset ``name`` at ``size`` px and generator seed ``seed`` is cached: ``scenes/<size>px/<name>``
+    for seed 0, ``scenes/<size>px/seed<seed>/<name>`` for others (the folder keeps the preset's name: loaders
+    name a scene after its folder)."""
+    base = Path(cache_dir) / "scenes" / f"{size}px"
+    return base / name if int(seed) == 0 else base / f"seed{int(seed)}" / name
+
+
+def resolve_scene(spec: str | Path, cache_dir: Path, *, size: int = DEFAULT_PRESET_SIZE, seed: int = 0,
                   log: Callable[[str], None] = lambda m: None) -> Path:
-    """The folder of scene ``spec``: an existing folder, or a synthetic preset generated once."""
+    """The folder of scene ``spec``: an existing folder, or a synthetic preset generated once (with generator
+    seed ``seed``, cached per preset, size and seed)."""
     path = Path(spec)
     if path.exists():
         return path
@@ -178,25 +200,24 @@ def resolve_scene(spec: str | Path, cache_dir: Path, *, size: int = DEFAULT_PRES
         hint = f" (did you mean preset {close[0]!r}?)" if close else ""
         raise InputError(path, "scene", f"no such folder and no synthetic preset of that name{hint}; "
                          f"presets: {', '.join(sorted(presets)) or 'none'}")
-    # the folder is named after the preset: loaders name scenes after their folder
-    target = Path(cache_dir) / "scenes" / f"{size}px" / name
+    target = preset_folder(cache_dir, name, size, seed)
     # one process checks or makes a preset at a time: another would see it half cleared or replaced
     with exclusive_lock(target.parent / f".{name}.lock"):
-        return _cached_preset(name, target, size, log)
+        return _cached_preset(name, target, size, int(seed), log)
 
 
-def _cached_preset(name: str, target: Path, size: int, log: Callable[[str], None]) -> Path:
+def _cached_preset(name: str, target: Path, size: int, seed: int, log: Callable[[str], None]) -> Path:
     """The preset ``name`` at ``target``: reused when sound and the committed version, else made anew."""
     from .synthetic.digest import expected_digest, scene_digest
 
-    expected = expected_digest(name, size)
+    expected = expected_digest(name, size, seed)
     if target.exists():
         problem, found = _check_cached_scene(target)
         if problem is None:
             if expected is None or found == expected:
                 return target
             # a scene cached by other generator code would be measured under the preset's name: remake it
-            log(f"cached preset {name!r} at {target} is not the committed scene version "
+            log(f"cached preset {name!r} (seed {seed}) at {target} is not the committed scene version "
                 f"(digest {found}, committed {expected}): regenerating")
         else:
             warn(f"cached preset {name!r} at {target} is damaged ({problem}): regenerating it")
@@ -208,11 +229,11 @@ def _cached_preset(name: str, target: Path, size: int, log: Callable[[str], None
             shutil.rmtree(trash, ignore_errors=True)
     from .synthetic.generate import generate
 
-    log(f"generating synthetic preset {name!r} at {size}px into {target}")
+    log(f"generating synthetic preset {name!r} at {size}px, seed {seed}, into {target}")
     # generate() builds in a staging folder and publishes atomically: never a half-written scene
-    out = Path(generate(name, target, size=size, overwrite=True))
+    out = Path(generate(name, target, size=size, seed=seed, overwrite=True))
     if expected is not None and scene_digest(out) != expected:
-        log(f"WARNING: the generator made preset {name!r} at {size}px differently from the committed version "
+        log(f"WARNING: the generator made preset {name!r} at {size}px, seed {seed}, differently from the committed version "
             f"(benchmark/synthetic/digests.json): its runs are not comparable with the leaderboard's until "
             f"`bench4d data digests --write` records the change")
     return out
@@ -321,7 +342,8 @@ def load_release_annotations(scene: Scene, path: Path):
     """The release's annotation export of ``scene``: ``path`` is its ``annotations/`` folder or the COCO
     file in it (``video_annotations.json`` beside ``train/`` is read when present). Frames are matched
     to the scene by time index: the release numbers HyperNeRF frames from 1 and Neu3D frames from 0, and
-    annotates one camera (the test camera where the scene has several)."""
+    annotates one camera (where the scene has several: the camera of its ``paper`` split, Neu3D's test camera,
+    :func:`~benchmark.core.scene.paper_camera`)."""
     from annotations.release import COCO_RELATIVE_PATH, import_release_folder
 
     path = Path(path)
@@ -329,10 +351,8 @@ def load_release_annotations(scene: Scene, path: Path):
     if not (folder / COCO_RELATIVE_PATH).is_file():
         raise InputError(path, "annotations", f"not a release annotation folder: no {COCO_RELATIVE_PATH} in it")
     frame_base = 1 if scene.dataset == "hypernerf" else 0
-    test_cameras = sorted({str(f.camera_id) for f in scene.frames if f.split == "test"})
-    camera_id = test_cameras[0] if len({str(f.camera_id) for f in scene.frames}) > 1 and len(test_cameras) == 1 else None
     aset = import_release_folder(folder, scene_name=scene.name, frame_base=frame_base, frame_names=scene,
-                                 camera_id=camera_id)
+                                 camera_id=paper_camera(scene))
     aset.info["path"] = str(folder / COCO_RELATIVE_PATH)
     return aset
 
@@ -469,17 +489,31 @@ def checkout_state(root: Path) -> dict[str, Any]:
 
 
 def device_description(device: str) -> dict[str, Any]:
+    """The machine a run ran on (results' ``environment``): CPU model, the instruction set torch's CPU kernels
+    dispatch to, numpy's BLAS kernels, the GPU (null off CUDA)."""
     # platform.processor() is empty on Linux: the CPU's model name from /proc/cpuinfo there
     info: dict[str, Any] = {"device": device, "platform": platform.platform(), "machine": platform.machine(),
                             "cpu_count": os.cpu_count(),
                             "processor": platform.processor() or cpuinfo_value("model name") or None,
+                            # fitted numbers move with it (ATEN_CPU_CAPABILITY=default vs avx2 kernels)
+                            "cpu_capability": cpu_capability(),
                             # numpy's BLAS kernels in this process: the generator's pixels depend on them
-                            "numpy_blas_core": openblas_core()}
+                            "numpy_blas_core": openblas_core(), "gpu": None}
     if device.startswith("cuda"):
         import torch
 
         info["gpu"] = torch.cuda.get_device_name(torch.device(device))
     return info
+
+
+def cpu_capability() -> Optional[str]:
+    """The instruction set torch's CPU kernels dispatch to (``torch.backends.cpu.get_cpu_capability()``:
+    ``DEFAULT``, ``AVX2``, ``AVX512``, ...; ``ATEN_CPU_CAPABILITY`` lowers it); None without torch."""
+    try:
+        import torch
+    except ImportError:
+        return None
+    return str(torch.backends.cpu.get_cpu_capability())
 
 
 def _torch_threads() -> Optional[int]:
@@ -820,17 +854,20 @@ def prepare_run(options: EvalOptions) -> PreparedRun:
     git_state()  # the checkout as the run starts (a no-op after the process's first call)
     peak_window = "run" if memory.reset_peak() else "process"
 
-    root = resolve_scene(options.scene, Path(options.cache_dir), size=options.preset_size, log=progress.log)
+    check_eval_split(options.split)
+    scene_seed = options.seed if options.scene_seed is None else int(options.scene_seed)
+    root = resolve_scene(options.scene, Path(options.cache_dir), size=options.preset_size, seed=scene_seed,
+                         log=progress.log)
     generated = _scene_version(root)  # before the fit: a damaged generated folder stops the run now
     scene = load_scene(root) if options.scale is None else load_scene(root, scale=options.scale)
     aset = find_annotations(scene, options.annotations, options.object_query)
     # before the fit: the results (and predictions) never land in the scene folder or on the annotations
     out_path = results_path(options.results_dir, dataset_label(scene), scene.name, spec.name, options.track,
-                            options.seed)
+                            options.seed, options.split)
     guard_output(out_path, [root, options.annotations], option="results_dir")
-    eval_frames = _evaluated_frames(scene, aset, options.splits)
-    progress.log(f"{scene_line(scene)}; scoring {len(eval_frames)} annotated frame(s) of split(s) "
-                 f"{'+'.join(options.splits)}")
+    eval_frames = _evaluated_frames(scene, aset, options.splits, options.split)
+    progress.log(f"{scene_line(scene)}; scoring {len(eval_frames)} annotated frame(s) of the {options.split} "
+                 f"split ({'+'.join(options.splits)})")
     supervision = _run_supervision(options, scene, aset, progress)
     return PreparedRun(options=options, spec=spec, config=config, protocol=protocol, progress=progress, root=root,
                        generated=generated, scene=scene, annotations=aset, eval_frames=eval_frames,
@@ -947,7 +984,7 @@ def score_and_write(prepared: PreparedRun, fit: FitRecord, answers: Answers) -> 
 
     options, scene = prepared.options, prepared.scene
     out_path = results_path(options.results_dir, dataset_label(scene), scene.name, prepared.spec.name, options.track,
-                            options.seed)
+                            options.seed, options.split)
     pred_dir = out_path.with_name(out_path.stem + ".predictions")
     results = results_document(prepared, fit, answers, score_config, score_doc, timing, peak_gpu_total,
                                predictions=str(pred_dir.relative_to(out_path.parent) / JSON_GZ_FILE))
@@ -978,7 +1015,8 @@ def results_document(prepared: PreparedRun, fit: FitRecord, answers: Answers, sc
     options, spec, scene, model = prepared.options, prepared.spec, prepared.scene, fit.model
     return RunResults(
         method=spec.name, dataset=dataset_label(scene), scene=scene.name, layout=scene.dataset, track=options.track,
-        seed=options.seed, splits=list(options.splits),
+        seed=options.seed, split=options.split, scene_seed=None if prepared.generated is None else prepared.generated["seed"],
+        splits=list(options.splits),
         metrics=score_doc["metrics"]["dataset"],
         unanswered_queries=answers.unanswered,
         timing=timing,
@@ -1084,8 +1122,9 @@ def default_sources(scene: Scene, track: str) -> dict[str, str]:
     return {"segmenter": "alpha", "image_text": "object-name"}
 
 
-def _evaluated_frames(scene: Scene, aset, splits: Sequence[str]):
-    """Annotated frames of the wanted splits (checked against the scene)."""
+def _evaluated_frames(scene: Scene, aset, splits: Sequence[str], eval_split: str = DEFAULT_EVAL_SPLIT):
+    """Annotated frames of the wanted frame splits (checked against the scene), their ``test`` frames narrowed
+    to those evaluation split ``eval_split`` scores (:func:`~benchmark.core.scene.scene_split_frames`)."""
     known = {f.name: f for f in scene.frames}
     missing = [f.name for f in aset.frames if f.name not in known]
     if missing:
@@ -1093,9 +1132,12 @@ def _evaluated_frames(scene: Scene, aset, splits: Sequence[str]):
     bad = set(splits) - {"train", "val", "test"}
     if bad:
         raise InputError(None, "splits", f"unknown split(s) {sorted(bad)}")
-    chosen = [f for f in aset.frames if known[f.name].split in set(splits)]
+    scored_test = {f.name for f in scene_split_frames(scene, eval_split)} if "test" in splits else set()
+    chosen = [f for f in aset.frames if known[f.name].split in set(splits)
+              and (known[f.name].split != "test" or f.name in scored_test)]
     if not chosen:
-        raise InputError(None, "splits", f"scene {scene.name!r} has no annotated frame in split(s) {list(splits)}")
+        raise InputError(None, "splits", f"scene {scene.name!r} has no annotated frame in split(s) {list(splits)} "
+                                         f"of the {eval_split!r} evaluation split")
     return chosen
 
 

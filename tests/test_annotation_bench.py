@@ -93,7 +93,8 @@ def test_the_bench_measures_both_backends_and_both_workflows(smoke):
     assert set(tolerance) == {q.text for q in truth.queries if q.kind == "agnostic"} - {
         q.text for q in truth.queries if q.kind == "agnostic"
         and all(m is None or not m.any() for m in (truth.mask(q.text, f) for f in truth.scored_frames))}
-    assert all(0 < v < 1 for v in tolerance.values()) and "one-pixel IoU >= 0.9" in text
+    # a mask of a few pixels (the smoke box's knob at 48 px) erodes to nothing: 0
+    assert all(0 <= v < 1 for v in tolerance.values()) and "one-pixel IoU >= 0.9" in text
 
 
 def test_intervals_are_marked_only_where_the_pixels_change(smoke):

@@ -222,15 +222,18 @@ def test_a_method_added_by_one_spec_file_is_evaluated_and_its_fit_resumes(env, t
     assert not list(fits.rglob("*.work")) and not list(fits.rglob(".*partial*"))  # work folder cleaned up
     # the whole frame as the mask: IoU = GT area / frame area, checked against the annotations directly
     aset = load_annotations(env["scene"] / "annotations.json")
+    paper = set(aset.info["splits"]["paper"])  # the run scored the default (paper) split's frames
     per_query = []
     for q in aset.agnostic_queries:  # frames where the object is absent are not scored (the release's rule)
-        ious = [aset.get_mask(q.id, f.id).mean() for f in aset.annotated_frames(q.id) if aset.get_mask(q.id, f.id).any()]
+        ious = [aset.get_mask(q.id, f.id).mean() for f in aset.annotated_frames(q.id)
+                if f.name in paper and aset.get_mask(q.id, f.id).any()]
         if ious:
             per_query.append(np.mean(ious))
     assert outcome.results["metrics"]["mIoU"] == pytest.approx(100 * np.mean(per_query))
     # score = time, increasing: the shared rule says "holds" on the later half of the evaluated frames
     frames = [f for f in outcome.results["scores"]["frames"] if f["kind"] == "sensitive"]
-    assert all(f["decision"] == (f["time_index"] >= 4) for f in frames)
+    middle = np.median(sorted({f["time_index"] for f in frames}))
+    assert frames and all(f["decision"] == (f["time_index"] > middle) for f in frames)
 
 
 def test_oracle_sources_use_training_frames_only(smoke_base):

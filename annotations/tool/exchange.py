@@ -22,7 +22,7 @@ from pycocotools import mask as mask_utils
 
 from benchmark.core.atomic import atomic_path
 from benchmark.core.errors import InputError
-from benchmark.core.scene import Scene
+from benchmark.core.scene import Scene, paper_camera
 from benchmark.core.strict import check_int, check_keys, check_text, loads, text_key
 
 from ..format import annotation_set_from_dict, load_annotations, save_annotations
@@ -367,6 +367,8 @@ def import_set(fmt: str, filename: str, data: bytes, scene: Scene, current: Anno
             aset = import_release(coco_path, video_path, scene_name=scene.name, frame_base=_frame_base(scene),
                                   target_size=None if recorded else size,
                                   frame_names=None if recorded else scene,
+                                  # the release annotates one camera: the paper split's, where there are several
+                                  camera_id=None if recorded else paper_camera(scene),
                                   num_time_steps=current.num_time_steps)
         aset.info["source_file"] = filename  # not the temporary path
         aset.info.pop("coco_file", None)
