@@ -124,7 +124,7 @@ def build_captions(scene: Scene, track: str, captions, *, supervision=None, cach
     captioner_name, tracks_kind = resolve_captioning(captions, track)
     tracks = object_tracks(scene, tracks_kind, captions, supervision)
     if captioner_name == "template":
-        captioner = get_captioner("template", scene, seed=captions.seed)
+        captioner = get_captioner("template", scene, seed=captions.seed, noise=captions.noise)
     elif captioner_name == "file":
         if not captions.file:
             raise InputError(None, "captions.file", "captioner 'file' needs captions.file=<JSON>")
