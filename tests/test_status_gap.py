@@ -66,8 +66,14 @@ def test_tiny_study_runs_both_methods_under_the_paper_s_components_and_resumes(t
     frames = sum(b[STATUS_METHOD]["frames"] for b in level["by_distance"])
     assert frames == sum(b[DIRECT_METHOD]["frames"] for b in level["by_distance"]) > 0
     assert "Δ Acc" in report.table and "**all presets**" in report.table
-    # a second report reads the runs instead of making them
+    # the temporal half apart from the spatial mask: defined for both, and the captions replayed are the same
+    for run in doc["runs"]:
+        assert run[STATUS_METHOD]["object_mask AUC"] is not None and run[DIRECT_METHOD]["object_mask AUC"] is not None
+        assert run[STATUS_METHOD]["captions Acc"] == run[DIRECT_METHOD]["captions Acc"] is not None
+    assert "mask AUC" in report.table
+    # a second report reads the runs and their diagnostics instead of making them
     monkeypatch.setattr("benchmark.runner.evaluate", lambda *a, **k: pytest.fail("a recorded run was redone"))
+    monkeypatch.setattr("benchmark.studies.field_gap.temporal_gap", lambda *a, **k: pytest.fail("diagnosed again"))
     again = status_gap.run_study(config, log=lambda m: None)
     assert again["levels"] == doc["levels"]
 

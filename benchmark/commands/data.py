@@ -84,8 +84,10 @@ def _presets(args: argparse.Namespace) -> int:
 
     for spec in PRESETS.values():
         ts = "time-sensitive" if spec.time_sensitive else "time-agnostic"
+        # how its states change and its captions' noise (levels: benchmark.synthetic.state_changes, caption_noise)
+        levels = f" [states: {spec.state_changes}, captions: {spec.caption_noise}]" if spec.state_changes else ""
         print(f"{spec.name:14s} {spec.default_layout:9s} {spec.default_frames:3d} frames  {ts:14s}  "
-              f"({spec.analogue}) {spec.description}")
+              f"({spec.analogue}) {spec.description}{levels}")
     return 0
 
 

