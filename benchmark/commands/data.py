@@ -110,8 +110,10 @@ def _presets(args: argparse.Namespace) -> int:
         ts = "time-sensitive" if spec.time_sensitive else "time-agnostic"
         width, height = default_frame_size(spec)
         analogue = spec.analogue.strip("()")  # "(tests)" is printed in one pair of brackets, like the others
+        # how its states change and its captions' noise (levels: benchmark.synthetic.state_changes, caption_noise)
+        levels = f" [states: {spec.state_changes}, captions: {spec.caption_noise}]" if spec.state_changes else ""
         print(f"{spec.name:14s} {spec.default_layout:9s} {spec.default_frames:3d} frames  {width:3d}x{height:<3d}  "
-              f"{ts:14s}  ({analogue}) {spec.description}")
+              f"{ts:14s}  ({analogue}) {spec.description}{levels}")
     return 0
 
 

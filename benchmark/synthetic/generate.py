@@ -23,6 +23,7 @@ from typing import Any, Optional
 import numpy as np
 
 from ..core import openblas
+from benchmark.core.caption_noise import DEFAULT_CAPTION_NOISE
 from benchmark.core.errors import InputError
 from benchmark.core.memory import available_memory_gb
 from . import layouts
@@ -169,6 +170,10 @@ def generate(preset: str, out_dir: str | Path, *, size: Optional[int] = None, fr
         near_far = {cam: (lo * NEAR_FAR_MARGIN[0], hi * NEAR_FAR_MARGIN[1]) for cam, (lo, hi) in depth_range.items()}
         info = {"generator": GENERATOR, "generator_version": GENERATOR_VERSION, "preset": preset, "seed": int(seed),
                 "size": size, "num_views": views, "time_sensitive": spec.time_sensitive}
+        if spec.state_changes is not None:  # in the truth too: how its states change, and its captions' noise
+            info["state_changes"] = spec.state_changes
+        if spec.caption_noise != DEFAULT_CAPTION_NOISE:
+            info["caption_noise"] = spec.caption_noise
         if height is not None:
             info["height"] = height  # in the truth too: the digest names it (absent: the layout's aspect)
         if perturbation is not None and not perturbation.is_clean:

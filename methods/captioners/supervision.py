@@ -64,7 +64,7 @@ def build_captions(scene: Scene, track: str, captions, *, supervision=None, cach
     captioner_name, tracks_kind = resolve_captioning(captions, track, bool(getattr(supervision, "states", None)))
     tracks = object_tracks(scene, tracks_kind, captions, supervision)
     if captioner_name == "template":
-        captioner = get_captioner("template", scene, seed=captions.seed)
+        captioner = get_captioner("template", scene, seed=captions.seed, noise=captions.noise)
     elif captioner_name == "states":
         captioner = get_captioner("states", scene, states=getattr(supervision, "states", None) or {},
                                   object_name=supervised_object_name(supervision))
