@@ -48,6 +48,7 @@ def test_tiny_study_runs_both_methods_under_the_paper_s_components_and_resumes(t
     doc = json.loads((tmp_path / "out" / "status-gap.json").read_text())
     assert [p.name for p in report.paths] == ["status-gap.json", "status-gap.md"]
     assert doc["paper_options"] == PAPER_OPTIONS and doc["seeds"] == [0, 1] and len(doc["runs"]) == 2
+    assert doc["command"].startswith("bench4d ablate status-gap --presets smoke --seeds 0 1 --size 32")
     # every run was made with the paper's components, on one scene
     for path in sorted((config.runs_dir / "captions-scene").rglob("seed*.json")):
         recorded = json.loads(path.read_text())["method_config"]["extensions"]

@@ -132,6 +132,13 @@ class StatusGapConfig:
                 raise InputError(None, "captions", f"unknown caption noise level {level!r} "
                                  f"(valid: scene, {', '.join(CAPTION_NOISE)})")
 
+    def command(self) -> str:
+        """The ``bench4d`` command line that makes this study (cache and output folders aside)."""
+        parts = ["bench4d ablate status-gap", "--presets", *self.presets, "--seeds", *map(str, self.seeds),
+                 "--size", str(self.size), "--schedule", self.schedule, "--captions", *self.captions]
+        parts += [f"--set {k}={v}" for k, v in self.overrides.items()]
+        return " ".join(parts)
+
     @property
     def runs_dir(self) -> Path:
         return Path(self.results_dir) if self.results_dir is not None else (
@@ -329,7 +336,8 @@ def summarise(config: StatusGapConfig, runs: list[dict]) -> dict:
                 entry[method] = {"frames": len(hits), "accuracy": 100.0 * float(np.mean(hits)) if hits else None}
             bins.append(entry)
         levels.append({"captions": captions, "presets": per_preset, "overall": overall, "by_distance": bins})
-    return {"ablation": "status-gap", "methods": [STATUS_METHOD, DIRECT_METHOD], "presets": list(config.presets),
+    return {"ablation": "status-gap", "command": config.command(), "methods": [STATUS_METHOD, DIRECT_METHOD],
+            "presets": list(config.presets),
             "seeds": list(config.seeds), "size": config.size, "schedule": config.schedule,
             "schedule_options": SCHEDULES[config.schedule], "paper_options": PAPER_OPTIONS,
             "overrides": dict(config.overrides), "text_encoder": config.text_encoder,
@@ -358,7 +366,8 @@ def markdown(doc: dict) -> str:
              + ", ".join(f"`{k}={v}`" for k, v in doc["paper_options"].items())
              + (", and " + ", ".join(f"`{k}={v}`" for k, v in doc["overrides"].items()) if doc["overrides"] else "")
              + ". Differences are status minus non-status, in points: mean ± sample sd over seeds [smallest, largest]. "
-             "Both answer with one shared time-agnostic field, so vIoU differs only through the decisions.", ""]
+             "Both answer with one shared time-agnostic field, so vIoU differs only through the decisions.", "",
+             f"Made by `{doc['command']}`.", ""]
     for level in doc["levels"]:
         lines += [f"## Captions: `{level['captions']}`", ""]
         rows = []
