@@ -59,13 +59,15 @@ def fitted(smoke):
 
 def _agreement_with_truth(model, smoke) -> tuple[float, float]:
     """(mean IoU of the answered masks, mean ROC AUC of the relevance maps) against the ground-truth masks
-    of every time-agnostic query on its annotated test frames (frames where the query is absent skipped)."""
+    of every time-agnostic query on its annotated test frames of the paper split (frames where the query is
+    absent skipped)."""
     from annotations.format import load_annotations
 
     aset = load_annotations(smoke["scene_dir"] / "annotations.json")
+    paper = set(aset.info["splits"]["paper"])
     ious, aucs = [], []
     for query in aset.agnostic_queries:
-        annotated = aset.annotated_frames(query.id)
+        annotated = [f for f in aset.annotated_frames(query.id) if f.name in paper]
         frames = [smoke["scene"].frame(f.name) for f in annotated]
         for ann, answer in zip(annotated, model.query_agnostic(query.text, frames)):
             truth = aset.get_mask(query.id, ann.id)

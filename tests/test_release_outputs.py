@@ -37,12 +37,18 @@ def release_run_folder(aset, folder, *, flip_time=False):
 
 @pytest.fixture(scope="module")
 def release_scene(tmp_path_factory):
-    from annotations.format import load_annotations
+    from annotations.format import load_annotations, save_annotations
     from annotations.release import export_release
     from benchmark.synthetic.generate import generate
 
     folder = generate("smoke", tmp_path_factory.mktemp("release") / "smoke", size=48)
     aset = load_annotations(folder / "annotations.json")
+    # the release annotates one camera: the video's (the paper split), not the generated novel-view path
+    kept = {f.id for f in aset.frames if f.name in set(aset.info["splits"]["paper"])}
+    aset.frames = [f for f in aset.frames if f.id in kept]
+    aset.masks = {key: rle for key, rle in aset.masks.items() if key[1] in kept}
+    aset.made_by = {key: how for key, how in aset.made_by.items() if key[1] in kept}
+    save_annotations(aset, folder / "annotations.json", overwrite=True)
     export_release(aset, folder / "annotations", frame_base=1)
     return folder, aset
 
