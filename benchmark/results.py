@@ -857,6 +857,8 @@ def seed_summary(runs: pd.DataFrame) -> pd.DataFrame:
                + ["seeds", "partial_seeds", "scenes", "peak_measured"])
     if not len(runs):
         return pd.DataFrame(columns=columns)
+    if "split" not in runs or runs["split"].isna().any():  # a table made by hand: runs that record no split
+        runs = runs.assign(split=runs["split"].fillna(LEGACY_EVAL_SPLIT) if "split" in runs else LEGACY_EVAL_SPLIT)
     group_keys = ["dataset", "track", "protocol", "split", "method"]
     scene_sets = runs.groupby(group_keys)["scene"].agg(lambda s: frozenset(s))
     seed_sets = runs.groupby(group_keys + ["seed"])["scene"].agg(lambda s: frozenset(s)).reset_index()

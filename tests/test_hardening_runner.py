@@ -342,8 +342,8 @@ def test_eval_and_score_of_its_folder_agree_when_queries_are_unanswered(env, tmp
     outcome = evaluate(_options(env))
     doc = outcome.results
     assert sorted(doc["unanswered_queries"]) == ["broken bar", "closed box", "intact bar", "open box"]
-    # asked and unanswered: 0 in the full mean, no answered-only mean
-    assert doc["metrics"]["Acc"] == 0.0 and doc["metrics"]["Acc_answered"] is None
+    # a kind declined as a whole: no full mean (no row in that table), no answered-only mean
+    assert doc["metrics"]["Acc"] is None and doc["metrics"]["Acc_answered"] is None
     assert (doc["metrics"]["sensitive_queries"], doc["metrics"]["asked_sensitive_queries"]) == (0, 4)
     pred_dir = outcome.path.with_suffix(".predictions")
     assert read_predictions(pred_dir).info["unanswered_queries"] == doc["unanswered_queries"]
@@ -391,7 +391,7 @@ def test_declared_unanswered_queries_are_listed_not_scored_and_checked(tmp_path)
     declined.info["unanswered_queries"] = ["open cookie"]
     result = score_scene(aset, declined, ScoreConfig())
     assert result.unanswered == ["open cookie"] and [q.query for q in result.queries] == ["cookie"]
-    assert result.summary()["Acc"] == 0.0 and np.isnan(result.summary()["Acc_answered"])
+    assert np.isnan(result.summary()["Acc"]) and np.isnan(result.summary()["Acc_answered"])  # kind declined whole
     assert result.summary()["mIoU"] == 100.0
     for listed, match in ((["cookie"], "which the predictions answer"), (["nope"], "not a query"),
                           ("open cookie", "list of query texts")):

@@ -118,7 +118,7 @@ def test_protocols_get_their_own_tables_floors_are_not_ranked_and_means_show_the
     rows = _rows(table)
     assert rows["alpha"][share].startswith("**70.00 [")  # (56 + 42) / 2 = 49 of 70, its interval beside it
     assert rows["gamma"][share].startswith("35.00 [")
-    floor = rows["_nearest-frame (floor, not ranked)_"]
+    floor = rows["_nearest-frame (floor, not ranked; answers by relevance)_"]
     assert floor[share].startswith("141.43") and "**" not in "|".join(floor)  # above the ceiling, never ranked
     assert list(rows)[-1].startswith("_nearest-frame")  # below the methods it is a floor for
     paper_table = _section(text[paper:], "#### Time-agnostic queries")

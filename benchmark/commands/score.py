@@ -68,6 +68,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="missing neighbours in temporal smoothing (default: the protocol's; release: keep)")
     parser.add_argument("--smoothing-weights", default=None, metavar="W,W,W",
                         help="temporal smoothing kernel (default 0.1,0.8,0.1; '1' disables)")
+    from .eval import add_split_argument
+
+    add_split_argument(parser)
     parser.add_argument("--eval-frames", default="all", metavar="all|NAME,NAME|@FILE",
                         help="frames to score: all annotated frames (default), a comma list, or @file (one name a line)")
     parser.add_argument("--allow-extra", action="store_true", help="ignore predicted queries unknown to the GT")
@@ -300,6 +303,7 @@ def report_text(dataset, quiet: bool = False) -> str:
 def run(args: argparse.Namespace) -> int:
     from .. import __version__
     from ..metrics import ScoreConfig, aggregate_scenes, score_scene
+    from ..core.scene import split_frame_names
     from ..predictions import read_predictions
 
     protocol = _protocol(args)
@@ -322,7 +326,10 @@ def run(args: argparse.Namespace) -> int:
     scenes = []
     from_results = []
     for aset, folder in pairs:
-        frames = None if wanted is None else tuple(sorted(wanted & {f.name for f in aset.frames}))
+        # the split's frames (all of a file that records no splits), narrowed by --eval-frames
+        names = split_frame_names(args.split, [f.name for f in aset.frames], aset.info.get("splits"),
+                                  source=f"ground truth of {aset.scene}")
+        frames = tuple(sorted(set(names) if wanted is None else wanted & set(names)))
         config = ScoreConfig.from_protocol(protocol, eval_frames=frames, allow_extra=args.allow_extra)
         predictions = read_predictions(folder)
         if _unanswered_from_results(predictions, folder):
