@@ -119,7 +119,7 @@ def test_a_fit_that_diverged_to_nan_is_never_cached(env, capsys, monkeypatch):
 
     def diverged(cls, *args, **kwargs):
         model = real(cls, *args, **kwargs)
-        model.centers = np.full_like(model.centers, np.nan)
+        model.features[0] = tuple(np.full_like(f, np.nan) for f in model.features[0])  # the first view's
         return model
 
     monkeypatch.setattr(NearestFrame, "fit", classmethod(diverged))
