@@ -76,9 +76,9 @@ def test_specs_list_without_torch_and_declare_what_the_classes_support():
 def test_methods_share_one_4dgs_fit_answer_every_query_and_reload(smoke):
     first = _eval(smoke, "deformable-clip")
     doc = first.results
-    # 7 of the 8: "lid knob" is absent on both held-out frames, not scored under the release's rule
-    assert doc["metrics"]["agnostic_queries"] == 7 and doc["metrics"]["sensitive_queries"] == 4
-    assert doc["metrics"]["absent_frames"] == 2 and doc["metrics"]["absentFP"] is not None
+    # each of the 8 has a scored frame where its object is present; 4 absent (query, frame) pairs
+    assert doc["metrics"]["agnostic_queries"] == 8 and doc["metrics"]["sensitive_queries"] == 4
+    assert doc["metrics"]["absent_frames"] == 4 and doc["metrics"]["absentFP"] is not None
     assert all(0.0 <= doc["metrics"][k] <= 100.0 for k in ("mIoU", "mAcc", "Acc", "vIoU"))
     assert doc["timing"]["query_agnostic"]["fps"] > 0
 
@@ -200,7 +200,8 @@ def test_unmasked_pixels_become_one_background_mask_per_level(smoke):
     assert with_unmasked_as(sup, None) is sup
     f0, _ = distinct_features(sup)
     f1, _ = distinct_features(filled)
-    assert f1.shape[0] == f0.shape[0] + 1
+    known = bool(np.isclose(f0 @ bg, 1.0, atol=1e-5).any())  # the covered surroundings are named "background"
+    assert f1.shape[0] == f0.shape[0] + (0 if known else 1) and np.isclose(f1 @ bg, 1.0, atol=1e-5).any()
 
 
 def test_autoencoder_sample_weights_count_pixels_masks_or_nothing(smoke):

@@ -135,12 +135,15 @@ def test_every_demo_schedule_is_an_option_of_the_demo_method():
 def _table_rows(out: str) -> dict[str, list[str]]:
     """The demo table's rows (first cell -> the other cells), read from the command's output."""
     lines = out.splitlines()
-    start = next(i for i, line in enumerate(lines) if line.startswith("method ") and "% of ceiling" in line)
+    start = next(i for i, line in enumerate(lines) if line.startswith(("method ", "split ")) and "% of ceiling" in line)
+    by_split = lines[start].startswith("split ")
     rows = {}
     for line in lines[start + 1:]:
         if not line.strip():
             break
         cells = re.split(r"\s{2,}", line.strip())
+        if by_split and not cells[0].startswith("perfect features"):  # "<split>/<method>" -> the other cells
+            cells = [f"{cells[0]}/{cells[1]}"] + cells[2:]
         rows[cells[0]] = cells[1:]
     return rows
 
@@ -152,9 +155,11 @@ def test_demo_fits_the_4d_method_and_the_floor_and_shows_their_share_of_the_ceil
     assert main(["demo", "--scene", "smoke", "--size", "32", "--cache-dir", str(cache), "--quiet", *TINY_DEMO]) == 0
     out = capsys.readouterr().out
     rows = _table_rows(out)
-    assert set(rows) == {"4d-langsplat", "nearest-frame (2D floor)", "nearest-frame-masks (2D floor)",
-                         "perfect features (ceiling)"}, rows
-    for method in ("4d-langsplat", "nearest-frame (2D floor)", "nearest-frame-masks (2D floor)"):
+    shown = ("4d-langsplat", "nearest-frame (2D floor)", "nearest-frame-masks (2D floor)")
+    # both splits, each answered by the one fit of each method: the paper's and the novel views
+    keys = [f"{split}/{m}" for split in ("paper", "novel-view") for m in shown]
+    assert set(rows) == {*keys, "perfect features (ceiling)"}, rows
+    for method in keys:
         mIoU, acc, viou, share = rows[method][:4]
         assert re.fullmatch(r"\d+ / \d+", share), share  # share of the ceiling's mIoU / vIoU, in percent
         ceiling = float(rows["perfect features (ceiling)"][0])
@@ -173,7 +178,9 @@ def test_demo_fits_the_4d_method_and_the_floor_and_shows_their_share_of_the_ceil
 
     assert main(["demo", "--scene", "smoke", "--size", "32", "--cache-dir", str(cache), "--quiet",
                  "--method", "nearest-frame"]) == 0
-    assert set(_table_rows(capsys.readouterr().out)) == {"nearest-frame (2D floor)", "perfect features (ceiling)"}
+    assert set(_table_rows(capsys.readouterr().out)) == {"paper/nearest-frame (2D floor)",
+                                                         "novel-view/nearest-frame (2D floor)",
+                                                         "perfect features (ceiling)"}
     assert main(["demo", "--scene", "smoke", "--size", "32", "--cache-dir", str(cache), "--quiet",
                  "--set", "no_such_option=1"]) == 2
     assert "no_such_option" in capsys.readouterr().err
