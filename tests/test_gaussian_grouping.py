@@ -339,7 +339,7 @@ def test_runs_through_the_evaluation_runner_on_the_shared_geometry(smoke, fitted
     assert info["cached"] == {"geometry": True, "identities": False}
     assert info["geometry"]["key"] == fitted.fit_info["geometry"]["key"] == geometry_key(
         smoke["scene"], "4dgs", clip_config, 0, "cpu")
-    assert info["identities"]["count"] == 3 and info["field"]["iterations"] == 40  # paper config: no unmasked one
+    assert info["identities"]["count"] == 4 and info["field"]["iterations"] == 40  # the 3 objects and the surroundings (segmented, as SAM does)
     folder = smoke["cache"] / "language" / f"{smoke['scene'].dataset}-smoke"
     assert len(list(folder.glob("geometry-4dgs-*.pt"))) == 1
     # a rerun answers from the runner's fit cache

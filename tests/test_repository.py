@@ -174,7 +174,7 @@ def test_demo_fits_the_4d_method_and_the_floor_and_shows_their_share_of_the_ceil
     gt, pred = readme_score_example()
     assert main(["score", "--gt", str(demo_path(gt, cache, "smoke", 32)),
                  "--pred", str(demo_path(pred, cache, "smoke", 32))]) == 0
-    assert "mean over scenes" in capsys.readouterr().out
+    assert "mean over 1 scene(s)" in capsys.readouterr().out
 
     assert main(["demo", "--scene", "smoke", "--size", "32", "--cache-dir", str(cache), "--quiet",
                  "--method", "nearest-frame"]) == 0
