@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Optional, Sequence
 import numpy as np
 
 from benchmark.core.errors import InputError
-from .results import ACCURACY_METRICS, MEAN_SCENE, comparable_runs, find_results, load_results, results_path, runs_table, seed_summary
+from .results import ACCURACY_METRICS, MEAN_SCENE, comparable_runs, find_results, load_results, results_path, seed_summary
 
 if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd
@@ -497,10 +497,11 @@ def pareto(results_dir: str | Path = "results", reports_dir: str | Path = "repor
     """Write ``reports/pareto_<dataset>_<track>_<protocol>[_<machine>].{png,pdf}`` (:func:`pareto_charts`);
     returns the files written. ``ceiling``: the protocol ceiling's JSON (default:
     ``<reports_dir>/ablations/protocol-ceiling.json``; no line where it is missing)."""
-    from .leaderboard import CEILING_FILE, load_ceilings
+    from .leaderboard import CEILING_FILE, load_ceilings, load_runs
 
     plt = _pyplot()
-    runs = comparable_runs(runs_table(find_results(results_dir), relative_to=Path(results_dir)))[0]
+    # as the leaderboard reads them: each run under the name its recorded config stands for today
+    runs = comparable_runs(load_runs(results_dir)[0])[0]
     if not len(runs):
         raise InputError(results_dir, None, "no results files to plot (run bench4d run-all first)")
     ceilings = load_ceilings(Path(reports_dir) / CEILING_FILE if ceiling is None else ceiling)
