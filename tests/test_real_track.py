@@ -12,7 +12,7 @@ import shutil
 
 import numpy as np
 import pytest
-from conftest import tiny_clip_model, tiny_sam_model
+from conftest import tiny_clip_model, tiny_sam_model, keep_paper_split
 import torch
 
 from benchmark.core.annotation import decode_mask
@@ -46,11 +46,7 @@ def release_layout_scene(folder):
 
     generate("smoke", folder, size=48)
     aset = load_annotations(folder / "annotations.json")
-    # the release annotates one camera: the video's (the paper split), not the generated novel-view path
-    kept = {f.id for f in aset.frames if f.name in set(aset.info["splits"]["paper"])}
-    aset.frames = [f for f in aset.frames if f.id in kept]
-    aset.masks = {key: rle for key, rle in aset.masks.items() if key[1] in kept}
-    aset.made_by = {key: how for key, how in aset.made_by.items() if key[1] in kept}
+    keep_paper_split(aset)  # the release annotates one camera: the video's, not the novel-view path
     export_release(aset, folder / "annotations", frame_base=1)
     (folder / "annotations.json").unlink()
     shutil.rmtree(folder / "truth")

@@ -11,6 +11,7 @@ import pytest
 from benchmark.core.annotation import decode_mask
 from benchmark.core.errors import InputError
 from benchmark.core.imageio import write_image
+from conftest import keep_paper_split
 
 
 def release_run_folder(aset, folder, *, flip_time=False):
@@ -43,11 +44,7 @@ def release_scene(tmp_path_factory):
 
     folder = generate("smoke", tmp_path_factory.mktemp("release") / "smoke", size=48)
     aset = load_annotations(folder / "annotations.json")
-    # the release annotates one camera: the video's (the paper split), not the generated novel-view path
-    kept = {f.id for f in aset.frames if f.name in set(aset.info["splits"]["paper"])}
-    aset.frames = [f for f in aset.frames if f.id in kept]
-    aset.masks = {key: rle for key, rle in aset.masks.items() if key[1] in kept}
-    aset.made_by = {key: how for key, how in aset.made_by.items() if key[1] in kept}
+    keep_paper_split(aset)  # the release annotates one camera: the video's, not the novel-view path
     save_annotations(aset, folder / "annotations.json", overwrite=True)
     export_release(aset, folder / "annotations", frame_base=1)
     return folder, aset
