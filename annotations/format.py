@@ -90,6 +90,8 @@ from pycocotools import mask as mask_utils
 
 from benchmark.core.atomic import json_ready, read_json, write_text
 from benchmark.core.errors import InputError, short_repr
+from benchmark.core.strict import (MAX_COUNT, canonical_int_key, check_finite, check_int, check_keys, check_name,
+                                   check_text, text_key)
 
 from benchmark.core.annotation import (DRAFT, MADE_BY, MAX_MASK_PIXELS, AnnotatedFrame, AnnotationSet, Query,
                                        check_rle, rle_runs, runs_to_string)
@@ -152,6 +154,42 @@ MAX_TIME_INDEX = 2 ** 31 - 1
 """Largest ``time_index`` (and interval end) a file may give: time indices are stored in int32-safe
 columns when scored."""
 
+TOP_KEYS = ("format", "version", "scene", "num_time_steps", "info", "images", "categories", "annotations",
+            "time_segments")
+IMAGE_KEYS = ("id", "file_name", "width", "height", "time_index", "camera_id")
+CATEGORY_KEYS = ("id", "name", "kind", "level", "review", "base", "supercategory")
+ANNOTATION_KEYS = ("id", "image_id", "category_id", "segmentation", "area", "bbox", "iscrowd", "absent", "made_by")
+"""The keys of each object of the schema: a key that varies one of them (case, spaces, Unicode form) is
+refused (:func:`benchmark.core.strict.check_keys`); other keys are kept out of the way."""
+MAX_ID = MAX_COUNT
+"""Largest absolute image, category or annotation id."""
+
+
+def _check_info(info: dict, file) -> None:
+    """The provenance fields the annotation tool reads and extends, typed (the rest of ``info`` is free):
+    ``revision`` a count, ``annotator`` a text, ``annotators`` a list of texts, ``annotation_seconds``
+    ``{frame name: seconds}``, ``imported`` a list of objects. A field of another type would make every
+    later save fail."""
+    check_keys(info, ("revision", "annotator", "annotators", "annotation_seconds", "imported", "made_by", "tool",
+                      "saved", "segmenter", "method", "protocol"), file, "info")
+    if "revision" in info and info["revision"] is not None:
+        check_int(info["revision"], file, "info.revision")
+    if "annotator" in info and not isinstance(info["annotator"], str):
+        raise InputError(file, "info.annotator", f"expected a text, got {short_repr(info['annotator'])}")
+    annotators = info.get("annotators")
+    if "annotators" in info and not (isinstance(annotators, list) and all(isinstance(a, str) for a in annotators)):
+        raise InputError(file, "info.annotators", f"expected a list of texts, got {short_repr(annotators)}")
+    seconds = info.get("annotation_seconds")
+    if "annotation_seconds" in info:
+        if not isinstance(seconds, dict):
+            raise InputError(file, "info.annotation_seconds", f"expected {{frame name: seconds}}, got "
+                                                              f"{short_repr(seconds)}")
+        for name, value in seconds.items():
+            check_finite(value, file, f"info.annotation_seconds.{name}", 0.0, 1e12)
+    imported = info.get("imported")
+    if "imported" in info and not (isinstance(imported, list) and all(isinstance(x, dict) for x in imported)):
+        raise InputError(file, "info.imported", f"expected a list of objects, got {short_repr(imported)}")
+
 
 # ---------------------------------------------------------------------------------------------
 # AnnotationSet <-> dict
@@ -209,6 +247,7 @@ def annotation_set_from_dict(doc: Any, file: str | Path | None = None) -> Annota
     """Validate a parsed annotation JSON and build the :class:`AnnotationSet` (rules above)."""
     if not isinstance(doc, dict):
         raise InputError(file, None, f"expected a JSON object at the top level, got {type(doc).__name__}")
+    check_keys(doc, TOP_KEYS, file, None)
     for key in ("format", "version", "scene", "num_time_steps", "images", "categories", "annotations"):
         if key not in doc:
             raise InputError(file, key, "missing required key")
@@ -217,9 +256,7 @@ def annotation_set_from_dict(doc: Any, file: str | Path | None = None) -> Annota
     if not _is_int(doc["version"]) or doc["version"] != FORMAT_VERSION:
         raise InputError(file, "version",
                          f"unsupported version {short_repr(doc['version'])}; this bench4d reads version {FORMAT_VERSION}")
-    scene = doc["scene"]
-    if not isinstance(scene, str) or not scene:
-        raise InputError(file, "scene", "expected a non-empty string")
+    scene = check_name(doc["scene"], file, "scene")  # joined to folders (a predictions folder per scene)
     nts = doc["num_time_steps"]
     if nts is not None and not (_is_int(nts) and 0 < nts <= MAX_TIME_INDEX + 1):
         raise InputError(file, "num_time_steps",
@@ -227,6 +264,7 @@ def annotation_set_from_dict(doc: Any, file: str | Path | None = None) -> Annota
     info = doc.get("info", {})
     if not isinstance(info, dict):
         raise InputError(file, "info", f"expected an object, got {type(info).__name__}")
+    _check_info(info, file)
 
     frames = _parse_images(doc["images"], nts, file)
     queries = _parse_categories(doc["categories"], file)
@@ -272,7 +310,8 @@ def _parse_images(images: Any, nts: Optional[int], file) -> list[AnnotatedFrame]
     seen_names: dict[str, int] = {}
     for i, im in enumerate(_require_list(images, file, "images")):
         field = f"images[{i}]"
-        fid = _get(im, "id", file, field, types=(int,))
+        check_keys(im, IMAGE_KEYS, file, field)
+        fid = _get(im, "id", file, field, types=(int,), check=lambda v: abs(v) <= MAX_ID, expect=f"an integer id within +-{MAX_ID}")
         name = _get(im, "file_name", file, field, types=(str,), check=bool, expect="a non-empty frame name")
         width = _get(im, "width", file, field, types=(int,), check=lambda v: v > 0, expect="a positive int")
         height = _get(im, "height", file, field, types=(int,), check=lambda v: v > 0, expect="a positive int")
@@ -302,10 +341,9 @@ def _parse_categories(categories: Any, file) -> list[Query]:
     seen_names: dict[str, int] = {}
     for i, cat in enumerate(_require_list(categories, file, "categories")):
         field = f"categories[{i}]"
-        qid = _get(cat, "id", file, field, types=(int,))
-        name = _get(cat, "name", file, field, types=(str,))
-        if not name.strip():
-            raise InputError(file, f"{field}.name", "empty query text")
+        check_keys(cat, CATEGORY_KEYS, file, field)
+        qid = _get(cat, "id", file, field, types=(int,), check=lambda v: abs(v) <= MAX_ID, expect=f"an integer id within +-{MAX_ID}")
+        name = check_text(_get(cat, "name", file, field, types=(str,)), file, f"{field}.name")
         kind = _get(cat, "kind", file, field, types=(str,), default="agnostic",
                     check=lambda v: v in ("agnostic", "sensitive"), expect="'agnostic' or 'sensitive'")
         level = _get(cat, "level", file, field, types=(str, type(None)), default=None)
@@ -316,16 +354,17 @@ def _parse_categories(categories: Any, file) -> list[Query]:
             raise InputError(file, f"{field}.base", f"expected a category id, got {base!r}")
         if qid in seen_ids:
             raise InputError(file, f"{field}.id", f"duplicate category id {qid} (also categories[{seen_ids[qid]}])")
-        if name in seen_names:
-            raise InputError(file, f"{field}.name",
-                             f"duplicate query text {name!r} (also categories[{seen_names[name]}])")
+        if text_key(name) in seen_names:
+            raise InputError(file, f"{field}.name", f"duplicate query text {name!r} (also "
+                                                    f"categories[{seen_names[text_key(name)]}], up to case, spaces "
+                                                    "and Unicode form)")
         if kind == "agnostic" and base is not None:
             raise InputError(file, f"{field}.base", "only a time-sensitive category has a base")
         if kind == "sensitive" and base is None:
             raise InputError(file, f"{field}.base",
                              "a time-sensitive category needs 'base': the agnostic category whose masks it uses")
         seen_ids[qid] = i
-        seen_names[name] = i
+        seen_names[text_key(name)] = i
         queries.append(Query(id=int(qid), text=name, kind=kind, base=None if base is None else int(base),
                              level=level, review=review))
     by_id = {q.id: (i, q) for i, q in enumerate(queries)}
@@ -349,7 +388,8 @@ def _parse_annotations(annotations: Any, frame_by_id: dict[int, AnnotatedFrame],
     where: dict[tuple[int, int], int] = {}
     for i, ann in enumerate(_require_list(annotations, file, "annotations")):
         field = f"annotations[{i}]"
-        aid = _get(ann, "id", file, field, types=(int,))
+        check_keys(ann, ANNOTATION_KEYS, file, field)
+        aid = _get(ann, "id", file, field, types=(int,), check=lambda v: abs(v) <= MAX_ID, expect=f"an integer id within +-{MAX_ID}")
         fid = _get(ann, "image_id", file, field, types=(int,))
         qid = _get(ann, "category_id", file, field, types=(int,))
         absent = _get(ann, "absent", file, field, types=(bool,), default=None)
@@ -444,10 +484,7 @@ def _parse_time_segments(segments: Any, query_by_id: dict[int, Query], nts: Opti
                                                 f"got {type(segments).__name__}")
     for key, intervals in segments.items():
         field = f"time_segments.{key}"
-        try:
-            qid = int(key)
-        except ValueError:
-            raise InputError(file, field, f"key {short_repr(key)} is not a category id") from None
+        qid = canonical_int_key(key, file, field)  # not int(): it reads " 9 ", "+9", "0_9" and "٩" as 9
         if qid not in query_by_id:
             raise InputError(file, field, f"unknown category id {qid}")
         query = query_by_id[qid]

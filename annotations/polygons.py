@@ -21,19 +21,95 @@ every boundary pixel: lossy.
 The release's evaluation instead truncates vertices to int32 and calls ``cv2.fillPoly`` per polygon
 (pixel centres at integer coordinates, boundary pixels included: a slightly larger mask). It is
 available as ``rasterizer="release_cv2"`` for reproducing the release's numbers.
+
+Hostile polygons
+----------------
+Every polygon reaches a rasteriser through one checked path: :func:`check_polygon` (a flat list of
+finite numbers, every vertex within one image size of the image it was drawn on), the polygons of one
+mask within :func:`polygon_budget` (edge lengths in pixels, max(|dx|, |dy|), plus one per vertex; about
+0.2-3 x height x width for even noisy hand-drawn masks), then :func:`polygons_to_mask`, which checks again
+that the (scaled) vertices are finite and near the target image whoever calls it.
+pycocotools walks every edge point by point: a NaN vertex crashes it and a vertex at 4e8 makes it grow
+without bound, so nothing unchecked may reach it. :func:`checked_polygons_mask` is the whole path for a
+list of polygons from a file.
 """
 
 from __future__ import annotations
 
-from typing import Literal, Sequence
+import math
+from pathlib import Path
+from typing import Any, Literal, Sequence
 
 import cv2
 import numpy as np
 from pycocotools import mask as mask_utils
 
+from benchmark.core.annotation import MAX_MASK_PIXELS
+from benchmark.core.errors import InputError
+
 Rasterizer = Literal["coco", "release_cv2"]
 
-__all__ = ["Rasterizer", "mask_to_polygons", "polygons_to_mask"]
+__all__ = ["Rasterizer", "mask_to_polygons", "polygons_to_mask", "check_polygon", "checked_polygons_mask",
+           "polygon_budget", "polygon_cost"]
+
+MAX_COORDINATE = 1e9
+"""Largest absolute vertex coordinate a file may give (checked exactly before anything converts it)."""
+
+
+def polygon_budget(height: int, width: int) -> int:
+    """Largest :func:`polygon_cost` of the polygons of one mask of a (height x width) image:
+    ``2 * (height * width + height + width)``, twice the length of every pixel edge of the image."""
+    return 2 * (height * width + height + width)
+
+
+def polygon_cost(polygons: Sequence[Sequence[float]], scale: tuple[float, float] = (1.0, 1.0)) -> float:
+    """Boundary length of ``polygons`` in (scaled) pixels, each edge counted as max(|dx|, |dy|),
+    plus one per vertex: proportional to the points pycocotools walks and allocates to fill them."""
+    total = 0.0
+    for poly in polygons:
+        pts = np.asarray(poly, dtype=np.float64).reshape(-1, 2) * np.asarray(scale, dtype=np.float64)
+        if len(pts):
+            total += float(np.abs(pts - np.roll(pts, -1, axis=0)).max(axis=1).sum()) + len(pts)
+    return total
+
+
+def check_polygon(poly: Any, w_img: int, h_img: int, file: str | Path | None, field: str) -> list:
+    """``poly`` checked as a flat ``[x0, y0, ...]`` of finite numbers, every vertex within one image
+    size of the ``w_img`` x ``h_img`` image it was drawn on (:class:`InputError` naming ``field``)."""
+    if not isinstance(poly, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in poly):
+        raise InputError(file, field, "expected a flat list of numbers [x0, y0, x1, y1, ...]")
+    if len(poly) % 2:
+        raise InputError(file, field, f"odd number of coordinates ({len(poly)})")
+    if len(poly) > 2 * (polygon_budget(h_img, w_img) + 1):  # every vertex costs at least one
+        raise InputError(file, field, f"{len(poly) // 2} vertices; a {w_img}x{h_img} image never needs that many")
+    # ints are compared exactly first: float() of a huge int raises OverflowError
+    if not all(abs(v) <= MAX_COORDINATE if isinstance(v, int) else math.isfinite(v) for v in poly):
+        raise InputError(file, field, f"contains NaN, inf or a number beyond {MAX_COORDINATE:g}")
+    if poly:
+        pts = np.asarray(poly, dtype=np.float64).reshape(-1, 2)
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        # the rasteriser walks every edge point by point: a vertex far outside costs memory and time
+        if lo[0] < -w_img or lo[1] < -h_img or hi[0] > 2 * w_img or hi[1] > 2 * h_img:
+            raise InputError(file, field, f"vertices reach ({lo[0]:g}, {lo[1]:g})..({hi[0]:g}, {hi[1]:g}), more than "
+                                          f"one image size outside the {w_img}x{h_img} image")
+    return poly
+
+
+def checked_polygons_mask(polygons: Any, source_size: tuple[int, int], height: int, width: int, *,
+                          file: str | Path | None, field: str, rasterizer: "Rasterizer" = "coco") -> np.ndarray:
+    """The (height, width) bool mask of a file's list of polygons drawn on an image of ``source_size`` =
+    ``(width, height)``: each polygon through :func:`check_polygon`, their cost within the budget, then
+    rasterised (scaled to the target size). The one path from a file's polygons to a mask."""
+    w_img, h_img = int(source_size[0]), int(source_size[1])
+    if not isinstance(polygons, list):
+        raise InputError(file, field, f"expected a list of polygons, got {type(polygons).__name__}")
+    clean = [check_polygon(poly, w_img, h_img, file, f"{field}[{j}]") for j, poly in enumerate(polygons)]
+    scale = (width / w_img, height / h_img)
+    cost = polygon_cost(clean, scale)
+    if cost > polygon_budget(height, width):
+        raise InputError(file, field, f"the polygons are {cost:.0f} pixels long, more than "
+                                      f"{polygon_budget(height, width)} for a {width}x{height} image")
+    return polygons_to_mask(clean, height, width, scale=scale, rasterizer=rasterizer)
 
 
 def polygons_to_mask(polygons: Sequence[Sequence[float]], height: int, width: int, *,
@@ -45,13 +121,22 @@ def polygons_to_mask(polygons: Sequence[Sequence[float]], height: int, width: in
     mapped back by ``x * sx``, ``y * sy``; scaling about the top-left corner is exact in the corner
     convention). A polygon with fewer than 3 vertices encloses no area and adds nothing.
     """
-    mask = np.zeros((height, width), dtype=bool)
+    if not (0 < height and 0 < width and height * width <= MAX_MASK_PIXELS):
+        raise InputError(None, "polygon", f"a {width}x{height} mask is outside 1..{MAX_MASK_PIXELS} pixels")
     sx, sy = scale
+    scaled = []
     for poly in polygons:
-        pts = np.asarray(poly, dtype=np.float64).reshape(-1, 2)
+        pts = np.asarray(poly, dtype=np.float64).reshape(-1, 2) * np.array([sx, sy])
+        # the last line of defence before pycocotools: finite, near the image (module docstring)
+        if pts.size and (not np.isfinite(pts).all() or pts[:, 0].min() < -width or pts[:, 1].min() < -height
+                         or pts[:, 0].max() > 2 * width or pts[:, 1].max() > 2 * height):
+            raise InputError(None, "polygon", f"vertices outside the {width}x{height} image by more than its size, "
+                                              "or not finite")
+        scaled.append(pts)
+    mask = np.zeros((height, width), dtype=bool)
+    for pts in scaled:
         if pts.shape[0] < 3:
             continue
-        pts = pts * np.array([sx, sy])
         if rasterizer == "coco":
             rle = mask_utils.frPyObjects([pts.ravel().tolist()], height, width)
             mask |= mask_utils.decode(rle)[:, :, 0].astype(bool)

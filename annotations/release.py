@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Literal, Mapping, Optional, Sequence, Union
@@ -45,10 +44,12 @@ from pycocotools import mask as mask_utils
 
 from benchmark.core.atomic import read_json, write_json, write_text
 from benchmark.core.errors import InputError, short_repr
+from benchmark.core.strict import check_text, text_key
 
 from .format import MAX_TIME_INDEX, validate_against_scene
 from benchmark.core.annotation import MAX_MASK_PIXELS, AnnotatedFrame, AnnotationSet, Query, decode_mask, encode_mask
-from .polygons import Rasterizer, mask_to_polygons, polygons_to_mask
+from .polygons import (Rasterizer, check_polygon, mask_to_polygons, polygon_budget, polygon_cost,
+                       polygons_to_mask)
 
 COCO_RELATIVE_PATH = Path("train") / "_annotations.coco.json"
 """Where the COCO file lives inside a release ``annotations/`` folder."""
@@ -61,23 +62,6 @@ MissingMeans = Literal["not_annotated", "absent"]
 __all__ = ["COCO_RELATIVE_PATH", "VIDEO_RELATIVE_PATH", "ReleaseImportOptions", "import_release",
            "import_release_folder", "export_release", "frame_number_from_file_name", "check_polygon",
            "polygon_budget", "polygon_cost"]
-
-
-def polygon_budget(height: int, width: int) -> int:
-    """Largest :func:`polygon_cost` of the polygons of one label in one (height x width) image:
-    ``2 * (height * width + height + width)``, twice the length of every pixel edge of the image."""
-    return 2 * (height * width + height + width)
-
-
-def polygon_cost(polygons: Sequence[Sequence[float]], scale: tuple[float, float] = (1.0, 1.0)) -> float:
-    """Boundary length of ``polygons`` in (scaled) pixels, each edge counted as max(|dx|, |dy|),
-    plus one per vertex: proportional to the points pycocotools walks and allocates to fill them."""
-    total = 0.0
-    for poly in polygons:
-        pts = np.asarray(poly, dtype=np.float64).reshape(-1, 2) * np.asarray(scale, dtype=np.float64)
-        if len(pts):
-            total += float(np.abs(pts - np.roll(pts, -1, axis=0)).max(axis=1).sum()) + len(pts)
-    return total
 
 
 @dataclass
@@ -225,17 +209,17 @@ def _read_categories(coco: dict, file: Path, opts: ReleaseImportOptions) -> tupl
         cid, name = cat["id"], cat["name"]
         if not isinstance(cid, int) or isinstance(cid, bool):
             raise InputError(file, f"{field}.id", f"expected an integer, got {short_repr(cid)}")
-        if not isinstance(name, str) or not name.strip():
-            raise InputError(file, f"{field}.name", f"expected a non-empty query text, got {short_repr(name)}")
+        check_text(name, file, f"{field}.name")
         is_root = (name == opts.root_category if opts.root_category is not None
                    else cid not in owners and name in supers and cat.get("supercategory") != name)
         if is_root:
             continue
         if cid in ids:
             raise InputError(file, f"{field}.id", f"duplicate category id {cid}")
-        if name in seen:
-            raise InputError(file, f"{field}.name", f"duplicate query text {name!r} (also categories[{seen[name]}])")
-        seen[name] = i
+        if text_key(name) in seen:
+            raise InputError(file, f"{field}.name", f"query text {name!r} repeats categories[{seen[text_key(name)]}] "
+                                                    "(up to case, spaces and Unicode form)")
+        seen[text_key(name)] = i
         ids[cid] = cid
         level = cat.get("level") if isinstance(cat.get("level"), str) else None
         queries.append(Query(id=cid, text=name, kind="agnostic", level=level))
@@ -388,26 +372,6 @@ def _read_masks(coco: dict, file: Path, frames: dict[int, AnnotatedFrame], image
     return masks
 
 
-def check_polygon(poly: Any, w_img: int, h_img: int, file: Path, field: str) -> list:
-    """``poly`` checked as a flat ``[x0, y0, ...]`` of finite numbers, every vertex within one image
-    size of the ``w_img`` x ``h_img`` image it was drawn on (:class:`InputError` naming ``field``)."""
-    if not isinstance(poly, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in poly):
-        raise InputError(file, field, "expected a flat list of numbers [x0, y0, x1, y1, ...]")
-    if len(poly) % 2:
-        raise InputError(file, field, f"odd number of coordinates ({len(poly)})")
-    # ints are compared exactly first: float() of a huge int raises OverflowError
-    if not all(abs(v) <= 1e9 if isinstance(v, int) else math.isfinite(v) for v in poly):
-        raise InputError(file, field, "contains NaN, inf or a number beyond 1e9")
-    if poly:
-        pts = np.asarray(poly, dtype=np.float64).reshape(-1, 2)
-        lo, hi = pts.min(axis=0), pts.max(axis=0)
-        # the rasteriser walks every edge point by point: a vertex far outside costs memory and time
-        if lo[0] < -w_img or lo[1] < -h_img or hi[0] > 2 * w_img or hi[1] > 2 * h_img:
-            raise InputError(file, field, f"vertices reach ({lo[0]:g}, {lo[1]:g})..({hi[0]:g}, {hi[1]:g}), more than "
-                                          f"one image size outside the {w_img}x{h_img} image")
-    return poly
-
-
 def _resample_nearest(mask: np.ndarray, height: int, width: int) -> np.ndarray:
     """(h, w) bool -> (height, width) bool, sampling the source at each target pixel centre."""
     h, w = mask.shape
@@ -421,6 +385,7 @@ def _read_video(path: Path, aset: AnnotationSet, opts: ReleaseImportOptions) -> 
     if not isinstance(doc, dict):
         raise InputError(path, None, "expected {base_label: {time_query: [[l, r], ...]}}")
     by_text = {q.text: q for q in aset.queries}
+    forms = {text_key(q.text) for q in aset.queries}
     next_id = max((q.id for q in aset.queries), default=0) + 1
     for base_text, queries in doc.items():
         if base_text not in by_text:
@@ -433,10 +398,11 @@ def _read_video(path: Path, aset: AnnotationSet, opts: ReleaseImportOptions) -> 
             raise InputError(path, base_text, "expected {time_query: [[l, r], ...]}")
         for text, intervals in queries.items():
             field = f"{base_text}.{text}"
-            if not text.strip():
-                raise InputError(path, field, "empty query text")
-            if text in by_text:
-                raise InputError(path, field, f"time query {text!r} repeats an existing query text")
+            check_text(text, path, field)
+            if text_key(text) in forms:
+                raise InputError(path, field, f"time query {text!r} repeats an existing query text (up to case, "
+                                              "spaces and Unicode form)")
+            forms.add(text_key(text))
             if not isinstance(intervals, list):
                 raise InputError(path, field, "expected a list of [l, r] frame intervals")
             parsed = []

@@ -12,6 +12,7 @@ import importlib
 import sys
 
 from benchmark.core.errors import InputError
+from benchmark.core.strict import terminal_text
 
 # command name -> (module under benchmark.commands, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -38,6 +39,13 @@ COMMANDS: dict[str, tuple[str, str]] = {
 
 RECORDING_COMMANDS = frozenset({"eval", "run-all", "recon", "ablate", "demo", "stress"})
 """Commands whose outputs record the git state of the code that produced them."""
+
+
+def os_error_line(err: OSError) -> str:
+    """An ``OSError`` as one line: the file(s) it names, then what went wrong."""
+    what = err.strerror or " ".join(str(err).split()) or type(err).__name__
+    names = [str(n) for n in (err.filename, err.filename2) if n is not None]
+    return f"{' -> '.join(names)}: {what}" if names else what
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -72,7 +80,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args._run(args) or 0)
     except InputError as err:
-        print(f"bench4d {args.command}: error: {err}", file=sys.stderr)
+        print(f"bench4d {args.command}: error: {terminal_text(err)}", file=sys.stderr)
+        return 2
+    except OSError as err:  # a full disk, a read-only folder, a vanished file: one line, never a traceback
+        print(f"bench4d {args.command}: error: {terminal_text(os_error_line(err))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

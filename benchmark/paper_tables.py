@@ -4,9 +4,14 @@ Every table of 4D LangSplat (CVPR 2025) -- time-agnostic per dataset, time-sensi
 visual- and text-prompt Delta-sim, the number of states, query speed -- with the published numbers
 (:mod:`methods.specs.paper_numbers`) beside our runs on the analogous scenes: the synthetic presets
 named after the HyperNeRF scenes, and ``cook-spinach`` for Neu3D's ``cook_spinach``. Ours are the
-results files' means over seeds under one protocol (default: ``release``) and one track (default:
-oracle). For each table with a method ordering: Kendall's tau between the paper's ordering and ours
-over the methods both have, and whether the paper's best method is also best here.
+results files' means over seeds under one protocol (default: ``release``), one track (default: oracle)
+and one split (default: the paper's where results have it), counted as the leaderboard counts them
+(:func:`benchmark.leaderboard.ranked_values`: every query, unanswered ones at 0, drafts left out), each
+dataset mean with its 95 % interval (:mod:`benchmark.stats`). Only paper-config runs are read: a run whose
+recorded config is not its method's default (the paper's components) is left out, and so is every
+registered variant. For each table with a method ordering: Kendall's tau between the paper's ordering and
+ours over the methods both have, with its exact permutation p-value, and whether the paper's best method
+is also best here (tied where the 95 % intervals overlap).
 """
 
 from __future__ import annotations
@@ -20,7 +25,10 @@ import pandas as pd
 from benchmark.core.atomic import read_json
 from benchmark.core.errors import InputError
 from benchmark.core.protocol import DEFAULT_PROTOCOL, RELEASE_DEFECTS_NOT_COPIED, SCORED_FRAMES_NOTE
-from .results import MEAN_SCENE, comparable_runs, find_results, load_results, protocol_of, runs_table, seed_summary
+from . import stats
+from .leaderboard import (LEGACY_SPLIT, SPLIT_TITLE, _Cells, _machine_spread, check_provenance, load_runs, md,
+                          ranked_values, split_order, with_defaults)
+from .results import ACCURACY_METRICS, MEAN_SCENE, comparable_runs, load_results, protocol_of, seed_summary
 
 SYNTHETIC_ANALOGUE = {("hypernerf", s): s for s in
                       ("americano", "chickchicken", "split-cookie", "espresso", "keyboard", "torchocolate")}
@@ -33,16 +41,15 @@ SENSITIVE_METHODS = ("langsplat", "deformable-clip", "non-status-field", "4d-lan
 """The paper's time-sensitive comparison (Table 1), in its order."""
 
 
-def kendall_tau(paper: dict[str, float], ours: dict[str, float]) -> tuple[float, int]:
-    """(Kendall's tau-b between the two scorings over the methods both give a finite value, that count);
-    NaN below two methods. Our tied means (:func:`_comparable`) are one value."""
-    from scipy.stats import kendalltau
-
+def kendall_tau(paper: dict[str, float], ours: dict[str, float]) -> tuple[float, int, float]:
+    """(Kendall's tau-b between the two scorings over the methods both give a finite value, that count, the
+    two-sided p-value of an exact permutation test: :func:`benchmark.stats.kendall_tau_test`); NaN below two
+    methods. Our tied means (:func:`_comparable`) are one value."""
     merged = _comparable(paper, ours)
     if len(merged) < 2:
-        return math.nan, len(merged)
-    tau = kendalltau([paper[m] for m in merged], list(merged.values())).statistic
-    return float(tau), len(merged)
+        return math.nan, len(merged), math.nan
+    tau, p = stats.kendall_tau_test([paper[m] for m in merged], list(merged.values()))
+    return tau, len(merged), p
 
 
 def _comparable(paper: dict[str, float], ours: dict[str, float]) -> dict[str, float]:
@@ -78,34 +85,125 @@ TIE_TOLERANCE = 1e-6
 another order differ in the last bits."""
 
 
-def _agreement(paper: dict[str, float], ours: dict[str, float], display: dict[str, str]) -> str:
-    tau, n = kendall_tau(paper, ours)
+def _agreement(paper: dict[str, float], ours: dict[str, float], display: dict[str, str],
+               intervals: Optional[dict[str, tuple[float, float]]] = None) -> str:
+    """One line: Kendall's tau of the two orderings with its p-value, and whether the paper's best is best here:
+    our best are tie group 1 (:func:`benchmark.stats.tie_groups`) by ``intervals`` (our 95 % intervals), or,
+    without them, the means equal to the top one."""
+    tau, n, p = kendall_tau(paper, ours)
     if n < 2:
         return f"_Rank agreement: not measurable ({n} method(s) with both numbers)._"
     merged = _comparable(paper, ours)
     paper_best = max(merged, key=lambda m: paper[m])
-    top = max(merged.values())
-    best_here = [m for m in merged if merged[m] == top]  # tied means count as a shared best
+    if intervals:
+        groups = stats.tie_groups(merged, {m: intervals.get(m, (math.nan, math.nan)) for m in merged})
+        best_here = [m for m in merged if groups.get(m) == 1]
+    else:
+        top = max(merged.values())
+        best_here = [m for m in merged if merged[m] == top]  # tied means count as a shared best
+    tie = "within 95 % intervals" if intervals else "equal means"
     if paper_best in best_here:
         others = [display.get(m, m) for m in best_here if m != paper_best]
-        wins = "yes" + (f" (tied with {', '.join(others)})" if others else "")
+        wins = "yes" if not others else f"tied ({tie}) with {', '.join(others)}"
     else:
         wins = f"no (best here: {', '.join(display.get(m, m) for m in best_here)})"
-    return (f"_Rank agreement over {n} methods: Kendall's tau = {tau:+.2f}; the paper's best "
+    p_text = f"p = {p:.3f}" if math.isfinite(p) else "p not defined"
+    return (f"_Rank agreement over {n} methods: Kendall's tau = {tau:+.2f} ({p_text}, exact permutation test; "
+            f"with {n} methods the smallest possible p is {2 / math.factorial(n):.3f}); the paper's best "
             f"({display.get(paper_best, paper_best)}) is best here: {wins}._")
 
 
-class OurNumbers:
-    """Mean over seeds per (method, preset, metric) of one protocol and track's comparable runs."""
+def _paper_config(doc: dict) -> Optional[bool]:
+    """Whether a run ran its method's default config (the paper's components) and is no registered variant;
+    None for a method the registry does not know."""
+    from methods import registry
 
-    def __init__(self, results_dir: str | Path, *, protocol: str, track: str) -> None:
-        runs = runs_table(find_results(results_dir), relative_to=Path(results_dir)) if Path(results_dir).is_dir() \
-            else pd.DataFrame()
+    try:
+        spec = registry.get(str(doc.get("method")))
+    except InputError:
+        return None
+    if getattr(spec, "variant_of", None):
+        return False
+    return bool(spec.recorded_as(doc.get("method_config")))
+
+
+class OurNumbers:
+    """Mean over seeds per (method, preset, metric) of one protocol, track and split's comparable paper-config
+    runs on the official synthetic presets, with 95 % intervals of dataset means."""
+
+    def __init__(self, results_dir: str | Path, *, protocol: str, track: str, split: Optional[str] = None,
+                 allow_dirty: bool = False) -> None:
+        runs, queries = load_runs(results_dir, extra=lambda doc: {"paper_config": _paper_config(doc)})
+        self.not_paper_config = 0
+        self.splits: list[str] = []
+        self.dirty = 0
         if len(runs):
-            runs = comparable_runs(runs)[0]
-            runs = runs[(runs["protocol"] == protocol) & (runs["track"] == track) & (runs["dataset"] == "synthetic")]
+            runs = comparable_runs(with_defaults(runs))[0]
+            runs = runs[(runs["protocol"] == protocol) & (runs["track"] == track) & (runs["dataset"] == "synthetic")
+                        & runs["official"].astype(bool)]
+            self.splits = sorted(set(runs["split"]), key=split_order)
+        self.split = split or (self.splits[0] if self.splits else LEGACY_SPLIT)
+        if len(runs):
+            runs = runs[runs["split"] == self.split]
+            check_provenance(runs, allow_dirty, results_dir)
+            self.not_paper_config = int((runs["paper_config"] != True).sum())  # noqa: E712 (None counts as not)
+            runs = runs[runs["paper_config"] == True]  # noqa: E712
+            self.dirty = int(runs["dirty"].sum())
+            for kind in ACCURACY_METRICS:
+                adjusted = ranked_values(runs, queries, kind)
+                for metric in (*ACCURACY_METRICS[kind], *(("AUC",) if kind == "sensitive" else ())):
+                    runs[metric] = adjusted[metric].to_numpy()
+        self.runs = runs
+        self.queries = queries
         self.summary = seed_summary(runs) if len(runs) else pd.DataFrame()
         self.seeds = sorted(set(runs["seed"])) if len(runs) else []
+        self.machines = sorted(set(runs["machine_kind"])) if len(runs) else []
+        self._cells: dict[str, _Cells] = {}
+
+    def header_notes(self) -> str:
+        """The split, machine kinds and runs left out, for the page's header."""
+        text = f"split `{md(self.split)}` ({SPLIT_TITLE.get(self.split, 'a split of the scenes')})"
+        others = [s for s in self.splits if s != self.split]
+        if others:
+            text += f"; other splits with results: {', '.join(md(s) for s in others)} (`--split`)"
+        text += "; machine kinds: " + (", ".join(md(m) for m in self.machines) or "none")
+        if len(self.machines) > 1:
+            text += " (mixed within the means)"
+        if self.not_paper_config:
+            text += (f"; {self.not_paper_config} run(s) left out whose recorded config is not their method's default "
+                     "(the paper's components) or that are of a registered variant")
+        if self.dirty:
+            text += f"; {self.dirty} run(s) from a dirty or changing checkout included (`--allow-dirty`)"
+        return text
+
+    def machine_spread(self, method: str, scenes: Sequence[str], metric: str) -> float:
+        """The spread of ``method``'s mean ``metric`` over ``scenes`` between the machine kinds its runs ran on
+        (:func:`benchmark.leaderboard._machine_spread`); NaN for one kind."""
+        if not len(self.runs):
+            return math.nan
+        mine = self.runs[(self.runs["method"] == method) & self.runs["scene"].isin(list(scenes))]
+        return _machine_spread(mine, metric)[1]
+
+    def interval(self, methods: Sequence[str], scenes: Sequence[str], metric: str) -> dict[str, tuple[float, float]]:
+        """Method -> the 95 % interval of its mean over ``scenes`` of its per-scene means (every seed it has on
+        each): stratified bootstrap over seeds and queries (:func:`benchmark.stats.bootstrap_means`)."""
+        if not len(self.runs) or not scenes:
+            return {}
+        kind = next(k for k, names in ACCURACY_METRICS.items() if metric in names)
+        if metric not in self._cells:
+            self._cells[metric] = _Cells(self.runs, self.queries, kind, metric)
+        cells = self._cells[metric]
+        arrays = {}
+        for m in methods:
+            mine = self.runs[self.runs["method"] == m]
+            per_scene = [cells.array(m, s, set(mine[mine["scene"] == s]["seed"])) for s in scenes]
+            if all(a.shape[0] for a in per_scene):
+                arrays[m] = per_scene
+        if not arrays:
+            return {}
+        reps = stats.bootstrap_means(arrays, seed=stats.stable_seed("paper-tables", metric, *scenes),
+                                     resample_queries=cells.by_query)
+        return {m: stats.percentile_interval(r) for m, r in reps.items()}
 
     def seeds_note(self) -> str:
         """The seeds the means are over, and how many (method, preset) cells lack some of them."""
@@ -169,8 +267,18 @@ def _comparison(title: str, dataset: str, methods: Sequence[str], metrics: tuple
         paper_on = {m: _mean([paper_numbers.get(m, {}).get("results", {}).get(dataset, {}).get(sc, {}).get(metric)
                               for sc, _ in shared]) for m in methods}
         ours_on = {m: ours.mean(m, [p for _, p in shared], metric) for m in methods}
-        lines.append(f"{metric}, mean over {where}: " + _agreement(paper_on, ours_on, display))
-    return lines + [""]
+        intervals = ours.interval(methods, [p for _, p in shared], metric)
+        lines.append(f"{metric}, mean over {where}: " + _agreement(paper_on, ours_on, display, intervals))
+        lines.append("")
+        spreads = {m: ours.machine_spread(m, [p for _, p in shared], metric) for m in methods}
+        lines.append(f"Ours, mean {metric} over {where} with its 95 % interval"
+                     + (" (Δ: its spread between machine kinds)" if any(_finite(v) for v in spreads.values()) else "")
+                     + ": " + "; ".join(f"{display.get(m, m)} {ours_on[m]:.2f} "
+                                        f"{stats.interval_text(*intervals.get(m, (None, None)))}"
+                                        + (f" (Δ {spreads[m]:.2f})" if _finite(spreads[m]) else "")
+                                        for m in methods if _finite(ours_on[m])) + ".")
+        lines.append("")
+    return lines
 
 
 def _states_table(results_dir: Path, paper_ablations: dict) -> list[str]:
@@ -199,9 +307,10 @@ def _states_table(results_dir: Path, paper_ablations: dict) -> list[str]:
                      + (_cell(o[0], o[1]) if o else "–") + " |")
     paper_acc = {str(k): v["Acc"] for k, v in paper.items()}
     ours_acc = {str(k): v[0] for k, v in ours.items()}
-    tau, n = kendall_tau(paper_acc, ours_acc)
+    tau, n, p = kendall_tau(paper_acc, ours_acc)
     best_p = max(paper_acc, key=paper_acc.get)
-    lines += ["", f"_Acc over K: Kendall's tau = {tau:+.2f} over {n} values of K; the paper's best K = {best_p}"
+    p_text = f"p = {p:.3f}" if math.isfinite(p) else "p not defined"
+    lines += ["", f"_Acc over K: Kendall's tau = {tau:+.2f} ({p_text}) over {n} values of K; the paper's best K = {best_p}"
               + (f", ours: K = {max(ours_acc, key=ours_acc.get)} (ties to the smallest)." if ours_acc else ".") + "_"
               if n >= 2 else f"_Acc over K: not measurable ({n} values of K with both numbers)._", ""]
     return lines
@@ -252,8 +361,11 @@ def _speed_table(ours: OurNumbers, reports_dir: Path, paper_numbers: dict) -> li
 
 
 def render(results_dir: str | Path = "results", reports_dir: str | Path = "reports", *,
-           protocol: str = DEFAULT_PROTOCOL, track: str = "oracle") -> str:
-    """The markdown of ``reports/paper-tables.md``."""
+           protocol: str = DEFAULT_PROTOCOL, track: str = "oracle", split: Optional[str] = None,
+           allow_dirty: bool = False) -> str:
+    """The markdown of ``reports/paper-tables.md``. ``split``: the split of our runs (default: the paper's where
+    results have it, else the first in :data:`benchmark.leaderboard.SPLIT_ORDER`); ``allow_dirty``: read runs
+    from a dirty or changing checkout instead of refusing them."""
     from methods.registry import paper_reference
 
     paper = paper_reference()
@@ -262,11 +374,12 @@ def render(results_dir: str | Path = "results", reports_dir: str | Path = "repor
     results_dir, reports_dir = Path(results_dir), Path(reports_dir)
     if not results_dir.is_dir():  # a mistyped folder would give tables of the paper's numbers alone
         raise InputError(results_dir, "results-dir", "no such folder")
-    ours = OurNumbers(results_dir, protocol=protocol, track=track)
+    ours = OurNumbers(results_dir, protocol=protocol, track=track, split=split, allow_dirty=allow_dirty)
     lines = ["<!-- GENERATED by `bench4d paper-tables` from the results files; do not edit by hand. -->", "",
              "# The paper's tables beside ours", "",
              f"Paper: {PAPER_SOURCE}. Ours: `{results_dir.as_posix()}/`, protocol `{protocol}`, track `{track}`, "
-             f"{ours.seeds_note()}; scored frames: {SCORED_FRAMES_NOTE}. The paper's scenes are real videos; ours are "
+             f"{ours.seeds_note()}; {ours.header_notes()}; scored frames: {SCORED_FRAMES_NOTE}. Every query counts (an "
+             "unanswered one at 0; draft ground truth left out). The paper's scenes are real videos; ours are "
              "the synthetic presets modelled on them (same objects, state changes and camera kind, exact "
              "ground truth), so the comparison is of orderings, not of values.", "",
              "Release behaviours not copied (both protocols): " + "; ".join(RELEASE_DEFECTS_NOT_COPIED) + ".", ""]

@@ -2,7 +2,11 @@
 
 * :func:`pareto`: accuracy against query FPS and against fit time (log x), mean over the scenes every
   method ran and over seeds with the seed std as error bars, and the Pareto front (no method both
-  more accurate and faster) drawn as a step line. One figure per (dataset, track).
+  more accurate and faster) drawn as a step line. One figure per (dataset, track, protocol) and kind of
+  machine the runs were timed on. Floors are labelled reference lines, never on the front; the
+  perfect-feature ceiling is a line; methods with identical accuracy on every scene and seed (one
+  shared stage) are one point with one label; a time-sensitive panel whose methods are all at chance
+  says so.
 * :func:`timeline`: one time-sensitive query over time: the method's raw score ``s_t``, the smoothed
   score, the decision threshold ``tau`` and the ground-truth intervals shaded (the paper's Figure 4
   analogue), read from the per-frame records a results file keeps.
@@ -13,13 +17,14 @@ from __future__ import annotations
 import io
 import math
 import textwrap
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Optional, Sequence
 
 import numpy as np
 
 from benchmark.core.errors import InputError
-from .results import ACCURACY_METRICS, MEAN_SCENE, comparable_runs, find_results, load_results, results_path, runs_table, seed_summary
+from .results import ACCURACY_METRICS, MEAN_SCENE, comparable_runs, find_results, load_results, results_path, seed_summary
 
 if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd
@@ -102,31 +107,6 @@ def pareto_front(x: Sequence[float], y: Sequence[float], *, x_higher_better: boo
     return sorted(front, key=lambda i: float(x[i]))
 
 
-def chart_points(runs: "pd.DataFrame", kind: str) -> tuple["pd.DataFrame", list[str], bool]:
-    """Per-method points of one chart row: ``(means, scenes, common)``.
-
-    ``runs`` are the runs of one (dataset, track) (:func:`~benchmark.results.runs_table`); ``kind`` is
-    ``"agnostic"`` or ``"sensitive"``. Only runs with that kind's metric count, and only on the scenes
-    that *every* such method ran: a mean over seven scenes beside a mean over four would compare scene
-    sets, not methods. ``means`` are the :data:`~benchmark.results.MEAN_SCENE` rows of
-    :func:`~benchmark.results.seed_summary` over those scenes (one per method, sorted by name);
-    ``scenes`` the scene names; ``common`` is False when no scene is common to all methods, and each
-    method is then averaged over its own scenes (the chart says so).
-    """
-    metric = ACCURACY_METRICS[kind][0]
-    have = runs[runs[metric].notna()]
-    scene_sets = [set(g["scene"]) for _, g in have.groupby("method")]
-    scenes = set.intersection(*scene_sets) if scene_sets else set()
-    common = bool(scenes)
-    if common:
-        have = have[have["scene"].isin(scenes)]
-    else:
-        scenes = set(have["scene"])
-    summary = seed_summary(have)
-    means = summary[summary["scene"] == MEAN_SCENE].sort_values("method").reset_index(drop=True)
-    return means, sorted(scenes), common
-
-
 def label_groups(x: Sequence[float], y: Sequence[float], *, x_log: bool, tolerance: float = 0.08,
                  spans: Optional[tuple[float, float]] = None) -> list[list[int]]:
     """Indices of points that sit on top of each other, grouped (each group gets one stacked label).
@@ -166,71 +146,380 @@ def label_groups(x: Sequence[float], y: Sequence[float], *, x_log: bool, toleran
     return sorted(ordered, key=min)
 
 
-def pareto(results_dir: str | Path = "results", reports_dir: str | Path = "reports") -> list[Path]:
-    """Write ``reports/pareto_<dataset>_<track>_<protocol>.{png,pdf}``; returns the files written.
+def chart_points(runs: "pd.DataFrame", kind: str, *,
+                 references: frozenset[str] = frozenset()) -> tuple["pd.DataFrame", list[str], bool]:
+    """Per-method points of one chart row: ``(means, scenes, common)``.
 
-    Each row of panels compares the methods on the scenes all of them ran (:func:`chart_points`),
-    named in the row's title line; points that coincide share one stacked label."""
+    ``runs`` are the runs of one (dataset, track) (:func:`~benchmark.results.runs_table`); ``kind`` is
+    ``"agnostic"`` or ``"sensitive"``. Only runs with that kind's metric count, and only on the scenes
+    that *every* such method ran: a mean over seven scenes beside a mean over four would compare scene
+    sets, not methods. ``means`` are the :data:`~benchmark.results.MEAN_SCENE` rows of
+    :func:`~benchmark.results.seed_summary` over those scenes (one per method, sorted by name);
+    ``scenes`` the scene names; ``common`` is False when no scene is common to all methods, and each
+    method is then averaged over its own scenes (the chart says so). ``references`` (floors) do not
+    narrow the scenes: one is kept only where it ran all of them.
+    """
+    metric = ACCURACY_METRICS[kind][0]
+    have = runs[runs[metric].notna()]
+    scene_sets = {m: set(g["scene"]) for m, g in have.groupby("method")}
+    ranked_sets = [s for m, s in scene_sets.items() if m not in references] or list(scene_sets.values())
+    scenes = set.intersection(*ranked_sets) if ranked_sets else set()
+    common = bool(scenes)
+    if common:
+        kept = [m for m, s in scene_sets.items() if scenes <= s]
+        have = have[have["scene"].isin(scenes) & have["method"].isin(kept)]
+    else:
+        scenes = set(have["scene"])
+    summary = seed_summary(have)
+    means = summary[summary["scene"] == MEAN_SCENE].sort_values("method").reset_index(drop=True)
+    return means, sorted(scenes), common
+
+
+SAME_STAGE_TOLERANCE = 1e-3
+"""Largest difference (percentage points) between two methods' accuracy on one (scene, seed) that still
+reads as the same number: methods that answer a query kind from one shared stage score identically, up
+to float rounding in the fifth digit (the query sets around it differ)."""
+CHANCE_AUC = 50.0
+"""The ROC AUC of scores that do not order the states (a coin flip)."""
+CHANCE_STANDARD_ERRORS = 2.0
+"""A method is at chance on the time-sensitive queries when its mean AUC over the chart's runs lies within
+this many standard errors (over those runs) of :data:`CHANCE_AUC`."""
+UNKNOWN_MACHINE = "unknown"
+
+
+def machine_kinds(runs: "pd.DataFrame") -> "pd.Series":
+    """The kind of machine each run was timed on: the runs table's ``machine_kind`` where it has one
+    (prefixed with the ``device`` when it does not name it: a GPU run is never charted with CPU runs),
+    else the ``device``, else :data:`UNKNOWN_MACHINE`."""
+    import pandas as pd
+
+    def text(row, column: str) -> str:
+        value = row.get(column)
+        if value is None or (not isinstance(value, str) and bool(pd.isna(value))):  # None, NaN, pd.NA
+            return ""
+        return str(value).strip()
+
+    kinds = []
+    for row in runs.to_dict(orient="records"):
+        kind, device = text(row, "machine_kind"), text(row, "device")
+        if kind and device and device.lower() not in kind.lower():
+            kind = f"{device}: {kind}"
+        kinds.append(kind or device or UNKNOWN_MACHINE)
+    return pd.Series(kinds, index=runs.index, dtype=object)
+
+
+def shared_stages(runs: "pd.DataFrame", metric: str, methods: Sequence[str]) -> list[list[str]]:
+    """``methods`` grouped by identical ``metric`` on every (scene, seed) of ``runs`` (the same runs, values
+    equal within :data:`SAME_STAGE_TOLERANCE`): methods answering from one shared stage, found from the
+    numbers, never from the names. Groups in order of their first member; members in ``methods``' order."""
+    values: dict[str, dict[tuple[str, int], float]] = {}
+    for m in methods:
+        rows = runs[(runs["method"] == m) & runs[metric].notna()]
+        values[m] = {(str(sc), int(sd)): float(v) for sc, sd, v in zip(rows["scene"], rows["seed"], rows[metric])}
+    groups: list[list[str]] = []
+    for m in methods:
+        for group in groups:
+            ref = values[group[0]]
+            if ref and ref.keys() == values[m].keys() and all(
+                    abs(ref[k] - values[m][k]) <= SAME_STAGE_TOLERANCE for k in ref):
+                group.append(m)
+                break
+        else:
+            groups.append([m])
+    return groups
+
+
+def at_chance(runs: "pd.DataFrame", methods: Sequence[str]) -> bool:
+    """Whether every one of ``methods`` is at chance on the time-sensitive queries of ``runs``
+    (:data:`CHANCE_STANDARD_ERRORS`); False where a method has fewer than two AUC values (no spread to judge
+    by) or there are no methods."""
+    if not methods or "AUC" not in runs:
+        return False
+    for m in methods:
+        auc = runs[(runs["method"] == m)]["AUC"].dropna().to_numpy(float)
+        if auc.size < 2:
+            return False
+        standard_error = float(auc.std(ddof=1)) / math.sqrt(auc.size)
+        if abs(float(auc.mean()) - CHANCE_AUC) > CHANCE_STANDARD_ERRORS * standard_error:
+            return False
+    return True
+
+
+@dataclass
+class ChartPoint:
+    """One drawn point: a method, or methods sharing a stage (same accuracy, speed averaged)."""
+
+    methods: tuple[str, ...]
+    """The methods it stands for (several: identical accuracy on every scene and seed)."""
+    x: float
+    """Mean of the members' mean speed or fit time."""
+    x_low: float
+    """Left end of the horizontal bar (the lowest member's mean minus its seed std; > 0 on a log axis)."""
+    x_high: float
+    """Right end of the horizontal bar (the highest member's mean plus its seed std)."""
+    y: float
+    """Mean accuracy (percent)."""
+    yerr: float
+    """Seed std of the accuracy (the largest of the members'; 0 for one seed)."""
+
+    @property
+    def label(self) -> str:
+        return " = ".join(self.methods)
+
+    @property
+    def finite(self) -> bool:
+        return bool(np.isfinite(self.x) and np.isfinite(self.y) and self.x > 0)
+
+
+@dataclass
+class ParetoPanel:
+    """One panel: accuracy of one query kind against query speed or fit time."""
+
+    kind: str
+    metric: str
+    x_column: str
+    higher_is_better: bool
+    """Whether larger x is better (speed) or smaller (fit time)."""
+    points: list[ChartPoint]
+    front: list[int]
+    """Indices into ``points`` of the Pareto front (floors are never part of it)."""
+    floors: list[ChartPoint]
+    """Floors (registry ``floor=True``), drawn as labelled reference lines, not as methods."""
+    ceiling: Optional[float]
+    """The perfect-feature ceiling (percent, mean over the panel's scenes) where measured for ``metric``."""
+    ceiling_note: str
+    """Why there is no ceiling line, or an empty string."""
+    at_chance: bool
+    """Every method (floors aside) is at chance (:func:`at_chance`)."""
+    scenes: list[str]
+    common: bool
+
+
+@dataclass
+class ParetoChart:
+    """One figure: a (dataset, track, protocol) timed on one kind of machine, one row of panels per kind."""
+
+    dataset: str
+    track: str
+    protocol: str
+    machine: str
+    stem: str
+    rows: list[list[ParetoPanel]]
+
+
+def floor_methods() -> frozenset[str]:
+    """Registered methods whose spec says they are floors."""
+    from methods import registry
+
+    return frozenset(name for name in registry.names() if registry.get(name).floor)
+
+
+def _chart_point(means: "pd.DataFrame", members: Sequence[str], metric: str, x_column: str) -> ChartPoint:
+    by = means.set_index("method")
+    xs = by.loc[list(members), f"{x_column}_mean"].to_numpy(float)
+    xerr = np.nan_to_num(by.loc[list(members), f"{x_column}_std"].to_numpy(float))
+    ys = by.loc[list(members), f"{metric}_mean"].to_numpy(float)
+    yerr = np.nan_to_num(by.loc[list(members), f"{metric}_std"].to_numpy(float))
+    x = float(np.mean(xs))
+    # on a log axis a bar reaches down to a thousandth of its value at most (a spread larger than the
+    # mean, as of a fit that lasts milliseconds, would reach zero)
+    low = float(np.min(np.maximum(xs - xerr, xs * 0.001))) if len(xs) else math.nan
+    return ChartPoint(tuple(members), x, low, float(np.max(xs + xerr)), float(np.mean(ys)), float(np.max(yerr)))
+
+
+def _slug(text: str) -> str:
+    import re
+
+    return re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-") or UNKNOWN_MACHINE
+
+
+def pareto_charts(runs: "pd.DataFrame", *, floors: frozenset[str] = frozenset(),
+                  ceilings: Optional[dict[str, dict[str, dict[str, float]]]] = None) -> list[ParetoChart]:
+    """What :func:`pareto` draws, from a runs table: one chart per (dataset, track, protocol) and kind of
+    machine (:func:`machine_kinds`; timings of different machines are never compared on one axis), named
+    ``pareto_<dataset>_<track>_<protocol>``, with ``_<machine>`` added where a (dataset, track, protocol)
+    was timed on several. ``floors`` are reference lines, never points of the front; ``ceilings`` is
+    :func:`benchmark.leaderboard.load_ceilings`'s mapping."""
+    from .leaderboard import CEILING_METRIC
+
+    ceilings = ceilings or {}
+    runs = runs.assign(machine=machine_kinds(runs))
+    charts: list[ParetoChart] = []
+    for (dataset, track, protocol), group in runs.groupby(["dataset", "track", "protocol"], sort=True):
+        machines = sorted(group["machine"].unique())
+        for machine in machines:
+            mine = group[group["machine"] == machine]
+            rows: list[list[ParetoPanel]] = []
+            for kind in ("agnostic", "sensitive"):
+                metric = ACCURACY_METRICS[kind][0]
+                if not mine[mine[metric].notna() & ~mine["method"].isin(floors)].shape[0]:
+                    continue  # nothing but floors (or nothing) answered this kind
+                means, scenes, common = chart_points(mine, kind, references=floors)
+                have = mine[mine[metric].notna() & mine["scene"].isin(scenes)]
+                ranked = [m for m in means["method"] if m not in floors]
+                stages = shared_stages(have, metric, ranked)
+                chance = kind == "sensitive" and at_chance(have, ranked)
+                measured = ceilings.get(protocol, {}).get(kind, {})
+                ceiling, note = None, ""
+                if CEILING_METRIC.get(kind) != metric:
+                    note = (f"no ceiling line: the perfect-feature ceiling is measured for {CEILING_METRIC.get(kind)}, "
+                            f"not {metric} (perfect features make no temporal decisions)")
+                elif common and scenes and all(s in measured for s in scenes):
+                    ceiling = 100.0 * sum(measured[s] for s in scenes) / len(scenes)
+                elif any(s in measured for s in scenes):
+                    note = (f"no ceiling line: the ceiling is measured on {sum(s in measured for s in scenes)} of "
+                            f"these {len(scenes)} scenes")
+                else:
+                    note = "no ceiling line: no perfect-feature ceiling measured on these scenes"
+                row = []
+                for x_column, higher in ((f"fps_{kind}", True), ("fit_seconds", False)):
+                    points = [_chart_point(means, members, metric, x_column) for members in stages]
+                    front = pareto_front([p.x if p.finite else math.nan for p in points], [p.y for p in points],
+                                         x_higher_better=higher)
+                    floor_points = [_chart_point(means, [m], metric, x_column)
+                                    for m in means["method"] if m in floors]
+                    row.append(ParetoPanel(kind, metric, x_column, higher, points, front, floor_points, ceiling,
+                                           note, chance, scenes, common))
+                rows.append(row)
+            if rows:
+                stem = f"pareto_{dataset}_{track}_{protocol}" + (f"_{_slug(machine)}" if len(machines) > 1 else "")
+                charts.append(ParetoChart(dataset, track, protocol, machine, stem, rows))
+    return charts
+
+
+LABEL_LINE_HEIGHT = 0.045
+"""Height of one line of a point label (8 pt) as a fraction of a chart panel's height."""
+
+
+def label_clusters(points: Sequence[ChartPoint], *, x_span: float, y_span: float) -> list[list[int]]:
+    """Indices of ``points`` (finite, on a log x axis spanning ``x_span`` decades and a y axis spanning
+    ``y_span``) whose labels share one stacked label: those that coincide (:func:`label_groups`), joined
+    while two clusters' horizontal bars overlap and their labels (:data:`LABEL_LINE_HEIGHT` a line) would
+    overlap. Members top to bottom."""
+    xs = [p.x for p in points]
+    ys = [p.y for p in points]
+    clusters = label_groups(xs, ys, x_log=True, spans=(x_span, y_span))
+
+    def lines(c: list[int]) -> int:
+        return sum(len(points[i].methods) for i in c)
+
+    def y_range(c: list[int]) -> tuple[float, float]:
+        mid = (max(ys[i] for i in c) + min(ys[i] for i in c)) / 2
+        half = lines(c) * LABEL_LINE_HEIGHT * y_span / 2
+        return mid - half, mid + half
+
+    merged = True
+    while merged:
+        merged = False
+        for a in range(len(clusters)):
+            for b in range(a + 1, len(clusters)):
+                ca, cb = clusters[a], clusters[b]
+                xa = (min(points[i].x_low for i in ca), max(points[i].x_high for i in ca))
+                xb = (min(points[i].x_low for i in cb), max(points[i].x_high for i in cb))
+                (la, ha), (lb, hb) = y_range(ca), y_range(cb)
+                if xa[0] <= xb[1] and xb[0] <= xa[1] and la <= hb and lb <= ha:
+                    clusters[a] = sorted(ca + cb, key=lambda i: (-ys[i], i))
+                    del clusters[b]
+                    merged = True
+                    break
+            if merged:
+                break
+    return sorted(clusters, key=min)
+
+
+def _draw_pareto_panel(ax, panel: ParetoPanel, colour: dict[str, str], *, legend: bool) -> None:
+    shown = [p for p in panel.points if p.finite]
+    for p in shown:  # faded where all are at chance: their order means nothing
+        ax.errorbar(p.x, p.y, xerr=[[p.x - p.x_low], [p.x_high - p.x]], yerr=p.yerr, fmt="o", capsize=3,
+                    label=p.label, color=colour[p.methods[0]], alpha=0.45 if panel.at_chance else 1.0)
+    if panel.front:
+        fx = [panel.points[i].x for i in panel.front]
+        fy = [panel.points[i].y for i in panel.front]
+        ax.step(fx, fy, where="pre" if panel.higher_is_better else "post", color="0.4", linestyle="--",
+                linewidth=1, label="Pareto front (floors left out)")
+    ax.set_xscale("log")
+    if shown:  # at least a decade each side of the methods (floors are lines: they do not stretch the axis)
+        lo, hi = min(p.x_low for p in shown), max(p.x_high for p in shown)
+        ax.set_xlim(10 ** np.floor(np.log10(lo) - 0.5), 10 ** np.ceil(np.log10(hi) + 0.5))
+    speed = panel.x_column != "fit_seconds"
+    for f in panel.floors:
+        if not np.isfinite(f.y):
+            continue
+        where = "" if not np.isfinite(f.x) else (f", {_sig(f.x)} FPS" if speed else f", fit {_sig(f.x)} s")
+        ax.axhline(f.y, color="0.35", linestyle=":", linewidth=1.4,
+                   label=f"2D floor {f.label} (not ranked): {f.y:.1f}{where}")
+        # labels of the lines sit at the left edge, below the line: method labels are right of their points
+        ax.annotate(f"floor: {f.label}", (0.0, f.y), xycoords=ax.get_yaxis_transform(), textcoords="offset points",
+                    xytext=(4, -2), ha="left", va="top", fontsize=7.5, color="0.3")
+    if panel.ceiling is not None:
+        ax.axhline(panel.ceiling, color="tab:green", linestyle="-.", linewidth=1.2,
+                   label=f"perfect-feature ceiling: {panel.ceiling:.1f}")
+        ax.annotate("ceiling (perfect features)", (0.0, panel.ceiling), xycoords=ax.get_yaxis_transform(),
+                    textcoords="offset points", xytext=(4, -2), ha="left", va="top", fontsize=7.5,
+                    color="tab:green")
+    ys = [p.y + e for p in shown for e in (p.yerr, -p.yerr)] + [f.y for f in panel.floors if np.isfinite(f.y)]
+    ys += [] if panel.ceiling is None else [panel.ceiling]
+    if ys:
+        lo, hi = min(ys), max(ys)
+        pad = max(0.12 * (hi - lo), 2.0)
+        ax.set_ylim(lo - pad, hi + pad)
+    # one label per cluster, placed after the limits are final, right of the cluster's bars
+    x_lo, x_hi = ax.get_xlim()
+    y_lo, y_hi = ax.get_ylim()
+    for members in label_clusters(shown, x_span=math.log10(x_hi / x_lo), y_span=y_hi - y_lo):
+        middle = (max(shown[i].y for i in members) + min(shown[i].y for i in members)) / 2
+        text = "\n".join(shown[i].methods[0] + "".join(f"\n= {m}" for m in shown[i].methods[1:]) for i in members)
+        ax.annotate(text, (max(shown[i].x_high for i in members), middle), textcoords="offset points",
+                    xytext=(6, 0), fontsize=8, va="center")
+    ax.xaxis.set_minor_formatter(NullFormatter())
+    ax.set_xlabel(f"query FPS ({panel.kind}) →" if speed else "← fit time (s), every stage")
+    ax.set_ylabel(f"{panel.metric} (%) ↑")
+    where = (f"mean over the {len(panel.scenes)} scene(s) every method ran: {', '.join(panel.scenes)}"
+             if panel.common else "no scene common to all methods: each method's mean over its own scenes")
+    lines = [f"{panel.metric} vs {'query speed' if speed else 'fit time'}", textwrap.fill(where, width=70)]
+    if panel.ceiling_note:
+        lines.append(textwrap.fill(panel.ceiling_note, width=70))
+    if panel.at_chance:
+        lines.append(textwrap.fill(f"ALL METHODS AT CHANCE: every method's AUC is within {CHANCE_STANDARD_ERRORS:g} "
+                                   "standard errors of 50 (its scores do not order the states)", width=70))
+    ax.set_title("\n".join(lines), fontsize=9)
+    ax.grid(True, which="both", alpha=0.3)
+    if legend:  # below the panel, clear of the points
+        ax.legend(fontsize=7.5, loc="upper left", bbox_to_anchor=(0.0, -0.13), ncols=2, frameon=False)
+
+
+def _sig(value: float) -> str:
+    return f"{value:.0f}" if abs(value) >= 100 else f"{value:.3g}"
+
+
+def pareto(results_dir: str | Path = "results", reports_dir: str | Path = "reports",
+           ceiling: Optional[str | Path] = None) -> list[Path]:
+    """Write ``reports/pareto_<dataset>_<track>_<protocol>[_<machine>].{png,pdf}`` (:func:`pareto_charts`);
+    returns the files written. ``ceiling``: the protocol ceiling's JSON (default:
+    ``<reports_dir>/ablations/protocol-ceiling.json``; no line where it is missing)."""
+    from .leaderboard import CEILING_FILE, load_ceilings, load_runs
+
     plt = _pyplot()
-    runs = comparable_runs(runs_table(find_results(results_dir), relative_to=Path(results_dir)))[0]
+    # as the leaderboard reads them: each run under the name its recorded config stands for today
+    runs = comparable_runs(load_runs(results_dir)[0])[0]
     if not len(runs):
         raise InputError(results_dir, None, "no results files to plot (run bench4d run-all first)")
+    ceilings = load_ceilings(Path(reports_dir) / CEILING_FILE if ceiling is None else ceiling)
     written: list[Path] = []
-    for (dataset, track, protocol), group_runs in runs.groupby(["dataset", "track", "protocol"], sort=True):
-        kinds = [k for k in ("agnostic", "sensitive") if group_runs[ACCURACY_METRICS[k][0]].notna().any()]
-        fig, axes = plt.subplots(len(kinds), 2, figsize=(10, 4.4 * len(kinds)), squeeze=False, layout="constrained")
-        palette = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-        colour = {m: palette[i % len(palette)] for i, m in enumerate(sorted(group_runs["method"].unique()))}
-        for row, kind in enumerate(kinds):
-            metric = ACCURACY_METRICS[kind][0]
-            means, scenes, common = chart_points(group_runs, kind)
-            names = means["method"].tolist()
-            y = means[f"{metric}_mean"].to_numpy(float)
-            yerr = np.nan_to_num(means[f"{metric}_std"].to_numpy(float))
-            where = textwrap.fill(f"mean over the {len(scenes)} scene(s) every method ran: {', '.join(scenes)}"
-                                  if common else "no scene common to all methods: each method's mean over its "
-                                                 "own scenes", width=64)
-            for col, (xcol, label, higher) in enumerate(
-                    ((f"fps_{kind}", f"query FPS ({kind}) →", True), ("fit_seconds", "← fit time (s)", False))):
-                ax = axes[row][col]
-                x = means[f"{xcol}_mean"].to_numpy(float)
-                xerr = np.nan_to_num(means[f"{xcol}_std"].to_numpy(float))
-                # on a log axis a bar reaches down to a thousandth of its value at most (a spread larger
-                # than the mean, as of a fit that lasts milliseconds, would reach zero)
-                x_low = np.minimum(xerr, x * 0.999)
-                ok = np.isfinite(x) & np.isfinite(y) & (x > 0)
-                for i in np.flatnonzero(ok):
-                    ax.errorbar(x[i], y[i], xerr=[[x_low[i]], [xerr[i]]], yerr=yerr[i],
-                                fmt="o", capsize=3, label=names[i], color=colour[names[i]])
-                front = pareto_front(np.where(ok, x, np.nan), y, x_higher_better=higher)
-                if len(front) >= 1:
-                    fx, fy = x[front], y[front]
-                    ax.step(fx, fy, where="post" if not higher else "pre", color="0.4", linestyle="--",
-                            linewidth=1, label="Pareto front")
-                ax.set_xscale("log")
-                if ok.any():  # at least a decade each side of the data, labels on powers of ten only
-                    lo, hi = float(np.min(x[ok] - x_low[ok])), float(np.max(x[ok] + xerr[ok]))
-                    ax.set_xlim(10 ** np.floor(np.log10(lo) - 0.5), 10 ** np.ceil(np.log10(hi) + 0.5))
-                ax.margins(y=0.12)
-                # one label per spot, placed after the limits are final: methods sharing a fit coincide
-                x_lo, x_hi = ax.get_xlim()
-                y_lo, y_hi = ax.get_ylim()
-                for members in label_groups(np.where(ok, x, np.nan), y, x_log=True,
-                                            spans=(math.log10(x_hi / x_lo), y_hi - y_lo)):
-                    right = max(members, key=lambda i: x[i])  # the label starts right of every member
-                    middle = (max(y[i] for i in members) + min(y[i] for i in members)) / 2
-                    ax.annotate("\n".join(names[i] for i in members), (x[right], middle),
-                                textcoords="offset points", xytext=(7, 0), fontsize=8, va="center")
-                ax.xaxis.set_minor_formatter(NullFormatter())
-                ax.set_xlabel(label)
-                ax.set_ylabel(f"{metric} (%) ↑")
-                ax.set_title(f"{dataset} / {track} / {protocol}: {metric} vs {'query speed' if col == 0 else 'fit time'}\n"
-                             f"{where}", fontsize=9)
-                ax.grid(True, which="both", alpha=0.3)
-                if col == 0:
-                    ax.legend(fontsize=7, loc="best")
-        fig.suptitle("error bars: std over seeds (seeds that ran all the scenes named)", fontsize=9)
-        written += _save(fig, Path(reports_dir) / f"pareto_{dataset}_{track}_{protocol}")
+    palette = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for chart in pareto_charts(runs, floors=floor_methods(), ceilings=ceilings):
+        fig, axes = plt.subplots(len(chart.rows), 2, figsize=(11, 5.8 * len(chart.rows)), squeeze=False,
+                                 layout="constrained")
+        methods = sorted({p.methods[0] for row in chart.rows for panel in row for p in panel.points})
+        colour = {m: palette[i % len(palette)] for i, m in enumerate(methods)}
+        for r, row in enumerate(chart.rows):
+            for c, panel in enumerate(row):
+                _draw_pareto_panel(axes[r][c], panel, colour, legend=c == 0)
+        fig.suptitle(f"{chart.dataset} / {chart.track} / {chart.protocol}, timed on: {chart.machine}\n"
+                     "error bars: std over seeds (seeds that ran all the scenes named); methods with the same "
+                     "accuracy on every scene and seed\n(one shared stage) are one point at their mean speed, "
+                     "its bar spanning theirs", fontsize=9)
+        written += _save(fig, Path(reports_dir) / chart.stem)
         plt.close(fig)
     return written
 

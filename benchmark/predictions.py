@@ -68,6 +68,7 @@ from benchmark.core.annotation import check_mask_size, check_rle, decode_mask, e
 
 from benchmark.core.atomic import read_json, write_json
 from benchmark.core.errors import InputError, short_repr
+from benchmark.core.strict import check_keys, text_key
 from benchmark.core.imageio import read_mask, write_image
 
 FORMAT = "bench4d-predictions"
@@ -77,6 +78,10 @@ JSON_GZ_FILE = JSON_FILE + ".gz"
 SCORES_FILE = "scores.json"
 MASKS_DIR = "masks"
 KINDS = ("agnostic", "sensitive")
+TOP_KEYS = ("format", "version", "scene", "method", "info", "queries", "masks")
+ENTRY_KEYS = ("kind", "masks", "scores", "decisions", "slug", "frames")
+"""The keys of the document and of a query's entry: a key that varies one of them (``Masks``, ``masks ``) is
+refused (:func:`benchmark.core.strict.check_keys`), never silently ignored."""
 SCORE_LIMIT = 1e30
 """Largest ``|score|`` accepted: a mean of any number of such scores stays finite in float64."""
 
@@ -254,6 +259,7 @@ def write_predictions(directory: str | Path, predictions: ScenePredictions, *, l
 def _check_header(doc: object, path: Path) -> dict:
     if not isinstance(doc, dict):
         raise InputError(path, None, f"expected a JSON object at the top level, got {type(doc).__name__}")
+    check_keys(doc, TOP_KEYS, path, None)
     if doc.get("format") != FORMAT:
         raise InputError(path, "format", f"expected {FORMAT!r}, got {short_repr(doc.get('format'))}")
     version = doc.get("version")
@@ -269,9 +275,15 @@ def _check_header(doc: object, path: Path) -> dict:
     queries = doc.get("queries", {})
     if not isinstance(queries, dict):
         raise InputError(path, "queries", "must be an object {query text: {...}}")
+    forms: dict[str, str] = {}
     for text, entry in queries.items():
         if not isinstance(entry, dict):
             raise InputError(path, field_name(text), "must be an object")
+        check_keys(entry, ENTRY_KEYS, path, field_name(text))
+        if text_key(text) in forms:  # one query under two spellings: which answers the ground truth's?
+            raise InputError(path, field_name(text), f"the same query as {forms[text_key(text)]!r} up to case, "
+                                                     "spaces and Unicode form")
+        forms[text_key(text)] = text
         kind = entry.get("kind")
         if kind is not None and kind not in KINDS:
             raise InputError(path, field_name(text, "kind"), f"must be one of {KINDS}, got {short_repr(kind)}")

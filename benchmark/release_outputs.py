@@ -78,13 +78,17 @@ def convert_release_outputs(run_folder: str | Path, annotation_folder: str | Pat
     """
     from annotations.release import import_release_folder
 
+    from benchmark.core.scene import paper_camera
+
     if similarity not in SIMILARITY_ROWS:
         raise InputError(None, "similarity", f"must be one of {sorted(SIMILARITY_ROWS)}, got {similarity!r}")
     run_folder = Path(run_folder)
     if not run_folder.is_dir():
         raise InputError(run_folder, None, "release run folder not found")
     name = scene_name or (scene.name if scene is not None else Path(annotation_folder).parent.name)
-    aset = import_release_folder(annotation_folder, scene_name=name, frame_base=frame_base, frame_names=scene)
+    # the release annotates one camera: where the scene has several, its paper split's
+    aset = import_release_folder(annotation_folder, scene_name=name, frame_base=frame_base, frame_names=scene,
+                                 camera_id=None if scene is None else paper_camera(scene))
     by_time = {f.time_index: f for f in aset.frames}
     preds = ScenePredictions(scene=name, method="4d-langsplat (release)",
                              info={"converted_from": str(run_folder), "similarity": similarity})

@@ -1,8 +1,12 @@
 """Run results files: the schema, atomic writing, reading, and tables over many runs.
 
-One file per run, ``<results>/<dataset>/<scene>/<method>/<track>/seed<N>.json`` (written by
-:func:`benchmark.runner.evaluate`), beside its predictions folder ``seed<N>.predictions/``. Writers of
+One file per run, ``<results>/<dataset>/<scene>/<method>/<track>/seed<N>.json`` for the ``paper`` evaluation
+split and ``<results>/<dataset>/<scene>/<method>/<track>/<split>/seed<N>.json`` for another (``novel-view``),
+so both splits of one (scene, method, track, seed) sit side by side (:func:`results_path`; written by
+:func:`benchmark.runner.evaluate`), each beside its predictions folder ``seed<N>.predictions/``. Writers of
 one file take turns (:func:`results_lock`); a file being replaced goes to ``<results>/archive/`` first.
+Files written before evaluation splits existed record none: they are read as :data:`LEGACY_EVAL_SPLIT`
+(``legacy-dense``, the old split that trained on three frames of every four).
 
 Schema: :class:`RunResults` (``"format": "bench4d-run"``, ``"version": 1``), one typed record per
 object of the file, each field with its meaning; metrics in percent, times in seconds, memory in MiB,
@@ -32,6 +36,7 @@ import pandas as pd
 
 from benchmark.core.atomic import read_json, write_json, write_text
 from benchmark.core.errors import InputError, short_repr
+from benchmark.core.scene import DEFAULT_EVAL_SPLIT, EVAL_SPLITS, LEGACY_EVAL_SPLIT, EvalSplit
 
 RESULTS_FORMAT = "bench4d-run"
 RESULTS_VERSION = 1
@@ -40,10 +45,15 @@ ACCURACY_METRICS: dict[str, tuple[str, str]] = {"agnostic": ("mIoU", "mAcc"), "s
 DIAGNOSTIC_METRICS = ("AUC", "nearTau")
 """Diagnostics of the time-sensitive decisions (percent; :mod:`benchmark.metrics.temporal`): the
 scores' ROC AUC against the labels, and the share of decisions near the threshold."""
-RUN_COLUMNS = ["dataset", "track", "protocol", "method", "scene", "seed", "mIoU", "mAcc", "Acc", "vIoU", *DIAGNOSTIC_METRICS,
-               "fps_agnostic", "fps_sensitive", "fit_seconds", "peak_cpu_mib", "peak_gpu_mib",
-               "peak_cpu_needed_mib", "peak_gpu_needed_mib", "peak_measured", "device",
+RUN_COLUMNS = ["dataset", "track", "protocol", "split", "method", "scene", "seed", "scene_seed", "mIoU", "mAcc", "Acc",
+               "vIoU", *DIAGNOSTIC_METRICS, "fps_agnostic", "fps_sensitive", "fit_seconds", "peak_cpu_mib",
+               "peak_gpu_mib", "peak_cpu_needed_mib", "peak_gpu_needed_mib", "peak_measured", "device",
+               "cpu_model", "cpu_capability", "gpu", "machine_kind",
                "git_commit", "git_dirty", "scene_digest", "scene_current", "draft_queries", "path"]
+RUN_KEYS = ["dataset", "track", "protocol", "split", "method", "scene", "seed"]
+"""What identifies a run in :func:`runs_table`: two files with the same values are an error."""
+UNKNOWN_MACHINE = "unknown"
+"""``machine_kind`` of a run that recorded neither a GPU nor a CPU model."""
 VALUE_COLUMNS = ["mIoU", "mAcc", "Acc", "vIoU", *DIAGNOSTIC_METRICS, "fps_agnostic", "fps_sensitive", "fit_seconds",
                  "peak_cpu_mib", "peak_gpu_mib", "peak_cpu_needed_mib", "peak_gpu_needed_mib"]
 MEAN_SCENE = "mean"
@@ -104,13 +114,34 @@ class Metrics(TypedDict):
     """The run's scores in percent (null: no query of that kind was scored), and what they count."""
 
     mIoU: NotRequired[Optional[float]]
-    """Mean IoU of the time-agnostic queries."""
+    """Mean IoU of the time-agnostic queries asked, an unanswered one counting 0 (files written before
+    coverage was recorded: of the answered ones)."""
     mAcc: NotRequired[Optional[float]]
-    """Mean pixel accuracy of the time-agnostic queries."""
+    """Mean pixel accuracy of the time-agnostic queries asked, an unanswered one counting 0."""
     Acc: NotRequired[Optional[float]]
-    """Temporal accuracy of the time-sensitive queries."""
+    """Temporal accuracy of the time-sensitive queries asked, an unanswered one counting 0."""
     vIoU: NotRequired[Optional[float]]
-    """Video IoU of the time-sensitive queries."""
+    """Video IoU of the time-sensitive queries asked, an unanswered one counting 0."""
+    mIoU_answered: NotRequired[Optional[float]]
+    """Mean IoU of the answered time-agnostic queries only."""
+    mAcc_answered: NotRequired[Optional[float]]
+    """Mean pixel accuracy of the answered time-agnostic queries only."""
+    Acc_answered: NotRequired[Optional[float]]
+    """Temporal accuracy of the answered time-sensitive queries only."""
+    vIoU_answered: NotRequired[Optional[float]]
+    """Video IoU of the answered time-sensitive queries only."""
+    absentFP: NotRequired[Optional[float]]
+    """Share of the absent (time-agnostic query, frame) pairs with a non-empty predicted mask (null: none)."""
+    absent_frames: NotRequired[int]
+    """Absent (time-agnostic query, frame) pairs: evaluated frames where the query's object is absent."""
+    answered_agnostic_queries: NotRequired[int]
+    """Time-agnostic queries answered and scored."""
+    asked_agnostic_queries: NotRequired[int]
+    """Time-agnostic queries asked: answered, or declared unanswered, with a scored frame."""
+    answered_sensitive_queries: NotRequired[int]
+    """Time-sensitive queries answered and scored."""
+    asked_sensitive_queries: NotRequired[int]
+    """Time-sensitive queries asked: answered, or declared unanswered, with a scored frame."""
     AUC: NotRequired[Optional[float]]
     """Diagnostic: ROC AUC of the time-sensitive scores (absent: computed from the frames, :func:`temporal_diagnostics`)."""
     nearTau: NotRequired[Optional[float]]
@@ -180,12 +211,37 @@ class Environment(TypedDict):
     """CPU model name; null when it cannot be read."""
     numpy_blas_core: NotRequired[Optional[str]]
     """The kernel set numpy's OpenBLAS runs (generated pixels depend on it); null: another BLAS."""
-    gpu: NotRequired[str]
-    """Name of the CUDA device."""
+    cpu_capability: NotRequired[Optional[str]]
+    """The instruction set torch's CPU kernels dispatch to (``torch.backends.cpu.get_cpu_capability()``:
+    ``DEFAULT``, ``AVX2``, ``AVX512``; ``ATEN_CPU_CAPABILITY`` lowers it): fitted numbers move with it.
+    Null: torch was not installed. Absent: written before it was recorded."""
+    gpu: NotRequired[Optional[str]]
+    """Name of the CUDA device; null off CUDA (absent in files written before: off CUDA too)."""
     torch_threads: NotRequired[Optional[int]]
     """torch's intra-op threads; null where torch was not loaded."""
     concurrent_runs: NotRequired[int]
     """Runs sharing the machine at the time (inflates the timings)."""
+
+
+class GeneratedScene(TypedDict):
+    """Which version of a generated scene a run measured (:func:`benchmark.synthetic.digest.scene_version`)."""
+
+    preset: NotRequired[Optional[str]]
+    """The preset it was generated from."""
+    size: NotRequired[Optional[int]]
+    """Image width in pixels."""
+    seed: NotRequired[int]
+    """The generator seed (the scene instance)."""
+    generator_version: NotRequired[Optional[str]]
+    """The generator's version string."""
+    digest: NotRequired[str]
+    """Content digest of the scene folder."""
+    committed_digest: NotRequired[Optional[str]]
+    """The digest the committed generator makes for (preset, size, seed); null: none committed."""
+    perturbation: NotRequired[Optional[dict[str, Any]]]
+    """The stress-suite knob it was generated with; null: the clean preset."""
+    current: NotRequired[Optional[bool]]
+    """Whether ``digest`` is ``committed_digest``; null: none committed."""
 
 
 class SceneInfo(TypedDict):
@@ -199,7 +255,7 @@ class SceneInfo(TypedDict):
     """The ground-truth file; null for truth made from the alpha masks."""
     scale: NotRequired[Optional[float]]
     """Resolution multiplier it was loaded at; null: full size."""
-    generated: NotRequired[Optional[dict[str, Any]]]
+    generated: NotRequired[Optional[GeneratedScene]]
     """Preset, size, seed and digest of a generated scene (:func:`scene_status`); null for others."""
     draft_queries: NotRequired[list[str]]
     """Scored queries whose ground truth is an unreviewed draft (``review: "draft"``, or the base of a
@@ -236,12 +292,19 @@ class RunResults(TypedDict):
     """Supervision track: ``oracle`` or ``real``."""
     seed: int
     """Seed of the fit."""
+    split: NotRequired[EvalSplit]
+    """Evaluation split scored (:data:`benchmark.core.scene.EVAL_SPLITS`): ``paper`` (the dataset's held-out
+    frames) or ``novel-view`` (held-out frames seen from cameras no training frame uses). Absent: written
+    before splits existed, read as :data:`LEGACY_EVAL_SPLIT`."""
+    scene_seed: NotRequired[Optional[int]]
+    """Generator seed of the synthetic scene measured (seed ``s`` generates with ``s``); null: a scene the
+    generator did not make. Absent: written when every seed measured scene seed 0."""
     splits: NotRequired[list[str]]
-    """Splits whose annotated frames were scored."""
+    """Frame splits whose annotated frames were scored (``test``; ``train`` too with ``--score-train``)."""
     metrics: Metrics
     """The run's scores."""
     unanswered_queries: NotRequired[list[str]]
-    """Query texts of a kind the method does not answer: listed, not scored."""
+    """Query texts of a kind the method does not answer: listed, 0 in the full means."""
     timing: Timing
     """Fit and query times."""
     memory: NotRequired[Memory]
@@ -367,8 +430,14 @@ def check_results(doc: Any, path: Optional[str | Path] = None) -> None:
     _check_record(doc, RunResults, path)
 
 
-def results_path(results_dir: str | Path, dataset: str, scene: str, method: str, track: str, seed: int) -> Path:
-    return Path(results_dir) / dataset / scene / method / track / f"seed{seed}.json"
+def results_path(results_dir: str | Path, dataset: str, scene: str, method: str, track: str, seed: int,
+                 split: str = DEFAULT_EVAL_SPLIT) -> Path:
+    """Where the results file of a run goes: ``<dataset>/<scene>/<method>/<track>/seed<N>.json`` for the
+    ``paper`` split, ``.../<track>/<split>/seed<N>.json`` for another (module docstring)."""
+    if split not in EVAL_SPLITS:
+        raise InputError(None, "split", f"unknown evaluation split {split!r} (valid: {', '.join(EVAL_SPLITS)})")
+    folder = Path(results_dir) / dataset / scene / method / track
+    return (folder if split == DEFAULT_EVAL_SPLIT else folder / split) / f"seed{seed}.json"
 
 
 _FRAMES_PLACEHOLDER = "__bench4d_frames__"
@@ -649,11 +718,13 @@ def protocol_of(doc: dict):
     """The :class:`~benchmark.core.protocol.Protocol` a run answered and was scored under. Files written before
     protocols were named recorded the query rules in their method config (``threshold_variant``,
     ``sensitive_mask``, ...) and the temporal rule in ``score_config``; their relevance baselines scored a
-    frame by the mean relevance inside the mask. A preset's name is given back where every constant is
+    frame by the mean relevance inside the mask, one ``tau`` rule held for every method, and absent frames
+    were scored against the empty mask (:data:`~benchmark.core.protocol.CONSTANTS_BEFORE_RECORDED`
+    says the same of files that record a protocol without those constants). A preset's name is given back where every constant is
     that preset's, else ``custom``."""
     import dataclasses
 
-    from benchmark.core.protocol import PROTOCOLS, AgnosticQuery, Protocol, SensitiveQuery, TemporalRule
+    from benchmark.core.protocol import PROTOCOLS, AgnosticQuery, Protocol, ScoringRule, SensitiveQuery, TemporalRule
 
     if doc.get("protocol"):
         return Protocol.from_dict(doc["protocol"])
@@ -670,15 +741,50 @@ def protocol_of(doc: dict):
         majority_fraction=float(cfg.get("majority_fraction", default_query.majority_fraction)),
         kernel_scaling=cfg.get("kernel_scaling", default_query.kernel_scaling))
     sensitive = SensitiveQuery(mask=cfg.get("sensitive_mask", "unfiltered"), relevance_score="mask-mean")
+    tau_from = "raw" if temporal.get("threshold_variant") == "release" else "smoothed"
     rule = TemporalRule(weights=tuple(temporal.get("weights") or (0.1, 0.8, 0.1)),
                         ends=temporal.get("ends", "renormalise"),
-                        tau_from="raw" if temporal.get("threshold_variant") == "release" else "smoothed",
+                        tau_from=tau_from, relevance_peak_tau_from=tau_from,  # one tau rule for every method then
                         inclusive=bool(temporal.get("inclusive", True)),
                         undefined_decision=bool(temporal.get("undefined_decision", False)),
                         tie_tolerance=float(temporal.get("tie_tolerance", 1e-9)))
-    found = Protocol("custom", agnostic, sensitive, rule)
+    # absent frames were scored against the empty mask then
+    found = Protocol("custom", agnostic, sensitive, rule, ScoringRule(absent_frames="score-empty"))
     return next((preset for name, preset in PROTOCOLS.items() if dataclasses.replace(found, name=name) == preset),
                 found)
+
+
+def run_split(doc: dict) -> str:
+    """The evaluation split a run scored: its ``split``, or :data:`LEGACY_EVAL_SPLIT` for a file written before
+    splits were recorded."""
+    return str(doc.get("split") or LEGACY_EVAL_SPLIT)
+
+
+def run_scene_seed(doc: dict) -> int:
+    """The generator seed of the scene a run measured: ``scene_seed``, else the generated scene's recorded
+    seed, else 0 (files written when every seed measured scene seed 0; scenes not generated)."""
+    value = doc.get("scene_seed")
+    if value is None:
+        value = ((doc.get("scene_info") or {}).get("generated") or {}).get("seed")
+    return int(value) if isinstance(value, int) and not isinstance(value, bool) else 0
+
+
+def machine_of(doc: dict) -> dict[str, Any]:
+    """``{"cpu_model", "cpu_capability", "gpu", "machine_kind"}`` of a run, from its ``environment``.
+    ``machine_kind`` names the kind of machine its numbers came from: the GPU where it ran on one, else the CPU
+    model with the instruction set torch's kernels used (``"AMD EPYC 7B13 (avx2)"``; files written before that
+    was recorded: the model alone), else :data:`UNKNOWN_MACHINE`."""
+    env = doc.get("environment") or {}
+    cpu = env.get("processor") or None
+    capability = env.get("cpu_capability") or None
+    gpu = env.get("gpu") or None
+    if gpu:
+        kind = str(gpu)
+    elif cpu:
+        kind = f"{cpu} ({str(capability).lower()})" if capability else str(cpu)
+    else:
+        kind = UNKNOWN_MACHINE
+    return {"cpu_model": cpu or "", "cpu_capability": capability or "", "gpu": gpu or "", "machine_kind": kind}
 
 
 def run_row(doc: dict, path: Optional[Path] = None) -> dict[str, Any]:
@@ -689,8 +795,8 @@ def run_row(doc: dict, path: Optional[Path] = None) -> dict[str, Any]:
     env = doc.get("environment", {})
     git = env.get("git", {}) or {}
     return {
-        "dataset": doc["dataset"], "track": doc["track"], "protocol": protocol_of(doc).name,
-        "method": doc["method"], "scene": doc["scene"], "seed": int(doc["seed"]),
+        "dataset": doc["dataset"], "track": doc["track"], "protocol": protocol_of(doc).name, "split": run_split(doc),
+        "method": doc["method"], "scene": doc["scene"], "seed": int(doc["seed"]), "scene_seed": run_scene_seed(doc),
         **{m: _number(metrics.get(m)) for m in ("mIoU", "mAcc", "Acc", "vIoU")},
         **temporal_diagnostics(doc),
         "fps_agnostic": _number((timing.get("query_agnostic") or {}).get("fps")),
@@ -700,6 +806,7 @@ def run_row(doc: dict, path: Optional[Path] = None) -> dict[str, Any]:
         "peak_gpu_mib": _number(memory.get("peak_gpu_mib")),
         **dict(zip(("peak_cpu_needed_mib", "peak_gpu_needed_mib", "peak_measured"), peak_memory_with_shared(doc))),
         "device": env.get("device", ""),
+        **machine_of(doc),
         "git_commit": (git.get("commit") or "")[:12],
         "git_dirty": git.get("dirty"),
         "scene_digest": digest, "scene_current": current,
@@ -709,7 +816,8 @@ def run_row(doc: dict, path: Optional[Path] = None) -> dict[str, Any]:
 
 
 def runs_table(paths: Iterable[Path], *, relative_to: Optional[Path] = None) -> pd.DataFrame:
-    """One row per results file (:data:`RUN_COLUMNS`), sorted by dataset, track, method, scene, seed."""
+    """One row per results file (:data:`RUN_COLUMNS`), sorted by dataset, track, protocol, split, method, scene,
+    seed; two files of one run (:data:`RUN_KEYS`) are an :class:`InputError`."""
     rows = []
     for path in paths:
         doc = load_results(path)
@@ -717,12 +825,13 @@ def runs_table(paths: Iterable[Path], *, relative_to: Optional[Path] = None) -> 
         rows.append(run_row(doc, Path(shown).as_posix() if relative_to is not None else path))
     table = pd.DataFrame(rows, columns=RUN_COLUMNS)
     if len(table):
-        dupes = table.duplicated(["dataset", "track", "protocol", "method", "scene", "seed"], keep=False)
+        dupes = table.duplicated(RUN_KEYS, keep=False)
         if dupes.any():
             first = table[dupes].iloc[0]
             raise InputError(first["path"], None, f"two results files for {first['method']} on "
-                             f"{first['dataset']}/{first['scene']} ({first['track']}, seed {first['seed']})")
-    return table.sort_values(["dataset", "track", "protocol", "method", "scene", "seed"], kind="stable").reset_index(drop=True)
+                             f"{first['dataset']}/{first['scene']} ({first['track']}, {first['split']} split, "
+                             f"seed {first['seed']})")
+    return table.sort_values(RUN_KEYS, kind="stable").reset_index(drop=True)
 
 
 def _std(values: pd.Series) -> float:
@@ -731,9 +840,10 @@ def _std(values: pd.Series) -> float:
 
 
 def seed_summary(runs: pd.DataFrame) -> pd.DataFrame:
-    """Mean, std (sample, ddof=1; NaN for one seed) and seed count per (dataset, track, protocol, method, scene).
+    """Mean, std (sample, ddof=1; NaN for one seed) and seed count per (dataset, track, protocol, split, method,
+    scene): runs of two evaluation splits are never averaged together.
 
-    The extra scene :data:`MEAN_SCENE` per (dataset, track, protocol, method) first averages the scenes of each
+    The extra scene :data:`MEAN_SCENE` per (dataset, track, protocol, split, method) first averages the scenes of each
     seed (the dataset-level number of that seed), then summarises over seeds. Only *complete* seeds
     enter it: seeds that ran every scene the method has in that (dataset, track); a seed that ran
     fewer would average a different scene set into the same number. Those are counted in
@@ -742,12 +852,14 @@ def seed_summary(runs: pd.DataFrame) -> pd.DataFrame:
     ``scenes``, ``peak_measured`` (every run's peak memory is its own and charges its reused stages:
     :func:`peak_memory_with_shared`).
     """
-    keys = ["dataset", "track", "protocol", "method", "scene"]
+    keys = ["dataset", "track", "protocol", "split", "method", "scene"]
     columns = (keys + [f"{v}_{s}" for v in VALUE_COLUMNS for s in ("mean", "std")]
                + ["seeds", "partial_seeds", "scenes", "peak_measured"])
     if not len(runs):
         return pd.DataFrame(columns=columns)
-    group_keys = ["dataset", "track", "protocol", "method"]
+    if "split" not in runs or runs["split"].isna().any():  # a table made by hand: runs that record no split
+        runs = runs.assign(split=runs["split"].fillna(LEGACY_EVAL_SPLIT) if "split" in runs else LEGACY_EVAL_SPLIT)
+    group_keys = ["dataset", "track", "protocol", "split", "method"]
     scene_sets = runs.groupby(group_keys)["scene"].agg(lambda s: frozenset(s))
     seed_sets = runs.groupby(group_keys + ["seed"])["scene"].agg(lambda s: frozenset(s)).reset_index()
     seed_sets["complete"] = [scenes == scene_sets[tuple(k)] for k, scenes in
@@ -783,5 +895,5 @@ def seed_summary(runs: pd.DataFrame) -> pd.DataFrame:
             rows.append(row)
     table = pd.DataFrame(rows)
     table["_order"] = (table["scene"] == MEAN_SCENE).astype(int)
-    return (table.sort_values(["dataset", "track", "protocol", "method", "_order", "scene"], kind="stable")
+    return (table.sort_values(["dataset", "track", "protocol", "split", "method", "_order", "scene"], kind="stable")
             .drop(columns="_order").reset_index(drop=True))

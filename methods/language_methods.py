@@ -23,10 +23,10 @@ Fitting (:func:`fit_language_field`):
 2. **Autoencoder** D -> ``autoencoder.latent_dim`` on the distinct mask features of all levels and
    training frames, drawn as ``autoencoder.sample_weighting`` says (default: once per mask and image, as
    the release's autoencoder data), at least ``autoencoder.min_steps`` steps; its reconstruction cosine is
-   recorded. Pixels that no mask covers first become one more mask per level named
-   ``extensions.unmasked_text`` (default "background"; :func:`with_unmasked_as`): the paper's SAM masks
-   cover the background, the oracle segmenter does not, and unsupervised Gaussians decode to arbitrary
-   features.
+   recorded. With the ``extensions.unmasked_text`` extension (the ``+`` variants: "background"; off in the
+   papers' configs, as the release), pixels that no mask covers first become one more mask per level named
+   by it (:func:`with_unmasked_as`): the paper's SAM masks cover the background, the oracle segmenter does
+   not, and unsupervised Gaussians decode to arbitrary features.
 3. **Field** (:func:`~methods.fields.language_field.train_language_field`): per-Gaussian latents of
    the three levels on the frozen geometry, L1 inside valid masks. Cached per (geometry, supervision
    fingerprint, autoencoder and field options, seed, the code digest of this module), shared like
@@ -66,7 +66,7 @@ from .fields.configs import AE_SAMPLE_WEIGHTINGS
 from .fields.language_field import (DecodeTable, FieldTarget, FrozenGeometry, LanguageField, LanguageFieldConfig,
                                     decode_for_relevance, matmul_precision, make_target, project_phrases,
                                     relevance_basis, train_language_field)
-from .fields.relevance import AgnosticResult, encode_canonical, query_levels
+from .fields.relevance import AgnosticResult, encode_canonical, query_levels, spatial_mask  # noqa: F401
 from .specs._language import LanguageMethodConfig
 from .specs._recorded import config_from_record
 from .supervision.base import LEVELS, Supervision, TextEncoder
@@ -400,12 +400,6 @@ def fit_language_field(scene: Scene, supervision: Supervision, config: LanguageM
     return SharedField(geo.geometry, fld, ae, info)
 
 
-def spatial_mask(result: AgnosticResult, rules) -> torch.Tensor:
-    """[H, W] bool: the time-sensitive query's spatial mask on a frame, before or after the majority
-    filter as :attr:`benchmark.core.protocol.SensitiveQuery.mask` says."""
-    return result.mask_unfiltered if rules.mask == "unfiltered" else result.mask
-
-
 # ---------------------------------------------------------------------------------------------------
 # The time-sensitive hook
 # ---------------------------------------------------------------------------------------------------
@@ -708,23 +702,17 @@ class LanguageFieldModel(Model):
             self.head.save(directory / HEAD_DIR)
 
 
-def _wants_head(config, scene: Scene, track: str, progress: Progress) -> bool:
+def _wants_head(config, scene: Scene, supervision: Supervision, progress: Progress) -> bool:
     """Whether to fit the time-varying head (``config.status.fit``, "auto" resolved on this scene)."""
     choice = config.status.fit
     if choice != "auto":
         return choice == "on"
-    from .captioners import resolve_captioning
+    from .captioners import captioning_unavailable
 
-    captioner, tracks = resolve_captioning(config.captions, track)
-    if captioner == "template" or tracks == "truth":
-        from .supervision.truth_access import open_truth
-
-        try:
-            open_truth(scene)
-        except InputError:
-            progress.log(f"time-varying head: off (scene {scene.name!r} has no generator truth to caption on the "
-                         f"{track} track); time-sensitive queries stay unanswered")
-            return False
+    why = captioning_unavailable(config.captions, scene, supervision)
+    if why:
+        progress.log(f"time-varying head: off ({why}); time-sensitive queries stay unanswered")
+        return False
     return True
 
 
@@ -767,7 +755,7 @@ class LanguageFieldMethod(Method):
         """The model on the fitted time-agnostic half ``shared``, with its time-varying head fitted when
         the method has one and the scene asks for it."""
         head = None
-        if cls.time_varying_head is not None and _wants_head(config, scene, supervision.track, progress):
+        if cls.time_varying_head is not None and _wants_head(config, scene, supervision, progress):
             ctx = FitContext(scene, supervision, config, seed, device, progress, shared,
                              shared_cache_root(config, work_dir), work_dir)
             head = cls.time_varying_head.fit(ctx)

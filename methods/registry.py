@@ -44,6 +44,7 @@ from typing import Any, Iterator, Mapping, Optional
 from benchmark.core.cache_keys import code_digest
 from benchmark.core.config import ConfigOption, config_options, with_overrides
 from benchmark.core.errors import InputError
+from benchmark.core.protocol import TIME_SCORES
 
 from ._registry import Registry, entry_point_modules, import_entry_point
 
@@ -52,6 +53,10 @@ DEFAULT_METHOD = "nearest-frame"
 one lands)."""
 
 SPECS_ENV = "BENCH4D_METHOD_SPECS"
+
+ANSWER_RULES = ("relevance", "mask-selection", "caption")
+"""How a method answers (:attr:`MethodSpec.answer_rule`, :attr:`MethodSpec.sensitive_rule`): a floor and a
+ranked method of the same rule are compared in the tables."""
 
 ANSWER_GROUP = "answer"
 """The option group of a method config read only when answering, never when fitting: fit cache keys leave
@@ -82,8 +87,23 @@ class MethodSpec:
     devices: tuple[str, ...] = ("cpu", "cuda")
     """Devices it runs on."""
     floor: bool = False
-    """A floor, not a competitor: it answers from the training frames' 2D supervision without going
-    through the protocol's query; the leaderboard shows it in its own labelled row and never ranks it."""
+    """A floor, not a competitor: it answers from the nearest training view's 2D supervision (and captions),
+    with no 3D or 4D model; the leaderboard shows it in its own labelled row and never ranks it."""
+    variant_of: Optional[str] = None
+    """The registered paper method this is a variant of: the same method with some of the benchmark's
+    extensions on (its config differs from the base's only in the ``extensions`` group), in a row of its own;
+    the paper's numbers attach to the base only. ``None`` for a paper method, a baseline or a floor."""
+    answer_rule: str = "relevance"
+    """How it answers time-agnostic queries (one of :data:`ANSWER_RULES`): ``"relevance"``, a per-pixel
+    relevance map through the protocol's query rule (smoothing, min-max threshold, majority filter, level
+    choice); ``"mask-selection"``, a chosen mask or identity. A ranked method is compared with the floor of
+    the same rule (:func:`floor_for`)."""
+    sensitive_rule: Optional[str] = None
+    """How it scores time-sensitive queries (one of :data:`ANSWER_RULES`): ``"relevance"``, read from the
+    relevance map (the CLIP baselines); ``"caption"``, the cosine to training frames' caption embeddings
+    (learnt by a time-varying field, or replayed by the floor); ``"mask-selection"``, the chosen mask's
+    feature. ``None``: none (a method that answers no time-sensitive query) or, where it answers them,
+    :attr:`answer_rule`."""
 
     def __post_init__(self) -> None:
         if not dataclasses.is_dataclass(self.config):
@@ -99,6 +119,30 @@ class MethodSpec:
         bad = set(self.tracks) - {"oracle", "real"}
         if bad:
             raise ValueError(f"method {self.name!r}: unknown tracks {sorted(bad)}")
+        for what, rule in (("answer_rule", self.answer_rule), ("sensitive_rule", self.sensitive_rule)):
+            if rule is not None and rule not in ANSWER_RULES:
+                raise ValueError(f"method {self.name!r}: {what} must be one of {ANSWER_RULES}, got {rule!r}")
+        if self.variant_of is not None and (self.variant_of == self.name or self.floor):
+            raise ValueError(f"method {self.name!r}: a variant names another method and is no floor")
+
+    @property
+    def time_score(self) -> str:
+        """How its time-sensitive score is made, which picks the protocol's ``tau`` rule
+        (:data:`benchmark.core.protocol.TIME_SCORES`): ``"relevance-peak"`` for a score read from the
+        relevance map (``sensitive_rule == "relevance"``, the release's CLIP-only baselines), else
+        ``"feature"`` (a time-varying or replayed feature's similarity to the query)."""
+        score = "relevance-peak" if self.sensitive_rule == "relevance" else "feature"
+        assert score in TIME_SCORES
+        return score
+
+    def rule_for(self, kind: str) -> Optional[str]:
+        """The rule of its answers to ``kind`` queries (``"agnostic"`` or ``"sensitive"``); ``None`` where it
+        answers none of them."""
+        if kind not in ("agnostic", "sensitive"):
+            raise ValueError(f"query kind must be 'agnostic' or 'sensitive', got {kind!r}")
+        if kind not in self.queries:
+            return None
+        return self.answer_rule if kind == "agnostic" else (self.sensitive_rule or self.answer_rule)
 
     # -- code ----------------------------------------------------------------------------------
     @property
@@ -169,9 +213,11 @@ class MethodSpec:
 
     def recorded_as(self, recorded: Optional[Mapping[str, Any]], overrides: Optional[Mapping[str, Any]] = None) -> bool:
         """Whether a recorded ``method_config`` is the config these ``overrides`` give today (False when a
-        default has moved since, the record holds a value this version refuses, or there is no record): a
-        study's cached run is current only then."""
-        if not isinstance(recorded, Mapping):
+        default has moved since, the record holds a value this version refuses or an option it retired, or
+        there is no record): a study's cached run is current only then."""
+        from .specs._recorded import holds_retired_options
+
+        if not isinstance(recorded, Mapping) or holds_retired_options(recorded):
             return False
         try:
             return self.config_from_record(recorded) == self.make_config(overrides)
@@ -193,8 +239,8 @@ class MethodSpec:
 BEFORE_THE_OPTION: dict[str, Any] = {
     "extensions.caption_segments": False,
 }
-"""Dotted path -> what a record that predates the option did, where that is not the option's default today
-(every frame's caption was its own target until caption segments became the default)."""
+"""Dotted path -> what a record that predates the option did, where a config's default may differ today
+(every frame's caption was its own target before caption segments existed; ``4d-langsplat+`` turns them on)."""
 
 
 # -- the registry ----------------------------------------------------------------------------------
@@ -278,12 +324,65 @@ def default_method() -> str:
 
 
 def paper_numbers(name: str) -> dict[str, Any]:
-    """The paper's numbers for method ``name``: from its spec if registered, else the data file."""
+    """The paper's numbers for method ``name``: from its spec if registered, else the data file; none for a
+    variant (:attr:`MethodSpec.variant_of`): they are its base's, whose row shows them."""
     from .specs.paper_numbers import PAPER_NUMBERS
 
-    if name in METHODS and METHODS.get(name).paper_numbers:
-        return dict(METHODS.get(name).paper_numbers)
+    if name in METHODS:
+        spec = METHODS.get(name)
+        if spec.variant_of is not None:
+            return {}
+        if spec.paper_numbers:
+            return dict(spec.paper_numbers)
     return dict(PAPER_NUMBERS.get(name, {}))
+
+
+def variants_of(name: str) -> list[str]:
+    """Names of the registered variants of method ``name`` (:attr:`MethodSpec.variant_of`), sorted."""
+    return sorted(s.name for s in METHODS.entries() if s.variant_of == name)
+
+
+def recorded_method(name: str, recorded: Optional[Mapping[str, Any]]) -> str:
+    """The registered name a run of ``name`` made with the config ``recorded`` stands for today: ``name``
+    when that is its default config (or no variant's default matches either: the leaderboard marks such a
+    run), else the variant whose default config it is. A run made before the paper configs became the
+    defaults, with the benchmark's extensions on, is thereby shown as the variant it was (``4d-langsplat+``),
+    never as the paper's method."""
+    from .specs._recorded import RETIRED_AS
+
+    try:
+        spec = get(name)
+    except InputError:
+        return name
+    retired = [RETIRED_AS[key] for key in (recorded or {}) if key in RETIRED_AS]
+    if retired and retired[0] in METHODS:
+        return retired[0]
+    if spec.recorded_as(recorded):
+        return name
+    for variant in variants_of(name):
+        if get(variant).recorded_as(recorded):
+            return variant
+    return name
+
+
+def paper_base(name: str) -> str:
+    """The paper method whose row a method's results belong beside: its :attr:`~MethodSpec.variant_of`, else
+    ``name`` itself."""
+    return get(name).variant_of or name
+
+
+def floor_for(name: str, kind: str) -> Optional[str]:
+    """The floor a method's answers to ``kind`` queries are compared with: the registered floor whose rule
+    for ``kind`` (:meth:`MethodSpec.rule_for`) is the method's, preferring one whose rules agree on both
+    kinds, then by name; ``None`` where no floor shares the rule (or the method answers no such query)."""
+    spec = get(name)
+    rule = spec.rule_for(kind)
+    if rule is None:
+        return None
+    kinds = ("agnostic", "sensitive")
+    same = [s for s in all_specs() if s.floor and s.rule_for(kind) == rule]
+    same.sort(key=lambda s: (sum(s.rule_for(k) != spec.rule_for(k) for k in kinds), s.name))
+    return same[0].name if same else None
 
 
 @dataclass(frozen=True)

@@ -26,25 +26,13 @@ from benchmark.core.atomic import atomic_path, write_json
 from benchmark.core.memory import StagePeak
 from benchmark.core.scene import Frame
 
+from .captioners.supervision import caption_text_encoder
 from .fields.relevance import AgnosticResult
 from .fields.time_varying import build_captions, embed_captions, fit_time_varying_field, load_time_varying_field
 from .language_methods import FitContext, LanguageFieldModel, TimeVaryingHead, spatial_mask
 
 STATE_FILE = "time_varying.pt"
 INFO_FILE = "time_varying.json"
-
-
-def caption_text_encoder(captions, run_encoder, device: str):
-    """The text encoder of captions and time-sensitive queries: ``captions.text_encoder`` when set (e.g. the
-    paper's e5-mistral), else the run's."""
-    if captions.text_encoder is None:
-        return run_encoder
-    import inspect
-
-    from .text_encoders import TEXT_ENCODERS, get_text_encoder
-
-    takes_device = "device" in inspect.signature(TEXT_ENCODERS.load(captions.text_encoder)).parameters
-    return get_text_encoder(captions.text_encoder, **({"device": str(device)} if takes_device else {}))
 
 
 class _FieldHead(TimeVaryingHead):

@@ -72,6 +72,16 @@ def hypernerf_json_dir(shared_dir: Path) -> Path:
     return path
 
 
+def keep_paper_split(aset):
+    """``aset`` narrowed, in place, to the frames of its paper split: the release format annotates one camera
+    (the video's), not a generated scene's novel-view path. Returns ``aset``."""
+    kept = {f.id for f in aset.frames if f.name in set(aset.info["splits"]["paper"])}
+    aset.frames = [f for f in aset.frames if f.id in kept]
+    aset.masks = {key: rle for key, rle in aset.masks.items() if key[1] in kept}
+    aset.made_by = {key: how for key, how in aset.made_by.items() if key[1] in kept}
+    return aset
+
+
 def tiny_clip_model(folder: Path, max_positions: int = 77) -> Path:
     """A randomly initialised transformers CLIP (16-wide, one layer, a 54-token letter vocabulary) with its
     tokenizer, saved in ``folder``: the real class at a size a test can run."""

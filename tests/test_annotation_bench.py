@@ -79,24 +79,114 @@ def test_the_bench_measures_both_backends_and_both_workflows(smoke):
     assert set(rows) == {"grabcut", "sam"}
     for r in rows.values():
         assert r["frames"] > 0 and 1 <= r["noc90"] <= config.max_interactions
+        # the clicks-only figure on the same frames, beside the box-first one
+        assert r["clicks_frames"] == r["frames"] and 1 <= r["clicks_noc85"] <= r["clicks_noc90"] <= config.max_interactions
         assert r["human_s_per_frame_every"] > 0 and r["human_s_per_frame_propagation"] > 0
     # the box-only stand-in cannot follow the object's outline as GrabCut does
     assert rows["grabcut"]["final_iou"] > rows["sam"]["final_iou"]
     paths = bench.write([result], config, base / "report")
     text = paths[1].read_text()
     assert "NoC@90" in text and "Papadopoulos" in text and "smoke" in text
+    assert "clicks only: NoC@85" in text and "box first: NoC@85" in text and "farthest from its boundary" in text
+    assert f"standard deviation {config.box_jitter:g} times the object's width" in text
     tolerance = result["one_pixel_iou"]  # every mask query's, from the truth of the scored frames
     assert set(tolerance) == {q.text for q in truth.queries if q.kind == "agnostic"} - {
         q.text for q in truth.queries if q.kind == "agnostic"
         and all(m is None or not m.any() for m in (truth.mask(q.text, f) for f in truth.scored_frames))}
-    assert all(0 < v < 1 for v in tolerance.values()) and "one-pixel IoU >= 0.9" in text
+    # a mask of a few pixels (the smoke box's knob at 48 px) erodes to nothing: 0
+    assert all(0 <= v < 1 for v in tolerance.values()) and "one-pixel IoU >= 0.9" in text
 
 
-def test_intervals_are_marked_within_one_frame_of_the_truth(smoke):
+def test_intervals_are_marked_only_where_the_pixels_change(smoke):
     _, truth, _, result = smoke
     sensitive = [q for q in truth.queries if q.kind == "sensitive"]
     assert len(result["intervals"]) == len(sensitive) > 0
-    assert all(r["boundary_error"] is not None and r["boundary_error"] <= 1 for r in result["intervals"])
+    times = sorted({0, *(t for r in result["intervals"] for iv in r["true"] for t in iv)})
+    for row in result["intervals"]:
+        assert row["keys"] == 2 * len(row["marked"])
+        starts = {a for a, _ in row["marked"]} - {times[0]}
+        ends = {b + 1 for _, b in row["marked"]} - {max(times) + 1}
+        # every boundary marked is a change the detector found in the images, none is the truth's own
+        assert (starts | ends) <= set(row["changes_found"]), row
+
+
+def test_the_interval_marker_follows_the_pixels_not_the_truth():
+    from annotations.tool.synthetic import rigid_sequence
+
+    seq = rigid_sequence(40, 160, 120, seed=3, recolour_at=17)
+    descriptors = [bench.region_descriptor(image, mask) for image, mask in zip(seq.images, seq.masks)]
+    changes = bench.change_times(descriptors, window=3, threshold=3.0)
+    assert changes == [17]
+    times = list(range(40))
+    # a truth that says the state starts at 25: the marked interval still starts where the colour changed
+    holds = [t >= 25 for t in times]
+    assert bench.intervals_from_changes(times, changes, holds) == [(17, 39)]
+    assert bench.boundary_error(bench.intervals_from_changes(times, changes, holds), [(25, 39)]) == 8
+    # the same motion without a change of state: nothing to mark, whatever the truth says
+    still = rigid_sequence(40, 160, 120, seed=3)
+    assert bench.change_times([bench.region_descriptor(i, m) for i, m in zip(still.images, still.masks)], 3, 3.0) == []
+    assert bench.intervals_from_changes(times, [], [t >= 10 for t in times]) == [(0, 39)]  # one piece, mostly holding
+    assert bench.intervals_from_changes(times, [], [t >= 30 for t in times]) == []
+    # frames where the object is out of view are skipped, not read as a change
+    gappy = descriptors[:10] + [None] * 3 + descriptors[13:]
+    assert bench.change_times(gappy, window=3, threshold=3.0) == [17]
+
+
+def test_boxes_are_noisy_by_the_stated_jitter_the_same_on_every_run():
+    truth = np.zeros((100, 200), bool)
+    truth[20:60, 50:130] = True  # 80 wide, 40 tall
+    assert bench.noisy_box(truth, 2, 0.0, np.random.default_rng(1)) == [48.0, 18.0, 132.0, 62.0]
+    assert bench.truth_box(truth, 2) == [48.0, 18.0, 132.0, 62.0]
+    boxes = np.array([bench.noisy_box(truth, 0, 0.05, bench.box_rng(0, "cup", f"f{k}")) for k in range(400)])
+    offsets = boxes - [50, 20, 130, 60]
+    assert np.std(offsets, axis=0) == pytest.approx([4.0, 2.0, 4.0, 2.0], rel=0.2)  # 5 % of width / height
+    assert abs(np.mean(offsets)) < 0.5
+    assert bench.noisy_box(truth, 2, 0.05, bench.box_rng(0, "cup", "f1")) == bench.noisy_box(
+        truth, 2, 0.05, bench.box_rng(0, "cup", "f1"))
+    assert bench.box_rng(0, "cup", "f1").random() != bench.box_rng(1, "cup", "f1").random()
+    edge = np.zeros((100, 200), bool)
+    edge[0:5, 195:200] = True  # at the corner: the box stays in the frame and at least a pixel wide
+    for k in range(50):
+        x0, y0, x1, y1 = bench.noisy_box(edge, 2, 0.5, np.random.default_rng(k))
+        assert 0 <= x0 < x1 <= 200 and 0 <= y0 < y1 <= 100 and x1 - x0 >= 1 and y1 - y0 >= 1
+
+
+class _DiskClient:
+    """A stand-in for the tool: each positive click adds a disk of radius 5, each negative one removes it."""
+
+    def __init__(self, shape):
+        self.shape = shape
+        self.requests = []
+
+    def segment(self, frame, box, clicks, current):
+        self.requests.append((box, list(clicks)))
+        mask = np.zeros(self.shape, bool)
+        yy, xx = np.mgrid[:self.shape[0], :self.shape[1]]
+        for x, y, label in clicks:
+            mask[(xx + 0.5 - x) ** 2 + (yy + 0.5 - y) ** 2 <= 25] = bool(label)
+        return mask, 0.001
+
+
+def test_clicks_only_starts_at_the_deepest_interior_point_and_stops_at_20_clicks():
+    truth = np.zeros((60, 80), bool)
+    truth[10:50, 10:30] = True  # a tall bar: its deepest points lie on x = 20
+    truth[40:50, 30:70] = True  # and a foot to the right
+    x, y, label = bench.first_click(truth)
+    assert label == 1 and 19 <= x <= 21 and 19 <= y <= 41
+    client = _DiskClient(truth.shape)
+    config = bench.BenchConfig(max_interactions=20, target_iou=0.85)
+    mask, log = bench.annotate_clicks_only(client, 0, "f", truth, config)
+    assert all(box is None for box, _ in client.requests)  # never a box
+    assert client.requests[0][1] == [bench.first_click(truth)]
+    assert log.made_by == "clicks-only" and len(log.ious) <= 20
+    # disks of radius 5 cannot trace square corners: it runs to the cap short of 0.90 (NoC@90 = 20)
+    assert log.noc(0.90, 20) == 20 or log.ious[-1] >= 0.90
+    small = np.zeros((60, 80), bool)
+    small[20:29, 20:29] = True  # nearly one disk: reached within a few clicks
+    _, quick = bench.annotate_clicks_only(_DiskClient(small.shape), 0, "f", small, config)
+    assert quick.ious[-1] >= 0.90 and quick.noc(0.90, 20) <= 5
+    _, absent = bench.annotate_clicks_only(client, 0, "f", np.zeros_like(truth), config)
+    assert absent.made_by == "absent"
 
 
 def test_the_saved_masks_are_the_annotators_and_say_how_they_were_made(smoke):

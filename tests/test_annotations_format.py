@@ -126,7 +126,7 @@ def _set(path: str, value):
         node = doc
         for p in parents:
             node = node[int(p)] if p.isdigit() else node[p]
-        node[int(last) if last.isdigit() else last] = value
+        node[int(last) if last.isdigit() and isinstance(node, list) else last] = value
     return mutate
 
 

@@ -131,6 +131,8 @@ FIT_DAMAGE = {
     "fit.json with text for a number": lambda fit: (fit / "fit.json").write_text(
         json.dumps({**json.loads((fit / "fit.json").read_text()), "peak_cpu_mib": "lots"})),
     "model folder gone": lambda fit: shutil.rmtree(fit / "model"),
+    "fit.json with NaN seconds": lambda fit: (fit / "fit.json").write_text(
+        (fit / "fit.json").read_text().replace('"fit_seconds": ', '"fit_seconds": NaN, "was": ', 1)),
 }
 
 
@@ -340,7 +342,9 @@ def test_eval_and_score_of_its_folder_agree_when_queries_are_unanswered(env, tmp
     outcome = evaluate(_options(env))
     doc = outcome.results
     assert sorted(doc["unanswered_queries"]) == ["broken bar", "closed box", "intact bar", "open box"]
-    assert doc["metrics"]["Acc"] is None and doc["metrics"]["sensitive_queries"] == 0
+    # a kind declined as a whole: no full mean (no row in that table), no answered-only mean
+    assert doc["metrics"]["Acc"] is None and doc["metrics"]["Acc_answered"] is None
+    assert (doc["metrics"]["sensitive_queries"], doc["metrics"]["asked_sensitive_queries"]) == (0, 4)
     pred_dir = outcome.path.with_suffix(".predictions")
     assert read_predictions(pred_dir).info["unanswered_queries"] == doc["unanswered_queries"]
     gt = env["scene"] / "annotations.json"
@@ -351,7 +355,8 @@ def test_eval_and_score_of_its_folder_agree_when_queries_are_unanswered(env, tmp
     assert "unanswered by the method" in err and "open box" in err
     scored = json.loads(out.read_text())
     metrics = scored["metrics"]["dataset"]
-    for name in ("mIoU", "mAcc", "Acc", "vIoU", "agnostic_queries", "sensitive_queries", "frames_scored"):
+    for name in ("mIoU", "mAcc", "Acc", "vIoU", "Acc_answered", "agnostic_queries", "sensitive_queries",
+                 "asked_sensitive_queries", "frames_scored", "absentFP"):
         assert metrics[name] == pytest.approx(doc["metrics"][name]) if doc["metrics"][name] is not None \
             else metrics[name] is None, name
     assert sorted(u["query"] for u in scored["unanswered"]) == sorted(doc["unanswered_queries"])
@@ -386,7 +391,8 @@ def test_declared_unanswered_queries_are_listed_not_scored_and_checked(tmp_path)
     declined.info["unanswered_queries"] = ["open cookie"]
     result = score_scene(aset, declined, ScoreConfig())
     assert result.unanswered == ["open cookie"] and [q.query for q in result.queries] == ["cookie"]
-    assert np.isnan(result.summary()["Acc"]) and result.summary()["mIoU"] == 100.0
+    assert np.isnan(result.summary()["Acc"]) and np.isnan(result.summary()["Acc_answered"])  # kind declined whole
+    assert result.summary()["mIoU"] == 100.0
     for listed, match in ((["cookie"], "which the predictions answer"), (["nope"], "not a query"),
                           ("open cookie", "list of query texts")):
         declined.info["unanswered_queries"] = listed

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import random
 from pathlib import Path
@@ -15,42 +16,79 @@ from benchmark.core.protocol import PROTOCOLS
 from benchmark.leaderboard import build_leaderboard
 from benchmark.plots import chart_points, label_groups, pareto, pareto_front, timeline, write_png
 from benchmark.results import MEAN_SCENE, find_results, load_results, results_path, runs_table, seed_summary, write_results
+from benchmark.synthetic.digest import expected_digest
 
 # (method, scene, seed) -> mIoU; Acc = mIoU - 10; fps and fit time per method
 MIOU = {("alpha", "s1"): [50.0, 52.0, 54.0], ("alpha", "s2"): [60.0, 60.0, 60.0],
         ("beta", "s1"): [70.0, 71.0, 72.0], ("beta", "s2"): [40.0, 44.0, 48.0]}
 FPS = {"alpha": 100.0, "beta": 2.0, "gamma": 1.0, "delta": 1.0, "epsilon": 1.0, "zeta": 1.0, "nearest-frame": 1.0}
 FIT = {"alpha": 0.5, "beta": 300.0, "gamma": 10.0, "delta": 10.0, "epsilon": 10.0, "zeta": 10.0, "nearest-frame": 1.0}
+S1, S2 = "americano", "keyboard"
+"""Two official scenes (the leaderboard ranks official scenes only; "s1" and "s2" are other scenes)."""
+OFFICIAL = {"s1": S1, "s2": S2}
+AGNOSTIC_QUERIES = ("cup", "table", "pitcher")
 
 
 def _doc(method: str, scene: str, seed: int, miou: float) -> dict:
+    """A run with three time-agnostic queries around ``miou`` (their mean is ``miou``) and one time-sensitive."""
     frames = []
     for i, t in enumerate(range(0, 20, 2)):
         frames.append({"scene": scene, "query": "cracked cookie", "kind": "sensitive", "frame": f"f{t:03d}",
                        "time_index": t, "camera_id": "0", "iou": 0.5, "acc": 0.9, "pred_pixels": 3,
                        "gt_pixels": 4, "score": 0.1 * (i % 5), "smoothed": 0.1 * (i % 5) + 0.01,
                        "decision": i % 5 >= 2, "label": 6 <= t <= 12})
+    spread = min(2.0, miou, 100.0 - miou)
+    acc = max(miou - 10.0, 0.0)
+    agnostic = [{"scene": scene, "query": q, "kind": "agnostic", "frames": 10, "mIoU": miou + d * spread,
+                 "mAcc": 90.0 + seed} for q, d in zip(AGNOSTIC_QUERIES, (-1, 0, 1))]
+    digest = expected_digest(scene, 128) or "d" * 24  # an official preset at its committed version
     return {"method": method, "dataset": "synthetic", "scene": scene, "track": "oracle", "seed": seed,
             "splits": ["test"], "protocol": PROTOCOLS["release"].to_dict(),
-            "metrics": {"mIoU": miou, "mAcc": 90.0 + seed, "Acc": miou - 10.0, "vIoU": miou / 2,
+            "metrics": {"mIoU": miou, "mAcc": 90.0 + seed, "Acc": acc, "vIoU": miou / 2,
                         "agnostic_queries": 3, "sensitive_queries": 1, "frames_scored": 40},
             "timing": {"fit_seconds": FIT[method], "fit_cached": False,
                        "query_agnostic": {"seconds_per_frame": 1 / FPS[method], "fps": FPS[method]},
                        "query_sensitive": {"seconds_per_frame": 1 / FPS[method], "fps": FPS[method]}},
             "memory": {"peak_cpu_mib": 100.0, "peak_gpu_mib": None},
             "environment": {"device": "cpu", "git": {"commit": "abc", "dirty": False}},
-            # a versioned generated scene (no committed digest for these names: comparable)
-            "scene_info": {"generated": {"preset": scene, "size": 128, "seed": 0, "digest": "d" * 24}},
-            "scores": {"queries": [{"scene": scene, "query": "cracked cookie", "kind": "sensitive", "frames": 10,
-                                    "Acc": miou - 10.0, "vIoU": miou / 2, "threshold": 0.2}],
+            "scene_info": {"generated": {"preset": scene, "size": 128, "seed": 0, "digest": digest}},
+            "scores": {"queries": agnostic + [{"scene": scene, "query": "cracked cookie", "kind": "sensitive",
+                                               "frames": 10, "Acc": acc, "vIoU": miou / 2, "threshold": 0.2}],
                        "frames": frames, "skipped": []}}
 
 
-def _write_all(root: Path, order_seed: int) -> None:
+def _write_all(root: Path, order_seed: int, scenes: dict[str, str] | None = None) -> None:
+    """:data:`MIOU`'s runs, written in a shuffled order; ``scenes`` renames s1 and s2 (e.g. :data:`OFFICIAL`)."""
     items = [(m, s, seed, v) for (m, s), vals in MIOU.items() for seed, v in enumerate(vals)]
     random.Random(order_seed).shuffle(items)
     for m, s, seed, v in items:
-        write_results(results_path(root, "synthetic", s, m, "oracle", seed), _doc(m, s, seed, v))
+        scene = (scenes or {}).get(s, s)
+        write_results(results_path(root, "synthetic", scene, m, "oracle", seed), _doc(m, scene, seed, v))
+
+
+def _section(text: str, title: str, after: str = "") -> str:
+    """The Markdown from heading ``title`` (after ``after``) to the next heading of its level or higher."""
+    start = text.index(title, text.index(after) if after else 0)
+    level = title.split(" ")[0]
+    rest = text[start + len(title):]
+    ends = [rest.find("\n" + "#" * n + " ") for n in range(1, len(level) + 1)]
+    ends = [e for e in ends if e >= 0]
+    return rest[:min(ends)] if ends else rest
+
+
+def _rows(table: str) -> dict[str, list[str]]:
+    """Method cell -> the row's cells (method first), of the table rows in ``table``."""
+    out = {}
+    for line in table.splitlines():
+        if line.startswith("| ") and not line.startswith("| method") and not line.startswith("|---"):
+            cells = [c.strip() for c in line.split("|")[1:-1]]
+            out[cells[0]] = cells
+    return out
+
+
+def _header(table: str) -> list[str]:
+    line = next(line for line in table.splitlines() if line.startswith("| method"))
+    return [c.strip() for c in line.split("|")[1:-1]]
 
 
 def test_protocols_get_their_own_tables_floors_are_not_ranked_and_means_show_their_ceiling_share(tmp_path):
@@ -59,41 +97,48 @@ def test_protocols_get_their_own_tables_floors_are_not_ranked_and_means_show_the
     root = tmp_path / "results"
     for method, protocol, values in (("alpha", "release", (56.0, 42.0)), ("gamma", "release", (28.0, 21.0)),
                                      ("nearest-frame", "release", (99.0, 99.0)), ("beta", "paper-text", (30.0, 30.0))):
-        for scene, v in zip(("s1", "s2"), values):
+        for scene, v in zip((S1, S2), values):
             doc = {**_doc(method, scene, 0, v), "protocol": PROTOCOLS[protocol].to_dict()}
             write_results(results_path(root, "synthetic", scene, method, "oracle", 0), doc)
     reports = tmp_path / "rep"
     current = {"current": True}
     write_json(reports / "ablations" / "protocol-ceiling.json", {"scenes": {
-        "s1": {"scene_version": current, "variants": {"release": {"mIoU": 0.8, "vIoU": 0.5},
-                                                      "paper-text": {"mIoU": 0.5, "vIoU": 0.25}}},
-        "s2": {"scene_version": current, "variants": {"release": {"mIoU": 0.6, "vIoU": 0.5},
-                                                      "paper-text": {"mIoU": 0.5, "vIoU": 0.25}}}}})
-    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=reports)
+        S1: {"scene_version": current, "variants": {"release": {"mIoU": 0.8, "vIoU": 0.5},
+                                                    "paper-text": {"mIoU": 0.5, "vIoU": 0.25}}},
+        S2: {"scene_version": current, "variants": {"release": {"mIoU": 0.6, "vIoU": 0.5},
+                                                    "paper-text": {"mIoU": 0.5, "vIoU": 0.25}}}}})
+    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=reports, csv_dir=reports)
     text = (tmp_path / "lb.md").read_text()
     release, paper = text.index("protocol: release (default)"), text.index("protocol: paper-text")
     assert release < paper
-    table = text[release:paper].split("### Time-agnostic queries")[1].split("###")[0]
-    header = next(line for line in table.splitlines() if line.startswith("| method |")).split("|")
-    share = header.index(" % of ceiling (mIoU) ↑ ")
-    rows = {line.split("|")[1].strip(): line.split("|") for line in table.splitlines() if line.startswith("| ")}
-    assert rows["alpha"][share].strip() == "**70.00**"  # (56 + 42) / 2 = 49 of (80 + 60) / 2 = 70
-    assert rows["gamma"][share].strip() == "35.00"
-    floor = rows["_nearest-frame (2D floor, not ranked)_"]
-    assert floor[share].strip() == "141.43" and "**" not in "|".join(floor)  # above the ceiling, never ranked
+    table = _section(text[release:paper], "#### Time-agnostic queries")
+    header = _header(table)
+    # the ceiling's own value beside the share: (80 + 60) / 2 = 70
+    share = header.index("% of ceiling (mIoU 70.00) ↑")
+    rows = _rows(table)
+    assert rows["alpha"][share].startswith("**70.00 [")  # (56 + 42) / 2 = 49 of 70, its interval beside it
+    assert rows["gamma"][share].startswith("35.00 [")
+    floor = rows["_nearest-frame (floor, not ranked; answers by relevance)_"]
+    assert floor[share].startswith("141.43") and "**" not in "|".join(floor)  # above the ceiling, never ranked
     assert list(rows)[-1].startswith("_nearest-frame")  # below the methods it is a floor for
-    paper_table = text[paper:].split("### Time-agnostic queries")[1].split("###")[0]
-    beta = next(line for line in paper_table.splitlines() if line.startswith("| beta |")).split("|")
-    assert beta[share].strip() == "60.00"  # against the paper-text ceiling, not the release one
-    assert (reports / "leaderboard_synthetic_oracle_release.csv").is_file()
-    # a seed that ran s1 only is in s1's column, not in the mean, nor in the mean's share of the ceiling
-    write_results(results_path(root, "synthetic", "s1", "alpha", "oracle", 1),
-                  {**_doc("alpha", "s1", 1, 0.0), "protocol": PROTOCOLS["release"].to_dict()})
+    paper_table = _section(text[paper:], "#### Time-agnostic queries")
+    assert _rows(paper_table)["beta"][_header(paper_table).index("% of ceiling (mIoU 50.00) ↑")].startswith("60.00")
+    assert (reports / "leaderboard_synthetic_oracle_release_legacy-dense.csv").is_file()
+    # a seed that ran one scene only is in that scene's column, not in the mean, nor in the mean's share
+    write_results(results_path(root, "synthetic", S1, "alpha", "oracle", 1),
+                  {**_doc("alpha", S1, 1, 0.0), "protocol": PROTOCOLS["release"].to_dict()})
     build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=reports)
-    table = (tmp_path / "lb.md").read_text().split("### Time-agnostic queries")[1].split("###")[0]
-    alpha = next(line for line in table.splitlines() if line.startswith("| alpha |")).split("|")
-    assert alpha[2].strip().startswith("**28.00") and alpha[share].strip() == "**70.00**"
+    table = _section((tmp_path / "lb.md").read_text(), "#### Time-agnostic queries")
+    alpha = _rows(table)["alpha"]
+    assert alpha[1] == "28.00 ± 39.60" and alpha[share].startswith("**70.00 [")
 
+
+def test_a_table_without_ceiling_says_why(tmp_path):
+    _write_all(tmp_path / "results", 0, OFFICIAL)
+    build_leaderboard(tmp_path / "results", markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
+    text = (tmp_path / "lb.md").read_text()
+    assert "% of ceiling (" not in text
+    assert text.count("_No ceiling column: the perfect-feature ceiling (`bench4d ablate ceiling`) has no") == 2
 
 def test_summary_means_stds_and_dataset_mean_per_seed(tmp_path):
     _write_all(tmp_path / "results", 0)
@@ -112,46 +157,47 @@ def test_summary_means_stds_and_dataset_mean_per_seed(tmp_path):
     assert mean["seeds"] == 3 and mean["scenes"] == 2
 
 
+
+
 def test_dataset_mean_counts_only_seeds_that_ran_every_scene(tmp_path):
-    # gamma: s1 with seeds 0-2, s2 with seed 0 only -> seeds 1 and 2 would average s1 alone
+    # gamma: S1 with seeds 0-2, S2 with seed 0 only -> seeds 1 and 2 would average S1 alone
     root = tmp_path / "results"
     for seed, v in enumerate([50.0, 60.0, 70.0]):
-        write_results(results_path(root, "synthetic", "s1", "gamma", "oracle", seed), _doc("gamma", "s1", seed, v))
-    write_results(results_path(root, "synthetic", "s2", "gamma", "oracle", 0), _doc("gamma", "s2", 0, 90.0))
+        write_results(results_path(root, "synthetic", S1, "gamma", "oracle", seed), _doc("gamma", S1, seed, v))
+    write_results(results_path(root, "synthetic", S2, "gamma", "oracle", 0), _doc("gamma", S2, 0, 90.0))
     # delta: one scene only, complete seeds
     for seed in (0, 1):
-        write_results(results_path(root, "synthetic", "s1", "delta", "oracle", seed), _doc("delta", "s1", seed, 99.0))
+        write_results(results_path(root, "synthetic", S1, "delta", "oracle", seed), _doc("delta", S1, seed, 99.0))
     summary = seed_summary(runs_table(find_results(root)))
     mean = summary[(summary.method == "gamma") & (summary.scene == MEAN_SCENE)].iloc[0]
     assert mean["mIoU_mean"] == pytest.approx((50 + 90) / 2)  # seed 0 only, not mean(70, 60, 70)
     assert mean["seeds"] == 1 and mean["partial_seeds"] == 2 and mean["scenes"] == 2
-    # epsilon: s1 on seed 0 only, s2 on seed 1 only -> no complete seed, an empty mean row
-    for seed, scene in ((0, "s1"), (1, "s2")):
+    # epsilon: S1 on seed 0 only, S2 on seed 1 only -> no complete seed, an empty mean row
+    for seed, scene in ((0, S1), (1, S2)):
         write_results(results_path(root, "synthetic", scene, "epsilon", "oracle", seed), _doc("epsilon", scene, seed, 50.0))
     summary = seed_summary(runs_table(find_results(root)))
     eps = summary[(summary.method == "epsilon") & (summary.scene == MEAN_SCENE)].iloc[0]
     assert math.isnan(eps["mIoU_mean"]) and eps["seeds"] == 0 and eps["partial_seeds"] == 2
-    s1 = summary[(summary.method == "gamma") & (summary.scene == "s1")].iloc[0]
+    s1 = summary[(summary.method == "gamma") & (summary.scene == S1)].iloc[0]
     assert s1["mIoU_mean"] == pytest.approx(60.0) and s1["seeds"] == 3  # the scene column keeps every seed
     build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
-    table = (tmp_path / "lb.md").read_text().split("### Time-agnostic queries")[1].split("###")[0]
-    gamma = next(line for line in table.splitlines() if line.startswith("| gamma |"))
-    delta = next(line for line in table.splitlines() if line.startswith("| delta |"))
-    assert gamma.endswith("| 2/2 | 1 (+2 partial) |") and delta.endswith("| 1/2 | 2 |")
-    epsilon = next(line for line in table.splitlines() if line.startswith("| epsilon |"))
-    assert epsilon.endswith("| 2/2 | 0 (+2 partial) |")  # listed, with no mean
+    rows = _rows(_section((tmp_path / "lb.md").read_text(), "#### Time-agnostic queries"))
+    assert rows["gamma"][-2:] == ["2/2", "1 (+2 partial)"] and rows["delta"][-2:] == ["1/2", "2"]
+    assert rows["epsilon"][-2:] == ["2/2", "0 (+2 partial)"]  # listed, with no mean
     # delta's mean (99, one scene) is higher but not comparable with gamma's two-scene 70: nobody ranks
-    # first in the mean column (columns: method, s1, s2, mean, ...)
-    assert gamma.split("|")[4].strip() == "70.00" and delta.split("|")[4].strip() == "99.00 ± 0.00"
-    assert "**99.00 ± 0.00**" in delta.split("|")[2]  # the per-scene column still ranks s1
+    # first in the mean column (columns: method, S1, S2, mean, ...)
+    assert rows["gamma"][3].startswith("70.00 [") and rows["delta"][3].startswith("99.00 [")
+    assert rows["delta"][1] == "**99.00 ± 0.00**"  # the per-scene column still ranks S1 (its interval is apart)
+    assert list(rows) == ["gamma", "delta", "epsilon"]  # ranked first, then the methods with fewer scenes
 
 
-def test_leaderboard_is_deterministic_marks_best_and_separates_paper_numbers(tmp_path):
+def test_leaderboard_is_deterministic_ties_overlapping_intervals_and_separates_paper_numbers(tmp_path):
     outputs = []
     for order in (0, 1):
         base = tmp_path / f"run{order}"
-        _write_all(base / "results", order)
-        build_leaderboard(base / "results", markdown=base / "leaderboard.md", reports_dir=base / "reports")
+        _write_all(base / "results", order, OFFICIAL)
+        build_leaderboard(base / "results", markdown=base / "leaderboard.md", reports_dir=base / "reports",
+                          csv_dir=base / "reports")
         files = sorted(p.relative_to(base) for p in (base / "reports").iterdir())
         outputs.append({str(p): (base / p).read_bytes() for p in files} | {"md": (base / "leaderboard.md").read_bytes()})
     # same files written in another order -> byte-identical outputs (results dir label aside)
@@ -159,38 +205,353 @@ def test_leaderboard_is_deterministic_marks_best_and_separates_paper_numbers(tmp
     assert first == second
     md = outputs[0]["md"].decode()
     assert md.startswith("<!-- GENERATED by `bench4d leaderboard`")
-    assert "mIoU ↑" in md and "fit (s) ↓" in md and "query FPS ↑" in md
-    agnostic = md.split("### Time-agnostic queries")[1].split("###")[0]
-    alpha_row = next(line for line in agnostic.splitlines() if line.startswith("| alpha |"))
-    beta_row = next(line for line in agnostic.splitlines() if line.startswith("| beta |"))
-    assert "**52.00 ± 2.00**" not in alpha_row and "52.00 ± 2.00" in alpha_row  # alpha s1 is not best
-    assert "**71.00 ± 1.00**" in beta_row  # beta s1 best
-    assert "**0.5 ± 0**" in alpha_row and "**100 ± 0**" in alpha_row  # fit: lower is better; FPS: higher
-    assert "**57.50 ± 2.50**" in beta_row  # dataset mean per seed (70+40)/2, (71+44)/2, (72+48)/2
+    assert "**mean mIoU** [95 % CI] ↑" in md and "fit (s) ↓" in md and "query FPS ↑" in md
+    agnostic = _section(md, "#### Time-agnostic queries")
+    rows, header = _rows(agnostic), _header(agnostic)
+    assert rows["alpha"][1] == "52.00 ± 2.00" and rows["beta"][1] == "**71.00 ± 1.00**"  # S1: apart, beta best
+    assert rows["alpha"][header.index("fit (s) ↓")] == "**0.5 ± 0**"  # fit: lower is better
+    assert rows["alpha"][header.index("query FPS ↑")] == "**100 ± 0**"  # FPS: higher
+    # the means (beta 57.5: 40 to 48 on S2 over seeds; alpha 56) overlap: one tie group, nobody bold
+    mean = header.index("**mean mIoU** [95 % CI] ↑")
+    assert rows["beta"][mean].startswith("57.50 [") and rows["alpha"][mean].startswith("56.00 [")
+    assert rows["beta"][header.index("tie group")] == rows["alpha"][header.index("tie group")] == "1"
+    assert list(rows) == ["beta", "alpha"]  # ordered by mean
+    p_next = float(rows["beta"][header.index("P(> next)")])
+    assert p_next == pytest.approx(((3 * 3 + 0) / 9 + (0 + 0) / 9) / 2)  # beta beats alpha on every S1 pair only
+    assert "_Tie group 1 (95 % intervals of mean mIoU overlapping the best's): beta, alpha: no single best._" in agnostic
+    lo, hi = (float(v) for v in rows["beta"][mean].split("[")[1].rstrip("]").split(", "))
+    assert lo < 57.5 < hi and hi - lo < 20
     # paper numbers: their own clearly marked tables, never rows of our tables
     assert "Paper, reported" in md and "4D LangSplat (paper)" in md
     assert "(paper)" not in agnostic
     runs_csv = pd.read_csv(tmp_path / "run0" / "reports" / "runs.csv")
     assert len(runs_csv) == 12 and set(runs_csv["method"]) == {"alpha", "beta"}
+    table_csv = pd.read_csv(tmp_path / "run0" / "reports" / "leaderboard_synthetic_oracle_release_legacy-dense.csv")
+    beta = table_csv[(table_csv.method == "beta") & (table_csv.scene == MEAN_SCENE)].iloc[0]
+    assert beta["mIoU_lo"] == pytest.approx(lo, abs=0.01) and beta["mIoU_tie_group"] == 1
     paper_csv = pd.read_csv(tmp_path / "run0" / "reports" / "paper_numbers.csv")
     assert ((paper_csv.method == "4d-langsplat") & (paper_csv.scene == "chickchicken") & (paper_csv.metric == "Acc")
             ).sum() == 1
 
 
-def test_a_second_leaderboard_writes_its_csvs_apart_from_the_main_ones(tmp_path):
-    """``--csv-dir``: a leaderboard of another results folder keeps the main one's runs.csv as it is, while
-    still reading the reports folder's ceiling and linking its reports."""
+def test_leaderboard_out_writes_only_what_it_is_asked_for(tmp_path, monkeypatch):
+    """``--out`` writes that file alone; CSVs only where ``--csv-dir`` says; without ``--out`` the repository's
+    leaderboard and its CSVs in the reports folder."""
     from benchmark.cli import main
 
-    _write_all(tmp_path / "results", 0)
+    _write_all(tmp_path / "results", 0, OFFICIAL)
     (tmp_path / "reports").mkdir()
     (tmp_path / "reports" / "runs.csv").write_text("the main leaderboard's runs")
+    main(["leaderboard", "--results-dir", str(tmp_path / "results"), "--out", str(tmp_path / "lb2.md"),
+          "--reports-dir", str(tmp_path / "reports")])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["lb2.md", "reports", "results"]
+    assert [p.name for p in (tmp_path / "reports").iterdir()] == ["runs.csv"]
+    assert (tmp_path / "reports" / "runs.csv").read_text() == "the main leaderboard's runs"
     main(["leaderboard", "--results-dir", str(tmp_path / "results"), "--out", str(tmp_path / "reports" / "lb2.md"),
           "--reports-dir", str(tmp_path / "reports"), "--csv-dir", str(tmp_path / "scratch")])
     assert (tmp_path / "reports" / "runs.csv").read_text() == "the main leaderboard's runs"
     assert len(pd.read_csv(tmp_path / "scratch" / "runs.csv")) == 12
     assert (tmp_path / "reports" / "lb2.md").read_text().startswith("<!-- GENERATED by `bench4d leaderboard`")
+    monkeypatch.chdir(tmp_path)
+    main(["leaderboard"])
+    assert (tmp_path / "leaderboard.md").is_file() and len(pd.read_csv(tmp_path / "reports" / "runs.csv")) == 12
 
+
+def test_a_method_that_declines_a_query_kind_is_named_under_that_table(tmp_path):
+    root = tmp_path / "results"
+    _write_all(root, 0, OFFICIAL)
+    # zeta answers the time-agnostic queries of S1 but leaves its time-sensitive one unanswered
+    doc = _doc("zeta", S1, 0, 65.0)
+    doc["metrics"].update({"Acc": None, "vIoU": None, "sensitive_queries": 0})
+    doc["scores"]["queries"] = [q for q in doc["scores"]["queries"] if q["kind"] == "agnostic"]
+    doc["scores"]["frames"] = []
+    doc["unanswered_queries"] = ["cracked cookie"]
+    write_results(results_path(root, "synthetic", S1, "zeta", "oracle", 0), doc)
+    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
+    md = (tmp_path / "lb.md").read_text()
+    agnostic = _section(md, "#### Time-agnostic queries")
+    sensitive = _section(md, "#### Time-sensitive queries")
+    assert "zeta" in _rows(agnostic) and "zeta" not in _rows(sensitive)
+    assert f"_Not in this table: zeta ({S1}): ran these scenes but answered none" in sensitive
+    assert "Not in this table" not in agnostic  # every method that ran has a time-agnostic number
+
+
+def test_an_unanswered_query_counts_zero_and_coverage_is_shown(tmp_path):
+    """A hand-made submission with one failed query listed as unanswered ranks at its full mean, not above it."""
+    root = tmp_path / "results"
+    for method, unanswered in (("alpha", False), ("beta", True)):
+        for scene in (S1, S2):
+            doc = _doc(method, scene, 0, 60.0)
+            if unanswered:  # beta answers two of the three time-agnostic queries: 58 and 60 (its own mean: 59)
+                doc["scores"]["queries"] = [q for q in doc["scores"]["queries"] if q["query"] != "pitcher"]
+                doc["metrics"]["mIoU"] = 59.0
+                doc["unanswered_queries"] = ["pitcher"]
+            write_results(results_path(root, "synthetic", scene, method, "oracle", 0), doc)
+    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
+    table = _section((tmp_path / "lb.md").read_text(), "#### Time-agnostic queries")
+    rows, header = _rows(table), _header(table)
+    assert rows["beta"][1] == "39.33"  # (58 + 60 + 0) / 3, not 59
+    assert rows["beta"][header.index("**mean mIoU** [95 % CI] ↑")].startswith("39.33 [")
+    assert rows["beta"][header.index("answered / asked")] == "4/6"
+    assert rows["alpha"][header.index("answered / asked")] == "6/6"
+    assert list(rows) == ["alpha", "beta"]
+
+
+def test_only_official_scenes_are_ranked_others_are_listed_apart(tmp_path):
+    root = tmp_path / "results"
+    _write_all(root, 0, OFFICIAL)
+    build_leaderboard(root, markdown=tmp_path / "before.md", reports_dir=tmp_path / "rep")
+    # a user's smoke run, and a scene named after a preset but generated from another one
+    write_results(results_path(root, "synthetic", "smoke", "alpha", "oracle", 0), _doc("alpha", "smoke", 0, 5.0))
+    imposter = _doc("beta", "espresso", 0, 99.0)
+    imposter["scene_info"]["generated"]["preset"] = "smoke"
+    imposter["scene_info"]["generated"]["digest"] = expected_digest("smoke", 128)
+    write_results(results_path(root, "synthetic", "espresso", "beta", "oracle", 0), imposter)
+    build_leaderboard(root, markdown=tmp_path / "after.md", reports_dir=tmp_path / "rep")
+    before, after = (tmp_path / "before.md").read_text(), (tmp_path / "after.md").read_text()
+    ranked = after[:after.index("## Other scenes (not ranked)")]
+    assert _section(ranked, "#### Time-agnostic queries") == _section(before, "#### Time-agnostic queries")
+    other = _section(after, "## Other scenes (not ranked)")
+    rows = _rows(_section(other, "#### Time-agnostic queries"))
+    assert rows["alpha"][2] == "5.00" and rows["beta"][1] == "99.00"  # columns: espresso, smoke
+    assert not any(c.startswith("**") for r in rows.values() for c in r)  # nothing ranked
+
+
+def test_eval_on_a_scene_that_is_not_official_says_where_its_results_went(capsys):
+    from benchmark.commands.eval import _say_if_unranked
+
+    _say_if_unranked({"dataset": "synthetic", "scene": "smoke", "scene_info": {}}, Path("results/x/seed0.json"))
+    out = capsys.readouterr().out
+    assert "results: results/x/seed0.json" in out and "Other scenes (not ranked)" in out
+    _say_if_unranked({"dataset": "synthetic", "scene": S1, "scene_info": {"generated": {"preset": S1}}}, Path("p"))
+    assert capsys.readouterr().out == ""
+
+
+def test_official_scenes_are_registered_presets_and_annotated_dnerf_scenes():
+    from benchmark.core.official import OFFICIAL_SCENES
+    from benchmark.synthetic.presets import PRESETS
+
+    assert set(OFFICIAL_SCENES["synthetic"]) <= set(PRESETS) and "smoke" not in OFFICIAL_SCENES["synthetic"]
+    root = Path(__file__).resolve().parents[1] / "annotations" / "scenes" / "dnerf"
+    assert all((root / f"{scene}.json").is_file() for scene in OFFICIAL_SCENES["dnerf"])
+
+
+def test_results_from_a_dirty_checkout_are_refused_unless_allowed_and_then_marked(tmp_path):
+    from benchmark.cli import main
+
+    root = tmp_path / "results"
+    _write_all(root, 0, OFFICIAL)
+    build_leaderboard(root, markdown=tmp_path / "clean.md", reports_dir=tmp_path / "rep")
+    assert "‡" not in (tmp_path / "clean.md").read_text()  # no legend for a mark nobody carries
+    doc = _doc("alpha", S1, 0, 50.0)
+    doc["environment"]["code_changed_during_run"] = True
+    write_results(results_path(root, "synthetic", S1, "alpha", "oracle", 0), doc)
+    (tmp_path / "lb.md").write_text("the leaderboard a user has")
+    with pytest.raises(InputError, match=r"seed0\.json: environment\.code_changed_during_run: 1 results file"):
+        build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
+    assert (tmp_path / "lb.md").read_text() == "the leaderboard a user has"
+    assert main(["leaderboard", "--results-dir", str(root), "--out", str(tmp_path / "lb.md"), "--allow-dirty",
+                 "--reports-dir", str(tmp_path / "rep")]) == 0
+    md = (tmp_path / "lb.md").read_text()
+    rows = _rows(_section(md, "#### Time-agnostic queries"))
+    assert "alpha ‡" in rows and "beta" in rows
+    assert "_‡: some of this row's runs come from a checkout with uncommitted code changes" in md
+    from benchmark.paper_tables import render
+
+    with pytest.raises(InputError, match="--allow-dirty"):
+        render(root, tmp_path / "rep")
+    assert "Paper: " in render(root, tmp_path / "rep", allow_dirty=True)
+
+
+@pytest.mark.parametrize("where, value, field", [
+    ("metrics.mIoU", 1e308, "metrics.mIoU"), ("metrics.Acc", -5.0, "metrics.Acc"),
+    ("scores.queries.0.mIoU", 250.0, r"scores.queries\[0\].mIoU"),
+    ("timing.query_agnostic.fps", -1.0, "timing.query_agnostic.fps"), ("metrics.vIoU", math.inf, None)])
+def test_metrics_out_of_range_or_not_finite_are_refused_naming_file_and_field(tmp_path, where, value, field):
+    root = tmp_path / "results"
+    path = results_path(root, "synthetic", S1, "alpha", "oracle", 0)
+    write_results(path, _doc("alpha", S1, 0, 50.0))
+    doc = json.loads(path.read_text())
+    node = doc
+    *parents, last = where.split(".")
+    for key in parents:
+        node = node[int(key)] if key.isdigit() else node[key]
+    node[last] = value
+    path.write_text(json.dumps(doc))  # Infinity as Python writes it
+    with pytest.raises(InputError, match=r"seed0\.json" + (f": {field}" if field else "")):
+        build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
+    assert not (tmp_path / "lb.md").exists()
+
+
+def test_names_from_files_are_escaped_in_the_markdown(tmp_path):
+    from benchmark.leaderboard import md as escape
+
+    assert escape("a|b") == "a\\|b" and escape("<b>x</b>") == "&lt;b&gt;x&lt;/b&gt;"
+    assert escape("**big** [x](y) `c` a_b\nnext\x1b[2J") == "\\*\\*big\\*\\* \\[x\\](y) \\`c\\` a\\_b next \\[2J"
+    root = tmp_path / "results"
+    _write_all(root, 0, OFFICIAL)
+    write_results(results_path(root, "synthetic", S1, "m|<img src=x>", "oracle", 0), _doc("alpha", S1, 0, 50.0)
+                  | {"method": "m|<img src=x>"})
+    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
+    md = (tmp_path / "lb.md").read_text()
+    assert "<img" not in md and "m\\|&lt;img src=x&gt;" in md
+    table = _section(md, "#### Time-agnostic queries")
+    widths = {len(line.replace("\\|", "").split("|")) for line in table.splitlines() if line.startswith("|")}
+    assert len(widths) == 1  # every row has the header's cells
+
+
+def test_methods_sharing_a_time_agnostic_field_are_marked_with_the_stage_they_share(tmp_path):
+    root = tmp_path / "results"
+    for method, key in (("alpha", "field-1"), ("gamma", "field-1"), ("beta", "field-2")):
+        for scene in (S1, S2):
+            doc = _doc(method, scene, 0, 60.0 if method != "beta" else 50.0)
+            doc["fit"] = {"key": f"{method}-{scene}", "info": {"key": f"{key}-{scene}"}}
+            write_results(results_path(root, "synthetic", scene, method, "oracle", 0), doc)
+    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
+    md = (tmp_path / "lb.md").read_text()
+    agnostic = _section(md, "#### Time-agnostic queries")
+    assert set(_rows(agnostic)) == {"alpha =F1", "gamma =F1", "beta"}
+    assert ("_=F1: alpha, gamma answer time-agnostic queries with one shared time-agnostic field (geometry, "
+            "autoencoder and language field: the same fit record key on every run they share); their time-agnostic "
+            "scores are identical") in agnostic
+    assert "=F1" not in _section(md, "#### Time-sensitive queries")
+
+
+def test_a_method_at_chance_is_never_bold(tmp_path):
+    root = tmp_path / "results"
+    for method, acc, auc in (("alpha", 90.0, 50.0), ("beta", 40.0, 95.0), ("gamma", 20.0, 96.0)):
+        for seed in range(3):
+            for scene in (S1, S2):
+                doc = _doc(method, scene, seed, 60.0)
+                sensitive = doc["scores"]["queries"][-1]
+                doc["scores"]["queries"] += [dict(sensitive, query=f"{sensitive['query']} {i}") for i in range(3)]
+                for i, q in enumerate(doc["scores"]["queries"][3:]):
+                    q.update({"Acc": acc + (i - 1.5) + seed, "AUC": auc + (-10.0 if i % 2 else 10.0) * (auc < 90)})
+                write_results(results_path(root, "synthetic", scene, method, "oracle", seed), doc)
+    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
+    md = (tmp_path / "lb.md").read_text()
+    table = _section(md, "#### Time-sensitive queries")
+    rows, header = _rows(table), _header(table)
+    mean = header.index("**mean Acc** [95 % CI] ↑")
+    assert list(rows) == ["alpha (at chance)", "beta", "gamma"]  # the best mean, at chance
+    assert not any(c.startswith("**") for c in rows["alpha (at chance)"])
+    assert rows["beta"][mean].startswith("**41.00 [")  # the best not at chance, apart from gamma
+    assert "_(at chance): the method's mean AUC interval covers 50" in table
+    assert "at chance" not in _section(md, "#### Time-agnostic queries")
+
+
+def test_a_table_mixing_machine_kinds_shows_the_spread_between_them(tmp_path):
+    root = tmp_path / "results"
+    _write_all(root, 0, OFFICIAL)
+    build_leaderboard(root, markdown=tmp_path / "one.md", reports_dir=tmp_path / "rep")
+    one = (tmp_path / "one.md").read_text()
+    assert "Machine kind: unknown (12 runs)." in one and "between machines" not in one
+    for path in find_results(root):
+        doc = json.loads(path.read_text())
+        if doc["seed"] == 0:
+            doc["environment"]["processor"] = "Intel Xeon"
+            path.write_text(json.dumps(doc))
+    build_leaderboard(root, markdown=tmp_path / "two.md", reports_dir=tmp_path / "rep")
+    two = (tmp_path / "two.md").read_text()
+    assert "Machine kinds: Intel Xeon (4 runs); unknown (8 runs). The tables below mix them" in two
+    table = _section(two, "#### Time-agnostic queries")
+    rows, header = _rows(table), _header(table)
+    assert rows["beta"][header.index("machines")] == "A+B"
+    # beta: seed 0 (Intel) means 70 and 40 -> 55; seeds 1 and 2 (unknown) -> (71.5 + 46) / 2 = 58.75
+    assert rows["beta"][header.index("Δ mIoU between machines")] == "3.75"
+    assert "_Machines: A = Intel Xeon; B = unknown." in table
+
+
+def test_each_split_gets_its_own_tables_the_papers_first(tmp_path):
+    from benchmark.leaderboard import load_runs, render_markdown
+
+    root = tmp_path / "results"
+    _write_all(root, 0, OFFICIAL)
+    runs, queries = load_runs(root)
+    paper = runs.copy()
+    paper["split"] = "paper"
+    paper["path"] = "paper/" + paper["path"]
+    paper_queries = queries.assign(path="paper/" + queries["path"])
+    both = pd.concat([runs, paper], ignore_index=True)
+    md = render_markdown(both, "results", queries=pd.concat([queries, paper_queries], ignore_index=True))
+    assert md.index("## Split: paper") < md.index("## Split: legacy-dense")
+    assert "_the earlier 3-of-4 training split" in md
+    assert "### synthetic — track: oracle — protocol: release (default) — split: paper" in md
+    assert _section(md, "#### Time-agnostic queries", "## Split: paper") == \
+        _section(md, "#### Time-agnostic queries", "## Split: legacy-dense")
+
+
+def test_a_ranked_method_that_does_not_clear_its_floor_is_told_in_words(tmp_path, monkeypatch):
+    from types import SimpleNamespace
+
+    from benchmark import leaderboard
+
+    specs = {"alpha": SimpleNamespace(floor=False, answer_rule="relevance"),
+             "beta": SimpleNamespace(floor=False, answer_rule="mask-selection"),
+             "alpha+": SimpleNamespace(floor=False, answer_rule="relevance", variant_of="alpha"),
+             "floor-r": SimpleNamespace(floor=True, answer_rule="relevance"),
+             "floor-m": SimpleNamespace(floor=True, answer_rule={"agnostic": "mask-selection"})}
+    monkeypatch.setattr(leaderboard, "_spec", lambda name: specs.get(name))
+    root = tmp_path / "results"
+    for method, value in (("alpha", 60.0), ("alpha+", 80.0), ("beta", 40.0), ("floor-r", 61.0), ("floor-m", 70.0)):
+        FIT.setdefault(method, 1.0)
+        FPS.setdefault(method, 1.0)
+        for scene in (S1, S2):
+            write_results(results_path(root, "synthetic", scene, method, "oracle", 0), _doc(method, scene, 0, value))
+    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
+    table = _section((tmp_path / "lb.md").read_text(), "#### Time-agnostic queries")
+    rows = _rows(table)
+    assert "alpha+ (variant of alpha)" in rows
+    assert "_floor-r (floor, not ranked; answers by relevance)_" in rows
+    assert ("_Floor `floor-r` (answers by relevance, as they do): mean mIoU 61.00 [" in table
+            and "Not clear of the floor (intervals overlap): alpha 60.00 [" in table and "Clear of it: alpha+." in table)
+    assert "_Floor `floor-m` (answers by mask-selection, as they do): mean mIoU 70.00 [" in table
+    assert "Below the floor: beta 40.00 [" in table
+
+
+def test_cells_that_read_the_same_never_make_a_winner_by_last_decimals(tmp_path):
+    root = tmp_path / "results"
+    # two methods sharing one fit can differ past the printed digits (float rounding)
+    write_results(results_path(root, "synthetic", S1, "alpha", "oracle", 0), _doc("alpha", S1, 0, 70.001))
+    write_results(results_path(root, "synthetic", S1, "beta", "oracle", 0), _doc("beta", S1, 0, 70.004))
+    write_results(results_path(root, "synthetic", S1, "gamma", "oracle", 0), _doc("gamma", S1, 0, 69.99))
+    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
+    rows = _rows(_section((tmp_path / "lb.md").read_text(), "#### Time-agnostic queries"))
+    assert {m: r[1] for m, r in rows.items()} == {"alpha": "70.00", "beta": "70.00", "gamma": "69.99"}
+    assert list(rows) == ["alpha", "beta", "gamma"]  # equal as shown: by name
+
+
+def test_time_sensitive_table_shows_score_auc_ranked_and_near_threshold_share_unranked(tmp_path):
+    from benchmark.metrics import near_threshold_fraction, score_auc
+
+    root = tmp_path / "results"
+    alpha, beta = _doc("alpha", S1, 0, 70.0), _doc("beta", S1, 0, 60.0)
+    # beta's scores order the states perfectly; its decisions all sit near the threshold
+    for f in beta["scores"]["frames"]:
+        f["smoothed"] = 0.2 + (0.005 if f["label"] else -0.005)
+    beta["scores"]["frames"][0]["smoothed"] = 0.0  # a negative far below widens the range
+    write_results(results_path(root, "synthetic", S1, "alpha", "oracle", 0), alpha)
+    write_results(results_path(root, "synthetic", S1, "beta", "oracle", 0), beta)
+    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
+    table = _section((tmp_path / "lb.md").read_text(), "#### Time-sensitive queries")
+    names, rows = _header(table), _rows(table)
+    assert "mean AUC [95 % CI] ↑" in names and "near τ (%)" in names
+
+    def expected(doc):
+        frames = doc["scores"]["frames"]
+        smoothed = np.array([f["smoothed"] for f in frames])
+        labels = np.array([f["label"] for f in frames])
+        return 100 * score_auc(smoothed, labels), 100 * near_threshold_fraction(smoothed, 0.2)
+
+    auc_col, near_col = names.index("mean AUC [95 % CI] ↑"), names.index("near τ (%)")
+    # alpha's scores do not order the states (AUC exactly 50): at chance, so never bold
+    rows["alpha"] = rows.pop("alpha (at chance)")
+    for name, doc in (("alpha", alpha), ("beta", beta)):
+        auc, near = expected(doc)
+        assert rows[name][auc_col].strip("*").startswith(f"{auc:.2f} [")
+        assert rows[name][near_col] == f"{near:.2f}"  # never bold
+    assert rows["beta"][auc_col].startswith("**100.00 [") and not rows["alpha"][auc_col].startswith("**")
+    assert expected(beta)[1] == 90.0  # 9 of 10 decisions within 5 % of the range (0.205 - 0 = 0.205)
 
 def test_empty_results_dir_still_renders_paper_numbers(tmp_path):
     (tmp_path / "none").mkdir()
@@ -354,100 +715,42 @@ def test_fit_time_charges_shared_stages_a_run_reused():
     assert fit_seconds_with_shared({"timing": {"fit_seconds": 3.5}, "fit": {"key": "k"}}) == pytest.approx(3.5)
 
 
-def test_a_method_that_declines_a_query_kind_is_named_under_that_table(tmp_path):
-    root = tmp_path / "results"
-    _write_all(root, 0)
-    # zeta answers the time-agnostic queries of s1 but leaves its time-sensitive one unanswered
-    doc = _doc("zeta", "s1", 0, 65.0)
-    doc["metrics"].update({"Acc": None, "vIoU": None, "sensitive_queries": 0})
-    doc["unanswered_queries"] = ["cracked cookie"]
-    write_results(results_path(root, "synthetic", "s1", "zeta", "oracle", 0), doc)
-    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
-    md = (tmp_path / "lb.md").read_text()
-    agnostic = md.split("### Time-agnostic queries")[1].split("###")[0]
-    sensitive = md.split("### Time-sensitive queries")[1].split("##")[0]
-    assert any(line.startswith("| zeta |") for line in agnostic.splitlines())
-    assert not any(line.startswith("| zeta |") for line in sensitive.splitlines())
-    assert "_Not in this table: zeta (s1): ran these scenes but answered none" in sensitive
-    assert "Not in this table" not in agnostic  # every method that ran has a time-agnostic number
-
-
-def test_cells_that_read_the_same_are_bolded_alike(tmp_path):
-    root = tmp_path / "results"
-    # two methods sharing one fit can differ past the printed digits (float rounding)
-    write_results(results_path(root, "synthetic", "s1", "alpha", "oracle", 0), _doc("alpha", "s1", 0, 70.001))
-    write_results(results_path(root, "synthetic", "s1", "beta", "oracle", 0), _doc("beta", "s1", 0, 70.004))
-    write_results(results_path(root, "synthetic", "s1", "gamma", "oracle", 0), _doc("gamma", "s1", 0, 69.99))
-    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
-    table = (tmp_path / "lb.md").read_text().split("### Time-agnostic queries")[1].split("###")[0]
-    rows = {line.split("|")[1].strip(): line.split("|")[2].strip() for line in table.splitlines()
-            if line.startswith("| ") and not line.startswith("| method")}
-    assert rows == {"alpha": "**70.00**", "beta": "**70.00**", "gamma": "69.99"}
-
-
-def test_time_sensitive_table_shows_score_auc_ranked_and_near_threshold_share_unranked(tmp_path):
-    from benchmark.metrics import near_threshold_fraction, score_auc
-
-    root = tmp_path / "results"
-    alpha, beta = _doc("alpha", "s1", 0, 70.0), _doc("beta", "s1", 0, 60.0)
-    # beta's scores order the states perfectly; its decisions all sit near the threshold
-    for f in beta["scores"]["frames"]:
-        f["smoothed"] = 0.2 + (0.005 if f["label"] else -0.005)
-    beta["scores"]["frames"][0]["smoothed"] = 0.0  # a negative far below widens the range
-    write_results(results_path(root, "synthetic", "s1", "alpha", "oracle", 0), alpha)
-    write_results(results_path(root, "synthetic", "s1", "beta", "oracle", 0), beta)
-    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
-    table = (tmp_path / "lb.md").read_text().split("### Time-sensitive queries")[1].split("###")[0]
-    header = next(line for line in table.splitlines() if line.startswith("| method"))
-    names = [c.strip() for c in header.split("|")[1:-1]]
-    assert "mean AUC ↑" in names and "near τ (%)" in names
-    rows = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[1:-1]] for line in table.splitlines()
-            if line.startswith("| ") and not line.startswith("| method")}
-
-    def expected(doc):
-        frames = doc["scores"]["frames"]
-        smoothed = np.array([f["smoothed"] for f in frames])
-        labels = np.array([f["label"] for f in frames])
-        return 100 * score_auc(smoothed, labels), 100 * near_threshold_fraction(smoothed, 0.2)
-
-    auc_col, near_col = names.index("mean AUC ↑"), names.index("near τ (%)")
-    for name, doc in (("alpha", alpha), ("beta", beta)):
-        auc, near = expected(doc)
-        assert rows[name][auc_col].strip("*") == f"{auc:.2f}"
-        assert rows[name][near_col] == f"{near:.2f}"  # never bold
-    assert rows["beta"][auc_col] == "**100.00**" and not rows["alpha"][auc_col].startswith("**")
-    assert expected(beta)[1] == 90.0  # 9 of 10 decisions within 5 % of the range (0.205 - 0 = 0.205)
 
 
 def test_paper_tables_put_the_published_numbers_beside_ours_with_rank_agreement(tmp_path):
     from benchmark.cli import main
     from benchmark.paper_tables import AGNOSTIC_METHODS, kendall_tau
-    from benchmark.synthetic.digest import expected_digest
+    from benchmark.runner import config_dict
+    from methods import registry
 
-    assert kendall_tau({"a": 1, "b": 2, "c": 3}, {"a": 3, "b": 2, "c": 1}) == (pytest.approx(-1.0), 3)
+    assert kendall_tau({"a": 1, "b": 2, "c": 3}, {"a": 3, "b": 2, "c": 1})[:2] == (pytest.approx(-1.0), 3)
+    assert kendall_tau({"a": 1, "b": 2, "c": 3}, {"a": 3, "b": 2, "c": 1})[2] == pytest.approx(2 / 6)
     assert math.isnan(kendall_tau({"a": 1}, {"a": 2, "b": 1})[0])
     # means equal up to their last bits are a tie: tau-b 5 / sqrt(6 * 5), not +1 from summation order
     tied_high = 97.50000000000001
     four = {"a": 1.0, "b": 2.0, "c": 3.0, "d": 4.0}
     assert kendall_tau(four, {"a": 1.0, "b": 2.0, "c": 97.5, "d": tied_high})[0] == pytest.approx(5 / math.sqrt(30))
     assert kendall_tau(four, {"a": 1.0, "b": 2.0, "c": 97.4, "d": 97.5})[0] == pytest.approx(1.0)
-    # equal means are a shared best (the last bits of a mean depend on the order the scenes are summed in)
+    # the best here: tie group 1 by our intervals; without intervals, equal means
     from benchmark.paper_tables import _agreement
 
     paper, names = {"a": 90.0, "b": 80.0, "c": 70.0}, {"a": "A", "b": "B", "c": "C"}
     tied = (100 + 100 + 96.66666666666667 + 93.33333333333333) / 4
-    assert "is best here: yes (tied with B)._" in _agreement(paper, {"a": tied, "b": 97.5, "c": 50.0}, names)
+    assert "is best here: tied (equal means) with B._" in _agreement(paper, {"a": tied, "b": 97.5, "c": 50.0}, names)
     assert "is best here: no (best here: B)._" in _agreement(paper, {"a": 97.4, "b": 97.5, "c": 50.0}, names)
-    assert "is best here: yes._" in _agreement(paper, {"a": 97.6, "b": 97.5, "c": 50.0}, names)
+    near = {"a": (96.0, 99.0), "b": (96.5, 98.5), "c": (45.0, 55.0)}
+    assert "is best here: tied (within 95 % intervals) with B._" in _agreement(
+        paper, {"a": 97.4, "b": 97.5, "c": 50.0}, names, near)
+    apart = {"a": (97.55, 97.65), "b": (97.45, 97.54), "c": (45.0, 55.0)}
+    assert "is best here: yes._" in _agreement(paper, {"a": 97.6, "b": 97.5, "c": 50.0}, names, apart)
     root = tmp_path / "results"
     presets = ("americano", "chickchicken", "split-cookie", "espresso", "keyboard", "torchocolate")
     # the paper's order reversed: Feature-3DGS best, 4D LangSplat worst
     for rank, method in enumerate(AGNOSTIC_METHODS):
+        recorded = config_dict(registry.get(method).default_config())
         for scene in presets:
-            current = {"preset": scene, "size": 128, "seed": 0, "digest": expected_digest(scene, 128)}
             write_results(results_path(root, "synthetic", scene, method, "oracle", 0),
-                          {**_doc("alpha", scene, 0, 80.0 - 10 * rank), "method": method,
-                           "scene_info": {"generated": current}})
+                          {**_doc("alpha", scene, 0, 80.0 - 10 * rank), "method": method, "method_config": recorded})
     out = tmp_path / "paper-tables.md"
     assert main(["paper-tables", "--results-dir", str(root), "--reports-dir", str(tmp_path / "rep"),
                  "--out", str(out)]) == 0
@@ -455,16 +758,27 @@ def test_paper_tables_put_the_published_numbers_beside_ours_with_rank_agreement(
     agnostic = text.split("## Time-agnostic queries, HyperNeRF")[1].split("## ")[0]
     row = next(line for line in agnostic.splitlines() if line.startswith("| Feature-3DGS |"))
     assert "| 34.65 / 80.00 |" in row and row.endswith("| 36.63 / 80.00 | 74.02 / 90.00 |")
-    assert "Kendall's tau = -1.00" in agnostic and "is best here: no (best here: Feature-3DGS)" in agnostic
-    assert "protocol `release`" in text and "held-out frames" in text and "track `oracle`, seeds 0; scored" in text
+    assert "Kendall's tau = -1.00 (p = 0.083, exact permutation test" in agnostic
+    assert "is best here: no (best here: Feature-3DGS)" in agnostic
+    assert "Ours, mean mIoU over the paper's scenes with its 95 % interval: Feature-3DGS 80.00 [" in agnostic
+    assert "protocol `release`" in text and "held-out frames" in text and "track `oracle`, seeds 0; split" in text
     assert "## Number of states K" in text and "## Query speed" in text
     # a second seed on one cell: the means stay per cell, and the header says how many cells lack it
-    current = {"preset": "keyboard", "size": 128, "seed": 1, "digest": expected_digest("keyboard", 128)}
     write_results(results_path(root, "synthetic", "keyboard", "langsplat", "oracle", 1),
-                  {**_doc("alpha", "keyboard", 1, 0.0), "method": "langsplat", "scene_info": {"generated": current}})
+                  {**_doc("alpha", "keyboard", 1, 0.0), "method": "langsplat",
+                   "method_config": config_dict(registry.get("langsplat").default_config())})
     assert main(["paper-tables", "--results-dir", str(root), "--out", str(out)]) == 0
     text = out.read_text()
     assert "seeds 0, 1 (23 of 24 (method, preset) cells have fewer: each cell is the mean of the seeds it has)" in text
+    # a run whose recorded config is not its method's default is no paper-config run: left out, and counted
+    other = config_dict(registry.get("feature-3dgs").default_config())
+    other["geometry"] = {**other["geometry"], "hexplane_resolution": other["geometry"]["hexplane_resolution"] // 2}
+    write_results(results_path(root, "synthetic", "americano", "feature-3dgs", "oracle", 0),
+                  {**_doc("alpha", "americano", 0, 1.0), "method": "feature-3dgs", "method_config": other})
+    assert main(["paper-tables", "--results-dir", str(root), "--out", str(out)]) == 0
+    text = out.read_text()
+    assert "1 run(s) left out whose recorded config is not their method's default" in text
+    assert "| 34.65 / – |" in text
     # another protocol's runs are not this table's
     assert main(["paper-tables", "--results-dir", str(root), "--protocol", "paper-text", "--out", str(out)]) == 0
     assert "| 34.65 / – |" in out.read_text()
@@ -489,17 +803,23 @@ def test_see_also_links_the_stability_and_capacity_reports_only_where_they_exist
     assert len(lines) == 1 and "(reports/stability/README.md)" in lines[0] and "(reports/capacity/README.md)" in lines[0]
 
 
-def test_scenes_scored_on_draft_ground_truth_are_named_under_their_tables(tmp_path):
+def test_draft_queries_stay_out_of_the_ranked_means_and_are_listed_under_their_tables(tmp_path):
     root = tmp_path / "results"
-    _write_all(root, 0)
+    _write_all(root, 0, OFFICIAL)
     build_leaderboard(root, markdown=tmp_path / "plain.md", reports_dir=tmp_path / "rep")
     assert "Draft ground truth" not in (tmp_path / "plain.md").read_text()
-    doc = _doc("zeta", "s1", 0, 65.0)
-    doc.setdefault("scene_info", {})["draft_queries"] = ["denim shorts", "arms raised"]
-    write_results(results_path(root, "synthetic", "s1", "zeta", "oracle", 0), doc)
+    for path in find_results(root):
+        doc = json.loads(path.read_text())
+        if doc["scene"] == S1:  # the highest of the three queries is a draft on S1
+            doc["scene_info"]["draft_queries"] = ["pitcher"]
+            path.write_text(json.dumps(doc))
     build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
     md = (tmp_path / "lb.md").read_text()
-    assert "_Draft ground truth: s1 (denim shorts, arms raised)" in md
+    table = _section(md, "#### Time-agnostic queries")
+    rows, header = _rows(table), _header(table)
+    assert rows["alpha"][1] == "51.00 ± 2.00"  # the two lower queries of 50, 52, 54 (seeds): 52 - 1
+    assert rows["alpha"][header.index("answered / asked")] == "15/15"  # S1: 2 queries a seed, S2: 3
+    assert f"_Draft ground truth, left out of the means above: {S1} (pitcher)." in md
     assert md.count("Draft ground truth") == 1
 
 

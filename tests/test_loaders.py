@@ -194,13 +194,21 @@ def test_hypernerf_val_ids_points_bounds_and_no_metadata(tmp_path):
     np.testing.assert_allclose(scene.bounds, [pts.min(0), pts.max(0)], atol=1e-12)
 
 
-def test_hypernerf_bounds_without_points_contain_the_frustums(tmp_path):
+def test_hypernerf_bounds_without_points_contain_the_training_frustums(tmp_path):
+    from benchmark.loaders._common import frustum_bounds
+
     write_hypernerf(tmp_path, n=4)
     scene = load_scene(tmp_path)
-    for frame in scene.frames:  # a point at mid depth on the optical axis is inside the box
+    assert scene.test_frames and scene.train_frames
+    for frame in scene.train_frames:  # a point at mid depth on the optical axis is inside the box
         cam = frame.camera
         p = cam.center + 1.5 * cam.R[2]
         assert np.all(p >= scene.bounds[0]) and np.all(p <= scene.bounds[1])
+    # where the held-out cameras stand is not in it: the box is the training views' alone
+    near, far = scene.near_far
+    train = [f.camera for f in scene.train_frames]
+    np.testing.assert_allclose(scene.bounds, frustum_bounds(train, [near] * len(train), [far] * len(train)))
+    assert scene.metadata["eval_splits"] == {"paper": [f.name for f in scene.test_frames]}
 
 
 def hn_edit(rel: str, fn):

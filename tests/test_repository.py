@@ -135,12 +135,15 @@ def test_every_demo_schedule_is_an_option_of_the_demo_method():
 def _table_rows(out: str) -> dict[str, list[str]]:
     """The demo table's rows (first cell -> the other cells), read from the command's output."""
     lines = out.splitlines()
-    start = next(i for i, line in enumerate(lines) if line.startswith("method ") and "% of ceiling" in line)
+    start = next(i for i, line in enumerate(lines) if line.startswith(("method ", "split ")) and "% of ceiling" in line)
+    by_split = lines[start].startswith("split ")
     rows = {}
     for line in lines[start + 1:]:
         if not line.strip():
             break
         cells = re.split(r"\s{2,}", line.strip())
+        if by_split and not cells[0].startswith("perfect features"):  # "<split>/<method>" -> the other cells
+            cells = [f"{cells[0]}/{cells[1]}"] + cells[2:]
         rows[cells[0]] = cells[1:]
     return rows
 
@@ -152,8 +155,11 @@ def test_demo_fits_the_4d_method_and_the_floor_and_shows_their_share_of_the_ceil
     assert main(["demo", "--scene", "smoke", "--size", "32", "--cache-dir", str(cache), "--quiet", *TINY_DEMO]) == 0
     out = capsys.readouterr().out
     rows = _table_rows(out)
-    assert set(rows) == {"4d-langsplat", "nearest-frame (2D floor)", "perfect features (ceiling)"}, rows
-    for method in ("4d-langsplat", "nearest-frame (2D floor)"):
+    shown = ("4d-langsplat", "nearest-frame (2D floor)", "nearest-frame-masks (2D floor)")
+    # both splits, each answered by the one fit of each method: the paper's and the novel views
+    keys = [f"{split}/{m}" for split in ("paper", "novel-view") for m in shown]
+    assert set(rows) == {*keys, "perfect features (ceiling)"}, rows
+    for method in keys:
         mIoU, acc, viou, share = rows[method][:4]
         assert re.fullmatch(r"\d+ / \d+", share), share  # share of the ceiling's mIoU / vIoU, in percent
         ceiling = float(rows["perfect features (ceiling)"][0])
@@ -164,13 +170,45 @@ def test_demo_fits_the_4d_method_and_the_floor_and_shows_their_share_of_the_ceil
     results = cache / "demo-results" / "synthetic" / "smoke"
     assert (results / "4d-langsplat" / "oracle" / "seed0.json").is_file()
     assert (results / "nearest-frame" / "oracle" / "seed0.json").is_file()
+    # the README's scoring example reads what the demo leaves (here at the test's scene and size)
+    gt, pred = readme_score_example()
+    assert main(["score", "--gt", str(demo_path(gt, cache, "smoke", 32)),
+                 "--pred", str(demo_path(pred, cache, "smoke", 32))]) == 0
+    assert "mean over 1 scene(s)" in capsys.readouterr().out
 
     assert main(["demo", "--scene", "smoke", "--size", "32", "--cache-dir", str(cache), "--quiet",
                  "--method", "nearest-frame"]) == 0
-    assert set(_table_rows(capsys.readouterr().out)) == {"nearest-frame (2D floor)", "perfect features (ceiling)"}
+    assert set(_table_rows(capsys.readouterr().out)) == {"paper/nearest-frame (2D floor)",
+                                                         "novel-view/nearest-frame (2D floor)",
+                                                         "perfect features (ceiling)"}
     assert main(["demo", "--scene", "smoke", "--size", "32", "--cache-dir", str(cache), "--quiet",
                  "--set", "no_such_option=1"]) == 2
     assert "no_such_option" in capsys.readouterr().err
+
+
+def readme_score_example() -> tuple[str, str]:
+    """(--gt, --pred) of the README's first ``bench4d score`` command (a line may continue with ``\\``)."""
+    text = (ROOT / "README.md").read_text().replace("\\\n", " ")
+    command = next(line for line in text.splitlines() if line.startswith("bench4d score --gt cache/"))
+    args = command.split()
+    return args[args.index("--gt") + 1], args[args.index("--pred") + 1]
+
+
+def demo_path(path: str, cache: Path, scene: str, size: int) -> Path:
+    """A README path under ``cache/`` as the demo of ``scene`` at ``size`` px in ``cache`` leaves it."""
+    from benchmark.commands.demo import DEMO_SIZE, default_preset
+
+    preset = default_preset()
+    assert path.startswith("cache/") and (f"/{DEMO_SIZE}px/{preset}/" in path or f"/{preset}/" in path), path
+    return cache / path.removeprefix("cache/").replace(f"{DEMO_SIZE}px", f"{size}px").replace(f"/{preset}/", f"/{scene}/")
+
+
+def test_the_readme_scoring_example_names_the_demos_own_scene_and_method():
+    from benchmark.commands.demo import DEMO_METHOD, DEMO_SIZE, default_preset
+
+    gt, pred = readme_score_example()
+    assert gt == f"cache/scenes/{DEMO_SIZE}px/{default_preset()}/annotations.json"
+    assert pred.startswith(f"cache/demo-results/synthetic/{default_preset()}/{DEMO_METHOD}/oracle/seed0")
 
 
 def test_demo_table_without_a_ceiling_shows_no_share():

@@ -73,11 +73,19 @@ def hand_predictions(aset: AnnotationSet) -> ScenePredictions:
 
 
 # -- scoring -----------------------------------------------------------------------------------------
+STRICT = ScoreConfig(absent_frames="score-empty")
+"""Absent frames scored against the empty mask (the benchmark's stricter option)."""
+
+
 def test_perfect_predictions_score_100():
     aset = make_gt()
     summary = score_scene(aset, perfect_predictions(aset)).summary()
     assert [summary[k] for k in ("mIoU", "mAcc", "Acc", "vIoU")] == [100.0] * 4
-    assert (summary["agnostic_queries"], summary["sensitive_queries"], summary["frames_scored"]) == (2, 1, 16)
+    # release: plate's absent frame (t = 2) is not scored; its (empty) mask is looked at for absentFP
+    assert (summary["agnostic_queries"], summary["sensitive_queries"], summary["frames_scored"]) == (2, 1, 15)
+    assert (summary["absent_frames"], summary["absentFP"]) == (1, 0.0)
+    strict = score_scene(aset, perfect_predictions(aset), STRICT).summary()
+    assert strict["frames_scored"] == 16 and strict["mIoU"] == 100.0 and strict["absentFP"] == 0.0
 
 
 def test_complement_predictions_score_0():
@@ -94,7 +102,7 @@ def test_complement_predictions_score_0():
 
 def test_hand_computed_scene():
     aset = make_gt()
-    score = score_scene(aset, hand_predictions(aset))
+    score = score_scene(aset, hand_predictions(aset), STRICT)
     q = score.query_table().set_index("query")
     # cookie: IoU [0,1,1,1,1,1] -> 5/6 ; pixel acc t0 = 16/20 -> (0.8 + 5)/6
     assert q.loc["cookie", "miou"] == pytest.approx(5 / 6)
@@ -119,12 +127,53 @@ def test_hand_computed_scene():
     assert cc["time_index"].tolist() == list(range(6))
     assert cc["decision"].tolist() == [False, False, True, True, False, False]
     assert cc["smoothed"].tolist() == pytest.approx([0, 0.1, 0.9, 0.9, 0.1, 0])
+    assert s["absentFP"] == 100.0 and s["absent_frames"] == 1  # the 1-px false positive on plate's absent frame
+
+
+def test_release_skips_absent_frames_and_reports_their_false_positives_apart():
+    """The release queries a label only where it is annotated: plate's absent frame (t = 2) is not scored;
+    the 1-px false positive there shows in absentFP instead of in mIoU."""
+    aset = make_gt()
+    score = score_scene(aset, hand_predictions(aset), ScoreConfig.from_protocol(PROTOCOLS["release"]))
+    q = score.query_table().set_index("query")
+    assert q.loc["plate", "frames"] == 3 and q.loc["plate", "miou"] == 1.0
+    assert q.loc["cookie", "miou"] == pytest.approx(5 / 6)  # present everywhere: as under the strict rule
+    s = score.summary()
+    assert s["mIoU"] == pytest.approx(100 * (5 / 6 + 1) / 2)
+    assert (s["absentFP"], s["absent_frames"], s["frames_scored"]) == (100.0, 1, 15)
+    assert score.absent == {"plate": (1, 1)}
+    assert "f002" not in set(score.records_table().query("query == 'plate'")["frame"])
+    # a query of the base's frames: cracked cookie's base (cookie) is present everywhere, so all 6 frames count
+    assert q.loc["cracked cookie", "frames"] == 6
+    # an empty prediction on the absent frame: no false positive
+    preds = hand_predictions(aset)
+    preds.queries["plate"].masks["f002"] = np.zeros((H, W), bool)
+    assert score_scene(aset, preds).summary()["absentFP"] == 0.0
+    # the base absent on a frame: the time-sensitive query is not scored there either (the release adds a
+    # time query's label only where its base label is annotated)
+    gone = make_gt()
+    gone.set_mask(1, 13, np.zeros((H, W), bool))  # cookie absent at t = 3
+    preds = perfect_predictions(gone)
+    release = score_scene(gone, preds).query_table().set_index("query")
+    strict = score_scene(gone, preds, STRICT).query_table().set_index("query")
+    assert (release.loc["cracked cookie", "frames"], strict.loc["cracked cookie", "frames"]) == (5, 6)
+    assert release.loc["cookie", "frames"] == 5
+    # a query whose object is absent on every scored frame is not scored under the release's rule
+    only_absent = score_scene(aset, perfect_predictions(aset), ScoreConfig(eval_frames=("f002",)))
+    assert "plate" in only_absent.skipped and only_absent.absent == {"plate": (1, 0)}  # looked at: empty
+    assert (only_absent.summary()["absent_frames"], only_absent.summary()["absentFP"]) == (1, 0.0)
+    # the mask on an absent frame is still required (it gives absentFP)
+    preds = perfect_predictions(aset)
+    del preds.queries["plate"].masks["f002"]
+    with pytest.raises(InputError, match=r"queries\['plate'\]\.masks\['f002'\].*missing mask"):
+        score_scene(aset, preds)
 
 
 def test_dataset_is_mean_over_scenes():
     a, b = make_gt("a"), make_gt("b")
     d = aggregate_scenes([score_scene(a, hand_predictions(a)), score_scene(b, perfect_predictions(b))])
-    assert d.summary()["mIoU"] == pytest.approx((100 * (5 / 6 + 0.75) / 2 + 100) / 2)
+    assert d.summary()["mIoU"] == pytest.approx((100 * (5 / 6 + 1) / 2 + 100) / 2)
+    assert d.summary()["absentFP"] == pytest.approx((100 + 0) / 2) and d.summary()["absent_frames"] == 2
     assert d.summary()["scenes"] == 2
     assert d.scene_table()["scene"].tolist() == ["a", "b"]
     with pytest.raises(InputError, match="more than once"):
@@ -294,7 +343,9 @@ def test_cli_scores_and_writes_results(tmp_path, capsys):
     out = tmp_path / "results.json"
     assert main(["score", *gts, "--pred", str(root), "--out", str(out), "--protocol", "release"]) == 0
     printed = capsys.readouterr().out
-    assert "cracked cookie" in printed and "mean over scenes" in printed
+    assert "cracked cookie" in printed and "mean over 2 scene(s)" in printed
+    assert "every asked query (unanswered = 0)" in printed and "answered queries only" in printed
+    assert "time-agnostic 4 / 4, time-sensitive 2 / 2" in printed
     doc = json.loads(out.read_text())
     assert doc["format"] == "bench4d-results"
     assert doc["config"]["temporal"]["tau_from"] == "raw"
@@ -305,9 +356,17 @@ def test_cli_scores_and_writes_results(tmp_path, capsys):
     doc = json.loads(out.read_text())
     assert doc["provenance"]["protocol"]["name"] == "custom"
     assert doc["provenance"]["protocol"]["temporal"]["tau_from"] == "smoothed"
-    assert doc["metrics"]["dataset"]["mIoU"] == pytest.approx((100 * (5 / 6 + 0.75) / 2 + 100) / 2)
+    assert doc["metrics"]["dataset"]["mIoU"] == pytest.approx((100 * (5 / 6 + 1) / 2 + 100) / 2)
     assert doc["metrics"]["scenes"]["b"]["vIoU"] == 100.0
-    assert len(doc["queries"]) == 6 and len(doc["frames"]) == 32
+    assert len(doc["queries"]) == 6 and len(doc["frames"]) == 30
+    assert doc["metrics"]["dataset"]["absentFP"] == pytest.approx(50.0)
+    assert {"scene": "a", "query": "plate", "frames": 1, "predicted": 1} in doc["absent"]
+    # the stricter option scores the absent frames against the empty mask
+    assert main(["score", *gts, "--pred", str(root), "--out", str(out), "--absent-frames", "score-empty"]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["provenance"]["protocol"]["name"] == "custom" and doc["config"]["absent_frames"] == "score-empty"
+    assert doc["metrics"]["dataset"]["mIoU"] == pytest.approx((100 * (5 / 6 + 0.75) / 2 + 100) / 2)
+    assert len(doc["frames"]) == 32
     assert doc["provenance"]["bench4d_version"] and doc["provenance"]["score_seconds"] >= 0
     # a frame subset, given as a file
     (tmp_path / "frames.txt").write_text("# held out\nf000\nf005\n")
@@ -363,3 +422,73 @@ def test_time_sensitive_diagnostics_are_recorded_and_derivable_from_the_recorded
     for q in old["scores"]["queries"]:
         q["decision_source"] = "decisions" if q["kind"] == "sensitive" else q["decision_source"]
     assert all(math.isnan(v) for v in temporal_diagnostics(old).values())
+
+
+# -- coverage: an unanswered query counts 0 in the full mean ---------------------------------------------------
+def test_declaring_a_failed_query_unanswered_never_raises_the_full_mean(tmp_path, capsys):
+    """A hand-made submission whose one failed query is then listed under ``unanswered_queries`` instead
+    of answered scores at most its full mean (it used to score the mean of the other queries: 73.68 became
+    84.20 on a real submission); the answered-only mean is reported beside it, labelled."""
+    aset = make_gt()
+    aset.queries.append(Query(4, "spoon"))
+    for t in range(6):
+        aset.set_mask(4, 10 + t, bottom_row())
+    answered = perfect_predictions(aset)
+    cookie = answered.queries["cookie"]
+    cookie.masks = {f: np.zeros((H, W), bool) if f in ("f000", "f001", "f002", "f003") else m
+                    for f, m in cookie.masks.items()}  # the failed query: IoU 2/6
+    full = score_scene(aset, answered).summary()
+    assert full["mIoU"] == pytest.approx(100 * (2 / 6 + 1 + 1) / 3)
+    declined = perfect_predictions(aset)
+    del declined.queries["cookie"]
+    declined.info["unanswered_queries"] = ["cookie"]
+    scored = score_scene(aset, declined)
+    s = scored.summary()
+    assert s["mIoU"] <= full["mIoU"]
+    assert s["mIoU"] == pytest.approx(100 * (0 + 1 + 1) / 3) and s["mAcc"] == pytest.approx(100 * 2 / 3)
+    assert s["mIoU_answered"] == 100.0 and s["mAcc_answered"] == 100.0
+    assert (s["answered_agnostic_queries"], s["asked_agnostic_queries"]) == (2, 3)
+    assert (s["answered_sensitive_queries"], s["asked_sensitive_queries"]) == (1, 1)
+    assert scored.unanswered == ["cookie"] and "cookie" not in set(scored.query_table()["query"])
+    # a kind declined as a whole on a scene: no full mean there (a time-agnostic-only method gets no
+    # time-sensitive row) ...
+    none = perfect_predictions(aset)
+    del none.queries["cracked cookie"]
+    none.info["unanswered_queries"] = ["cracked cookie"]
+    declined_kind = score_scene(aset, none)
+    s = declined_kind.summary()
+    assert math.isnan(s["Acc"]) and math.isnan(s["vIoU"])
+    assert math.isnan(s["Acc_answered"]) and math.isnan(s["vIoU_answered"])
+    assert (s["answered_sensitive_queries"], s["asked_sensitive_queries"], s["mIoU"]) == (0, 1, 100.0)
+    assert math.isnan(s["AUC"])  # diagnostics describe answered queries only
+    other = make_gt("c")
+    del_other = perfect_predictions(other)
+    del del_other.queries["cracked cookie"]
+    del_other.info["unanswered_queries"] = ["cracked cookie"]
+    both = aggregate_scenes([declined_kind, score_scene(other, del_other)]).summary()
+    assert math.isnan(both["Acc"]) and math.isnan(both["vIoU"])
+    # ... but declining it on one scene while answering it on another counts that scene 0: declining the
+    # hard scene never raises the dataset mean
+    mixed = aggregate_scenes([declined_kind, score_scene(make_gt("b"), perfect_predictions(make_gt("b")))]).summary()
+    assert (mixed["Acc"], mixed["vIoU"]) == (pytest.approx(50.0), pytest.approx(50.0))
+    assert mixed["Acc_answered"] == 100.0
+    # a query with no scored frame is not asked: declining it costs nothing
+    early = score_scene(aset, declined, ScoreConfig(eval_frames=("f000",)))
+    assert early.skipped == ["plate"] and early.summary()["asked_agnostic_queries"] == 2  # cookie, spoon
+    # the dataset: mean over scenes of each scene's full mean; the command prints both, labelled
+    b = make_gt("b")
+    d = aggregate_scenes([scored, score_scene(b, perfect_predictions(b))]).summary()
+    assert d["mIoU"] == pytest.approx((100 * 2 / 3 + 100) / 2) and d["mIoU_answered"] == 100.0
+    assert (d["answered_agnostic_queries"], d["asked_agnostic_queries"]) == (4, 5)
+    gt = save_annotations(aset, tmp_path / "gt.json")
+    write_predictions(tmp_path / "p", declined)
+    out = tmp_path / "r.json"
+    assert main(["score", "--gt", str(gt), "--pred", str(tmp_path / "p"), "--out", str(out), "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    full_line = next(line for line in printed.splitlines() if line.startswith("every asked query"))
+    answered_line = next(line for line in printed.splitlines() if line.startswith("answered queries only"))
+    assert full_line.split()[6] == "66.67" and answered_line.split()[3] == "100.00"
+    assert "time-agnostic 2 / 3" in printed
+    metrics = json.loads(out.read_text())["metrics"]["dataset"]
+    assert metrics["mIoU"] == pytest.approx(100 * 2 / 3) and metrics["mIoU_answered"] == 100.0
+    assert (metrics["answered_agnostic_queries"], metrics["asked_agnostic_queries"]) == (2, 3)

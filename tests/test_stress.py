@@ -113,9 +113,14 @@ def test_state_gap_drops_the_training_frames_around_the_state_change(scenes):
 
 
 def _camera_centres(root: Path) -> dict[str, tuple]:
+    """Camera centre per frame of the captured video (the novel-view path, which the knobs leave as planned,
+    is not part of it)."""
+    from benchmark.synthetic.layouts import NOVEL_PREFIX
+
     out = {}
     for path in sorted((root / "camera").glob("*.json")):
-        out[path.stem] = tuple(np.round(json.loads(path.read_text())["position"], 9))
+        if not path.stem.startswith(NOVEL_PREFIX):
+            out[path.stem] = tuple(np.round(json.loads(path.read_text())["position"], 9))
     return out
 
 
@@ -390,7 +395,7 @@ def test_every_fitted_method_has_a_short_schedule_of_its_own_options_and_the_4d_
     from benchmark.core.config import with_overrides
     from methods import registry
 
-    fitted = [name for name in registry.names() if name != "nearest-frame"]
+    fitted = [name for name in registry.names() if not registry.get(name).floor]
     assert sorted(SHORT_SCHEDULES) == sorted(fitted)
     geometries = set()
     for name in fitted:
@@ -415,7 +420,7 @@ def test_a_small_suite_runs_resumes_and_reports(tmp_path):
     again = stress.run_suite(config, log=lambda _: pytest.fail("a present run was redone"))
     assert {s.path: s.path.stat().st_mtime_ns for s in again} == stamps
     # a run made under another method config (a default that moved since) is stale: not read, not reported
-    moved = dataclasses.replace(config, method_options={"nearest-frame": {"camera_weight": "0.5"}})
+    moved = dataclasses.replace(config, method_options={"nearest-frame": {"time_weight": "0.5"}})
     assert stress.collect(moved) == []
     assert all(stress.results_file(moved, stress.RunKey(s.family if s.strength else stress.CLEAN, s.strength,
                                                         s.method, s.seed)) is None for s in again)
@@ -481,7 +486,7 @@ def test_scores_kept_in_the_report_count_without_their_results_files_while_their
     assert gallery.stat().st_mtime_ns == drawn, "a gallery is not redrawn without its runs"
     assert not list((tmp_path / "report").glob("scores-replaced-*"))
     # another method config: no row is current; rewriting the table keeps the old one beside it
-    moved = dataclasses.replace(elsewhere, method_options={"nearest-frame": {"camera_weight": "0.5"}})
+    moved = dataclasses.replace(elsewhere, method_options={"nearest-frame": {"time_weight": "0.5"}})
     assert stress.collect(moved) == []
     write_reports(moved, [])
     assert [p.read_text() for p in (tmp_path / "report").glob("scores-replaced-*.csv")] == [table]
@@ -557,8 +562,11 @@ def test_a_method_keeps_its_colour_in_every_panel_of_a_family_chart(tmp_path, mo
     monkeypatch.setattr(stress_plots, "_save_png", lambda fig, path: figures.append(fig) or path)
     stress_plots.family_chart(scores, "occluder", ["feature-3dgs", "4d-langsplat"], tmp_path / "c.png")
     colours = [{line.get_label(): line.get_color() for line in ax.get_lines()} for ax in figures[0].axes]
-    assert set(colours[0]) == {"feature-3dgs", "4d-langsplat"} and set(colours[1]) == {"4d-langsplat"}
-    assert len({panel["4d-langsplat"] for panel in colours}) == 1
+    methods = [{k: v for k, v in panel.items() if not k.startswith("half of")} for panel in colours]
+    assert set(methods[0]) == {"feature-3dgs", "4d-langsplat"} and set(methods[1]) == {"4d-langsplat"}
+    assert len({panel["4d-langsplat"] for panel in methods}) == 1
+    # its line at half the clean score has its colour too
+    assert {panel["half of 4d-langsplat's clean score"] for panel in colours} == {methods[0]["4d-langsplat"]}
 
 
 def test_a_negative_strength_is_refused_before_any_run(tmp_path):
@@ -611,3 +619,96 @@ def test_breaking_table_marks_held_and_unprobed_strengths():
     header, rows = breaking_rows(scores, ["occluder"], ["a", "b", "c"], metrics=("mIoU",))
     assert header == ["family", "unit", "a mIoU", "b mIoU", "c mIoU"]
     assert rows[0][2:] == ["0.2", "≤ 0.45", "> 0.45"]
+
+
+def _chart_scores() -> list:
+    rows = []
+    for seed, shift in ((0, 0.0), (1, 4.0)):
+        for strength, miou, acc in ((0.0, 60.0, 90.0), (0.5, 40.0, 70.0), (1.0, 20.0, 40.0)):
+            rows.append(stress.Score("mask-drop", strength, "a", seed, {"mIoU": miou + shift, "Acc": acc, "vIoU": None},
+                                     None, 1.0))
+            rows.append(stress.Score("mask-drop", strength, "b", seed, {"mIoU": 30.0 + shift, "Acc": None, "vIoU": None},
+                                     None, 1.0))
+    return rows
+
+
+def test_a_family_chart_marks_half_the_clean_score_explains_the_seed_band_and_keeps_its_labels_apart(tmp_path,
+                                                                                                     monkeypatch):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from PIL import Image
+
+    from benchmark.studies import stress_plots
+
+    figures = []
+    real = stress_plots._save_png
+    monkeypatch.setattr(stress_plots, "_save_png", lambda fig, path: figures.append(fig) or real(fig, path))
+    path = stress_plots.family_chart(_chart_scores(), "mask-drop", ["a", "b"], tmp_path / "c.png")
+    fig = figures[0]
+    halves = [{line.get_label(): line.get_ydata()[0] for line in ax.get_lines() if line.get_label().startswith("half of")}
+              for ax in fig.axes]
+    assert halves[0] == {"half of a's clean score": pytest.approx(31.0), "half of b's clean score": pytest.approx(16.0)}
+    assert halves[1] == {"half of a's clean score": pytest.approx(45.0)}  # b answers no time query
+    legend = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert "shaded: lowest to highest seed (seeds 0, 1)" in legend and any("half its clean score" in t for t in legend)
+    assert legend[:2] == ["a", "b"]
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    canvas = FigureCanvasAgg(fig)  # the figure as it was saved (closed after saving)
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    for ax in fig.axes:  # the axis title clears the tick labels under it
+        label = ax.xaxis.label.get_window_extent(renderer)
+        assert label.height > 0
+        for tick in ax.get_xticklabels():
+            if tick.get_text():
+                assert not label.overlaps(tick.get_window_extent(renderer))
+    extents = [ax.xaxis.label.get_window_extent(renderer) for ax in fig.axes]
+    assert not any(a.overlaps(b) for i, a in enumerate(extents) for b in extents[i + 1:])
+    assert stress_plots.DPI >= 150
+    with Image.open(path) as image:
+        assert image.size[0] >= 1500  # three panels at 4 in and 150 dpi (it was 728 px at 72 dpi)
+
+
+def test_the_coverage_line_and_the_findings_count_the_seeds_from_the_scores(tmp_path):
+    from benchmark.studies.stress_plots import coverage, findings
+
+    config = stress.SuiteConfig(methods=("a", "b"), families=("mask-drop",), strengths=(0.5, 1.0), seeds=(0, 1),
+                                cache_dir=tmp_path)
+    scores = _chart_scores()
+    assert coverage(config, scores).startswith("12 distinct runs of the 12 the suite names")
+    assert "complete" in coverage(config, scores)
+    assert "only seed" not in findings(scores, ["mask-drop"], ["a", "b"])
+    # b's seed 1 ran clean only, a's seed 1 is missing at one strength
+    fewer = [s for s in scores if not (s.method == "b" and s.seed == 1 and s.strength > 0)
+             and not (s.method == "a" and s.seed == 1 and s.strength == 1.0)]
+    text = coverage(config, fewer)
+    assert text.startswith("9 distinct runs of the 12") and "complete" not in text
+    assert "* `a`: seed 1 at 1 on mask-drop." in text
+    assert "* `b`: seed 1 at any strength past clean on mask-drop." in text
+    found = findings(fewer, ["mask-drop"], ["a", "b"])
+    assert "b 32.0 -> 30.0 at 1 (never below half; only seed 0 at 0.5, 1)" in found
+    assert "(below half from 1; only seed 0 at 1)" in found
+
+
+def test_a_gallery_puts_the_clean_row_above_each_row_of_the_strongest_strength(tmp_path, monkeypatch):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from benchmark.studies import stress_plots
+
+    config = stress.SuiteConfig(preset="smoke", size=SIZE, frames=FRAMES, methods=("nearest-frame",),
+                                families=("occluder",), strengths=(0.45,), seeds=(0,),
+                                out_dir=tmp_path / "report", cache_dir=tmp_path / "cache")
+    scores = stress.run_suite(config, log=lambda _: None)
+    figures = []
+    monkeypatch.setattr(stress_plots, "_save_png", lambda fig, path: figures.append(fig) or path)
+    assert stress_plots.family_gallery(config, scores, "occluder", tmp_path / "g.png") is not None
+    titles = [ax.get_title() for ax in figures[0].axes]
+    frames = [t for t in titles if ": frame " in t]
+    assert frames and len(frames) % 2 == 0
+    for clean, perturbed in zip(frames[::2], frames[1::2]):
+        assert clean.startswith("clean: frame ") and perturbed.startswith("at 0.45: frame ")
+        assert clean.split(": frame ")[1] == perturbed.split(": frame ")[1]
+    assert "below its clean row" in figures[0]._suptitle.get_text()

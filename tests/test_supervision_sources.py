@@ -286,3 +286,28 @@ def test_alpha_oracle_supervises_object_and_background_of_training_frames_only()
         enc.encode_masks(img, ids[:1] == 1, frame=test_frame)
     with pytest.raises(InputError, match="alpha"):
         seg.segment(make_frame(img))
+
+
+def test_gt_segmenter_covers_the_surroundings_as_sam_does_unless_told_not_to(smoke_base):
+    """The oracle segmenter puts the surroundings (truth id 0) in a mask at every level by default, so every
+    pixel of a training frame is supervised (SAM's automatic masks cover the background too); off, they are
+    in no mask. The option is part of the source's config (cache keys), and evaluated frames stay refused."""
+    from benchmark.loaders import load_scene
+    from methods.supervision.gt import create
+    from methods.supervision.oracle_text import OracleTextEncoder
+    from methods.supervision.truth_access import EvaluatedFrameTruthError
+
+    scene = load_scene(smoke_base["scene"])
+    frame = next(f for f in scene.frames if f.split == "train")
+    covered, bare = create(scene), create(scene, surroundings=False)
+    ids, ids_bare = covered.segment(frame), bare.segment(frame)
+    assert (ids >= 0).all() and (ids_bare < 0).any()
+    surroundings = ids_bare < 0
+    assert (ids[surroundings] == 0).all() and (ids[~surroundings] == ids_bare[~surroundings]).all()
+    assert covered.config() != bare.config()
+    names = OracleTextEncoder(scene, _Words()).mask_names((ids[2] == 0)[None], frame, np.array([2]))
+    assert names == ["background"]
+    with pytest.raises(InputError, match="surroundings"):
+        create(scene, surroundings="yes")
+    with pytest.raises(EvaluatedFrameTruthError):
+        covered.segment(next(f for f in scene.frames if f.split != "train"))

@@ -28,7 +28,8 @@ from methods.fields.time_varying import (choose_num_states, embed_captions, fit_
                                          load_time_varying_field, object_blend_weights, object_semantics,
                                          render_channels)
 from benchmark.core.config import with_overrides
-from methods.specs._time_varying import TimeVaryingExtensions, TimeVaryingMethodConfig
+from methods.specs._time_varying import (TimeVaryingExtensions, TimeVaryingMethodConfig,
+                                         benchmark_time_varying_extensions)
 from methods.supervision.base import TextEncoder
 
 W, H = 32, 24
@@ -111,10 +112,13 @@ def world():
 
 
 def _options(changes: Optional[dict] = None) -> TimeVaryingMethodConfig:
-    """A time-varying method config small enough for the toy world, with ``changes`` (dotted path -> value)."""
+    """A time-varying method config small enough for the toy world, with the extensions of ``4d-langsplat+``
+    (what most tests here are about; ``extensions.*`` changes turn them off) and ``changes`` (dotted path ->
+    value)."""
     base = {"caption_autoencoder.max_steps": 400, "status.static_iterations": 60, "status.iterations": 300,
             "caption_autoencoder.hidden_dims": (32, 16)}
-    return with_overrides(TimeVaryingMethodConfig(), {**base, **(changes or {})})
+    plus = TimeVaryingMethodConfig(extensions=benchmark_time_varying_extensions())
+    return with_overrides(plus, {**base, **(changes or {})})
 
 
 @pytest.fixture(scope="module")
@@ -332,6 +336,17 @@ def test_status_field_answers_when_the_box_is_open(world, status_field):
     ball = np.array([tv.score(f, world.masks[f.name] == 1, world.encoder.encode(["striped ball"], kind="query")[0])
                      for f in test_frames])
     assert ball.max() - ball.min() < 0.05 and ball.min() > 0.5
+
+
+def test_the_paper_config_gives_every_gaussian_k_states_fitted_on_each_frames_own_caption(world):
+    paper = with_overrides(TimeVaryingMethodConfig(), {"caption_autoencoder.max_steps": 200, "status.iterations": 5,
+                                                      "status.static_iterations": 5,
+                                                      "caption_autoencoder.hidden_dims": (32, 16)})
+    assert paper.extensions.enabled() == {}
+    tv = fit_time_varying_field(world.geometry, world.scene, world.sup, paper, kind="status", seed=0, backend="torch")
+    assert tv.info["num_states"] == paper.status.num_states == 3  # K as configured, not chosen per scene
+    assert tv.info["dynamic_gaussians"] == world.geometry.num_gaussians  # static-caption Gaussians carry K too
+    assert "caption_segments" not in tv.info and "caption_window" not in tv.info  # each frame's own caption
 
 
 def test_caption_autoencoder_trains_at_least_its_minimum_steps(world):

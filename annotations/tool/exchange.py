@@ -22,16 +22,19 @@ from pycocotools import mask as mask_utils
 
 from benchmark.core.atomic import atomic_path
 from benchmark.core.errors import InputError
-from benchmark.core.scene import Scene
+from benchmark.core.scene import Scene, paper_camera
+from benchmark.core.strict import check_int, check_keys, check_text, loads, text_key
 
 from ..format import annotation_set_from_dict, load_annotations, save_annotations
-from benchmark.core.annotation import AnnotatedFrame, AnnotationSet, Query, decode_mask, encode_mask, normalise_intervals
-from ..polygons import polygons_to_mask
+from benchmark.core.annotation import MAX_MASK_PIXELS, AnnotatedFrame, AnnotationSet, Query, decode_mask, encode_mask, normalise_intervals
+from ..polygons import checked_polygons_mask
 from ..release import COCO_RELATIVE_PATH, VIDEO_RELATIVE_PATH, export_release, import_release
 
 
 MAX_MASK_SIDE = 16384
 """Largest mask side an imported file may declare (a decoder allocates height x width first)."""
+MAX_ID = 2 ** 53
+"""Largest absolute image or category id an import may give."""
 
 
 def _frame_base(scene: Scene) -> int:
@@ -165,12 +168,12 @@ def export_set(aset: AnnotationSet, fmt: str, out_dir: Path, stem: str, scene: S
 # import
 # ---------------------------------------------------------------------------------------------
 def _json(data: bytes, file: str):
+    """An uploaded JSON file, parsed as strictly as a file on disk (:func:`benchmark.core.strict.loads`)."""
     try:
-        return json.loads(data.decode("utf-8"))
+        text = data.decode("utf-8")
     except UnicodeDecodeError:
         raise InputError(file, None, "not UTF-8 text") from None
-    except json.JSONDecodeError as err:
-        raise InputError(file, f"line {err.lineno} col {err.colno}", f"invalid JSON: {err.msg}") from None
+    return loads(text, file)
 
 
 def _frame_by_stem(scene: Scene) -> dict[str, object]:
@@ -178,37 +181,66 @@ def _frame_by_stem(scene: Scene) -> dict[str, object]:
 
 
 def _import_coco(doc, file: str, scene: Scene, current: AnnotationSet) -> AnnotationSet:
-    """A COCO file whose image ``file_name`` stems are the scene's frame names (RLE or polygons)."""
+    """A COCO file whose image ``file_name`` stems are the scene's frame names (RLE or polygons), checked as
+    a file on disk is: ids bounded integers, image sizes positive and within the frame limit, query texts
+    without control characters and unique, every polygon through :func:`annotations.polygons.checked_polygons_mask`
+    and every RLE through :func:`benchmark.core.annotation.rle_runs` before anything rasterises or decodes it."""
     if not isinstance(doc, dict) or not all(isinstance(doc.get(k), list) for k in ("images", "categories", "annotations")):
         raise InputError(file, None, "expected a COCO object with images, categories and annotations lists")
+    check_keys(doc, ("info", "licenses", "images", "categories", "annotations"), file, None)
     by_name = _frame_by_stem(scene)
     frames: dict[int, AnnotatedFrame] = {}
+    source_size: dict[int, tuple[int, int]] = {}
     for i, im in enumerate(doc["images"]):
+        field = f"images[{i}]"
         if not isinstance(im, dict) or "id" not in im or "file_name" not in im:
-            raise InputError(file, f"images[{i}]", "expected an object with id and file_name")
-        stem = Path(str(im["file_name"])).name
+            raise InputError(file, field, "expected an object with id and file_name")
+        check_keys(im, ("id", "file_name", "width", "height", "time_index", "camera_id"), file, field)
+        iid = check_int(im["id"], file, f"{field}.id", -MAX_ID, MAX_ID)
+        if iid in frames:
+            raise InputError(file, f"{field}.id", f"duplicate image id {iid}")
+        if not isinstance(im["file_name"], str):
+            raise InputError(file, f"{field}.file_name", "expected a text")
+        stem = Path(im["file_name"]).name
         name = stem if stem in by_name else Path(stem).stem
         if name not in by_name:
-            raise InputError(file, f"images[{i}].file_name", f"{im['file_name']!r} names no frame of scene {scene.name!r}")
+            raise InputError(file, f"{field}.file_name", f"{im['file_name']!r} names no frame of scene {scene.name!r}")
         f = by_name[name]
-        frames[im["id"]] = AnnotatedFrame(id=int(im["id"]), name=name, time_index=f.time_index,
-                                          width=f.camera.width, height=f.camera.height, camera_id=str(f.camera_id))
+        size = (f.camera.width, f.camera.height)
+        if "width" in im or "height" in im:  # the size the polygons were drawn at
+            size = (check_int(im.get("width"), file, f"{field}.width", 1, MAX_MASK_SIDE),
+                    check_int(im.get("height"), file, f"{field}.height", 1, MAX_MASK_SIDE))
+            if size[0] * size[1] > MAX_MASK_PIXELS:
+                raise InputError(file, f"{field}.width/height", f"{size[0]}x{size[1]} is larger than the "
+                                                                f"{MAX_MASK_PIXELS} pixels any frame may have")
+        source_size[iid] = size
+        frames[iid] = AnnotatedFrame(id=iid, name=name, time_index=f.time_index,
+                                     width=f.camera.width, height=f.camera.height, camera_id=str(f.camera_id))
     queries: dict[int, Query] = {}
+    forms: dict[str, int] = {}
     for i, c in enumerate(doc["categories"]):
-        if not isinstance(c, dict) or not isinstance(c.get("id"), int) or not isinstance(c.get("name"), str):
-            raise InputError(file, f"categories[{i}]", "expected an object with an int id and a name")
-        queries[c["id"]] = Query(id=c["id"], text=c["name"])
+        field = f"categories[{i}]"
+        if not isinstance(c, dict) or "id" not in c or "name" not in c:
+            raise InputError(file, field, "expected an object with an int id and a name")
+        check_keys(c, ("id", "name", "supercategory"), file, field)
+        cid = check_int(c["id"], file, f"{field}.id", -MAX_ID, MAX_ID)
+        name = check_text(c["name"], file, f"{field}.name")
+        if cid in queries or text_key(name) in forms:
+            raise InputError(file, field, f"duplicate category id {cid} or query text {name!r}")
+        forms[text_key(name)] = cid
+        queries[cid] = Query(id=cid, text=name)
     masks = {}
     for i, ann in enumerate(doc["annotations"]):
         field = f"annotations[{i}]"
-        if not isinstance(ann, dict) or ann.get("image_id") not in frames or ann.get("category_id") not in queries:
+        if not isinstance(ann, dict):
+            raise InputError(file, field, "expected an object")
+        check_keys(ann, ("id", "image_id", "category_id", "segmentation", "area", "bbox", "iscrowd"), file, field)
+        iid, cid = ann.get("image_id"), ann.get("category_id")
+        if isinstance(iid, bool) or isinstance(cid, bool) or iid not in frames or cid not in queries:
             raise InputError(file, field, "unknown image_id or category_id")
-        f = frames[ann["image_id"]]
+        f = frames[iid]
         seg = ann.get("segmentation")
-        src_w, src_h = f.width, f.height
-        im = next((x for x in doc["images"] if x.get("id") == ann["image_id"]), {})
-        if isinstance(im.get("width"), int) and isinstance(im.get("height"), int):
-            src_w, src_h = im["width"], im["height"]
+        src_w, src_h = source_size[iid]
         if isinstance(seg, dict):
             from ..format import validate_rle
             from .session import check_runs
@@ -228,12 +260,12 @@ def _import_coco(doc, file: str, scene: Scene, current: AnnotationSet) -> Annota
                 cols = np.minimum(((np.arange(f.width) + 0.5) * m.shape[1] / f.width).astype(int), m.shape[1] - 1)
                 m = m[rows[:, None], cols[None, :]]
         elif isinstance(seg, list):
-            sx, sy = f.width / src_w, f.height / src_h
-            polys = [[v * (sx if k % 2 == 0 else sy) for k, v in enumerate(p)] for p in seg]
-            m = polygons_to_mask(polys, f.height, f.width) if polys else np.zeros((f.height, f.width), bool)
+            # the one checked path of polygons: finite, near their image, within the budget
+            m = checked_polygons_mask(seg, (src_w, src_h), f.height, f.width, file=file,
+                                      field=f"{field}.segmentation")
         else:
             raise InputError(file, f"{field}.segmentation", "expected an RLE object or a list of polygons")
-        key = (ann["category_id"], ann["image_id"])
+        key = (cid, iid)
         if key in masks:
             m = m | decode_mask(masks[key])
         masks[key] = encode_mask(m)
@@ -335,6 +367,8 @@ def import_set(fmt: str, filename: str, data: bytes, scene: Scene, current: Anno
             aset = import_release(coco_path, video_path, scene_name=scene.name, frame_base=_frame_base(scene),
                                   target_size=None if recorded else size,
                                   frame_names=None if recorded else scene,
+                                  # the release annotates one camera: the paper split's, where there are several
+                                  camera_id=None if recorded else paper_camera(scene),
                                   num_time_steps=current.num_time_steps)
         aset.info["source_file"] = filename  # not the temporary path
         aset.info.pop("coco_file", None)

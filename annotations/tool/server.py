@@ -1,4 +1,5 @@
-"""HTTP front of the annotation tool (standard library only: ``http.server``).
+"""HTTP front of the annotation tool, on h11 (a maintained, strict HTTP/1.1 implementation) and the standard
+library's threaded TCP server: one thread per connection, at most :attr:`AnnotationServer.max_connections`.
 
 Security model (the tool edits files on the annotator's disk):
 
@@ -19,16 +20,28 @@ Security model (the tool edits files on the annotator's disk):
 
 Hostile or faulty clients (a request is bytes from anyone who can reach the port):
 
-* request framing is strict: one ``Content-Length`` of ASCII digits, no ``Transfer-Encoding``; a
-  body the server does not accept is read and dropped (small) or the connection is closed (large),
-  so it is never parsed as a second request;
-* the request line and headers must arrive within :attr:`AnnotationServer.header_timeout` seconds
-  in all (not per read: a client trickling bytes is cut too), a body within
-  :attr:`AnnotationServer.body_timeout` plus its size over :attr:`AnnotationServer.body_min_rate`;
-  at most :attr:`AnnotationServer.max_connections` connections are served at once, the rest get 503;
-* numbers in paths, queries and headers are ASCII digits; JSON bodies are bounded in size and
-  nesting and may not hold ``NaN`` or infinities; masks are checked before any decoder sees them;
-  any malformed input is a 400 with a one-line JSON error, never a traceback.
+* framing is h11's (RFC 9112): a malformed request line or header (``Transfer-Encoding : chunked``, a
+  space before the colon, a NUL, a line without a colon), an invalid or repeated ``Content-Length`` and
+  an oversized head (:attr:`AnnotationServer.max_head_bytes`) are a 400 and the connection closes; a
+  ``Transfer-Encoding`` of any kind is refused the same way (bodies carry a ``Content-Length``). A body
+  the server does not accept is read and dropped when small and quick, else the connection closes:
+  it is never parsed as a second request;
+* time: the request line and headers must arrive within :attr:`AnnotationServer.header_timeout` seconds
+  in all (not per read: a client trickling bytes is cut too); a body within
+  :attr:`AnnotationServer.body_timeout` plus its size over :attr:`AnnotationServer.body_min_rate`; a
+  refused body within :attr:`AnnotationServer.drain_seconds`;
+* connections: a connection is *trusted* once one of its requests has shown the token. Connections not
+  (yet) trusted are capped apart: at most :attr:`AnnotationServer.max_unauthenticated` of them, and at
+  most :attr:`AnnotationServer.max_unauthenticated_per_client` from one address. When a new connection
+  finds its pool full, the oldest untrusted connection that is only waiting (for a request, or for a
+  refused body) is closed to make room: however many connections other local processes open and hold,
+  the token holder's next connection is served. Trusted connections are never closed for another;
+* size: a body is at most :data:`MAX_BODY_BYTES` (an import: its upload limit in base64); its JSON is
+  parsed strictly (:func:`parse_json_body`: no key twice, bounded nesting, no ``NaN`` or infinities,
+  and lists and objects counted before parsing, so that a body costs at most a few times its bytes in
+  memory); a route reads only its own keys (another key, or ``Box`` beside ``box``, is a 400);
+* numbers in paths, queries and headers are ASCII digits; masks are checked before any decoder sees
+  them; any malformed input is a 4xx with a one-line JSON error, never a traceback.
 """
 
 from __future__ import annotations
@@ -42,17 +55,20 @@ import re
 import secrets
 import signal
 import socket
+import socketserver
 import sys
 import threading
 import time
 import traceback
 from http import HTTPStatus
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Any, Callable, Optional
 from urllib.parse import parse_qs, urlsplit
 
+import h11
+
 from benchmark.core.errors import InputError
+from benchmark.core.strict import check_keys, container_budget, count_containers, loads
 
 from .session import AnnotationSession, Conflict
 
@@ -69,15 +85,33 @@ _SECURITY_HEADERS = {
     "Cross-Origin-Resource-Policy": "same-origin",
     "Cross-Origin-Opener-Policy": "same-origin",
 }
-MAX_BODY_BYTES = 400 * 1024 * 1024
+MAX_BODY_BYTES = 16 * 1024 * 1024
+"""Largest body of a write other than an import: a save of a checkerboard mask of a Neu3D frame (5.5 M
+pixels, a run a pixel) is about 11 MiB; real masks need a few KiB."""
 MAX_JSON_DEPTH = 32
 """Deepest nesting a request body may have (the deepest legitimate one, a save, has 5 levels)."""
+BODY_CONTAINER_BYTES = 32
+"""A body may hold one list or object per this many bytes (plus 4096): a save holds one list per mask."""
 DRAIN_BYTES = 1024 * 1024
 """A refused body up to this size is read and dropped (the connection stays usable); a larger one
 closes the connection instead."""
 TOKEN_HEADER = "X-Bench4d-Token"
 _MAX_ERROR_CHARS = 400
 _DIGITS = re.compile(r"[0-9]{1,15}")  # ASCII only: str.isdigit() also accepts '²' and '١'
+_OBS_FOLD = re.compile(rb"\n[ \t]")
+_CONTENT_LENGTH = re.compile(rb"(?im)^content-length[ \t]*:([^\r\n]*)")
+
+ROUTE_KEYS = {
+    "/api/save": ("revision", "changes", "timing"),
+    "/api/queries/add": ("revision", "text", "kind", "base", "level"),
+    "/api/queries/delete": ("revision", "query"),
+    "/api/queries/reviewed": ("revision", "query"),
+    "/api/segment": ("frame", "box", "clicks", "current"),
+    "/api/propagate": ("query", "frame", "direction", "count"),
+    "/api/export": ("format",),
+    "/api/import": ("revision", "format", "filename", "data"),
+}
+"""The keys each write route reads (what the page sends); any other key is a 400."""
 
 
 def _static_files() -> dict[str, Path]:
@@ -97,6 +131,16 @@ def needs_read_token(address: str) -> bool:
     return not ip.is_loopback
 
 
+def _is_loopback(address: str) -> bool:
+    try:
+        ip = ipaddress.ip_address(address.split("%", 1)[0])
+    except ValueError:
+        return False
+    if isinstance(ip, ipaddress.IPv6Address) and ip.ipv4_mapped is not None:
+        ip = ip.ipv4_mapped
+    return ip.is_loopback
+
+
 def _ascii_int(text: Optional[str], field: str) -> Optional[int]:
     """``None`` for a missing value, else the value as ASCII digits (an :class:`InputError` if not)."""
     if text is None:
@@ -106,42 +150,40 @@ def _ascii_int(text: Optional[str], field: str) -> Optional[int]:
     return int(text)
 
 
-def _reject_constant(name: str) -> Any:
-    raise ValueError(f"{name} is not a JSON number")
-
-
-def _finite_float(text: str) -> float:
-    value = float(text)
-    if not math.isfinite(value):
-        raise ValueError(f"{text[:20]} is out of range")
-    return value
-
-
-def _json_depth_ok(obj: Any, limit: int) -> bool:
-    """Iterative (a recursive check would hit the recursion limit it guards against); only
-    containers are stacked, so a long list of run lengths costs no extra memory."""
-    if not isinstance(obj, (dict, list)):
-        return True
-    stack = [(obj, 1)]
+def _finite_numbers(obj: Any) -> bool:
+    """No NaN or infinity anywhere in a parsed body (iterative: no recursion)."""
+    stack = [obj]
     while stack:
-        item, depth = stack.pop()
-        if depth > limit:
-            return False
-        values = item.values() if isinstance(item, dict) else item
-        stack.extend((v, depth + 1) for v in values if isinstance(v, (dict, list)))
+        node = stack.pop()
+        if isinstance(node, float):
+            if not math.isfinite(node):
+                return False
+        elif isinstance(node, dict):
+            stack.extend(node.values())
+        elif isinstance(node, list):
+            stack.extend(node)
     return True
 
 
-def parse_json_body(raw: bytes) -> Any:
-    """Strict JSON of a request body: UTF-8, no NaN or infinities, bounded nesting; else InputError."""
+def parse_json_body(raw: bytes | bytearray | str) -> Any:
+    """Strict JSON of a request body (:func:`benchmark.core.strict.loads`): UTF-8, no key twice, nesting at
+    most :data:`MAX_JSON_DEPTH`, lists and objects counted before parsing (at most one per
+    :data:`BODY_CONTAINER_BYTES` bytes), no ``NaN`` or infinities; else :class:`InputError` on ``body``."""
     try:
-        obj = json.loads(raw.decode("utf-8"), parse_constant=_reject_constant, parse_float=_finite_float)
-    except (UnicodeDecodeError, ValueError, RecursionError, OverflowError) as err:
-        # json's own messages name a position; deep nesting and 5000-digit numbers land here too
-        detail = "nested too deeply" if isinstance(err, RecursionError) else str(err).splitlines()[0][:120]
-        raise InputError(None, "body", f"not valid JSON ({detail})") from None
-    if not _json_depth_ok(obj, MAX_JSON_DEPTH):
-        raise InputError(None, "body", f"nested deeper than {MAX_JSON_DEPTH} levels")
+        text = raw if isinstance(raw, str) else raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raise InputError(None, "body", "not valid JSON (not UTF-8)") from None
+    budget = container_budget(len(text), BODY_CONTAINER_BYTES, 4096)
+    if count_containers(text) > budget:
+        raise InputError(None, "body", f"more than {budget} lists and objects for {len(text)} bytes: not a "
+                                       "request this server reads")
+    try:
+        obj = loads(text, None, max_depth=MAX_JSON_DEPTH, containers=budget)
+    except InputError as err:
+        raise InputError(None, "body", f"not valid JSON ({err.message}"
+                                       f"{'' if not err.field else ' at ' + err.field})") from None
+    if not _finite_numbers(obj):
+        raise InputError(None, "body", "not valid JSON (NaN and infinities are not JSON numbers)")
     return obj
 
 
@@ -158,65 +200,38 @@ class _Refused(Exception):
         self.status = status
 
 
-class _DeadlineReader:
-    """The handler's ``rfile``: every read is bounded by one deadline for the whole phase (request
-    line and headers, or body), not per ``recv``; a client sending a byte at a time is cut too.
-
-    Each step does at most one ``recv`` (``peek`` / ``read1`` on the buffered socket file), with the
-    socket timeout set to the time left, so the phase can never outlast its deadline by more than
-    one scheduling delay.
-    """
-
-    def __init__(self, raw, sock: socket.socket):
-        self._raw = raw
-        self._sock = sock
-        self._deadline = math.inf
-
-    def start(self, seconds: float) -> None:
-        self._deadline = time.monotonic() + seconds
-
-    def _arm(self) -> None:
-        left = self._deadline - time.monotonic()
-        if left <= 0:
-            raise TimeoutError("request not received in time")
-        self._sock.settimeout(min(left, 3600.0))
-
-    def readline(self, limit: int = -1) -> bytes:
-        out = bytearray()
-        while limit < 0 or len(out) < limit:
-            self._arm()
-            chunk = self._raw.peek(1)
-            if not chunk:
-                break
-            want = len(chunk) if limit < 0 else min(len(chunk), limit - len(out))
-            nl = chunk.find(b"\n", 0, want)
-            out += self._raw.read(want if nl < 0 else nl + 1)  # from the buffer: no recv
-            if nl >= 0:
-                break
-        return bytes(out)
-
-    def read(self, n: int = -1) -> bytes:
-        out = bytearray()
-        while n < 0 or len(out) < n:
-            self._arm()
-            chunk = self._raw.read1(65536 if n < 0 else min(65536, n - len(out)))
-            if not chunk:
-                break
-            out += chunk
-        return bytes(out)
-
-    def close(self) -> None:
-        self._raw.close()
-
-    @property
-    def closed(self) -> bool:
-        return self._raw.closed
+class _Closed(Exception):
+    """The peer closed the connection (or it was closed to make room for another)."""
 
 
-class AnnotationServer(ThreadingHTTPServer):
-    """A threaded HTTP server bound to one :class:`AnnotationSession`."""
+class _Connection:
+    """One accepted connection, as the server's bookkeeping sees it."""
+
+    def __init__(self, sock: socket.socket, peer: str):
+        self.sock = sock
+        self.peer = peer
+        self.trusted = False
+        """Whether one of its requests has shown the token (then it is never closed for another)."""
+        self.waiting = True
+        """Whether it only waits (for a request, for a refused body to end, or for the client to take an
+        answer): then, untrusted, it may be closed for another."""
+        self.opened = time.monotonic()
+        self.closed = False
+
+    def close_for_another(self) -> None:
+        """Wake its thread with end-of-stream (``shutdown``): it ends without another request."""
+        self.closed = True
+        try:
+            self.sock.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+
+
+class AnnotationServer(socketserver.ThreadingMixIn, socketserver.TCPServer):
+    """A threaded HTTP server bound to one :class:`AnnotationSession` (module docstring)."""
 
     daemon_threads = True
+    allow_reuse_address = True
     request_queue_size = 64
     header_timeout = 10.0
     """Seconds a client has to send the request line and headers (and a kept-alive connection may idle)."""
@@ -224,10 +239,21 @@ class AnnotationServer(ThreadingHTTPServer):
     """Seconds a client has to send a body, plus its size divided by :attr:`body_min_rate`."""
     body_min_rate = 1024 * 1024
     """Bytes per second a large upload must at least average."""
+    drain_seconds = 2.0
+    """Seconds a refused body (small enough to drop) has to arrive; past them the connection closes."""
     write_timeout = 60.0
     """Seconds the server waits for a client to take one response."""
     max_connections = 64
-    """Connections served at once (each holds a thread); a browser opens about six."""
+    """Connections served at once, trusted and not (each holds a thread); a browser opens about six."""
+    max_unauthenticated: Optional[int] = None
+    """Connections not (yet) trusted served at once; ``None``: half of :attr:`max_connections`. The rest are
+    kept for the token holder's."""
+    max_unauthenticated_per_client: Optional[int] = None
+    """Untrusted connections from one address other than a loopback one; ``None``: half of
+    :attr:`max_unauthenticated` (at least 1). Every local process shares the loopback address, the token
+    holder's browser among them: there the pool's eviction rule alone applies."""
+    max_head_bytes = 16 * 1024
+    """Largest request line plus headers."""
     linger_seconds = 1.0
     """After refusing a body it does not read, the server reads and drops what is in flight this
     long before closing, so that the client gets the answer instead of a reset connection."""
@@ -237,8 +263,9 @@ class AnnotationServer(ThreadingHTTPServer):
                  read_token: Optional[bool] = None):
         if ":" in host.strip("[]"):
             self.address_family = socket.AF_INET6
-        self._active = 0
-        self._active_lock = threading.Lock()
+        self._conns: list[_Connection] = []
+        self._conn_of: dict[int, _Connection] = {}
+        self._conns_lock = threading.Lock()
         super().__init__((host.strip("[]"), port), _Handler)
         self.session = session
         self.token = token or secrets.token_urlsafe(24)
@@ -263,30 +290,72 @@ class AnnotationServer(ThreadingHTTPServer):
             return f"http://{shown}:{self.port}/?token={self.token}"
         return f"http://{shown}:{self.port}/#token={self.token}"
 
-    # -- one thread per connection, at most max_connections of them -----------------------------
+    # -- the connection pools --------------------------------------------------------------------
+    def _untrusted_caps(self) -> tuple[int, int]:
+        pool = self.max_unauthenticated if self.max_unauthenticated is not None else max(1, self.max_connections // 2)
+        pool = max(1, min(pool, self.max_connections))
+        per = self.max_unauthenticated_per_client
+        per = max(1, pool // 2) if per is None else max(1, min(per, pool))
+        return pool, per
+
+    def _admit(self, sock: socket.socket, peer: str) -> Optional[_Connection]:
+        """Register a new (untrusted) connection, closing the oldest waiting untrusted one of its client or
+        of the pool to make room; ``None`` when every untrusted connection is busy."""
+        pool, per = self._untrusted_caps()
+        victim = None
+        with self._conns_lock:
+            live = [c for c in self._conns if not c.closed]
+            untrusted = [c for c in live if not c.trusted]
+            same = [c for c in untrusted if c.peer == peer]
+            crowd = None
+            if len(untrusted) >= pool or len(live) >= self.max_connections:
+                crowd = untrusted
+            elif len(same) >= per and not _is_loopback(peer):
+                crowd = same
+            if crowd is not None:
+                idle = [c for c in crowd if c.waiting]
+                if not idle:
+                    return None
+                victim = min(idle, key=lambda c: c.opened)
+                victim.closed = True
+            conn = _Connection(sock, peer)
+            self._conns.append(conn)
+        if victim is not None:
+            victim.close_for_another()
+        return conn
+
+    def _trust(self, conn: _Connection) -> bool:
+        """Move ``conn`` to the trusted pool (it showed the token); False when that pool is full."""
+        pool, _ = self._untrusted_caps()
+        with self._conns_lock:
+            if conn.trusted:
+                return True
+            trusted = sum(1 for c in self._conns if c.trusted and not c.closed)
+            if trusted >= max(1, self.max_connections - pool):
+                return False
+            conn.trusted = True
+            return True
+
+    def _forget(self, conn: _Connection) -> None:
+        with self._conns_lock:
+            self._conn_of.pop(id(conn.sock), None)
+            conn.closed = True
+            if conn in self._conns:
+                self._conns.remove(conn)
+
     def process_request(self, request, client_address) -> None:
-        with self._active_lock:
-            full = self._active >= self.max_connections
-            if not full:
-                self._active += 1
-        if full:
+        peer = str(client_address[0]) if isinstance(client_address, tuple) and client_address else "?"
+        conn = self._admit(request, peer)
+        if conn is None:
             self._refuse_connection(request)
             return
+        with self._conns_lock:
+            self._conn_of[id(request)] = conn  # taken by the connection's handler
         try:
             super().process_request(request, client_address)
         except BaseException:
-            self._release_slot()
+            self._forget(conn)
             raise
-
-    def process_request_thread(self, request, client_address) -> None:
-        try:
-            super().process_request_thread(request, client_address)
-        finally:
-            self._release_slot()
-
-    def _release_slot(self) -> None:
-        with self._active_lock:
-            self._active -= 1
 
     def _refuse_connection(self, request: socket.socket) -> None:
         """503 on the accepting thread: short, and never blocking it for long."""
@@ -306,58 +375,177 @@ class AnnotationServer(ThreadingHTTPServer):
         super().handle_error(request, client_address)
 
 
-class _Handler(BaseHTTPRequestHandler):
+class _Request:
+    """What the routes see of one request."""
+
+    def __init__(self, event: h11.Request):
+        self.command = event.method.decode("ascii", "replace")
+        self.path = event.target.decode("ascii", "replace")
+        self.headers: dict[str, list[str]] = {}
+        for name, value in event.headers:
+            self.headers.setdefault(name.decode("ascii").lower(), []).append(value.decode("latin-1"))
+
+    def header(self, name: str) -> Optional[str]:
+        values = self.headers.get(name.lower())
+        return values[0] if values else None
+
+    def all(self, name: str) -> list[str]:
+        return self.headers.get(name.lower(), [])
+
+
+class _Handler(socketserver.BaseRequestHandler):
+    """One connection: requests read with h11 until it closes."""
+
     server: AnnotationServer
-    protocol_version = "HTTP/1.1"
-    server_version = "bench4d-annotate"
-    sys_version = ""
-    _body_left = 0
-    _linger = False
 
-    # -- plumbing -------------------------------------------------------------------------------
-    def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 - stdlib signature
-        if self.server_quiet():
-            return
-        line = format % args
-        sys.stderr.write("%s - %s\n" % (self.address_string(), line.replace(self.server.token, "<token>")))
-
-    def server_quiet(self) -> bool:
-        return getattr(self.server, "quiet", True)
-
+    # -- the connection --------------------------------------------------------------------------
     def setup(self) -> None:
-        super().setup()
-        self.rfile = _DeadlineReader(self.rfile, self.connection)
-
-    def handle_one_request(self) -> None:
-        self._body_left = 0
-        self.rfile.start(self.server.header_timeout)
-        try:
-            super().handle_one_request()
-        except OSError:  # reset or broken connection: nothing more to say on it
-            self.close_connection = True
-        if self._body_left:  # not read and not answered: its bytes must not become a request
-            self._close_after()
+        with self.server._conns_lock:
+            conn = self.server._conn_of.pop(id(self.request), None)
+        self.conn: _Connection = conn or _Connection(self.request, "?")
+        self.h11 = h11.Connection(h11.SERVER, max_incomplete_event_size=self.server.max_head_bytes)
+        self.req: Optional[_Request] = None
+        self._linger = False
+        self._head = b""
+        """The bytes of the request head being read (for the checks h11 leaves to the server)."""
+        self._reading_head = False
 
     def finish(self) -> None:
-        super().finish()
+        self.server._forget(self.conn)
         if self._linger:
             self._linger_close()
 
-    def _close_after(self) -> None:
-        self.close_connection = True
-        if self._body_left:
-            self._linger = True
-        self._body_left = 0
+    def handle(self) -> None:
+        try:
+            while not self.conn.closed:
+                if not self._one_request():
+                    break
+        except (_Closed, OSError):
+            pass
+
+    def _recv(self, deadline: float) -> None:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            raise TimeoutError("request not received in time")
+        self.request.settimeout(min(left, 3600.0))
+        try:
+            data = self.request.recv(65536)
+        except socket.timeout:
+            raise TimeoutError("request not received in time") from None
+        if self.conn.closed:
+            raise _Closed()
+        if self._reading_head and len(self._head) <= self.server.max_head_bytes:
+            self._head += data
+        self.h11.receive_data(data)
+
+    def _next_event(self, deadline: float):
+        """The next h11 event, reading until ``deadline``; a malformed stream raises :class:`_Refused` (400)."""
+        while True:
+            try:
+                event = self.h11.next_event()
+            except h11.RemoteProtocolError as err:
+                status = err.error_status_hint if 400 <= err.error_status_hint < 500 else 400
+                # h11's reason without the bytes it quotes (a request is never echoed back)
+                raise _Refused(status, f"malformed request: {str(err).split(':', 1)[0][:80]}") from None
+            if event is h11.NEED_DATA:
+                self._recv(deadline)
+                continue
+            return event
+
+    def _one_request(self) -> bool:
+        """Read and answer one request; False when the connection is to close."""
+        self.conn.waiting = True
+        self.req = None
+        self._head = bytes(self.h11.trailing_data[0])  # what an earlier read brought of this request
+        self._reading_head = True
+        try:
+            event = self._next_event(time.monotonic() + self.server.header_timeout)
+        except TimeoutError:
+            started = bool(self.h11.trailing_data[0])
+            if started:  # part of a request arrived: say why it ends
+                self._send_error_and_close(HTTPStatus.REQUEST_TIMEOUT, "request not received in time")
+            return False
+        except _Refused as err:
+            self._send_error_and_close(err.status, str(err))
+            return False
+        finally:
+            self._reading_head = False
+        if not isinstance(event, h11.Request):  # ConnectionClosed, or the end of a stream
+            return False
+        end = min((i for i in (self._head.find(b"\r\n\r\n"), self._head.find(b"\n\n")) if i >= 0),
+                  default=len(self._head))
+        self._head = self._head[:end]
+        self.req = _Request(event)
+        self.conn.waiting = False
+        problem = self._framing_problem()
+        if problem:
+            self._send_error_and_close(HTTPStatus.BAD_REQUEST, problem)
+            return False
+        method = self.req.command
+        handler = {"GET": self._do_get, "HEAD": self._do_get, "POST": self._do_post}.get(method)
+        if handler is None:
+            self._dispatch(lambda: self._refuse(HTTPStatus.METHOD_NOT_ALLOWED,
+                                                "no CORS here" if method == "OPTIONS" else "use GET or POST"))
+        else:
+            self._dispatch(handler)
+        return self._end_of_request()
+
+    def _framing_problem(self) -> Optional[str]:
+        """What h11 accepts that this server does not: obsolete line folding (a header line starting with a
+        space or tab, RFC 9112 5.2: rejected rather than joined), any Transfer-Encoding, a Content-Length
+        other than one run of ASCII digits (``5, 5`` included)."""
+        if _OBS_FOLD.search(self._head):
+            return "a header line starts with white space (obsolete line folding)"
+        if self.req.all("transfer-encoding"):
+            return "Transfer-Encoding is not supported; send Content-Length"
+        lengths = _CONTENT_LENGTH.findall(self._head)  # as sent: h11 reads "5, 5" as 5
+        if len(lengths) > 1 or len(self.req.all("content-length")) > 1:
+            return "more than one Content-Length"
+        if lengths and not _DIGITS.fullmatch(lengths[0].strip(b" \t").decode("latin-1")):
+            return "Content-Length must be one number in ASCII digits"
+        if self.req.command == "POST" and not lengths:
+            return "Content-Length required (a POST without one has no body: what follows would be a request)"
+        return None
+
+    def _body_length(self) -> int:
+        value = self.req.header("content-length")
+        return int(value) if value is not None else 0  # h11 has checked it is digits
+
+    def _end_of_request(self) -> bool:
+        """After the answer: drop a small unread body quickly (the connection stays usable) or close."""
+        h = self.h11
+        if h.our_state is h11.MUST_CLOSE or h.our_state is h11.ERROR:
+            return False
+        if h.their_state is h11.SEND_BODY:
+            if self._body_length() > DRAIN_BYTES:
+                self._linger = True
+                return False
+            self.conn.waiting = True  # dropping a refused body: it may be closed for another
+            deadline = time.monotonic() + min(self.server.drain_seconds, self.server.body_timeout)
+            try:
+                while True:
+                    event = self._next_event(deadline)
+                    if isinstance(event, h11.EndOfMessage):
+                        break
+                    if isinstance(event, h11.ConnectionClosed):
+                        return False
+            except (TimeoutError, _Refused):
+                self._linger = True
+                return False
+        if h.our_state is h11.DONE and h.their_state is h11.DONE:
+            h.start_next_cycle()
+            return True
+        return False
 
     def _linger_close(self) -> None:
         """Half-close, then drop what the client still sends for a moment, so that closing with
         unread bytes does not reset the connection before the client has read the answer."""
-        sock = self.connection
+        sock = self.request
         try:
             sock.shutdown(socket.SHUT_WR)
             end = time.monotonic() + self.server.linger_seconds
             dropped = 0
-            while dropped < DRAIN_BYTES:
+            while dropped < DRAIN_BYTES and not self.conn.closed:
                 left = end - time.monotonic()
                 if left <= 0:
                     break
@@ -369,85 +557,78 @@ class _Handler(BaseHTTPRequestHandler):
         except OSError:
             pass
 
-    def parse_request(self) -> bool:
-        """The stdlib's parsing, then strict framing: anything ambiguous is refused and the
-        connection closed (the classic request-smuggling openings)."""
-        if not super().parse_request():
-            return False
-        if self.headers.get_all("Transfer-Encoding"):
-            self.send_error(HTTPStatus.BAD_REQUEST, "Transfer-Encoding is not supported; send Content-Length")
-            return False
-        lengths = self.headers.get_all("Content-Length") or []
-        if len(lengths) > 1:
-            self.send_error(HTTPStatus.BAD_REQUEST, "more than one Content-Length")
-            return False
-        if lengths:
-            value = lengths[0].strip(" \t")
-            if not _DIGITS.fullmatch(value):
-                self.send_error(HTTPStatus.BAD_REQUEST, "Content-Length must be ASCII digits")
-                return False
-            self._body_left = int(value)
-        return True
-
-    def send_error(self, code: int, message: Optional[str] = None, explain: Optional[str] = None) -> None:
-        """Errors the stdlib raises (bad request line, unknown method, ...) as this server's JSON,
-        always closing the connection (the request's framing is unknown)."""
-        if code == HTTPStatus.NOT_IMPLEMENTED:  # an unknown method: not a server fault
-            code = HTTPStatus.METHOD_NOT_ALLOWED
-        self.close_connection = True
-        self._linger = True
-        self._body_left = 0
+    # -- answers ------------------------------------------------------------------------------------
+    def _write(self, data: bytes) -> None:
+        self.request.settimeout(self.server.write_timeout)
+        # a client that does not take its answer only waits: an untrusted one may be closed for another
+        self.conn.waiting = True
         try:
-            self._error(code, message or HTTPStatus(code).phrase)
+            self.request.sendall(data)
+        finally:
+            self.conn.waiting = False
+        if self.conn.closed:
+            raise _Closed()
+
+    def _send(self, status: int, body: bytes, content_type: str, cache: str = "no-store",
+              extra: Optional[dict] = None, close: bool = False) -> None:
+        headers = [("Content-Type", content_type), ("Cache-Control", cache),
+                   *[(k, v) for k, v in {**_SECURITY_HEADERS, **(extra or {})}.items()]]
+        if int(status) not in (204, 304):
+            headers.append(("Content-Length", str(len(body))))
+        if close:
+            headers.append(("Connection", "close"))
+        h = self.h11
+        out = h.send(h11.Response(status_code=int(status), headers=headers,
+                                  reason=HTTPStatus(int(status)).phrase.encode()))
+        if body and self.req is not None and self.req.command != "HEAD" and int(status) not in (204, 304):
+            out += h.send(h11.Data(data=body))
+        out += h.send(h11.EndOfMessage())
+        self._write(out)
+        self._log(status)
+
+    def _log(self, status: int) -> None:
+        if getattr(self.server, "quiet", True) or self.req is None:
+            return
+        line = f"{self.req.command} {self.req.path} {int(status)}".replace(self.server.token, "<token>")
+        sys.stderr.write(f"{self.client_address[0]} - {_one_line(line)}\n")
+
+    def _json(self, status: int, obj: Any, close: bool = False) -> None:
+        self._send(status, json.dumps(obj, separators=(",", ":")).encode("utf-8"), "application/json", close=close)
+
+    def _error(self, status: int, message: str, **extra: Any) -> None:
+        close = self.h11.their_state is h11.SEND_BODY and self._body_length() > DRAIN_BYTES
+        self._json(status, {"error": _one_line(message), **extra}, close=close)
+
+    def _send_error_and_close(self, status: int, message: str) -> None:
+        """An error answer on a stream whose framing is unknown or broken: answer if h11 still can, then close."""
+        self._linger = True
+        if self.h11.our_state not in (h11.IDLE, h11.SEND_RESPONSE):
+            return
+        body = json.dumps({"error": _one_line(message)}, separators=(",", ":")).encode()
+        try:
+            out = self.h11.send(h11.Response(status_code=int(status), reason=HTTPStatus(int(status)).phrase.encode(),
+                                             headers=[("Content-Type", "application/json"),
+                                                      ("Content-Length", str(len(body))), ("Connection", "close"),
+                                                      *_SECURITY_HEADERS.items()]))
+            out += self.h11.send(h11.Data(data=body)) + self.h11.send(h11.EndOfMessage())
+        except h11.LocalProtocolError:
+            out = (b"HTTP/1.1 %d %s\r\nContent-Type: application/json\r\nContent-Length: %d\r\nConnection: close"
+                   b"\r\n\r\n%s" % (int(status), HTTPStatus(int(status)).phrase.encode(), len(body), body))
+        try:
+            self._write(out)
         except OSError:
             pass
 
-    def _settle_body(self) -> None:
-        """Before answering: the unread body of this request is dropped (small) or the connection
-        will close after the answer (large); either way it is never parsed as a request."""
-        left = self._body_left
-        if not left:
-            return
-        if left > DRAIN_BYTES or self.close_connection:
-            self._close_after()
-            return
-        try:
-            self.rfile.start(self.server.body_timeout)
-            got = len(self.rfile.read(left))
-        except OSError:
-            got = -1
-        self._body_left = 0 if got == left else left
-        if self._body_left:
-            self._close_after()
+    def _refuse(self, status: int, message: str) -> None:
+        raise _Refused(status, message)
 
-    def _send(self, status: int, body: bytes, content_type: str, cache: str = "no-store",
-              extra: Optional[dict] = None) -> None:
-        self._settle_body()
-        self.connection.settimeout(self.server.write_timeout)
-        self.send_response(status)
-        self.send_header("Content-Type", content_type)
-        self.send_header("Content-Length", str(len(body)))
-        self.send_header("Cache-Control", cache)
-        for k, v in {**_SECURITY_HEADERS, **(extra or {})}.items():
-            self.send_header(k, v)
-        if self.close_connection:
-            self.send_header("Connection", "close")
-        self.end_headers()
-        if self.command != "HEAD":
-            self.wfile.write(body)
-
-    def _json(self, status: int, obj: Any) -> None:
-        self._send(status, json.dumps(obj, separators=(",", ":")).encode("utf-8"), "application/json")
-
-    def _error(self, status: int, message: str, **extra: Any) -> None:
-        self._json(status, {"error": _one_line(message), **extra})
-
+    # -- checks ---------------------------------------------------------------------------------------
     def _host_ok(self) -> bool:
-        host = (self.headers.get("Host") or "").strip().lower()
-        return host in self.server.allowed_hosts
+        hosts = self.req.all("host")
+        return len(hosts) == 1 and hosts[0].strip().lower() in self.server.allowed_hosts
 
     def _origin_ok(self) -> bool:
-        origin = self.headers.get("Origin")
+        origin = self.req.header("origin")
         if origin is None:  # not a browser cross-origin request (browsers send Origin on POST)
             return True
         try:
@@ -459,39 +640,26 @@ class _Handler(BaseHTTPRequestHandler):
     def _token_ok(self, *, cookie: bool, query: Optional[str] = None) -> bool:
         """The header token; for reads also the cookie, or ``query`` (the printed address's)."""
         expected = self.server.token.encode()
-        given = self.headers.get(TOKEN_HEADER)
+        given = self.req.header(TOKEN_HEADER)
         if given is None and query is not None:
             given = query
         if given is None and cookie:
-            for header in self.headers.get_all("Cookie") or []:
+            for header in self.req.all("cookie"):
                 for part in header.split(";"):
                     name, _, value = part.strip().partition("=")
                     if name == self.server.cookie_name:
                         given = value.strip()
         return given is not None and hmac.compare_digest(given.encode("utf-8", "replace"), expected)
 
-    def _read_json(self) -> Any:
-        """The body, once the request has passed every check that needs no body."""
-        if self.headers.get("Content-Length") is None:
-            raise _Refused(HTTPStatus.LENGTH_REQUIRED, "Content-Length required")
-        n = self._body_left
-        if n > MAX_BODY_BYTES:
-            raise _Refused(HTTPStatus.REQUEST_ENTITY_TOO_LARGE, f"body of {n} bytes; at most {MAX_BODY_BYTES}")
-        ctype = (self.headers.get("Content-Type") or "").split(";")[0].strip().lower()
-        if ctype != "application/json":
-            raise _Refused(HTTPStatus.BAD_REQUEST, "Content-Type: expected application/json")
-        self.rfile.start(self.server.body_timeout + n / self.server.body_min_rate)
-        raw = self.rfile.read(n)  # TimeoutError past the deadline: answered 408 by the caller
-        if len(raw) < n:
-            self._close_after()
-            raise InputError(None, "body", f"ended after {len(raw)} of the {n} bytes announced")
-        self._body_left = 0
-        return parse_json_body(raw)
+    def _trusted(self) -> None:
+        """This request showed the token: its connection joins the trusted pool."""
+        if not self.server._trust(self.conn):
+            raise _Refused(HTTPStatus.SERVICE_UNAVAILABLE, "too many connections; retry")
 
     def _url(self):
         """The parsed request target, or ``None`` (``urlsplit`` refuses e.g. ``http://[x``)."""
         try:
-            return urlsplit(self.path)
+            return urlsplit(self.req.path)
         except ValueError:
             return None
 
@@ -504,13 +672,57 @@ class _Handler(BaseHTTPRequestHandler):
                 raise _Refused(HTTPStatus.FORBIDDEN, "cross-origin write refused")
             if not self._token_ok(cookie=False):
                 raise _Refused(HTTPStatus.FORBIDDEN, "missing or wrong token (open the address the server printed)")
+            self._trusted()
+            return
+        query = None
+        if url is not None and url.path in ("/", "/index.html"):
+            query = (parse_qs(url.query).get("token") or [None])[0]
+        if self._token_ok(cookie=True, query=query):
+            self._trusted()
         elif self.server.read_token:
-            query = None
-            if url is not None and url.path in ("/", "/index.html"):
-                query = (parse_qs(url.query).get("token") or [None])[0]
-            if not self._token_ok(cookie=True, query=query):
-                raise _Refused(HTTPStatus.FORBIDDEN, "this server is reachable from the network: every request "
-                                                     "needs the token (open the address the server printed)")
+            raise _Refused(HTTPStatus.FORBIDDEN, "this server is reachable from the network: every request "
+                                                 "needs the token (open the address the server printed)")
+
+    def _body_limit(self, path: str) -> int:
+        if path == "/api/import":  # the upload in base64, plus the request's other keys
+            return self.server.session.config.max_import_bytes * 4 // 3 + 64 * 1024
+        return MAX_BODY_BYTES
+
+    def _read_json(self, path: str) -> Any:
+        """The body, once the request has passed every check that needs no body."""
+        if self.req.header("content-length") is None:
+            raise _Refused(HTTPStatus.LENGTH_REQUIRED, "Content-Length required")
+        n = self._body_length()
+        limit = self._body_limit(path)
+        if n > limit:
+            raise _Refused(HTTPStatus.REQUEST_ENTITY_TOO_LARGE, f"body of {n} bytes; at most {limit} here")
+        ctype = (self.req.header("content-type") or "").split(";")[0].strip().lower()
+        if ctype != "application/json":
+            raise _Refused(HTTPStatus.BAD_REQUEST, "Content-Type: expected application/json")
+        if self.h11.they_are_waiting_for_100_continue:
+            self._write(self.h11.send(h11.InformationalResponse(status_code=100, headers=[])))
+        deadline = time.monotonic() + self.server.body_timeout + n / self.server.body_min_rate
+        raw = bytearray(n)
+        got = 0
+        while True:
+            try:
+                event = self._next_event(deadline)
+            except TimeoutError:
+                raise
+            if isinstance(event, h11.Data):
+                raw[got:got + len(event.data)] = event.data
+                got += len(event.data)
+            elif isinstance(event, h11.EndOfMessage):
+                break
+            else:  # the client closed before the whole body
+                self._linger = True
+                raise InputError(None, "body", f"ended after {got} of the {n} bytes announced")
+        try:
+            text = raw.decode("utf-8")
+        except UnicodeDecodeError:
+            raise InputError(None, "body", "not valid JSON (not UTF-8)") from None
+        del raw  # the text alone from here: a body costs a bounded multiple of its size
+        return parse_json_body(text)
 
     def _dispatch(self, work: Callable[[], None]) -> None:
         """Run one request; every failure becomes a one-line JSON error (the traceback, for a
@@ -523,54 +735,34 @@ class _Handler(BaseHTTPRequestHandler):
             self._error(HTTPStatus.CONFLICT, str(err), revision=err.current)
         except InputError as err:
             self._error(HTTPStatus.BAD_REQUEST, str(err))
-        except TimeoutError:  # the body's deadline passed (or the client stopped taking the answer)
-            self._close_after()
-            try:
-                self._error(HTTPStatus.REQUEST_TIMEOUT, "request body not received in time")
-            except OSError:
-                pass
-        except OSError:
-            self.close_connection = True
+        except TimeoutError:  # the body's deadline passed
+            self._send_error_and_close(HTTPStatus.REQUEST_TIMEOUT, "request body not received in time")
+        except (_Closed, OSError):
+            self._linger = False
+            raise
         except Exception as err:  # noqa: BLE001 - report, keep serving
             traceback.print_exc()
             self._error(HTTPStatus.INTERNAL_SERVER_ERROR, f"{type(err).__name__}: {err}")
 
     # -- methods --------------------------------------------------------------------------------
-    def do_OPTIONS(self) -> None:  # noqa: N802 - stdlib naming
-        # no CORS: a preflight from another origin gets no Access-Control-* header, so it fails
-        self._error(HTTPStatus.METHOD_NOT_ALLOWED, "no CORS here")
+    def _do_get(self) -> None:
+        url = self._url()
+        self._guard(write=False, url=url)
+        if url is None:
+            raise InputError(None, "path", "not a valid request target")
+        self._route_get(url)
 
-    def do_PUT(self) -> None:  # noqa: N802
-        self._error(HTTPStatus.METHOD_NOT_ALLOWED, "use POST")
-
-    do_DELETE = do_PUT
-    do_PATCH = do_PUT
-
-    def do_HEAD(self) -> None:  # noqa: N802
-        self.do_GET()
-
-    def do_GET(self) -> None:  # noqa: N802
-        def work() -> None:
-            url = self._url()
-            self._guard(write=False, url=url)
-            if url is None:
-                raise InputError(None, "path", "not a valid request target")
-            self._route_get(url)
-
-        self._dispatch(work)
-
-    def do_POST(self) -> None:  # noqa: N802
-        def work() -> None:
-            self._guard(write=True)
-            url = self._url()
-            if url is None:
-                raise _Refused(HTTPStatus.BAD_REQUEST, "path: not a valid request target")
-            body = self._read_json()
-            if not isinstance(body, dict):
-                raise InputError(None, "body", "expected a JSON object")
-            self._route_post(url.path, body)
-
-        self._dispatch(work)
+    def _do_post(self) -> None:
+        self._guard(write=True)
+        url = self._url()
+        if url is None:
+            raise _Refused(HTTPStatus.BAD_REQUEST, "path: not a valid request target")
+        body = self._read_json(url.path)
+        if not isinstance(body, dict):
+            raise InputError(None, "body", "expected a JSON object")
+        if url.path in ROUTE_KEYS:
+            check_keys(body, ROUTE_KEYS[url.path], None, "body", allow_unknown=False)
+        self._route_post(url.path, body)
 
     # -- routes ---------------------------------------------------------------------------------
     def _route_get(self, url) -> None:

@@ -24,6 +24,7 @@ import math
 import os
 import re
 import shutil
+import stat
 import threading
 import time
 import zipfile
@@ -35,6 +36,7 @@ import cv2
 import numpy as np
 
 from benchmark.core.errors import InputError
+from benchmark.core.strict import check_keys, check_text, file_problem, text_key
 from benchmark.core.scene import Frame, Scene
 
 from ..assist import GrabCutSegmenter, Segmenter
@@ -52,6 +54,11 @@ MAX_CLICKS = 1000
 MAX_COORDINATE = 1e6
 """Box and click coordinates (pixels) beyond this are refused: far outside any frame, and near the
 limits of the integer pixel arithmetic of the segmenters."""
+
+
+MASK_KEYS = ("counts", "absent", "size", "state", "made_by")
+"""Keys of a mask object in a request (the page's ``{counts}`` / ``{absent}``, or a mask as the server sends
+it): any other key is refused."""
 
 
 class Conflict(Exception):
@@ -94,8 +101,8 @@ class SessionConfig:
     """Width of review-mode thumbnails, in pixels."""
     max_propagation_frames: int = 60
     """Most frames one propagation request may fill."""
-    max_import_bytes: int = 256 * 1024 * 1024
-    """Largest import accepted (compressed upload)."""
+    max_import_bytes: int = 64 * 1024 * 1024
+    """Largest import accepted (the uploaded file; a release export of a scene is a few MiB)."""
     max_archive_members: int = 20000
     """Most entries an imported zip archive may have."""
     max_unpacked_bytes: int = 512 * 1024 * 1024
@@ -199,7 +206,17 @@ class LockFile:
 
     def acquire(self, note: dict) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        problem = file_problem(self.path)
+        if problem not in (None, "missing"):  # a FIFO would block the open, a folder cannot be locked
+            raise InputError(self.path, None, f"the lock file is {problem}, not a file: remove it (no session "
+                                              "holds a lock that is not a file)")
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NONBLOCK | os.O_NOFOLLOW, 0o644)
+        except OSError as err:
+            raise InputError(self.path, None, f"cannot open the lock file: {err.strerror or err}") from None
+        if not stat.S_ISREG(os.fstat(fd).st_mode):  # replaced between the check and the open
+            os.close(fd)
+            raise InputError(self.path, None, "the lock file is not a file")
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -490,8 +507,10 @@ class AnnotationSession:
             raise InputError(None, field_name, "expected an object")
         kind = ch.get("type")
         if kind == "mask":
+            check_keys(ch, ("type", "query", "frame", "mask", "made_by"), None, field_name, allow_unknown=False)
             return self._stage_mask(field_name, ch)
         if kind == "intervals":
+            check_keys(ch, ("type", "query", "intervals"), None, field_name, allow_unknown=False)
             return self._stage_intervals(field_name, ch)
         raise InputError(None, f"{field_name}.type", f"unknown change type {kind!r} (mask or intervals)")
 
@@ -507,6 +526,7 @@ class AnnotationSession:
             return ("mask", owner.id, index, None, None)
         if not isinstance(payload, dict):
             raise InputError(None, f"{field_name}.mask", "expected an object or null")
+        check_keys(payload, MASK_KEYS, None, f"{field_name}.mask", allow_unknown=False)
         h, w = frame.camera.height, frame.camera.width
         if payload.get("absent") is True:
             mask = np.zeros((h, w), bool)
@@ -594,15 +614,17 @@ class AnnotationSession:
         """Add a query; returns (new query id, new revision)."""
         if not isinstance(text, str) or not text.strip():
             raise InputError(None, "text", "the query text must be a non-empty string")
-        text = text.strip()
+        text = check_text(text.strip(), None, "text")
         if kind not in ("agnostic", "sensitive"):
             raise InputError(None, "kind", "expected 'agnostic' or 'sensitive'")
         if level is not None and not isinstance(level, str):
             raise InputError(None, "level", "expected a string or null")
         with self._lock:
             self._check_revision(revision)
-            if any(q.text == text for q in self.aset.queries):
-                raise InputError(None, "text", f"a query {text!r} exists already")
+            same = next((q for q in self.aset.queries if text_key(q.text) == text_key(text)), None)
+            if same is not None:  # "Ball" beside "ball" would read as one query in predictions (by slug)
+                raise InputError(None, "text", f"a query {same.text!r} exists already (texts are compared up to "
+                                               "case, spaces and Unicode form)")
             if kind == "sensitive":
                 b = self.query(base)
                 if b.kind != "agnostic":
@@ -676,6 +698,7 @@ class AnnotationSession:
         if current is not None:
             if not isinstance(current, dict):
                 raise InputError(None, "current", "expected a mask object or null")
+            check_keys(current, MASK_KEYS, None, "current", allow_unknown=False)
             cur = runs_to_mask(current.get("counts"), h, w, "current")
         t0 = time.perf_counter()
         mask = self.segmenter.segment(frame.name, self.image(index), None if box is None else tuple(box), parsed, cur)
@@ -779,7 +802,7 @@ class AnnotationSession:
                 validate_against_scene(new, self.scene, file=filename)
             except InputError:
                 raise
-            except (ValueError, TypeError, KeyError, IndexError, AttributeError, OverflowError, RecursionError) as err:
+            except (ValueError, TypeError, KeyError, IndexError, AttributeError, ArithmeticError, RecursionError) as err:
                 # the upload is untrusted data: whatever its parsers trip over is a malformed file, and
                 # nothing has changed yet
                 raise InputError(Path(filename).name, None,

@@ -2,13 +2,16 @@
 
 Used by the tests and by :mod:`annotations.tool.latency` to measure box-to-mask and propagation
 against exact masks. The object's texture lives in its own coordinates and every frame is rendered
-by one affine warp, so the true mask of every frame is known exactly.
+by one affine warp, so the true mask of every frame is known exactly. With ``recolour_at`` the object
+changes colour at a known frame (a change of state that only the pixels show), for measuring how
+time segments are found from the images.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 import cv2
 import numpy as np
@@ -70,18 +73,21 @@ def _object_sprite(rng: np.random.Generator, radius: int, palette: str) -> tuple
 def rigid_sequence(num_frames: int = 60, width: int = 960, height: int = 540, *, seed: int = 0,
                    radius_frac: float = 0.16, travel_frac: float = 0.5, total_turn_deg: float = 45.0,
                    scale_change: float = 0.1, palette: str = "warm", noise: float = 3.0,
-                   blur: float = 0.8) -> RigidSequence:
+                   blur: float = 0.8, recolour_at: Optional[int] = None) -> RigidSequence:
     """Render ``num_frames`` frames of one textured blob translating, rotating and scaling slightly.
 
     The object (radius ``radius_frac * height``) crosses ``travel_frac`` of the width, turns by
     ``total_turn_deg`` and grows by ``scale_change`` (relative) over the sequence. ``palette`` as in
     :func:`_object_sprite`; ``noise`` is the standard deviation of per-frame sensor noise, in 8-bit levels;
     ``blur`` the sigma (pixels) of a Gaussian lens blur. The true mask is the object's coverage >= 0.5.
+    From frame ``recolour_at`` on (``None``: never) the object's texture has its red and blue channels
+    swapped: the same object, moving on as before, in another state.
     """
     rng = np.random.default_rng(seed)
     background = _background(rng, height, width)
     radius = max(6, int(radius_frac * height))
     sprite, alpha = _object_sprite(rng, radius, palette)
+    recoloured = np.ascontiguousarray(sprite[..., ::-1])
     c = sprite.shape[0] / 2.0
     images, masks, boxes = [], [], []
     for t in range(num_frames):
@@ -93,7 +99,8 @@ def rigid_sequence(num_frames: int = 60, width: int = 960, height: int = 540, *,
         # sprite pixel-centre coordinates -> image coordinates: rotate/scale about c, move to (cx, cy)
         m = cv2.getRotationMatrix2D((c, c), angle, scale)
         m[:, 2] += np.array([cx - c, cy - c])
-        tex = cv2.warpAffine(sprite, m, (width, height), flags=cv2.INTER_LINEAR, borderValue=0)
+        source = recoloured if recolour_at is not None and t >= recolour_at else sprite
+        tex = cv2.warpAffine(source, m, (width, height), flags=cv2.INTER_LINEAR, borderValue=0)
         a = cv2.warpAffine(alpha, m, (width, height), flags=cv2.INTER_LINEAR, borderValue=0)
         mask = a >= 0.5
         # soft (anti-aliased) edge and a slight lens blur, as a camera would record it

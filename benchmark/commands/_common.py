@@ -23,7 +23,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                         help="resolution multiplier for scene folders (e.g. 0.5: D-NeRF 400 -> 200 px); answers are "
                              "upsampled (nearest) to the annotations' size for scoring")
     parser.add_argument("--score-train", action="store_true",
-                        help="also score annotated training frames (the release does; default: held-out only)")
+                        help="also score annotated training frames (default: held-out frames only)")
     add_protocol_argument(parser)
     parser.add_argument("--object-query", default=None, metavar="TEXT",
                         help="the object of a D-NeRF scene with no annotation file (its alpha masks are the truth "
@@ -134,6 +134,11 @@ def print_run(results: dict, path) -> None:
     t = results["timing"]
     parts = [f"{results['method']} on {results['dataset']}/{results['scene']} ({results['track']}, seed {results['seed']}):"]
     parts.append(f"mIoU {fmt(m.get('mIoU'))}  mAcc {fmt(m.get('mAcc'))}  Acc {fmt(m.get('Acc'))}  vIoU {fmt(m.get('vIoU'))}")
+    short = [k for k in ("agnostic", "sensitive") if m.get(f"asked_{k}_queries", 0) > m.get(f"answered_{k}_queries", 0)]
+    if short:  # unanswered queries count 0 in the means above
+        parts.append("answered / asked: " + ", ".join(f"{k} {m[f'answered_{k}_queries']} / {m[f'asked_{k}_queries']}"
+                                                      for k in short) + "; answered only: " + "  ".join(
+            f"{name} {fmt(m.get(name + '_answered'))}" for name in ("mIoU", "mAcc", "Acc", "vIoU")))
     if m.get("AUC") is not None or m.get("nearTau") is not None:
         parts.append(f"time-sensitive scores: AUC {fmt(m.get('AUC'))}, decisions near the threshold "
                      f"{fmt(m.get('nearTau'), 1)} %")

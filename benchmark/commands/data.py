@@ -3,8 +3,8 @@
     bench4d data presets                                   # list the synthetic presets
     bench4d data make-synthetic PRESET --out DIR [--size 128] [--height H] [--frames N] [--views N]
                                 [--layout hypernerf|neu3d|dnerf] [--seed S] [--overwrite] [--jobs N]
-    bench4d data validate DIR [--annotations FILE]         # scene + annotations (+ generator truth)
-    bench4d data show DIR [--out sheet.png] [--frames 4]   # contact sheet: frames with GT masks
+    bench4d data validate DIR [--annotations FILE]         # scene, every image decoded, annotations (+ truth)
+    bench4d data show DIR [--out sheet.png] [--frames 4]   # contact sheet beside DIR: frames with GT masks
     bench4d data timing [--size 128] [--out reports/synthetic_generation.md]
     bench4d data digests [--presets a,b] [--sizes 128] [--write]  # scene versions (synthetic/digests.json)
 """
@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmark.core.errors import InputError
+from benchmark.core.strict import terminal_text
 from ._common import parse_seed
 
 REPROJECTION_TOLERANCE_PX = 1e-3
@@ -33,7 +34,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     mk = sub.add_parser("make-synthetic", help="render a synthetic preset with exact ground truth")
     mk.add_argument("preset", help="preset name (see 'bench4d data presets')")
     mk.add_argument("--out", type=Path, required=True, help="scene folder to create")
-    mk.add_argument("--size", type=int, default=None, help="image width in pixels (default: the preset's, 128)")
+    mk.add_argument("--size", type=int, default=None,
+                    help=f"image width in pixels (default: the preset's: {_default_sizes_text()}; the height "
+                         "follows the layout's aspect, 'bench4d data presets' lists each preset's frame size)")
     mk.add_argument("--height", type=int, default=None,
                     help="image height in pixels (default: the layout's aspect; HyperNeRF captures: --size 536 "
                          "--height 960)")
@@ -55,7 +58,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sh = sub.add_parser("show", help="contact sheet of frames with ground-truth masks overlaid")
     sh.add_argument("scene", type=Path, help="scene folder")
     sh.add_argument("--annotations", type=Path, default=None, help="default: SCENE/annotations.json")
-    sh.add_argument("--out", type=Path, default=None, help="PNG to write (default: ./<scene>_sheet.png)")
+    sh.add_argument("--out", type=Path, default=None,
+                    help="PNG to write (default: <scene folder>_sheet.png beside the scene folder)")
     sh.add_argument("--frames", type=int, default=4, help="number of annotated frames to show")
     sh.add_argument("--queries", default=None, help="comma-separated query texts to overlay (default: all agnostic)")
 
@@ -79,13 +83,37 @@ def run(args: argparse.Namespace) -> int:
 
 
 # -- presets / make-synthetic -------------------------------------------------------------------------
+def default_frame_size(spec) -> tuple[int, int]:
+    """(width, height) of a preset generated without ``--size`` / ``--height``: its default width and the
+    height its default layout's aspect gives (as :func:`benchmark.synthetic.generate` makes it)."""
+    from ..synthetic import layouts
+
+    aspect = layouts.LAYOUT_SPECS[spec.default_layout].setup.intrinsics.height_over_width
+    return spec.default_size, 2 * int(round(spec.default_size * aspect / 2))
+
+
+def _default_sizes_text() -> str:
+    """The presets' default widths, e.g. "128, smoke 48" (the most common first, then the exceptions)."""
+    from collections import Counter
+
+    from ..synthetic import PRESETS
+
+    common = Counter(spec.default_size for spec in PRESETS.values()).most_common(1)[0][0]
+    others = [f"{spec.name} {spec.default_size}" for spec in PRESETS.values() if spec.default_size != common]
+    return ", ".join([str(common), *others])
+
+
 def _presets(args: argparse.Namespace) -> int:
     from ..synthetic import PRESETS
 
     for spec in PRESETS.values():
         ts = "time-sensitive" if spec.time_sensitive else "time-agnostic"
-        print(f"{spec.name:14s} {spec.default_layout:9s} {spec.default_frames:3d} frames  {ts:14s}  "
-              f"({spec.analogue}) {spec.description}")
+        width, height = default_frame_size(spec)
+        analogue = spec.analogue.strip("()")  # "(tests)" is printed in one pair of brackets, like the others
+        # how its states change and its captions' noise (levels: benchmark.synthetic.state_changes, caption_noise)
+        levels = f" [states: {spec.state_changes}, captions: {spec.caption_noise}]" if spec.state_changes else ""
+        print(f"{spec.name:14s} {spec.default_layout:9s} {spec.default_frames:3d} frames  {width:3d}x{height:<3d}  "
+              f"{ts:14s}  ({analogue}) {spec.description}{levels}")
     return 0
 
 
@@ -94,6 +122,10 @@ def _make(args: argparse.Namespace) -> int:
 
     from ..synthetic import generate
 
+    out = Path(args.out)
+    if out.is_dir() and any(out.iterdir()) and not args.overwrite:  # in the command's words, not the function's
+        raise InputError(out, None, "folder exists and is not empty; pass --overwrite to replace a previously "
+                                    "generated scene")
     start = time.perf_counter()
     out = generate(args.preset, args.out, size=args.size, frames=args.frames, views=args.views,
                    layout=args.layout, seed=args.seed, overwrite=args.overwrite, shadows=not args.no_shadows,
@@ -154,7 +186,8 @@ def _validate(args: argparse.Namespace) -> int:
     from benchmark.core.truth import TRUTH_DIR
 
     scene = load_scene(args.scene)
-    print(scene.summary())
+    print(terminal_text(scene.summary()))
+    print(decode_every_image(scene))
     path = _annotation_path(Path(args.scene), args.annotations)
     if path is None:
         print("annotations: none (no annotations.json)")
@@ -166,12 +199,28 @@ def _validate(args: argparse.Namespace) -> int:
               f"queries, {len(aset.masks)} masks ({empty} absent), num_time_steps {aset.num_time_steps}")
         for q in aset.sensitive_queries:
             base = aset.query(q.base).text if q.base is not None else "?"
-            print(f"  {q.text!r} (base {base!r}): {q.intervals}")
+            print(terminal_text(f"  {q.text!r} (base {base!r}): {q.intervals}"))
     truth_dir = Path(args.scene) / TRUTH_DIR
     if truth_dir.is_dir():
         print(check_truth(scene, truth_dir))
     print("OK")
     return 0
+
+
+def decode_every_image(scene) -> str:
+    """Decode every frame's image once, as a run would: a truncated or corrupt file is an :class:`InputError`
+    naming it now, not in the middle of a fit (reading headers alone passes a file cut in half). Frames whose
+    image is not on disk at all (a cameras-only folder the loader accepted) are counted, not decoded.
+    Returns a one-line summary."""
+    decoded = absent = 0
+    for frame in scene.frames:
+        path = getattr(frame, "image_path", None)
+        if path is not None and not Path(path).exists() and not Path(path).is_symlink():
+            absent += 1
+            continue
+        frame.image()
+        decoded += 1
+    return f"images: {decoded} decoded" + (f", {absent} not on disk (cameras only)" if absent else "")
 
 
 def _rle_has_pixels(rle: dict) -> bool:
@@ -183,6 +232,7 @@ def _rle_has_pixels(rle: dict) -> bool:
 # -- show -------------------------------------------------------------------------------------------------
 def _show(args: argparse.Namespace) -> int:
     from annotations.format import load_annotations
+    from benchmark.core.outputs import guard_output
 
     from ..loaders import load_scene
 
@@ -190,12 +240,21 @@ def _show(args: argparse.Namespace) -> int:
     path = _annotation_path(Path(args.scene), args.annotations)
     if path is None:
         raise InputError(Path(args.scene) / "annotations.json", None, "no annotations to show (pass --annotations)")
+    out = args.out or default_sheet_path(Path(args.scene))
+    # the sheet never replaces what it shows: a scene file (links followed) or the annotations
+    guard_output(out, [args.scene, path], option="--out")
     aset = load_annotations(path, scene=scene)
-    out = args.out or Path(f"{scene.name}_sheet.png")
     wanted = None if args.queries is None else [t.strip() for t in args.queries.split(",") if t.strip()]
     write_contact_sheet(scene, aset, out, num_frames=args.frames, queries=wanted)
-    print(f"wrote {out}")
+    print(f"wrote {terminal_text(out)}")
     return 0
+
+
+def default_sheet_path(scene_dir: Path) -> Path:
+    """Where ``data show`` writes without ``--out``: ``<folder>_sheet.png`` beside the scene folder, never
+    in the current folder (which may be a checkout), and never inside the scene (a loader reads it)."""
+    folder = Path(scene_dir).resolve()
+    return folder.parent / f"{folder.name}_sheet.png"
 
 
 def write_contact_sheet(scene, aset, out: Path, *, num_frames: int = 4, queries=None) -> Path:

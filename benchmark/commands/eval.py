@@ -1,11 +1,14 @@
 """``bench4d eval``: fit one method on one scene, answer every annotated query, score, record.
 
-    bench4d eval --method nearest-frame --scene smoke [--seed 0] [--track oracle]
+    bench4d eval --method nearest-frame --scene smoke [--seed 0] [--track oracle] [--split paper|novel-view]
                  [--results-dir results] [--cache-dir cache] [--threads 1] [--quiet]
                  [--<group>.<option> VALUE ...] [--set <group>.<option>=VALUE ...]
                  [--source-option KIND.KEY=VALUE ...]
 
-``--scene`` is a scene folder or a synthetic preset name (generated into the cache once). The method's
+``--scene`` is a scene folder or a synthetic preset name (generated into the cache once per seed: seed ``s``
+generates the preset with generator seed ``s``). ``--split`` is the evaluation split scored: ``paper`` (the
+dataset's held-out frames, default) or ``novel-view`` (held-out frames from cameras no training frame uses);
+one cached fit answers both. The method's
 options are flags derived from its config (``--autoencoder.latent-dim 4``; ``bench4d eval --method M --help``
 lists them with their help and default); ``--set autoencoder.latent_dim=4`` is the same for scripts.
 ``--source-option segmenter.points_per_side=16`` is an option of a supervision source's factory
@@ -30,9 +33,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=parse_seed, default=0)
     parser.add_argument("--annotations", type=Path, default=None, help="ground-truth file, or the 4D LangSplat release's annotations/ folder (default: found beside the scene)")
     parser.add_argument("--refit", action="store_true", help="ignore a cached fit")
+    add_split_argument(parser)
     add_run_arguments(parser)
     add_source_option_argument(parser)
     _add_method_options_on_parse(parser)
+
+
+def add_split_argument(parser: argparse.ArgumentParser) -> None:
+    """``--split``: the evaluation split a run scores (:data:`benchmark.core.scene.EVAL_SPLITS`)."""
+    from benchmark.core.scene import DEFAULT_EVAL_SPLIT, EVAL_SPLITS
+
+    parser.add_argument("--split", choices=EVAL_SPLITS, default=DEFAULT_EVAL_SPLIT,
+                        help="evaluation split: paper (the dataset's held-out frames: HyperNeRF frames i %% 4 == 2, "
+                             "training on i %% 4 == 0; the Neu3D held-out camera; default) or novel-view (the scored "
+                             "times seen from cameras no training frame uses); one cached fit answers both")
 
 
 def add_source_option_argument(parser: argparse.ArgumentParser) -> None:
@@ -109,11 +123,24 @@ def run(args: argparse.Namespace) -> int:
     source_options = parse_source_options(args.source_option)
     set_threads(args.threads)
     outcome = evaluate(EvalOptions(
-        method=args.method, scene=args.scene, seed=args.seed, track=args.track, results_dir=args.results_dir,
+        method=args.method, scene=args.scene, seed=args.seed, split=args.split, track=args.track,
+        results_dir=args.results_dir,
         cache_dir=args.cache_dir, splits=splits(args), device=args.device, text_encoder=args.text_encoder,
         source_options=source_options, method_options=method_options(args), annotations=args.annotations,
         preset_size=args.size,
         scale=args.scale, protocol=args.protocol, object_query=args.object_query, refit=args.refit,
         quiet=args.quiet))
     print_run(outcome.results, outcome.path)
+    _say_if_unranked(outcome.results, outcome.path)
     return 0
+
+
+def _say_if_unranked(doc: dict, path) -> None:
+    """A run on a scene that is not one of the benchmark's official scenes: say where its results went and
+    that the leaderboard never ranks them."""
+    from benchmark.core.official import is_official, official_note
+
+    generated = (doc.get("scene_info") or {}).get("generated") or {}
+    dataset, scene = str(doc.get("dataset")), str(doc.get("scene"))
+    if not is_official(dataset, scene, generated.get("preset") if isinstance(generated, dict) else None):
+        print(f"results: {path}; {official_note(dataset, scene)}")

@@ -55,6 +55,8 @@ def run(args: argparse.Namespace) -> int:
               f"devices: {', '.join(spec.devices)}")
         if spec.paper:
             print(f"      paper: {spec.paper}")
+        if spec.variant_of:
+            print(f"      variant of {spec.variant_of} (benchmark extensions on; the paper's numbers are its base's)")
     missing = [m for m in PAPER_NUMBERS if m not in registry.names()]
     if missing:
         print(f"\nKnown by paper numbers only (shown on the leaderboard, not runnable): {', '.join(missing)}")

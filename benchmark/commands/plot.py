@@ -1,6 +1,6 @@
 """``bench4d plot``: charts into ``reports/`` (PNG and PDF).
 
-    bench4d plot pareto   [--results-dir results] [--reports-dir reports]
+    bench4d plot pareto   [--results-dir results] [--reports-dir reports] [--ceiling FILE]
     bench4d plot timeline --method M [M ...] --scene S --query Q [--track oracle] [--seed 0]
     bench4d plot capacity  [--table reports/capacity/capacity.csv] [--out reports/capacity]
     bench4d plot stability [--table reports/stability/scores.csv] [--out reports/stability]
@@ -19,8 +19,12 @@ from ._common import parse_seed
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="chart", metavar="CHART", required=True)
-    p = sub.add_parser("pareto", help="accuracy vs query FPS and vs fit time, Pareto front drawn")
+    p = sub.add_parser("pareto", help="accuracy vs query FPS and vs fit time, Pareto front drawn; one chart "
+                                      "per kind of machine, floors and the perfect-feature ceiling as lines")
     _common(p)
+    p.add_argument("--ceiling", type=Path, default=None,
+                   help="the protocol ceiling's JSON (bench4d ablate ceiling; default: "
+                        "<reports-dir>/ablations/protocol-ceiling.json); no ceiling line without it")
     t = sub.add_parser("timeline", help="one time-sensitive query's similarity over time (paper Fig. 4 analogue)")
     _common(t)
     t.add_argument("--method", required=True, nargs="+",
@@ -47,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
     from .. import plots
 
     if args.chart == "pareto":
-        written = plots.pareto(args.results_dir, args.reports_dir)
+        written = plots.pareto(args.results_dir, args.reports_dir, ceiling=args.ceiling)
     elif args.chart == "capacity":
         from benchmark.studies.capacity import charts_from_csv
 

@@ -1,11 +1,14 @@
 """``bench4d run-all``: evaluate methods x scenes x seeds, then report mean and spread over seeds.
 
-    bench4d run-all [--methods M ...] [--scenes S ...] [--seeds 0 1 2] [--force] [--jobs N] [--threads 1]
-                    [--engine local|ray] [--address HOST:PORT] [--source-option KIND.KEY=VALUE ...]
+    bench4d run-all [--methods M ...] [--scenes S ...] [--seeds 0 1 2] [--split paper|novel-view] [--force]
+                    [--jobs N] [--threads 1] [--engine local|ray] [--address HOST:PORT]
+                    [--source-option KIND.KEY=VALUE ...]
 
 Defaults: every registered method, every synthetic preset (except the tiny test preset ``smoke``),
-seeds 0 1 2. Runs whose results file exists are skipped (so an interrupted sweep resumes) unless
-``--force``; a rerun moves the file it replaces to ``results/archive/`` (never overwritten).
+seeds 0 1 2, the ``paper`` evaluation split. Seed ``s`` of a preset measures the scene generated with
+generator seed ``s`` (seeds sample scenes as well as fits). Runs whose results file exists are skipped (so
+an interrupted sweep resumes) unless ``--force``; a rerun moves the file it replaces to ``results/archive/``
+(never overwritten). A sweep of the other split reuses the first sweep's fits.
 
 ``--jobs N`` runs N (scene, seed) groups at once, each in a worker process with ``--threads`` torch
 threads (default 1, :func:`~benchmark.commands._common.set_threads`); the methods of a group run in
@@ -27,7 +30,7 @@ from pathlib import Path
 
 from ._common import (add_run_arguments, check_device, check_run_folders, parse_overrides, parse_seed, set_threads,
                       splits)
-from .eval import add_source_option_argument, parse_source_options
+from .eval import add_source_option_argument, add_split_argument, parse_source_options
 
 TEST_PRESETS = ("smoke",)
 """Presets made for tests, left out of the default sweep."""
@@ -37,7 +40,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--methods", nargs="+", default=None, help="methods (default: all registered)")
     parser.add_argument("--scenes", nargs="+", default=None,
                         help="scene folders or synthetic presets (default: every synthetic preset but smoke)")
-    parser.add_argument("--seeds", nargs="+", type=parse_seed, default=[0, 1, 2])
+    parser.add_argument("--seeds", nargs="+", type=parse_seed, default=[0, 1, 2],
+                        help="seeds of the fits and, on a synthetic preset, of the generated scene")
+    add_split_argument(parser)
     parser.add_argument("--force", action="store_true", help="rerun even where a results file exists")
     parser.add_argument("--keep-going", action="store_true", help="report a failing run and continue")
     parser.add_argument("--jobs", type=int, default=1,
@@ -209,18 +214,21 @@ def _plan_groups(args: argparse.Namespace, runnable: list[str], tally: _Tally) -
     source_options = parse_source_options(args.source_option)
     groups: list[list] = []
     for scene_spec in scenes:
-        root = resolve_scene(scene_spec, args.cache_dir, size=args.size,
-                             log=lambda m: None if args.quiet else print(m, file=sys.stderr))
-        scene = load_scene(root)
         for seed in args.seeds:
+            # seed s of a preset is the scene generated with seed s (a folder is the same for every seed)
+            root = resolve_scene(scene_spec, args.cache_dir, size=args.size, seed=seed,
+                                 log=lambda m: None if args.quiet else print(m, file=sys.stderr))
+            scene = load_scene(root)
             group = []
             for method in runnable:
-                path = results_path(args.results_dir, dataset_label(scene), scene.name, method, args.track, seed)
-                if path.is_file() and not args.force and _reuse(path, args.results_dir):
+                path = results_path(args.results_dir, dataset_label(scene), scene.name, method, args.track, seed,
+                                    args.split)
+                if path.is_file() and not args.force and _reuse(path, args.results_dir, args.split):
                     tally.reused(path)
                     continue
                 group.append(EvalOptions(
-                    method=method, scene=str(root), seed=seed, track=args.track, results_dir=args.results_dir,
+                    method=method, scene=str(root), seed=seed, split=args.split, track=args.track,
+                    results_dir=args.results_dir,
                     cache_dir=args.cache_dir, splits=splits(args), device=args.device, text_encoder=args.text_encoder,
                     source_options=source_options, method_options=overrides, preset_size=args.size, scale=args.scale,
                     protocol=args.protocol, object_query=args.object_query, quiet=args.quiet or args.jobs > 1 or args.engine == "ray"))
@@ -229,18 +237,22 @@ def _plan_groups(args: argparse.Namespace, runnable: list[str], tally: _Tally) -
     return groups
 
 
-def _reuse(path: Path, results_dir: Path) -> bool:
-    """Whether the existing results file ``path`` stands; one measured on another version of its preset is
-    moved to the archive instead (and rerun)."""
-    from ..results import archive_results, load_results, results_lock, scene_status
+def _reuse(path: Path, results_dir: Path, split: str) -> bool:
+    """Whether the existing results file ``path`` stands; one measured on another version of its preset, or
+    written before evaluation splits were recorded (its split is not ``split``), is moved to the archive
+    instead (and rerun)."""
+    from ..results import archive_results, load_results, results_lock, run_split, scene_status
 
-    digest, current = scene_status(load_results(path))
-    if current is not False:
+    doc = load_results(path)
+    digest, current = scene_status(doc)
+    if current is not False and run_split(doc) == split:
         return True
+    label, why = ((f"scene-{digest or 'unversioned'}", "measured on another scene version") if current is False else
+                  (f"split-{run_split(doc)}", f"scored the {run_split(doc)} split"))
     with results_lock(path):  # a run writing this file meanwhile finishes first
-        moved = archive_results(path, results_dir, f"scene-{digest or 'unversioned'}") if path.is_file() else None
+        moved = archive_results(path, results_dir, label) if path.is_file() else None
     if moved is not None:
-        print(f"{path}: measured on another scene version; moved to {moved}, rerunning", file=sys.stderr)
+        print(f"{path}: {why}; moved to {moved}, rerunning", file=sys.stderr)
     return False
 
 
@@ -319,12 +331,12 @@ def _print_summary(summary) -> None:
         mean, std = row[f"{col}_mean"], row[f"{col}_std"]
         return fmt(mean, digits) + ("" if std != std else f"±{fmt(std, digits)}")
 
-    header = f"{'dataset/track':24} {'method':16} {'scene':16} {'mIoU':>13} {'mAcc':>13} {'Acc':>13} {'vIoU':>13} " \
+    header = f"{'dataset/track/split':32} {'method':16} {'scene':16} {'mIoU':>13} {'mAcc':>13} {'Acc':>13} {'vIoU':>13} " \
              f"{'FPS':>11} {'fit s':>11} seeds"
     print(header)
     print("-" * len(header))
     for row in summary.to_dict(orient="records"):
         scene = "MEAN" if row["scene"] == MEAN_SCENE else row["scene"]
-        print(f"{row['dataset'] + '/' + row['track']:24} {row['method']:16} {scene:16} {cell(row, 'mIoU'):>13} "
+        print(f"{row['dataset'] + '/' + row['track'] + '/' + row['split']:32} {row['method']:16} {scene:16} {cell(row, 'mIoU'):>13} "
               f"{cell(row, 'mAcc'):>13} {cell(row, 'Acc'):>13} {cell(row, 'vIoU'):>13} "
               f"{cell(row, 'fps_agnostic', 1):>11} {cell(row, 'fit_seconds'):>11} {row['seeds']}")

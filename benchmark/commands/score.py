@@ -13,12 +13,16 @@ Prediction folders are described in :mod:`benchmark.predictions`; the metrics an
 rule in :mod:`benchmark.metrics`. Prints a plain-text table; ``--out`` writes the results JSON
 (metrics in percent, the per-query table, the per-frame records, the rule used, provenance).
 
-``--out`` never replaces an input: a path that is (or resolves to, or is a hard link of) a ground-truth
-file, a file of a prediction folder or the ``--eval-frames`` file is refused before anything is scored,
-and so is a folder; a path that cannot be written is a one-line error.
+``--out`` never replaces an input (:func:`benchmark.core.outputs.guard_output`): a path that is (or resolves
+to, or is a hard link of) a ground-truth file, the ``--eval-frames`` file or a results file read beside the
+predictions, or that lies in a prediction folder, a release annotation folder or a ``--scene`` folder (links
+followed), is refused before anything is scored, and so is a folder; a path that cannot be written is a
+one-line error. Texts from the files (query texts, scene names) are printed with control characters
+escaped (:func:`benchmark.core.strict.terminal_text`).
 
-Queries a method declined are listed, not scored (:mod:`benchmark.metrics.scoring`): a prediction folder
-names them in ``info.unanswered_queries``; a folder ``bench4d eval`` wrote before it did so
+Queries a method declined are listed and count 0 in the full means, which are printed beside the means
+over the answered queries and the answered / asked counts (:mod:`benchmark.metrics.scoring`): a prediction
+folder names them in ``info.unanswered_queries``; a folder ``bench4d eval`` wrote before it did so
 (``seed<N>.predictions/``) has them in the results file beside it (``seed<N>.json``), read instead.
 """
 
@@ -38,6 +42,7 @@ import numpy as np
 
 from benchmark.core.atomic import write_json
 from benchmark.core.errors import InputError
+from benchmark.core.strict import check_name, terminal_text
 from ._common import add_protocol_argument
 
 
@@ -53,12 +58,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=None, help="write the results JSON here (atomically)")
     add_protocol_argument(parser)
     parser.add_argument("--tau-from", choices=("raw", "smoothed"), default=None,
-                        help="tau = mean of the raw scores (release) or of the smoothed ones (paper text); "
-                             "default: the protocol's")
+                        help="tau = mean of the raw scores or of the smoothed ones, for every method kind "
+                             "(default: the protocol's; release: raw for feature scores, smoothed for "
+                             "relevance peaks, as the predictions' info.time_score says)")
+    parser.add_argument("--absent-frames", choices=("skip", "score-empty"), default=None,
+                        help="frames where a query's object is absent: not scored (release) or scored against "
+                             "the empty mask; default: the protocol's")
     parser.add_argument("--smoothing-ends", choices=("renormalise", "keep", "replicate"), default=None,
                         help="missing neighbours in temporal smoothing (default: the protocol's; release: keep)")
     parser.add_argument("--smoothing-weights", default=None, metavar="W,W,W",
                         help="temporal smoothing kernel (default 0.1,0.8,0.1; '1' disables)")
+    from .eval import add_split_argument
+
+    add_split_argument(parser)
     parser.add_argument("--eval-frames", default="all", metavar="all|NAME,NAME|@FILE",
                         help="frames to score: all annotated frames (default), a comma list, or @file (one name a line)")
     parser.add_argument("--allow-extra", action="store_true", help="ignore predicted queries unknown to the GT")
@@ -67,13 +79,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _protocol(args: argparse.Namespace):
-    """The protocol named by ``--protocol`` with the temporal flags applied (named ``custom`` if they change
-    it). Predictions hold masks already: only its temporal rule decides anything here."""
+    """The protocol named by ``--protocol`` with the temporal and absent-frame flags applied (named ``custom``
+    if they change it). Predictions hold masks already: only its temporal rule and absent-frame rule decide
+    anything here."""
     from benchmark.core.protocol import get_protocol
 
     changes: dict = {}
     if args.tau_from:
-        changes["temporal.tau_from"] = args.tau_from
+        changes["temporal.tau_from"] = changes["temporal.relevance_peak_tau_from"] = args.tau_from
+    if args.absent_frames:
+        changes["scoring.absent_frames"] = args.absent_frames
     if args.smoothing_ends:
         changes["temporal.ends"] = args.smoothing_ends
     if args.smoothing_weights:
@@ -129,32 +144,14 @@ def _input_files(args: argparse.Namespace) -> list[Path]:
 
 
 def check_out(out: Path, inputs: list[Path], folders: list[Path] = ()) -> None:
-    """Refuse an ``--out`` that would replace an input, change how a prediction folder (``folders``) reads,
-    or cannot be written, before anything is scored."""
-    from ..predictions import JSON_FILE, JSON_GZ_FILE, MASKS_DIR, SCORES_FILE
+    """Refuse an ``--out`` that would replace an input file (``inputs``) or land in an input folder
+    (``folders``: prediction, annotation and scene folders), or that cannot be written, before anything is
+    scored (:func:`benchmark.core.outputs.guard_output`)."""
+    from benchmark.core.outputs import guard_output
 
     if out.is_dir():
         raise InputError(out, "--out", "is a folder; give the path of a results file (e.g. results.json)")
-    try:
-        target = out.resolve()
-        existing = out.stat() if out.exists() else None
-    except (OSError, RuntimeError) as err:  # a symlink loop, a folder we may not look into
-        raise InputError(out, "--out", f"cannot be resolved: {err}") from None
-    for path in inputs:
-        try:
-            # the same path once links are resolved, or the same file under another name (a hard link)
-            same = path.resolve() == target or (existing is not None and path.exists()
-                                                and os.path.samestat(existing, path.stat()))
-        except (OSError, RuntimeError):
-            same = False  # an input that cannot be resolved is reported when it is read
-        if same:
-            raise InputError(out, "--out", f"is an input of this command ({path}); give another path")
-    for folder in folders:
-        root = folder.resolve()
-        # a second main file, or a file among the masks, would change what the folder holds when next read
-        if (target.parent == root and target.name in (JSON_FILE, JSON_GZ_FILE, SCORES_FILE)) or \
-                target.is_relative_to(root / MASKS_DIR):
-            raise InputError(out, "--out", f"would become part of the prediction folder {folder}; give another path")
+    guard_output(out, [*inputs, *folders], option="--out")
     for parent in out.parents:
         if parent.exists():
             if not parent.is_dir():
@@ -235,6 +232,8 @@ def _pairs(gts: list[str], preds: list[str], asets: list) -> list[tuple[object, 
         root = Path(preds[0])
         pairs = []
         for gt, aset in zip(gts, asets):
+            # a scene name is one folder name (the annotation reader checks it); never a way out of --pred
+            check_name(aset.scene, gt, "scene")
             folder = root / aset.scene
             if not folder.is_dir():
                 raise InputError(folder, None, f"no prediction folder for scene {aset.scene!r} (from {gt})")
@@ -248,7 +247,7 @@ def _fmt(value: object, digits: int = 2) -> str:
         return "-"
     if isinstance(value, (float, np.floating)):
         return "-" if math.isnan(value) else f"{value:.{digits}f}"
-    return str(value)
+    return terminal_text(value)  # texts from files: no escape sequence reaches the terminal
 
 
 def format_table(headers: list[str], rows: list[list[object]]) -> str:
@@ -260,13 +259,22 @@ def format_table(headers: list[str], rows: list[list[object]]) -> str:
     def line(values: list[str]) -> str:
         return "  ".join(v.rjust(w) if num else v.ljust(w) for v, w, num in zip(values, widths, numeric)).rstrip()
 
-    return "\n".join([line(headers), line(["-" * w for w in widths])] + [line(r) for r in cells])
+    return "\n".join([line([terminal_text(h) for h in headers]), line(["-" * w for w in widths])]
+                     + [line(r) for r in cells])
+
+
+def _coverage(values: dict, kind: str) -> str:
+    """``answered / asked`` queries of ``kind`` in a summary."""
+    return f"{values[f'answered_{kind}_queries']} / {values[f'asked_{kind}_queries']}"
 
 
 def report_text(dataset, quiet: bool = False) -> str:
-    """The printed report of a :class:`~benchmark.metrics.DatasetScore` (percent)."""
-    from ..metrics import REPORT_METRICS
+    """The printed report of a :class:`~benchmark.metrics.DatasetScore` (percent): per query and per scene
+    (unless ``quiet``), then the dataset's full means (every asked query, an unanswered one counting 0) and
+    answered-only means, labelled, with the answered / asked counts."""
+    from ..metrics import ABSENT_FP, ANSWERED_SUFFIX, RANKED_METRICS
 
+    ranked = list(RANKED_METRICS)
     parts = []
     if not quiet:
         q = dataset.query_table()
@@ -274,25 +282,36 @@ def report_text(dataset, quiet: bool = False) -> str:
                 for r in q.itertuples()]
         parts.append(format_table(["scene", "query", "kind", "frames", "IoU", "pixAcc", "Acc", "vIoU"], rows))
         s = dataset.scene_table()
-        rows = [[r["scene"], *[r[m] for m in REPORT_METRICS], int(r["count"])] for r in s.to_dict(orient="records")]
-        parts.append(format_table(["scene", *REPORT_METRICS, "queries"], rows))
+        rows = [[r["scene"], *[r[m] for m in ranked], r["AUC"], r["nearTau"], r[ABSENT_FP],
+                 _coverage(r, "agnostic"), _coverage(r, "sensitive")] for r in s.to_dict(orient="records")]
+        parts.append(format_table(["scene", *ranked, "AUC", "nearTau", ABSENT_FP, "agnostic answered / asked",
+                                   "sensitive answered / asked"], rows))
     summary = dataset.summary()
-    parts.append(format_table(["dataset", *REPORT_METRICS, "scenes"],
-                              [["mean over scenes", *[summary[m] for m in REPORT_METRICS], summary["scenes"]]]))
+    parts.append(format_table(
+        [f"mean over {summary['scenes']} scene(s)", *ranked],
+        [["every asked query (unanswered = 0)", *[summary[m] for m in ranked]],
+         ["answered queries only", *[summary[m + ANSWERED_SUFFIX] for m in ranked]]]))
+    parts.append(f"queries answered / asked: time-agnostic {_coverage(summary, 'agnostic')}, time-sensitive "
+                 f"{_coverage(summary, 'sensitive')}\n"
+                 f"diagnostics of the answered time-sensitive queries: AUC {_fmt(summary['AUC'])}, "
+                 f"nearTau {_fmt(summary['nearTau'])}\n"
+                 f"absentFP (non-empty masks where the object is absent, time-agnostic queries): "
+                 f"{_fmt(summary[ABSENT_FP])} % of {summary['absent_frames']} (query, frame) pairs")
     return "\n\n".join(parts)
 
 
 def run(args: argparse.Namespace) -> int:
     from .. import __version__
     from ..metrics import ScoreConfig, aggregate_scenes, score_scene
+    from ..core.scene import split_frame_names
     from ..predictions import read_predictions
 
     protocol = _protocol(args)
     temporal = protocol.temporal
     if args.out is not None:  # before anything is read or scored: a refused path costs nothing
-        folders = [_folder(Path(p)) for p in args.pred]
-        # one folder of <scene>/ folders: each of those is a prediction folder too
-        folders += [sub for f in folders if f.is_dir() for sub in f.iterdir() if sub.is_dir()]
+        folders = [_folder(Path(p)) for p in args.pred] + [Path(s) for s in args.scene]
+        folders += [Path(g) for g in args.gt if Path(g).is_dir()]  # the release's annotation folder
+        folders += [Path(g).parent.parent for g in args.gt if is_release_layout(Path(g)) and Path(g).is_file()]
         check_out(args.out, _input_files(args), folders)
     wanted = _eval_frames(args.eval_frames)
     asets = load_ground_truth(args.gt, args.scene)
@@ -307,8 +326,11 @@ def run(args: argparse.Namespace) -> int:
     scenes = []
     from_results = []
     for aset, folder in pairs:
-        frames = None if wanted is None else tuple(sorted(wanted & {f.name for f in aset.frames}))
-        config = ScoreConfig(temporal=temporal, eval_frames=frames, allow_extra=args.allow_extra)
+        # the split's frames (all of a file that records no splits), narrowed by --eval-frames
+        names = split_frame_names(args.split, [f.name for f in aset.frames], aset.info.get("splits"),
+                                  source=f"ground truth of {aset.scene}")
+        frames = tuple(sorted(set(names) if wanted is None else wanted & set(names)))
+        config = ScoreConfig.from_protocol(protocol, eval_frames=frames, allow_extra=args.allow_extra)
         predictions = read_predictions(folder)
         if _unanswered_from_results(predictions, folder):
             from_results.append(aset.scene)
@@ -319,14 +341,16 @@ def run(args: argparse.Namespace) -> int:
     print(report_text(dataset, quiet=args.quiet))
     records = sum(len(s.records) for s in scenes)
     print(f"\nscored {records} (query, frame) records in {seconds:.3f} s; protocol {protocol.name}: "
-          f"tau from {temporal.tau_from} scores, ends={temporal.ends}, weights={list(temporal.weights)}")
+          f"tau from {temporal.tau_from} scores (relevance peaks: {temporal.relevance_peak_tau_from}), "
+          f"ends={temporal.ends}, weights={list(temporal.weights)}, absent frames: {protocol.scoring.absent_frames}")
     for s in scenes:
         if s.skipped:
-            print(f"note: {s.scene}: not scored (no evaluated frame): {', '.join(s.skipped)}", file=sys.stderr)
+            print(terminal_text(f"note: {s.scene}: not scored (no evaluated frame): {', '.join(s.skipped)}"),
+                  file=sys.stderr)
         if s.unanswered:
             where = "; listed by the results file beside the predictions" if s.scene in from_results else ""
-            print(f"note: {s.scene}: not scored (unanswered by the method{where}): {', '.join(s.unanswered)}",
-                  file=sys.stderr)
+            print(terminal_text(f"note: {s.scene}: not scored (unanswered by the method{where}): "
+                                f"{', '.join(s.unanswered)}"), file=sys.stderr)
     if args.out is not None:
         provenance = {
             "bench4d_version": __version__,
@@ -338,11 +362,11 @@ def run(args: argparse.Namespace) -> int:
             "numpy": np.__version__,
             "score_seconds": round(seconds, 4),
             "protocol": protocol.to_dict(),
-            "protocol_applied": "temporal rule only: the predictions' masks were made by the method",
+            "protocol_applied": "temporal and absent-frame rules only: the predictions' masks were made by the method",
         }
         try:
             write_json(args.out, dataset.to_json(provenance, include_frames=not args.no_frames))
         except OSError as err:  # read-only place, full disk, a folder made there meanwhile
             raise InputError(args.out, "--out", f"cannot be written: {err.strerror or err}") from None
-        print(f"wrote {args.out}")
+        print(f"wrote {terminal_text(args.out)}")
     return 0

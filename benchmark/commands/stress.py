@@ -33,6 +33,7 @@ SHORT_SCHEDULES: dict[str, dict[str, str]] = {
     "feature-3dgs": {"feature.iterations": "400"},
     "gaussian-grouping": {"identity.iterations": "500"},
 }
+SHORT_SCHEDULES.update({name + "+": schedule for name, schedule in list(SHORT_SCHEDULES.items())})  # the variants
 """``--schedule short``: option overrides per method that make a CPU suite cheaper: autoencoder, field and
 head steps cut about fivefold, the geometry left at the methods' own schedule. The geometry is what a cut
 breaks: on the suite's clean scene (``smoke``, 48 px, 16 frames, seed 0) ``4d-langsplat`` scores mIoU / Acc /

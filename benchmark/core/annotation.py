@@ -85,15 +85,28 @@ def check_mask_size(size: Any, file: str | Path | None = None, field: str = "siz
     return h, w
 
 
+def rle_string_limit(pixels: int) -> int:
+    """Most characters a compressed RLE string of a mask of ``pixels`` pixels can need: at most
+    ``pixels + 1`` runs (a checkerboard, after a first empty run) of at most :data:`_MAX_GROUPS` characters
+    each. A longer string is refused from its length, before anything is decoded."""
+    return _MAX_GROUPS * (int(pixels) + 1)
+
+
+_PARSE_CHUNK = 1 << 20
+"""Characters of a compressed RLE string parsed at a time: the temporaries stay a few MiB whatever its length."""
+
+
 def string_to_runs(counts: str | bytes, file: str | Path | None = None, field: str = "counts") -> np.ndarray:
     """Run lengths (int64) of COCO's compressed RLE string; malformed strings raise :class:`InputError`.
 
     COCO packs each number (after the first three, as a difference from the run two places back)
     into 5-bit groups, low first, as characters ``'0' + c`` where bit 0x20 of ``c`` says "more groups
     follow" and bit 0x10 of the last group is the sign. Parsed here, not by pycocotools, whose C
-    decoder reads past the end of a string that stops inside a number. The values are not range
-    checked here (see :func:`rle_runs`); each is below 2**30 in magnitude and there are fewer than
-    2**32 of them, so no int64 sum below can wrap.
+    decoder reads past the end of a string that stops inside a number, and in chunks of
+    :data:`_PARSE_CHUNK` characters, so that the memory beyond the result is bounded. The values are not
+    range checked here (see :func:`rle_runs`, which also bounds the string's length by the mask's before
+    calling this); each is below 2**30 in magnitude and there are fewer than 2**32 of them, so no int64
+    sum below can wrap.
     """
     if isinstance(counts, str):
         try:
@@ -104,25 +117,40 @@ def string_to_runs(counts: str | bytes, file: str | Path | None = None, field: s
         data = bytes(counts)
     if len(data) >= 1 << 32:
         raise InputError(file, field, "compressed RLE string is too long")
-    raw = np.frombuffer(data, dtype=np.uint8).astype(np.int64) - 48
+    raw = np.frombuffer(data, dtype=np.uint8)
     if raw.size == 0:
         return np.zeros(0, dtype=np.int64)
-    if raw.min() < 0 or raw.max() > 63:
-        bad = int(np.flatnonzero((raw < 0) | (raw > 63))[0])
+    if raw.min() < 48 or raw.max() > 48 + 63:
+        bad = int(np.flatnonzero((raw < 48) | (raw > 48 + 63))[0])
         raise InputError(file, field, f"character {chr(data[bad])!r} at {bad} is not in COCO's RLE alphabet '0'..'o'")
-    more = (raw & 0x20) != 0
-    if more[-1]:
+    if (int(raw[-1]) - 48) & 0x20:
         raise InputError(file, field, "compressed RLE string ends inside a number (truncated)")
-    ends = np.flatnonzero(~more)
-    starts = np.concatenate([[0], ends[:-1] + 1])
-    lengths = ends - starts + 1
-    if lengths.max() > _MAX_GROUPS:
-        raise InputError(file, field, f"a number in the compressed RLE string has more than {_MAX_GROUPS} "
-                                      "characters: no mask needs it")
-    k = np.arange(raw.size) - np.repeat(starts, lengths)
-    values = np.add.reduceat((raw & 0x1F) << (5 * k), starts)
-    negative = (raw[ends] & 0x10) != 0
-    values[negative] -= np.left_shift(np.int64(1), 5 * lengths[negative])
+    count = int(raw.size - np.count_nonzero((raw - 48) & 0x20))  # one terminating character per number
+    values = np.empty(count, dtype=np.int64)
+    done, pos = 0, 0
+    while pos < raw.size:
+        stop = min(pos + _PARSE_CHUNK, raw.size)
+        chunk = raw[pos:stop].astype(np.int64) - 48
+        more = (chunk & 0x20) != 0
+        ends = np.flatnonzero(~more)
+        if stop < raw.size:  # end the chunk after its last complete number
+            if ends.size == 0:
+                raise InputError(file, field, f"a number in the compressed RLE string has more than {_MAX_GROUPS} "
+                                              "characters: no mask needs it")
+            stop = pos + int(ends[-1]) + 1
+            chunk, more = chunk[:stop - pos], more[:stop - pos]
+        starts = np.concatenate([[0], ends[:-1] + 1])
+        lengths = ends - starts + 1
+        if lengths.max() > _MAX_GROUPS:
+            raise InputError(file, field, f"a number in the compressed RLE string has more than {_MAX_GROUPS} "
+                                          "characters: no mask needs it")
+        k = np.arange(chunk.size) - np.repeat(starts, lengths)
+        part = np.add.reduceat((chunk & 0x1F) << (5 * k), starts)
+        negative = (chunk[ends] & 0x10) != 0
+        part[negative] -= np.left_shift(np.int64(1), 5 * lengths[negative])
+        values[done:done + part.size] = part
+        done += part.size
+        pos = stop
     # undo the delta coding: cnts[i] += cnts[i-2] for i > 2 (COCO's rule starts at index 3)
     if values.size > 3:
         values[3::2] = np.cumsum(values[1::2])[1:]
@@ -167,8 +195,15 @@ def rle_runs(rle: Any, file: str | Path | None = None, field: str = "segmentatio
     counts = rle["counts"]
     where = f"{field}.counts"
     if isinstance(counts, (str, bytes)):
+        limit = rle_string_limit(pixels)
+        if len(counts) > limit:  # before any array as long as the string is made
+            raise InputError(file, where, f"compressed RLE string of {len(counts)} characters; a {h}x{w} mask "
+                                          f"never needs more than {limit}")
         runs = string_to_runs(counts, file, where)
     elif isinstance(counts, (list, tuple)):
+        if len(counts) > pixels + 1:
+            raise InputError(file, where, f"{len(counts)} run lengths; a {h}x{w} mask never has more than "
+                                          f"{pixels + 1}")
         for i, c in enumerate(counts):
             if not _is_int(c):
                 raise InputError(file, f"{where}[{i}]", f"run lengths are integers, got {short_repr(c)}")

@@ -114,45 +114,52 @@ def json_depth_exceeds(doc: Any, limit: int = MAX_JSON_DEPTH) -> bool:
     return False
 
 
-def _read_gzip(path: Path) -> bytes:
-    """The decompressed bytes of the gzip file ``path``, at most :data:`MAX_GZIP_JSON_BYTES` of them."""
+def _read_gzip(path: Path) -> bytearray:
+    """The decompressed bytes of the gzip file ``path``, at most :data:`MAX_GZIP_JSON_BYTES` of them, read in
+    chunks (one read of the whole limit would reserve a gigabyte up front)."""
     from .errors import InputError
+    from .strict import open_regular
 
+    out = bytearray()
     try:
-        with gzip.open(path, "rb") as fh:
-            data = fh.read(MAX_GZIP_JSON_BYTES + 1)
+        with open_regular(path) as raw, gzip.GzipFile(fileobj=raw, mode="rb") as fh:
+            while len(out) <= MAX_GZIP_JSON_BYTES:
+                chunk = fh.read(min(1 << 24, MAX_GZIP_JSON_BYTES + 1 - len(out)))
+                if not chunk:
+                    break
+                out += chunk
     except (gzip.BadGzipFile, EOFError, zlib.error) as err:
         raise InputError(path, None, f"not valid gzip data: {err or 'truncated'}") from None
-    if len(data) > MAX_GZIP_JSON_BYTES:
+    if len(out) > MAX_GZIP_JSON_BYTES:
         raise InputError(path, None, f"decompresses to more than {MAX_GZIP_JSON_BYTES} bytes")
-    return data
+    return out
 
 
 def read_json(path: str | Path) -> Any:
-    """Read JSON, turning every way a file can be missing or malformed into an :class:`InputError`
-    naming the file: not found, a folder, unreadable, not UTF-8, invalid JSON, numbers Python
-    refuses to convert, or nesting deeper than :data:`MAX_JSON_DEPTH`."""
+    """Read JSON strictly (:func:`benchmark.core.strict.loads`), turning every way a file can be missing or
+    malformed into an :class:`InputError` naming the file: not found, a folder or a FIFO (refused before it
+    is opened: a read would block), unreadable, not UTF-8, invalid JSON, a key given twice in one object,
+    numbers Python refuses to convert, nesting deeper than :data:`MAX_JSON_DEPTH`, or far more lists and
+    objects than its size can need."""
     from .errors import InputError
+    from .strict import file_problem, loads, open_regular
 
     path = Path(path)
-    if path.is_dir():
-        raise InputError(path, None, "is a folder, expected a JSON file")
-    if not path.is_file():
+    problem = file_problem(path)
+    if problem == "missing":
         raise InputError(path, None, "file not found")
+    if problem is not None:
+        raise InputError(path, None, f"is {problem}, expected a JSON file")
     try:
-        text = (_read_gzip(path) if is_gzip_name(path) else path.read_bytes()).decode("utf-8")
+        if is_gzip_name(path):
+            data = _read_gzip(path)
+        else:
+            with open_regular(path) as fh:
+                data = fh.read()
+        text = data.decode("utf-8")
+        del data
     except UnicodeDecodeError as err:
         raise InputError(path, f"byte {err.start}", "not UTF-8 text") from None
     except OSError as err:
         raise InputError(path, None, f"cannot read: {err.strerror or err}") from None
-    try:
-        doc = json.loads(text)
-    except json.JSONDecodeError as err:
-        raise InputError(path, f"line {err.lineno} col {err.colno}", f"invalid JSON: {err.msg}") from None
-    except RecursionError:
-        raise InputError(path, None, f"invalid JSON: nested deeper than {MAX_JSON_DEPTH} levels") from None
-    except ValueError as err:  # e.g. an integer of more digits than Python converts
-        raise InputError(path, None, f"invalid JSON: {str(err).splitlines()[0]}") from None
-    if json_depth_exceeds(doc):
-        raise InputError(path, None, f"invalid JSON: nested deeper than {MAX_JSON_DEPTH} levels")
-    return doc
+    return loads(text, path, max_depth=MAX_JSON_DEPTH)

@@ -49,3 +49,19 @@ def short_repr(value: object, limit: int = 60) -> str:
         return f"an integer of {value.bit_length()} bits"
     text = repr(value)
     return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def warn(message: str) -> None:
+    """One line on stderr (``warning: ...``), shown whatever the verbosity: something found damaged is being
+    made again. Written through tqdm when it is there, so that a progress bar is not torn."""
+    import sys
+
+    from .strict import terminal_text
+
+    line = f"warning: {terminal_text(' '.join(str(message).split()))}"
+    try:
+        from tqdm.auto import tqdm
+    except ImportError:  # pragma: no cover - tqdm is a dependency
+        print(line, file=sys.stderr)
+        return
+    tqdm.write(line, file=sys.stderr)

@@ -37,17 +37,27 @@ def read_image(path: str | Path, *, keep_alpha: bool = False) -> np.ndarray:
     """
     from .annotation import MAX_MASK_PIXELS
 
+    from .strict import file_problem, open_regular
+
     path = Path(path)
-    if path.is_dir():
-        raise InputError(path, None, "is a folder, expected an image file")
-    if not path.is_file():
+    problem = file_problem(path)
+    if problem == "missing":
         raise InputError(path, None, "image file not found")
-    data = np.fromfile(str(path), dtype=np.uint8)
+    if problem is not None:
+        raise InputError(path, None, f"is {problem}, expected an image file")
+    try:
+        with open_regular(path) as fh:
+            data = np.frombuffer(fh.read(), dtype=np.uint8)
+    except OSError as err:
+        raise InputError(path, None, f"cannot read: {err.strerror or err}") from None
     if data[:8].tobytes() == PNG_SIGNATURE:  # refuse a huge PNG from its header, before decoding
         width, height, _, _ = png_header(path, data[:33].tobytes())
         if width * height > MAX_MASK_PIXELS:
             raise InputError(path, None, f"image of {width}x{height} pixels is larger than the "
                                          f"{MAX_MASK_PIXELS} pixels any frame may have")
+        _png_chunks_complete(path, data.tobytes())
+    elif data[:3].tobytes() == b"\xff\xd8\xff":
+        _jpeg_complete(path, data)
     try:
         img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     except cv2.error:
@@ -75,6 +85,32 @@ def read_image(path: str | Path, *, keep_alpha: bool = False) -> np.ndarray:
 
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def _png_chunks_complete(path: Path, data: bytes) -> None:
+    """Every chunk of a PNG present up to its IEND: a file cut short is refused (a decoder may hand back
+    the rows it got and pad the rest)."""
+    offset = 8
+    while True:
+        if offset + 12 > len(data):
+            raise InputError(path, None, f"truncated PNG: it ends at byte {len(data)} before its IEND chunk")
+        length, = struct.unpack(">I", data[offset:offset + 4])
+        kind = data[offset + 4:offset + 8]
+        if offset + 12 + length > len(data):
+            raise InputError(path, None, f"truncated PNG: chunk {kind!r} at byte {offset} declares {length} bytes, "
+                                         f"the file has {len(data) - offset - 12} left")
+        offset += 12 + length
+        if kind == b"IEND":
+            return
+
+
+def _jpeg_complete(path: Path, data: np.ndarray) -> None:
+    """A JPEG's last scan ends with its end-of-image marker (``FF D9``): a file cut short is refused rather
+    than decoded with grey rows in place of the missing ones."""
+    raw = data.tobytes()
+    last_scan = raw.rfind(b"\xff\xda")
+    if last_scan < 0 or raw.find(b"\xff\xd9", last_scan) < 0:
+        raise InputError(path, None, "truncated JPEG: no end-of-image marker after its last scan")
 
 
 def png_header(path: str | Path, data: Optional[bytes] = None) -> tuple[int, int, int, int]:

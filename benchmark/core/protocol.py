@@ -4,7 +4,18 @@ temporal rule in one object, with named presets (in the spirit of pycocotools' `
 * ``release`` (the default): the rules of the code that produced the published numbers of LangSplat
   and 4D LangSplat (their ``evaluate_iou_loc.py`` / ``eval.py``).
 * ``paper-text``: the reading of the paper's wording (threshold 0.4 on the min-max rescaled relevance,
-  ``tau`` = mean of the smoothed scores).
+  ``tau`` = mean of the smoothed scores for every method).
+
+Choices of the benchmark's own that both presets share, stated here because tables call ``release`` "the
+rules of the code" (README's protocol table says the same):
+
+* window sizes scale with the resolution (:attr:`AgnosticQuery.kernel_scaling`): the release's 29x29 and
+  7x7 windows are defined at its 960x536 frames; at 170x128 they become 5 and 1, and the majority filter
+  does nothing. Perfect features score mIoU 84.7 with scaled windows and 59.8 with the fixed ones
+  (synthetic presets, ``reports/ablations/protocol-ceiling.md``);
+* mAcc is read as per-pixel accuracy ``(TP + TN) / (H W)`` averaged like mIoU: an assumption, the release
+  has no mAcc code (:func:`benchmark.metrics.masks.pixel_accuracy`);
+* the frames scored are the annotated held-out frames of the named split (:data:`SCORED_FRAMES_NOTE`).
 
 A method answers with the protocol the harness hands it (:meth:`methods.api.Model.use_protocol`); the
 harness scores with the same object, and every results file records its name and all of its constants.
@@ -28,6 +39,15 @@ TauFrom = Literal["raw", "smoothed"]
 EndMode = Literal["renormalise", "keep", "replicate"]
 SensitiveMask = Literal["unfiltered", "filtered"]
 RelevanceScore = Literal["peak", "mask-mean"]
+TimeScore = Literal["feature", "relevance-peak"]
+AbsentFrames = Literal["skip", "score-empty"]
+
+TIME_SCORES: tuple[str, ...] = ("feature", "relevance-peak")
+"""How a method makes its per-frame time-sensitive score, which picks its ``tau`` rule
+(:meth:`TemporalRule.tau_source`): ``"feature"``: a similarity of decoded time-varying features to the
+query (4D LangSplat-style heads); ``"relevance-peak"``: the method's time-agnostic relevance alone (the
+release's CLIP-only baselines, deformable CLIP and LangSplat: the chosen level's peak smoothed relevance
+under ``release``, :attr:`SensitiveQuery.relevance_score`)."""
 
 
 def _choice(value: Any, allowed: tuple, name: str) -> None:
@@ -123,8 +143,14 @@ class TemporalRule:
     rescaled to sum to 1, e.g. the first frame gets ``(0.8 s_0 + 0.1 s_1) / 0.9``; ``"replicate"``: the
     missing neighbour takes the frame's own score, e.g. ``0.9 s_0 + 0.1 s_1``."""
     tau_from: TauFrom = "raw"
-    """``tau`` is the mean of the ``"raw"`` scores (release; the smoothed scores are compared with it) or
-    of the ``"smoothed"`` ones (paper text)."""
+    """``tau`` of methods whose time score is a ``"feature"`` similarity (:data:`TIME_SCORES`): the mean of
+    the ``"raw"`` scores (release; the smoothed scores are compared with it) or of the ``"smoothed"`` ones
+    (paper text). The release's ``eval/eval.py`` takes ``video_thresh`` as the mean of ``video_similarity``,
+    the list it never overwrites with the smoothed values."""
+    relevance_peak_tau_from: TauFrom = "smoothed"
+    """``tau`` of methods whose time score is a ``"relevance-peak"`` (the CLIP-only baselines). Release:
+    ``"smoothed"``: its ``eval/eval.py`` overwrites ``sorted_clip_similarity`` with the smoothed values and
+    then takes ``clip_thresh`` as their mean. The rule differs per method kind in the release's code."""
     inclusive: bool = True
     """``pred_t = s~_t >= tau`` (paper and release); ``False`` uses ``>``."""
     undefined_decision: bool = False
@@ -149,9 +175,34 @@ class TemporalRule:
             raise ValueError(f"tie_tolerance must be >= 0, got {self.tie_tolerance}")
         _choice(self.ends, ("renormalise", "keep", "replicate"), "ends")
         _choice(self.tau_from, ("raw", "smoothed"), "tau_from")
+        _choice(self.relevance_peak_tau_from, ("raw", "smoothed"), "relevance_peak_tau_from")
+
+    def tau_source(self, time_score: str = "feature") -> str:
+        """``"raw"`` or ``"smoothed"``: the scores whose mean is ``tau`` for a method whose time score is
+        ``time_score`` (one of :data:`TIME_SCORES`)."""
+        _choice(time_score, TIME_SCORES, "time_score")
+        return self.relevance_peak_tau_from if time_score == "relevance-peak" else self.tau_from
 
     def to_dict(self) -> dict:
         return {**dataclasses.asdict(self), "weights": list(self.weights)}
+
+
+@dataclass(frozen=True)
+class ScoringRule:
+    """Which annotated frames a query is scored on."""
+
+    absent_frames: AbsentFrames = "skip"
+    """A frame whose ground-truth mask for the query (a time-sensitive query: its base's) is empty, i.e.
+    the object is annotated absent there. ``"skip"`` (release): not scored for that query: the release
+    queries a label only on the frames where it is annotated (``eval/eval.py``:
+    ``clip_model.set_positives(list(img_ann.keys()))`` per frame, a time query's label added only where
+    its base label is). ``"score-empty"``: scored against the empty mask, a stricter rule of the
+    benchmark's own (a min-max thresholded relevance is never empty, so every field method scores IoU 0
+    there). Either way the share of absent frames with a non-empty predicted mask is reported apart
+    (``absentFP``, :mod:`benchmark.metrics.scoring`)."""
+
+    def __post_init__(self) -> None:
+        _choice(self.absent_frames, ("skip", "score-empty"), "absent_frames")
 
 
 @dataclass(frozen=True)
@@ -161,8 +212,13 @@ class Protocol:
     name: str = "release"
     """Preset name (``release``, ``paper-text``), or ``custom`` when a constant was changed."""
     agnostic: AgnosticQuery = field(default_factory=AgnosticQuery)
+    """The time-agnostic query's constants."""
     sensitive: SensitiveQuery = field(default_factory=SensitiveQuery)
+    """The time-sensitive query's per-frame answer."""
     temporal: TemporalRule = field(default_factory=TemporalRule)
+    """The temporal decision rule, ``tau`` per method kind included."""
+    scoring: ScoringRule = field(default_factory=ScoringRule)
+    """Which annotated frames are scored (absent objects)."""
 
     def to_dict(self) -> dict:
         """Every constant, as plain JSON values (what results files record)."""
@@ -174,20 +230,33 @@ class Protocol:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> "Protocol":
-        """Rebuild a protocol from :meth:`to_dict` (unknown keys are an error naming them)."""
+        """Rebuild a protocol from :meth:`to_dict` (unknown keys are an error naming them).
+
+        A constant the record lacks was added after it was written: it takes the value the code applied
+        then (:data:`CONSTANTS_BEFORE_RECORDED`), else the default. A record named after a preset whose
+        constants are no longer that preset's is named ``custom``, so runs scored under a preset's earlier
+        rules never sit in one table with runs under its current ones."""
         parts: dict[str, Any] = {}
-        for group, kind in (("agnostic", AgnosticQuery), ("sensitive", SensitiveQuery), ("temporal", TemporalRule)):
+        for group, kind in _GROUPS:
             values = dict(data.get(group) or {})
             known = {f.name for f in dataclasses.fields(kind)}
             unknown = sorted(set(values) - known)
             if unknown:
                 raise ValueError(f"protocol.{group}: unknown constant(s) {unknown}; known: {sorted(known)}")
+            for key, earlier in CONSTANTS_BEFORE_RECORDED.items():
+                key_group, _, constant = key.partition(".")
+                if key_group == group and constant not in values:
+                    values[constant] = earlier(values)
             parts[group] = kind(**values)
-        return cls(name=str(data.get("name", "custom")), **parts)
+        name = str(data.get("name", "custom"))
+        rebuilt = cls(name=name, **parts)
+        if name in PROTOCOLS and rebuilt != PROTOCOLS[name]:
+            return dataclasses.replace(rebuilt, name="custom")
+        return rebuilt
 
     def with_changes(self, changes: Mapping[str, Any]) -> "Protocol":
         """A copy with ``{"group.constant": value}`` changed; named ``custom`` unless nothing changed."""
-        groups = {"agnostic": self.agnostic, "sensitive": self.sensitive, "temporal": self.temporal}
+        groups = {group: getattr(self, group) for group, _ in _GROUPS}
         edits: dict[str, dict] = {}
         for key, value in changes.items():
             group, _, constant = key.partition(".")
@@ -204,6 +273,20 @@ class Protocol:
         changed = any(new[g] != groups[g] for g in groups)
         return Protocol(name="custom" if changed else self.name, **new)
 
+
+_GROUPS: tuple[tuple[str, type], ...] = (("agnostic", AgnosticQuery), ("sensitive", SensitiveQuery),
+                                         ("temporal", TemporalRule), ("scoring", ScoringRule))
+"""The protocol's groups of constants, as results files record them."""
+
+CONSTANTS_BEFORE_RECORDED: dict[str, Any] = {
+    # one tau rule for every method kind: the feature rule's
+    "temporal.relevance_peak_tau_from": lambda group: group.get("tau_from", "raw"),
+    # absent frames were scored against the empty mask
+    "scoring.absent_frames": lambda group: "score-empty",
+}
+"""``"group.constant"`` -> the value (a function of the record's other constants of that group) a
+constant had in code written before results recorded it: what :meth:`Protocol.from_dict` gives a record
+that lacks it, so an earlier run is read as it was scored."""
 
 PROTOCOLS: dict[str, Protocol] = {
     "release": Protocol(name="release"),
@@ -227,9 +310,24 @@ RELEASE_DEFECTS_NOT_COPIED: tuple[str, ...] = (
 )
 """Release behaviours that change what a query means or crash; both presets keep them fixed."""
 
-SCORED_FRAMES_NOTE = ("held-out frames only (the release also scores its training views: "
-                      "`--score-train` does both)")
-"""Which frames the benchmark scores by default, as tables state it."""
+SCORED_FRAMES_NOTE = ("the annotated held-out frames of the named split (`--score-train` adds the annotated "
+                      "training frames)")
+"""Which frames the benchmark scores by default, as tables state it. (The release scores the annotated
+frames of its evaluation split; its code does not show whether training views are among them, and the
+paper's appendix says the annotated test frames do not overlap the training frames.)"""
+
+
+WINDOW_SCALING_NOTE = ("29x29 smoothing and 7x7 majority windows are the release's sizes at its 960x536 frames, "
+                       "scaled with the resolution here (at 170x128 they become 5 and 1: no majority filter); "
+                       "perfect features score mIoU 84.7 scaled vs 59.8 fixed (reports/ablations/protocol-ceiling.md)")
+"""The benchmark's window scaling (:attr:`AgnosticQuery.kernel_scaling`), as tables state it."""
+
+MACC_NOTE = "mAcc = per-pixel accuracy (TP + TN) / (H W) averaged like mIoU: an assumption (the release has no mAcc code)"
+"""How mAcc is read (:func:`benchmark.metrics.masks.pixel_accuracy`), as tables state it."""
+
+SHARED_CHOICES: tuple[str, ...] = (WINDOW_SCALING_NOTE, MACC_NOTE, f"scored frames: {SCORED_FRAMES_NOTE}")
+"""The benchmark's own choices both presets share (module docstring), one line each, for table headers
+that call ``release`` the rules of the code."""
 
 
 def get_protocol(name: str) -> Protocol:

@@ -16,6 +16,23 @@ Conventions (one for the whole project)
 * **Time**: every frame has ``time`` in [0, 1] and an integer ``time_index`` (the video frame number,
   0-based). Annotations and time intervals refer to ``time_index``.
 * **Images**: float32 RGB in [0, 1], shape ``(H, W, 3)``; masks are bool ``(H, W)``.
+
+Evaluation splits
+-----------------
+Every frame has a *frame split* (``train``, ``test``, ``val``: what a method may fit on). Which held-out
+frames a run scores is the *evaluation split* (:data:`EVAL_SPLITS`); one fit answers every evaluation split,
+since all of them share the training frames:
+
+* ``paper``: the dataset's own held-out frames (HyperNeRF layout: frames ``i % 4 == 2`` of the video,
+  training on ``i % 4 == 0``, as the paper and the release's loader do; Neu3D: the held-out camera
+  ``cam00``; D-NeRF: its ``test`` frames);
+* ``novel-view``: held-out frames seen from cameras no training frame uses (a generated HyperNeRF-layout
+  scene renders the scored times a second time from a camera path off the training path; Neu3D: the
+  held-out camera; D-NeRF: every frame has its own camera, so its ``test`` frames).
+
+Loaders record the frames of each evaluation split in ``Scene.metadata["eval_splits"]`` (split -> frame
+names); a generated scene's annotations record them in ``info["splits"]``. :func:`split_frame_names`
+selects a split's frames from either record.
 """
 
 from __future__ import annotations
@@ -23,13 +40,23 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Literal, Optional, Sequence
+from typing import Callable, Literal, Mapping, Optional, Sequence
 
 import numpy as np
 
 from .errors import InputError
 
 Split = Literal["train", "test", "val"]
+EvalSplit = Literal["paper", "novel-view"]
+EVAL_SPLITS: tuple[EvalSplit, ...] = ("paper", "novel-view")
+"""Evaluation splits a run can score (module docstring), the default first."""
+DEFAULT_EVAL_SPLIT: EvalSplit = "paper"
+"""The evaluation split of a run that names none."""
+LEGACY_EVAL_SPLIT = "legacy-dense"
+"""What results written before evaluation splits existed scored: the synthetic presets then trained on three
+frames of every four (``i % 4`` in 0, 1, 3) and scored the fourth; read back under this name."""
+EVAL_SPLITS_KEY = "eval_splits"
+"""Key of :attr:`Scene.metadata` under which loaders record each evaluation split's frame names."""
 
 
 @dataclass(frozen=True)
@@ -312,3 +339,80 @@ class Scene:
         return (f"{self.dataset}/{self.name}: {len(self.frames)} frames ({counts['train']} train, "
                 f"{counts['val']} val, {counts['test']} test), {self.num_time_steps} time steps, "
                 f"{len(self.camera_ids)} camera(s), {size}")
+
+
+# -- evaluation splits --------------------------------------------------------------------------------
+def check_eval_split(split: str) -> EvalSplit:
+    """``split`` if it names an evaluation split (:data:`EVAL_SPLITS`), else an :class:`InputError`."""
+    if split not in EVAL_SPLITS:
+        raise InputError(None, "split", f"unknown evaluation split {split!r} (valid: {', '.join(EVAL_SPLITS)})")
+    return split  # type: ignore[return-value]
+
+
+def split_frame_names(split: str, names: Sequence[str], recorded=None, *, source=None) -> list[str]:
+    """The names among ``names`` (held-out frames, e.g. an annotation file's frames) that evaluation split
+    ``split`` scores, in the order given.
+
+    ``recorded`` maps split -> frame names (a scene's ``metadata["eval_splits"]``, a generated scene's
+    annotation ``info["splits"]``). Where nothing is recorded (``None``: real-data annotations, files made
+    before splits were recorded), ``paper`` is every frame of ``names`` and any other split is an
+    :class:`InputError` naming ``source``; so is a split the record lacks. Any other name is one too."""
+    check_eval_split(split)
+    if recorded is None:
+        if split == DEFAULT_EVAL_SPLIT:
+            return list(names)
+        raise InputError(source, "splits", f"records no {split!r} evaluation split (only {DEFAULT_EVAL_SPLIT!r}: "
+                                           "its held-out frames)")
+    if not isinstance(recorded, Mapping):
+        raise InputError(source, "splits", f"expected an object {{split: [frame names]}}, got "
+                                           f"{type(recorded).__name__}")
+    if split not in recorded:
+        have = ", ".join(sorted(map(str, recorded))) or "none"
+        raise InputError(source, "splits", f"records no {split!r} evaluation split (recorded: {have})")
+    members = recorded[split]
+    if not isinstance(members, (list, tuple)) or not all(isinstance(n, str) for n in members):
+        raise InputError(source, f"splits.{split}", "expected a list of frame names")
+    wanted = set(members)
+    return [n for n in names if n in wanted]
+
+
+def scene_split_frames(scene: "Scene", split: str) -> list[Frame]:
+    """The ``test`` frames of ``scene`` that evaluation split ``split`` scores (its loader's record,
+    :data:`EVAL_SPLITS_KEY`; a scene without one: ``paper`` is every test frame)."""
+    names = split_frame_names(split, [f.name for f in scene.test_frames], scene.metadata.get(EVAL_SPLITS_KEY),
+                              source=scene.root)
+    wanted = set(names)
+    return [f for f in scene.test_frames if f.name in wanted]
+
+
+def paper_camera(scene: "Scene") -> Optional[str]:
+    """The camera a single-camera annotation export (the release's COCO files, which number frames by video
+    frame) refers to in a scene of several cameras: the one camera of the ``paper`` split's frames (Neu3D's
+    held-out camera; a generated HyperNeRF-layout scene's video camera, not its novel-view path). None where
+    the scene has one camera, or that split spans several."""
+    if len(scene.camera_ids) < 2:
+        return None
+    cameras = {f.camera_id for f in scene_split_frames(scene, DEFAULT_EVAL_SPLIT)}
+    return next(iter(cameras)) if len(cameras) == 1 else None
+
+
+def eval_splits_of(frames: Sequence, *, held_out_cameras: bool) -> dict[str, list[str]]:
+    """Frame names of each evaluation split (:data:`EVAL_SPLITS`) among the ``test``
+    frames (:class:`Frame` or anything with ``name``, ``split`` and ``camera_id``), the record loaders keep in
+    ``Scene.metadata["eval_splits"]`` and the generator writes.
+
+    ``held_out_cameras``: every test frame is seen from a camera no training frame uses (a rig's held-out
+    camera, D-NeRF's one camera per frame): both splits are all the test frames. Otherwise (a video whose
+    cameras are identified by ``camera_id``): ``paper`` holds the test frames of cameras that also train (all
+    test frames where none does), ``novel-view`` those of cameras that never train (absent when none)."""
+    test = [f for f in frames if f.split == "test"]
+    if held_out_cameras:
+        names = [f.name for f in test]
+        return {"paper": names, "novel-view": list(names)}
+    training = {f.camera_id for f in frames if f.split == "train"}
+    on_path = [f.name for f in test if f.camera_id in training]
+    off_path = [f.name for f in test if f.camera_id not in training]
+    out = {"paper": on_path or [f.name for f in test]}
+    if off_path:
+        out["novel-view"] = off_path
+    return out

@@ -94,14 +94,26 @@ def image_size(path: Path, field: str = "image") -> tuple[int, int]:
     """(width, height) from the file header only (no decoding); errors name the file."""
     from PIL import Image, UnidentifiedImageError
 
+    from benchmark.core.annotation import MAX_MASK_PIXELS
+    from benchmark.core.strict import file_problem, open_regular
+
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, field, "image file not found")
+    problem = file_problem(path)
+    if problem is not None:
+        raise InputError(path, field, "image file not found" if problem == "missing" else f"is {problem}, "
+                                                                                          "expected an image file")
     try:
-        with Image.open(path) as img:
-            return int(img.size[0]), int(img.size[1])
-    except (UnidentifiedImageError, OSError, SyntaxError):
+        with open_regular(path) as fh, Image.open(fh) as img:
+            width, height = int(img.size[0]), int(img.size[1])
+    except Image.DecompressionBombError:  # a header declaring billions of pixels
+        raise InputError(path, field, f"the image header declares more than the {MAX_MASK_PIXELS} pixels any "
+                                      "frame may have") from None
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError):
         raise InputError(path, field, "cannot read the image header (truncated or not an image)") from None
+    if width * height > MAX_MASK_PIXELS:
+        raise InputError(path, field, f"image of {width}x{height} pixels is larger than the {MAX_MASK_PIXELS} "
+                                      "pixels any frame may have")
+    return width, height
 
 
 def resize(img: np.ndarray, width: Optional[int], height: Optional[int]) -> np.ndarray:

@@ -37,7 +37,7 @@ import numpy as np
 from benchmark.core.atomic import read_json
 from benchmark.core.errors import InputError
 from benchmark.core.imageio import read_image
-from benchmark.core.scene import Camera, Frame, Scene
+from benchmark.core.scene import Camera, Frame, Scene, eval_splits_of
 from . import _common as C
 
 LAYOUT = "dnerf"
@@ -179,7 +179,9 @@ def load(path: str | Path, options: Optional[DNeRFOptions] = None) -> Scene:
     return Scene(name=root.resolve().name, dataset=LAYOUT, frames=frames, bounds=bounds, root=root,
                  background=np.asarray(bg), near_far=(near, far),
                  metadata={"layout": LAYOUT, "splits": {s: str(f) for s, (f, _, _) in splits.items()},
-                           "num_distinct_times": len(all_times)})
+                           "num_distinct_times": len(all_times),
+                           # one camera per frame: every test frame is already a novel view
+                           "eval_splits": eval_splits_of(frames, held_out_cameras=True)})
 
 
 def object_annotations(scene: Scene, query_text: str, split: str = "test"):

@@ -39,6 +39,10 @@ Conventions applied (all checked against the Nerfies/HyperNeRF ``camera.py``):
   the last test frame, as the release's ``i_test[:-1]`` does. Frames that are neither train nor test
   stay in the scene with split ``"val"``: methods never train on them, but their cameras let
   annotations on any video frame be evaluated.
+* **Evaluation splits** (``metadata["eval_splits"]``, :mod:`benchmark.core.scene`): ``paper`` is the test
+  frames of the camera(s) that train, ``novel-view`` the test frames of a ``camera_id`` that never trains
+  (a second camera path; HyperNeRF's ``vrig`` captures hold out their second camera the same way).
+* **Bounds** (without ``points.npy``): the box of the *training* frames' view frustums between near and far.
 """
 
 from __future__ import annotations
@@ -54,7 +58,7 @@ import numpy as np
 
 from benchmark.core.atomic import read_json
 from benchmark.core.errors import InputError
-from benchmark.core.scene import Camera, Frame, Scene
+from benchmark.core.scene import Camera, Frame, Scene, eval_splits_of
 from . import _common as C
 
 LAYOUT = "hypernerf"
@@ -368,7 +372,9 @@ def load(path: str | Path, options: Optional[HyperNeRFOptions] = None) -> Scene:
         points = _load_points(root / "points.npy", world.center, world.world_scale)
         bounds = C.box(points)
     else:
-        bounds = C.frustum_bounds([f.camera for f in frames], [world.near] * len(frames), [world.far] * len(frames))
+        # the training frames' views only: where held-out cameras stand is not for a method to know
+        train = [f for f in frames if f.split == "train"]
+        bounds = C.frustum_bounds([f.camera for f in train], [world.near] * len(train), [world.far] * len(train))
     return Scene(
         name=root.resolve().name, dataset=LAYOUT, frames=frames, bounds=bounds, root=root,
         points=points, near_far=(world.near, world.far),
@@ -382,5 +388,6 @@ def load(path: str | Path, options: Optional[HyperNeRFOptions] = None) -> Scene:
             "scene_center": world.file_center.tolist(),
             "scene_scale": world.file_scale,
             "num_time_steps": max(steps) + 1,
+            "eval_splits": eval_splits_of(frames, held_out_cameras=False),
         },
     )

@@ -47,7 +47,7 @@ import numpy as np
 from benchmark.core.atomic import read_json
 from benchmark.core.errors import InputError
 from benchmark.core.imageio import read_image
-from benchmark.core.scene import Camera, Frame, Scene
+from benchmark.core.scene import Camera, Frame, Scene, eval_splits_of
 from . import _common as C
 
 LAYOUT = "neu3d"
@@ -314,5 +314,7 @@ def load(path: str | Path, options: Optional[Neu3DOptions] = None) -> Scene:
         near_far=(float(min(nears)), float(max(fars))),
         metadata={"layout": LAYOUT, "num_frames": num_frames, "num_frames_source": frames_source,
                   "test_cameras": list(test_cameras),
+                  # the held-out camera is the novel view: both evaluation splits score it
+                  "eval_splits": eval_splits_of(frames, held_out_cameras=True),
                   "sources": {n: k for n, (k, _) in sources.items()}},
     )

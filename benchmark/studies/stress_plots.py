@@ -3,8 +3,10 @@ method, its seed band shaded), the breaking-point table, a failure gallery per f
 that ties them together (``reports/stability/``).
 
 A gallery shows, at the family's strongest strength run, the whole-object queries and frames where
-the methods did worst: the frame, the ground truth, and each method's mask (with its IoU); below, the
-timeline of the first time-sensitive query: its ground truth and each method's decision per frame.
+the methods did worst: the frame, the ground truth, and each method's mask (with its IoU), each such row
+below the same frame and query on the clean scene (the clean runs of the same seed); last, the timeline of
+the first time-sensitive query at the strongest strength: its ground truth and each method's decision per
+frame.
 """
 
 from __future__ import annotations
@@ -22,8 +24,8 @@ from .stress import (METRICS, SCORES_FILE, Score, SuiteConfig, breaking_point, m
 
 GALLERY_FRAMES = 3
 """(query, frame) pairs a gallery shows."""
-DPI = 72
-"""Resolution of the PNGs (kept small: the charts are committed)."""
+DPI = 150
+"""Resolution of the PNGs (palette images, :func:`benchmark.plots.write_png`: small enough to commit)."""
 
 
 def _pyplot():
@@ -43,32 +45,62 @@ def _save_png(fig, path: Path) -> Path:
     return path
 
 
+def _seeds_text(seeds: Sequence[int]) -> str:
+    seeds = sorted(set(seeds))
+    return f"seed {seeds[0]}" if len(seeds) == 1 else "seeds " + ", ".join(map(str, seeds))
+
+
 def family_chart(scores: Sequence[Score], fam: str, methods: Sequence[str], path: Path) -> Optional[Path]:
-    """One panel per metric: the seeds' mean against strength per method, the seeds' range shaded."""
+    """One panel per metric: the seeds' mean against strength per method (a line), the seeds' range
+    shaded, and half of the method's clean mean dotted in its colour (where the line crosses it, the
+    method breaks: :func:`~benchmark.studies.stress.breaking_point`); the legend says so."""
+    import textwrap
+
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
     plt = _pyplot()
-    fig, axes = plt.subplots(1, len(METRICS), figsize=(3.2 * len(METRICS), 2.6), squeeze=False)
+    fig, axes = plt.subplots(1, len(METRICS), figsize=(4.0 * len(METRICS), 3.6), squeeze=False, layout="constrained")
     drawn = False
+    seeds_seen: set[int] = set()
+    unit = textwrap.fill(FAMILIES[fam].unit, width=42)
     for ax, metric in zip(axes[0], METRICS):
         for k, method in enumerate(methods):
             values = mean_by_strength(scores, fam, method, metric)
             if not values:
                 continue
+            seeds_seen |= {s.seed for s in scores if s.family == fam and s.method == method
+                           and s.metrics.get(metric) is not None}
             x = np.array(list(values))
             color = f"C{k % 10}"  # one colour per method in every panel (a panel may lack some methods)
-            ax.plot(x, [np.mean(v) for v in values.values()], marker="o", ms=3, label=method, color=color)
+            ax.plot(x, [np.mean(v) for v in values.values()], marker="o", ms=4, label=method, color=color)
             ax.fill_between(x, [min(v) for v in values.values()], [max(v) for v in values.values()], alpha=0.2,
                             color=color)
+            if values.get(0.0):
+                ax.axhline(0.5 * float(np.mean(values[0.0])), color=color, linestyle=":", linewidth=1.2,
+                           label=f"half of {method}'s clean score")
             drawn = True
-        ax.set_title(metric, fontsize=9)
-        ax.tick_params(labelsize=7)
+        ax.set_title(metric, fontsize=11)
+        ax.tick_params(labelsize=9)
         ax.set_ylim(0, 100)
+        ax.set_xlabel(unit, fontsize=9)
+        ax.grid(True, alpha=0.3)
     if not drawn:
         plt.close(fig)
         return None
-    handles, labels = axes[0][0].get_legend_handles_labels()
-    fig.legend(handles, labels, fontsize=7, loc="center left", bbox_to_anchor=(1.0, 0.5))  # beside, not over, the lines
-    fig.supxlabel(FAMILIES[fam].unit, fontsize=8)  # one axis title: the panels share it
-    fig.suptitle(fam, fontsize=10, y=1.05)
+    axes[0][0].set_ylabel("score (%)", fontsize=9)
+    shown = {}
+    for ax in axes[0]:  # every method once, in the order given, whichever panel has it
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            if not label.startswith("half of "):
+                shown.setdefault(label, handle)
+    handles = list(shown.values()) + [
+        Line2D([], [], color="0.3", marker="o", ms=4, label="line: mean over the seeds"),
+        Patch(facecolor="0.3", alpha=0.2, label=f"shaded: lowest to highest seed ({_seeds_text(seeds_seen)})"),
+        Line2D([], [], color="0.3", linestyle=":", label="dotted, the method's colour: half its clean score\n"
+                                                          "(it breaks where its line falls below)")]
+    fig.legend(handles=handles, fontsize=9, loc="outside right center")  # beside, not over, the lines
+    fig.suptitle(fam, fontsize=12)
     return _save_png(fig, path)
 
 
@@ -140,51 +172,89 @@ def _timeline_panel(ax, docs: dict[str, dict]) -> None:
     grid = [g + [np.nan] * (width - len(g)) for g in grid]
     ax.set_axis_on()
     ax.imshow(np.array(grid), aspect="auto", cmap="Greens", vmin=0, vmax=1, interpolation="nearest")
-    ax.set_yticks(range(len(names)), names, fontsize=7)
+    ax.set_yticks(range(len(names)), names, fontsize=8)
     ax.set_xticks([])
-    ax.set_title(f"'{first}' over the evaluated frames (dark: state holds / decided)", fontsize=8)
+    ax.set_title(f"'{first}' over the evaluated frames (dark: state holds / decided)", fontsize=9)
 
 
-def gallery(runs: dict[str, Path], scene_root: Path, title: str, path: Path) -> Optional[Path]:
-    """The failure gallery of one (family, strength, seed): ``runs`` maps method -> results file."""
+def _gallery_rows(runs: dict[str, Path], scene_root: Path, pairs: Sequence[tuple[str, str]], label: str) -> list:
+    """Per (query, frame) of ``pairs``: the panels (picture, caption) of one row, the frame of ``scene_root``,
+    its truth and each method's mask of ``runs``; None for a pair whose frame or query the scene lacks."""
     from annotations.format import load_annotations
     from benchmark.loaders import load_scene
     from benchmark.predictions import read_predictions
 
-    if not runs:
-        return None
-    plt = _pyplot()
     docs = {m: read_json(p) for m, p in runs.items()}
     aset = load_annotations(scene_root / "annotations.json")
-    pairs = _worst_pairs(docs, aset)
-    if not pairs:
-        return None
     predictions = {m: read_predictions((p.parent / docs[m]["predictions"]).parent) for m, p in runs.items()}
     scene = load_scene(scene_root)
     query_id = {q.text: q.id for q in aset.queries}
     frame_id = {f.name: f.id for f in aset.frames}
-    columns = 2 + len(runs)
-    fig, axes = plt.subplots(len(pairs) + 1, columns, figsize=(1.9 * columns, 1.7 * (len(pairs) + 1)), squeeze=False)
-    for row, (text, frame) in enumerate(pairs):
+    rows: list = []
+    for text, frame in pairs:
+        if text not in query_id or frame not in frame_id:
+            rows.append(None)
+            continue
         image = scene.frame(frame).image()
         truth = aset.get_mask(query_id[text], frame_id[frame])
         truth = np.zeros(image.shape[:2], bool) if truth is None else truth.astype(bool)
-        panels = [(image[..., :3], f"{frame}"), (_overlay(image, truth, (0.2, 0.9, 0.2)), f"truth: {text}")]
+        panels = [(image[..., :3], f"{label}: frame {frame}"), (_overlay(image, truth, (0.2, 0.9, 0.2)), f"truth: {text}")]
         for method, preds in predictions.items():
             found = preds.find(text)
             mask = found.mask(frame, truth.shape) if found is not None else np.zeros_like(truth)
             iou = next((r["iou"] for r in _frame_rows(docs[method]) if r["query"] == text and r["frame"] == frame), None)
-            panels.append((_overlay(image, mask.astype(bool)), f"{method} IoU {number_cell(100 * iou if iou is not None else None, 0)}"))
-        for ax, (picture, caption) in zip(axes[row], panels):
+            panels.append((_overlay(image, mask.astype(bool)),
+                           f"{method}\nIoU {number_cell(100 * iou if iou is not None else None, 0)}"))
+        rows.append(panels)
+    return rows
+
+
+def gallery(runs: dict[str, Path], scene_root: Path, title: str, path: Path, *,
+            clean_runs: Optional[dict[str, Path]] = None, clean_root: Optional[Path] = None,
+            label: str = "perturbed") -> Optional[Path]:
+    """The failure gallery of one (family, strength, seed): ``runs`` maps method -> results file. With
+    ``clean_runs`` (method -> results file of the clean run, same seed) and ``clean_root`` (the clean scene),
+    each (query, frame) row of the perturbed runs (``label``) has the clean row above it: the same frame and
+    query, answered by the same methods without the perturbation."""
+    if not runs:
+        return None
+    plt = _pyplot()
+    docs = {m: read_json(p) for m, p in runs.items()}
+    from annotations.format import load_annotations
+
+    pairs = _worst_pairs(docs, load_annotations(scene_root / "annotations.json"))
+    if not pairs:
+        return None
+    perturbed = _gallery_rows(runs, scene_root, pairs, label)
+    clean = (_gallery_rows({m: p for m, p in clean_runs.items() if m in runs}, clean_root, pairs, "clean")
+             if clean_runs and clean_root is not None else [None] * len(pairs))
+    rows: list = []
+    for before, after in zip(clean, perturbed):
+        if clean_runs and clean_root is not None:
+            rows.append(before if before is not None else "the clean scene has no such frame or query")
+        rows.append(after)
+    columns = 2 + len(runs)
+    fig, axes = plt.subplots(len(rows) + 1, columns, figsize=(1.9 * columns, 2.0 * len(rows) + 1.8), squeeze=False,
+                             layout="constrained", height_ratios=[1.0] * len(rows) + [0.9])
+    for row, panels in enumerate(rows):
+        if isinstance(panels, str):
+            axes[row][0].text(0, 0.5, panels, fontsize=8, transform=axes[row][0].transAxes)
+            panels = []
+        for ax, (picture, caption) in zip(axes[row], panels or []):
             ax.imshow(np.clip(picture, 0, 1), interpolation="nearest")
-            ax.set_title(caption, fontsize=7)
+            ax.set_title(caption, fontsize=8)
+        for ax in axes[row]:
             ax.set_axis_off()
     for ax in axes[-1][1:]:
         ax.set_axis_off()
     grid = axes[-1][0].get_gridspec()
     axes[-1][0].remove()
+    for ax in axes[-1][1:]:
+        ax.remove()
     _timeline_panel(fig.add_subplot(grid[-1, :]), docs)
-    fig.suptitle(title, fontsize=9)
+    import textwrap
+
+    fig.suptitle(textwrap.fill(title, width=max(40, int(columns * 1.9 * 10))), fontsize=10)  # no wider than the panels
     return _save_png(fig, path)
 
 
@@ -209,8 +279,14 @@ def family_gallery(config: SuiteConfig, scores: Sequence[Score], fam: str, path:
     runs = {s.method: s.path for s in shown if s.path is not None}
     if len(runs) < len(shown) and path.is_file():
         return None  # drawn before with runs whose results files are not here: kept, not redrawn without them
-    title = f"{fam} at {strength_label(strongest)} ({FAMILIES[fam].unit}), seed {seed}"
-    return gallery(runs, scene_folder(config, fam, strongest), title, path)
+    clean_runs = {s.method: s.path for s in scores
+                  if s.family == fam and s.strength == 0 and s.seed == seed and s.path is not None}
+    label = f"at {strength_label(strongest)}"
+    title = (f"{fam} at {strength_label(strongest)} ({FAMILIES[fam].unit}), seed {seed}: each row of the "
+             f"strongest strength below its clean row (the same frame and query without the perturbation)"
+             if clean_runs else f"{fam} at {strength_label(strongest)} ({FAMILIES[fam].unit}), seed {seed}")
+    return gallery(runs, scene_folder(config, fam, strongest), title, path, clean_runs=clean_runs,
+                   clean_root=scene_folder(config, fam, 0.0) if clean_runs else None, label=label)
 
 
 def _clean_table(scores: Sequence[Score], methods: Sequence[str]) -> str:
@@ -241,9 +317,70 @@ def _run_time_table(scores: Sequence[Score], methods: Sequence[str]) -> str:
     return markdown_table(["method", "runs", "run time (min)", "median run (s)"], rows)
 
 
+def coverage(config: SuiteConfig, scores: Sequence[Score]) -> str:
+    """What the scores cover, counted from them: the distinct runs present against those the suite names
+    (its methods x families x strengths x seeds, where the family applies to the method; a clean run shared
+    by the families counts once), and per method the (family, seed) cells missing at some strength."""
+    from .stress import CLEAN, RunKey, applies
+
+    families = [f for f in config.families if any(s.family == f and s.strength > 0 for s in scores)]
+    present = {(s.family, s.strength, s.method, s.seed) for s in scores}
+    expected, missing = set(), {}
+    for fam in families:
+        for strength in config.strengths_of(fam):
+            for method in config.methods:
+                for seed in config.seeds:
+                    if not applies(RunKey(fam, strength, method, seed)):
+                        continue
+                    expected.add((CLEAN if strength == 0 else fam, strength, method, seed))
+                    if (fam, strength, method, seed) not in present:
+                        missing.setdefault(method, {}).setdefault((fam, seed), []).append(strength)
+    done = {(CLEAN if s.strength == 0 else s.family, s.strength, s.method, s.seed) for s in scores} & expected
+    methods = f"{len(config.methods)} method" + ("s" if len(config.methods) != 1 else "")
+    fams = f"{len(families)} " + ("family" if len(families) == 1 else "families")
+    head = (f"{len(done)} distinct runs of the {len(expected)} the suite names ({methods}, {fams} at their "
+            f"strengths, {_seeds_text(config.seeds)}; a clean run shared by the families counts once)")
+    if not missing:
+        return head + ": complete, every method on every family at every strength with every seed.\n"
+    lines = [head + f". Not run ({len(expected) - len(done)}):", ""]
+    for method in config.methods:
+        gaps = missing.get(method)
+        if not gaps:
+            continue
+        phrases: dict[str, list[str]] = {}  # one phrase per gap, the families that share it
+        for (fam, seed), strengths in sorted(gaps.items()):
+            perturbed = [v for v in config.strengths_of(fam) if v > 0]
+            if len(strengths) == len(config.strengths_of(fam)):
+                where = "at any strength, clean included"
+            elif sorted(strengths) == perturbed:
+                where = "at any strength past clean"
+            else:
+                where = "at " + ", ".join(strength_label(v) for v in sorted(strengths))
+            phrases.setdefault(f"seed {seed} {where}", []).append(fam)
+        lines.append(f"* `{method}`: " + "; ".join(f"{phrase} on {', '.join(fams)}"
+                                                     for phrase, fams in phrases.items()) + ".")
+    return "\n".join(lines) + "\n"
+
+
 ACC_FLOOR = 50.0
 """Acc of a method that does not tell states apart (every frame one answer on a balanced query): below or at
 it, a method's Acc says nothing about a family and is left out of the findings."""
+
+
+def _seed_note(scores: Sequence[Score], fam: str, method: str, metric: str) -> str:
+    """``"; only seed 0 at 0.5, 1"``-style note where the perturbed strengths of ``fam`` were not run with every
+    seed of the clean runs (their means are then of fewer seeds), else empty."""
+    clean = {s.seed for s in scores if s.family == fam and s.method == method and s.strength == 0
+             and s.metrics.get(metric) is not None}
+    by_strength: dict[float, set[int]] = {}
+    for s in scores:
+        if s.family == fam and s.method == method and s.strength > 0 and s.metrics.get(metric) is not None:
+            by_strength.setdefault(s.strength, set()).add(s.seed)
+    fewer = {frozenset(v) for v in by_strength.values() if v != clean}
+    if not fewer:
+        return ""
+    return "; " + "; ".join(f"only {_seeds_text(sorted(v))} at " + ", ".join(
+        strength_label(k) for k, seen in sorted(by_strength.items()) if seen == v) for v in sorted(fewer, key=sorted))
 
 
 def _family_parts(scores, fam: str, methods: Sequence[str], metric: str) -> tuple[list[str], list[tuple]]:
@@ -259,7 +396,8 @@ def _family_parts(scores, fam: str, methods: Sequence[str], metric: str) -> tupl
             continue
         point = breaking_point(values)
         fate = f"below half from {strength_label(point)}" if point is not None else "never below half"
-        parts.append(f"{method} {clean:.1f} -> {last:.1f} at {strength_label(strongest)} ({fate})")
+        parts.append(f"{method} {clean:.1f} -> {last:.1f} at {strength_label(strongest)} ({fate}"
+                     f"{_seed_note(scores, fam, method, metric)})")
         order.append((point if point is not None else np.inf, last / max(clean, 1e-9), method))
     return parts, order
 
@@ -328,11 +466,18 @@ def _readme(config: SuiteConfig, scores: Sequence[Score], families: Sequence[str
             f"{', '.join(config.methods)}; seeds {seeds}; device {config.device}. Method options: {options}.\n"
             f"Wall time of this invocation: {wall} (runs already present are read, not redone). "
             f"Every run's scores: [scores.csv](scores.csv).\n\n"
+            f"Coverage: {coverage(config, scores)}\n"
             f"Run time, each run on the core it ran on (a fit reused from the cache costs nothing here):\n\n"
             f"{_run_time_table(scores, config.methods)}\n"
             f"## Clean scores (strength 0, mean over seeds)\n\n{_clean_table(scores, config.methods)}\n"
             f"## Breaking points\n\nThe strength at which a method's mean over seeds falls below half of its "
             f"clean score (`≤ s`: weaker strengths were not run; `> s`: it holds up to the strongest strength run; `–`: not run, or no clean score to halve).\n\n"
-            f"{table}\n## Findings per family (measured)\n\n{findings(scores, families, config.methods)}\n"
+            f"{table}\n## Findings per family (measured)\n\nMeans over the seeds run (the clean runs' and, "
+            f"where a perturbed strength has fewer, which at which strengths).\n\n"
+            f"{findings(scores, families, config.methods)}\n"
             + (f"{notes.strip()}\n\n" if notes.strip() else "")
-            + f"## Charts and galleries\n\n{charts}\n")
+            + f"## Charts and galleries\n\nA chart draws each metric against the family's strength: per method "
+              f"a line through the mean over the seeds, shaded from its lowest to its highest seed, and a dotted "
+              f"line in its colour at half its clean score (where its line falls below, it breaks). A gallery "
+              f"shows the strongest strength's worst (query, frame) pairs, each below the same pair on the clean "
+              f"scene, with the first time-sensitive query's decisions at the bottom.\n\n{charts}\n")

@@ -72,25 +72,56 @@ def _probe(setup: CameraSetup, width: int) -> Camera:
     return setup.intrinsics.camera(width, np.eye(4))
 
 
-def monocular(setup: CameraSetup, center, radius: float, num_frames: int, width: int,
-              rng: np.random.Generator) -> list[Camera]:
-    """One camera per frame moving smoothly along an arc (with hand-held wobble) around the focus."""
+@dataclass(frozen=True)
+class MonocularPath:
+    """A hand-held camera's arc around the focus, drawn once from the scene's random stream; it gives the
+    camera of any frame, and of the same path turned about the focus (a second, novel-view path)."""
+
+    setup: CameraSetup
+    center: tuple[float, float, float]
+    radius: float
+    num_frames: int
+    width: int
+    distance: float
+    """Mean distance from the focus."""
+    azimuth0: float
+    """Azimuth (radians) at the middle of the video."""
+    phase: tuple[float, float, float]
+    """Phases of the elevation, distance and aim wobbles."""
+    direction: float
+    """+1 or -1: the way the camera travels."""
+
+    def camera(self, i: int, azimuth_offset_deg: float = 0.0, elevation_offset_deg: float = 0.0) -> Camera:
+        """Camera of frame ``i``; the offsets turn it about the focus (azimuth in the direction of travel)."""
+        setup, u = self.setup, i / max(1, self.num_frames - 1)
+        az = self.azimuth0 + self.direction * (np.radians(setup.sweep_deg) * (u - 0.5)
+                                               + np.radians(azimuth_offset_deg))
+        el = np.radians(setup.elevation_deg + elevation_offset_deg
+                        + setup.elevation_wobble_deg * np.sin(2 * np.pi * 1.3 * u + self.phase[0]))
+        d = self.distance * (1 + setup.distance_wobble * np.sin(2 * np.pi * 0.8 * u + self.phase[1]))
+        center = np.asarray(self.center)
+        target = center + 0.04 * self.radius * np.array([np.sin(2 * np.pi * u + self.phase[2]),
+                                                          np.cos(2 * np.pi * u + self.phase[2]), 0.0])
+        eye = spherical(center, d, az, el)
+        return setup.intrinsics.camera(self.width, look_at_opencv(eye, target))
+
+
+def monocular_path(setup: CameraSetup, center, radius: float, num_frames: int, width: int,
+                   rng: np.random.Generator) -> MonocularPath:
+    """A smooth arc (with hand-held wobble) around the focus, its randomness drawn from ``rng``."""
     dist = fit_distance(radius, _probe(setup, width), setup.margin * (1 + setup.distance_wobble))
     az0 = rng.uniform(-np.pi, np.pi)
     phase = rng.uniform(0, 2 * np.pi, size=3)
     direction = rng.choice([-1.0, 1.0])
-    sweep = np.radians(setup.sweep_deg)
-    cams = []
-    for i in range(num_frames):
-        u = i / max(1, num_frames - 1)
-        az = az0 + direction * sweep * (u - 0.5)
-        el = np.radians(setup.elevation_deg + setup.elevation_wobble_deg * np.sin(2 * np.pi * 1.3 * u + phase[0]))
-        d = dist * (1 + setup.distance_wobble * np.sin(2 * np.pi * 0.8 * u + phase[1]))
-        target = np.asarray(center) + 0.04 * radius * np.array([np.sin(2 * np.pi * u + phase[2]),
-                                                                np.cos(2 * np.pi * u + phase[2]), 0.0])
-        eye = spherical(center, d, az, el)
-        cams.append(setup.intrinsics.camera(width, look_at_opencv(eye, target)))
-    return cams
+    return MonocularPath(setup, tuple(float(v) for v in center), float(radius), int(num_frames), int(width),
+                         float(dist), float(az0), tuple(float(v) for v in phase), float(direction))
+
+
+def monocular(setup: CameraSetup, center, radius: float, num_frames: int, width: int,
+              rng: np.random.Generator) -> list[Camera]:
+    """One camera per frame moving smoothly along an arc (with hand-held wobble) around the focus."""
+    path = monocular_path(setup, center, radius, num_frames, width, rng)
+    return [path.camera(i) for i in range(num_frames)]
 
 
 def rig(setup: CameraSetup, center, radius: float, num_views: int, width: int,

@@ -40,6 +40,7 @@ def dynamic_parts(root: str | Path) -> dict[int, str]:
     finest level: a coffee stream that starts and stops is dynamic, the machine around it is not)."""
     from .generate import preset_rng
     from .presets import PRESETS
+    from .state_changes import STATE_CHANGES
     from benchmark.core.truth import load_truth
 
     root = Path(root)
@@ -54,7 +55,12 @@ def dynamic_parts(root: str | Path) -> dict[int, str]:
     for key in ("seed", "num_frames"):
         if not isinstance(meta.get(key), int):
             raise InputError(meta_path, key, f"expected an integer, got {meta.get(key)!r}")
-    scene_def = PRESETS[preset].build(preset_rng(preset, meta["seed"]), meta["num_frames"])  # as generated
+    # as generated: the scene's own level of state changes (a scene made before levels records none: the
+    # preset's own schedule, "switch")
+    changes = meta.get("state_changes", "switch" if PRESETS[preset].state_changes is not None else None)
+    if changes is not None and (PRESETS[preset].state_changes is None or changes not in STATE_CHANGES):
+        raise InputError(meta_path, "state_changes", f"preset {preset!r} has no level of state changes {changes!r}")
+    scene_def = PRESETS[preset].build(preset_rng(preset, meta["seed"]), meta["num_frames"], changes)
     catalogue = Catalogue.build(scene_def.wholes)
     truth = load_truth(root)
     for level in ("whole", "subpart"):

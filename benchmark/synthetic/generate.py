@@ -23,6 +23,7 @@ from typing import Any, Optional
 import numpy as np
 
 from ..core import openblas
+from benchmark.core.caption_noise import DEFAULT_CAPTION_NOISE
 from benchmark.core.errors import InputError
 from benchmark.core.memory import available_memory_gb
 from . import layouts
@@ -31,10 +32,12 @@ from .model import Catalogue, FrameContext
 from .perturb import parse as parse_perturbation
 from .presets import PRESETS, PresetSpec
 from .render import SurfaceLayer, background_instances, instances, render, surfaces
+from .splits import split_records
 from benchmark.core.truth import TRUTH_DIR, TruthFrame, save_levels, write_truth
 
 GENERATOR = "bench4d.synthetic"
-GENERATOR_VERSION = "1.0"
+GENERATOR_VERSION = "1.1"
+"""1.1: the HyperNeRF layout trains on frames i % 4 == 0 (the paper's split) and renders a novel-view path."""
 MIN_FRAMES = 4
 """Fewest frames a scene may have (a held-out frame and state changes need room)."""
 NEAR_FAR_MARGIN = (0.9, 1.1)
@@ -167,23 +170,32 @@ def generate(preset: str, out_dir: str | Path, *, size: Optional[int] = None, fr
         near_far = {cam: (lo * NEAR_FAR_MARGIN[0], hi * NEAR_FAR_MARGIN[1]) for cam, (lo, hi) in depth_range.items()}
         info = {"generator": GENERATOR, "generator_version": GENERATOR_VERSION, "preset": preset, "seed": int(seed),
                 "size": size, "num_views": views, "time_sensitive": spec.time_sensitive}
+        if spec.state_changes is not None:  # in the truth too: how its states change, and its captions' noise
+            info["state_changes"] = spec.state_changes
+        if spec.caption_noise != DEFAULT_CAPTION_NOISE:
+            info["caption_noise"] = spec.caption_noise
         if height is not None:
             info["height"] = height  # in the truth too: the digest names it (absent: the layout's aspect)
         if perturbation is not None and not perturbation.is_clean:
             info["perturbation"] = perturbation.describe()  # in the truth too: the digest names it
         all_near = min(v[0] for v in near_far.values())
         all_far = max(v[1] for v in near_far.values())
-        layouts.write_metadata(staging, layout, records, near_far, frames,
-                               {**info, "truth": TRUTH_DIR, "annotations": "annotations.json",
-                                "near_far": [all_near, all_far], "analogue": spec.analogue})
         write_truth(truth_dir, frames=[TruthFrame(r.name, r.split, r.time_index, r.time, r.camera_id, r.camera,
                                                   r.image_file) for r in records],
                     catalogue=catalogue, info={**info, "layout": layout, "num_frames": frames})
+        # the evaluation splits, with the multi-view factor read from the truth just written
+        split_info = split_records(records, scene, catalogue, truth_dir, layout=layout,
+                                   novel_view=layouts.NOVEL_VIEW if layout == "hypernerf" else None)
+        layouts.write_metadata(staging, layout, records, near_far, frames,
+                               {**info, "truth": TRUTH_DIR, "annotations": "annotations.json",
+                                "near_far": [all_near, all_far], "analogue": spec.analogue, "splits": split_info})
         from annotations.format import save_annotations
 
         aset = build_annotations(out.name, catalogue, evaluated, frames, time_sensitive=spec.time_sensitive,
                                  info={"source": f"{GENERATOR} {GENERATOR_VERSION} (exact, from the id maps)",
-                                       "preset": preset, "seed": int(seed), "layout": layout})
+                                       "preset": preset, "seed": int(seed), "layout": layout,
+                                       # which annotated frames each evaluation split scores (in the digest)
+                                       "splits": {name: entry["frames"] for name, entry in split_info.items()}})
         save_annotations(aset, staging / "annotations.json")
         _publish(staging, out)
     finally:
@@ -211,8 +223,13 @@ class _Plan:
         scene = _spec(self.preset).build(rng, self.frames)
         records = layouts.plan(self.layout, scene, self.size, self.frames, self.views, rng, height=self.height)
         if self.perturbation is not None:
-            scene, records = self.perturbation.apply(scene, records, self.seed)
+            # a knob acts on the captured video; the novel-view path keeps seeing the scored times as planned
+            novel = [r for r in records if r.camera_id == layouts.NOVEL_CAMERA_ID]
+            video = [r for r in records if r.camera_id != layouts.NOVEL_CAMERA_ID]
+            scene, records = self.perturbation.apply(scene, video, self.seed)
             records = layouts.as_layout_records(self.layout, records)
+            if novel:  # back in video order, a time's novel view after its frames (strength 0: the clean plan)
+                records = sorted(records + novel, key=lambda rec: rec.time_index)
         return scene, Catalogue.build(scene.wholes), records
 
 

@@ -5,7 +5,11 @@
   Several nodes with one name ("chocolate chip" x 5) share one query whose mask is their union.
 * One **time-sensitive** query per state of every timeline whose state is marked ``query``
   ("cracked cookie" and its complement "whole cookie"), based on the query of the node that owns
-  the timeline, with the state's inclusive time-index intervals.
+  the timeline, with the state's inclusive time-index intervals. A change that develops over many frames
+  (:mod:`benchmark.synthetic.state_changes`) counts as the new state from the first frame past the
+  midpoint of its visual transition (:class:`~benchmark.synthetic.model.Timeline`: frames from the
+  boundary ``b`` on show more than half of the change, frames before it less), so the intervals are the
+  timeline's segments exactly; a state that comes back gets one interval per time it holds.
 """
 
 from __future__ import annotations

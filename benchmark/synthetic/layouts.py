@@ -7,8 +7,11 @@ back through :func:`benchmark.loaders.load_scene`.
 
 Frame names, splits and times per layout
 ----------------------------------------
-* ``hypernerf``: one moving camera; ids ``000000 ...``; ``val_ids`` (the test split) are frames
-  ``i % 4 == 2``, every other frame trains; ``time = i / (N - 1)`` (``warp_id / max(warp_id)``).
+* ``hypernerf``: one moving camera; ids ``000000 ...``; ``train_ids`` are frames ``i % 4 == 0`` and
+  ``val_ids`` (the test split) frames ``i % 4 == 2``, as the paper and the release's loader split them
+  (the loader calls the rest ``val``: neither trained on nor scored); ``time = i / (N - 1)``
+  (``warp_id / max(warp_id)``). Each scored time is rendered a second time from the novel-view path
+  (:class:`NovelViewPath`): ids ``novel_<i>``, ``camera_id`` :data:`NOVEL_CAMERA_ID`, in ``val_ids`` too.
   Only ``rgb/1x`` is written (the loader falls back to 1x when ``rgb/2x`` is absent, so the images
   it returns by default have the size the truth and annotations are drawn at; ``scale=0.5`` gives
   area-downsampled 2x images).
@@ -55,6 +58,10 @@ class SplitRule:
     """Every ``test_every``-th frame is held out ..."""
     test_offset: int = 2
     """... starting at this frame (the release's "train index + 2")."""
+    train_offset: Optional[int] = 0
+    """Frames ``i % test_every == train_offset`` train (the paper: "one frame every four frames as the training
+    set"); the others are neither trained on nor scored (split ``val``). None: every frame that is not held
+    out trains."""
     val_every: int = 12
     """D-NeRF only: frames ``i % val_every == 0`` form the (small) validation split."""
 
@@ -63,7 +70,46 @@ class SplitRule:
             return "test"
         if with_val and i % self.val_every == 0:
             return "val"
-        return "train"
+        if self.train_offset is None or i % self.test_every == self.train_offset:
+            return "train"
+        return "val"
+
+
+PAPER_SPLIT = SplitRule()
+"""The HyperNeRF layout's split: train on ``i % 4 == 0``, score ``i % 4 == 2`` (the paper, and the release's
+loader; :mod:`benchmark.loaders.hypernerf`'s ``every4`` rule)."""
+DNERF_SPLIT = SplitRule(train_offset=None)
+"""The D-NeRF layout's split: test ``i % 4 == 2``, validation ``i % 12 == 0``, every other frame trains."""
+
+
+@dataclass(frozen=True)
+class NovelViewPath:
+    """The second camera path of the HyperNeRF layout: every scored time is rendered again from the training
+    camera of that time turned about the focus, off the training path (the ``novel-view`` evaluation split).
+
+    The azimuth offset keeps the novel camera inside the azimuths the training path sweeps (55 degrees): it
+    sees each scored time from where the training camera stood at another time, the question of monocular
+    dynamic view synthesis. The elevation offset takes it off the path: the training path's elevation wobbles
+    by +-``elevation_wobble_deg`` (5), so a novel camera is at least 15 - 2 x 5 = 5 degrees above every
+    training camera. Measured at demo schedules (split-cookie, 64 px, 60 frames, one seed), the floor and
+    4D LangSplat both lose mIoU with the offset: (20, 20) left both near 30, the scale of their noise."""
+
+    azimuth_deg: float = 10.0
+    """Added to the training camera's azimuth about the focus, in the direction the camera travels."""
+    elevation_deg: float = 15.0
+    """Added to its elevation: the novel camera looks down more steeply."""
+    min_angle_deg: float = 5.0
+    """Every novel-view camera is at least this far from every training camera, as the angle between their
+    centres seen from the focus; :func:`plan` checks it."""
+
+
+NOVEL_VIEW = NovelViewPath()
+"""The novel-view path of the presets."""
+NOVEL_CAMERA_ID = "100"
+"""``camera_id`` of the novel-view frames (HyperNeRF's ``metadata.json`` numbers cameras; the stress suite's
+``camera-rig`` family numbers its extra training cameras 1, 2, ...)."""
+NOVEL_PREFIX = "novel_"
+"""Frame names of the novel-view path: ``novel_<frame number>``."""
 
 
 @dataclass(frozen=True)
@@ -106,9 +152,12 @@ class FrameRecord:
 
 
 def plan(layout: Layout, scene: SceneDef, width: int, num_frames: int, num_views: int,
-         rng: np.random.Generator, rule: SplitRule = SplitRule(), height: Optional[int] = None) -> list[FrameRecord]:
+         rng: np.random.Generator, rule: Optional[SplitRule] = None, height: Optional[int] = None,
+         novel_view: Optional[NovelViewPath] = NOVEL_VIEW) -> list[FrameRecord]:
     """Cameras, names, splits and times of every image of the layout; ``height`` replaces the layout's image
-    aspect (the horizontal field of view stays the layout's)."""
+    aspect (the horizontal field of view stays the layout's). ``rule``: the layout's split (default
+    :data:`PAPER_SPLIT` for HyperNeRF, :data:`DNERF_SPLIT` for D-NeRF). ``novel_view``: the HyperNeRF layout's
+    second path, one frame per scored time (None: none)."""
     spec = LAYOUT_SPECS[layout]
     if height is not None:
         intrinsics = dataclasses.replace(spec.setup.intrinsics, height_over_width=height / width)
@@ -116,14 +165,23 @@ def plan(layout: Layout, scene: SceneDef, width: int, num_frames: int, num_views
     c, r = scene.focus_center, scene.focus_radius
     n = num_frames
     if layout == "hypernerf":
-        path = cams.monocular(spec.setup, c, r, n, width, rng)
-        return [FrameRecord(f"{i:06d}", rule.split(i, False), i, i / max(1, n - 1), "0", path[i],
-                            f"rgb/1x/{i:06d}.png") for i in range(n)]
+        rule = PAPER_SPLIT if rule is None else rule
+        path = cams.monocular_path(spec.setup, c, r, n, width, rng)
+        records = [FrameRecord(f"{i:06d}", rule.split(i, False), i, i / max(1, n - 1), "0", path.camera(i),
+                               f"rgb/1x/{i:06d}.png") for i in range(n)]
+        if novel_view is not None:
+            records += [FrameRecord(f"{NOVEL_PREFIX}{i:06d}", "test", i, i / max(1, n - 1), NOVEL_CAMERA_ID,
+                                    path.camera(i, novel_view.azimuth_deg, novel_view.elevation_deg),
+                                    f"rgb/1x/{NOVEL_PREFIX}{i:06d}.png")
+                        for i in range(n) if rule.split(i, False) == "test"]
+            _check_novel_views(records, c, novel_view)
+        return sorted(records, key=lambda rec: rec.time_index)  # video order; a time's novel view after its frame
     if layout == "neu3d":
         rig = cams.rig(spec.setup, c, r, num_views, width, rng)
         return [FrameRecord(f"cam{v:02d}_{k:04d}", "test" if v == 0 else "train", k, k / n, f"cam{v:02d}",
                             rig[v], f"cam{v:02d}/images/{k:04d}.png") for k in range(n) for v in range(num_views)]
     if layout == "dnerf":
+        rule = DNERF_SPLIT if rule is None else rule
         views = cams.hemisphere(spec.setup, c, r, n, width, rng)
         out = []
         for i in range(n):
@@ -132,6 +190,20 @@ def plan(layout: Layout, scene: SceneDef, width: int, num_frames: int, num_views
                                    f"{split}/r_{i:03d}.png"))
         return out
     raise ValueError(f"unknown layout {layout!r} (valid: {', '.join(LAYOUTS)})")
+
+
+def _check_novel_views(records: list[FrameRecord], focus, novel_view: NovelViewPath) -> None:
+    """A ``ValueError`` unless every novel-view camera is :attr:`NovelViewPath.min_angle_deg` or more from every
+    training camera (a camera setup whose wobble outgrew the offset)."""
+    from .splits import nearest_angles_deg
+
+    novel = [r.camera for r in records if r.camera_id == NOVEL_CAMERA_ID]
+    train = [r.camera for r in records if r.split == "train"]
+    if novel and train:
+        closest = float(nearest_angles_deg(novel, train, focus).min())
+        if closest < novel_view.min_angle_deg:
+            raise ValueError(f"a novel-view camera is {closest:.2f} degrees from a training camera, under the "
+                             f"{novel_view.min_angle_deg} degrees the novel-view path promises")
 
 
 def as_layout_records(layout: Layout, records: list[FrameRecord]) -> list[FrameRecord]:
@@ -186,8 +258,10 @@ def _camera_number(camera_id: str) -> int:
 
 
 def _write_hypernerf(root: Path, records: list[FrameRecord], near_far: dict[str, tuple[float, float]]) -> None:
-    near = min(v[0] for v in near_far.values())
-    far = max(v[1] for v in near_far.values())
+    # the training cameras' depth range: where the held-out cameras see from is not for a method to know
+    training = {r.camera_id for r in records if r.split == "train"} & set(near_far) or set(near_far)
+    near = min(near_far[cam][0] for cam in training)
+    far = max(near_far[cam][1] for cam in training)
     # Identity normalisation: the loader's world = (position - center) * scale is our world.
     write_json(root / "scene.json", {"scale": 1.0, "center": [0.0, 0.0, 0.0], "near": near, "far": far})
     ids = [r.name for r in records]

@@ -133,7 +133,9 @@ class Timeline:
     Segment ``j`` covers time indices ``[boundaries[j-1], boundaries[j] - 1]`` (inclusive; the first
     starts at 0, the last ends at ``num_frames - 1``). The visual change for boundary ``b`` is a
     smoothstep ramp of ``ramp_frames`` frames centred on ``b - 0.5``: frames up to ``b - 1`` are less
-    than half way, frames from ``b`` on are more than half way.
+    than half way, frames from ``b`` on are more than half way. That is the ground truth's rule for a
+    gradual change: a state holds from the first frame past the midpoint of its transition (exact while
+    ramps do not overlap, as :mod:`benchmark.synthetic.state_changes` places them).
     """
 
     states: tuple[State, ...]

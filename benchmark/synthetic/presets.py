@@ -4,6 +4,12 @@ Each preset is a :class:`PresetSpec` whose ``build(rng, num_frames)`` returns a
 :class:`~benchmark.synthetic.model.SceneDef`. The seed moves objects a little, changes colours and
 texture noise, the camera path, and the times at which states change (so intervals have varied
 lengths). World: z up, floor (table top) at z = 0, content within ~0.4 units of the origin.
+
+The presets with time queries name how their states change (:attr:`PresetSpec.state_changes`, a level of
+:mod:`benchmark.synthetic.state_changes`: a liquid that darkens or a cup that fills over many frames, an egg
+or a cookie that goes back and forth between its states) and the noise of the captions the oracle track
+writes from their states (:attr:`PresetSpec.caption_noise`, a level of :mod:`benchmark.core.caption_noise`:
+``mllm``, with ``clean`` as the named alternative).
 """
 
 from __future__ import annotations
@@ -15,12 +21,18 @@ import numpy as np
 
 from . import textures as tx
 from .csg import Box, Cylinder, Ellipsoid, Frustum, HalfSpace, Sphere
+from benchmark.core.caption_noise import DEFAULT_CAPTION_NOISE, caption_noise as caption_noise_level
+from benchmark.core.errors import InputError
 from .layouts import NEU3D_RIG_CAMERAS
 from .model import FrameContext, Light, Node, Piece, SceneDef, State, Timeline, part, subpart, whole
 from .objects import CupGeometry, dish, hollow_cylinder, moved, room
+from .state_changes import STATE_CHANGES, StateChanges, state_changes as state_changes_level
 from .transforms import about, rotation, smoothstep, translation
 
-Builder = Callable[[np.random.Generator, int], SceneDef]
+Builder = Callable[..., SceneDef]
+"""``builder(rng, num_frames)``, and ``builder(rng, num_frames, changes)`` for a preset with levels of state
+changes (``changes``: a :class:`~benchmark.synthetic.state_changes.StateChanges`)."""
+SWITCH = STATE_CHANGES["switch"]
 
 
 @dataclass(frozen=True)
@@ -42,10 +54,32 @@ class PresetSpec:
     time_sensitive: bool
     """Whether the annotations include time-sensitive queries (the paper has them for four
     HyperNeRF scenes only; other presets keep their state timeline in the truth)."""
-    build: Builder
-    """``build(rng, num_frames) -> SceneDef``."""
+    builder: Builder
+    """``builder(rng, num_frames[, changes]) -> SceneDef`` (:meth:`build` calls it)."""
     default_size: int = 128
     """Image width at the default settings."""
+    state_changes: Optional[str] = None
+    """Level of :mod:`benchmark.synthetic.state_changes` its states change by (``None``: the preset's schedule
+    is fixed; its builder takes no level)."""
+    caption_noise: str = DEFAULT_CAPTION_NOISE
+    """Level of :mod:`benchmark.core.caption_noise` of the captions the oracle track writes from its states by
+    default (recorded in the scene's truth)."""
+
+    def __post_init__(self) -> None:
+        caption_noise_level(self.caption_noise, field=f"preset {self.name!r} caption_noise")
+        if self.state_changes is not None:
+            state_changes_level(self.state_changes)
+
+    def build(self, rng: np.random.Generator, num_frames: int, state_changes: Optional[str] = None) -> SceneDef:
+        """The scene definition drawn from ``rng`` for a video of ``num_frames`` frames, its states changing by
+        the level ``state_changes`` (default: :attr:`state_changes`)."""
+        level = self.state_changes if state_changes is None else state_changes
+        if level is None:
+            return self.builder(rng, num_frames)
+        if self.state_changes is None:
+            raise InputError(None, "state_changes", f"preset {self.name!r} has one fixed schedule of state changes: "
+                             "no level can be chosen")
+        return self.builder(rng, num_frames, state_changes_level(level))
 
 
 # -- small helpers ------------------------------------------------------------------------------
@@ -92,8 +126,8 @@ def _room(rng: np.random.Generator) -> list[Piece]:
 
 
 # -- americano: clear water darkens as espresso is poured in ------------------------------------
-def build_americano(rng: np.random.Generator, n: int) -> SceneDef:
-    tl = Timeline.sample(rng, n, [
+def build_americano(rng: np.random.Generator, n: int, changes: StateChanges = SWITCH) -> SceneDef:
+    tl = changes.timeline(rng, n, [
         State("clear", "clear liquid", _captions(
             "a cup of clear water", "the cup holds clear, light liquid", "transparent water in a white cup",
             "the drink is still clear", "plain water fills the mug")),
@@ -117,14 +151,20 @@ def build_americano(rng: np.random.Generator, n: int) -> SceneDef:
                    pieces=[Piece(dish(0.13, 0.016, 0.09, 0.008),
                                  tx.Stripes(_jit(rng, (0.90, 0.90, 0.92)), (0.30, 0.40, 0.70), (1, 0, 0), 0.04, 0.15))])
 
-    # The pitcher lifts towards the cup and tilts while the coffee is poured (around the state change).
+    # The pitcher lifts towards the cup and tilts while the coffee is poured (through each change of colour).
     pitch_base = np.array([0.23, -0.06, 0.0])
     to_cup = -pitch_base / np.linalg.norm(pitch_base)
     yaw = np.arctan2(to_cup[1], to_cup[0])
+    tilt_frames = max(1.0, 0.05 * n)  # to lift and tilt the pitcher, and to put it back
 
-    def pour(ctx: FrameContext) -> float:  # 0 resting -> 1 fully tilted, centred on the change
-        width = 3.0 * tl.ramp_frames
-        return float(np.exp(-0.5 * ((ctx.time_index - (tl.boundaries[0] - 0.5)) / (0.5 * width)) ** 2))
+    def pour(ctx: FrameContext) -> float:  # 0 resting -> 1 fully tilted, held while the colour changes
+        out = 0.0
+        for b in tl.boundaries:
+            start, end = b - 0.5 - tl.ramp_frames / 2, b - 0.5 + tl.ramp_frames / 2
+            up = smoothstep((ctx.time_index - start) / tilt_frames + 1.0)
+            down = smoothstep((end - ctx.time_index) / tilt_frames + 1.0)
+            out = max(out, float(up * down))
+        return out
 
     def pitcher_pose(ctx: FrameContext) -> np.ndarray:
         a = pour(ctx)
@@ -189,8 +229,8 @@ def _chicken(rng: np.random.Generator) -> Node:
                  pose=_place(rng, -0.13, 0.05, yaw=-0.5))
 
 
-def build_chickchicken(rng: np.random.Generator, n: int) -> SceneDef:
-    tl = Timeline.sample(rng, n, [
+def build_chickchicken(rng: np.random.Generator, n: int, changes: StateChanges = SWITCH) -> SceneDef:
+    tl = changes.timeline(rng, n, [
         State("closed", "closed egg", _captions(
             "the toy egg is closed", "a shut plastic egg", "the egg shell is closed with its lid down",
             "a closed egg sits in the nest", "the two halves of the egg are together")),
@@ -229,8 +269,8 @@ def build_chickchicken(rng: np.random.Generator, n: int) -> SceneDef:
 
 
 # -- split-cookie: a cookie cracks into two halves that move apart --------------------------------
-def build_split_cookie(rng: np.random.Generator, n: int) -> SceneDef:
-    tl = Timeline.sample(rng, n, [
+def build_split_cookie(rng: np.random.Generator, n: int, changes: StateChanges = SWITCH) -> SceneDef:
+    tl = changes.timeline(rng, n, [
         State("whole", "whole cookie", _captions(
             "a whole round cookie", "an unbroken chocolate chip cookie", "the cookie is in one piece",
             "an intact cookie on a plate", "a complete cookie, not yet broken")),
@@ -294,8 +334,8 @@ def build_split_cookie(rng: np.random.Generator, n: int) -> SceneDef:
 
 
 # -- espresso: a cup fills under the machine's spout ------------------------------------------------
-def build_espresso(rng: np.random.Generator, n: int) -> SceneDef:
-    tl = Timeline.sample(rng, n, [
+def build_espresso(rng: np.random.Generator, n: int, changes: StateChanges = SWITCH) -> SceneDef:
+    tl = changes.timeline(rng, n, [
         State("empty", "empty cup", _captions(
             "an empty espresso cup", "the cup under the machine is empty", "nothing in the cup yet",
             "a clean empty cup waiting for coffee", "the small cup has no coffee in it")),
@@ -594,14 +634,18 @@ def build_smoke(rng: np.random.Generator, n: int) -> SceneDef:
 
 
 PRESETS: dict[str, PresetSpec] = {spec.name: spec for spec in (
-    PresetSpec("americano", "a white cup of clear water turns dark as espresso is poured from a tilting pitcher",
-               "hypernerf/americano", "hypernerf", 60, 8, True, build_americano),
-    PresetSpec("chickchicken", "a toy egg opens (a chick pops up) and closes again; a toy chicken nods beside it",
-               "hypernerf/chickchicken", "hypernerf", 60, 8, True, build_chickchicken),
-    PresetSpec("split-cookie", "a chocolate chip cookie on a plate cracks into two halves that move apart",
-               "hypernerf/split-cookie", "hypernerf", 60, 8, True, build_split_cookie),
-    PresetSpec("espresso", "an espresso cup fills from the machine's spout (a stream while it pours)",
-               "hypernerf/espresso", "hypernerf", 60, 8, True, build_espresso),
+    PresetSpec("americano", "a white cup of clear water turns dark, gradually, as espresso is poured from a tilting pitcher",
+               "hypernerf/americano", "hypernerf", 60, 8, True, build_americano,
+               state_changes="gradual", caption_noise="mllm"),
+    PresetSpec("chickchicken", "a toy egg opens (a chick pops up), closes and opens again; a toy chicken nods beside it",
+               "hypernerf/chickchicken", "hypernerf", 60, 8, True, build_chickchicken,
+               state_changes="back-and-forth", caption_noise="mllm"),
+    PresetSpec("split-cookie", "a chocolate chip cookie on a plate cracks into two halves, is pushed together and split again",
+               "hypernerf/split-cookie", "hypernerf", 60, 8, True, build_split_cookie,
+               state_changes="back-and-forth", caption_noise="mllm"),
+    PresetSpec("espresso", "an espresso cup fills, gradually, from the machine's spout (a stream while it pours)",
+               "hypernerf/espresso", "hypernerf", 60, 8, True, build_espresso,
+               state_changes="gradual", caption_noise="mllm"),
     PresetSpec("keyboard", "a static keyboard with keys, a mouse circling on its pad, a mug (time-agnostic only)",
                "hypernerf/keyboard", "hypernerf", 60, 8, False, build_keyboard),
     PresetSpec("torchocolate", "a blow torch sweeps over a chocolate bar that melts and darkens (time-agnostic queries)",
@@ -609,8 +653,9 @@ PRESETS: dict[str, PresetSpec] = {spec.name: spec for spec in (
     # the real rig's cameras: with 6 every method scored floaters on the held-out view (NEU3D_RIG_CAMERAS)
     PresetSpec("cook-spinach", "spinach leaves stirred in a pan while a spatula sweeps (21-camera rig, time-agnostic)",
                "neu3d/cook_spinach", "neu3d", 40, NEU3D_RIG_CAMERAS, False, build_cook_spinach),
+    # 24 frames: the paper's split trains on 6 of them (i % 4 == 0), as many as the earlier 8 did, and scores 6
     PresetSpec("smoke", "tiny test scene: a box lid opens, a bar breaks, a ball rolls",
-               "(tests)", "hypernerf", 8, 3, True, build_smoke, default_size=48),
+               "(tests)", "hypernerf", 24, 3, True, build_smoke, default_size=48),
 )}
 
 

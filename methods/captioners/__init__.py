@@ -6,6 +6,8 @@ name            track   what it is
 ``template``    oracle  captions from the generated scene's semantic states (training frames only)
 ``qwen2-vl``    real    Qwen2-VL with 4D LangSplat's two-step prompting (transformers; weights local)
 ``file``        real    captions made elsewhere, read from JSON (:mod:`.file`)
+``states``      oracle  the annotation's time segments at the training frames, for scenes without
+                        generator truth (D-NeRF; :mod:`.states`)
 ==============  ======  ============================================================================
 
 Code is imported only when a captioner is created (:func:`get_captioner`).
@@ -43,6 +45,8 @@ BUILT_IN: tuple[CaptionerSpec, ...] = (
                   "methods.captioners.qwen2vl:Qwen2VLCaptioner"),
     CaptionerSpec("file", "real", "captions made elsewhere, read from a JSON file (option path=...)",
                   "methods.captioners.file:FileCaptioner"),
+    CaptionerSpec("states", "oracle", "the annotation's states at the training frames (oracle, no generator "
+                  "truth: D-NeRF)", "methods.captioners.states:StatesCaptioner"),
 )
 
 CAPTIONERS: Registry[CaptionerSpec] = Registry("captioner", lambda: BUILT_IN)
@@ -63,21 +67,46 @@ def get_captioner(name: str, scene, **options: Any):
     return factory(scene, **options)
 
 
-def resolve_captioning(captions, track: str) -> tuple[str, str]:
+def resolve_captioning(captions, track: str, states: bool = False) -> tuple[str, str]:
     """(captioner name, object-track source) of the ``captions`` group
-    (:class:`methods.specs._time_varying.CaptionConfig`) on ``track`` (``"auto"`` resolved)."""
+    (:class:`methods.specs._time_varying.CaptionConfig`) on ``track`` (``"auto"`` resolved). ``states``: the
+    run's supervision carries training states (:attr:`methods.supervision.base.Supervision.states`), which
+    "auto" captions on the oracle track (``states`` captioner, ``alpha`` tracks) instead of generator truth."""
     captioner = captions.captioner
     if captioner == "auto":
-        captioner = "template" if track == "oracle" else ("file" if captions.file else "qwen2-vl")
+        if track == "oracle":
+            captioner = "states" if states else "template"
+        else:
+            captioner = "file" if captions.file else "qwen2-vl"
     spec = captioner_spec(captioner)
     if spec.track == "oracle" and track != "oracle":
-        raise InputError(None, "captioner", f"captioner {captioner!r} reads the generator's truth: oracle track only")
+        raise InputError(None, "captioner", f"captioner {captioner!r} reads the oracle's truth: oracle track only")
     tracks = captions.object_tracks
     if tracks == "auto":
-        tracks = "truth" if track == "oracle" else ("file" if captions.file else "segments")
-    if tracks == "truth" and track != "oracle":
-        raise InputError(None, "captions.object_tracks", "truth tracks read the generator's truth: oracle track "
+        if track == "oracle":
+            tracks = "alpha" if captioner == "states" else "truth"
+        else:
+            tracks = "file" if captions.file else "segments"
+    if tracks in ("truth", "alpha") and track != "oracle":
+        raise InputError(None, "captions.object_tracks", f"{tracks} tracks read the oracle's truth: oracle track "
                          "only (on the real track use the segments or give the masks in captions.file)")
     if tracks == "file" and not captions.file:
         raise InputError(None, "captions.file", "object_tracks='file' needs captions.file=<JSON with masks>")
     return captioner, tracks
+
+
+def captioning_unavailable(captions, scene, supervision) -> str:
+    """Why the ``captions`` group cannot caption ``scene`` with ``supervision`` (a
+    :class:`~methods.supervision.base.Supervision`), or ``""`` when it can: the oracle captioners need
+    generator truth (``template``, ``truth`` tracks) or training states (``states``, ``alpha`` tracks)."""
+    captioner, tracks = resolve_captioning(captions, supervision.track, bool(supervision.states))
+    if captioner == "states" and not supervision.states:
+        return f"scene {scene.name!r} has no training states to caption on the {supervision.track} track"
+    if captioner == "template" or tracks == "truth":
+        from methods.supervision.truth_access import open_truth
+
+        try:
+            open_truth(scene)
+        except InputError:
+            return f"scene {scene.name!r} has no generator truth to caption on the {supervision.track} track"
+    return ""

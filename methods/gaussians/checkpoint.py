@@ -11,6 +11,8 @@ from typing import TYPE_CHECKING, Optional
 import torch
 
 from benchmark.core.atomic import atomic_path
+from benchmark.core.errors import warn
+from benchmark.core.strict import file_problem, non_finite_entry
 
 if TYPE_CHECKING:  # pragma: no cover
     from .train import FitResult
@@ -49,9 +51,16 @@ class FitCheckpoints:
         self._last_save = time.perf_counter()
 
     def _load(self, device: torch.device | str) -> Optional[dict]:
-        """The saved state of this very fit, or None (no checkpointing, no file, another fit's, unreadable)."""
+        """The saved state of this very fit, or None (no checkpointing, no file, another fit's, unreadable;
+        with a warning, not a file or holding NaN or infinity)."""
         ck = self.checkpointing
-        if ck is None or not Path(ck.path).is_file():
+        if ck is None:
+            return None
+        problem = file_problem(ck.path)
+        if problem == "missing":
+            return None
+        if problem is not None:  # never opened: a FIFO would block the read
+            warn(f"checkpoint {ck.path} is {problem}, not a file: the fit starts over")
             return None
         try:
             state = torch.load(ck.path, map_location=device, weights_only=True)
@@ -59,6 +68,10 @@ class FitCheckpoints:
             return None
         if (not isinstance(state, dict) or state.get("key") != ck.key or state.get("kind") != self.kind
                 or state.get("total_iterations") != self.total_iterations):
+            return None
+        bad = non_finite_entry(state)
+        if bad is not None:  # a diverged or damaged state would be trained on, and cached as a fit
+            warn(f"checkpoint {ck.path} holds non-finite values ({bad}): the fit starts over")
             return None
         return state
 

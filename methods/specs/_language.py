@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Optional
+from typing import Any, ClassVar, Optional
 
 from methods.fields.configs import (AE_SAMPLE_WEIGHTINGS, LanguageFieldOptions, MaskAutoencoderConfig)
 
-__all__ = ["AE_SAMPLE_WEIGHTINGS", "RENDER_BACKENDS", "GeometryConfig", "AnswerConfig", "LanguageExtensions",
-           "LanguageMethodConfig"]
+__all__ = ["AE_SAMPLE_WEIGHTINGS", "BENCHMARK_UNMASKED_TEXT", "RENDER_BACKENDS", "GeometryConfig", "AnswerConfig",
+           "LanguageExtensions", "LanguageMethodConfig", "benchmark_extensions"]
 
 RENDER_BACKENDS = ("auto", "torch", "gsplat")
 """Values of :attr:`GeometryConfig.render_backend`."""
@@ -60,7 +60,7 @@ class AnswerConfig:
 
     uncovered_alpha: float = 0.5
     """A pixel whose accumulated opacity is below this shows no Gaussian and gets the
-    ``extensions.unmasked_text`` feature (not in the paper)."""
+    ``extensions.unmasked_text`` feature (not in the paper; unused while that extension is off)."""
     decode_chunk: int = 2048
     """Pixels decoded at once on the CPU (bounds memory; no effect on results)."""
     decode_chunk_cuda: int = 1 << 20
@@ -87,17 +87,36 @@ class AnswerConfig:
 
 @dataclass
 class LanguageExtensions:
-    """Options that depart from the papers' methods (their defaults are this benchmark's)."""
+    """Options that depart from the papers' methods. Their defaults are the papers' (every extension off);
+    the registered variants (``langsplat+``, ...) turn the benchmark's on (:func:`benchmark_extensions`)."""
 
-    unmasked_text: Optional[str] = "background"
+    unmasked_text: Optional[str] = None
     """Pixels no mask of a level covers are supervised with this text's embedding (``None``: left
-    unsupervised, as the release)."""
+    unsupervised, as the release; the variants: ``"background"``)."""
+
+    PAPER: ClassVar[dict[str, Any]] = {"unmasked_text": None}
+    """Extension -> its value in the paper's method (an extension is on where the config's value differs)."""
+
+    def enabled(self) -> dict[str, Any]:
+        """The extensions this config turns on: option name -> value, where it is not the paper's."""
+        return {name: getattr(self, name) for name, paper in self.PAPER.items() if getattr(self, name) != paper}
+
+
+BENCHMARK_UNMASKED_TEXT = "background"
+"""The text the benchmark's variants supervise uncovered pixels with: the oracle segmenter leaves the
+background out of every mask, where the paper's SAM masks cover it."""
+
+
+def benchmark_extensions() -> LanguageExtensions:
+    """The extensions of the variants of the time-agnostic language methods (``langsplat+``,
+    ``deformable-clip+``, ``feature-3dgs+``, ``gaussian-grouping+``)."""
+    return LanguageExtensions(unmasked_text=BENCHMARK_UNMASKED_TEXT)
 
 
 @dataclass
 class LanguageMethodConfig:
     """The three-level language field on a frozen geometry (paper values by default where the recipe fixes
-    one; CPU-scale iteration counts)."""
+    one; CPU-scale iteration counts; no extension on)."""
 
     geometry: GeometryConfig = dataclasses.field(default_factory=GeometryConfig)
     """The Gaussian geometry."""

@@ -96,9 +96,25 @@ FLAT_OPTION_PATHS: dict[str, str] = {
     "association_min_iou": "association.min_iou",
 }
 """Flat option name of a record written before the options were grouped -> its dotted path now. Names
-that are still options where they stand (``shared_cache_dir``, ``camera_weight``) need no entry; the
+that are still options where they stand (``shared_cache_dir``, ``match_rule``) need no entry; the
 query rules such records also hold (``threshold_variant``, ...) are the protocol's, read by
 :func:`benchmark.results.protocol_of`."""
+
+
+RETIRED_OPTIONS: dict[str, str] = {
+    "camera_weight": "the old nearest-frame floor's camera term (its answers were today's nearest-frame-masks'; "
+                     "both floors now weigh time against viewing angle by time_weight)",
+}
+"""Options records of retired code hold, and what they were: no option of today reads them, and a record
+holding one describes no config of today (:func:`holds_retired_options`)."""
+RETIRED_AS: dict[str, str] = {"camera_weight": "nearest-frame-masks"}
+"""Retired option -> the registered method whose answers a record holding it gave (the leaderboard shows the
+run under that name: :func:`methods.registry.recorded_method`)."""
+
+
+def holds_retired_options(recorded: Optional[Mapping[str, Any]]) -> bool:
+    """Whether ``recorded`` (a record's method config) holds an option of :data:`RETIRED_OPTIONS`."""
+    return isinstance(recorded, Mapping) and any(name in recorded for name in RETIRED_OPTIONS)
 
 
 def recorded_options(cls: type, recorded: Optional[Mapping[str, Any]]) -> dict[str, Any]:

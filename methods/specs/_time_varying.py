@@ -9,17 +9,19 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Optional
+from typing import Any, ClassVar, Optional
 
+from benchmark.core.caption_noise import CAPTION_NOISE
 from methods.fields.configs import CaptionAutoencoderConfig, StatusHeadConfig
 
-from ._language import LanguageExtensions, LanguageMethodConfig
+from ._language import BENCHMARK_UNMASKED_TEXT, LanguageExtensions, LanguageMethodConfig
 
-__all__ = ["CAPTIONER_CHOICES", "TRACK_CHOICES", "CaptionConfig", "TimeVaryingExtensions", "TimeVaryingMethodConfig"]
+__all__ = ["CAPTIONER_CHOICES", "TRACK_CHOICES", "CaptionConfig", "TimeVaryingExtensions", "TimeVaryingMethodConfig",
+           "benchmark_time_varying_extensions"]
 
-CAPTIONER_CHOICES = ("auto", "template", "qwen2-vl", "file")
+CAPTIONER_CHOICES = ("auto", "template", "qwen2-vl", "file", "states")
 """Values of :attr:`CaptionConfig.captioner`."""
-TRACK_CHOICES = ("auto", "truth", "segments", "file")
+TRACK_CHOICES = ("auto", "truth", "segments", "file", "alpha")
 """Values of :attr:`CaptionConfig.object_tracks`."""
 
 
@@ -28,15 +30,17 @@ class CaptionConfig:
     """Object tracks and their captions on the training frames."""
 
     captioner: str = "auto"
-    """``"template"`` (oracle: the scene's states), ``"qwen2-vl"`` or ``"file"``; ``"auto"``: template on the
-    oracle track, qwen2-vl on the real one."""
+    """``"template"`` (oracle: a generated scene's states), ``"states"`` (oracle: the annotation's states
+    at training frames), ``"qwen2-vl"`` or ``"file"``; ``"auto"``: states where given, else template
+    (oracle), qwen2-vl (real)."""
     file: Optional[str] = None
     """JSON captions (and masks) for ``captioner="file"`` / ``object_tracks="file"``."""
     qwen_model: Optional[str] = None
     """Qwen2-VL folder or hub id (``None``: ``$BENCH4D_QWEN2VL`` or Qwen/Qwen2-VL-7B-Instruct)."""
     object_tracks: str = "auto"
-    """``"truth"`` (oracle track only), ``"segments"`` (the run's segmenter's ids at the large level) or ``"file"``;
-    ``"auto"``: truth on the oracle track, else the file when one is given, else the segments."""
+    """``"truth"`` or ``"alpha"`` (oracle: the training alphas' object), ``"segments"`` (the segmenter's
+    large-level ids) or ``"file"``; ``"auto"``: alpha for the states captioner, else truth (oracle); file or
+    segments (real)."""
     min_track_frames: int = 3
     """``object_tracks="segments"``: keep segment ids visible in at least this many training frames."""
     min_track_area: float = 0.001
@@ -47,6 +51,9 @@ class CaptionConfig:
     """Text prompt of the captioner: ``"none"``, ``"video"`` or ``"video+image"`` (release)."""
     seed: int = 0
     """Seed of the template captioner's paraphrase draw (fixed: every method and seed sees the same captions)."""
+    noise: str = "scene"
+    """Noise of the template captioner's captions: a level of :mod:`benchmark.core.caption_noise` (``clean``,
+    ``mllm``), or ``"scene"``: the level the scene declares (the synthetic presets with time queries: ``mllm``)."""
     text_encoder: Optional[str] = None
     """Text encoder of the captions and the time-sensitive queries (paper: ``e5-mistral``); ``None``: the
     run's text encoder (the image-text source's text tower on the real track)."""
@@ -56,6 +63,8 @@ class CaptionConfig:
             raise ValueError(f"captioner must be one of {CAPTIONER_CHOICES}, got {self.captioner!r}")
         if self.object_tracks not in TRACK_CHOICES:
             raise ValueError(f"object_tracks must be one of {TRACK_CHOICES}, got {self.object_tracks!r}")
+        if self.noise != "scene" and self.noise not in CAPTION_NOISE:
+            raise ValueError(f"noise must be 'scene' or one of {tuple(CAPTION_NOISE)}, got {self.noise!r}")
         if self.min_track_frames < 1 or not 0 <= self.min_track_area < 1:
             raise ValueError("min_track_frames must be >= 1 and min_track_area in [0, 1)")
 
@@ -63,38 +72,47 @@ class CaptionConfig:
 @dataclass
 class TimeVaryingExtensions(LanguageExtensions):
     """Options that depart from the paper's method: the time-agnostic field's, the caption targets', the
-    choice of K and of the Gaussians that carry states, extra loss terms, and a faster training path
-    (their defaults are this benchmark's)."""
+    choice of K and of the Gaussians that carry states, extra loss terms. Their defaults are the paper's (every
+    extension off); ``4d-langsplat+`` and ``non-status-field+`` turn the benchmark's on
+    (:func:`benchmark_time_varying_extensions`). ``semantic_change_tolerance``, ``dynamic_weight_share`` and
+    ``min_state_run`` are parameters of extensions (read only where one is on); ``blend_operators`` is a faster
+    training path to the same loss, on in every config."""
 
     caption_window: int = 0
     """Average each object's caption embeddings over the training frames within this many time steps
-    before they become targets (0: off; needs ``caption_segments=false``)."""
-    caption_segments: bool = True
+    before they become targets (0: off, as the paper; needs ``caption_segments=false``)."""
+    caption_segments: bool = False
     """Targets are each object's caption embeddings averaged per state (change points, segments of at least
     ``min_state_run`` steps); ``False``: each frame's own caption, as the paper."""
-    choose_states: bool = True
+    choose_states: bool = False
     """Choose K per scene: the most caption states of any object, capped by ``status.num_states``
-    (``False``: ``status.num_states`` as is)."""
-    skip_static_semantics: bool = True
+    (``False``: ``status.num_states`` as is, as the paper)."""
+    skip_static_semantics: bool = False
     """Gaussians of objects whose captions never change carry one latent, not K states (``False``: all
     carry K, as the release)."""
     semantic_change_tolerance: float = 0.02
     """An object's semantics never change when every caption embedding lies within this cosine distance
-    of their mean direction (not used with ``caption_segments``)."""
+    of their mean direction (read by ``choose_states`` and ``skip_static_semantics``; not used with
+    ``caption_segments``)."""
     dynamic_weight_share: float = 0.2
     """A Gaussian carries states when at least this share of its blending weight over the training views
-    falls on changing objects."""
+    falls on changing objects (read by ``skip_static_semantics``)."""
     min_state_run: float = 4.0
-    """A caption state lasts at least this many consecutive frames on average (how states are counted, and
-    the shortest caption segment)."""
+    """A caption state lasts at least this many consecutive frames on average (how ``choose_states`` counts
+    states, and the shortest segment of ``caption_segments``)."""
     time_tv_weight: float = 0.0
     """Weight of a temporal total-variation term between the field at a view's time and an adjacent one
-    (status and Non-Status fields; 0: off)."""
+    (status and Non-Status fields; 0: off, as the paper)."""
     entropy_weight: float = 0.0
-    """Weight of the mean entropy of the status weights (softmax mode; 0: off)."""
+    """Weight of the mean entropy of the status weights (softmax mode; 0: off, as the paper)."""
     blend_operators: bool = True
     """Train by each view's recorded sparse blending operator instead of rasterizing every step (the same
-    loss to float rounding)."""
+    loss to float rounding: no departure from the method)."""
+
+    PAPER: ClassVar[dict[str, Any]] = {**LanguageExtensions.PAPER, "caption_window": 0, "caption_segments": False,
+                                       "choose_states": False, "skip_static_semantics": False,
+                                       "time_tv_weight": 0.0, "entropy_weight": 0.0}
+    """Extension -> its value in the paper's method."""
 
     def __post_init__(self) -> None:
         if self.time_tv_weight < 0 or self.entropy_weight < 0:
@@ -123,3 +141,11 @@ class TimeVaryingMethodConfig(LanguageMethodConfig):
     """Autoencoder of the caption embeddings."""
     status: StatusHeadConfig = dataclasses.field(default_factory=StatusHeadConfig)
     """The time-varying head and its training."""
+
+
+def benchmark_time_varying_extensions() -> TimeVaryingExtensions:
+    """The extensions of ``4d-langsplat+`` and ``non-status-field+``: caption targets averaged per state, K
+    chosen per scene, states only on Gaussians of changing objects, uncovered pixels supervised as
+    ``"background"``."""
+    return TimeVaryingExtensions(unmasked_text=BENCHMARK_UNMASKED_TEXT, caption_segments=True, choose_states=True,
+                                 skip_static_semantics=True)

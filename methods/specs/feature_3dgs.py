@@ -1,4 +1,4 @@
-"""Spec of ``feature-3dgs``: Feature 3DGS's distilled feature field on the shared 4D-GS (time-agnostic only)."""
+"""Specs of ``feature-3dgs``: Feature 3DGS's distilled feature field on the shared 4D-GS (time-agnostic only)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from typing import Optional
 
 from methods.registry import MethodSpec
-from methods.specs._language import AnswerConfig, GeometryConfig, LanguageExtensions
+from methods.specs._language import AnswerConfig, GeometryConfig, LanguageExtensions, benchmark_extensions
 
 FEATURE_LEVEL_NAMES: tuple[str, str, str] = ("small", "middle", "large")
 """Names of the values 0, 1, 2 of :attr:`FeatureFieldConfig.level` (the SAM levels, in the order of
@@ -61,14 +61,35 @@ class Feature3DGSConfig:
     cache folder)."""
 
 
-SPEC = MethodSpec(
-    name="feature-3dgs",
-    description="Feature 3DGS: per-Gaussian features on the shared frozen 4D-GS + 1x1 decoder, distilled "
-                "from one SAM level's mask features; time-agnostic queries only",
-    entry_point="methods.feature_3dgs:Feature3DGS",
-    config=Feature3DGSConfig,
-    paper="Zhou et al., Feature 3DGS: Supercharging 3D Gaussian Splatting to Enable Distilled Feature Fields, "
-          "CVPR 2024 (time-agnostic baseline of Li et al., 4D LangSplat, CVPR 2025)",
-    tracks=("oracle", "real"),
-    queries=("agnostic",),
-)
+@dataclass
+class Feature3DGSPlusConfig(Feature3DGSConfig):
+    """``feature-3dgs`` with the benchmark's extension on."""
+
+    extensions: LanguageExtensions = dataclasses.field(default_factory=benchmark_extensions)
+    """Departures from the paper: uncovered pixels supervised as "background"."""
+
+
+SPECS = [
+    MethodSpec(
+        name="feature-3dgs",
+        description="Feature 3DGS: per-Gaussian features on the shared frozen 4D-GS + 1x1 decoder, distilled "
+                    "from one SAM level's mask features; time-agnostic queries only",
+        entry_point="methods.feature_3dgs:Feature3DGS",
+        config=Feature3DGSConfig,
+        paper="Zhou et al., Feature 3DGS: Supercharging 3D Gaussian Splatting to Enable Distilled Feature Fields, "
+              "CVPR 2024 (time-agnostic baseline of Li et al., 4D LangSplat, CVPR 2025)",
+        tracks=("oracle", "real"),
+        queries=("agnostic",),
+        answer_rule="relevance",
+    ),
+    MethodSpec(
+        name="feature-3dgs+",
+        description="feature-3dgs with the benchmark's extension: pixels no mask covers supervised as background",
+        entry_point="methods.feature_3dgs:Feature3DGS",
+        config=Feature3DGSPlusConfig,
+        tracks=("oracle", "real"),
+        queries=("agnostic",),
+        variant_of="feature-3dgs",
+        answer_rule="relevance",
+    ),
+]

@@ -1,4 +1,4 @@
-"""Spec of ``gaussian-grouping``: identity encodings on the shared 4D-GS, one open-vocabulary feature per identity."""
+"""Specs of ``gaussian-grouping``: identity encodings on the shared 4D-GS, one open-vocabulary feature per identity."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from typing import Optional
 
 from methods.registry import MethodSpec
-from methods.specs._language import AnswerConfig, GeometryConfig, LanguageExtensions
+from methods.specs._language import AnswerConfig, GeometryConfig, LanguageExtensions, benchmark_extensions
 
 OVERLAP_ASSOCIATION = ("auto", "on", "off")
 """Values of :attr:`OverlapAssociationConfig.overlap`."""
@@ -90,14 +90,35 @@ class GaussianGroupingConfig:
     cache folder)."""
 
 
-SPEC = MethodSpec(
-    name="gaussian-grouping",
-    description="Gaussian Grouping on 4D-GS: identity encodings of temporally associated large masks, "
-                "each identity answering with its mean mask feature (time-agnostic only)",
-    entry_point="methods.gaussian_grouping:GaussianGrouping",
-    config=GaussianGroupingConfig,
-    paper="Ye et al., Gaussian Grouping: Segment and Edit Anything in 3D Scenes, ECCV 2024 "
-          "(4D adaptation as in Li et al., 4D LangSplat, CVPR 2025)",
-    tracks=("oracle", "real"),
-    queries=("agnostic",),
-)
+@dataclass
+class GaussianGroupingPlusConfig(GaussianGroupingConfig):
+    """``gaussian-grouping`` with the benchmark's extension on."""
+
+    extensions: LanguageExtensions = dataclasses.field(default_factory=benchmark_extensions)
+    """Departures from the paper: uncovered pixels supervised as "background"."""
+
+
+SPECS = [
+    MethodSpec(
+        name="gaussian-grouping",
+        description="Gaussian Grouping on 4D-GS: identity encodings of temporally associated large masks, "
+                    "each identity answering with its mean mask feature (time-agnostic only)",
+        entry_point="methods.gaussian_grouping:GaussianGrouping",
+        config=GaussianGroupingConfig,
+        paper="Ye et al., Gaussian Grouping: Segment and Edit Anything in 3D Scenes, ECCV 2024 "
+              "(4D adaptation as in Li et al., 4D LangSplat, CVPR 2025)",
+        tracks=("oracle", "real"),
+        queries=("agnostic",),
+        answer_rule="relevance",
+    ),
+    MethodSpec(
+        name="gaussian-grouping+",
+        description="gaussian-grouping with the benchmark's extension: pixels no mask covers supervised as background",
+        entry_point="methods.gaussian_grouping:GaussianGrouping",
+        config=GaussianGroupingPlusConfig,
+        tracks=("oracle", "real"),
+        queries=("agnostic",),
+        variant_of="gaussian-grouping",
+        answer_rule="relevance",
+    ),
+]

@@ -1,11 +1,14 @@
-"""Spec of ``non-status-field``: the paper's Non-Status Field baseline (Table 5 / Sec. 4.3)."""
+"""Specs of ``non-status-field`` (the paper's Non-Status Field baseline, Table 5 / Sec. 4.3) and its variant
+``non-status-field+`` (the benchmark's extensions on)."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 from methods.registry import MethodSpec
-from methods.specs._time_varying import TimeVaryingMethodConfig
+from methods.specs._time_varying import (TimeVaryingExtensions, TimeVaryingMethodConfig,
+                                         benchmark_time_varying_extensions)
 
 
 @dataclass
@@ -17,13 +20,39 @@ class NonStatusFieldConfig(TimeVaryingMethodConfig):
     unused: every Gaussian's latent is deformed directly)."""
 
 
-SPEC = MethodSpec(
-    name="non-status-field",
-    description="Non-Status Field baseline: 4D-GS + time-agnostic field; time-sensitive score from a "
-                "caption field deformed directly, f + MLP(hexplane(x, t))",
-    entry_point="methods.non_status_field:NonStatusFieldMethod",
-    config=NonStatusFieldConfig,
-    paper="baseline defined in Li et al., 4D LangSplat, CVPR 2025",
-    tracks=("oracle", "real"),
-    queries=("agnostic", "sensitive"),
-)
+@dataclass
+class NonStatusFieldPlusConfig(NonStatusFieldConfig):
+    """``non-status-field`` with the extensions of ``4d-langsplat+`` (its caption targets and time-agnostic
+    half are ``4d-langsplat+``'s)."""
+
+    extensions: TimeVaryingExtensions = dataclasses.field(default_factory=benchmark_time_varying_extensions)
+    """Departures from the paper: caption targets averaged per state, uncovered pixels supervised as
+    "background" (the states' extensions are unused here)."""
+
+
+SPECS = [
+    MethodSpec(
+        name="non-status-field",
+        description="Non-Status Field baseline: 4D-GS + time-agnostic field; time-sensitive score from a "
+                    "caption field deformed directly, f + MLP(hexplane(x, t))",
+        entry_point="methods.non_status_field:NonStatusFieldMethod",
+        config=NonStatusFieldConfig,
+        paper="baseline defined in Li et al., 4D LangSplat, CVPR 2025",
+        tracks=("oracle", "real"),
+        queries=("agnostic", "sensitive"),
+        answer_rule="relevance",
+        sensitive_rule="caption",
+    ),
+    MethodSpec(
+        name="non-status-field+",
+        description="non-status-field with the extensions of 4d-langsplat+: caption targets averaged per "
+                    "state, uncovered pixels as background",
+        entry_point="methods.non_status_field:NonStatusFieldMethod",
+        config=NonStatusFieldPlusConfig,
+        tracks=("oracle", "real"),
+        queries=("agnostic", "sensitive"),
+        variant_of="non-status-field",
+        answer_rule="relevance",
+        sensitive_rule="caption",
+    ),
+]

@@ -8,6 +8,9 @@ D-NeRF's RGBA frames carry an exact whole-object mask. On TRAINING frames:
   object name (the scene's whole-object query: its annotation file, or the run's ``object_query``) and the
   background mask the embedding of ``background_text``, as passages of the run's text encoder.
 
+The time-sensitive counterpart, the states of the annotation file's time segments at the training
+frames, captions the time-varying heads and the caption-replay floor (:mod:`methods.captioners.states`).
+
 Like the synthetic oracle, they isolate the 3D/4D method from 2D foundation models; evaluated frames'
 alpha (the ground truth of the whole-object query) is never read: asking raises.
 """
@@ -28,7 +31,8 @@ OBJECT_ID = 1
 BACKGROUND_ID = 0
 
 
-def _training_alpha(frame: Frame) -> np.ndarray:
+def training_alpha(frame: Frame) -> np.ndarray:
+    """(H, W) bool alpha of a TRAINING frame (any other frame raises :class:`EvaluatedFrameTruthError`)."""
     if frame.split != "train":
         raise EvaluatedFrameTruthError(f"frame {frame.name!r} is a {frame.split} frame: {EVAL_TRUTH_MESSAGE}")
     alpha = frame.alpha()
@@ -46,7 +50,7 @@ class AlphaSegmenter(Segmenter):
 
     def segment(self, frame: Frame) -> np.ndarray:
         """(3, H, W) int32: 1 on the object, 0 on the background, at every level."""
-        alpha = _training_alpha(frame)
+        alpha = training_alpha(frame)
         ids = np.where(alpha, OBJECT_ID, BACKGROUND_ID).astype(np.int32)
         return np.broadcast_to(ids, (len(LEVELS), *ids.shape)).copy()
 
@@ -77,7 +81,7 @@ class ObjectNameEncoder(ImageTextEncoder):
     def encode_masks(self, image: np.ndarray, masks: np.ndarray, *, frame: Frame,
                      levels: Optional[np.ndarray] = None) -> np.ndarray:
         """(M, D) unit rows: a mask is the object when most of its pixels are inside the alpha."""
-        alpha = _training_alpha(frame)
+        alpha = training_alpha(frame)
         masks = np.asarray(masks, dtype=bool)
         inside = (masks & alpha).reshape(len(masks), -1).sum(1)
         area = masks.reshape(len(masks), -1).sum(1)

@@ -170,6 +170,10 @@ class Supervision:
     stages: dict[str, Any] = field(default_factory=dict)
     """Stage -> ``{"seconds", "cached"}`` of building it in this process (``segment``, ``encode``):
     the real track's supervision cost per stage, recorded in results; empty where it was not timed."""
+    states: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    """Training frame name -> the states its scene's annotation says hold at the frame's time (the texts
+    of the time-sensitive queries whose time segments contain it; empty tuple: none): the oracle track's
+    captions of a scene without generator truth (D-NeRF). Empty where not given; never an evaluated frame's."""
 
     def __post_init__(self) -> None:
         self.frames = sorted(self.frames, key=lambda f: (f.time_index, f.camera_id, f.name))
@@ -191,9 +195,12 @@ class Supervision:
 
     def describe(self) -> dict[str, Any]:
         """JSON-ready summary for results files."""
-        return {"track": self.track, "sources": dict(self.sources), "source_configs": self.source_configs,
-                "fingerprint": self.fingerprint, "num_frames": len(self.frames),
-                "feature_dim": self.feature_dim, "stages": dict(self.stages)}
+        out = {"track": self.track, "sources": dict(self.sources), "source_configs": self.source_configs,
+               "fingerprint": self.fingerprint, "num_frames": len(self.frames),
+               "feature_dim": self.feature_dim, "stages": dict(self.stages)}
+        if self.states:
+            out["states"] = sorted({text for held in self.states.values() for text in held})
+        return out
 
 
 def relabel_levels(ids: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:

