@@ -102,14 +102,16 @@ def test_head_against_the_working_tree_on_a_tiny_fit(tmp_path):
     if shutil.which("git") is None or subprocess.run(["git", "-C", str(fit_timing.REPO), "rev-parse", "HEAD"],
                                                      capture_output=True).returncode != 0:
         pytest.skip("needs a git checkout")
-    config = TimingConfig(baseline="HEAD", scenes=("smoke",), size=24, overrides=TINY, rounds=1,
+    config = TimingConfig(baseline="HEAD", scenes=("smoke",), size=24, overrides=TINY, rounds=1, seeds=(1,),
                           cache_dir=tmp_path / "cache", out=tmp_path / "out", name="tiny")
     report = fit_timing.fit_timing_report(config)
     assert [p.name for p in report.paths] == ["tiny.json", "tiny.md"]
     kept = sorted(p.name for p in (tmp_path / "out" / "tiny-runs").iterdir())
-    assert kept == ["baseline-smoke-seed0-round0.json", "candidate-smoke-seed0-round0.json"]
+    assert kept == ["baseline-smoke-seed1-round0.json", "candidate-smoke-seed1-round0.json"]
     assert [r["results_file"] for r in json.loads((tmp_path / "out" / "tiny.json").read_text())["runs"]] == [
-        "tiny-runs/baseline-smoke-seed0-round0.json", "tiny-runs/candidate-smoke-seed0-round0.json"]
+        "tiny-runs/baseline-smoke-seed1-round0.json", "tiny-runs/candidate-smoke-seed1-round0.json"]
+    for name in kept:  # seed 1 fits the scene generated with seed 1, as every run of the benchmark
+        assert json.loads((tmp_path / "out" / "tiny-runs" / name).read_text())["scene_seed"] == 1
     doc = json.loads((tmp_path / "out" / "tiny.json").read_text())
     assert doc["commits"]["candidate"].startswith("working tree at ")
     runs = doc["runs"]

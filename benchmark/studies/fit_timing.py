@@ -5,7 +5,7 @@ temporary folder and runs the same fits -- ``bench4d eval`` of one method on eac
 same options, single-threaded -- with that code and with the candidate's (the working tree, or
 ``--candidate REV``), one after the other in fresh subprocesses whose ``PYTHONPATH`` is their own tree,
 alternating which side goes first. Every run has a cache folder of its own, so nothing fitted is reused;
-each scene is generated once by the candidate's code and read by both. The stage times are the ones each
+each scene is generated once per seed by the candidate's code (generator seed = fit seed) and read by both. The stage times are the ones each
 results file records (:data:`STAGES`); per stage the report gives both sides' time (per scene and seed
 the median over rounds, then the mean over scenes and seeds) and their ratio, new over old: a
 measurement of the two codes under the same load, not a comparison of runs made on different days. It
@@ -101,7 +101,8 @@ class TimingConfig:
     method: str = "4d-langsplat"
     """The method fitted."""
     scenes: tuple[str, ...] = ("split-cookie",)
-    """Synthetic presets (generated once, by the candidate's code) or scene folders."""
+    """Synthetic presets (generated once per seed, by the candidate's code, with generator seed = the fit's
+    seed) or scene folders."""
     size: int = 128
     """Image size of a generated preset."""
     overrides: dict[str, str] = field(default_factory=dict)
@@ -326,9 +327,10 @@ def fit_timing_report(config: TimingConfig, *, log: Callable[[str], None] = lamb
         head = resolve_commit("HEAD", repo)
         dirty = bool(_git("status", "--porcelain", "--untracked-files=no", repo=repo).stdout.strip())
         commits["candidate"] = f"working tree at {head}" + (" (with uncommitted changes)" if dirty else "")
-    scene_dirs = {scene: resolve_scene(scene, Path(config.cache_dir), size=config.size, log=log)
-                  for scene in config.scenes}
     configs = [(scene, seed) for scene in config.scenes for seed in config.seeds]
+    # seed s fits scene seed s, as every run of the benchmark does (a scene folder is read as it is)
+    scene_dirs = {(scene, seed): resolve_scene(scene, Path(config.cache_dir), size=config.size, seed=seed, log=log)
+                  for scene, seed in configs}
     runs: list[RunRecord] = []
     out = Path(config.out)
     kept = out / f"{config.name}-runs"
@@ -341,7 +343,7 @@ def fit_timing_report(config: TimingConfig, *, log: Callable[[str], None] = lamb
             for i, (scene, seed) in enumerate(configs):
                 order = ("baseline", "candidate") if (r + i) % 2 == 0 else ("candidate", "baseline")
                 for side in order:
-                    run = run_side(trees[side], side, r, config, scene, scene_dirs[scene], seed, work, log)
+                    run = run_side(trees[side], side, r, config, scene, scene_dirs[scene, seed], seed, work, log)
                     # the results file outlives the temporary folder, beside the report
                     target = kept / f"{side}-{Path(scene).name}-seed{seed}-round{r}.json"
                     write_bytes(target, Path(run.results_file).read_bytes())
