@@ -20,6 +20,8 @@
     bench4d ablate real-cost [--size full|tiny] [--device cuda] [--masks-per-frame 120] [--objects 3]
     bench4d ablate timing --baseline REV [--candidate REV] [--method 4d-langsplat] [--scenes split-cookie ...]
                           [--seeds 0 ...] [--size 128] [--set KEY=VALUE] [--rounds 1] [--out reports/fit-timing]
+    bench4d ablate kernels [--method 4d-langsplat] [--scenes S ...] [--seeds 0 ...] [--size 128]
+                           [--capabilities default avx2 native] [--results-dir results] [--out reports/kernel-spread]
     bench4d ablate status-gap [--presets P ...] [--seeds 0 1 2] [--size 48] [--schedule demo|default]
                               [--captions scene clean mllm] [--set KEY=VALUE] [--out reports/ablations]
 
@@ -108,6 +110,12 @@ goes first; the table gives each stage's seconds and the ratio new / old, then b
 and seed. Writes ``<out>/<name>.json``, ``.md`` and the runs' results files (default
 ``reports/fit-timing/fit-timing``).
 
+``kernels`` (:mod:`benchmark.studies.kernel_spread`): one method fitted on each scene and seed once per setting
+of torch's CPU kernels (``ATEN_CPU_CAPABILITY`` default, avx2, or unset), each a fresh single-threaded fit;
+every run's scores, their spread, and each setting's mean over scenes beside the results folder's interval of
+the same mean. Writes ``<out>/<name>.json``, ``.md`` and the runs' results files (default
+``reports/kernel-spread/kernel-spread``); kept runs are read, not redone.
+
 ``status-gap`` (:mod:`benchmark.studies.status_gap`): ``4d-langsplat`` against ``non-status-field`` with the paper's
 components only, on the presets whose states change gradually or back and forth (MLLM-like captions), over
 seeds: each method's Acc, vIoU and AUC, their difference with its spread over seeds, and each method's decision
@@ -138,7 +146,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="ablation", metavar="ABLATION", required=True)
     for add in (_delta_sim_arguments, _speed_arguments, _query_speed_arguments, _ceiling_arguments,
                 _autoencoder_arguments, _rescore_arguments, _gap_arguments, _decisions_arguments, _states_arguments,
-                _capacity_arguments, _real_cost_arguments, _timing_arguments, _status_gap_arguments):
+                _capacity_arguments, _real_cost_arguments, _timing_arguments, _status_gap_arguments,
+                _kernels_arguments):
         add(sub)
     for study in sub.choices.values():
         add_threads_argument(study)
@@ -388,6 +397,26 @@ def _timing_arguments(sub) -> None:
     t.set_defaults(out=Path("reports/fit-timing"))
 
 
+def _kernels_arguments(sub) -> None:
+    k = sub.add_parser("kernels", help="one fit's scores under torch's default, AVX2 and native CPU kernels")
+    k.add_argument("--method", default="4d-langsplat")
+    k.add_argument("--scenes", nargs="+", default=["split-cookie", "espresso", "chickchicken"],
+                   help="synthetic presets (seed s: the scene generated with seed s) or scene folders")
+    k.add_argument("--seeds", nargs="+", type=parse_seed, default=[0])
+    k.add_argument("--size", type=int, default=128, help="image size of a generated preset")
+    k.add_argument("--capabilities", nargs="+", default=["default", "avx2", "native"],
+                   help="ATEN_CPU_CAPABILITY values (native: unset, the CPU's best)")
+    k.add_argument("--split", default="paper", help="evaluation split scored")
+    k.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a method option of every run (repeatable)")
+    k.add_argument("--results-dir", type=Path, default=Path("results"),
+                   help="runs of the same method, split and scenes whose interval the spread is set beside")
+    k.add_argument("--cache-dir", type=Path, default=Path("cache"), help="where a generated preset is kept")
+    k.add_argument("--name", default="kernel-spread", help="output file stem under --out")
+    _output_arguments(k)
+    k.set_defaults(out=Path("reports/kernel-spread"))
+
+
 def _output_arguments(p: argparse.ArgumentParser, out_help: Optional[str] = None) -> None:
     p.add_argument("--out", type=Path, default=REPORTS, help=out_help)
     p.add_argument("--quiet", action="store_true")
@@ -548,6 +577,16 @@ def _timing(args) -> int:
     return _print_report(fit_timing_report(config, log=stderr_log(args.quiet)))
 
 
+def _kernels(args) -> int:
+    from benchmark.studies.kernel_spread import KernelSpreadConfig, kernel_spread_report
+
+    config = KernelSpreadConfig(method=args.method, scenes=tuple(args.scenes), seeds=tuple(args.seeds), size=args.size,
+                                capabilities=tuple(args.capabilities), split=args.split,
+                                overrides={k: str(v) for k, v in parse_overrides(args.set).items()},
+                                results_dir=args.results_dir, cache_dir=args.cache_dir, name=args.name, out=args.out)
+    return _print_report(kernel_spread_report(config, log=stderr_log(args.quiet)))
+
+
 def _status_gap(args) -> int:
     from benchmark.studies.status_gap import StatusGapConfig, status_gap_report, time_sensitive_presets
 
@@ -562,5 +601,6 @@ def _status_gap(args) -> int:
 
 RUNS = {"delta-sim": _delta_sim, "speed": _speed, "query-speed": _query_speed, "ceiling": _ceiling,
         "autoencoder": _autoencoder, "rescore": _rescore, "gap": _gap, "decisions": _decisions, "states": _states,
-        "capacity": _capacity, "real-cost": _real_cost, "timing": _timing, "status-gap": _status_gap}
+        "capacity": _capacity, "real-cost": _real_cost, "timing": _timing, "status-gap": _status_gap,
+        "kernels": _kernels}
 """The function each subcommand runs."""
