@@ -163,6 +163,8 @@ class Memory(TypedDict):
     """High-water resident memory of the run."""
     peak_cpu_fit_mib: NotRequired[Optional[float]]
     """The fit's own peak (a cached fit: as it recorded it)."""
+    baseline_cpu_fit_mib: NotRequired[Optional[float]]
+    """Resident memory when the fit began (its peak less this: what the fit itself added)."""
     peak_gpu_mib: NotRequired[Optional[float]]
     """Peak CUDA memory of the run."""
     peak_gpu_fit_mib: NotRequired[Optional[float]]

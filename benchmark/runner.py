@@ -597,6 +597,9 @@ class FitRecord:
     (``"process"``: the OS kept one mark, or a cached fit that did not record its window)."""
     head_refit_of: Optional[str] = None
     """Key of the cached fit whose time-varying head alone this fit made anew; None for a whole fit."""
+    baseline_cpu_mib: Optional[float] = None
+    """Resident memory when the fit began, MiB (its peak less this is what the fit itself added); None
+    where unknown (a cached fit made before fits recorded it)."""
 
 
 def _read_fit_record(path: Path, key: str) -> dict:
@@ -679,7 +682,8 @@ def _fit_or_load_locked(spec, method_cls, config, scene: Scene, supervision, *, 
             if hasattr(model, "use_answer_options"):
                 model.use_answer_options(config)  # the fit may have been made with other answer options
             return FitRecord(model, key, True, float(info["fit_seconds"]), float(info["peak_cpu_mib"]),
-                             info.get("peak_gpu_mib"), final, info.get("peak_window", "process"), head_from)
+                             info.get("peak_gpu_mib"), final, info.get("peak_window", "process"), head_from,
+                             _finite_or_none(info.get("baseline_cpu_mib")))
 
     work = folder / f"{key}.work"
     work.mkdir(parents=True, exist_ok=True)
@@ -700,7 +704,7 @@ def _fit_or_load_locked(spec, method_cls, config, scene: Scene, supervision, *, 
                                    work_dir=work)
         _synchronize(device)
         fit_seconds = time.perf_counter() - start
-    peak_cpu, peak_gpu = peak.cpu_mib, peak.gpu_mib
+    peak_cpu, peak_gpu, baseline_cpu = peak.cpu_mib, peak.gpu_mib, _finite_or_none(peak.baseline_cpu_mib)
 
     tmp = folder / f".{key}.partial-{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
@@ -714,7 +718,7 @@ def _fit_or_load_locked(spec, method_cls, config, scene: Scene, supervision, *, 
                                           f"{Path(err.file).name if err.file else 'its model'}; it is not cached") from None
         info = {"method": spec.name, "key": key, "config": config_dict(config), "seed": seed, "device": device,
                 "fit_seconds": fit_seconds, "peak_cpu_mib": peak_cpu, "peak_gpu_mib": peak_gpu,
-                "peak_window": memory.window(),
+                "peak_window": memory.window(), "baseline_cpu_mib": baseline_cpu,
                 "created": datetime.now(timezone.utc).isoformat(timespec="seconds")}
         if head_from is not None:
             info["head_refit_of"] = head_from  # geometry, field and autoencoder are that fit's
@@ -727,7 +731,15 @@ def _fit_or_load_locked(spec, method_cls, config, scene: Scene, supervision, *, 
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     shutil.rmtree(work, ignore_errors=True)
-    return FitRecord(model, key, False, fit_seconds, peak_cpu, peak_gpu, final, memory.window(), head_from)
+    return FitRecord(model, key, False, fit_seconds, peak_cpu, peak_gpu, final, memory.window(), head_from,
+                     baseline_cpu)
+
+
+def _finite_or_none(value: Any) -> Optional[float]:
+    """A recorded number of MiB, or None where it is missing or not a finite number >= 0."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < float("inf"):
+        return None
+    return float(value)
 
 
 # -- answering and timing ------------------------------------------------------------------------------
@@ -1021,6 +1033,7 @@ def results_document(prepared: PreparedRun, fit: FitRecord, answers: Answers, sc
         unanswered_queries=answers.unanswered,
         timing=timing,
         memory={"peak_cpu_mib": memory.peak_cpu_mib(), "peak_cpu_fit_mib": fit.peak_cpu_mib,
+                "baseline_cpu_fit_mib": fit.baseline_cpu_mib,
                 "peak_gpu_mib": peak_gpu_total, "peak_gpu_fit_mib": fit.peak_gpu_mib,
                 "peak_window": prepared.peak_window, "peak_fit_window": fit.peak_window,
                 "note": "CPU peaks: high-water resident memory of this run (peak_window 'run'; "

@@ -4,6 +4,7 @@ model-size count, and a tiny study on ``smoke`` that runs, reports, resumes and 
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 
 import pandas as pd
@@ -68,15 +69,10 @@ def test_a_knob_that_does_not_reach_the_geometry_or_the_method_is_refused(monkey
         capacity.check_knobs(CapacityConfig(method="langsplat", knobs=("states",)))
 
 
-def test_best_value_has_the_highest_mean_of_miou_and_acc_ties_to_the_faster():
-    means = pd.DataFrame({"value": ["2", "3", "4"], "mIoU": [50.0, 60.0, 55.0], "Acc": [80.0, 80.0, 85.0],
-                          "fit_seconds": [10.0, 30.0, 20.0]})
-    assert capacity.best_value(means) == "4"  # 3 and 4 both score 70: the faster
-    means.loc[1, "fit_seconds"] = 5.0
-    assert capacity.best_value(means) == "3"
-    means.loc[2, "Acc"] = math.nan  # no time queries: mIoU alone
-    assert capacity.best_value(means) == "3"
-    assert capacity.best_value(means.assign(mIoU=math.nan, Acc=math.nan)) is None
+def test_the_selection_score_is_the_mean_of_miou_and_acc_or_miou_alone():
+    assert capacity.selection_score({"mIoU": 50.0, "Acc": 80.0}) == 65.0
+    assert capacity.selection_score({"mIoU": 50.0, "Acc": math.nan}) == 50.0  # no time queries: mIoU alone
+    assert math.isnan(capacity.selection_score({"mIoU": math.nan, "Acc": 80.0}))
 
 
 def test_parameters_are_gaussians_times_their_floats_plus_the_networks(tmp_path):
@@ -127,11 +123,21 @@ def test_a_tiny_study_runs_reports_resumes_and_its_table_reads_the_csv(tmp_path,
     assert len(files) == 2
 
     readme = (out / "README.md").read_text()
-    row = _readme_row(readme, "## latent dimension", "2")
+    row = _readme_row(readme, "## 4d-langsplat+: latent dimension", "2")
     csv_row = table[(table["knob"] == "latent") & (table["value"] == "2")].iloc[0]
-    assert row[1] == f"{csv_row['mIoU']:.2f}" and row[2] == f"{csv_row['Acc']:.2f}"
-    assert row[4] == f"{csv_row['psnr']:.2f}" and row[8] == f"{csv_row['parameters']:,.0f}"
-    assert "Best fixed value: **" in readme and "## The automatic choice against the best fixed value" in readme
+    score = (csv_row["mIoU"] + csv_row["Acc"]) / 2
+    # one seed of one preset: the interval is the point itself
+    assert row[1] == f"{score:.2f} [{score:.2f}, {score:.2f}]"
+    assert row[2] == f"{csv_row['mIoU']:.2f} [{csv_row['mIoU']:.2f}, {csv_row['mIoU']:.2f}]"
+    assert row[3] == f"{csv_row['Acc']:.2f}" and row[5] == f"{csv_row['psnr']:.2f}"
+    assert row[11] == f"{csv_row['parameters']:,.0f}"
+    # memory: the model's bytes, and what the fit added above the process's baseline
+    assert table["model_mib"].to_numpy() == pytest.approx(table["parameters"].to_numpy() * 4 / 2 ** 20, rel=1e-4)
+    assert table["peak_cpu_above_baseline_mib"].between(0, 1e5).all()
+    assert (table["peak_cpu_above_baseline_mib"] < table["peak_cpu_needed_mib"]).all()
+    assert "Plateau (highest mean score): **" in readme and "Knee (the cheapest value" in readme
+    assert "## The automatic setting against the plateau, per preset" in readme
+    assert "Best fixed value" not in readme and "ties: lower fit time" not in readme
     # the charts redraw from the written table alone
     assert main(["plot", "capacity", "--table", str(out / "capacity.csv"), "--out", str(tmp_path / "redrawn")]) == 0
     assert (tmp_path / "redrawn" / "charts" / "latent.png").stat().st_size > 0
@@ -159,3 +165,119 @@ def test_a_tiny_study_runs_reports_resumes_and_its_table_reads_the_csv(tmp_path,
     assert [p.read_text() for p in out.glob("capacity-replaced-*.csv")] == [table_text]
     capacity.capacity_report(config, report_only=True, log=lambda message: None)  # adds rows, drops none
     assert len(list(out.glob("capacity-replaced-*.csv"))) == 1
+
+
+def _hand_table(scores: dict[str, list[list[float]]], seconds: dict[str, float]) -> pd.DataFrame:
+    """A capacity table of one method and knob: ``scores[value][preset][seed]`` is the run's mIoU (no Acc: the
+    score is mIoU alone), ``seconds[value]`` every run's fit time."""
+    rows = []
+    for value, presets in scores.items():
+        for p, per_seed in enumerate(presets):
+            for seed, miou in enumerate(per_seed):
+                rows.append({"method": "m", "preset": f"p{p}", "seed": seed, "knob": "gaussians", "value": value,
+                             "mIoU": miou, "Acc": math.nan, "fit_seconds": seconds[value]})
+    return pd.DataFrame(rows)
+
+
+def _choice(table: pd.DataFrame) -> capacity.Choice:
+    table = capacity.with_scores(table)
+    values = capacity._values_in_order(table)
+    presets = capacity.complete_presets(table, values)
+    score = capacity.estimates(table, capacity.SCORE, values, presets, seed=3)
+    seconds = {v: table[table["value"] == v]["fit_seconds"].mean() for v in values}
+    return capacity.plateau_and_knee(score, seconds)
+
+
+def test_the_knee_is_the_cheapest_value_whose_interval_overlaps_the_plateau_s():
+    # 8 is the plateau; 4's seeds overlap 8's, 2's lie far below: the knee is 4, whatever 2 costs
+    table = _hand_table({"2": [[40, 42, 41], [45, 47, 46]], "4": [[60, 66, 63], [70, 76, 73]],
+                         "8": [[62, 68, 65], [72, 78, 75]]}, {"2": 10.0, "4": 20.0, "8": 40.0})
+    choice = _choice(table)
+    assert choice.plateau == ("8",) and choice.knee == ("4",) and choice.overlapping == ("4", "8")
+    # every interval overlaps: the knee is the cheapest value
+    close = _hand_table({"2": [[55, 75, 65], [60, 80, 70]], "4": [[58, 76, 67], [61, 79, 70]],
+                         "8": [[60, 78, 69], [62, 80, 71]]}, {"2": 10.0, "4": 20.0, "8": 40.0})
+    choice = _choice(close)
+    assert choice.plateau == ("8",) and choice.knee == ("2",) and choice.overlapping == ("2", "4", "8")
+    # equal means are a tied plateau, equal costs a tied knee: no secondary order picks one
+    tied = _hand_table({"2": [[40, 40], [40, 40]], "4": [[70, 71], [72, 73]], "8": [[70, 71], [72, 73]]},
+                       {"2": 10.0, "4": 20.0, "8": 20.0})
+    choice = _choice(tied)
+    assert choice.plateau == ("4", "8") and choice.knee == ("4", "8")
+    assert capacity.plateau_and_knee({"2": capacity.Estimate(math.nan, math.nan, math.nan)}, {"2": 1.0}) is None
+
+
+def test_the_interval_of_a_constant_table_is_a_point_and_the_mean_weights_presets_equally():
+    table = _hand_table({"2": [[50, 50, 50], [50, 50]], "4": [[60], [80, 80, 80]]}, {"2": 1.0, "4": 2.0})
+    table = capacity.with_scores(table)
+    est = capacity.estimates(table, capacity.SCORE, ["2", "4"], ["p0", "p1"], seed=0)
+    assert (est["2"].mean, est["2"].low, est["2"].high) == (50.0, 50.0, 50.0)
+    assert (est["4"].mean, est["4"].low, est["4"].high) == (70.0, 70.0, 70.0)  # (60 + 80) / 2, not (60 + 240) / 4
+    varied = capacity.estimates(_hand_table({"2": [[40, 60]]}, {"2": 1.0}), "mIoU", ["2"], ["p0"], seed=0)["2"]
+    assert varied.mean == 50.0 and 40.0 <= varied.low < 50.0 < varied.high <= 60.0
+
+
+def test_the_report_states_plateau_knee_and_whether_auto_sits_at_the_plateau():
+    table = _hand_table({"2": [[40, 42, 41], [45, 47, 46]], "4": [[60, 66, 63], [70, 76, 73]],
+                         "8": [[62, 68, 65], [72, 78, 75]]}, {"2": 10.0, "4": 20.0, "8": 40.0})
+    auto = table[table["value"] == "4"].assign(knob=AUTO, value="")
+    full = pd.concat([table, auto], ignore_index=True)
+    for column in capacity.CSV_COLUMNS:
+        if column not in full:
+            full[column] = math.nan
+    readme = capacity.render_readme(full, CapacityConfig(methods=("m",), knobs=("gaussians",), seeds=(0, 1, 2)))
+    assert "Plateau (highest mean score): **8** (8: 70.00 [" in readme
+    assert "Knee (the cheapest value by mean fit time whose interval overlaps the plateau's): **4** (4: 68.00" in readme
+    assert "Automatic setting (`auto`): 68.00 [" in readme and "its mean is inside the plateau's interval, at no more " \
+        "than the plateau's fit time" in readme
+    per_preset = [line for line in readme.splitlines() if line.startswith("| m | p")]
+    assert len(per_preset) == 2 and all(line.rstrip(" |").endswith("**yes**") for line in per_preset)
+    assert "seed s fits the preset generated with generator seed s" in readme
+
+
+def test_seeds_sample_scenes_and_methods_share_one_geometry(tmp_path, monkeypatch):
+    from benchmark.cli import main
+    from benchmark.runner import preset_folder
+    from methods.gaussians.train import Trainer
+
+    fits = []
+    real_fit = Trainer.fit_4dgs
+
+    def counting(self, *args, **kwargs):
+        fits.append(1)
+        return real_fit(self, *args, **kwargs)
+
+    monkeypatch.setattr(Trainer, "fit_4dgs", counting)
+    tiny = {**TINY, "geometry.static_iterations": "6", "geometry.deformation_iterations": "6"}
+    config = CapacityConfig(methods=("4d-langsplat", "non-status-field"), presets=("smoke",), size=24, seeds=(1,),
+                            knobs=("gaussians",), values={"gaussians": ("2",)}, overrides=tiny, release=False,
+                            cache_dir=tmp_path / "cache", out_dir=tmp_path / "report", timing_frames=1,
+                            timing_repeats=1)
+    runs = capacity.distinct_runs(capacity.plan(config))
+    assert sorted(r.method for r in runs) == ["4d-langsplat", "non-status-field"]
+    assert len(capacity.geometry_groups(runs)) == 1  # both methods' runs in one group: one geometry
+    capacity.capacity_report(config, log=lambda message: None)
+    assert len(fits) == 1  # the second method reused the first one's geometry
+    results = sorted((tmp_path / "cache" / "capacity").rglob("seed1.json"))
+    assert len(results) == 2 and {p.parts[-3] for p in results} == {"4d-langsplat", "non-status-field"}
+    # seed 1 fits the scene generated with seed 1; no scene of seed 0 was made, not even to count pixels
+    assert all(json.loads(p.read_text())["scene_seed"] == 1 for p in results)
+    assert preset_folder(tmp_path / "cache", "smoke", 24, 1).is_dir()
+    assert not preset_folder(tmp_path / "cache", "smoke", 24, 0).exists()
+    table = pd.read_csv(tmp_path / "report" / "capacity.csv")
+    assert sorted(table["method"].unique()) == ["4d-langsplat", "non-status-field"]
+    assert (table["scene_seed"] == 1).all()
+    readme = (tmp_path / "report" / "README.md").read_text()
+    assert "## 4d-langsplat: Gaussians per foreground pixel" in readme
+    assert "## non-status-field: Gaussians per foreground pixel" in readme
+
+    # the command: --methods reports the same runs; --method is a one-method --methods; not both
+    args = ["ablate", "capacity", "--presets", "smoke", "--size", "24", "--seeds", "1", "--knobs", "gaussians",
+            "--values", "gaussians=2", "--no-release", "--report-only", "--cache-dir", str(tmp_path / "cache"),
+            "--quiet"] + [a for k, v in tiny.items() for a in ("--set", f"{k}={v}")]
+    assert main(args + ["--methods", "4d-langsplat", "non-status-field", "--out", str(tmp_path / "cli")]) == 0
+    assert (tmp_path / "cli" / "capacity.csv").read_text() == (tmp_path / "report" / "capacity.csv").read_text()
+    assert main(args + ["--method", "non-status-field", "--out", str(tmp_path / "one")]) == 0
+    assert set(pd.read_csv(tmp_path / "one" / "capacity.csv")["method"]) == {"non-status-field"}
+    assert main(args + ["--method", "x", "--methods", "y", "--out", str(tmp_path / "both")]) == 2
+    assert len(fits) == 1

@@ -36,7 +36,10 @@ def test_a_stage_reports_its_own_peak_and_the_run_keeps_every_stage_peak():
     assert large.cpu_mib - small.cpu_mib > 150, (large.cpu_mib, small.cpu_mib)
     # restarting the mark for the second stage does not lose the first stage's peak for the run
     assert memory.peak_cpu_mib() >= large.cpu_mib - 1e-6
-    assert large.record() == {"peak_cpu_mib": large.cpu_mib, "peak_gpu_mib": None, "peak_window": "run"}
+    assert large.record() == {"peak_cpu_mib": large.cpu_mib, "peak_gpu_mib": None, "peak_window": "run",
+                              "baseline_cpu_mib": large.baseline_cpu_mib}
+    # the stage began at what the process held, and grew by the block it wrote
+    assert 0 < large.baseline_cpu_mib < large.cpu_mib - 150, (large.baseline_cpu_mib, large.cpu_mib)
 
 
 @pytest.mark.skipif(not LINUX, reason="needs a resettable high-water mark (Linux VmHWM)")

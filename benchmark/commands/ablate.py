@@ -14,7 +14,7 @@
                            [--seeds N ...] [--refit]
     bench4d ablate gap [--methods langsplat deformable-clip] [--scenes S ...] [--seeds N ...]
     bench4d ablate decisions [--methods M ...] [--datasets D ...] [--scenes S ...] [--results-dir results]
-    bench4d ablate capacity [--method 4d-langsplat+] [--presets split-cookie espresso americano] [--size 64]
+    bench4d ablate capacity [--methods 4d-langsplat+ ...] [--presets split-cookie espresso americano] [--size 64]
                             [--knobs gaussians states latent hexplane] [--values KNOB=V,V,...] [--seeds 0]
                             [--set KEY=VALUE] [--no-release] [--jobs N] [--report-only] [--out reports/capacity]
     bench4d ablate real-cost [--size full|tiny] [--device cuda] [--masks-per-frame 120] [--objects 3]
@@ -98,10 +98,13 @@ and Acc at the best single cut (an oracle) beside the same oracle on shuffled la
 ``capacity`` (:mod:`benchmark.studies.capacity`): accuracy (mIoU, Acc, vIoU, the geometry's PSNR where its fit
 records it) and cost (fit time, peak memory, query FPS, parameters) against one capacity knob at a time (the
 Gaussian budget, K, the latent dimension, the HexPlane resolution), each from the method's defaults, on every
-preset; plus the defaults (``auto``: the method's own per-scene choices) and the release's recipe. Runs go to
-``<cache-dir>/capacity/<method>-<size>px/runs/`` and are read, not redone, when present; ``--jobs N`` runs N groups
-of runs sharing a geometry at once, each in a worker process with ``--threads`` torch threads (default 1). It
-writes ``capacity.csv``, ``README.md`` and ``charts/`` to ``--out`` (default ``reports/capacity``).
+preset and seed (seed s fits the preset generated with seed s); plus the defaults (``auto``: the method's own
+per-scene choices) and the release's recipe. ``--methods`` measures several methods on the same fitted geometries
+(``--method M``: one). Runs go to ``<cache-dir>/capacity/<method>-<size>px/runs/`` and are read, not redone, when
+present; ``--jobs N`` runs N groups of runs sharing a geometry at once, each in a worker process with
+``--threads`` torch threads (default 1). It writes ``capacity.csv``, ``README.md`` (per value a 95 % interval,
+the plateau and the knee, and whether ``auto`` sits at the plateau per preset) and ``charts/`` to ``--out``
+(default ``reports/capacity``).
 
 ``timing`` (:mod:`benchmark.studies.fit_timing`): the fit of one method on each scene and seed, stage by stage,
 with the code of commit ``--baseline`` and with the candidate's (the working tree, or ``--candidate``), side by
@@ -309,10 +312,13 @@ def _capacity_arguments(sub) -> None:
     default = CapacityConfig()
     c = sub.add_parser("capacity", help="accuracy and cost against one capacity knob at a time (Gaussians, K, "
                                         "latent dimension, HexPlane resolution), the automatic choice and the release's")
-    c.add_argument("--method", default=default.method)
+    c.add_argument("--methods", nargs="+", default=None, metavar="METHOD",
+                   help=f"methods measured on the same fitted geometries (default {default.method})")
+    c.add_argument("--method", default=None, help="one method: the same as --methods METHOD")
     c.add_argument("--presets", nargs="+", default=list(default.presets), help="synthetic presets (or scene folders)")
     c.add_argument("--size", type=int, default=default.size, help="image width of the generated presets")
-    c.add_argument("--seeds", nargs="+", type=parse_seed, default=list(default.seeds))
+    c.add_argument("--seeds", nargs="+", type=parse_seed, default=list(default.seeds),
+                   help="seeds; seed s fits the preset generated with generator seed s")
     c.add_argument("--knobs", nargs="+", default=list(default.knobs), choices=tuple(KNOBS),
                    help="knobs moved, one at a time (default: all)")
     c.add_argument("--values", action="append", default=[], metavar="KNOB=V,V,...",
@@ -524,8 +530,11 @@ def _capacity(args) -> int:
         if not sep or knob.strip() not in args.knobs or not listed.strip():
             raise InputError(None, "--values", f"expected KNOB=V,V,... with KNOB one of --knobs, got {item!r}")
         values[knob.strip()] = tuple(v.strip() for v in listed.split(",") if v.strip())
+    if args.method is not None and args.methods is not None:
+        raise InputError(None, "--method", "give --method or --methods, not both")
+    methods = tuple(args.methods or ([args.method] if args.method is not None else []))
     config = CapacityConfig(
-        method=args.method, presets=tuple(args.presets), size=args.size, seeds=tuple(args.seeds),
+        methods=methods, presets=tuple(args.presets), size=args.size, seeds=tuple(args.seeds),
         knobs=tuple(args.knobs), values=values, overrides=parse_overrides(args.set), release=not args.no_release,
         jobs=args.jobs, threads=args.threads or 1, device=args.device, text_encoder=args.text_encoder,
         cache_dir=args.cache_dir, out_dir=args.out)

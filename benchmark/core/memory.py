@@ -50,6 +50,17 @@ def _cpu_mark() -> float:
     return rss / 1024.0 if sys.platform != "darwin" else rss / (1024.0 * 1024.0)
 
 
+def _resident_mib() -> float:
+    """The process's resident size now (``VmRSS``), MiB; NaN where the OS does not say."""
+    try:
+        for line in _PROC_STATUS.read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0  # kB
+    except (OSError, ValueError, IndexError):
+        pass
+    return float("nan")
+
+
 def _cuda_devices() -> list[str]:
     torch = sys.modules.get("torch")  # nothing to measure where torch is not loaded
     if torch is None or not torch.cuda.is_available() or not torch.cuda.is_initialized():
@@ -136,17 +147,21 @@ def _cuda_name(device: str) -> Optional[str]:
 class StagePeak:
     """``with StagePeak(device) as peak: ...``: afterwards ``peak.cpu_mib`` (resident memory, MiB) and
     ``peak.gpu_mib`` (CUDA memory allocated on ``device``, MiB; None off CUDA) are the stage's own
-    peaks; the run's peak and any enclosing stage's still include them. ``peak.record()`` is the dict
-    a stage stores in its info."""
+    peaks; the run's peak and any enclosing stage's still include them. ``peak.baseline_cpu_mib`` is
+    the resident size when the stage began (after freed memory went back to the OS; NaN where the OS
+    does not say): the stage's own growth is ``cpu_mib - baseline_cpu_mib``, without what the process
+    (interpreter, torch, the scene) held before. ``peak.record()`` is the dict a stage stores in its info."""
 
     def __init__(self, device: str = "cpu") -> None:
         self.device = str(device)
         self.cpu_mib: float = float("nan")
         self.gpu_mib: Optional[float] = None
+        self.baseline_cpu_mib: float = float("nan")
         self._window: Optional[_Window] = None
 
     def __enter__(self) -> "StagePeak":
         _restart_marks()
+        self.baseline_cpu_mib = _resident_mib()
         self._window = _Window()
         _open.append(self._window)
         return self
@@ -161,7 +176,8 @@ class StagePeak:
             self.gpu_mib = max(window_.gpu.get(name, 0.0), _gpu_mark(name))
 
     def record(self) -> dict:
-        return {"peak_cpu_mib": self.cpu_mib, "peak_gpu_mib": self.gpu_mib, "peak_window": window()}
+        return {"peak_cpu_mib": self.cpu_mib, "peak_gpu_mib": self.gpu_mib, "peak_window": window(),
+                "baseline_cpu_mib": self.baseline_cpu_mib}
 
 
 def available_memory_gb() -> float:
