@@ -789,9 +789,9 @@ def test_recon_time_range_trains_and_scores_only_those_frames(tmp_path, capsys):
                      "--set", "deformation.hexplane.spatial_resolution=8"]
                     + ([] if split == "paper" else ["--split", split])) == 0
         report = json.loads((out / "report.json").read_text())
-        assert report["scene"]["time_range"] == [0, last] and report["split"] == split
-        assert (report["scene"]["train_frames"], report["scene"]["test_frames"]) == (want_train, len(want))
         assert [p["frame"] for p in report["models"]["3dgs"]["per_frame"]] == want and want
+        assert (report["scene"]["train_frames"], report["scene"]["test_frames"]) == (want_train, len(want))
+        assert report["scene"]["time_range"] == [0, last] and report["split"] == split
     assert main(["recon", "--summarize", str(tmp_path / "reports")]) == 0
     summary = (tmp_path / "reports" / "summary.md").read_text()
     assert f"| smoke (frames 0-{last}) [" in summary and f"| smoke (frames 0-{last}, split novel-view) [" in summary
