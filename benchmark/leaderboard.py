@@ -21,8 +21,9 @@ a time-agnostic table (mIoU, mAcc) and a time-sensitive table (Acc, vIoU), one r
 * **Machines.** Each section names the machine kinds its runs ran on; a table that mixes kinds shows, per
   method, the spread of its mean between kinds.
 * Methods that share a time-agnostic field (the same fit record key on every run) are marked as sharing it.
-  The ceiling's value stands beside each mean's share of it; the paper's numbers are in their own tables,
-  never ranked.
+  The ceiling's value stands beside each mean's share of it: the ceiling of the section's split, per scene
+  the mean over the scene seeds the method's runs measured (:class:`Ceilings`); the paper's numbers are in
+  their own tables, never ranked.
 """
 
 from __future__ import annotations
@@ -31,6 +32,8 @@ import functools
 import math
 import os
 import re
+import dataclasses
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Optional, Sequence
 
@@ -41,6 +44,7 @@ from benchmark.core.atomic import read_json, write_text
 from benchmark.core.errors import InputError
 from benchmark.core.official import OFFICIAL_SCENES, is_official
 from benchmark.core.protocol import DEFAULT_PROTOCOL, SCORED_FRAMES_NOTE
+from benchmark.core.scene import DEFAULT_EVAL_SPLIT
 from . import stats
 from .results import (ACCURACY_METRICS, MEAN_SCENE, RUN_COLUMNS, comparable_runs, find_results, load_results, run_row,
                       seed_summary)
@@ -530,11 +534,17 @@ def _bold(candidates: Mapping[str, float], intervals: Mapping[str, tuple[float, 
     return set()
 
 
-def _ceiling_bound(scenes: Sequence[str], ceiling: Optional[Mapping[str, float]]) -> float:
-    """The ceiling's mean over ``scenes`` in percent; NaN where it lacks one of them."""
-    if not ceiling or not scenes or any(s not in ceiling for s in scenes):
-        return math.nan
-    return 100.0 * sum(ceiling[s] for s in scenes) / len(scenes)
+def _ceiling_bound(scene_seeds: Mapping[str, Iterable[int]],
+                   ceiling: Optional[Mapping[str, Mapping[int, float]]]) -> tuple[float, list[tuple[str, int]]]:
+    """(the ceiling in percent over ``scene_seeds``: scene -> the scene seeds measured there, each scene the mean
+    over its seeds, then the mean over scenes; the (scene, seed) pairs it lacks). NaN where it lacks any."""
+    wanted = [(scene, int(seed)) for scene, seeds in sorted(scene_seeds.items()) for seed in sorted(set(seeds))]
+    missing = [(scene, seed) for scene, seed in wanted if seed not in (ceiling or {}).get(scene, {})]
+    if not ceiling or not wanted or missing or any(not list(seeds) for seeds in scene_seeds.values()):
+        return math.nan, missing
+    per_scene = [float(np.mean([ceiling[scene][int(seed)] for seed in set(seeds)]))
+                 for scene, seeds in scene_seeds.items()]
+    return 100.0 * float(np.mean(per_scene)), []
 
 
 def _machine_spread(runs: pd.DataFrame, metric: str) -> tuple[list[str], float]:
@@ -611,14 +621,18 @@ class _Table:
     """One (dataset, track, protocol, split) group's table of one query kind, ranked or not."""
 
     def __init__(self, runs: pd.DataFrame, summary: pd.DataFrame, queries: Optional[pd.DataFrame], kind: str, *,
-                 ranked: bool, ceiling: Optional[Mapping[str, float]], identity: Sequence[Any],
-                 shared: Sequence = ()) -> None:
+                 ranked: bool, ceiling: Optional[Mapping[str, Mapping[int, float]]], identity: Sequence[Any],
+                 shared: Sequence = (), ceiling_refused: str = "") -> None:
         """``runs``: the group's runs with ranked values (:func:`ranked_values`), ``summary`` their
-        :func:`seed_summary`; ``shared``: :func:`_shared_fields` of the group."""
+        :func:`seed_summary`; ``ceiling``: scene -> scene seed -> the ceiling (fraction) of this table's protocol,
+        split and kind (:meth:`Ceilings.of`; None where none was measured), ``ceiling_refused``: why the ceiling
+        file gave no values (:attr:`Ceilings.refused`); ``shared``: :func:`_shared_fields` of the group."""
         self.kind, self.ranked, self.identity = kind, ranked, tuple(identity)
         self.primary, self.secondary = ACCURACY_METRICS[kind]
         self.runs, self.summary, self.queries = runs, summary, queries
         self.ceiling = ceiling
+        self.ceiling_refused = ceiling_refused
+        self.ceiling_missing: list[tuple[str, int]] = []
         self.shared = shared
         self.stats_rows: dict[tuple[str, str], dict[str, Any]] = {}
 
@@ -671,8 +685,16 @@ class _Table:
         for a, b in zip(contenders, contenders[1:]):
             p_next[a] = stats.probability_of_improvement(values_of[a], values_of[b])
 
-        # ceiling: the bound over each method's scenes; one value in the header where all share it
-        bounds = {m: _ceiling_bound(covered[m], self.ceiling) for m in order}
+        # ceiling: the bound over each method's scenes and the scene seeds its mean counts (its complete seeds);
+        # one value in the header where all share it
+        bounds = {}
+        for m in order:
+            mine = runs[runs["method"] == m]
+            if complete.get(m):
+                mine = mine[mine["seed"].isin(complete[m])]
+            scene_seeds = {s: set(int(v) for v in mine[mine["scene"] == s]["scene_seed"]) for s in covered[m]}
+            bounds[m], missing = _ceiling_bound(scene_seeds, self.ceiling)
+            self.ceiling_missing += [pair for pair in missing if pair not in self.ceiling_missing]
         has_ceiling = any(_finite(b) for b in bounds.values())
         shown_bounds = {round(b, 2) for b in bounds.values() if _finite(b)}
         one_bound = next(iter(shown_bounds)) if len(shown_bounds) == 1 else None
@@ -888,6 +910,8 @@ class _Table:
                            "scenes each kind ran; seeds differ between kinds where they ran different seeds)._")
         if not has_ceiling:
             notes.append("_No ceiling column: " + self._no_ceiling_reason() + "._")
+        elif self.ceiling_missing:
+            notes.append("_% of ceiling – on a row: " + self._no_ceiling_reason() + "._")
         if not by_query:
             notes.append("_Intervals resample seeds only: some results files of this table hold no per-query "
                          "scores._")
@@ -895,11 +919,17 @@ class _Table:
 
     def _no_ceiling_reason(self) -> str:
         metric = CEILING_METRIC[self.kind]
+        if self.ceiling_refused:
+            return f"the perfect-feature ceiling (`bench4d ablate ceiling`) is not read: {md(self.ceiling_refused)}"
         if self.ceiling is None:
             return (f"the perfect-feature ceiling (`bench4d ablate ceiling`) has no {metric} for this protocol "
-                    "(not measured)")
+                    "and split (not measured)")
+        missing = sorted(self.ceiling_missing)
+        named = ", ".join(f"{md(scene)} scene seed {seed}" for scene, seed in missing[:6]) + (
+            f" and {len(missing) - 6} more" if len(missing) > 6 else "")
         return (f"the perfect-feature ceiling (`bench4d ablate ceiling`) has not measured {metric} on every scene "
-                "of this table under this protocol")
+                "and scene seed of this table under this protocol and split on the committed scene version"
+                + (f" (missing: {named})" if missing else ""))
 
 
 def _draft_note(runs: pd.DataFrame, queries: Optional[pd.DataFrame]) -> list[str]:
@@ -974,23 +1004,96 @@ def _paper_tables(dataset: str) -> list[str]:
     return lines
 
 
-def load_ceilings(path: str | Path) -> dict[str, dict[str, dict[str, float]]]:
-    """Protocol -> query kind -> scene -> the perfect-feature ceiling (fraction) of
-    :data:`CEILING_METRIC`, from ``bench4d ablate ceiling``'s JSON file ``path``; only scenes it measured on
-    the committed scene version. Empty without the file."""
+@dataclass(frozen=True)
+class Ceilings:
+    """The perfect-feature ceiling (``bench4d ablate ceiling``'s JSON) as the leaderboard reads it."""
+
+    values: Mapping[tuple[str, str, str], Mapping[str, Mapping[int, float]]] = dataclasses.field(default_factory=dict)
+    """(protocol, split, query kind) -> scene -> scene seed -> the ceiling (fraction) of :data:`CEILING_METRIC`;
+    only (scene, seed) pairs measured on the committed scene version."""
+    refused: str = ""
+    """Why the file's values are not read (a file written before the ceiling was measured per split), or ""."""
+
+    def of(self, protocol: str, split: str, kind: str) -> Optional[Mapping[str, Mapping[int, float]]]:
+        """Scene -> scene seed -> value of one table; None where nothing was measured for it."""
+        return self.values.get((protocol, split, kind))
+
+
+def _measured_current(version: Any) -> bool:
+    """Whether a ceiling's recorded ``scene_version`` is the scene the committed generator makes today: its
+    digest against ``benchmark/synthetic/digests.json`` for its preset, size and seed (as
+    :func:`benchmark.results.scene_status` judges runs), else its recorded ``current`` flag."""
+    from .synthetic.digest import expected_digest
+
+    if not isinstance(version, Mapping):
+        return False
+    preset, size, digest = version.get("preset"), version.get("size"), version.get("digest")
+    if preset and isinstance(size, int) and digest:
+        seed = version.get("seed") or 0
+        expected = expected_digest(str(preset), size, int(seed) if isinstance(seed, int) else 0)
+        return expected is not None and str(digest) == expected
+    return version.get("current") is True
+
+
+def load_ceiling_file(path: str | Path) -> Ceilings:
+    """The perfect-feature ceiling of ``bench4d ablate ceiling``'s JSON file ``path``
+    (:func:`benchmark.studies.protocol_ceiling.ceiling_report` documents its layout: per scene, evaluation split
+    and scene seed); only (scene, seed) pairs measured on the committed scene version (:func:`_measured_current`).
+    Empty without the file.
+
+    A file written before the ceiling was measured per split (a scene entry without ``splits``) is refused, not
+    guessed at: its values mix the frames of every evaluation split, so they are no split's ceiling.
+    :attr:`Ceilings.refused` says so and every table notes it. A malformed file is an :class:`InputError`
+    naming the file and field."""
     path = Path(path)
     if not path.is_file():
-        return {}
+        return Ceilings()
     doc = read_json(path)
+    scenes = doc.get("scenes") if isinstance(doc, Mapping) else None
+    if not isinstance(scenes, Mapping):
+        raise InputError(path, "scenes", "expected an object {scene: {\"splits\": ...}}")
+    out: dict[tuple[str, str, str], dict[str, dict[int, float]]] = {}
+    for scene, entry in scenes.items():
+        if not isinstance(entry, Mapping):
+            raise InputError(path, f"scenes.{scene}", "expected an object")
+        if "splits" not in entry:
+            return Ceilings(refused=f"{path.as_posix()} was written before the ceiling was measured per evaluation "
+                                    "split and scene seed (its values mix the frames of every split): rerun it")
+        splits = entry["splits"]
+        if not isinstance(splits, Mapping):
+            raise InputError(path, f"scenes.{scene}.splits", "expected an object {split: {\"seeds\": ...}}")
+        for split, per_split in splits.items():
+            seeds = per_split.get("seeds") if isinstance(per_split, Mapping) else None
+            if not isinstance(seeds, Mapping):
+                raise InputError(path, f"scenes.{scene}.splits.{split}.seeds", "expected an object {seed: values}")
+            for seed, measured in seeds.items():
+                where = f"scenes.{scene}.splits.{split}.seeds.{seed}"
+                if not str(seed).isdigit():
+                    raise InputError(path, where, "a scene seed is a non-negative integer")
+                if not isinstance(measured, Mapping) or not isinstance(measured.get("variants"), Mapping):
+                    raise InputError(path, f"{where}.variants", "expected an object {variant: values}")
+                if not _measured_current(measured.get("scene_version")):
+                    continue  # another scene than the committed generator makes: no ceiling for today's runs
+                for protocol, values in measured["variants"].items():
+                    for kind, metric in CEILING_METRIC.items():
+                        value = values.get(metric) if isinstance(values, Mapping) else None
+                        if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
+                            out.setdefault((protocol, split, kind), {}).setdefault(scene, {})[int(seed)] = float(value)
+    return Ceilings(out)
+
+
+def load_ceilings(path: str | Path, split: str = DEFAULT_EVAL_SPLIT,
+                  scene_seed: int = 0) -> dict[str, dict[str, dict[str, float]]]:
+    """Protocol -> query kind -> scene -> the perfect-feature ceiling (fraction) of :data:`CEILING_METRIC` on
+    evaluation split ``split`` at scene seed ``scene_seed`` (:func:`load_ceiling_file`; what the Pareto charts
+    draw). Empty without the file, or where the file is refused."""
     out: dict[str, dict[str, dict[str, float]]] = {}
-    for scene, entry in (doc.get("scenes") or {}).items():
-        if not (entry.get("scene_version") or {}).get("current"):
+    for (protocol, of_split, kind), scenes in load_ceiling_file(path).values.items():
+        if of_split != split:
             continue
-        for protocol, values in (entry.get("variants") or {}).items():
-            for kind, metric in CEILING_METRIC.items():
-                value = values.get(metric)
-                if value is not None and math.isfinite(float(value)):
-                    out.setdefault(protocol, {}).setdefault(kind, {})[scene] = float(value)
+        for scene, seeds in scenes.items():
+            if scene_seed in seeds:
+                out.setdefault(protocol, {}).setdefault(kind, {})[scene] = seeds[scene_seed]
     return out
 
 
@@ -1041,14 +1144,15 @@ GENERAL_NOTES = [
     "  the rules of the code behind the published numbers; `paper-text` reads the paper's wording. Runs under",
     f"  different protocols are never in one table. Frames scored: {SCORED_FRAMES_NOTE}.",
     "* % of ceiling = the mean's share (with its interval) of what perfect features score under the same",
-    "  protocol on the same scenes (`bench4d ablate ceiling`; the ceiling's own value in the header).",
+    "  protocol on the same scenes, split and scene seeds (`bench4d ablate ceiling`; each scene's ceiling the",
+    "  mean over the scene seeds the method's mean counts; the ceiling's own value in the header).",
     "* Ranked: the official scenes only ("
     + "; ".join(f"{d}: {', '.join(s)}" for d, s in OFFICIAL_SCENES.items()) + ").",
 ]
 
 
 def render_markdown(runs: pd.DataFrame, results_dir_label: str,
-                    ceilings: Optional[dict[str, dict[str, dict[str, float]]]] = None,
+                    ceilings: Optional[Ceilings] = None,
                     see_also: Sequence[tuple[str, str]] = (), *, queries: Optional[pd.DataFrame] = None,
                     stats_out: Optional[dict] = None) -> str:
     """The leaderboard's Markdown. ``runs``: a runs table (:func:`load_runs`, or
@@ -1059,7 +1163,7 @@ def render_markdown(runs: pd.DataFrame, results_dir_label: str,
     from methods.registry import paper_reference
 
     PAPER_NUMBERS = paper_reference().numbers
-    ceilings = ceilings or {}
+    ceilings = ceilings or Ceilings()
     runs = with_defaults(runs)
     runs, stale = comparable_runs(runs)
     out = [HEADER, "", "# bench4d leaderboard", "",
@@ -1095,7 +1199,7 @@ def render_markdown(runs: pd.DataFrame, results_dir_label: str,
             default = " (default)" if protocol == DEFAULT_PROTOCOL else ""
             out += [f"### {md(dataset)} — track: {md(track)} — protocol: {md(protocol)}{default} — split: {md(split)}",
                     "", _machine_line(group), ""]
-            out += _group_tables(group, queries, ranked=True, ceilings=ceilings.get(protocol, {}),
+            out += _group_tables(group, queries, ranked=True, ceilings=ceilings,
                                  identity=(dataset, track, protocol, split), stats_out=stats_out)
             if dataset not in datasets_done:  # the paper's numbers once per dataset, after its first tables
                 paper = _paper_tables(dataset)
@@ -1113,7 +1217,7 @@ def render_markdown(runs: pd.DataFrame, results_dir_label: str,
                           & (other["protocol"] == protocol)]
             out += [f"### {md(dataset)} — track: {md(track)} — protocol: {md(protocol)} — split: {md(split)} (not ranked)",
                     "", _machine_line(group), ""]
-            out += _group_tables(group, queries, ranked=False, ceilings=ceilings.get(protocol, {}),
+            out += _group_tables(group, queries, ranked=False, ceilings=ceilings,
                                  identity=("other", dataset, track, protocol, split), stats_out=stats_out)
     others = sorted({d for m in PAPER_NUMBERS.values() for d in m["results"]} - datasets_done)
     if others:
@@ -1124,7 +1228,8 @@ def render_markdown(runs: pd.DataFrame, results_dir_label: str,
 
 
 def _group_tables(group: pd.DataFrame, queries: Optional[pd.DataFrame], *, ranked: bool,
-                  ceilings: Mapping[str, Mapping[str, float]], identity: tuple, stats_out: Optional[dict]) -> list[str]:
+                  ceilings: Ceilings, identity: tuple, stats_out: Optional[dict]) -> list[str]:
+    dataset, track, protocol, split = identity[-4:]
     out: list[str] = []
     group_queries = None if queries is None else queries[queries["path"].isin(set(group["path"]))]
     shared = _shared_fields(group, group_queries)
@@ -1134,7 +1239,8 @@ def _group_tables(group: pd.DataFrame, queries: Optional[pd.DataFrame], *, ranke
         adjusted = ranked_values(adjusted, group_queries, kind)
     summary = seed_summary(adjusted)
     for kind in ("agnostic", "sensitive"):
-        table = _Table(adjusted, summary, group_queries, kind, ranked=ranked, ceiling=ceilings.get(kind),
+        table = _Table(adjusted, summary, group_queries, kind, ranked=ranked,
+                       ceiling=ceilings.of(protocol, split, kind), ceiling_refused=ceilings.refused,
                        identity=identity, shared=shared)
         made = table.lines()
         if made is None:
@@ -1209,7 +1315,7 @@ def build_leaderboard(results_dir: str | Path = "results", *, markdown: str | Pa
     check_provenance(comparable_runs(with_defaults(runs))[0], allow_dirty, results_dir)
     written: dict[str, Path] = {}
     md_path = Path(markdown)
-    ceilings = load_ceilings(Path(reports_dir) / CEILING_FILE if ceiling is None else ceiling)
+    ceilings = load_ceiling_file(Path(reports_dir) / CEILING_FILE if ceiling is None else ceiling)
     collected: dict = {}
     text = render_markdown(runs, results_dir.as_posix(), ceilings, see_also_links(reports_dir, md_path),
                            queries=queries, stats_out=collected)

@@ -58,7 +58,7 @@ from benchmark.core.atomic import atomic_path, write_json
 from benchmark.core.cache_keys import code_digest, scene_fingerprint, stable_hash
 from benchmark.core.errors import InputError
 from benchmark.core.memory import StagePeak
-from benchmark.core.scene import Frame, Scene
+from benchmark.core.scene import DEFAULT_EVAL_SPLIT, EVAL_SPLITS_KEY, Frame, Scene, scene_split_frames
 
 from .api import AgnosticAnswer, Method, Model, Progress, SensitiveAnswer
 from .fields.autoencoder import AutoencoderConfig, FeatureAutoencoder, train_autoencoder
@@ -77,8 +77,11 @@ HEAD_DIR = "time_varying"
 CACHE_SUBDIR = "language"
 
 HELD_OUT_PSNR_FRAMES = 16
-"""At most this many held-out frames (evenly spaced over the test split) are rendered for the geometry's
-held-out PSNR (``info["test_psnr"]``)."""
+"""At most this many held-out frames of an evaluation split (evenly spaced over it) are rendered for the
+geometry's held-out PSNR on it (``info["test_psnr"]``: the paper split; ``info["novel_view_psnr"]``)."""
+NOVEL_VIEW_SPLIT = "novel-view"
+"""The evaluation split of held-out cameras (:data:`benchmark.core.scene.EVAL_SPLITS`) scored apart in
+:func:`held_out_psnr`."""
 
 GEOMETRY_CODE = "methods.gaussians.train"
 """The module that runs a geometry fit: its code digest (with every module it imports) is part of the
@@ -233,20 +236,28 @@ def fit_geometry(scene: Scene, kind: str, config: LanguageMethodConfig, *, seed:
 
 
 def held_out_psnr(model: object, scene: Scene, rasterize_fn, device: str) -> dict:
-    """``test_psnr`` (dB, mean over frames) and ``test_psnr_frames`` of a fitted geometry (colours still on)
-    on at most :data:`HELD_OUT_PSNR_FRAMES` of the scene's test frames; ``None`` without test frames.
+    """``test_psnr`` (dB, mean over frames) and ``test_psnr_frames`` of a fitted geometry (colours still on) on
+    at most :data:`HELD_OUT_PSNR_FRAMES` of the ``paper`` evaluation split's frames
+    (:func:`benchmark.core.scene.scene_split_frames`); where the scene records a ``novel-view`` split, also
+    ``novel_view_psnr`` and ``novel_view_psnr_frames`` on that split's frames (the same cap). A PSNR is
+    ``None`` where its split has no frames.
 
     A score for reports (the capacity study charts it against the Gaussian budget): it reads held-out
-    images once the fit is done and changes nothing fitted."""
+    images once the fit is done and changes nothing fitted. The splits are scored apart: the novel views are
+    seen from cameras no training frame uses, so one mean over both would mix two questions."""
     from methods.gaussians.train import evaluate
 
-    frames = scene.test_frames
-    if len(frames) > HELD_OUT_PSNR_FRAMES:
-        frames = [frames[i] for i in np.linspace(0, len(frames) - 1, HELD_OUT_PSNR_FRAMES).round().astype(int)]
-    if not frames:
-        return {"test_psnr": None, "test_psnr_frames": 0}
-    scores = evaluate(model, frames, scene.background, rasterize_fn, device=device)
-    return {"test_psnr": scores["psnr"], "test_psnr_frames": len(frames)}
+    splits = [(DEFAULT_EVAL_SPLIT, "test_psnr")]
+    if NOVEL_VIEW_SPLIT in (scene.metadata.get(EVAL_SPLITS_KEY) or {}):
+        splits.append((NOVEL_VIEW_SPLIT, "novel_view_psnr"))
+    out: dict[str, Any] = {}
+    for split, key in splits:
+        frames = scene_split_frames(scene, split)
+        if len(frames) > HELD_OUT_PSNR_FRAMES:
+            frames = [frames[i] for i in np.linspace(0, len(frames) - 1, HELD_OUT_PSNR_FRAMES).round().astype(int)]
+        psnr = evaluate(model, frames, scene.background, rasterize_fn, device=device)["psnr"] if frames else None
+        out.update({key: psnr, f"{key}_frames": len(frames)})
+    return out
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -168,8 +168,8 @@ def test_the_written_chart_draws_floor_and_ceiling_lines(tmp_path, monkeypatch):
                "scores": {"queries": [], "frames": [], "skipped": []}}
         write_results(results_path(root, "synthetic", row["scene"], row["method"], "oracle", row["seed"]), doc)
     ceiling = tmp_path / "ceiling.json"
-    write_json(ceiling, {"scenes": {s: {"scene_version": {"current": True}, "variants": {"release": {"mIoU": 0.85}}}
-                                    for s in SCENES}})
+    measured = {"scene_version": {"current": True}, "variants": {"release": {"mIoU": 0.85}}}
+    write_json(ceiling, {"scenes": {s: {"splits": {"paper": {"seeds": {"0": measured}}}} for s in SCENES}})
     monkeypatch.setattr(plots, "floor_methods", lambda: frozenset({"floor"}))
     drawn: list = []
     real_save = plots._save

@@ -772,22 +772,29 @@ def test_recon_time_range_trains_and_scores_only_those_frames(tmp_path, capsys):
     from benchmark.loaders import load_scene
     from benchmark.synthetic.generate import generate
 
+    from benchmark.core.scene import scene_split_frames
+
     scene_dir = generate("smoke", tmp_path / "smoke", size=24)
     scene = load_scene(scene_dir)
     last = scene.num_time_steps // 2
     want_train = sum(f.time_index <= last for f in scene.train_frames)
-    want_test = [f.name for f in scene.test_frames if f.time_index <= last]
-    assert 0 < want_train < len(scene.train_frames) and 0 < len(want_test) < len(scene.test_frames)
-    out = tmp_path / "reports" / "smoke-start"
-    assert main(["recon", "--scene", str(scene_dir), "--iters", "6", "--no-isolate", "--renders", "0",
-                 "--model", "3dgs", "--time-range", f"0:{last}", "--out", str(out),
-                 "--set", "deformation.hexplane.spatial_resolution=8"]) == 0
-    report = json.loads((out / "report.json").read_text())
-    assert report["scene"]["time_range"] == [0, last]
-    assert (report["scene"]["train_frames"], report["scene"]["test_frames"]) == (want_train, len(want_test))
-    assert [p["frame"] for p in report["models"]["3dgs"]["per_frame"]] == want_test
+    # the paper split's frames by default: the novel views among the test frames are another split's
+    want_test = [f.name for f in scene_split_frames(scene, "paper") if f.time_index <= last]
+    assert 0 < want_train < len(scene.train_frames) and 0 < len(want_test) < len(scene.test_frames) // 2
+    for split, want in (("paper", want_test),
+                        ("novel-view", [f.name for f in scene_split_frames(scene, "novel-view") if f.time_index <= last])):
+        out = tmp_path / "reports" / f"smoke-start-{split}"
+        assert main(["recon", "--scene", str(scene_dir), "--iters", "6", "--no-isolate", "--renders", "0",
+                     "--model", "3dgs", "--time-range", f"0:{last}", "--out", str(out),
+                     "--set", "deformation.hexplane.spatial_resolution=8"]
+                    + ([] if split == "paper" else ["--split", split])) == 0
+        report = json.loads((out / "report.json").read_text())
+        assert [p["frame"] for p in report["models"]["3dgs"]["per_frame"]] == want and want
+        assert (report["scene"]["train_frames"], report["scene"]["test_frames"]) == (want_train, len(want))
+        assert report["scene"]["time_range"] == [0, last] and report["split"] == split
     assert main(["recon", "--summarize", str(tmp_path / "reports")]) == 0
-    assert f"| smoke (frames 0-{last}) [" in (tmp_path / "reports" / "summary.md").read_text()
+    summary = (tmp_path / "reports" / "summary.md").read_text()
+    assert f"| smoke (frames 0-{last}) [" in summary and f"| smoke (frames 0-{last}, split novel-view) [" in summary
     capsys.readouterr()
     for bad in ("5:2", "a:b", "7", f"{scene.num_time_steps + 5}:{scene.num_time_steps + 9}"):
         assert main(["recon", "--scene", str(scene_dir), "--time-range", bad, "--out", str(tmp_path / "o")]) == 2

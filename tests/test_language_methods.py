@@ -17,6 +17,7 @@ import pytest
 from benchmark.core.atomic import read_json
 from benchmark.core.errors import InputError
 from benchmark.core.protocol import PROTOCOLS
+from benchmark.core.scene import EVAL_SPLITS_KEY, scene_split_frames
 from benchmark.runner import EvalOptions, evaluate
 from methods.fields.language_field import decode_for_relevance
 
@@ -265,12 +266,43 @@ def test_autoencoder_batches_drawn_per_mask_reconstruct_small_masks_as_well_as_l
     assert nearest_to_itself("pixels") < names  # what drawing per mask fixes
 
 
+def test_held_out_psnr_scores_each_evaluation_split_on_its_own_frames(smoke, monkeypatch):
+    import dataclasses
+
+    import methods.gaussians.train as train
+    from methods.language_methods import HELD_OUT_PSNR_FRAMES, held_out_psnr
+
+    rendered: list[list[str]] = []
+
+    def evaluate_names(model, frames, background, rasterize_fn, device="cpu"):
+        rendered.append([f.name for f in frames])
+        return {"psnr": 10.0 + len(rendered)}  # which call's mean came back where
+
+    monkeypatch.setattr(train, "evaluate", evaluate_names)
+    scene = smoke["scene"]
+    paper, novel = scene_split_frames(scene, "paper"), scene_split_frames(scene, "novel-view")
+    got = held_out_psnr(None, scene, None, "cpu")
+    assert rendered == [[f.name for f in paper], [f.name for f in novel]] and paper and novel
+    assert got == {"test_psnr": 11.0, "test_psnr_frames": len(paper),
+                   "novel_view_psnr": 12.0, "novel_view_psnr_frames": len(novel)}
+    # a scene that records no novel-view split: the paper split (every test frame) alone, at most the cap
+    many = [dataclasses.replace(scene.test_frames[0], name=f"t{i:03d}") for i in range(HELD_OUT_PSNR_FRAMES + 5)]
+    plain = dataclasses.replace(scene, frames=list(scene.train_frames) + many,
+                                metadata={k: v for k, v in scene.metadata.items() if k != EVAL_SPLITS_KEY})
+    rendered.clear()
+    got = held_out_psnr(None, plain, None, "cpu")
+    assert got == {"test_psnr": 11.0, "test_psnr_frames": HELD_OUT_PSNR_FRAMES}
+    assert rendered[0][0] == "t000" and rendered[0][-1] == f"t{HELD_OUT_PSNR_FRAMES + 4:03d}"
+
+
 def test_results_record_what_the_fit_did(smoke):
     doc = _eval(smoke, "4d-langsplat").results
     info = doc["fit"]["info"]
     assert info["geometry"]["kind"] == "4dgs" and info["geometry"]["gaussians"] > 0
-    held_out = smoke["scene"].test_frames
+    held_out = scene_split_frames(smoke["scene"], "paper")  # the paper split's frames alone
     assert info["geometry"]["test_psnr_frames"] == min(16, len(held_out)) > 0
+    assert info["geometry"]["novel_view_psnr_frames"] == len(scene_split_frames(smoke["scene"], "novel-view")) > 0
+    assert info["geometry"]["novel_view_psnr"] > 0
     background = np.zeros(3) if smoke["scene"].background is None else np.asarray(smoke["scene"].background)
     empty = np.mean([-10 * np.log10(np.mean((np.asarray(f.image(), np.float64) - background) ** 2)) for f in held_out])
     assert info["geometry"]["test_psnr"] > empty + 3.0  # the held-out renders show the scene, not the background

@@ -91,22 +91,39 @@ def _header(table: str) -> list[str]:
     return [c.strip() for c in line.split("|")[1:-1]]
 
 
-def test_protocols_get_their_own_tables_floors_are_not_ranked_and_means_show_their_ceiling_share(tmp_path):
+def _ceiling_file(path: Path, measured: dict, version=None) -> None:
+    """A ceiling file as ``bench4d ablate ceiling`` writes it: ``measured`` maps (scene, split, scene seed) ->
+    variant -> values; ``version(scene, seed)`` is the scene version recorded (default: the committed one)."""
     from benchmark.core.atomic import write_json
 
+    version = version or (lambda scene, seed: {"preset": scene, "size": 128, "seed": seed,
+                                               "digest": expected_digest(scene, 128, seed), "current": True})
+    scenes: dict = {}
+    for (scene, split, seed), variants in measured.items():
+        scenes.setdefault(scene, {"splits": {}})["splits"].setdefault(split, {"seeds": {}})["seeds"][str(seed)] = {
+            "frames": 5, "split": split, "variants": variants, "scene_version": version(scene, seed)}
+    write_json(path, {"format": "bench4d-protocol-ceiling", "version": 2, "scenes": scenes})
+
+
+def _split_doc(method: str, scene: str, seed: int, miou: float, split: str = "paper", scene_seed: int = 0) -> dict:
+    """:func:`_doc` of a run on evaluation split ``split`` that fitted the scene of generator seed ``scene_seed``."""
+    doc = _doc(method, scene, seed, miou)
+    generated = {**doc["scene_info"]["generated"], "seed": scene_seed,
+                 "digest": expected_digest(scene, 128, scene_seed) or "d" * 24}
+    return {**doc, "split": split, "scene_seed": scene_seed, "scene_info": {"generated": generated}}
+
+
+def test_protocols_get_their_own_tables_floors_are_not_ranked_and_means_show_their_ceiling_share(tmp_path):
     root = tmp_path / "results"
     for method, protocol, values in (("alpha", "release", (56.0, 42.0)), ("gamma", "release", (28.0, 21.0)),
                                      ("nearest-frame", "release", (99.0, 99.0)), ("beta", "paper-text", (30.0, 30.0))):
         for scene, v in zip((S1, S2), values):
-            doc = {**_doc(method, scene, 0, v), "protocol": PROTOCOLS[protocol].to_dict()}
+            doc = {**_split_doc(method, scene, 0, v), "protocol": PROTOCOLS[protocol].to_dict()}
             write_results(results_path(root, "synthetic", scene, method, "oracle", 0), doc)
     reports = tmp_path / "rep"
-    current = {"current": True}
-    write_json(reports / "ablations" / "protocol-ceiling.json", {"scenes": {
-        S1: {"scene_version": current, "variants": {"release": {"mIoU": 0.8, "vIoU": 0.5},
-                                                    "paper-text": {"mIoU": 0.5, "vIoU": 0.25}}},
-        S2: {"scene_version": current, "variants": {"release": {"mIoU": 0.6, "vIoU": 0.5},
-                                                    "paper-text": {"mIoU": 0.5, "vIoU": 0.25}}}}})
+    _ceiling_file(reports / "ablations" / "protocol-ceiling.json", {
+        (S1, "paper", 0): {"release": {"mIoU": 0.8, "vIoU": 0.5}, "paper-text": {"mIoU": 0.5, "vIoU": 0.25}},
+        (S2, "paper", 0): {"release": {"mIoU": 0.6, "vIoU": 0.5}, "paper-text": {"mIoU": 0.5, "vIoU": 0.25}}})
     build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=reports, csv_dir=reports)
     text = (tmp_path / "lb.md").read_text()
     release, paper = text.index("protocol: release (default)"), text.index("protocol: paper-text")
@@ -123,14 +140,86 @@ def test_protocols_get_their_own_tables_floors_are_not_ranked_and_means_show_the
     assert list(rows)[-1].startswith("_nearest-frame")  # below the methods it is a floor for
     paper_table = _section(text[paper:], "#### Time-agnostic queries")
     assert _rows(paper_table)["beta"][_header(paper_table).index("% of ceiling (mIoU 50.00) ↑")].startswith("60.00")
-    assert (reports / "leaderboard_synthetic_oracle_release_legacy-dense.csv").is_file()
+    assert (reports / "leaderboard_synthetic_oracle_release_paper.csv").is_file()
     # a seed that ran one scene only is in that scene's column, not in the mean, nor in the mean's share
     write_results(results_path(root, "synthetic", S1, "alpha", "oracle", 1),
-                  {**_doc("alpha", S1, 1, 0.0), "protocol": PROTOCOLS["release"].to_dict()})
+                  {**_split_doc("alpha", S1, 1, 0.0), "protocol": PROTOCOLS["release"].to_dict()})
     build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=reports)
     table = _section((tmp_path / "lb.md").read_text(), "#### Time-agnostic queries")
     alpha = _rows(table)["alpha"]
     assert alpha[1] == "28.00 ± 39.60" and alpha[share].startswith("**70.00 [")
+
+
+def test_each_split_s_section_shares_its_own_split_s_ceiling_at_the_scene_seeds_its_runs_fitted(tmp_path):
+    root, reports = tmp_path / "results", tmp_path / "rep"
+    ceiling = reports / "ablations" / "protocol-ceiling.json"
+    for split in ("paper", "novel-view"):
+        for scene, v in ((S1, 50.0), (S2, 30.0)):
+            for seed in (0, 1):  # alpha: run seed s fitted scene seed s
+                write_results(results_path(root, "synthetic", scene, "alpha", "oracle", seed, split=split),
+                              _split_doc("alpha", scene, seed, v, split, scene_seed=seed))
+            if split == "paper":  # beta: seeds 0 and 1 both fitted scene seed 0
+                for seed in (0, 1):
+                    write_results(results_path(root, "synthetic", scene, "beta", "oracle", seed, split=split),
+                                  _split_doc("beta", scene, seed, v, split, scene_seed=0))
+    release = lambda miou: {"release": {"mIoU": miou, "vIoU": 0.5}}  # noqa: E731
+    measured = {(S1, "paper", 0): release(0.8), (S1, "paper", 1): release(0.6), (S1, "paper", 2): release(0.0),
+                (S2, "paper", 0): release(0.6), (S2, "paper", 1): release(0.4), (S2, "paper", 2): release(0.0),
+                (S1, "novel-view", 0): release(0.4), (S1, "novel-view", 1): release(0.2),
+                (S2, "novel-view", 0): release(0.2), (S2, "novel-view", 1): release(0.2)}
+    _ceiling_file(ceiling, measured)
+    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=reports)
+    text = (tmp_path / "lb.md").read_text()
+    paper, novel = text.index("## Split: paper"), text.index("## Split: novel-view")
+    table = _section(text[paper:novel], "#### Time-agnostic queries")
+    share = _header(table).index("% of ceiling (mIoU) ↑")  # two bounds: no single one in the header
+    rows = _rows(table)
+    # alpha: scene seeds 0 and 1, each scene the mean over them: ((0.8 + 0.6) / 2 + (0.6 + 0.4) / 2) / 2 = 60
+    assert rows["alpha"][share].startswith("66.67 [") and rows["alpha"][share].endswith(" of 60.00")
+    # beta: scene seed 0 alone (its seed 1 refitted scene seed 0): (0.8 + 0.6) / 2 = 70
+    assert rows["beta"][share].startswith("57.14 [") and rows["beta"][share].endswith(" of 70.00")
+    novel_table = _section(text[novel:], "#### Time-agnostic queries")
+    # the novel-view split's own ceiling: ((0.4 + 0.2) / 2 + 0.2) / 2 = 25
+    assert _rows(novel_table)["alpha"][_header(novel_table).index("% of ceiling (mIoU 25.00) ↑")].startswith("160.00")
+    # a scene seed measured on another scene version than the committed one gives no ceiling: none, and why
+    for scene in (S1, S2):
+        write_results(results_path(root, "synthetic", scene, "alpha", "oracle", 2, split="paper"),
+                      _split_doc("alpha", scene, 2, 40.0, "paper", scene_seed=2))
+    committed = lambda scene, seed: {"preset": scene, "size": 128, "seed": seed,  # noqa: E731
+                                     "digest": expected_digest(scene, 128, seed) if seed < 2 else "f" * 24,
+                                     "current": True}  # a stale flag is not trusted: the digest decides
+    _ceiling_file(ceiling, measured, committed)
+    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=reports)
+    text = (tmp_path / "lb.md").read_text()
+    paper, novel = text.index("## Split: paper"), text.index("## Split: novel-view")
+    table = _section(text[paper:novel], "#### Time-agnostic queries")
+    share = _header(table).index("% of ceiling (mIoU 70.00) ↑")  # beta's alone
+    assert _rows(table)["alpha"][share] == "–" and _rows(table)["beta"][share].startswith("57.14 [")
+    assert ("_% of ceiling – on a row: the perfect-feature ceiling (`bench4d ablate ceiling`) has not measured mIoU "
+            "on every scene and scene seed of this table under this protocol and split on the committed scene "
+            f"version (missing: {S1} scene seed 2, {S2} scene seed 2)._") in table
+    assert "% of ceiling (mIoU 25.00)" in text[novel:]
+
+
+def test_a_ceiling_file_from_before_splits_is_refused_with_a_reason(tmp_path):
+    from benchmark.core.atomic import write_json
+    from benchmark.leaderboard import load_ceiling_file, load_ceilings
+
+    root, reports = tmp_path / "results", tmp_path / "rep"
+    for scene in (S1, S2):
+        write_results(results_path(root, "synthetic", scene, "alpha", "oracle", 0, split="paper"),
+                      _split_doc("alpha", scene, 0, 50.0))
+    path = reports / "ablations" / "protocol-ceiling.json"
+    write_json(path, {"scenes": {s: {"scene_version": {"current": True}, "variants": {"release": {"mIoU": 0.8}}}
+                                 for s in (S1, S2)}})  # one value per scene: every split's frames mixed
+    assert load_ceiling_file(path).refused and load_ceilings(path) == {}
+    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=reports)
+    text = (tmp_path / "lb.md").read_text()
+    assert "% of ceiling (" not in text
+    assert "is not read: " in text and "was written before the ceiling was measured per evaluation split" in text
+    write_json(path, {"scenes": {S1: {"splits": {"paper": {"seeds": {"zero": {"variants": {}}}}}}}})
+    with pytest.raises(InputError, match=r"scenes\.americano\.splits\.paper\.seeds\.zero"):
+        load_ceiling_file(path)
 
 
 def test_a_table_without_ceiling_says_why(tmp_path):

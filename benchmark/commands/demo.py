@@ -91,9 +91,10 @@ def method_overrides(methods: list[str], extra: dict[str, str]) -> dict[str, dic
     return {m: {k: v for k, v in wanted.items() if k in fields[m]} for m in methods}
 
 
-def protocol_ceiling_of(root: Path, protocol: str, text_encoder: str) -> tuple[Optional[dict[str, float]], str]:
-    """``({"mIoU": %, "vIoU": %}, "")`` of perfect features on the scene at ``root`` under ``protocol``,
-    or ``(None, why)`` where it cannot be measured (a scene without generator truth)."""
+def protocol_ceiling_of(root: Path, protocol: str, text_encoder: str,
+                        split: str = "paper") -> tuple[Optional[dict[str, float]], str]:
+    """``({"mIoU": %, "vIoU": %}, "")`` of perfect features on evaluation split ``split`` of the scene at ``root``
+    under ``protocol``, or ``(None, why)`` where it cannot be measured (a scene without generator truth)."""
     from benchmark.core.protocol import get_protocol
     from benchmark.studies.protocol_ceiling import protocol_ceiling
     from methods.text_encoders import get_text_encoder
@@ -104,7 +105,7 @@ def protocol_ceiling_of(root: Path, protocol: str, text_encoder: str) -> tuple[O
     scene = load_scene(root)
     try:
         measured = protocol_ceiling(scene, find_annotations(scene), get_text_encoder(text_encoder),
-                                    {protocol: get_protocol(protocol).agnostic})
+                                    {protocol: get_protocol(protocol).agnostic}, split=split)
     except InputError as err:
         return None, str(err)
     variant = measured["variants"][protocol]
@@ -138,32 +139,39 @@ def _milliseconds(seconds: float) -> str:
     return f"{ms:.1f}" if ms < 10 else f"{ms:.0f}"
 
 
-def demo_table(runs: list[dict], ceiling: Optional[dict[str, float]], floors: set[str]) -> list[str]:
-    """The demo's summary table: one row per results document in ``runs``, then the ceiling's row.
-    Acc and vIoU columns appear when some run scored time-sensitive queries."""
+def demo_table(runs: list[dict], ceiling: Optional[dict[str, float]], floors: set[str], *,
+               split_ceilings: Optional[dict[str, Optional[dict[str, float]]]] = None) -> list[str]:
+    """The demo's summary table: one row per results document in ``runs``, then the ceiling's row (one per
+    split with ``split_ceilings``: split -> its ceiling, each run's share taken of its own split's ceiling;
+    ``ceiling`` is then unused). Acc and vIoU columns appear when some run scored time-sensitive queries."""
     from ._common import fmt
 
     timed = any((r["metrics"].get("sensitive_queries") or 0) > 0 for r in runs)
     splits = len({r.get("split") for r in runs}) > 1
+    if split_ceilings is not None:
+        ceilings = [(split, value) for split, value in split_ceilings.items() if value is not None]
+    else:
+        ceilings = [("", ceiling)] if ceiling is not None else []
     header = (["split"] if splits else []) + ["method", "mIoU"] + (["Acc", "vIoU"] if timed else []) + [
         "% of ceiling (mIoU" + (" / vIoU)" if timed else ")"), "fit s", "query ms/frame"]
     rows = []
     for r in runs:
         m, t = r["metrics"], r["timing"]
-        share = _share(m.get("mIoU"), (ceiling or {}).get("mIoU"))
+        bound = (split_ceilings.get(r.get("split")) if split_ceilings is not None else ceiling) or {}
+        share = _share(m.get("mIoU"), bound.get("mIoU"))
         if timed:
-            share += " / " + _share(m.get("vIoU"), (ceiling or {}).get("vIoU"))
+            share += " / " + _share(m.get("vIoU"), bound.get("vIoU"))
         query = t.get("query_agnostic") or t.get("query_sensitive")
         rows.append(([str(r.get("split"))] if splits else [])
                     + [r["method"] + (" (2D floor)" if r["method"] in floors else ""), fmt(m.get("mIoU"), 1)]
                     + ([fmt(m.get("Acc"), 1), fmt(m.get("vIoU"), 1)] if timed else [])
                     + [share, fmt(t.get("fit_seconds"), 1) + (" (cached)" if t.get("fit_cached") else ""),
                        "–" if not query else _milliseconds(query["seconds_per_frame"])])
-    if ceiling is not None:
-        share = _share(ceiling["mIoU"], ceiling["mIoU"]) + (
-            " / " + _share(ceiling["vIoU"], ceiling["vIoU"]) if timed else "")
-        rows.append(([""] if splits else []) + ["perfect features (ceiling)", fmt(ceiling["mIoU"], 1)]
-                    + (["–", fmt(ceiling["vIoU"], 1)] if timed else []) + [share, "–", "–"])
+    for split, value in ceilings:
+        share = _share(value["mIoU"], value["mIoU"]) + (
+            " / " + _share(value["vIoU"], value["vIoU"]) if timed else "")
+        rows.append(([split] if splits else []) + ["perfect features (ceiling)", fmt(value["mIoU"], 1)]
+                    + (["–", fmt(value["vIoU"], 1)] if timed else []) + [share, "–", "–"])
     widths = [max(len(str(row[i])) for row in [header] + rows) for i in range(len(header))]
     left = 2 if splits else 1  # the text columns
     return ["  ".join(str(cell).ljust(w) if i < left else str(cell).rjust(w) for i, (cell, w) in
@@ -196,10 +204,13 @@ def run(args: argparse.Namespace) -> int:
             outcome = evaluate(options)
             print_run(outcome.results, outcome.path)
             runs.append(outcome.results)
-    ceiling, why = protocol_ceiling_of(root, args.protocol, options.text_encoder)
+    measured = {split: protocol_ceiling_of(root, args.protocol, options.text_encoder, split)
+                for split in demo_splits(root)}  # each split's runs against its own frames' ceiling
+    ceiling = next((value for value, _ in measured.values() if value is not None), None)
+    why = next((reason for _, reason in measured.values() if reason), "")
     floors = {m for m in methods if registry.get(m).floor}
     print()
-    print("\n".join(demo_table(runs, ceiling, floors)))
+    print("\n".join(demo_table(runs, None, floors, split_ceilings={s: v for s, (v, _) in measured.items()})))
     print(f"\nDemo-sized fits ({args.size} px, short schedules), not the leaderboard's: the leaderboard fits "
           "each method with its default config at 128 px (bench4d eval / run-all).")
     print("% of ceiling: the score's share of what perfect features score under the same protocol on the same "

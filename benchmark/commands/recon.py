@@ -3,7 +3,8 @@
 SCENE is a scene folder (any layout :func:`benchmark.loaders.load_scene` reads) or a synthetic preset
 name (generated once into ``--cache-dir``). Each model is trained in its own child process, so that its
 peak memory (the process's high-water resident size; ``torch.cuda.max_memory_allocated`` on CUDA) is its own, and is then
-scored on the scene's test frames: PSNR and SSIM (scikit-image, data range 1), fit time (wall and CPU),
+scored on the test frames of evaluation split ``--split`` (:data:`benchmark.core.scene.EVAL_SPLITS`; default
+``paper``, the dataset's held-out frames; ``report.json`` records it as ``split``): PSNR and SSIM (scikit-image, data range 1), fit time (wall and CPU),
 render FPS, Gaussian count. A few renders are saved as PNG beside ``report.json`` (written atomically).
 
 The static 3D-GS reference gets the same iteration budget as 4D-GS; on scenes with motion 4D-GS must
@@ -26,8 +27,10 @@ from typing import Any, Optional
 from benchmark.core.atomic import json_ready
 
 from ._common import add_threads_argument, parse_seed, set_threads
+from .eval import add_split_argument
 from benchmark.core.config import with_overrides
 from benchmark.core.errors import InputError
+from benchmark.core.scene import DEFAULT_EVAL_SPLIT, scene_split_frames
 
 MODELS = ("3dgs", "4dgs")
 
@@ -54,6 +57,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=None, help="output folder (default reports/recon/<scene>)")
     parser.add_argument("--cache-dir", type=Path, default=Path("cache"), help="where presets are generated")
     parser.add_argument("--seed", type=parse_seed, default=0)
+    add_split_argument(parser)
     add_threads_argument(parser)
     parser.add_argument("--device", default="cpu", help="cpu or cuda[:N]")
     parser.add_argument("--renders", type=int, default=3, help="test renders saved per model as PNG")
@@ -129,9 +133,13 @@ def frames_in_range(frames, time_range: Optional[tuple[int, int]]) -> list:
     return [f for f in frames if lo <= f.time_index <= hi]
 
 
-def evaluation_frames(scene) -> list:
-    """The frames a reconstruction is scored on: the test split, else the val split."""
-    return list(scene.test_frames or scene.split("val"))
+def evaluation_frames(scene, split: str = DEFAULT_EVAL_SPLIT) -> list:
+    """The frames a reconstruction is scored on: the test frames of evaluation split ``split``
+    (:func:`benchmark.core.scene.scene_split_frames`: a generated scene's test frames hold the ``paper`` and the
+    ``novel-view`` split's frames, scored apart), else (a scene without test frames) the val split."""
+    if scene.test_frames:
+        return scene_split_frames(scene, split)
+    return list(scene.split("val"))
 
 
 def moving_regions(scene, frames) -> Optional[tuple[dict[int, str], dict[str, Any]]]:
@@ -178,7 +186,7 @@ def fit_and_evaluate(job: dict) -> dict:
     kind = job["model"]
     result = trainer.fit_3dgs() if kind == "3dgs" else trainer.fit_4dgs()
     rss_trained = memory.peak_cpu_mib()
-    test_frames = frames_in_range(evaluation_frames(scene), time_range)
+    test_frames = frames_in_range(evaluation_frames(scene, job.get("split", DEFAULT_EVAL_SPLIT)), time_range)
     if not test_frames:
         raise InputError(scene.root, "frames", "the scene has no test or val frames to evaluate on"
                          + ("" if time_range is None else f" in frames {time_range[0]}..{time_range[1]}"))
@@ -302,7 +310,7 @@ def run(args: argparse.Namespace) -> int:
     scene = load_for_recon(str(scene_dir), args.scale)  # validate early, and for the summary
     print(f"bench4d recon: {scene.summary()}")
     kept = (len(frames_in_range(scene.train_frames, time_range)),
-            len(frames_in_range(evaluation_frames(scene), time_range)))  # (training, scored) frames
+            len(frames_in_range(evaluation_frames(scene, args.split), time_range)))  # (training, scored) frames
     if time_range is not None:
         if not all(kept):
             raise InputError(scene_dir, "--time-range", f"frames {time_range[0]}..{time_range[1]} keep {kept[0]} "
@@ -315,7 +323,7 @@ def run(args: argparse.Namespace) -> int:
     report = _report_header(args, cfg, scene, scene_dir, kept, time_range)
     started = time.perf_counter()
     for job in _jobs(args, cfg):
-        job.update({"scene_dir": str(scene_dir), "scale": args.scale, "time_range": time_range,
+        job.update({"scene_dir": str(scene_dir), "scale": args.scale, "time_range": time_range, "split": args.split,
                     "device": args.device, "threads": args.threads,
                     "renders": args.renders, "out_dir": str(out_dir), "save_model": args.save_models})
         print(f"  training {job['label']} ...", flush=True)
@@ -362,6 +370,7 @@ def _report_header(args: argparse.Namespace, cfg, scene, scene_dir: Path, kept: 
     return {
         "command": "bench4d " + " ".join(getattr(args, "_argv", None) or sys.argv[1:]),
         "overrides": list(args.set),
+        "split": args.split,  # the evaluation split whose test frames were scored
         "scene": {"name": scene.name, "dataset": scene.dataset, "folder": str(scene_dir), "scale": args.scale,
                   "train_frames": kept[0], "test_frames": kept[1],
                   "time_range": None if time_range is None else list(time_range),
@@ -450,7 +459,9 @@ def summarize(folder: Path) -> Path:
         span = r.get("scene", {}).get("time_range")
         overrides = r["overrides"] if "overrides" in r else _overrides(r.get("command", ""))
         seed = r.get("config", {}).get("seed", 0)
-        parts = ([f"frames {span[0]}-{span[1]}"] if span else []) + ([f"seed {seed}"] if seed else [])
+        split = r.get("split") or DEFAULT_EVAL_SPLIT  # a report written before --split names none
+        parts = (([f"frames {span[0]}-{span[1]}"] if span else []) + ([f"seed {seed}"] if seed else [])
+                 + ([f"split {split}"] if split != DEFAULT_EVAL_SPLIT else []))
         name = (r["scene"]["name"] + ("" if not parts else f" ({', '.join(parts)})")
                 + ("" if not overrides else f" [{', '.join(overrides)}]"))
         env = r.get("environment", {})
