@@ -19,11 +19,12 @@ import math
 import textwrap
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Optional, Sequence
+from typing import TYPE_CHECKING, Mapping, Optional, Sequence
 
 import numpy as np
 
 from benchmark.core.errors import InputError
+from benchmark.core.scene import DEFAULT_EVAL_SPLIT
 from .results import ACCURACY_METRICS, MEAN_SCENE, comparable_runs, find_results, load_results, results_path, seed_summary
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -297,7 +298,7 @@ class ParetoPanel:
 
 @dataclass
 class ParetoChart:
-    """One figure: a (dataset, track, protocol) timed on one kind of machine, one row of panels per kind."""
+    """One figure: a (dataset, track, protocol, split) timed on one kind of machine, one row of panels per kind."""
 
     dataset: str
     track: str
@@ -305,6 +306,8 @@ class ParetoChart:
     machine: str
     stem: str
     rows: list[list[ParetoPanel]]
+    split: str = DEFAULT_EVAL_SPLIT
+    """The evaluation split its runs scored."""
 
 
 def floor_methods() -> frozenset[str]:
@@ -333,19 +336,41 @@ def _slug(text: str) -> str:
     return re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-") or UNKNOWN_MACHINE
 
 
+def scene_ceilings(measured: Optional[Mapping[str, Mapping[int, float]]], runs: "pd.DataFrame") -> dict[str, float]:
+    """Scene -> the ceiling (fraction) of the scene instances ``runs`` measured: the mean over the scene seeds
+    its runs used (a run without a recorded scene seed fitted seed 0's scene); a scene some of whose seeds
+    have no measured ceiling is left out."""
+    import pandas as pd
+
+    out: dict[str, float] = {}
+    if not measured:
+        return out
+    seeds = runs["scene_seed"] if "scene_seed" in runs else pd.Series(0, index=runs.index)
+    for scene, used in seeds.fillna(0).astype(int).groupby(runs["scene"]):
+        values = measured.get(str(scene), {})
+        wanted = sorted(set(used))
+        if wanted and all(s in values for s in wanted):
+            out[str(scene)] = float(np.mean([values[s] for s in wanted]))
+    return out
+
+
 def pareto_charts(runs: "pd.DataFrame", *, floors: frozenset[str] = frozenset(),
-                  ceilings: Optional[dict[str, dict[str, dict[str, float]]]] = None) -> list[ParetoChart]:
-    """What :func:`pareto` draws, from a runs table: one chart per (dataset, track, protocol) and kind of
-    machine (:func:`machine_kinds`; timings of different machines are never compared on one axis), named
-    ``pareto_<dataset>_<track>_<protocol>``, with ``_<machine>`` added where a (dataset, track, protocol)
-    was timed on several. ``floors`` are reference lines, never points of the front; ``ceilings`` is
-    :func:`benchmark.leaderboard.load_ceilings`'s mapping."""
+                  ceilings: Optional[Mapping[tuple[str, str, str], Mapping[str, Mapping[int, float]]]] = None
+                  ) -> list[ParetoChart]:
+    """What :func:`pareto` draws, from a runs table: one chart per (dataset, track, protocol, evaluation split)
+    and kind of machine (:func:`machine_kinds`; timings of different machines are never compared on one
+    axis), named ``pareto_<dataset>_<track>_<protocol>_<split>``, with ``_<machine>`` added where one was timed
+    on several. ``floors`` are reference lines, never points of the front; ``ceilings`` is
+    :attr:`benchmark.leaderboard.Ceilings.values` ((protocol, split, kind) -> scene -> scene seed -> value)."""
     from .leaderboard import CEILING_METRIC
 
     ceilings = ceilings or {}
     runs = runs.assign(machine=machine_kinds(runs))
+    split_of = runs["split"].fillna(DEFAULT_EVAL_SPLIT) if "split" in runs else DEFAULT_EVAL_SPLIT
+    runs = runs.assign(split=split_of)
     charts: list[ParetoChart] = []
-    for (dataset, track, protocol), group in runs.groupby(["dataset", "track", "protocol"], sort=True):
+    for (dataset, track, protocol, split), group in runs.groupby(["dataset", "track", "protocol", "split"],
+                                                                 sort=True):
         machines = sorted(group["machine"].unique())
         for machine in machines:
             mine = group[group["machine"] == machine]
@@ -359,7 +384,7 @@ def pareto_charts(runs: "pd.DataFrame", *, floors: frozenset[str] = frozenset(),
                 ranked = [m for m in means["method"] if m not in floors]
                 stages = shared_stages(have, metric, ranked)
                 chance = kind == "sensitive" and at_chance(have, ranked)
-                measured = ceilings.get(protocol, {}).get(kind, {})
+                measured = scene_ceilings(ceilings.get((protocol, split, kind)), have)
                 ceiling, note = None, ""
                 if CEILING_METRIC.get(kind) != metric:
                     note = (f"no ceiling line: the perfect-feature ceiling is measured for {CEILING_METRIC.get(kind)}, "
@@ -382,8 +407,9 @@ def pareto_charts(runs: "pd.DataFrame", *, floors: frozenset[str] = frozenset(),
                                            note, chance, scenes, common))
                 rows.append(row)
             if rows:
-                stem = f"pareto_{dataset}_{track}_{protocol}" + (f"_{_slug(machine)}" if len(machines) > 1 else "")
-                charts.append(ParetoChart(dataset, track, protocol, machine, stem, rows))
+                stem = (f"pareto_{dataset}_{track}_{protocol}_{split}"
+                        + (f"_{_slug(machine)}" if len(machines) > 1 else ""))
+                charts.append(ParetoChart(dataset, track, protocol, machine, stem, rows, split))
     return charts
 
 
@@ -494,17 +520,17 @@ def _sig(value: float) -> str:
 
 def pareto(results_dir: str | Path = "results", reports_dir: str | Path = "reports",
            ceiling: Optional[str | Path] = None) -> list[Path]:
-    """Write ``reports/pareto_<dataset>_<track>_<protocol>[_<machine>].{png,pdf}`` (:func:`pareto_charts`);
+    """Write ``reports/pareto_<dataset>_<track>_<protocol>_<split>[_<machine>].{png,pdf}`` (:func:`pareto_charts`);
     returns the files written. ``ceiling``: the protocol ceiling's JSON (default:
     ``<reports_dir>/ablations/protocol-ceiling.json``; no line where it is missing)."""
-    from .leaderboard import CEILING_FILE, load_ceilings, load_runs
+    from .leaderboard import CEILING_FILE, load_ceiling_file, load_runs
 
     plt = _pyplot()
     # as the leaderboard reads them: each run under the name its recorded config stands for today
     runs = comparable_runs(load_runs(results_dir)[0])[0]
     if not len(runs):
         raise InputError(results_dir, None, "no results files to plot (run bench4d run-all first)")
-    ceilings = load_ceilings(Path(reports_dir) / CEILING_FILE if ceiling is None else ceiling)
+    ceilings = load_ceiling_file(Path(reports_dir) / CEILING_FILE if ceiling is None else ceiling).values
     written: list[Path] = []
     palette = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for chart in pareto_charts(runs, floors=floor_methods(), ceilings=ceilings):
@@ -515,7 +541,8 @@ def pareto(results_dir: str | Path = "results", reports_dir: str | Path = "repor
         for r, row in enumerate(chart.rows):
             for c, panel in enumerate(row):
                 _draw_pareto_panel(axes[r][c], panel, colour, legend=c == 0)
-        fig.suptitle(f"{chart.dataset} / {chart.track} / {chart.protocol}, timed on: {chart.machine}\n"
+        fig.suptitle(f"{chart.dataset} / {chart.track} / {chart.protocol} / {chart.split} split, timed on: "
+                     f"{chart.machine}\n"
                      "error bars: std over seeds (seeds that ran all the scenes named); methods with the same "
                      "accuracy on every scene and seed\n(one shared stage) are one point at their mean speed, "
                      "its bar spanning theirs", fontsize=9)

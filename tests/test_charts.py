@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -84,15 +85,37 @@ def test_methods_with_identical_accuracy_are_one_point_with_both_names():
 
 
 def test_the_ceiling_is_the_mean_over_the_charted_scenes_and_absent_where_not_measured():
-    ceilings = {"release": {"agnostic": {"s1": 0.8, "s2": 0.9}}}
+    ceilings = {("release", "paper", "agnostic"): {"s1": {0: 0.8}, "s2": {0: 0.9}}}
     panel = pareto_charts(_table(_runs()), floors=frozenset({"floor"}), ceilings=ceilings)[0].rows[0][0]
     assert panel.ceiling == pytest.approx(85.0) and panel.ceiling_note == ""
-    half = {"release": {"agnostic": {"s1": 0.8}}}
+    half = {("release", "paper", "agnostic"): {"s1": {0: 0.8}}}
     panel = pareto_charts(_table(_runs()), floors=frozenset({"floor"}), ceilings=half)[0].rows[0][0]
     assert panel.ceiling is None and "1 of these 2 scenes" in panel.ceiling_note
-    other = {"paper-text": {"agnostic": {"s1": 0.8, "s2": 0.9}}}  # another protocol's ceiling is not this one's
+    other = {("paper-text", "paper", "agnostic"): {"s1": {0: 0.8}, "s2": {0: 0.9}}}  # another protocol's ceiling
     panel = pareto_charts(_table(_runs()), floors=frozenset({"floor"}), ceilings=other)[0].rows[0][0]
     assert panel.ceiling is None and "no perfect-feature ceiling" in panel.ceiling_note
+    novel = {("release", "novel-view", "agnostic"): {"s1": {0: 0.8}, "s2": {0: 0.9}}}  # another split's is not either
+    panel = pareto_charts(_table(_runs()), floors=frozenset({"floor"}), ceilings=novel)[0].rows[0][0]
+    assert panel.ceiling is None
+
+
+def test_each_split_gets_its_own_chart_with_its_ceiling_over_the_scene_seeds_its_runs_used():
+    rows = [{**r, "split": "paper", "scene_seed": r["seed"]} for r in _runs()]
+    rows += [{**r, "split": "novel-view", "scene_seed": r["seed"], "mIoU": r["mIoU"] - 10} for r in _runs()]
+    table = _table(rows)
+    seeds = sorted(set(table["seed"]))
+    ceilings = {("release", "paper", "agnostic"): {s: {k: 0.5 + 0.1 * k for k in seeds} for s in SCENES},
+                ("release", "novel-view", "agnostic"): {s: {k: 0.4 for k in seeds} for s in SCENES}}
+    charts = {c.split: c for c in pareto_charts(table, floors=frozenset({"floor"}), ceilings=ceilings)}
+    assert sorted(charts) == ["novel-view", "paper"]
+    assert charts["paper"].stem.endswith("_release_paper") and charts["novel-view"].stem.endswith("_novel-view")
+    paper = charts["paper"].rows[0][0]
+    assert paper.ceiling == pytest.approx(100 * float(np.mean([0.5 + 0.1 * k for k in seeds])))
+    assert charts["novel-view"].rows[0][0].ceiling == pytest.approx(40.0)
+    missing = {("release", "paper", "agnostic"): {s: {0: 0.5} for s in SCENES}}  # only scene seed 0 measured
+    panel = next(c for c in pareto_charts(table, floors=frozenset({"floor"}), ceilings=missing)
+                 if c.split == "paper").rows[0][0]
+    assert panel.ceiling is None
 
 
 def test_each_kind_of_machine_gets_its_own_chart_named_in_the_title(tmp_path):
@@ -103,7 +126,7 @@ def test_each_kind_of_machine_gets_its_own_chart_named_in_the_title(tmp_path):
     table = _table(rows + gpu)
     charts = pareto_charts(table, floors=frozenset({"floor"}))
     assert sorted((c.machine, c.stem) for c in charts) == [
-        ("cpu", "pareto_synthetic_oracle_release_cpu"), ("cuda", "pareto_synthetic_oracle_release_cuda")]
+        ("cpu", "pareto_synthetic_oracle_release_paper_cpu"), ("cuda", "pareto_synthetic_oracle_release_paper_cuda")]
     cuda = next(c for c in charts if c.machine == "cuda")
     assert cuda.rows[0][0].points[0].x == pytest.approx(2.1 * 30)  # GPU speeds never mixed with CPU ones
     # machine_kind (when recorded) names the machine; a run without one falls back to its device
@@ -157,7 +180,7 @@ def test_the_written_chart_draws_floor_and_ceiling_lines(tmp_path, monkeypatch):
     root = tmp_path / "results"
     for row in _runs():
         doc = {"method": row["method"], "dataset": "synthetic", "scene": row["scene"], "track": "oracle",
-               "seed": row["seed"], "splits": ["test"], "protocol": PROTOCOLS["release"].to_dict(),
+               "seed": row["seed"], "split": "paper", "splits": ["test"], "protocol": PROTOCOLS["release"].to_dict(),
                "metrics": {"mIoU": row["mIoU"], "mAcc": 90.0, "agnostic_queries": 3, "sensitive_queries": 0,
                            "frames_scored": 10},
                "timing": {"fit_seconds": row["fit_seconds"], "fit_cached": False,
@@ -180,8 +203,8 @@ def test_the_written_chart_draws_floor_and_ceiling_lines(tmp_path, monkeypatch):
 
     monkeypatch.setattr(plots, "_save", keep)
     written = pareto(root, tmp_path / "reports", ceiling=ceiling)
-    assert sorted(p.name for p in written) == ["pareto_synthetic_oracle_release.pdf",
-                                               "pareto_synthetic_oracle_release.png"]
+    assert sorted(p.name for p in written) == ["pareto_synthetic_oracle_release_paper.pdf",
+                                               "pareto_synthetic_oracle_release_paper.png"]
     labels = [label for label, _ in drawn[0]]
     assert sum(label.startswith("2D floor floor (not ranked)") for label in labels) == 2  # one per panel
     ceilings = [ys for label, ys in drawn[0] if label.startswith("perfect-feature ceiling")]

@@ -691,7 +691,8 @@ def test_pareto_front_keeps_only_non_dominated_points():
 def test_charts_are_written_as_png_and_pdf(tmp_path):
     _write_all(tmp_path / "results", 0)
     written = pareto(tmp_path / "results", tmp_path / "reports")
-    assert sorted(p.name for p in written) == ["pareto_synthetic_oracle_release.pdf", "pareto_synthetic_oracle_release.png"]
+    assert sorted(p.name for p in written) == ["pareto_synthetic_oracle_release_legacy-dense.pdf",
+                                               "pareto_synthetic_oracle_release_legacy-dense.png"]  # no split recorded
     assert all(p.stat().st_size > 1000 for p in written)
     tl = timeline("beta", "s1", "cracked cookie", results_dir=tmp_path / "results", reports_dir=tmp_path / "reports")
     assert {p.suffix for p in tl} == {".png", ".pdf"}
