@@ -217,6 +217,9 @@ class Environment(TypedDict):
     """The instruction set torch's CPU kernels dispatch to (``torch.backends.cpu.get_cpu_capability()``:
     ``DEFAULT``, ``AVX2``, ``AVX512``; ``ATEN_CPU_CAPABILITY`` lowers it): fitted numbers move with it.
     Null: torch was not installed. Absent: written before it was recorded."""
+    native_kernels: NotRequired[str]
+    """``loaded``: the Gaussian core's compiled CPU kernels ran; ``not used: <why>``: the PyTorch passes did
+    (float rounding differs between the two). Absent: written before it was recorded."""
     gpu: NotRequired[Optional[str]]
     """Name of the CUDA device; null off CUDA (absent in files written before: off CUDA too)."""
     torch_threads: NotRequired[Optional[int]]

@@ -158,3 +158,25 @@ def test_ssim_and_its_gradient(monkeypatch, dtype):
 
     native, plain = both(monkeypatch, run)
     _close(native, plain, atol=1e-12 if dtype == F64 else 1e-6, rtol=1e-10 if dtype == F64 else 1e-4)
+
+
+def test_a_damaged_cached_library_is_built_again(tmp_path):
+    """A truncated library in the cache (an interrupted copy, a full disk) is rebuilt, not a silent fallback."""
+    if native_cpu._compiler() is None:
+        pytest.skip("needs a C compiler")
+    built = native_cpu._build(tmp_path)
+    good = built.read_bytes()
+    built.write_bytes(good[:200])  # damaged: not a loadable library any more
+    lib = native_cpu._load(tmp_path)
+    assert lib is not None and built.read_bytes() == good
+
+
+def test_results_record_whether_the_compiled_kernels_ran(monkeypatch):
+    from benchmark.runner import device_description
+
+    monkeypatch.setattr(native_cpu, "_STATE", {})
+    monkeypatch.setenv("BENCH4D_NATIVE", "0")
+    assert device_description("cpu")["native_kernels"] == "not used: switched off by BENCH4D_NATIVE=0"
+    monkeypatch.setenv("BENCH4D_NATIVE", "1")
+    if native_cpu._compiler() is not None:
+        assert device_description("cpu")["native_kernels"] == "loaded"

@@ -1230,6 +1230,23 @@ def _declare(lib: ctypes.CDLL, suffix: str) -> None:
         fn.restype, fn.argtypes = restype, argtypes
 
 
+def _load(folder: Path) -> ctypes.CDLL:
+    """The built library, loaded and declared. A cached library that does not load or lacks a kernel (a
+    truncated file, another build's leftovers) is removed and built again, once."""
+    path = _build(folder)
+    try:
+        lib = ctypes.CDLL(str(path))
+        for _, _, suffix in _TYPES.values():
+            _declare(lib, suffix)
+        return lib
+    except (OSError, AttributeError):
+        path.unlink(missing_ok=True)
+    lib = ctypes.CDLL(str(_build(folder)))
+    for _, _, suffix in _TYPES.values():
+        _declare(lib, suffix)
+    return lib
+
+
 _LOCK = threading.Lock()
 _STATE: dict = {}
 
@@ -1242,10 +1259,7 @@ def kernels() -> Optional[ctypes.CDLL]:
     with _LOCK:
         if "lib" not in _STATE:
             try:
-                lib = ctypes.CDLL(str(_build(cache_folder())))
-                for _, _, suffix in _TYPES.values():
-                    _declare(lib, suffix)
-                _STATE["lib"], _STATE["why"] = lib, ""
+                _STATE["lib"], _STATE["why"] = _load(cache_folder()), ""
             except (OSError, subprocess.SubprocessError, AttributeError) as err:
                 _STATE["lib"], _STATE["why"] = None, str(err)
         return _STATE["lib"]
