@@ -50,7 +50,7 @@ def good_doc() -> dict:
         "supervision": {"track": "oracle", "sources": {"segmenter": "gt"}},
         "environment": {"packages": {"python": "3.11.7", "numpy": "2.0"}, "git": {"commit": "c" * 40, "dirty": False},
                         "code_changed_during_run": None, "device": "cuda:0", "platform": "Linux", "machine": "x86_64",
-                        "cpu_count": 2, "processor": None, "cpu_capability": "AVX2", "numpy_blas_core": "haswell",
+                        "cpu_count": 2, "processor": None, "cpu_capability": "AVX2", "numpy_blas_core": "haswell", "native_kernels": "loaded",
                         "gpu": "H100",
                         "torch_threads": 1, "concurrent_runs": 1},
         "scene_info": {"root": "cache/scenes/128px/s1", "summary": "8 frames", "annotations": "annotations.json",
