@@ -424,7 +424,8 @@ def _variant_of(name: str) -> Optional[str]:
 def ranked_values(runs: pd.DataFrame, queries: Optional[pd.DataFrame], kind: str) -> pd.DataFrame:
     """``runs`` with the metrics of ``kind`` recomputed from the per-query scores: the mean over the run's
     non-draft queries of that kind, an unanswered query counting 0 (AUC: over answered queries only); NaN where
-    the run answered none of them. Runs without per-query scores keep their recorded metrics (and runs without
+    the run answered none of them, unless the method answered that kind in another run of its table: 0 there
+    (:func:`_declined_runs_count_zero`). Runs without per-query scores keep their recorded metrics (and runs without
     per-query AUC their AUC computed from the per-frame scores). Adds
     ``answered_<kind>`` and ``asked_<kind>`` (non-draft queries)."""
     primary, secondary = ACCURACY_METRICS[kind]
@@ -452,7 +453,25 @@ def ranked_values(runs: pd.DataFrame, queries: Optional[pd.DataFrame], kind: str
             else:
                 value = float(np.nanmean(values)) if np.isfinite(values).any() else math.nan
             out.iloc[i, out.columns.get_loc(metric)] = value
-    return out
+    return _declined_runs_count_zero(out, kind)
+
+
+def _declined_runs_count_zero(runs: pd.DataFrame, kind: str) -> pd.DataFrame:
+    """A run that answered none of the ``kind`` queries it was asked scores 0 on that kind (not NaN) where
+    the same method answered that kind in another run of its table (same dataset, track, protocol and split):
+    declining a hard scene's queries must not lift the method's mean by leaving the scene out. A method that
+    answered the kind nowhere keeps NaN (it is named under that table instead)."""
+    primary, secondary = ACCURACY_METRICS[kind]
+    answered, asked = runs[f"answered_{kind}"], runs[f"asked_{kind}"]
+    declined = (asked > 0) & (answered == 0)
+    if not bool(declined.any()):
+        return runs
+    keys = [c for c in ("method", "dataset", "track", "protocol", "split") if c in runs]
+    answered_somewhere = (answered.fillna(0) > 0).groupby([runs[c].astype(str) for c in keys]).transform("any")
+    zero = declined & answered_somewhere
+    runs = runs.copy()
+    runs.loc[zero, [primary, secondary]] = 0.0
+    return runs
 
 
 def _complete_seeds(runs: pd.DataFrame) -> dict[str, set]:

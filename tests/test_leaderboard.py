@@ -921,3 +921,26 @@ def test_runs_record_the_draft_queries_of_their_ground_truth():
                                          Query(3, "jumping", kind="sensitive", base=1),
                                          Query(4, "shorts up", kind="sensitive", base=2)])
     assert draft_query_texts(aset) == ["shorts", "shorts up"]
+
+
+def test_a_kind_declined_on_one_scene_counts_zero_there_and_is_not_left_out(tmp_path):
+    """Declining every time-sensitive query of the harder scene must not lift a method's mean: the scene counts
+    0, the method keeps full coverage of scenes, and answered / asked shows what it declined."""
+    root = tmp_path / "results"
+    _write_all(root, 0, OFFICIAL)
+    for scene in (S1, S2):
+        for seed in (0, 1, 2):
+            doc = _doc("zeta", scene, seed, 65.0)
+            if scene == S2:
+                doc["metrics"].update({"Acc": None, "vIoU": None, "sensitive_queries": 0})
+                doc["scores"]["queries"] = [q for q in doc["scores"]["queries"] if q["kind"] == "agnostic"]
+                doc["scores"]["frames"] = []
+                doc["unanswered_queries"] = ["cracked cookie"]
+            write_results(results_path(root, "synthetic", scene, "zeta", "oracle", seed), doc)
+    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
+    sensitive = _section((tmp_path / "lb.md").read_text(), "#### Time-sensitive queries")
+    rows = _rows(sensitive)
+    zeta = [cell.strip("*") for cell in (rows.get("zeta") or rows["zeta (at chance)"])]
+    assert zeta[1:3] == ["55.00 ± 0.00", "0.00 ± 0.00"]  # americano answered; keyboard declined: 0, not left out
+    assert any(cell.startswith("27.50 [") for cell in zeta)  # the mean (55 + 0) / 2, not 55
+    assert "3/6" in zeta and "2/2" in zeta  # answered / asked, and both scenes covered
