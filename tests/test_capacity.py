@@ -281,3 +281,13 @@ def test_seeds_sample_scenes_and_methods_share_one_geometry(tmp_path, monkeypatc
     assert set(pd.read_csv(tmp_path / "one" / "capacity.csv")["method"]) == {"non-status-field"}
     assert main(args + ["--method", "x", "--methods", "y", "--out", str(tmp_path / "both")]) == 2
     assert len(fits) == 1
+
+
+def test_the_runs_can_live_beside_the_report_so_a_study_resumes_without_its_cache(tmp_path):
+    from benchmark.studies.capacity import CapacityConfig
+
+    default = CapacityConfig(cache_dir=tmp_path / "cache", size=128, methods=("4d-langsplat",))
+    assert default.runs_dir_of("4d-langsplat") == tmp_path / "cache" / "capacity" / "4d-langsplat-128px" / "runs"
+    kept = CapacityConfig(cache_dir=tmp_path / "cache", size=128, methods=("4d-langsplat",),
+                          runs_root=tmp_path / "reports" / "runs")
+    assert kept.runs_dir_of("non-status-field") == tmp_path / "reports" / "runs" / "non-status-field-128px" / "runs"

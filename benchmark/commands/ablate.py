@@ -344,6 +344,9 @@ def _capacity_arguments(sub) -> None:
                    help="generated scenes, fits and the study's results files (<cache>/capacity/...)")
     c.add_argument("--device", default="cpu")
     c.add_argument("--text-encoder", default=default.text_encoder)
+    c.add_argument("--runs-dir", type=Path, default=None,
+                   help="where the study's results files go (default <cache-dir>/capacity); a folder kept "
+                        "with the report lets the study resume without the cache")
     c.add_argument("--out", type=Path, default=default.out_dir)
     c.add_argument("--quiet", action="store_true")
 
@@ -545,7 +548,7 @@ def _capacity(args) -> int:
         methods=methods, presets=tuple(args.presets), size=args.size, seeds=tuple(args.seeds),
         knobs=tuple(args.knobs), values=values, overrides=parse_overrides(args.set), release=not args.no_release,
         jobs=args.jobs, threads=args.threads or 1, device=args.device, text_encoder=args.text_encoder,
-        cache_dir=args.cache_dir, out_dir=args.out)
+        cache_dir=args.cache_dir, out_dir=args.out, runs_root=args.runs_dir)
     report = capacity_report(config, report_only=args.report_only, log=stderr_log(args.quiet))
     if not args.quiet:
         print(report.table)

@@ -134,6 +134,9 @@ class CapacityConfig:
     cache_dir: Path = Path("cache")
     """Generated scenes, fits and the study's results files (``<cache>/capacity/...``)."""
     out_dir: Path = Path("reports/capacity")
+    runs_root: Optional[Path] = None
+    """Where the study's results files go (``None``: ``<cache>/capacity``). A folder kept with the report
+    lets an interrupted study resume where the cache is gone: runs present there are read, not redone."""
     timing_frames: int = 2
     """Frames timed per query kind in each run."""
     timing_repeats: int = 3
@@ -150,7 +153,8 @@ class CapacityConfig:
 
     def runs_dir_of(self, method: str) -> Path:
         """Where ``method``'s runs are written: one folder per run under it."""
-        return Path(self.cache_dir) / "capacity" / f"{method}-{self.size}px" / "runs"
+        root = Path(self.cache_dir) / "capacity" if self.runs_root is None else Path(self.runs_root)
+        return root / f"{method}-{self.size}px" / "runs"
 
     def values_of(self, knob: str) -> tuple[str, ...]:
         return tuple(self.values.get(knob) or KNOBS[knob].values)
