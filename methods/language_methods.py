@@ -403,7 +403,8 @@ def fit_language_field(scene: Scene, supervision: Supervision, config: LanguageM
                             "seconds": ae_report.seconds, **ae_peak.record()},
             "field": {"iterations": report.iterations, "seconds": report.seconds, "final_loss": report.final_loss,
                       "losses": report.losses, "supervised_fraction": report.supervised_fraction,
-                      "views": len(targets), "targets_seconds": targets_seconds, **field_peak.record()}}
+                      "views": len(targets), "rendered_by": report.views, "targets_seconds": targets_seconds,
+                      **field_peak.record()}}
     if path is not None:
         _torch_save(path, {"key": key, "input_dim": int(feats.shape[1]), "autoencoder": ae.state_dict(),
                            "features": fld.features.detach().cpu(), "info": json.dumps(info)})

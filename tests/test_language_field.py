@@ -264,3 +264,46 @@ def test_query_finds_each_object_and_follows_motion_with_a_deforming_geometry():
         assert iou(answer(dynamic, name, t_test), truth == obj) > 0.6
     frozen = ToyGeometry(toy, frozen_time=0.0)  # what a static model sees at every time
     assert iou(answer(frozen, "ball", t_test), truth == 0) < iou(answer(dynamic, "ball", t_test), truth == 0) - 0.2
+
+
+# -- blending matrices ---------------------------------------------------------------------------------
+def test_a_views_blend_matrix_renders_and_differentiates_as_the_rasterizer():
+    from methods.fields.language_field import BlendMatrixView
+
+    toy = toy_scene()
+    fld = LanguageField(toy.means.shape[0], LanguageFieldConfig(init_std=1.0, render_backend="torch"),
+                        generator=torch.Generator().manual_seed(0))
+    frozen = fld.prepare(toy.state(0.0), camera())
+    if frozen is None:
+        pytest.skip("the compiled CPU kernels do not run here: no frozen view to compare with")
+    matrix = BlendMatrixView.from_frozen(frozen)
+    colors = fld.features.detach().clone().requires_grad_(True)
+    want, want_alpha = frozen.render(colors)
+    grad_out = torch.randn_like(want)
+    (want * grad_out).sum().backward()
+    want_grad, colors.grad = colors.grad.clone(), None
+    got, got_alpha = matrix.render(colors)
+    (got * grad_out).sum().backward()
+    assert got.shape == want.shape and float(want.detach().abs().max()) > 0.1
+    assert torch.allclose(got, want, atol=1e-5) and torch.allclose(got_alpha, want_alpha, atol=1e-6)
+    assert torch.allclose(colors.grad, want_grad, atol=1e-4)
+    assert matrix.nbytes() > 0
+
+
+def test_training_on_blend_matrices_fits_the_same_field_as_the_rasterizer():
+    toy = toy_scene()
+    latents = F.normalize(torch.tensor([[1.0, 0.2, 0.0], [-0.3, 1.0, 0.5], [0.1, -0.4, 1.0]]), dim=-1)
+    targets = _targets(toy, [0.0, 0.5, 1.0], latents)
+    fits = {}
+    for budget in (0.0, 64.0):
+        cfg = LanguageFieldConfig(iterations=60, learning_rate=0.05, render_backend="torch", log_every=10,
+                                  blend_matrix_mib=budget)
+        fits[budget] = train_language_field(ToyGeometry(toy, frozen_time=0.0), targets, cfg, seed=0)
+    (slow, slow_report), (fast, fast_report) = fits[0.0], fits[64.0]
+    assert slow_report.views == "rasterizer"
+    if fast_report.views != "blend matrices":
+        pytest.skip("the compiled CPU kernels do not run here")
+    assert np.allclose(fast_report.losses, slow_report.losses, rtol=1e-3, atol=1e-5)
+    assert torch.allclose(fast.features, slow.features, atol=1e-3)
+    tiny = LanguageFieldConfig(iterations=5, render_backend="torch", blend_matrix_mib=1e-6)
+    assert train_language_field(ToyGeometry(toy, frozen_time=0.0), targets, tiny, seed=0)[1].views == "rasterizer"

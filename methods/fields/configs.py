@@ -99,6 +99,10 @@ class LanguageFieldOptions:
     """Standard deviation of the initial features (release: zeros)."""
     cache_view_geometry_mib: float = 512.0
     """Memory for the training views' deformed Gaussians, kept between steps (beyond it: recomputed)."""
+    blend_matrix_mib: float = 1024.0
+    """Memory for every training view's blending matrix (the frozen geometry's compositing as the sparse
+    linear map it is: the same renders up to float rounding, several times faster per step on the CPU);
+    beyond it, or 0, or where the compiled CPU kernels do not run: the rasterizer composites each step."""
     log_every: int = 100
     """Record the loss every this many steps."""
 

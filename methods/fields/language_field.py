@@ -27,6 +27,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Callable, Iterator, Optional, Sequence
 
@@ -255,6 +256,69 @@ class LanguageField(nn.Module):
                             near=self.cfg.near, backend=self.cfg.render_backend)
 
 
+def csr32(rows: torch.Tensor, cols: torch.Tensor, vals: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
+    """Sparse CSR matrix with int32 indices (half the index memory of the default int64)."""
+    order = torch.argsort(rows * shape[1] + cols)
+    rows, cols, vals = rows[order], cols[order], vals[order]
+    crow = torch.zeros(shape[0] + 1, dtype=torch.int64, device=vals.device)
+    crow[1:] = torch.bincount(rows, minlength=shape[0]).cumsum(0)
+    with warnings.catch_warnings():  # "sparse CSR support is in beta": the products used here are stable
+        warnings.simplefilter("ignore")
+        return torch.sparse_csr_tensor(crow.to(torch.int32), cols.to(torch.int32), vals, shape)
+
+
+class _SparseBlend(torch.autograd.Function):
+    """``matrix @ colors`` with the transposed matrix for the gradient (both CSR: no transpose per step)."""
+
+    @staticmethod
+    def forward(ctx, colors: torch.Tensor, matrix: torch.Tensor, transposed: torch.Tensor):  # type: ignore[override]
+        ctx.transposed = transposed
+        return matrix @ colors
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
+        return ctx.transposed @ grad.contiguous(), None, None
+
+
+class BlendMatrixView:
+    """A frozen view's rendering as the sparse linear map it is: with the Gaussians fixed, every composited
+    pixel is a fixed weighted sum (alpha x transmittance) of the Gaussians' colours, so the weights listed once
+    by the compiled kernels (:func:`methods.gaussians.backends.native_cpu.blend_weights`) render any colours
+    as a sparse matrix product: the rasterizer's numbers up to float rounding, without testing every tile's
+    Gaussians against every pixel again each step. Same interface as the rasterizer's frozen view."""
+
+    def __init__(self, matrix: torch.Tensor, transposed: torch.Tensor, alpha: torch.Tensor, width: int,
+                 height: int) -> None:
+        self.matrix, self.transposed, self.alpha = matrix, transposed, alpha
+        self.width, self.height = width, height
+
+    @classmethod
+    @torch.no_grad()
+    def from_frozen(cls, view) -> "BlendMatrixView":
+        """From a :func:`methods.gaussians.rasterize.prepare_view` of the compiled kernels."""
+        from methods.gaussians.backends import native_cpu
+
+        n, w, h = view.params.shape[0], view.width, view.height
+        stats: dict = {}
+        _, alpha = native_cpu.Composite.apply(view.params, view.params.new_zeros(n, 1), view.layout, w, h, view.rule,
+                                              stats)
+        pix, gid, weight = native_cpu.blend_weights(view.params, view.layout, w, h, view.rule, stats["pairs"])
+        values = weight.to(torch.float32)
+        return cls(csr32(pix, gid, values, (h * w, n)), csr32(gid, pix, values, (n, h * w)),
+                   alpha.detach().reshape(h, w), w, h)
+
+    def render(self, colors: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """([H, W, C] composited ``colors`` [N, C] over a zero background, [H, W] accumulated alpha)."""
+        out = _SparseBlend.apply(colors.to(torch.float32), self.matrix, self.transposed)  # [H * W, C]
+        return out.reshape(self.height, self.width, -1).to(colors.dtype), self.alpha
+
+    def nbytes(self) -> int:
+        def size(m: torch.Tensor) -> int:
+            return sum(t.numel() * t.element_size() for t in (m.crow_indices(), m.col_indices(), m.values()))
+
+        return size(self.matrix) + size(self.transposed) + self.alpha.numel() * self.alpha.element_size()
+
+
 # ---------------------------------------------------------------------------------------------------
 # Training
 # ---------------------------------------------------------------------------------------------------
@@ -299,6 +363,9 @@ class FieldReport:
     losses: list[float] = field(default_factory=list)
     supervised_fraction: float = 0.0
     """Mean fraction of (pixel, level) pairs inside a mask over the training views."""
+    views: str = ""
+    """How each step rendered its view: ``blend matrices`` (:class:`BlendMatrixView`), ``rasterizer`` (the
+    compiled compositing on a kept or rebuilt layout), or ``rasterizer, deformed each step``."""
 
 
 def masked_l1(pred: torch.Tensor, target: FieldTarget) -> torch.Tensor:
@@ -329,10 +396,16 @@ def train_language_field(geometry: FrozenGeometry, targets: Sequence[FieldTarget
     opt = fast_adam([fld.features], lr=cfg.learning_rate)
     first = geometry.at(targets[0].time)
     first_prepared = fld.prepare(first, targets[0].camera)
-    # the geometry is frozen: each view's projection and tile layout (where the rasterizer splits them off)
-    # or deformed Gaussians are kept between steps, within the memory budget
+    # the geometry is frozen: each view's blending matrix, or its projection and tile layout (where the
+    # rasterizer splits them off), or its deformed Gaussians are kept between steps, within the memory budget
+    matrices = False
+    if first_prepared is not None and cfg.blend_matrix_mib > 0:
+        as_matrix = BlendMatrixView.from_frozen(first_prepared)
+        # views differ in size by the Gaussians each sees: a margin over the first view's
+        if 1.25 * as_matrix.nbytes() * len(targets) <= cfg.blend_matrix_mib * 2 ** 20:
+            matrices, first_prepared = True, as_matrix
     per_view_bytes = first.nbytes() if first_prepared is None else first_prepared.nbytes()
-    cache_views = per_view_bytes * len(targets) <= cfg.cache_view_geometry_mib * 2 ** 20
+    cache_views = matrices or per_view_bytes * len(targets) <= cfg.cache_view_geometry_mib * 2 ** 20
     cache_states = not geometry.is_dynamic or cache_views
     prepared: dict[int, object] = {}
     states: dict[int, GaussianState] = {}
@@ -361,7 +434,9 @@ def train_language_field(geometry: FrozenGeometry, targets: Sequence[FieldTarget
                 if cache_states and first_prepared is None:
                     states[v] = state
             if first_prepared is not None:
-                view = fld.prepare(state, target.camera)
+                view = first_prepared if v == 0 else fld.prepare(state, target.camera)
+                if matrices and v != 0:
+                    view = BlendMatrixView.from_frozen(view)
                 if cache_views:
                     prepared[v] = view
         pred = fld.render_with_alpha(state, target.camera, view)[0]
@@ -374,7 +449,9 @@ def train_language_field(geometry: FrozenGeometry, targets: Sequence[FieldTarget
             losses.append(loss_value)
     seconds = time.perf_counter() - start
     frac = float(np.mean([float((t.index >= 0).float().mean()) for t in targets]))
-    return fld, FieldReport(cfg.iterations, seconds, loss_value, losses, frac)
+    how = ("blend matrices" if matrices else "rasterizer" if first_prepared is not None or not geometry.is_dynamic
+           or cache_states else "rasterizer, deformed each step")
+    return fld, FieldReport(cfg.iterations, seconds, loss_value, losses, frac, how)
 
 
 # ---------------------------------------------------------------------------------------------------

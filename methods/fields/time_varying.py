@@ -50,7 +50,6 @@ cosine between the decoded time-varying feature and the query embedding; an empt
 from __future__ import annotations
 
 import time
-import warnings
 from dataclasses import dataclass
 from typing import Any, Callable, Optional, Sequence
 
@@ -70,6 +69,7 @@ from ..captioners.supervision import (CaptionSupervision, build_captions, embed_
                                       object_tracks, supervised_object_name)
 from .caption_targets import caption_segments, window_caption_embeddings
 from .language_field import FrozenGeometry, GaussianState
+from .language_field import csr32 as _csr32
 from .status import NonStatusField, StatusField, StatusFieldConfig
 
 KINDS = ("status", "non-status")
@@ -349,17 +349,6 @@ class BlendOperator:
     def nbytes(self) -> int:
         return sum(t.numel() * t.element_size() for m in (self.w, self.wt)
                    for t in (m.crow_indices(), m.col_indices(), m.values()))
-
-
-def _csr32(rows: torch.Tensor, cols: torch.Tensor, vals: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
-    """Sparse CSR matrix with int32 indices (half the index memory of the default int64)."""
-    order = torch.argsort(rows * shape[1] + cols)
-    rows, cols, vals = rows[order], cols[order], vals[order]
-    crow = torch.zeros(shape[0] + 1, dtype=torch.int64, device=vals.device)
-    crow[1:] = torch.bincount(rows, minlength=shape[0]).cumsum(0)
-    with warnings.catch_warnings():  # "sparse CSR support is in beta": the products used here are stable
-        warnings.simplefilter("ignore")
-        return torch.sparse_csr_tensor(crow.to(torch.int32), cols.to(torch.int32), vals, shape)
 
 
 def blend_operator(state: GaussianState, camera: Camera, pixels: torch.Tensor, *, near: float = 0.01,
