@@ -176,3 +176,18 @@ def test_non_status_field_starts_at_static_and_learns_a_delta():
         loss.backward()
         opt.step()
     assert loss.item() < 0.1
+
+
+def test_status_weights_are_each_rows_softmax_over_its_states():
+    from methods.fields.status import StatusField, StatusFieldConfig
+
+    torch.manual_seed(0)
+    field = StatusField(torch.randn(50, 3), hexplane_dim=8, cfg=StatusFieldConfig(num_states=3), seed=0)
+    feats = torch.randn(50, 8, requires_grad=True)
+    got = field.weights(feats)
+    want = torch.softmax(field.weight_mlp(feats), dim=-1)
+    assert got.shape == (50, 3) and torch.allclose(got, want, atol=1e-6)
+    assert torch.allclose(got.sum(-1), torch.ones(50), atol=1e-6)
+    grad_got, = torch.autograd.grad((got * torch.arange(3.0)).sum(), feats)
+    grad_want, = torch.autograd.grad((want * torch.arange(3.0)).sum(), feats)
+    assert torch.allclose(grad_got, grad_want, atol=1e-6)

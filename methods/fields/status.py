@@ -58,7 +58,11 @@ class StatusField(nn.Module):
     def weights(self, hexplane_features: torch.Tensor) -> torch.Tensor:
         """[N_dyn, F] HexPlane features of the dynamic Gaussians -> [N_dyn, K] state weights."""
         logits = self.weight_mlp(hexplane_features)
-        return torch.softmax(logits, dim=-1) if self.cfg.weight_mode == "softmax" else logits
+        if self.cfg.weight_mode != "softmax":
+            return logits
+        # the same softmax over each row's K states, taken over a [K, N] copy: torch's CPU softmax along a
+        # last axis of 2-6 elements is several times slower than along a long leading one
+        return torch.softmax(logits.t().contiguous(), dim=0).t()
 
     def weight_entropy(self, hexplane_features: torch.Tensor) -> torch.Tensor:
         """Mean entropy (nats) of the softmax weights of the dynamic Gaussians at (x, t): 0 when each
