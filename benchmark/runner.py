@@ -500,7 +500,7 @@ def device_description(device: str) -> dict[str, Any]:
                             # numpy's BLAS kernels in this process: the generator's pixels depend on them
                             "numpy_blas_core": openblas_core(),
                             # the compiled CPU kernels or the PyTorch passes: equal up to float rounding
-                            "native_kernels": native_kernels_state(), "gpu": None}
+                            "native_kernels": _native_kernels_state(), "gpu": None}
     if device.startswith("cuda"):
         import torch
 
@@ -508,15 +508,10 @@ def device_description(device: str) -> dict[str, Any]:
     return info
 
 
-def native_kernels_state() -> str:
-    """``"loaded"`` where the Gaussian core's compiled CPU kernels run
-    (:mod:`methods.gaussians.backends.native_cpu`), else ``"not used: <why>"`` (no compiler,
-    ``BENCH4D_NATIVE=0``, a build that failed): every CPU fit of the process takes the PyTorch passes then."""
-    from methods.gaussians.backends import native_cpu
+def _native_kernels_state() -> str:
+    from methods.api import native_kernels_state
 
-    if native_cpu.kernels() is not None:
-        return "loaded"
-    return f"not used: {native_cpu.unavailable_reason() or 'unknown'}"
+    return native_kernels_state()
 
 
 def cpu_capability() -> Optional[str]:

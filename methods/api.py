@@ -196,6 +196,17 @@ def training_states(scene: Scene, annotations: Any) -> dict[str, list[str]]:
             for frame in scene.train_frames}
 
 
+def native_kernels_state() -> str:
+    """``"loaded"`` where the Gaussian core's compiled CPU kernels run
+    (:mod:`methods.gaussians.backends.native_cpu`), else ``"not used: <why>"`` (no compiler,
+    ``BENCH4D_NATIVE=0``, a build that failed): every CPU fit of the process takes the PyTorch passes then."""
+    from .gaussians.backends import native_cpu
+
+    if native_cpu.kernels() is not None:
+        return "loaded"
+    return f"not used: {native_cpu.unavailable_reason() or 'unknown'}"
+
+
 def build_supervision(scene: Scene, track: str = "oracle", **options: Any) -> Supervision:
     """The 2D supervision of ``scene``'s training frames on ``track`` (``"oracle"`` or ``"real"``), built
     once per scene and cached: :func:`methods.supervision.cache.build_supervision` (its options)."""

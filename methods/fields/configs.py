@@ -100,9 +100,8 @@ class LanguageFieldOptions:
     cache_view_geometry_mib: float = 512.0
     """Memory for the training views' deformed Gaussians, kept between steps (beyond it: recomputed)."""
     blend_matrix_mib: float = 1024.0
-    """Memory for every training view's blending matrix (the frozen geometry's compositing as the sparse
-    linear map it is: the same renders up to float rounding, several times faster per step on the CPU);
-    beyond it, or 0, or where the compiled CPU kernels do not run: the rasterizer composites each step."""
+    """Memory (MiB) for every training view's blending matrix (its frozen compositing as a sparse map: the
+    same renders, several times faster on the CPU); beyond it or at 0 the rasterizer composites each step."""
     log_every: int = 100
     """Record the loss every this many steps."""
 
