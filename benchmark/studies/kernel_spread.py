@@ -37,6 +37,7 @@ import numpy as np
 from benchmark.core.errors import InputError
 from benchmark.core.scene import DEFAULT_EVAL_SPLIT, check_eval_split
 
+from . import fit_timing
 from ._report import Report, markdown_table, write_report
 
 REPORTS = Path("reports/kernel-spread")
@@ -48,14 +49,8 @@ REPO = Path(__file__).resolve().parents[2]
 CAPABILITIES = ("default", "avx2", "native")
 """Kernel settings: a value of ``ATEN_CPU_CAPABILITY``, or ``native`` (the variable unset)."""
 
-SCORES: tuple[tuple[str, tuple], ...] = (
-    ("mIoU", ("metrics", "mIoU")),
-    ("Acc", ("metrics", "Acc")),
-    ("vIoU", ("metrics", "vIoU")),
-    ("held-out PSNR (dB)", ("fit", "info", "geometry", "test_psnr")),
-    ("Gaussians", ("fit", "info", "geometry", "gaussians")),
-)
-"""Scores listed per run (the first three are the ones compared with the leaderboard's interval)."""
+SCORES = fit_timing.SCORES
+"""Scores listed per run, as the timing study lists them (the first three are compared with the interval)."""
 COMPARED = ("mIoU", "Acc", "vIoU")
 """Scores whose spread is set beside the results folder's interval."""
 
