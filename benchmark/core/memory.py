@@ -38,27 +38,30 @@ _open: list[_Window] = []  # stages being measured, outermost first
 _resettable: Optional[bool] = None  # whether this process could restart the CPU mark (None: not tried)
 
 
-def _cpu_mark() -> float:
-    """The kernel's high-water resident size, MiB (``getrusage`` maxrss where there is no ``VmHWM``)."""
+def _status_mib(field: str) -> Optional[float]:
+    """A size line of ``/proc/self/status`` (``VmHWM``, ``VmRSS``), MiB; None where the OS does not say."""
     try:
         for line in _PROC_STATUS.read_text().splitlines():
-            if line.startswith("VmHWM:"):
+            if line.startswith(field + ":"):
                 return int(line.split()[1]) / 1024.0  # kB
     except (OSError, ValueError, IndexError):
         pass
+    return None
+
+
+def _cpu_mark() -> float:
+    """The kernel's high-water resident size, MiB (``getrusage`` maxrss where there is no ``VmHWM``)."""
+    mark = _status_mib("VmHWM")
+    if mark is not None:
+        return mark
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return rss / 1024.0 if sys.platform != "darwin" else rss / (1024.0 * 1024.0)
 
 
 def _resident_mib() -> float:
     """The process's resident size now (``VmRSS``), MiB; NaN where the OS does not say."""
-    try:
-        for line in _PROC_STATUS.read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0  # kB
-    except (OSError, ValueError, IndexError):
-        pass
-    return float("nan")
+    now = _status_mib("VmRSS")
+    return float("nan") if now is None else now
 
 
 def _cuda_devices() -> list[str]:
