@@ -224,13 +224,14 @@ def reference_interval(values: dict[str, list[float]], *, seed: int = 0) -> Opti
 
 
 def leaderboard_values(results_dir: Path, method: str, split: str, scenes: Sequence[str], label: str,
-                       machine_kind: Optional[str] = None) -> dict[str, list[float]]:
+                       machine_kind: Optional[str] = None, runs=None) -> dict[str, list[float]]:
     """Scene -> the per-seed ``label`` of ``method``'s runs on ``split`` under ``results_dir``, read as the
     leaderboard reads them (:func:`benchmark.leaderboard.load_runs`): runs of a clean, unchanging checkout
-    only, of ``machine_kind`` where given."""
+    only, of ``machine_kind`` where given. ``runs``: that folder's runs table, when already read."""
     from benchmark.leaderboard import load_runs
 
-    runs, _ = load_runs(results_dir)
+    if runs is None:
+        runs, _ = load_runs(results_dir)
     if not len(runs):
         return {}
     names = {Path(s).name for s in scenes}
@@ -256,16 +257,22 @@ def native_kind(runs: Sequence[dict]) -> Optional[str]:
 def summarize(runs: Sequence[dict], config: KernelSpreadConfig) -> list[dict]:
     """Per compared score: each setting's mean over scenes, the spread of those means, the mean and largest
     per-run spread, and the results folder's interval with whether each setting's mean lies inside it."""
+    from benchmark.leaderboard import load_runs
+
     out = []
     per_run = spread_rows(runs)
+    folder = None  # the results folder's runs, read once for every score
+    if config.results_dir is not None and Path(config.results_dir).is_dir():
+        folder = load_runs(Path(config.results_dir))[0]
     for label in COMPARED:
         means = setting_means(runs, label)
         got = [v for v in means.values() if v is not None]
         spreads = [r["spread"] for r in per_run if r["score"] == label and r["spread"] is not None]
         reference = None
-        if config.results_dir is not None and Path(config.results_dir).is_dir():
+        if folder is not None:
             reference = reference_interval(leaderboard_values(Path(config.results_dir), config.method, config.split,
-                                                              config.scenes, label, machine_kind=native_kind(runs)))
+                                                              config.scenes, label, machine_kind=native_kind(runs),
+                                                              runs=folder))
             if reference is not None and set(reference["seeds"]) != {r["scene"] for r in runs}:
                 reference = None  # the folder lacks one of the study's scenes: no like-for-like interval
         inside = ({cap: (v is not None and reference["low"] <= v <= reference["high"]) for cap, v in means.items()}
