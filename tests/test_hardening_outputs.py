@@ -170,8 +170,8 @@ def test_leaderboard_and_paper_tables_never_write_over_a_results_file(tmp_path):
     before anything is read, and the file stays byte-identical."""
     from benchmark.cli import main
 
-    committed = Path(__file__).resolve().parents[1] / "results" / "synthetic" / "americano" / "nearest-frame" / "oracle"
-    results = tmp_path / "results" / "synthetic" / "americano" / "nearest-frame" / "oracle"
+    committed = Path(__file__).resolve().parents[1] / "results" / "dnerf" / "lego" / "langsplat" / "oracle"
+    results = tmp_path / "results" / "dnerf" / "lego" / "langsplat" / "oracle"
     results.mkdir(parents=True)
     record = results / "seed0.json"
     shutil.copy(committed / "seed0.json", record)
