@@ -79,7 +79,8 @@ class _FieldHead(TimeVaryingHead):
         return self._queries[text]
 
     def score(self, text: str, frame: Frame, spatial: AgnosticResult, model: LanguageFieldModel) -> float:
-        return self.field.score(frame, spatial_mask(spatial, model.protocol.sensitive), self.query_embedding(text))
+        return self.field.score(frame, spatial_mask(spatial, model.protocol.sensitive), self.query_embedding(text),
+                                tf32=model.config.answer.decode_tf32)
 
     def save(self, directory: Path) -> None:
         directory = Path(directory)

@@ -68,7 +68,7 @@ from ..captioners import resolve_captioning  # noqa: F401  (re-exported)
 from ..captioners.supervision import (CaptionSupervision, build_captions, embed_captions,  # noqa: F401
                                       object_tracks, supervised_object_name)
 from .caption_targets import caption_segments, window_caption_embeddings
-from .language_field import FrozenGeometry, GaussianState
+from .language_field import FrozenGeometry, GaussianState, matmul_precision
 from .language_field import csr32 as _csr32
 from .status import NonStatusField, StatusField, StatusFieldConfig
 
@@ -572,20 +572,25 @@ class TimeVaryingField(nn.Module):
         return self.autoencoder.decode(self.render_latents(frame))
 
     @torch.no_grad()
-    def score(self, frame: Frame, spatial_mask: torch.Tensor | np.ndarray, query_embedding: torch.Tensor | np.ndarray) -> float:
+    def score(self, frame: Frame, spatial_mask: torch.Tensor | np.ndarray, query_embedding: torch.Tensor | np.ndarray,
+              *, tf32: bool = False) -> float:
         """``s_t``: mean cosine over the pixels of ``spatial_mask`` [H, W] bool between the decoded
-        time-varying features and ``query_embedding`` [D]; NaN when the mask is empty."""
-        mask = torch.as_tensor(np.asarray(spatial_mask.cpu() if torch.is_tensor(spatial_mask) else spatial_mask),
-                               dtype=torch.bool, device=self.geometry.device)
+        time-varying features and ``query_embedding`` [D]; NaN when the mask is empty. ``tf32``: decode with
+        TensorFloat-32 matrix products on a CUDA device (the time-agnostic decode's ``answer.decode_tf32``)."""
+        dev = self.geometry.device
+        # a mask already on the device stays there: no copy to the host and back per frame
+        mask = (spatial_mask.to(device=dev, dtype=torch.bool) if torch.is_tensor(spatial_mask)
+                else torch.as_tensor(np.asarray(spatial_mask), dtype=torch.bool, device=dev))
         if mask.shape != (frame.camera.height, frame.camera.width):
             raise ValueError(f"spatial mask is {tuple(mask.shape)} but frame {frame.name!r} is "
                              f"{(frame.camera.height, frame.camera.width)}")
         if not bool(mask.any()):
             return float("nan")
         q = (query_embedding.detach() if torch.is_tensor(query_embedding) else torch.as_tensor(np.asarray(query_embedding)))
-        q = q.to(device=self.geometry.device, dtype=torch.float32)
-        decoded = self.autoencoder.decode(self.render_latents(frame)[mask])  # [M, D]
-        return float(F.cosine_similarity(decoded, q[None, :], dim=-1).mean())
+        q = q.to(device=dev, dtype=torch.float32)
+        with matmul_precision("high" if tf32 and dev.type == "cuda" else None):
+            decoded = self.autoencoder.decode(self.render_latents(frame)[mask])  # [M, D]
+            return float(F.cosine_similarity(decoded, q[None, :], dim=-1).mean())
 
     # -- memory ------------------------------------------------------------------------------------
     def memory(self) -> dict[str, Any]:

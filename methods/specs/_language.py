@@ -70,11 +70,11 @@ class AnswerConfig:
     pixel, its points decoded as latents reach them (0: decode every pixel;
     :class:`methods.fields.language_field.DecodeTable`)."""
     decode_table_cuda: int = 257
-    """The same on a CUDA device, the whole table decoded once per query (about twice the FPS; 99.998 %
-    of mask pixels as decoding every pixel in float32 on a fitted model). 0: decode every pixel."""
+    """The same on a CUDA device, the whole table decoded once per query (about twice the FPS; on fitted models
+    99.996 % of answer pixels as decoding every pixel in float32). 0: decode every pixel."""
     decode_tf32: bool = True
     """On a CUDA device, decode with TensorFloat-32 matrix products (inputs rounded to 10 mantissa bits,
-    float32 sums): relevance moves in its third digit; the CPU always decodes in float32."""
+    float32 sums), the status field's score too: relevance moves in its third digit; the CPU decodes in float32."""
 
     def decode_chunk_for(self, device: "str | object") -> int:
         """:attr:`decode_chunk_cuda` on a CUDA device, else :attr:`decode_chunk`."""
