@@ -104,9 +104,11 @@ class FeatureField(nn.Module):
     def output_dim(self) -> int:
         return int(self.decoder.out_features)
 
-    def render_with_alpha(self, state: GaussianState, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
-        """([H, W, feature_dim] rendered features, [H, W] accumulated opacity); differentiable in the features."""
-        maps, alpha = self.renderer.render_with_alpha(state, camera)  # [1, H, W, C], [H, W]
+    def render_with_alpha(self, state: GaussianState, camera: Camera,
+                          prepared=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """([H, W, feature_dim] rendered features, [H, W] accumulated opacity); differentiable in the features.
+        ``prepared``: the view's frozen rendering (:meth:`methods.fields.views.ViewCycle.prepared`)."""
+        maps, alpha = self.renderer.render_with_alpha(state, camera, prepared)  # [1, H, W, C], [H, W]
         return maps[0], alpha
 
 
@@ -185,6 +187,8 @@ class FeatureReport:
     losses: list[float]
     supervised_fraction: float
     """Mean fraction of pixels with a target over the training views."""
+    rendered_by: str = "rasterizer"
+    """How the training views were rendered (:attr:`methods.fields.views.ViewCycle.rendered_by`)."""
 
 
 def train_feature_field(geometry: FrozenGeometry, targets: Sequence[FeatureTarget], config: Feature3DGSConfig, *,
@@ -200,8 +204,11 @@ def train_feature_field(geometry: FrozenGeometry, targets: Sequence[FeatureTarge
                            render_backend=config.geometry.render_backend, device=device)
     opt = torch.optim.Adam([{"params": [fld.features], "lr": config.feature.learning_rate},
                             {"params": list(fld.decoder.parameters()), "lr": config.feature.decoder_learning_rate}])
-    views = ViewCycle(geometry, [t.time for t in targets], seed,
-                      LanguageFieldConfig().cache_view_geometry_mib * 2 ** 20)
+    budgets = LanguageFieldConfig()
+    views = ViewCycle(geometry, [t.time for t in targets], seed, budgets.cache_view_geometry_mib * 2 ** 20,
+                      cameras=[t.camera for t in targets], near=budgets.near,
+                      render_backend=config.geometry.render_backend,
+                      matrix_budget_bytes=budgets.blend_matrix_mib * 2 ** 20)
     losses: list[float] = []
     loss_value = float("nan")
     iterations = config.feature.iterations
@@ -213,7 +220,7 @@ def train_feature_field(geometry: FrozenGeometry, targets: Sequence[FeatureTarge
         view, state = views.next()
         target = targets[view]
         opt.zero_grad(set_to_none=True)
-        rendered, _ = fld.render_with_alpha(state, target.camera)  # [H, W, C]
+        rendered, _ = fld.render_with_alpha(state, target.camera, views.prepared(view, state))  # [H, W, C]
         loss = l1_backward(fld.decoder, rendered, target)
         opt.step()
         if step % max(1, log_every) == 0 or step == iterations - 1:
@@ -222,7 +229,7 @@ def train_feature_field(geometry: FrozenGeometry, targets: Sequence[FeatureTarge
     seconds = time.perf_counter() - start
     fraction = float(np.mean([float((t.index >= 0).float().mean()) for t in targets]))
     fld.requires_grad_(False)
-    return fld, FeatureReport(iterations, seconds, loss_value, losses, fraction)
+    return fld, FeatureReport(iterations, seconds, loss_value, losses, fraction, views.rendered_by)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -313,7 +320,8 @@ def fit_feature_field(scene: Scene, supervision: Supervision, config: Feature3DG
     info = {"key": key,
             "field": {"iterations": report.iterations, "seconds": report.seconds, "final_loss": report.final_loss,
                       "losses": report.losses, "supervised_fraction": report.supervised_fraction,
-                      "views": len(targets), "level": FEATURE_LEVEL_NAMES[level], "feature_dim": config.feature.dim,
+                      "views": len(targets), "rendered_by": report.rendered_by,
+                      "level": FEATURE_LEVEL_NAMES[level], "feature_dim": config.feature.dim,
                       "output_dim": output_dim, **peak.record()}}
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -59,7 +59,7 @@ from benchmark.core.memory import StagePeak
 from benchmark.core.scene import Camera, Frame, Scene
 
 from .api import AgnosticAnswer, Method, Progress
-from .fields.language_field import FrozenGeometry, GaussianState, camera_tensors
+from .fields.language_field import FrozenGeometry, GaussianState, LanguageFieldConfig, camera_tensors
 from .fields.relevance import AgnosticResult, answer_from_relevance, relevance
 from .language_methods import (GeometryFit, config_to_dict, device_kind, fit_geometry, scene_cache_folder,
                                shared_cache_root, with_unmasked_as)
@@ -278,10 +278,16 @@ class IdentityField(nn.Module):
     def num_identities(self) -> int:
         return int(self.classifier.out_features)
 
-    def render_with_alpha(self, state: GaussianState, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
-        """([H, W, identity_dim] rendered encodings, [H, W] accumulated opacity), one rasterizer call."""
+    def render_with_alpha(self, state: GaussianState, camera: Camera,
+                          prepared=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """([H, W, identity_dim] rendered encodings, [H, W] accumulated opacity), one rasterizer call, or one
+        product with the view's frozen rendering ``prepared`` (:meth:`methods.fields.views.ViewCycle.prepared`)."""
         from methods.gaussians.rasterize import rasterize
 
+        if prepared is not None:
+            image, alpha = prepared.render(self.encodings)
+            return (image.reshape(camera.height, camera.width, self.identity_dim),
+                    alpha.reshape(camera.height, camera.width))
         viewmat, K, w, h = camera_tensors(camera, self.encodings.device)
         out = rasterize(state.means, state.quats, state.scales, state.opacities, self.encodings, viewmat, K, w, h,
                         near=self.near, backend=self.render_backend, channel_chunk=self.identity_dim)
@@ -311,6 +317,8 @@ class IdentityReport:
     final_loss: float
     final_regulariser: float
     losses: list[float] = dataclasses.field(default_factory=list)
+    rendered_by: str = "rasterizer"
+    """How the training views were rendered (:attr:`methods.fields.views.ViewCycle.rendered_by`)."""
 
 
 def nearest_gaussians(points: torch.Tensor, queries: torch.Tensor, k: int) -> torch.Tensor:
@@ -370,7 +378,9 @@ def train_identity_field(geometry: FrozenGeometry, targets: Sequence[IdentityTar
                             {"params": field.classifier.parameters(), "lr": options.classifier_learning_rate}])
     ce_scale = 1.0 / math.log(max(num_identities, 2))  # the original's normalisation to about [0, 1]
     supervised = [bool((t.identity >= 0).any()) for t in targets]
-    views = ViewCycle(geometry, [t.time for t in targets], seed, VIEW_GEOMETRY_CACHE_MIB * 2 ** 20)
+    views = ViewCycle(geometry, [t.time for t in targets], seed, VIEW_GEOMETRY_CACHE_MIB * 2 ** 20,
+                      cameras=[t.camera for t in targets], near=field.near, render_backend=field.render_backend,
+                      matrix_budget_bytes=LanguageFieldConfig().blend_matrix_mib * 2 ** 20)
     losses: list[float] = []
     loss_value = reg_value = float("nan")
     steps = range(options.iterations)
@@ -380,7 +390,7 @@ def train_identity_field(geometry: FrozenGeometry, targets: Sequence[IdentityTar
     for step in steps:
         v, state = views.next()
         target = targets[v]
-        encodings, _ = field.render_with_alpha(state, target.camera)  # [H, W, d]
+        encodings, _ = field.render_with_alpha(state, target.camera, views.prepared(v, state))  # [H, W, d]
         logits = field.logits(encodings.reshape(-1, field.identity_dim))  # [H W, K]
         if supervised[v]:
             loss = ce_scale * F.cross_entropy(logits, target.identity.reshape(-1), ignore_index=-1)
@@ -399,7 +409,8 @@ def train_identity_field(geometry: FrozenGeometry, targets: Sequence[IdentityTar
             loss_value = float(loss.detach())
             losses.append(loss_value)
     field.requires_grad_(False)
-    return field, IdentityReport(options.iterations, time.perf_counter() - start, loss_value, reg_value, losses)
+    return field, IdentityReport(options.iterations, time.perf_counter() - start, loss_value, reg_value, losses,
+                                 views.rendered_by)
 
 
 def identity_targets(scene: Scene, table: IdentityTable, device: str | torch.device) -> list[IdentityTarget]:
@@ -509,6 +520,7 @@ def fit_identities(scene: Scene, supervision: Supervision, config: GaussianGroup
                            "masks": int(table.mask_counts.sum()), "frames": len(table.maps)},
             "field": {"kind": "identity", "iterations": report.iterations, "seconds": report.seconds,
                       "final_loss": report.final_loss, "final_regulariser": report.final_regulariser,
+                      "rendered_by": report.rendered_by,
                       "losses": report.losses, "views": len(targets), **peak.record()}}
     fit = IdentityFit(field, torch.as_tensor(table.features, device=device), table.unmasked, info)
     if path is not None:

@@ -307,3 +307,74 @@ def test_training_on_blend_matrices_fits_the_same_field_as_the_rasterizer():
     assert torch.allclose(fast.features, slow.features, atol=1e-3)
     tiny = LanguageFieldConfig(iterations=5, render_backend="torch", blend_matrix_mib=1e-6)
     assert train_language_field(ToyGeometry(toy, frozen_time=0.0), targets, tiny, seed=0)[1].views == "rasterizer"
+
+
+def test_the_view_cycle_keeps_each_views_rendering_as_the_rasterizer_renders_it():
+    """Feature-3DGS and Gaussian Grouping render their training views through :meth:`ViewCycle.prepared`: a
+    blending matrix where all fit the budget, else the kept projection and layout; the rasterizer's image
+    either way, and a view is prepared once."""
+    from methods.fields.views import ViewCycle
+    from methods.gaussians.rasterize import rasterize
+
+    toy = toy_scene(velocity=(0.4, 0.0, 0.0))
+    geometry, times = ToyGeometry(toy), [0.0, 0.5, 1.0]
+    colors = torch.randn(toy.means.shape[0], 5, generator=torch.Generator().manual_seed(1))
+    viewmat, K = torch.eye(4), torch.as_tensor(camera().K, dtype=torch.float32)
+    for matrix_mib, expected in ((64.0, "blend matrices"), (0.0, "kept layouts")):
+        cycle = ViewCycle(geometry, times, 0, 64 * 2 ** 20, cameras=[camera()] * 3, render_backend="torch",
+                          matrix_budget_bytes=matrix_mib * 2 ** 20)
+        for v, t in enumerate(times):
+            state = geometry.at(t)
+            view = cycle.prepared(v, state)
+            assert view is not None and cycle.prepared(v, state) is view
+            got, got_alpha = view.render(colors)
+            want = rasterize(state.means, state.quats, state.scales, state.opacities, colors, viewmat, K, W, H,
+                             backend="torch")
+            assert float(want.image.abs().max()) > 0.1
+            assert torch.allclose(got.reshape(H, W, -1), want.image.reshape(H, W, -1), atol=1e-5)
+            assert torch.allclose(got_alpha.reshape(H, W), want.alpha.reshape(H, W), atol=1e-6)
+        assert cycle.rendered_by == expected
+    assert ViewCycle(geometry, times, 0, 64 * 2 ** 20).prepared(0, geometry.at(0.0)) is None  # no cameras given
+    with pytest.raises(ValueError, match="2 cameras for 3 views"):
+        ViewCycle(geometry, times, 0, 0.0, cameras=[camera()] * 2)
+
+
+@pytest.mark.parametrize("method", ["feature-3dgs", "gaussian-grouping"])
+def test_feature_and_identity_fields_train_on_blend_matrices_as_on_the_rasterizer(method, monkeypatch):
+    """The same 40 steps with the views' blending matrices and with the rasterizer: the same losses."""
+    from methods import feature_3dgs, gaussian_grouping
+    from methods.specs.feature_3dgs import Feature3DGSConfig
+    from methods.specs.gaussian_grouping import GaussianGroupingConfig
+
+    toy = toy_scene(velocity=(0.4, 0.0, 0.0))
+    geometry, times = ToyGeometry(toy), [0.0, 0.5, 1.0]
+    truth = [torch.as_tensor(object_masks(toy, t)) for t in times]
+    runs = {}
+    for matrix_mib in (1024.0, 0.0):
+        budget = LanguageFieldConfig(blend_matrix_mib=matrix_mib)
+        module = feature_3dgs if method == "feature-3dgs" else gaussian_grouping
+        monkeypatch.setattr(module, "LanguageFieldConfig", lambda **kw: dataclasses_replace(budget, **kw))
+        if method == "feature-3dgs":
+            config = Feature3DGSConfig()
+            config.feature.iterations, config.geometry.render_backend = 40, "torch"
+            table = torch.randn(3, 12, generator=torch.Generator().manual_seed(2))
+            targets = [feature_3dgs.FeatureTarget(camera(), t, ids.long(), table) for t, ids in zip(times, truth)]
+            _, report = feature_3dgs.train_feature_field(geometry, targets, config, output_dim=12, seed=0,
+                                                         log_every=5)
+        else:
+            config = GaussianGroupingConfig()
+            config.identity.iterations, config.geometry.render_backend = 40, "torch"
+            config.identity.reg_weight = 0.0
+            targets = [gaussian_grouping.IdentityTarget(camera(), t, ids.long()) for t, ids in zip(times, truth)]
+            _, report = gaussian_grouping.train_identity_field(geometry, targets, 3, config, seed=0)
+        runs[matrix_mib] = report
+    fast, slow = runs[1024.0], runs[0.0]
+    assert (fast.rendered_by, slow.rendered_by) == ("blend matrices", "kept layouts")
+    assert len(fast.losses) == len(slow.losses) >= 2 and fast.losses[-1] < fast.losses[0]
+    assert np.allclose(fast.losses, slow.losses, rtol=1e-3, atol=1e-5)
+
+
+def dataclasses_replace(config, **changes):
+    import dataclasses
+
+    return dataclasses.replace(config, **changes)
