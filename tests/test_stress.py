@@ -374,8 +374,13 @@ def test_plot_stability_redraws_each_family_from_the_scores_table(tmp_path, caps
     assert "mask-melt" in capsys.readouterr().err
 
 
-def test_breaking_point_is_the_first_strength_below_half_the_clean_score():
-    assert stress.breaking_point({0.0: [80, 60], 1.0: [50, 40], 2.0: [30, 36], 4.0: [10, 0]}) == 2.0
+def test_breaking_point_is_the_first_strength_whose_interval_lies_below_half_the_clean_interval():
+    # clean seeds 80 / 60: interval [60, 80], half its lower end 30. Strength 2's mean (33) is below half the
+    # clean mean (35), but its interval [30, 36] reaches above 30: inside the noise, not a break
+    assert stress.seed_interval([80, 60]) == (60.0, 80.0) and stress.seed_interval([30, 36]) == (30.0, 36.0)
+    assert stress.breaking_point({0.0: [80, 60], 1.0: [50, 40], 2.0: [30, 36], 4.0: [10, 0]}) == 4.0
+    assert stress.breaking_point({0.0: [80, 60], 1.0: [50, 40], 2.0: [29, 20]}) == 2.0
+    assert stress.breaking_point({0.0: [80], 1.0: [39]}) == 1.0  # one seed: its value against half the clean
     assert stress.breaking_point({0.0: [80], 1.0: [60]}) is None
     assert stress.breaking_point({1.0: [10]}) is None
 

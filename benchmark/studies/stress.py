@@ -625,14 +625,26 @@ def mean_by_strength(scores: Sequence[Score], fam: str, method: str, metric: str
     return dict(sorted(out.items()))
 
 
+def seed_interval(values: Sequence[float]) -> tuple[float, float]:
+    """The 95 % bootstrap interval of the mean of one cell's seeds (:mod:`benchmark.stats`: seeds resampled
+    with replacement; one seed gives its value at both ends)."""
+    from benchmark.stats import bootstrap_means, percentile_interval, stable_seed
+
+    column = np.asarray(values, dtype=np.float64)[:, None]  # (seeds, 1)
+    replicates = bootstrap_means({"cell": [column]}, resample_queries=False, seed=stable_seed(*values))["cell"]
+    return percentile_interval(replicates)
+
+
 def breaking_point(values: dict[float, list[float]]) -> Optional[float]:
-    """The first strength whose mean score falls below half the clean (strength 0) mean; None if none
-    does (or there is no clean score)."""
+    """The first strength whose interval over seeds (:func:`seed_interval`) lies wholly below half of the clean
+    (strength 0) interval, i.e. its upper end below half the clean lower end: a drop outside the seed noise.
+    None if no strength's does, or there is no clean score. With one seed per cell this is the seed's value
+    against half the clean value."""
     if 0.0 not in values or not values[0.0]:
         return None
-    clean = float(np.mean(values[0.0]))
+    clean_low = seed_interval(values[0.0])[0]
     for strength, seeds in values.items():
-        if strength > 0 and seeds and float(np.mean(seeds)) < 0.5 * clean:
+        if strength > 0 and seeds and seed_interval(seeds)[1] < 0.5 * clean_low:
             return strength
     return None
 

@@ -52,8 +52,9 @@ def _seeds_text(seeds: Sequence[int]) -> str:
 
 def family_chart(scores: Sequence[Score], fam: str, methods: Sequence[str], path: Path) -> Optional[Path]:
     """One panel per metric: the seeds' mean against strength per method (a line), the seeds' range
-    shaded, and half of the method's clean mean dotted in its colour (where the line crosses it, the
-    method breaks: :func:`~benchmark.studies.stress.breaking_point`); the legend says so."""
+    shaded, and half of the method's clean mean dotted in its colour (the method breaks where its seeds'
+    interval lies below half of its clean interval: :func:`~benchmark.studies.stress.breaking_point`); the
+    legend says so."""
     import textwrap
 
     from matplotlib.lines import Line2D
@@ -98,7 +99,7 @@ def family_chart(scores: Sequence[Score], fam: str, methods: Sequence[str], path
         Line2D([], [], color="0.3", marker="o", ms=4, label="line: mean over the seeds"),
         Patch(facecolor="0.3", alpha=0.2, label=f"shaded: lowest to highest seed ({_seeds_text(seeds_seen)})"),
         Line2D([], [], color="0.3", linestyle=":", label="dotted, the method's colour: half its clean score\n"
-                                                          "(it breaks where its line falls below)")]
+                                                          "(it breaks where its seed interval falls below)")]
     fig.legend(handles=handles, fontsize=9, loc="outside right center")  # beside, not over, the lines
     fig.suptitle(fam, fontsize=12)
     return _save_png(fig, path)
@@ -107,8 +108,9 @@ def family_chart(scores: Sequence[Score], fam: str, methods: Sequence[str], path
 def breaking_rows(scores: Sequence[Score], families: Sequence[str], methods: Sequence[str],
                   metrics: Sequence[str] = ("mIoU", "Acc")) -> tuple[list[str], list[list[str]]]:
     """The breaking-point table: per family, per method and metric, the strength at which the seeds'
-    mean falls below half the clean mean (``≤ s`` when weaker strengths were not run, ``> s`` when it
-    holds up to the strongest ``s`` run, ``–`` when there is no clean score or no run past it)."""
+    interval lies below half the clean interval (:func:`~benchmark.studies.stress.breaking_point`; ``≤ s``
+    when weaker strengths were not run, ``> s`` when it holds up to the strongest ``s`` run, ``–`` when there
+    is no clean score or no run past it)."""
     header = ["family", "unit"] + [f"{m} {metric}" for m in methods for metric in metrics]
     rows = []
     for fam in families:
@@ -470,14 +472,14 @@ def _readme(config: SuiteConfig, scores: Sequence[Score], families: Sequence[str
             f"Run time, each run on the core it ran on (a fit reused from the cache costs nothing here):\n\n"
             f"{_run_time_table(scores, config.methods)}\n"
             f"## Clean scores (strength 0, mean over seeds)\n\n{_clean_table(scores, config.methods)}\n"
-            f"## Breaking points\n\nThe strength at which a method's mean over seeds falls below half of its "
-            f"clean score (`≤ s`: weaker strengths were not run; `> s`: it holds up to the strongest strength run; `–`: not run, or no clean score to halve).\n\n"
+            f"## Breaking points\n\nThe first strength at which a method's 95 % interval over seeds lies wholly "
+            f"below half of its clean interval's lower end: a drop outside the seed noise (`≤ s`: weaker strengths were not run; `> s`: it holds up to the strongest strength run; `–`: not run, or no clean score to halve).\n\n"
             f"{table}\n## Findings per family (measured)\n\nMeans over the seeds run (the clean runs' and, "
             f"where a perturbed strength has fewer, which at which strengths).\n\n"
             f"{findings(scores, families, config.methods)}\n"
             + (f"{notes.strip()}\n\n" if notes.strip() else "")
             + f"## Charts and galleries\n\nA chart draws each metric against the family's strength: per method "
               f"a line through the mean over the seeds, shaded from its lowest to its highest seed, and a dotted "
-              f"line in its colour at half its clean score (where its line falls below, it breaks). A gallery "
+              f"line in its colour at half its clean score (a method breaks where its whole seed interval falls below half of its clean interval). A gallery "
               f"shows the strongest strength's worst (query, frame) pairs, each below the same pair on the clean "
               f"scene, with the first time-sensitive query's decisions at the bottom.\n\n{charts}\n")
