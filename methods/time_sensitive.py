@@ -64,7 +64,9 @@ class _FieldHead(TimeVaryingHead):
         with StagePeak(context.device) as peak:
             field = fit_time_varying_field(context.shared.geometry, context.scene, sup, cfg, kind=cls.kind,
                                            seed=context.seed, device=context.device, progress=context.progress,
-                                           log=context.progress.log, backend=cfg.geometry.render_backend)
+                                           log=context.progress.log, backend=cfg.geometry.render_backend,
+                                           cache_dir=None if context.cache_root is None
+                                           else Path(context.cache_root) / "captions")
         field.info.update(peak.record())
         field.info["captioning"] = captioning
         mem = field.memory()

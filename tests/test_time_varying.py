@@ -399,8 +399,11 @@ def test_head_scores_inside_the_chosen_spatial_mask(world, status_field, tmp_pat
     spatial = AgnosticResult(mask=box, mask_unfiltered=torch.zeros_like(box), relevance=box.float(), level=0,
                              level_peaks=torch.ones(3))
     release = PROTOCOLS["release"]
-    filtered = SimpleNamespace(protocol=release.with_changes({"sensitive.mask": "filtered"}))
-    unfiltered = SimpleNamespace(protocol=release)
+    from methods.specs._language import AnswerConfig
+
+    answer = SimpleNamespace(answer=AnswerConfig())  # the model's answer options (TF32 decode: CUDA only)
+    filtered = SimpleNamespace(protocol=release.with_changes({"sensitive.mask": "filtered"}), config=answer)
+    unfiltered = SimpleNamespace(protocol=release, config=answer)
     assert head.score("box open", frame, spatial, filtered) == pytest.approx(
         _scores(world, status_field, "box open", [frame])[0], abs=1e-6)
     assert np.isnan(head.score("box open", frame, spatial, unfiltered))  # the release's mask is empty here
@@ -564,3 +567,30 @@ def test_captions_and_time_queries_take_their_own_text_encoder_when_one_is_named
     named = caption_text_encoder(CaptionConfig(text_encoder="minilm"), run_encoder, "cpu")
     assert named is get_text_encoder("minilm", device="cpu") and named is not run_encoder
     assert named.encode(["a cracked cookie"], kind="passage").shape[1] == 384
+
+
+def test_the_caption_autoencoder_is_kept_for_the_other_heads_and_retrained_when_damaged(world, tmp_path):
+    """The status field and the Non-Status field of one scene and seed train the same caption autoencoder: the
+    second fit reads it from the cache and fits exactly the same field as a fit without the cache; a damaged
+    entry is trained again."""
+    opts = _options({"status.iterations": 30})
+    plain = fit_time_varying_field(world.geometry, world.scene, world.sup, opts, kind="non-status", seed=0,
+                                   backend="torch")
+    first = fit_time_varying_field(world.geometry, world.scene, world.sup, opts, kind="status", seed=0,
+                                   backend="torch", cache_dir=tmp_path)
+    kept = list((tmp_path / "caption-autoencoders").glob("*.pt"))
+    assert len(kept) == 1 and first.info["autoencoder"]["cached"] is False
+    second = fit_time_varying_field(world.geometry, world.scene, world.sup, opts, kind="non-status", seed=0,
+                                    backend="torch", cache_dir=tmp_path)
+    assert second.info["autoencoder"]["cached"] is True
+    assert second.info["autoencoder"]["steps"] == plain.info["autoencoder"]["steps"]
+    for a, b in zip(second.state()["module"].values(), plain.state()["module"].values()):
+        assert torch.equal(a, b)
+    for a, b in zip(second.autoencoder.state_dict().values(), plain.autoencoder.state_dict().values()):
+        assert torch.equal(a, b)
+    kept[0].write_bytes(b"not a torch file")
+    again = fit_time_varying_field(world.geometry, world.scene, world.sup, opts, kind="non-status", seed=0,
+                                   backend="torch", cache_dir=tmp_path)
+    assert again.info["autoencoder"]["cached"] is False and kept[0].stat().st_size > 100
+    for a, b in zip(again.state()["module"].values(), plain.state()["module"].values()):
+        assert torch.equal(a, b)

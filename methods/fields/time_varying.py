@@ -49,8 +49,11 @@ cosine between the decoded time-varying feature and the query embedding; an empt
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
@@ -795,7 +798,7 @@ def _optimise(module: nn.Module, views: Sequence[LatentView], geometry: FrozenGe
 def fit_time_varying_field(geometry: FrozenGeometry, scene: Scene, sup: CaptionSupervision, config, *,
                            kind: str = "status", seed: int = 0, device: str | torch.device = "cpu",
                            progress: Optional[Callable] = None, log: Callable[[str], None] = lambda m: None,
-                           backend: str = "auto") -> TimeVaryingField:
+                           backend: str = "auto", cache_dir: Optional[Path] = None) -> TimeVaryingField:
     """Fit the status field (``kind="status"``) or the Non-Status baseline on frozen ``geometry``.
 
     Args:
@@ -803,6 +806,7 @@ def fit_time_varying_field(geometry: FrozenGeometry, scene: Scene, sup: CaptionS
         sup: captions and their embeddings (:func:`build_captions` + :func:`embed_captions`).
         config: a time-varying method config (:class:`methods.specs._time_varying.TimeVaryingMethodConfig`:
             its ``caption_autoencoder``, ``status`` and ``extensions`` groups are read).
+        cache_dir: where the caption autoencoder is kept for the other heads of the scene (``None``: not kept).
     """
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
@@ -819,7 +823,7 @@ def fit_time_varying_field(geometry: FrozenGeometry, scene: Scene, sup: CaptionS
                             "caption_dim": sup.dim}
     sup, change_points = _shaped_caption_targets(scene, sup, config, info)
     sem, k = _object_states(sup, config, seed, change_points, info, log)  # 2. semantics per object, K
-    ae = _caption_autoencoder(sup, config.caption_autoencoder, seed, device, info)  # 3. autoencoder D -> d
+    ae = _caption_autoencoder(sup, config.caption_autoencoder, seed, device, info, cache_dir)  # 3. D -> d
     targets = caption_targets(scene, sup, ae, device)
     views, op_info = prepare_views(geometry, targets, budget_mib=head.cache_view_mib,
                                    use_operators=ext.blend_operators, near=near, progress=progress)
@@ -893,16 +897,61 @@ def _object_states(sup: CaptionSupervision, config, seed: int, change_points: Op
 
 
 def _caption_autoencoder(sup: CaptionSupervision, ae_cfg: AutoencoderConfig, seed: int, device: str | torch.device,
-                         info: dict[str, Any]) -> FeatureAutoencoder:
+                         info: dict[str, Any], cache_dir: Optional[Path] = None) -> FeatureAutoencoder:
     """The frozen autoencoder (``ae_cfg``: the ``caption_autoencoder`` group) from the caption embeddings to
-    its latent, trained on the distinct embeddings weighted by their pixel areas."""
-    ae, ae_report = train_autoencoder(sup.embeddings, ae_cfg, seed=seed, weights=np.maximum(sup.areas(), 1.0),
-                                      device=device)
+    its latent, trained on the distinct embeddings weighted by their pixel areas. With ``cache_dir`` it is
+    kept there under a key of its inputs (embeddings, weights, config, seed, device kind, code), so the heads
+    of one scene and seed that train on the same captions (the status field and the Non-Status field) train it
+    once; a damaged entry is trained again."""
+    from benchmark.core.atomic import atomic_path
+    from benchmark.core.cache_keys import code_digest, stable_hash
+
+    weights = np.maximum(sup.areas(), 1.0)
+    path = None
+    if cache_dir is not None:
+        embeddings = np.ascontiguousarray(sup.embeddings, dtype=np.float32)
+        key = stable_hash({"embeddings": hashlib.sha256(embeddings.tobytes()).hexdigest(),
+                           "shape": list(embeddings.shape),
+                           "weights": hashlib.sha256(np.ascontiguousarray(weights, np.float64).tobytes()).hexdigest(),
+                           "config": dataclasses.asdict(ae_cfg), "seed": seed, "device": torch.device(device).type,
+                           "code": code_digest("methods.fields.autoencoder")}, 24)
+        path = Path(cache_dir) / "caption-autoencoders" / f"{key}.pt"
+        kept = _kept_caption_autoencoder(path, int(embeddings.shape[1]), ae_cfg, int(embeddings.shape[0]), seed,
+                                         device)
+        if kept is not None:
+            ae, record = kept
+            info["autoencoder"] = {**record, "cached": True}
+            info["latent_dim"] = ae_cfg.latent_dim
+            return ae
+    ae, ae_report = train_autoencoder(sup.embeddings, ae_cfg, seed=seed, weights=weights, device=device)
     ae.eval().requires_grad_(False)
-    info["autoencoder"] = {"reconstruction_cosine": ae_report.reconstruction_cosine, "steps": ae_report.steps,
-                           "seconds": ae_report.seconds}
+    record = {"reconstruction_cosine": ae_report.reconstruction_cosine, "steps": ae_report.steps,
+              "seconds": ae_report.seconds}
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(path) as tmp:
+            torch.save({"state": {k: v.cpu() for k, v in ae.state_dict().items()}, "record": record}, tmp)
+    info["autoencoder"] = {**record, "cached": False}
     info["latent_dim"] = ae_cfg.latent_dim
     return ae
+
+
+def _kept_caption_autoencoder(path: Path, input_dim: int, ae_cfg: AutoencoderConfig, count: int, seed: int,
+                              device: str | torch.device) -> Optional[tuple[FeatureAutoencoder, dict]]:
+    """The autoencoder kept at ``path`` and its training record, or ``None`` (absent or unreadable). The model
+    is built as :func:`train_autoencoder` builds it (seeded, so the global random state afterwards is the
+    same as after training it), then given the kept weights."""
+    if not path.is_file():
+        return None
+    try:
+        kept = torch.load(path, map_location="cpu", weights_only=True)
+        torch.manual_seed(seed)
+        ae = FeatureAutoencoder(input_dim, ae_cfg.for_features(count)).to(device)
+        ae.load_state_dict(kept["state"])
+        record = {k: kept["record"][k] for k in ("reconstruction_cosine", "steps", "seconds")}
+    except Exception:  # damaged or from another layout: trained again and rewritten
+        return None
+    return ae.eval().requires_grad_(False), record
 
 
 def _gaussians_with_states(kind: str, k: int, geometry: FrozenGeometry, scene: Scene, sup: CaptionSupervision,
