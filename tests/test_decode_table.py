@@ -154,3 +154,22 @@ def test_mask_agreement_counts_image_pixels_and_marked_pixels_apart():
     out = mask_agreement([types.SimpleNamespace(mask=a)], [types.SimpleNamespace(mask=b)])
     assert out["mask_agreement_with_exact"] == 0.9 and out["min_mask_agreement_with_exact"] == 0.9
     assert out["mask_pixel_agreement_with_exact"] == 0.75 and out["mask_pixels"] == 4
+
+
+def test_the_gpu_query_check_runs_its_rows_on_a_cpu_at_a_tiny_scale(tmp_path):
+    """The one-command GPU check (``python -m benchmark.studies.gpu_query_check``) as a dry run on the CPU:
+    every row measured, the report written with its machine and code, the time-sensitive parts timed."""
+    import json
+
+    from benchmark.studies.gpu_query_check import AGNOSTIC_VARIANTS, main
+
+    assert main(["--device", "cpu", "--scale", "0.001", "--frames", "1", "--out", str(tmp_path)]) == 0
+    doc = json.loads((tmp_path / "gpu-query.json").read_text())
+    for key, _, options in AGNOSTIC_VARIANTS:
+        assert doc[key]["fps"] > 0 and doc[key]["answer_options"] == options
+    sensitive = doc["sensitive_default"]["sensitive"]
+    assert sensitive["fps"] > 0 and set(sensitive["stage_seconds_per_frame"]) == {
+        "agnostic", "status_render", "status_decode_score"}
+    assert doc["environment"]["device"] == "cpu" and "commit" in doc["git"]
+    text = (tmp_path / "gpu-query.md").read_text()
+    assert "every pixel decoded, float32" in text and "Time-sensitive parts" in text
