@@ -293,6 +293,8 @@ def _states_arguments(sub) -> None:
     s.add_argument("--device", default="cpu")
     s.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override another method option, a dotted path (repeatable), e.g. status.iterations=2000")
+    s.add_argument("--reuse", action="store_true",
+                   help="read a (K, seed) whose results file is already there instead of evaluating it again")
 
 
 def _real_cost_arguments(sub) -> None:
@@ -468,7 +470,7 @@ def _states(args) -> int:
     return _print_report(states_report(
         args.scene, args.k, seeds=args.seeds, method=args.method, results_dir=args.results_dir,
         cache_dir=args.cache_dir, size=args.size, text_encoder=args.text_encoder, device=args.device,
-        overrides=parse_overrides(args.set), out=args.out, quiet=args.quiet))
+        overrides=parse_overrides(args.set), out=args.out, quiet=args.quiet, reuse=args.reuse))
 
 
 def _speed(args) -> int:

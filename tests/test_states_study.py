@@ -1,0 +1,38 @@
+"""``bench4d ablate states`` (the paper's Table 5): the table over K and seeds, read back from kept runs."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from benchmark.studies import states
+
+
+def _kept(results_dir, k: int, seed: int, acc: float, viou: float) -> None:
+    path = (results_dir / "ablations" / f"states-k{k}" / "synthetic" / "chickchicken" / "4d-langsplat" / "oracle"
+            / f"seed{seed}.json")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"metrics": {"Acc": acc, "vIoU": viou, "mIoU": 50.0}, "layout": "hypernerf",
+                                "scene": "chickchicken", "fit": {"key": f"k{k}s{seed}"},
+                                "protocol": {"name": "release"}}))
+
+
+def test_the_states_table_reads_kept_runs_and_gives_the_seed_spread(tmp_path, monkeypatch):
+    def no_evaluation(options):
+        raise AssertionError(f"evaluated K={options.method_options['status.num_states']} seed {options.seed}")
+
+    monkeypatch.setattr(states, "evaluate", no_evaluation)
+    for seed, (acc2, acc3) in enumerate([(90.0, 100.0), (80.0, 90.0), (70.0, 95.0)]):
+        _kept(tmp_path / "results", 2, seed, acc2, 40.0 + seed)
+        _kept(tmp_path / "results", 3, seed, acc3, 50.0)
+    report = states.states_report("chickchicken", [2, 3], seeds=[0, 1, 2], results_dir=tmp_path / "results",
+                                  cache_dir=tmp_path / "cache", size=128, out=tmp_path / "out", reuse=True)
+    assert "| 2 | 80.00 ± 10.00 | 41.00 ± 1.00 |" in report.table
+    assert "| 3 | 95.00 ± 5.00 | 50.00 ± 0.00 |" in report.table
+    assert "protocol release" in report.table
+    doc = json.loads((tmp_path / "out" / "states-chickchicken.json").read_text())
+    assert [row["K"] for row in doc["rows"]] == [2, 3] and doc["rows"][0]["Acc"] == pytest.approx(80.0)
+    with pytest.raises(AssertionError, match="evaluated K=4 seed 0"):  # a missing run is evaluated
+        states.states_report("chickchicken", [4], seeds=[0], results_dir=tmp_path / "results",
+                             cache_dir=tmp_path / "cache", size=128, out=tmp_path / "out", reuse=True)
