@@ -32,6 +32,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "doctor": ("doctor", "before a long run: CUDA, gsplat, libraries, weights, free disk and memory, one line each"),
     "demo": ("demo", "the main job: a synthetic scene end to end, printing metrics and timings"),
     "cache": ("cache", "what the cache folder holds; prune leftovers of interrupted runs or unreferenced fits"),
+    "slim": ("slim", "results files as the committed tree keeps them: per-frame records and predictions dropped"),
     "ablate": ("ablate", "analyses: protocol ceiling, rescore under another protocol, gap, autoencoder, states (K), "
                          "delta-sim (caption prompts), decisions, speed, query-speed"),
     "stress": ("stress", "the stress suite: perturbation families x strengths x methods x seeds, breaking points"),

@@ -591,7 +591,9 @@ def _timeline_doc(method: str, scene: str, query: str, *, results_dir, track: st
     frames = sorted((f for f in scores.get("frames", []) if f.get("query") == query),
                     key=lambda f: (f["time_index"], f.get("camera_id", ""), f["frame"]))
     if not frames:
-        raise InputError(path, "scores.frames", f"no per-frame records for {query!r}")
+        why = (" (dropped by bench4d slim: rerun bench4d eval for them)" if scores.get("frames_dropped")
+               else "")
+        raise InputError(path, "scores.frames", f"no per-frame records for {query!r}{why}")
     return doc, row, frames
 
 

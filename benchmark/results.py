@@ -26,6 +26,7 @@ import functools
 import json
 import math
 import os
+import shutil
 import types
 from pathlib import Path
 from typing import (Any, Iterable, Iterator, Literal, NotRequired, Optional, TypedDict, Union, get_args, get_origin,
@@ -276,6 +277,8 @@ class Scores(TypedDict):
     """Queries not scored: no evaluated frame."""
     frames: NotRequired[list[dict[str, Any]]]
     """One record per (query, frame); stored as a ``{"columns", "rows"}`` table."""
+    frames_dropped: NotRequired[int]
+    """How many per-frame records :func:`slim_results` removed (the metrics and per-query scores stay)."""
 
 
 class RunResults(TypedDict):
@@ -525,6 +528,30 @@ ABLATIONS_DIR = "ablations"
 ARCHIVE_DIR = "archive"
 """Folder under a results directory that keeps runs no longer comparable (e.g. measured on a synthetic
 scene version the committed generator does not make): kept, never read by the leaderboard."""
+
+
+def slim_results(path: str | Path) -> int:
+    """Rewrite the results file at ``path`` as the committed tree keeps it: what the leaderboard, the paper
+    tables, the charts and the studies' tables read (metrics, per-query scores, timing, memory, provenance)
+    stays; the per-frame records become their count (``scores.frames_dropped``) and the predictions folder
+    beside it is deleted. Returns the bytes freed (0 for a file already slim)."""
+    path = Path(path)
+    before = path.stat().st_size
+    doc = read_results(path)
+    scores = doc.get("scores") or {}
+    folder = path.with_suffix(".predictions")
+    freed = 0
+    if folder.is_dir():
+        freed += sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
+        shutil.rmtree(folder)
+    if "frames" not in scores and "predictions" not in doc:
+        return freed
+    if "frames" in scores:
+        doc["scores"] = {**{k: v for k, v in scores.items() if k != "frames"},
+                         "frames_dropped": len(scores["frames"]) + int(scores.get("frames_dropped", 0))}
+    doc.pop("predictions", None)
+    write_results(path, doc)
+    return freed + before - path.stat().st_size
 
 
 def find_results(results_dir: str | Path) -> list[Path]:

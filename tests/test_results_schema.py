@@ -63,7 +63,7 @@ def good_doc() -> dict:
         "score_config": {"temporal": PROTOCOLS["release"].temporal.to_dict(), "eval_frames": ["f000"],
                          "allow_extra": False},
         "scores": {"queries": [{"scene": "s1", "query": "open box", "kind": "sensitive", "frames": 4, "Acc": 75.0}],
-                   "skipped": [{"scene": "s1", "query": "ball"}], "frames": frames},
+                   "skipped": [{"scene": "s1", "query": "ball"}], "frames": frames, "frames_dropped": 0},
         "predictions": "seed0.predictions/predictions.json",
         "wall_seconds": 3.0,
         "created": "2025-01-01T00:00:00+00:00",
@@ -213,3 +213,34 @@ def test_the_schema_reads_the_same_whichever_union_spelling_typing_cached_first(
         with pytest.raises(InputError, match="metrics.mIoU"):
             _check_value("high", hint, None, "metrics.mIoU")
     NotRequired[float | None]  # noqa: B018 - what a library importing before bench4d may do
+
+
+def test_slim_keeps_what_the_tables_read_and_drops_frames_and_predictions(tmp_path, capsys):
+    """``bench4d slim``: the per-frame records become their count, the predictions folder goes, the metrics,
+    per-query scores and the leaderboard's rows stay; a second pass changes nothing."""
+    from benchmark.cli import main
+    from benchmark.leaderboard import query_rows
+
+    doc = good_doc()
+    target = results_path(tmp_path / "results", "synthetic", "s1", "nearest-frame", "oracle", 0)
+    write_results(target, {k: v for k, v in doc.items() if k not in ("format", "version")})
+    folder = target.with_suffix(".predictions")
+    folder.mkdir()
+    (folder / "predictions.json").write_text("x" * 5000)
+    rows_before = query_rows(read_results(target), "p")
+    assert main(["slim", str(tmp_path / "results"), "--dry-run"]) == 0
+    assert f"would slim {target}" in capsys.readouterr().out and folder.is_dir()
+    assert main(["slim", str(tmp_path / "results")]) == 0
+    assert "1 results file(s)" in capsys.readouterr().out
+    slim = read_results(target)
+    assert "frames" not in slim["scores"] and slim["scores"]["frames_dropped"] == len(doc["scores"]["frames"])
+    assert "predictions" not in slim and not folder.exists()
+    for key in ("metrics", "timing", "memory", "fit", "environment", "supervision"):
+        assert slim[key] == doc[key]
+    assert slim["scores"]["queries"] == doc["scores"]["queries"] and query_rows(slim, "p") == rows_before
+    size = target.stat().st_size
+    from benchmark.results import slim_results
+
+    assert slim_results(target) == 0 and target.stat().st_size == size
+    assert main(["slim", str(tmp_path / "missing")]) == 2
+
