@@ -491,6 +491,8 @@ def checkout_state(root: Path) -> dict[str, Any]:
 def device_description(device: str) -> dict[str, Any]:
     """The machine a run ran on (results' ``environment``): CPU model, the instruction set torch's CPU kernels
     dispatch to, numpy's BLAS kernels, the GPU (null off CUDA)."""
+    from methods.api import native_kernels_state
+
     # platform.processor() is empty on Linux: the CPU's model name from /proc/cpuinfo there
     info: dict[str, Any] = {"device": device, "platform": platform.platform(), "machine": platform.machine(),
                             "cpu_count": os.cpu_count(),
@@ -500,18 +502,12 @@ def device_description(device: str) -> dict[str, Any]:
                             # numpy's BLAS kernels in this process: the generator's pixels depend on them
                             "numpy_blas_core": openblas_core(),
                             # the compiled CPU kernels or the PyTorch passes: equal up to float rounding
-                            "native_kernels": _native_kernels_state(), "gpu": None}
+                            "native_kernels": native_kernels_state(), "gpu": None}
     if device.startswith("cuda"):
         import torch
 
         info["gpu"] = torch.cuda.get_device_name(torch.device(device))
     return info
-
-
-def _native_kernels_state() -> str:
-    from methods.api import native_kernels_state
-
-    return native_kernels_state()
 
 
 def cpu_capability() -> Optional[str]:

@@ -53,12 +53,12 @@ def decode_agreement(model, texts: Sequence[str], frames: Sequence[Frame], optio
     compare with decoding every pixel in float32, on ``frames`` and ``texts``: the share of all pixels, and of mask
     pixels (those either answer marks), on which the masks agree, and the worst frame's. The model's answer
     options are restored afterwards."""
+    from .query_speed import mask_agreement
+
     answer = model.config.answer
     names = ("decode_table", "decode_table_cuda", "decode_tf32", *options)
     saved = {name: getattr(answer, name) for name in names}
     exact_options = {"decode_table": 0, "decode_table_cuda": 0, "decode_tf32": False}
-    equal = total = mask_equal = mask_total = 0
-    worst = 1.0
     try:
         answers = {}
         for run, chosen in (("exact", exact_options), ("chosen", {**saved, **options})):
@@ -66,28 +66,18 @@ def decode_agreement(model, texts: Sequence[str], frames: Sequence[Frame], optio
                 setattr(answer, name, value)
             model._decode_tables.clear()
             model._reduced_cache.clear()
-            for text in texts:
-                for frame in frames:
-                    answers[(run, text, frame.name)] = model.agnostic(text, frame).mask.cpu().numpy()
+            answers[run] = [model.agnostic(text, frame) for text in texts for frame in frames]
     finally:
         for name, value in saved.items():
             setattr(answer, name, value)
         model._decode_tables.clear()
         model._reduced_cache.clear()
-    for text in texts:
-        for frame in frames:
-            exact, chosen = answers[("exact", text, frame.name)], answers[("chosen", text, frame.name)]
-            same = exact == chosen
-            union = exact | chosen
-            equal += int(same.sum())
-            total += same.size
-            mask_equal += int((same & union).sum())
-            mask_total += int(union.sum())
-            worst = min(worst, float(same.mean()))
-    return {"options": dict(options), "texts": len(texts), "frames": len(frames), "pixels": total,
-            "pixel_agreement": equal / total if total else float("nan"),
-            "mask_pixels": mask_total, "mask_pixel_agreement": mask_equal / mask_total if mask_total else float("nan"),
-            "worst_frame_pixel_agreement": worst}
+    agree = mask_agreement(answers["chosen"], answers["exact"])
+    pixels = sum(int(a.mask.numel()) for a in answers["exact"])
+    return {"options": dict(options), "texts": len(texts), "frames": len(frames), "pixels": pixels,
+            "pixel_agreement": agree["mask_agreement_with_exact"], "mask_pixels": agree["mask_pixels"],
+            "mask_pixel_agreement": agree["mask_pixel_agreement_with_exact"],
+            "worst_frame_pixel_agreement": agree["min_mask_agreement_with_exact"]}
 
 
 def sensitive_speed(num_gaussians: int, width: int, height: int, *, device: str, frames: int = 10, warmup: int = 2,
@@ -152,12 +142,12 @@ def _sensitive_stages(model, field, frames: Sequence[Frame], sync) -> dict[str, 
     """Seconds per frame of the time-sensitive answer's parts, each closed by a device synchronisation (so
     their sum exceeds the pipelined whole): the time-agnostic answer (the spatial mask), the status field's
     latents and their render, and the decode of the masked pixels with the mean cosine."""
+    from methods.fields.language_field import matmul_precision
     from methods.language_methods import spatial_mask
 
     totals = {"agnostic": 0.0, "status_render": 0.0, "status_decode_score": 0.0}
     q = torch.as_tensor(model.head.query_embedding("query 0"), dtype=torch.float32, device=field.geometry.device)
     tf32 = model.config.answer.decode_tf32 and field.geometry.device.type == "cuda"
-    from methods.fields.language_field import matmul_precision
 
     for frame in frames:
         sync()

@@ -92,7 +92,7 @@ def mask_agreement(answers, exact) -> dict[str, float]:
     answer marks) that agree, over all frames and on the worst frame."""
     same_all, same_mask, equal, union_total = [], [], 0, 0
     for a, b in zip(answers, exact):
-        a, b = np.asarray(a.mask, dtype=bool), np.asarray(b.mask, dtype=bool)
+        a, b = _bool_mask(a.mask), _bool_mask(b.mask)
         same = a == b
         union = a | b
         same_all.append(float(same.mean()))
@@ -173,3 +173,9 @@ def _synchronizer(device: torch.device) -> Callable[[], None]:
             torch.cuda.synchronize(device)
 
     return sync
+
+
+def _bool_mask(mask) -> np.ndarray:
+    """An answer's mask (a numpy array, or a tensor on any device) as a bool array."""
+    return np.asarray(mask.cpu() if isinstance(mask, torch.Tensor) else mask, dtype=bool)
+
