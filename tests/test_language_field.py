@@ -300,13 +300,13 @@ def test_training_on_blend_matrices_fits_the_same_field_as_the_rasterizer():
                                   blend_matrix_mib=budget)
         fits[budget] = train_language_field(ToyGeometry(toy, frozen_time=0.0), targets, cfg, seed=0)
     (slow, slow_report), (fast, fast_report) = fits[0.0], fits[64.0]
-    assert slow_report.views == "rasterizer"
+    assert slow_report.views == "kept layouts"
     if fast_report.views != "blend matrices":
         pytest.skip("the compiled CPU kernels do not run here")
     assert np.allclose(fast_report.losses, slow_report.losses, rtol=1e-3, atol=1e-5)
     assert torch.allclose(fast.features, slow.features, atol=1e-3)
     tiny = LanguageFieldConfig(iterations=5, render_backend="torch", blend_matrix_mib=1e-6)
-    assert train_language_field(ToyGeometry(toy, frozen_time=0.0), targets, tiny, seed=0)[1].views == "rasterizer"
+    assert train_language_field(ToyGeometry(toy, frozen_time=0.0), targets, tiny, seed=0)[1].views == "kept layouts"
 
 
 def test_the_view_cycle_keeps_each_views_rendering_as_the_rasterizer_renders_it():

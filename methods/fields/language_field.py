@@ -364,8 +364,9 @@ class FieldReport:
     supervised_fraction: float = 0.0
     """Mean fraction of (pixel, level) pairs inside a mask over the training views."""
     views: str = ""
-    """How each step rendered its view: ``blend matrices`` (:class:`BlendMatrixView`), ``rasterizer`` (the
-    compiled compositing on a kept or rebuilt layout), or ``rasterizer, deformed each step``."""
+    """How each step rendered its view (:attr:`methods.fields.views.ViewCycle.rendered_by`): ``blend matrices``
+    (:class:`BlendMatrixView`), ``kept layouts`` (the compiled compositing on each view's kept layout), or
+    ``rasterizer`` (a full render each step)."""
 
 
 def masked_l1(pred: torch.Tensor, target: FieldTarget) -> torch.Tensor:
@@ -390,28 +391,16 @@ def train_language_field(geometry: FrozenGeometry, targets: Sequence[FieldTarget
     cfg = cfg or LanguageFieldConfig()
     if not targets:
         raise ValueError("the language field needs at least one training view")
-    device = geometry.device
     gen = torch.Generator().manual_seed(seed)
-    fld = LanguageField(geometry.num_gaussians, cfg, generator=gen, device=device)
+    fld = LanguageField(geometry.num_gaussians, cfg, generator=gen, device=geometry.device)
     opt = fast_adam([fld.features], lr=cfg.learning_rate)
-    first = geometry.at(targets[0].time)
-    first_prepared = fld.prepare(first, targets[0].camera)
-    # the geometry is frozen: each view's blending matrix, or its projection and tile layout (where the
-    # rasterizer splits them off), or its deformed Gaussians are kept between steps, within the memory budget
-    matrices = False
-    if first_prepared is not None and cfg.blend_matrix_mib > 0:
-        as_matrix = BlendMatrixView.from_frozen(first_prepared)
-        # views differ in size by the Gaussians each sees: a margin over the first view's
-        if 1.25 * as_matrix.nbytes() * len(targets) <= cfg.blend_matrix_mib * 2 ** 20:
-            matrices, first_prepared = True, as_matrix
-    per_view_bytes = first.nbytes() if first_prepared is None else first_prepared.nbytes()
-    cache_views = matrices or per_view_bytes * len(targets) <= cfg.cache_view_geometry_mib * 2 ** 20
-    cache_states = not geometry.is_dynamic or cache_views
-    prepared: dict[int, object] = {}
-    states: dict[int, GaussianState] = {}
-    static_state = None if geometry.is_dynamic else geometry.at(0.0)
-    rng = np.random.default_rng(seed)
-    order: list[int] = []
+    from .views import ViewCycle
+
+    # the geometry is frozen: each view's blending matrix, or its projection and tile layout, and its deformed
+    # Gaussians are kept between steps, within the memory budgets (ViewCycle.prepared)
+    views = ViewCycle(geometry, [t.time for t in targets], seed, cfg.cache_view_geometry_mib * 2 ** 20,
+                      cameras=[t.camera for t in targets], near=cfg.near, render_backend=cfg.render_backend,
+                      matrix_budget_bytes=cfg.blend_matrix_mib * 2 ** 20)
     losses: list[float] = []
     loss_value = float("nan")
     steps = range(cfg.iterations)
@@ -419,27 +408,9 @@ def train_language_field(geometry: FrozenGeometry, targets: Sequence[FieldTarget
         steps = progress(steps, desc="language field", total=cfg.iterations)
     start = time.perf_counter()
     for step in steps:
-        if not order:
-            order = rng.permutation(len(targets)).tolist()
-        v = order.pop()
+        v, state = views.next()
         target = targets[v]
-        view, state = prepared.get(v), static_state
-        if view is None:
-            if static_state is not None:
-                state = static_state
-            elif v in states:
-                state = states[v]
-            else:
-                state = geometry.at(target.time)
-                if cache_states and first_prepared is None:
-                    states[v] = state
-            if first_prepared is not None:
-                view = first_prepared if v == 0 else fld.prepare(state, target.camera)
-                if matrices and v != 0:
-                    view = BlendMatrixView.from_frozen(view)
-                if cache_views:
-                    prepared[v] = view
-        pred = fld.render_with_alpha(state, target.camera, view)[0]
+        pred = fld.render_with_alpha(state, target.camera, views.prepared(v, state))[0]
         loss = cfg.loss_weight * masked_l1(pred, target)
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -449,8 +420,7 @@ def train_language_field(geometry: FrozenGeometry, targets: Sequence[FieldTarget
             losses.append(loss_value)
     seconds = time.perf_counter() - start
     frac = float(np.mean([float((t.index >= 0).float().mean()) for t in targets]))
-    how = ("blend matrices" if matrices else "rasterizer" if first_prepared is not None or not geometry.is_dynamic
-           or cache_states else "rasterizer, deformed each step")
+    how = views.rendered_by
     return fld, FieldReport(cfg.iterations, seconds, loss_value, losses, frac, how)
 
 
