@@ -10,12 +10,19 @@ from benchmark.studies import states
 
 
 def _kept(results_dir, k: int, seed: int, acc: float, viou: float) -> None:
-    path = (results_dir / "ablations" / f"states-k{k}" / "synthetic" / "chickchicken" / "4d-langsplat" / "oracle"
-            / f"seed{seed}.json")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps({"metrics": {"Acc": acc, "vIoU": viou, "mIoU": 50.0}, "layout": "hypernerf",
-                                "scene": "chickchicken", "fit": {"key": f"k{k}s{seed}"},
-                                "protocol": {"name": "release"}}))
+    """A complete results file of the states study's (K, seed) run (the schema's full example, adapted)."""
+    from benchmark.core.protocol import PROTOCOLS
+    from benchmark.results import results_path, write_results
+    from test_results_schema import good_doc
+
+    doc = good_doc()
+    doc.pop("format"), doc.pop("version")
+    doc.update(method="4d-langsplat", scene="chickchicken", seed=seed, split="paper",
+               method_config={"status": {"num_states": k}, "extensions": {"choose_states": False}},
+               protocol=PROTOCOLS["release"].to_dict(), fit={"key": f"k{k}s{seed}", "cached": False})
+    doc["metrics"] = {**doc["metrics"], "Acc": acc, "vIoU": viou}
+    write_results(results_path(results_dir / "ablations" / f"states-k{k}", "synthetic", "chickchicken",
+                               "4d-langsplat", "oracle", seed), doc)
 
 
 def test_the_states_table_reads_kept_runs_and_gives_the_seed_spread(tmp_path, monkeypatch):
@@ -33,6 +40,10 @@ def test_the_states_table_reads_kept_runs_and_gives_the_seed_spread(tmp_path, mo
     assert "protocol release" in report.table
     doc = json.loads((tmp_path / "out" / "states-chickchicken.json").read_text())
     assert [row["K"] for row in doc["rows"]] == [2, 3] and doc["rows"][0]["Acc"] == pytest.approx(80.0)
+    with pytest.raises(AssertionError, match="evaluated K=2 seed 0"):  # a kept run of other options is not read
+        states.states_report("chickchicken", [2], seeds=[0], results_dir=tmp_path / "results",
+                             cache_dir=tmp_path / "cache", size=128, out=tmp_path / "out", reuse=True,
+                             overrides={"status.iterations": "2000"})
     with pytest.raises(AssertionError, match="evaluated K=4 seed 0"):  # a missing run is evaluated
         states.states_report("chickchicken", [4], seeds=[0], results_dir=tmp_path / "results",
                              cache_dir=tmp_path / "cache", size=128, out=tmp_path / "out", reuse=True)

@@ -356,6 +356,12 @@ def test_findings_name_a_break_in_acc_and_leave_out_acc_at_the_floor():
     assert "timed breaks first (Acc)" in line and "Acc: timed 80.0 -> 30.0 at 1 (below half from 1)." in line
     assert "untimed 50.0" not in line  # its Acc sits at the floor: it never told the states apart
     assert "mIoU: timed 40.0 -> 40.0 at 1 (never below half); untimed 60.0 -> 57.0" in line
+    # two methods breaking at the same strength are a tie, never ordered by what they keep
+    tied = scores + [score("other", 0.0, 60, 80), score("other", 0.5, 58, 70), score("other", 1.0, 57, 5)]
+    line = findings(tied, ["caption-swap"], ["timed", "untimed", "other"])
+    assert "other and timed break first, at the same strength 1 (Acc): a tie" in line
+    calm = [score("timed", 0.0, 40, 80), score("timed", 1.0, 39, 70)]
+    assert "no method breaks outside the seed noise" in findings(calm, ["caption-swap"], ["timed"])
 
 
 def test_plot_stability_redraws_each_family_from_the_scores_table(tmp_path, capsys):

@@ -38,7 +38,7 @@ def states_report(scene: str | Path, ks: Sequence[int], *, seeds: Sequence[int] 
         for seed in seeds:
             options = {**overrides, "status.num_states": str(k), "extensions.choose_states": "false"}
             folder = results_dir / "ablations" / f"states-k{k}"
-            kept = _kept_run(folder, Path(str(scene)).name, method, seed) if reuse else None
+            kept = _kept_run(folder, Path(str(scene)).name, method, seed, options) if reuse else None
             outcome = kept or evaluate(EvalOptions(method=method, scene=scene, seed=seed, results_dir=folder,
                                                    cache_dir=cache_dir, device=device,
                                                    text_encoder=text_encoder, method_options=options,
@@ -70,15 +70,29 @@ def states_report(scene: str | Path, ks: Sequence[int], *, seeds: Sequence[int] 
     return Report(md, write_report(out, f"states-{Path(str(scene)).name}", doc, md))
 
 
-def _kept_run(folder: Path, scene: str, method: str, seed: int):
-    """The run of ``seed`` already in ``folder`` (its results and path, as an evaluated run's outcome has
-    them), or ``None``."""
+def _kept_run(folder: Path, scene: str, method: str, seed: int, options: Mapping[str, str]):
+    """The run of ``seed`` already in ``folder`` whose recorded method config has every one of ``options``
+    (dotted path -> value as given on the command line), as an evaluated run's outcome holds it (results and
+    path); ``None`` when there is none, or it ran with other options (it is evaluated again then)."""
     import types
 
-    found = sorted(folder.glob(f"*/{scene}/{method}/*/seed{seed}.json"))
-    if not found:
-        return None
-    return types.SimpleNamespace(results=read_json(found[0]), path=found[0])
+    from benchmark.results import read_results
+
+    for path in sorted(folder.glob(f"*/{scene}/{method}/*/seed{seed}.json")):
+        doc = read_results(path)
+        if all(_recorded(doc.get("method_config") or {}, key) == value for key, value in options.items()):
+            return types.SimpleNamespace(results=doc, path=path)
+    return None
+
+
+def _recorded(config: Mapping, dotted: str) -> str:
+    """A recorded config value by its dotted path, spelled as a command-line value (``true``, ``3``)."""
+    node = config
+    for part in dotted.split("."):
+        if not isinstance(node, Mapping) or part not in node:
+            return "<absent>"
+        node = node[part]
+    return str(node).lower() if isinstance(node, bool) else str(node)
 
 
 def _run_row(outcome, seed: int, method: str, cache_dir: Path) -> dict:

@@ -407,7 +407,7 @@ def _family_parts(scores, fam: str, methods: Sequence[str], metric: str) -> tupl
 def findings(scores: Sequence[Score], families: Sequence[str], methods: Sequence[str]) -> str:
     """Per family, from the measurements: each method's clean and strongest mean mIoU (and Acc, for the
     methods whose clean Acc is above :data:`ACC_FLOOR`), where it falls below half its clean score, and
-    which method breaks first on either (else which keeps the least of its clean mIoU)."""
+    which methods break first on either (all of those breaking at the earliest strength: a tie is named)."""
     lines = []
     for fam in families:
         space, space_order = _family_parts(scores, fam, methods, "mIoU")
@@ -417,11 +417,15 @@ def findings(scores: Sequence[Score], families: Sequence[str], methods: Sequence
         breaks = sorted([(o[0], o[1], o[2], "mIoU") for o in space_order]
                         + [(o[0], o[1], o[2], "Acc") for o in time_order])
         if breaks and np.isfinite(breaks[0][0]):
-            lead = f"{breaks[0][2]} breaks first ({breaks[0][3]})"
-        elif len(space_order) > 1:
-            lead = f"no method breaks; {min(space_order)[2]} keeps the least of its clean mIoU"
+            # every method breaking at the earliest strength leads: no secondary sort picks one of them
+            first = [b for b in breaks if b[0] == breaks[0][0]]
+            names = sorted(set(b[2] for b in first))
+            metrics = ", ".join(dict.fromkeys(b[3] for b in first))
+            lead = (f"{names[0]} breaks first ({metrics})" if len(names) == 1 else
+                    f"{' and '.join(names)} break first, at the same strength {strength_label(breaks[0][0])} "
+                    f"({metrics}): a tie")
         else:
-            lead = "no break"
+            lead = "no method breaks outside the seed noise"
         text = f"* **{fam}** ({FAMILIES[fam].unit}): {lead}."
         if space:
             text += " mIoU: " + "; ".join(space) + "."
