@@ -42,8 +42,15 @@ def cluster():
     subprocess.run([str(RAY), "start", "--head", f"--port={port}", "--include-dashboard=false",
                     f"--temp-dir={temp}", *small], check=True, capture_output=True, env=env, timeout=120)
     try:
-        subprocess.run([str(RAY), "start", f"--address=127.0.0.1:{port}", *small], check=True, capture_output=True,
-                       env=env, timeout=120)
+        # the worker node picks its own ports: on a loaded machine (the suite's other workers) its start can
+        # lose one to another process, so it is tried three times, and the last failure says why
+        for attempt in range(3):
+            joined = subprocess.run([str(RAY), "start", f"--address=127.0.0.1:{port}", *small], capture_output=True,
+                                    env=env, timeout=120, text=True)
+            if joined.returncode == 0:
+                break
+            time.sleep(2.0)
+        assert joined.returncode == 0, f"ray start of the worker node failed 3 times:\n{joined.stderr[-2000:]}"
         yield f"127.0.0.1:{port}"
     finally:
         subprocess.run([str(RAY), "stop", "--force"], capture_output=True, env=env, timeout=120)
