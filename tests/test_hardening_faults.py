@@ -148,6 +148,23 @@ def test_a_cached_model_file_that_is_a_fifo_never_hangs_eval(env, tmp_path):
     assert len(warnings) == 1 and "nearest_frame.npz" in warnings[0], proc.stderr[-2000:]
 
 
+def test_a_cached_fit_record_that_is_a_fifo_is_warned_about_and_fitted_again(env, tmp_path):
+    first = evaluate(_options(env))
+    record = _fit_folder(env, first.results) / "fit.json"
+    record.unlink()
+    os.mkfifo(record)
+    env_vars = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    try:
+        proc = subprocess.run([sys.executable, "-m", "benchmark.cli", *_argv(env)], capture_output=True, text=True,
+                              timeout=90, env=env_vars, cwd=str(ROOT))
+    except subprocess.TimeoutExpired:
+        pytest.fail("eval hung on a FIFO fit record")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    warnings = warnings_of(proc.stderr)
+    assert len(warnings) == 1 and "fit.json is a FIFO" in warnings[0], proc.stderr[-2000:]
+    assert record.is_file(), "the fit made again replaces the FIFO"
+
+
 # -- the supervision cache: folders, wrong shapes, NaN ----------------------------------------------------
 def _supervision_file(env, prefix: str) -> Path:
     return next((env["cache"] / "supervision").rglob(f"{prefix}-*.npz"))
@@ -276,3 +293,120 @@ def test_a_truncated_jpeg_is_refused_not_half_decoded(tmp_path):
     path.write_bytes(buf.tobytes()[: len(buf) // 2])
     with pytest.raises(InputError, match="a.jpg"):
         read_image(path)
+
+
+def _png(width: int, height: int, *, rows: bytes = b"", stream: bytes = b"") -> bytes:
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0))
+            + chunk(b"IDAT", stream or zlib.compress(rows)) + chunk(b"IEND", b""))
+
+
+_ROWS = b"".join(b"\x00" + bytes(32 * 3) for _ in range(24))  # 32x24 RGB, filter type 0 on every row
+_BAD_STREAMS = {
+    "too little image data": _png(8000, 8000, rows=b"\x00" * 16),
+    "a corrupt stream": _png(32, 24, stream=zlib.compress(_ROWS)[:-4] + b"XXXX"),
+    "a stream cut short": _png(32, 24, stream=zlib.compress(_ROWS)[:-6]),
+    "too much image data": _png(32, 24, rows=_ROWS + bytes(100)),
+    "an unknown row filter": _png(32, 24, rows=b"\x09" + _ROWS[1:]),
+    "a chunk failing its CRC": _png(32, 24, rows=_ROWS)[:-25] + b"\x00" + _png(32, 24, rows=_ROWS)[-24:],
+}
+
+
+@pytest.mark.parametrize("fault", sorted(_BAD_STREAMS))
+def test_a_png_the_decoder_would_fault_on_is_one_line_and_the_decoder_prints_nothing(fault, tmp_path, capfd):
+    """Checked before decoding: libpng would print its own 'libpng error' line to the terminal (C code, past
+    Python's stderr) before OpenCV gave up, so stderr must hold our one line only (capfd sees the fd)."""
+    from annotations.tool.synthetic import rigid_sequence, write_dnerf_scene
+    from benchmark.core.imageio import read_image, read_mask
+
+    assert read_image(_write(tmp_path / "ok.png", _png(32, 24, rows=_ROWS))).shape == (24, 32, 3)
+    scene = write_dnerf_scene(rigid_sequence(3, 32, 24, seed=2), tmp_path / "scene")
+    victim = sorted((scene / "train").glob("*.png"))[1]
+    victim.write_bytes(_BAD_STREAMS[fault])
+    capfd.readouterr()
+    assert main(["data", "validate", str(scene)]) == 2
+    line = one_error_line(capfd.readouterr().err)
+    assert victim.name in line
+    for reader in (read_image, read_mask):
+        with pytest.raises(InputError, match=victim.name):
+            reader(victim)
+    assert "libpng" not in capfd.readouterr().err
+
+
+def _write(path: Path, data: bytes) -> Path:
+    path.write_bytes(data)
+    return path
+
+
+def _npz_claiming(shape: tuple, held: int) -> bytes:
+    """An ``.npz`` whose one member's header declares float64 ``shape`` but holds ``held`` bytes of data."""
+    import io
+    import zipfile
+
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {"descr": "<f8", "fortran_order": False, "shape": shape})
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w") as archive:
+        archive.writestr("x.npy", header.getvalue() + bytes(held))  # the header writer puts the magic first
+    return out.getvalue()
+
+
+@pytest.mark.parametrize("fault", ["a frame header of 30000x30000", "an npz claiming 16 GiB"])
+def test_eval_never_allocates_what_a_generated_scenes_file_claims_and_names_the_file(fault, tmp_path, capfd):
+    from benchmark.core.strict import check_npz
+    from benchmark.synthetic.generate import generate
+
+    scene = generate("smoke", tmp_path / "smoke", size=32, frames=12)
+    if fault.startswith("a frame"):
+        victim = sorted((scene / "rgb" / "1x").glob("*.png"))[4]
+        victim.write_bytes(_png(30000, 30000, rows=b"\x00" * 16))
+    else:
+        victim = scene / "truth" / "extra.npz"
+        victim.write_bytes(_npz_claiming((2 ** 31,), 64))
+        with pytest.raises(InputError, match="declares an array of shape"):
+            check_npz(victim)
+    capfd.readouterr()
+    rc = main(["eval", "--method", "nearest-frame", "--scene", str(scene), "--cache-dir", str(tmp_path / "cache"),
+               "--results-dir", str(tmp_path / "results"), "--quiet"])
+    assert rc == 2
+    line = one_error_line(capfd.readouterr().err)
+    assert victim.name in line and "Failed to allocate" not in line and "MemoryError" not in line and "OpenCV" not in line
+
+
+def test_check_npz_passes_real_arrays_and_refuses_objects_and_non_zips(tmp_path):
+    from benchmark.core.strict import check_npz
+
+    np.savez_compressed(tmp_path / "ok.npz", a=np.zeros((40, 50), np.uint16), b=np.ones(3))
+    np.savez(tmp_path / "plain.npz", a=np.arange(6.0).reshape(2, 3), empty=np.zeros((0, 4)))
+    check_npz(tmp_path / "ok.npz")
+    check_npz(tmp_path / "plain.npz")
+    np.savez(tmp_path / "objects.npz", a=np.array([{"x": 1}], dtype=object))
+    with pytest.raises(InputError, match="Python objects"):
+        check_npz(tmp_path / "objects.npz")
+    (tmp_path / "junk.npz").write_bytes(b"PK\x03\x04 not a zip")
+    with pytest.raises(InputError, match="junk.npz"):
+        check_npz(tmp_path / "junk.npz")
+    (tmp_path / "big.npz").write_bytes(_npz_claiming((4,), 32))
+    check_npz(tmp_path / "big.npz")
+    with pytest.raises(InputError, match="more than 16 bytes"):
+        check_npz(tmp_path / "big.npz", max_bytes=16)
+
+
+def test_a_fifo_where_a_scene_file_belongs_is_named_as_a_fifo(tmp_path, capsys):
+    from annotations.tool.synthetic import rigid_sequence, write_dnerf_scene
+
+    scene = write_dnerf_scene(rigid_sequence(3, 32, 24, seed=2), tmp_path / "scene")
+    frame = sorted((scene / "train").glob("*.png"))[1]
+    frame.unlink()
+    os.mkfifo(frame)
+    assert main(["data", "validate", str(scene)]) == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert frame.name in line and "FIFO" in line
+    other = write_dnerf_scene(rigid_sequence(3, 32, 24, seed=2), tmp_path / "other")
+    (other / "transforms_train.json").unlink()
+    os.mkfifo(other / "transforms_train.json")
+    assert main(["data", "validate", str(other)]) == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert "transforms_train.json" in line and "FIFO" in line

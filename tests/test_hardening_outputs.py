@@ -183,3 +183,38 @@ def test_leaderboard_and_paper_tables_never_write_over_a_results_file(tmp_path):
             rc = main([*command, "--results-dir", str(tmp_path / "results"), "--allow-dirty", "--out", str(target)])
             assert rc == 2
             assert record.read_bytes() == before
+
+
+def test_leaderboard_never_writes_over_its_ceiling_nor_into_the_results_folder(tmp_path):
+    """Every file ``leaderboard`` writes is guarded against every input it reads: ``--out`` over the ceiling
+    JSON (or a link of it) and ``--csv-dir`` inside the results folder are refused before anything is written."""
+    from benchmark.cli import main
+
+    repo = Path(__file__).resolve().parents[1]
+    results = tmp_path / "results" / "dnerf" / "lego" / "langsplat" / "oracle"
+    results.mkdir(parents=True)
+    shutil.copy(repo / "results" / "dnerf" / "lego" / "langsplat" / "oracle" / "seed0.json", results / "seed0.json")
+    ceiling = tmp_path / "ceiling.json"
+    shutil.copy(repo / "reports" / "ablations" / "protocol-ceiling.json", ceiling)
+    (tmp_path / "ceiling-link.md").symlink_to(ceiling)
+    before = digest(tmp_path)
+    base = ["leaderboard", "--results-dir", str(tmp_path / "results"), "--allow-dirty", "--ceiling", str(ceiling)]
+    for extra in (["--out", str(ceiling)], ["--out", str(tmp_path / "ceiling-link.md")],
+                  ["--out", str(tmp_path / "o" / "lb.md"), "--csv-dir", str(tmp_path / "results" / "dnerf")],
+                  ["--out", str(tmp_path / "o" / "lb.md"), "--csv-dir", str(tmp_path)],  # ceiling.json's folder
+                  ):
+        rc = main([*base, *extra])
+        if "--csv-dir" in extra and extra[-1] == str(tmp_path):
+            assert rc == 0, "a folder holding the ceiling is no input folder: its CSVs may go there"
+            for made in tmp_path.glob("*.csv"):
+                made.unlink()
+            shutil.rmtree(tmp_path / "o")
+            continue
+        assert rc == 2, extra
+        assert digest(tmp_path) == before, extra
+        assert not (tmp_path / "o").exists(), "refused before the Markdown was written"
+    # reports-dir as the results folder: the default CSVs would land among the results
+    assert main(["leaderboard", "--results-dir", str(tmp_path / "results"), "--allow-dirty", "--ceiling",
+                 str(ceiling), "--reports-dir", str(tmp_path / "results"), "--out", str(tmp_path / "lb.md"),
+                 "--csv-dir", str(tmp_path / "results")]) == 2
+    assert digest(tmp_path) == before
