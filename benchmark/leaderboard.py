@@ -43,6 +43,7 @@ import pandas as pd
 from benchmark.core.atomic import read_json, write_text
 from benchmark.core.errors import InputError
 from benchmark.core.official import OFFICIAL_SCENES, is_official
+from benchmark.core.outputs import guard_output
 from benchmark.core.protocol import DEFAULT_PROTOCOL, SCORED_FRAMES_NOTE
 from benchmark.core.scene import DEFAULT_EVAL_SPLIT
 from . import stats
@@ -1330,31 +1331,34 @@ def build_leaderboard(results_dir: str | Path = "results", *, markdown: str | Pa
         # a mistyped folder would otherwise regenerate the leaderboard with no runs over the one there
         raise InputError(results_dir, "results-dir", "no such folder (the leaderboard and reports were left as "
                          "they are); an empty folder gives a leaderboard of the paper's numbers alone")
+    ceiling_file = Path(reports_dir) / CEILING_FILE if ceiling is None else Path(ceiling)
+    inputs = [results_dir, ceiling_file]
+    md_path = Path(markdown)
+    guard_output(md_path, inputs, option="--out")  # before anything is read: a refused path costs nothing
+    if csv_dir is not None:
+        guard_output(csv_dir, inputs, option="--csv-dir")
     runs, queries = load_runs(results_dir)
     check_provenance(comparable_runs(with_defaults(runs))[0], allow_dirty, results_dir)
-    written: dict[str, Path] = {}
-    md_path = Path(markdown)
-    ceilings = load_ceiling_file(Path(reports_dir) / CEILING_FILE if ceiling is None else ceiling)
+    ceilings = load_ceiling_file(ceiling_file)
     collected: dict = {}
     text = render_markdown(runs, results_dir.as_posix(), ceilings, see_also_links(reports_dir, md_path),
                            queries=queries, stats_out=collected)
-    write_text(md_path, text)
-    written["leaderboard"] = md_path
-    if csv_dir is None:
-        return written
-    reports = Path(csv_dir)
-    write_text(reports / "runs.csv", _csv(runs))  # every run, with its scene_current flag
-    written["runs"] = reports / "runs.csv"
-    kept = comparable_runs(with_defaults(runs))[0]
-    for identity, stats_rows in sorted(collected.items(), key=lambda kv: tuple(map(str, kv[0]))):
-        unranked = identity[0] == "other"
-        dataset, track, protocol, split = identity[1:] if unranked else identity
-        group = kept[(kept["dataset"] == dataset) & (kept["track"] == track) & (kept["protocol"] == protocol)
-                     & (kept["split"] == split) & (kept["official"].astype(bool) != unranked)]
-        name = f"leaderboard_{dataset}_{track}_{protocol}_{split}" + ("_other" if unranked else "")
-        path = reports / f"{name}.csv"
-        write_text(path, _table_csv(group, queries[queries["path"].isin(set(group["path"]))], stats_rows))
-        written["/".join(map(str, identity))] = path
-    write_text(reports / "paper_numbers.csv", _csv(paper_numbers_table()))
-    written["paper"] = reports / "paper_numbers.csv"
-    return written
+    outputs: dict[str, tuple[Path, str]] = {"leaderboard": (md_path, text)}
+    if csv_dir is not None:
+        reports = Path(csv_dir)
+        outputs["runs"] = (reports / "runs.csv", _csv(runs))  # every run, with its scene_current flag
+        kept = comparable_runs(with_defaults(runs))[0]
+        for identity, stats_rows in sorted(collected.items(), key=lambda kv: tuple(map(str, kv[0]))):
+            unranked = identity[0] == "other"
+            dataset, track, protocol, split = identity[1:] if unranked else identity
+            group = kept[(kept["dataset"] == dataset) & (kept["track"] == track) & (kept["protocol"] == protocol)
+                         & (kept["split"] == split) & (kept["official"].astype(bool) != unranked)]
+            name = f"leaderboard_{dataset}_{track}_{protocol}_{split}" + ("_other" if unranked else "")
+            outputs["/".join(map(str, identity))] = (
+                reports / f"{name}.csv", _table_csv(group, queries[queries["path"].isin(set(group["path"]))], stats_rows))
+        outputs["paper"] = (reports / "paper_numbers.csv", _csv(paper_numbers_table()))
+    for path, _ in outputs.values():  # every file checked before the first is written: all or nothing refused
+        guard_output(path, inputs, option="--csv-dir" if path != md_path else "--out")
+    for path, body in outputs.values():
+        write_text(path, body)
+    return {key: path for key, (path, _) in outputs.items()}

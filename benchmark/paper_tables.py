@@ -330,6 +330,11 @@ def _prompt_tables(paper_ablations: dict) -> list[str]:
     return lines
 
 
+def speed_report_files(reports_dir: str | Path) -> list[Path]:
+    """The query-speed reports (536x960, CUDA) under ``reports_dir`` that the speed table reads."""
+    return sorted(Path(reports_dir).glob("ablations/query-speed-*-536x960-cuda.json"))
+
+
 def _speed_table(ours: OurNumbers, reports_dir: Path, paper_numbers: dict) -> list[str]:
     from methods.registry import paper_reference
 
@@ -342,7 +347,7 @@ def _speed_table(ours: OurNumbers, reports_dir: Path, paper_numbers: dict) -> li
              "| method | query | paper FPS | ours, CPU | ours, GPU |", "|---|---|---:|---:|---:|"]
     presets = [p for (d, _), p in SYNTHETIC_ANALOGUE.items() if d == "hypernerf"]
     gpu = {}
-    for path in sorted(reports_dir.glob("ablations/query-speed-*-536x960-cuda.json")):
+    for path in speed_report_files(reports_dir):
         doc = read_json(path)
         gpu[int(doc.get("gaussians", 0))] = float(doc.get("fps", math.nan))
     gpu_cell = "; ".join(f"{fps:.1f} ({n // 1000}k Gaussians)" for n, fps in sorted(gpu.items())) or "–"

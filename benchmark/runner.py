@@ -64,7 +64,7 @@ from benchmark.core.annotation import AnnotationSet
 from benchmark.core.atomic import json_ready, read_json, write_json
 from benchmark.core.errors import InputError
 from benchmark.core.outputs import guard_output
-from benchmark.core.strict import check_cached_files
+from benchmark.core.strict import check_cached_files, file_problem
 from benchmark.core.openblas import cpuinfo_value, openblas_core
 from benchmark.core.protocol import DEFAULT_PROTOCOL, get_protocol
 from .results import RunResults, exclusive_lock, results_lock, results_path, write_results
@@ -672,6 +672,10 @@ def _fit_or_load_locked(spec, method_cls, config, scene: Scene, supervision, *, 
     # partial folders of this key are a killed process's: a live writer of it would hold the lock
     for stale in folder.glob(f".{key}.partial-*") if folder.is_dir() else []:
         shutil.rmtree(stale, ignore_errors=True)
+    problem = file_problem(info_path)
+    if problem not in (None, "missing") and not refit:  # a FIFO or folder there: said, not silently refitted
+        warn(f"cached fit of {spec.name} on {scene.name} at {final} is damaged ({info_path.name} is {problem}): "
+             "fitting again")
     if info_path.is_file() and (not refit or reuse_key is not None):
         try:
             info = _read_fit_record(info_path, key)

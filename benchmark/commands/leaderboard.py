@@ -39,11 +39,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..core.outputs import guard_output
     from ..leaderboard import build_leaderboard
 
-    # the Markdown never replaces a results file it reads (a link of one, or a place inside the results folder)
-    guard_output(args.out or DEFAULT_OUT, [args.results_dir], option="--out")
+    # no file written replaces one it reads (a results file, the ceiling; links of them; places inside the
+    # results folder): build_leaderboard guards every output before it reads anything
     csv_dir = args.csv_dir if args.csv_dir is not None or args.out is not None else args.reports_dir
     written = build_leaderboard(args.results_dir, markdown=args.out or DEFAULT_OUT, reports_dir=args.reports_dir,
                                 ceiling=args.ceiling, csv_dir=csv_dir, allow_dirty=args.allow_dirty)

@@ -33,9 +33,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from benchmark.core.atomic import write_text
     from benchmark.core.outputs import guard_output
-    from ..paper_tables import render
+    from ..paper_tables import render, speed_report_files
 
-    guard_output(args.out, [args.results_dir], option="--out")
+    # never over a results file or a speed report it reads (nor a link of one)
+    guard_output(args.out, [args.results_dir, *speed_report_files(args.reports_dir)], option="--out")
     text = render(args.results_dir, args.reports_dir, protocol=args.protocol, track=args.track, split=args.split,
                   allow_dirty=args.allow_dirty)
     write_text(args.out, text)

@@ -30,11 +30,12 @@ from .atomic import atomic_path
 from .errors import InputError
 
 
-def read_image(path: str | Path, *, keep_alpha: bool = False) -> np.ndarray:
-    """Read an 8- or 16-bit PNG/JPEG as float32 RGB(A) in [0, 1], shape (H, W, 3) or (H, W, 4).
-
-    Truncated or unreadable files raise :class:`InputError` naming the file.
-    """
+def read_image_pixels(path: str | Path) -> np.ndarray:
+    """The decoded pixels of a PNG or JPEG as OpenCV gives them (``IMREAD_UNCHANGED``: uint8 or uint16, BGR(A)
+    or grey), after every check that needs no decoding: a regular file, a PNG header within the pixels any
+    frame may have, a PNG stream complete and consistent with its header (:func:`_png_stream_complete`: the
+    decoder then never meets a fault it would print), a JPEG with its end marker. An :class:`InputError` names
+    the file otherwise."""
     from .annotation import MAX_MASK_PIXELS
 
     from .strict import file_problem, open_regular
@@ -55,7 +56,7 @@ def read_image(path: str | Path, *, keep_alpha: bool = False) -> np.ndarray:
         if width * height > MAX_MASK_PIXELS:
             raise InputError(path, None, f"image of {width}x{height} pixels is larger than the "
                                          f"{MAX_MASK_PIXELS} pixels any frame may have")
-        _png_chunks_complete(path, data.tobytes())
+        _png_stream_complete(path, data.tobytes())
     elif data[:3].tobytes() == b"\xff\xd8\xff":
         _jpeg_complete(path, data)
     try:
@@ -64,6 +65,15 @@ def read_image(path: str | Path, *, keep_alpha: bool = False) -> np.ndarray:
         img = None
     if img is None:
         raise InputError(path, None, "cannot decode image (truncated or not an image)")
+    return img
+
+
+def read_image(path: str | Path, *, keep_alpha: bool = False) -> np.ndarray:
+    """Read an 8- or 16-bit PNG/JPEG as float32 RGB(A) in [0, 1], shape (H, W, 3) or (H, W, 4).
+
+    Truncated, corrupt or unreadable files raise :class:`InputError` naming the file (:func:`read_image_pixels`).
+    """
+    img = read_image_pixels(path)
     if img.dtype == np.uint16:
         scale = 65535.0
     elif img.dtype == np.uint8:
@@ -87,9 +97,57 @@ def read_image(path: str | Path, *, keep_alpha: bool = False) -> np.ndarray:
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
-def _png_chunks_complete(path: Path, data: bytes) -> None:
-    """Every chunk of a PNG present up to its IEND: a file cut short is refused (a decoder may hand back
-    the rows it got and pad the rest)."""
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}
+"""Samples per pixel of each PNG colour type (grey, RGB, palette, grey + alpha, RGBA)."""
+_ADAM7 = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2))
+"""The seven passes of an interlaced PNG: (first column, first row, column step, row step)."""
+_INFLATE_STEP = 1 << 20
+"""Bytes of rows inflated at a time while a PNG stream is checked (the rows are counted, never kept)."""
+
+
+def png_row_bytes(width: int, height: int, depth: int, colour: int, interlaced: bool) -> list[int]:
+    """Length in bytes of every filtered row of a PNG's image data (its filter byte included), in stream order."""
+    bits = _PNG_CHANNELS[colour] * depth
+    passes = _ADAM7 if interlaced else ((0, 0, 1, 1),)
+    rows: list[int] = []
+    for x0, y0, dx, dy in passes:
+        w = (width - x0 + dx - 1) // dx if width > x0 else 0
+        h = (height - y0 + dy - 1) // dy if height > y0 else 0
+        if w and h:
+            rows.extend([1 + (w * bits + 7) // 8] * h)
+    return rows
+
+
+def _png_stream_complete(path: Path, data: bytes) -> None:
+    """A PNG that a decoder reads without a fault: every chunk present up to its IEND with its CRC right, a
+    known colour type and bit depth, and image data that inflate to exactly the rows its header declares,
+    each starting with a valid filter type. A file cut short, a corrupt stream, too much or too little image
+    data are refused naming the file: a decoder would pad missing rows, or print its own error to the
+    terminal before failing."""
+    width, height, depth, colour = png_header(path, data[:33])
+    if colour not in _PNG_CHANNELS or depth not in (1, 2, 4, 8, 16) or (colour in (2, 4, 6) and depth < 8) \
+            or (colour == 3 and depth > 8):
+        raise InputError(path, "IHDR", f"PNG of colour type {colour} and bit depth {depth}: not a valid pair")
+    if data[28] not in (0, 1):
+        raise InputError(path, "IHDR", f"unknown PNG interlace method {data[28]}")
+    rows = png_row_bytes(width, height, depth, colour, bool(data[28]))
+    expected = sum(rows)
+    inflate = zlib.decompressobj()
+    produced, row, next_start = 0, 0, 0  # bytes of rows so far; the row whose filter byte comes at next_start
+
+    def take(block: bytes) -> None:
+        nonlocal produced, row, next_start
+        end = produced + len(block)
+        while row < len(rows) and next_start < end:
+            if block[next_start - produced] > 4:
+                raise InputError(path, "IDAT", f"corrupt PNG: row {row} has filter type {block[next_start - produced]}")
+            next_start += rows[row]
+            row += 1
+        produced = end
+        if produced > expected:
+            raise InputError(path, "IDAT", f"PNG image data longer than the {expected} bytes of rows its "
+                                           f"{width}x{height} header declares")
+
     offset = 8
     while True:
         if offset + 12 > len(data):
@@ -99,9 +157,24 @@ def _png_chunks_complete(path: Path, data: bytes) -> None:
         if offset + 12 + length > len(data):
             raise InputError(path, None, f"truncated PNG: chunk {kind!r} at byte {offset} declares {length} bytes, "
                                          f"the file has {len(data) - offset - 12} left")
+        body = data[offset + 8:offset + 8 + length]
+        if zlib.crc32(kind + body) != struct.unpack(">I", data[offset + 8 + length:offset + 12 + length])[0]:
+            raise InputError(path, None, f"corrupt PNG: chunk {kind!r} at byte {offset} fails its CRC")
+        if kind == b"IDAT":
+            try:
+                block = inflate.decompress(body, _INFLATE_STEP)
+                take(block)
+                while inflate.unconsumed_tail:
+                    take(inflate.decompress(inflate.unconsumed_tail, _INFLATE_STEP))
+            except zlib.error as err:
+                raise InputError(path, "IDAT", f"corrupt PNG image data ({err})") from None
         offset += 12 + length
         if kind == b"IEND":
-            return
+            break
+    if not inflate.eof or produced != expected:
+        raise InputError(path, "IDAT", f"PNG image data holds {produced} of the {expected} bytes of rows its "
+                                       f"{width}x{height} header declares" + ("" if inflate.eof else
+                                                                             " (the stream is cut short)"))
 
 
 def _jpeg_complete(path: Path, data: np.ndarray) -> None:
@@ -193,6 +266,7 @@ def read_mask(path: str | Path, size: Optional[tuple[int, int]] = None) -> np.nd
     """
     path = Path(path)
     data, width, height, _, _ = read_png_bytes(path, size)
+    _png_stream_complete(path, data)
     try:
         img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     except cv2.error:  # OpenCV raises on some corrupt streams instead of returning None

@@ -316,6 +316,49 @@ def non_finite_entry(obj: Any, prefix: str = "") -> Optional[str]:
     return None
 
 
+MAX_ARRAY_FILE_BYTES = 8 << 30
+"""Bytes of arrays one ``.npz`` file may declare at most (a scene's truth maps are a few MB a frame)."""
+
+
+def check_npz(path: str | Path, *, max_bytes: int = MAX_ARRAY_FILE_BYTES) -> None:
+    """Every member of the ``.npz`` at ``path`` is a ``.npy`` array (no pickled objects) whose header declares
+    exactly the bytes the member holds, and all of them together at most ``max_bytes``: read before
+    ``np.load`` allocates what a header claims (a 200-byte file can claim 16 GiB). An :class:`InputError`
+    names the file and member otherwise."""
+    import zipfile
+
+    import numpy as np
+
+    total = 0
+    try:
+        with open_regular(path) as fh, zipfile.ZipFile(fh) as archive:
+            for info in archive.infolist():
+                if not info.filename.endswith(".npy"):
+                    raise InputError(path, info.filename, "not an array (.npy) member")
+                with archive.open(info) as member:
+                    version = np.lib.format.read_magic(member)
+                    if version == (1, 0):
+                        shape, _, dtype = np.lib.format.read_array_header_1_0(member)
+                    elif version == (2, 0):
+                        shape, _, dtype = np.lib.format.read_array_header_2_0(member)
+                    else:
+                        raise InputError(path, info.filename, f"unsupported .npy format version {version}")
+                    header = member.tell()
+                if dtype.hasobject:
+                    raise InputError(path, info.filename, "holds Python objects, not numbers")
+                declared = int(np.prod(shape, dtype=object)) * dtype.itemsize
+                if declared != info.file_size - header:
+                    raise InputError(path, info.filename, f"declares an array of shape {tuple(shape)} ({declared} "
+                                                          f"bytes) but holds {info.file_size - header} bytes")
+                total += declared
+                if total > max_bytes:
+                    raise InputError(path, info.filename, f"arrays of more than {max_bytes} bytes in one file")
+    except InputError:
+        raise
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, NotImplementedError) as err:
+        raise InputError(path, None, f"not a readable .npz file ({type(err).__name__}: {err})") from None
+
+
 CACHED_ARRAY_SUFFIXES = (".npz", ".npy", ".pt", ".pth")
 """Files of a cached model whose arrays :func:`check_cached_files` reads."""
 

@@ -31,6 +31,7 @@ import numpy as np
 
 from .atomic import read_json, write_json
 from .errors import InputError
+from .strict import check_npz
 from .scene import Camera, Frame
 
 Level = Literal["whole", "part", "subpart"]
@@ -170,6 +171,7 @@ class SceneTruth:
         path = self.root / LEVELS_DIR / f"{name}.npz"
         if not path.is_file():
             raise InputError(path, None, "truth file of this frame not found")
+        check_npz(path)  # what each header declares, before np.load allocates it
         try:
             with np.load(path, allow_pickle=False) as data:
                 arrays = {k: data[k] for k in data.files}

@@ -54,6 +54,12 @@ def detect_layout(path: str | Path) -> str:
     for name, (module, _) in LAYOUTS.items():
         if module.detect(root):
             return name
+    from benchmark.core.strict import file_problem
+
+    for marker in ("dataset.json", "scene.json", "poses_bounds.npy", "transforms_train.json"):
+        problem = file_problem(root / marker)  # a layout's file there, but not a regular file: say so
+        if problem not in (None, "missing"):
+            raise InputError(root / marker, None, f"is {problem}, expected the scene's {marker}")
     raise InputError(root, "layout", "unrecognised scene folder: expected dataset.json + scene.json "
                                      "(hypernerf), poses_bounds.npy (neu3d) or transforms_train.json (dnerf)")
 

@@ -91,6 +91,12 @@ def _resolve_image(root: Path, file_path: str, file: Path, field: str) -> Path:
     with_png = given.parent / (given.name + ".png")
     if with_png.is_file():
         return with_png
+    from benchmark.core.strict import file_problem
+
+    for candidate in (given, with_png):  # there, but not a regular file: say what it is
+        problem = file_problem(candidate)
+        if problem not in (None, "missing"):
+            raise InputError(candidate, field, f"is {problem}, expected an image file")
     raise InputError(file, field, f"image not found: {given}" + ("" if given.suffix else " (nor .png)"))
 
 

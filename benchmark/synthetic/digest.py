@@ -74,14 +74,15 @@ def _hash_file(digest, root: Path, path: Path) -> None:
             doc = {k: v for k, v in doc.items() if k not in _IGNORED_KEYS.get(rel, ())}
         digest.update(json.dumps(_rounded(doc), sort_keys=True, separators=(",", ":")).encode())
     elif suffix in (".png", ".jpg", ".jpeg"):
-        import cv2
+        from benchmark.core.imageio import read_image_pixels
 
-        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if image is None:
-            raise InputError(path, "image", "cannot decode an image of the scene for its digest")
-        _array_bytes(digest, image)  # pixels, not the encoder's bytes (PNG settings may differ)
+        # checked before decoding (size, a complete stream): a damaged or hostile file is one line naming it
+        _array_bytes(digest, read_image_pixels(path))  # pixels, not the encoder's bytes (PNG settings may differ)
     elif suffix == ".npz":
-        with np.load(path) as data:
+        from benchmark.core.strict import check_npz
+
+        check_npz(path)  # no header's claim is allocated before it is checked against the bytes present
+        with np.load(path, allow_pickle=False) as data:
             for key in sorted(data.files):
                 digest.update(key.encode() + b"\0")
                 _array_bytes(digest, data[key])

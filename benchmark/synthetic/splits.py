@@ -37,6 +37,7 @@ from typing import Any, Optional, Sequence
 import numpy as np
 
 from benchmark.core.scene import Camera, eval_splits_of
+from benchmark.core.strict import check_npz
 from benchmark.core.truth import LEVELS, LEVELS_DIR
 from .model import Catalogue, FrameContext, SceneDef, resolve
 
@@ -72,7 +73,9 @@ def _leaf_poses(scene: SceneDef, catalogue: Catalogue, time_index: int) -> dict[
 
 def _object_points(truth_dir: Path, name: str, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     """((M, 3) world points, (M,) subpart ids) of the object pixels of frame ``name`` (its truth maps)."""
-    with np.load(Path(truth_dir) / LEVELS_DIR / f"{name}.npz") as data:
+    path = Path(truth_dir) / LEVELS_DIR / f"{name}.npz"
+    check_npz(path)
+    with np.load(path, allow_pickle=False) as data:
         ids, depth = data[LEVELS[0]], data["depth"]
     i, j = np.nonzero((ids > 0) & np.isfinite(depth))
     z = depth[i, j].astype(np.float64)
