@@ -458,7 +458,7 @@ def test_a_generator_change_makes_stale_exactly_the_runs_of_the_scenes_it_change
     scores = stress.run_suite(config, log=lambda _: None)
     keys = {(s.family, s.strength): stress.RunKey(s.family if s.strength else stress.CLEAN, s.strength, s.method,
                                                   s.seed) for s in scores}
-    occluded = stress.scene_folder(config, "occluder", 0.45)
+    occluded = stress.scene_folder(config, "occluder", 0.45, 0)
     before = scene_digest(occluded)
     # other code that makes the same scenes: each is made again, compared, and keeps its folder and its runs
     monkeypatch.setattr(digest, "generator_code", lambda: "other code")
@@ -502,7 +502,7 @@ def test_scores_kept_in_the_report_count_without_their_results_files_while_their
     write_reports(moved, [])
     assert [p.read_text() for p in (tmp_path / "report").glob("scores-replaced-*.csv")] == [table]
     # a table written before the digests were recorded is read, but none of its rows is kept
-    legacy = "\n".join(",".join(line.split(",")[:-2]) for line in table.splitlines()) + "\n"
+    legacy = "\n".join(",".join(line.split(",")[:-3]) for line in table.splitlines()) + "\n"
     (tmp_path / "report" / "scores.csv").write_text(legacy)
     assert len(stress.read_scores_table(tmp_path / "report" / "scores.csv")) == len(first)
     assert stress.kept_scores(elsewhere) == {}
@@ -723,3 +723,99 @@ def test_a_gallery_puts_the_clean_row_above_each_row_of_the_strongest_strength(t
         assert clean.startswith("clean: frame ") and perturbed.startswith("at 0.45: frame ")
         assert clean.split(": frame ")[1] == perturbed.split(": frame ")[1]
     assert "below its clean row" in figures[0]._suptitle.get_text()
+
+
+@pytest.mark.parametrize("boundaries,frames", [((5,), 16), ((3, 6, 12), 16), ((1, 2, 3), 12), ((10, 30, 33, 50), 60)])
+@pytest.mark.parametrize("strength", [0.1, 0.35, 0.5, 1.0])
+def test_a_widened_ramp_keeps_the_truths_rule_exact(boundaries, frames, strength):
+    """The state-ramp family: each change visibly develops over a share of the video, yet a frame before a
+    boundary shows less than half of that change and a frame from it on more than half, and no two
+    transitions of one timeline are under way at one frame (the labels stay exact)."""
+    from benchmark.synthetic.model import FrameContext, State, Timeline
+    from benchmark.synthetic.perturb import widened_ramp
+
+    states = (State("a", "a", ("a",)), State("b", "b", ("b",)))
+    timeline = Timeline(states, tuple(j % 2 for j in range(len(boundaries) + 1)), boundaries, frames, ramp_frames=1.0)
+    ramp = widened_ramp(timeline, strength)
+    gaps = [b - a for a, b in zip(boundaries, boundaries[1:])]
+    assert ramp == pytest.approx(max(1.0, min(strength * frames, min(gaps, default=frames))))
+    object.__setattr__(timeline, "ramp_frames", ramp)
+    for t in range(frames):
+        ctx = FrameContext(t, frames)
+        progress = [timeline.progress(ctx, j) for j in range(len(boundaries))]
+        for j, b in enumerate(boundaries):
+            assert (progress[j] < 0.5) == (t < b), (t, j, progress)
+        assert sum(0.0 < p < 1.0 for p in progress) <= 1, (t, progress)
+    assert widened_ramp(timeline, strength) == ramp, "widening twice changes nothing"
+
+
+def test_state_ramp_keeps_the_labels_and_spreads_the_change_over_more_frames(scenes):
+    clean, ramped = scenes["clean"], scenes["state-ramp"]
+    assert _annotations(ramped) == _annotations(clean)
+    assert scene_digest(ramped) != scene_digest(clean)
+    # the parts (the box's lid) differ at some frames: the visible change spread in time, its labels did not
+    frames = load_truth(clean).training_frames
+    assert any(not np.array_equal(_ids(clean, f, "part"), _ids(ramped, f, "part")) for f in frames)
+
+
+def test_caption_lag_makes_the_captions_late_by_its_share_of_the_video(scenes):
+    from benchmark.core.caption_noise import caption_noise, with_extra_lag
+    from benchmark.loaders import load_scene
+    from methods.captioners import get_captioner
+    from methods.captioners.base import caption_objects
+    from methods.captioners.tracks import truth_tracks
+
+    assert caption_noise("mllm+lag:0.1").lag_fraction == pytest.approx(0.15)
+    assert with_extra_lag(caption_noise("clean"), 0.0) == caption_noise("clean")
+    for bad in ("mllm+lag:x", "clean+lag:-0.1", "clean+lag:inf", "clean+lag:1", "clen+lag:0.1"):
+        with pytest.raises(InputError):
+            caption_noise(bad)
+    scene = load_scene(scenes["clean"])
+    tracks = truth_tracks(scene)
+    on_time = caption_objects(get_captioner("template", scene, seed=0, noise="scene"), scene, tracks)
+    late = caption_objects(get_captioner("template", scene, seed=0, noise="scene+lag:0.5"), scene, tracks)
+    assert on_time.frames.keys() == late.frames.keys()
+    truth = load_truth(scenes["clean"])
+    box = _whole_id(scenes["clean"], "box")
+    time_of = {f.name: f.time_index for f in scene.train_frames}
+    stale = 0
+    for (frame, obj), text in late.frames.items():
+        if obj != box or frame not in time_of:
+            continue
+        t = time_of[frame]
+        if t < truth.num_frames // 2:  # within the lag of the start: the first training frame's state
+            continue
+        stale += text not in truth.state_at("box", t)["captions"]
+    assert stale > 0, "half a video of lag leaves some captions describing the state before a change"
+    # in the suite, the family sets the option on captioned methods only
+    config = stress.SuiteConfig(methods=("4d-langsplat", "langsplat"), families=("caption-lag",))
+    key = stress.RunKey("caption-lag", 0.2, "4d-langsplat", 0)
+    assert stress.run_options(config, key, None)["captions.noise"] == "scene+lag:0.2"
+    assert stress.applies(key) and not stress.applies(dataclasses.replace(key, method="langsplat"))
+
+
+def test_seeds_generate_their_own_scenes_and_the_rows_record_split_machine_and_seed(tmp_path):
+    from benchmark.studies.stress_plots import write_reports
+
+    config = stress.SuiteConfig(preset="smoke", size=SIZE, frames=FRAMES, methods=("nearest-frame",),
+                                families=("mask-drop",), strengths=(0.5,), seeds=(0, 1),
+                                out_dir=tmp_path / "report", cache_dir=tmp_path / "cache")
+    assert config.split == "novel-view", "the suite scores the novel views by default"
+    scenes = [stress.scene_folder(config, "mask-drop", 0.0, seed) for seed in (0, 1)]
+    assert scene_digest(scenes[0]) != scene_digest(scenes[1]), "seed s generates the scene with scene seed s"
+    scores = stress.run_suite(config, log=lambda _: None)
+    assert len(scores) == 4 and all(s.path is not None and s.machine for s in scores)
+    for s in scores:
+        doc = json.loads(s.path.read_text())
+        assert doc["split"] == "novel-view" and s.path.parent.name == "novel-view"
+        assert doc["seed"] == s.seed
+    # another split's runs are not this suite's: neither read nor kept from the table
+    write_reports(config, scores)
+    table = (tmp_path / "report" / "scores.csv").read_text()
+    assert table.splitlines()[0].endswith(",machine") and scores[0].machine in table
+    paper = dataclasses.replace(config, split="paper", cache_dir=tmp_path / "other-cache")
+    assert stress.kept_scores(paper) == {}
+    assert "`novel-view` split" in (tmp_path / "report" / "README.md").read_text()
+    assert "Machine kind of every run:" in (tmp_path / "report" / "README.md").read_text()
+    with pytest.raises(InputError):
+        stress.SuiteConfig(split="held-out")

@@ -1,7 +1,8 @@
 """``bench4d stress``: the stress suite (where methods fail), written to ``reports/stability/``.
 
     bench4d stress [--preset smoke] [--size 48] [--frames 16] [--methods M ...] [--families F ...]
-                   [--strengths S ...] [--seeds 0 1] [--schedule short] [--set [METHOD:]KEY=VALUE ...]
+                   [--strengths S ...] [--seeds 0 1 2] [--split novel-view] [--schedule short]
+                   [--set [METHOD:]KEY=VALUE ...]
 
 Families x strengths x methods x seeds (:mod:`benchmark.studies.stress`); a run whose results file
 exists is read, not redone (``--force`` redoes it), so an interrupted suite resumes. So is a run the
@@ -45,6 +46,7 @@ field."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from benchmark.core.scene import EVAL_SPLITS
     from benchmark.synthetic.perturb import FAMILIES
 
     parser.add_argument("--preset", default="smoke", help="base preset every perturbation is applied to")
@@ -55,7 +57,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"perturbation families (default: all: {', '.join(FAMILIES)})")
     parser.add_argument("--strengths", nargs="+", type=float, default=None,
                         help="strengths of every family (default: each family's own; 0 is always run)")
-    parser.add_argument("--seeds", nargs="+", type=parse_seed, default=[0, 1])
+    parser.add_argument("--seeds", nargs="+", type=parse_seed, default=[0, 1, 2],
+                        help="seeds: seed s generates the scene with scene seed s and fits on it with seed s")
+    parser.add_argument("--split", choices=EVAL_SPLITS, default="novel-view",
+                        help="evaluation split the runs score (default novel-view: scored views off the "
+                             "training path, a question the nearest training frame cannot answer)")
     parser.add_argument("--schedule", choices=("short", "default"), default="short",
                         help="short: the methods' step counts cut for a CPU suite (SHORT_SCHEDULES); default: "
                              "the methods' own")
@@ -96,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
     config = stress.SuiteConfig(
         preset=args.preset, size=args.size, frames=args.frames, methods=tuple(args.methods),
         families=tuple(args.families), strengths=None if args.strengths is None else tuple(args.strengths),
-        seeds=tuple(args.seeds), method_options=method_options(args.methods, args.schedule, args.set),
+        seeds=tuple(args.seeds), split=args.split, method_options=method_options(args.methods, args.schedule, args.set),
         out_dir=args.out_dir, cache_dir=args.cache_dir, device=args.device, force=args.force)
     start = time.perf_counter()
     scores = stress.collect(config) if args.report_only else stress.run_suite(config)

@@ -33,7 +33,8 @@ its captions default to (``caption_noise`` in its truth; the synthetic presets w
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+import math
+from dataclasses import asdict, dataclass, replace
 
 from .errors import InputError
 
@@ -79,9 +80,40 @@ DEFAULT_CAPTION_NOISE = "clean"
 """The level of a scene that declares none (scenes generated before levels existed)."""
 
 
+LAG_SUFFIX = "+lag:"
+"""A level name followed by ``+lag:X`` (``mllm+lag:0.1``): that level with its captions lagging ``X`` of the
+video more (:func:`with_extra_lag`)."""
+
+
+def with_extra_lag(level: CaptionNoise, extra: float, *, where=None, field: str = "caption_noise") -> CaptionNoise:
+    """``level`` with its lag grown by ``extra`` of the video (the stress suite's ``caption-lag``); 0 returns it
+    as it is. An :class:`InputError` where ``extra`` is not finite and >= 0 or the lag reaches the video."""
+    extra = float(extra)
+    if not math.isfinite(extra) or extra < 0:
+        raise InputError(where, field, f"extra caption lag must be a finite share of the video >= 0, got {extra!r}")
+    if extra == 0:
+        return level
+    try:
+        return replace(level, name=f"{level.name}{LAG_SUFFIX}{extra:g}", lag_fraction=level.lag_fraction + extra)
+    except ValueError as exc:
+        raise InputError(where, field, str(exc)) from None
+
+
+def split_lag(name: str, *, where=None, field: str = "caption_noise") -> tuple[str, float]:
+    """(level name, extra lag) of ``name`` (``"mllm+lag:0.1"`` -> ``("mllm", 0.1)``; no suffix: 0)."""
+    base, sep, extra = str(name).partition(LAG_SUFFIX)
+    if not sep:
+        return base, 0.0
+    try:
+        return base, float(extra)
+    except ValueError:
+        raise InputError(where, field, f"expected a number after {LAG_SUFFIX!r} in {name!r}") from None
+
+
 def caption_noise(name: str, *, where=None, field: str = "caption_noise") -> CaptionNoise:
-    """The level called ``name`` (an :class:`InputError` naming ``where`` and ``field`` and the valid levels
-    otherwise)."""
-    if name not in CAPTION_NOISE:
-        raise InputError(where, field, f"unknown caption noise level {name!r} (valid: {', '.join(CAPTION_NOISE)})")
-    return CAPTION_NOISE[name]
+    """The level called ``name``, with an optional extra lag (:data:`LAG_SUFFIX`); an :class:`InputError` naming
+    ``where`` and ``field`` and the valid levels otherwise."""
+    base, extra = split_lag(name, where=where, field=field)
+    if base not in CAPTION_NOISE:
+        raise InputError(where, field, f"unknown caption noise level {base!r} (valid: {', '.join(CAPTION_NOISE)})")
+    return with_extra_lag(CAPTION_NOISE[base], extra, where=where, field=field)

@@ -16,6 +16,9 @@ track gives a method, here, so no method changes:
 * ``mask-drop``: a share of the masks is removed (their pixels carry no mask);
 * ``caption-swap``: a share of the template captions is replaced by a caption the same object had in
   another state (methods with a ``captions`` group, fed through the ``file`` captioner);
+* ``caption-lag``: the template captions describe each change later, by a share of the video on top of the
+  scene's own caption noise (:func:`benchmark.core.caption_noise.with_extra_lag`; methods with a
+  ``captions`` group);
 * ``query-paraphrase``: a share of the queries is put to the model in other words (a synonym of the
   object, a caption of the state) and scored against the query's ground truth.
 """
@@ -60,8 +63,12 @@ class SuiteConfig:
     families: tuple[str, ...] = tuple(FAMILIES)
     strengths: Optional[tuple[float, ...]] = None
     """Strengths run for every family (None: each family's own, :data:`FAMILIES`)."""
-    seeds: tuple[int, ...] = (0, 1)
-    """Seeds of the fits (and of the supervision noise)."""
+    seeds: tuple[int, ...] = (0, 1, 2)
+    """Seeds of the generated scene, of the fit and of the supervision noise: seed ``s`` generates the base
+    preset with scene seed ``s`` and fits on it with seed ``s``, so the seeds vary scene and fit together."""
+    split: str = "novel-view"
+    """Evaluation split the runs score (:data:`benchmark.core.scene.EVAL_SPLITS`): ``novel-view`` (default),
+    the question a copy of the nearest training frame cannot answer; one fit answers both."""
     method_options: dict[str, dict[str, str]] = field(default_factory=dict)
     """Method -> dotted config overrides (short schedules)."""
     out_dir: Path = Path("reports/stability")
@@ -72,6 +79,9 @@ class SuiteConfig:
     """Run again where a results file exists."""
 
     def __post_init__(self) -> None:
+        from benchmark.core.scene import check_eval_split
+
+        check_eval_split(self.split)
         for value in self.strengths or ():
             if not np.isfinite(float(value)) or float(value) < 0:  # before any run starts, not at the first scene
                 raise InputError(None, "strengths", f"expected finite strengths >= 0, got {value!r}")
@@ -118,25 +128,27 @@ def strength_label(strength: float) -> str:
 
 
 # -- scenes ---------------------------------------------------------------------------------------------
-def scene_folder(config: SuiteConfig, family_name: str, strength: float) -> Path:
-    """The generated scene a run of (family, strength) reads (the clean scene for supervision families),
-    as the generator's code now makes it (:func:`current_scene`)."""
+def scene_folder(config: SuiteConfig, family_name: str, strength: float, seed: int) -> Path:
+    """The generated scene a run of (family, strength, seed) reads (the clean scene for supervision
+    families), generated with scene seed ``seed``, as the generator's code now makes it
+    (:func:`current_scene`)."""
     from benchmark.results import exclusive_lock
 
     scene_side = strength != 0 and family(family_name).side == "scene"
     name = f"{config.preset}-{family_name}-{strength_label(strength)}" if scene_side else f"{config.preset}-clean"
+    name = f"{name}-s{int(seed)}"
     folder = config.stress_dir / "scenes" / name
     folder.parent.mkdir(parents=True, exist_ok=True)
     with exclusive_lock(folder.parent / f".{name}.lock"):
         perturbation = (family_name, strength) if scene_side else None
-        return current_scene(folder, lambda out: _generate(config, out, perturbation))
+        return current_scene(folder, lambda out: _generate(config, out, perturbation, seed))
 
 
-def _generate(config: SuiteConfig, out: Path, perturbation: Optional[tuple]) -> Path:
+def _generate(config: SuiteConfig, out: Path, perturbation: Optional[tuple], seed: int) -> Path:
     from benchmark.synthetic.generate import generate
 
-    return Path(generate(config.preset, out, size=config.size, frames=config.frames, seed=0, overwrite=True,
-                         perturbation=perturbation))
+    return Path(generate(config.preset, out, size=config.size, frames=config.frames, seed=int(seed),
+                         overwrite=True, perturbation=perturbation))
 
 
 SCENE_STAMP = "stress_scene"
@@ -405,17 +417,25 @@ def run_keys(config: SuiteConfig) -> list[RunKey]:
     return keys
 
 
+CAPTION_FAMILIES = ("caption-swap", "caption-lag")
+"""Families that change a method's captions (they apply to methods with a ``captions`` group only)."""
+
+
 def applies(key: RunKey) -> bool:
     """Whether the family changes anything for the method (caption noise needs a captioned method)."""
-    return key.clean or key.family != "caption-swap" or reads_captions(key.method)
+    return key.clean or key.family not in CAPTION_FAMILIES or reads_captions(key.method)
 
 
 def run_options(config: SuiteConfig, key: RunKey, scene_root: Optional[Path]) -> dict[str, str]:
-    """The method options of a run: the suite's for its method, and a caption-swap run's captions file
-    (:func:`caption_options`; ``scene_root`` None: named, not written)."""
+    """The method options of a run: the suite's for its method, a caption-swap run's captions file
+    (:func:`caption_options`; ``scene_root`` None: named, not written) and a caption-lag run's extra lag."""
     options = dict(config.method_options.get(key.method, {}))
     if key.family == "caption-swap" and not key.clean:
         options.update(caption_options(config, key, scene_root))
+    if key.family == "caption-lag" and not key.clean:
+        from benchmark.core.caption_noise import LAG_SUFFIX
+
+        options["captions.noise"] = f"scene{LAG_SUFFIX}{strength_label(key.strength)}"
     return options
 
 
@@ -425,7 +445,10 @@ def results_file(config: SuiteConfig, key: RunKey) -> Optional[Path]:
     changed is stale, neither read nor reported, and is redone."""
     from methods import registry
 
-    found = sorted(key.folder(config.runs_dir).glob(f"*/*/{key.method}/oracle/seed{key.seed}.json"))
+    from benchmark.core.scene import DEFAULT_EVAL_SPLIT
+
+    split = "" if config.split == DEFAULT_EVAL_SPLIT else f"{config.split}/"  # as results_path places it
+    found = sorted(key.folder(config.runs_dir).glob(f"*/*/{key.method}/oracle/{split}seed{key.seed}.json"))
     if not found:
         return None
     try:
@@ -436,7 +459,7 @@ def results_file(config: SuiteConfig, key: RunKey) -> Optional[Path]:
                                                                             run_options(config, key, None)):
         return None
     # a run measured on a scene the generator no longer makes is stale too
-    scene = scene_folder(config, key.family, key.strength)
+    scene = scene_folder(config, key.family, key.strength, key.seed)
     recorded = ((doc.get("scene_info") or {}).get("generated") or {}).get("digest")
     return found[0] if recorded == (_scene_stamp(scene) or {}).get("digest") else None
 
@@ -451,10 +474,10 @@ def run_one(config: SuiteConfig, key: RunKey, log: Callable[[str], None] = print
     from benchmark.runner import EvalOptions, answer_queries, obtain_fit, prepare_run, score_and_write
 
     start = time.perf_counter()
-    root = scene_folder(config, key.family, key.strength)
+    root = scene_folder(config, key.family, key.strength, key.seed)
     options = run_options(config, key, root)
     prepared = prepare_run(EvalOptions(
-        method=key.method, scene=str(root), seed=key.seed, results_dir=key.folder(config.runs_dir),
+        method=key.method, scene=str(root), seed=key.seed, split=config.split, results_dir=key.folder(config.runs_dir),
         cache_dir=Path(config.cache_dir), device=config.device, method_options=options, quiet=True,
         timing_frames=1, timing_repeats=1, refit=config.force))
     if key.family in MASK_FAMILIES:
@@ -488,6 +511,8 @@ class Score:
     """Digest of the generated scene it was measured on."""
     config_digest: str = ""
     """:func:`config_digest` of the method config it ran with."""
+    machine: str = ""
+    """The kind of machine it ran on (:func:`benchmark.results.machine_of`'s ``machine_kind``)."""
 
     @property
     def run(self) -> tuple:
@@ -498,6 +523,8 @@ class Score:
 def collect(config: SuiteConfig) -> list[Score]:
     """The scores of every run of the suite, the clean runs under every family: from its results file, or
     else kept from the report's ``scores.csv`` (:func:`kept_scores`) while its digests are current."""
+    from benchmark.results import machine_of
+
     kept = kept_scores(config)
     out = []
     for method in config.methods:
@@ -513,15 +540,15 @@ def collect(config: SuiteConfig) -> list[Score]:
                         scene = ((doc.get("scene_info") or {}).get("generated") or {}).get("digest") or ""
                         out.append(Score(fam, strength, method, seed, {m: doc["metrics"].get(m) for m in METRICS},
                                          path, float(doc.get("wall_seconds") or 0.0), scene,
-                                         config_digest(config, key)))
+                                         config_digest(config, key), machine_of(doc)["machine_kind"]))
                     elif (key.family, strength, method, seed) in kept:
                         out.append(replace(kept[key.family, strength, method, seed], family=fam))
     return out
 
 
 def config_digest(config: SuiteConfig, key: RunKey) -> str:
-    """A digest of the method config the run has today (a caption-swap run's captions file by its name in
-    the suite's folder, so a moved cache keeps it)."""
+    """A digest of the method config the run has today and the split it scores (a caption-swap run's captions
+    file by its name in the suite's folder, so a moved cache keeps it)."""
     from benchmark.core.cache_keys import stable_hash
     from benchmark.runner import config_dict
     from methods import registry
@@ -529,12 +556,17 @@ def config_digest(config: SuiteConfig, key: RunKey) -> str:
     options = run_options(config, key, None)
     if "captions.file" in options:
         options["captions.file"] = Path(options["captions.file"]).name
-    return stable_hash(config_dict(registry.get(key.method).make_config(options)), 12)
+    from benchmark.core.scene import DEFAULT_EVAL_SPLIT
+
+    recorded = config_dict(registry.get(key.method).make_config(options))
+    if config.split != DEFAULT_EVAL_SPLIT:  # the paper split's digests stay those written before splits
+        recorded = {"config": recorded, "split": config.split}
+    return stable_hash(recorded, 12)
 
 
 def scene_digest_now(config: SuiteConfig, key: RunKey) -> str:
     """Digest of the scene the run reads, as the generator makes it today."""
-    return (_scene_stamp(scene_folder(config, key.family, key.strength)) or {}).get("digest") or ""
+    return (_scene_stamp(scene_folder(config, key.family, key.strength, key.seed)) or {}).get("digest") or ""
 
 
 def kept_scores(config: SuiteConfig) -> dict[tuple, Score]:
@@ -557,7 +589,8 @@ def kept_scores(config: SuiteConfig) -> dict[tuple, Score]:
 
 SCORES_FILE = "scores.csv"
 """The report's table of every run's scores (with the digests that keep a run current)."""
-_SCORE_COLUMNS = ("family", "strength", "method", "seed", *METRICS, "wall_seconds", "scene_digest", "config_digest")
+_SCORE_COLUMNS = ("family", "strength", "method", "seed", *METRICS, "wall_seconds", "scene_digest", "config_digest",
+                  "machine")
 
 
 def read_scores_table(csv: Path) -> list[Score]:
@@ -568,7 +601,8 @@ def read_scores_table(csv: Path) -> list[Score]:
     if not Path(csv).is_file():
         raise InputError(csv, None, "no stress scores here: run bench4d stress first")
     try:
-        table = pd.read_csv(csv, dtype={"family": str, "method": str, "scene_digest": str, "config_digest": str})
+        table = pd.read_csv(csv, dtype={"family": str, "method": str, "scene_digest": str, "config_digest": str,
+                                        "machine": str})
     except (ValueError, pd.errors.ParserError) as exc:
         raise InputError(csv, None, f"not a readable scores table ({exc})") from None
     for column in ("family", "strength", "method", "seed", *METRICS):
@@ -586,9 +620,14 @@ def read_scores_table(csv: Path) -> list[Score]:
         return [Score(r.family, float(r.strength), r.method, int(r.seed),
                       {m: None if pd.isna(getattr(r, m)) else float(getattr(r, m)) for m in METRICS}, None,
                       float(getattr(r, "wall_seconds", 0.0) or 0.0), text(r, "scene_digest"),
-                      text(r, "config_digest")) for r in table.itertuples(index=False)]
+                      text(r, "config_digest"), text(r, "machine")) for r in table.itertuples(index=False)]
     except (TypeError, ValueError) as exc:
         raise InputError(csv, None, f"a row that is not a score ({exc})") from None
+
+
+def _csv_cell(text: str) -> str:
+    """``text`` as one CSV cell (quoted where it holds a comma, a quote or a line break)."""
+    return '"' + text.replace('"', '""') + '"' if any(c in text for c in ',"\r\n') else text
 
 
 def write_scores_table(scores: Sequence[Score], path: Path) -> Path:
@@ -602,7 +641,7 @@ def write_scores_table(scores: Sequence[Score], path: Path) -> Path:
     for s in rows:
         cells = ["" if s.metrics.get(m) is None else f"{s.metrics[m]:.3f}" for m in METRICS]
         lines.append(f"{s.family},{strength_label(s.strength)},{s.method},{s.seed}," + ",".join(cells)
-                     + f",{s.wall_seconds:.1f},{s.scene_digest},{s.config_digest}")
+                     + f",{s.wall_seconds:.1f},{s.scene_digest},{s.config_digest},{_csv_cell(s.machine)}")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     if path.is_file():

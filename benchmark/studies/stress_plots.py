@@ -287,8 +287,8 @@ def family_gallery(config: SuiteConfig, scores: Sequence[Score], fam: str, path:
     title = (f"{fam} at {strength_label(strongest)} ({FAMILIES[fam].unit}), seed {seed}: each row of the "
              f"strongest strength below its clean row (the same frame and query without the perturbation)"
              if clean_runs else f"{fam} at {strength_label(strongest)} ({FAMILIES[fam].unit}), seed {seed}")
-    return gallery(runs, scene_folder(config, fam, strongest), title, path, clean_runs=clean_runs,
-                   clean_root=scene_folder(config, fam, 0.0) if clean_runs else None, label=label)
+    return gallery(runs, scene_folder(config, fam, strongest, seed), title, path, clean_runs=clean_runs,
+                   clean_root=scene_folder(config, fam, 0.0, seed) if clean_runs else None, label=label)
 
 
 def _clean_table(scores: Sequence[Score], methods: Sequence[str]) -> str:
@@ -362,6 +362,24 @@ def coverage(config: SuiteConfig, scores: Sequence[Score]) -> str:
         lines.append(f"* `{method}`: " + "; ".join(f"{phrase} on {', '.join(fams)}"
                                                      for phrase, fams in phrases.items()) + ".")
     return "\n".join(lines) + "\n"
+
+
+def machine_line(scores: Sequence[Score]) -> str:
+    """The kinds of machine the runs ran on, with their run counts, counted from the scores; where there are
+    several, a warning that a cell's seeds may come from different kinds (a re-fit on another CPU moves a
+    cell beyond its seed noise: ``reports/history.md``). A score kept without a recorded machine counts as
+    unrecorded."""
+    counts: dict[str, int] = {}
+    for s in {(s.family if s.strength else "clean", s.strength, s.method, s.seed): s for s in scores}.values():
+        kind = s.machine or "not recorded"
+        counts[kind] = counts.get(kind, 0) + 1
+    if not counts:
+        return "Machine: no runs.\n"
+    kinds = "; ".join(f"{kind} ({n} run{'s' if n != 1 else ''})" for kind, n in sorted(counts.items()))
+    if len(counts) == 1:
+        return f"Machine kind of every run: {kinds}.\n"
+    return (f"Machine kinds: {kinds}. The runs mix kinds of machine: a cell's seeds may come from different "
+            f"kinds, and a re-fit on another kind moves a cell beyond its seed noise.\n")
 
 
 ACC_FLOOR = 50.0
@@ -468,8 +486,10 @@ def _readme(config: SuiteConfig, scores: Sequence[Score], families: Sequence[str
     wall = f"{wall_seconds / 60:.1f} min" if wall_seconds is not None else "not measured"
     charts = "\n".join(f"* [{f}](charts/{f}.png), gallery [{f}](galleries/{f}.png)" for f in families)
     return (f"# Where methods fail: the stress suite\n\n"
-            f"Base preset `{config.preset}` at {config.size} px, {config.frames} frames; methods "
-            f"{', '.join(config.methods)}; seeds {seeds}; device {config.device}. Method options: {options}.\n"
+            f"Base preset `{config.preset}` at {config.size} px, {config.frames} frames, scored on the "
+            f"`{config.split}` split; methods {', '.join(config.methods)}; seeds {seeds} (seed s generates the "
+            f"scene with scene seed s and fits with seed s); device {config.device}. Method options: {options}.\n"
+            f"{machine_line(scores)}"
             f"Wall time of this invocation: {wall} (runs already present are read, not redone). "
             f"Every run's scores: [scores.csv](scores.csv).\n\n"
             f"Coverage: {coverage(config, scores)}\n"

@@ -23,6 +23,10 @@ Families on the scene's side (strength units in :data:`FAMILIES`):
 * ``appearance``: every object's colour drifts towards a warm dark tint and back, twice (lighting
   and colour change with no change of state);
 * ``semantic-subtle``: states change when they did, but their visible change shrinks (1: none);
+* ``state-ramp``: states change when they did, but each visible change develops gradually over a share of
+  the video (a liquid darkening frame by frame); the labels keep the truth's rule (a state holds from the
+  first frame past the midpoint of its transition), exact because a ramp is never wider than the gap
+  between two changes of the same timeline (:func:`widened_ramp`);
 * ``topology``: the parts of every object of several parts move apart and back together, twice.
 
 The supervision-side families (noise of the oracle track's masks, captions and query wording) act on
@@ -73,6 +77,8 @@ FAMILIES: dict[str, Family] = {f.name: f for f in (
     Family("appearance", "colour shift without a state change (blend weight)", (0.0, 0.15, 0.3, 0.45, 0.6),
            "scene"),
     Family("semantic-subtle", "share of the states' visible change removed", (0.0, 0.5, 0.75, 0.9, 1.0), "scene"),
+    Family("state-ramp", "length of each visible state change (share of the video)", (0.0, 0.1, 0.2, 0.35, 0.5),
+           "scene"),
     Family("topology", "parts split apart and merge back (distance, share of the scene radius)",
            (0.0, 0.1, 0.2, 0.35, 0.5), "scene"),
     Family("mask-erode", "mask boundary eroded (pixels at 48 px)", (0.0, 1.0, 2.0, 3.0, 4.0), "supervision"),
@@ -81,6 +87,8 @@ FAMILIES: dict[str, Family] = {f.name: f for f in (
            (0.0, 0.1, 0.25, 0.5, 1.0), "supervision"),
     Family("mask-drop", "share of masks dropped", (0.0, 0.1, 0.25, 0.5, 0.9), "supervision"),
     Family("caption-swap", "share of captions of another state", (0.0, 0.1, 0.25, 0.5, 1.0), "supervision"),
+    Family("caption-lag", "extra lag of the captions behind each change (share of the video)",
+           (0.0, 0.05, 0.1, 0.2, 0.3), "supervision"),
     Family("query-paraphrase", "share of queries asked in other words", (0.0, 0.25, 0.5, 0.75, 1.0), "supervision"),
 )}
 
@@ -393,6 +401,25 @@ def _semantic_subtle(scene: SceneDef, records: list, strength: float, rng) -> tu
     return scene, records
 
 
+def widened_ramp(timeline: Timeline, strength: float) -> float:
+    """Ramp width (frames) of ``timeline`` under ``state-ramp`` at ``strength``: ``strength`` of the video, never
+    narrower than the timeline's own ramp and never wider than the shortest gap between two of its boundaries
+    (ramps that touch but never overlap, so a frame's visible change is one transition's progress alone)."""
+    edges = tuple(timeline.boundaries)
+    gap = min((b - a for a, b in zip(edges, edges[1:])), default=float(timeline.num_frames))
+    return float(max(timeline.ramp_frames, min(strength * timeline.num_frames, gap)))
+
+
+def _state_ramp(scene: SceneDef, records: list, strength: float, rng) -> tuple:
+    for node in _all_nodes(scene):
+        timeline = node.timeline
+        if timeline is not None:
+            # the preset's closures hold the timeline object itself: its ramp is widened in place (labels
+            # come from its boundaries, which stay)
+            object.__setattr__(timeline, "ramp_frames", widened_ramp(timeline, strength))
+    return scene, records
+
+
 def _topology(scene: SceneDef, records: list, strength: float, rng) -> tuple:
     distance = strength * scene.focus_radius
 
@@ -416,5 +443,6 @@ _APPLY: dict[str, Callable] = {
     "motion-speed": _motion_speed, "motion-amplitude": _motion_amplitude, "frames-dropped": _frames_dropped,
     "state-gap": _state_gap, "camera-slow": _camera_slow, "camera-teleport": _camera_teleport,
     "camera-rig": _camera_rig,
-    "occluder": _occluder, "appearance": _appearance, "semantic-subtle": _semantic_subtle, "topology": _topology,
+    "occluder": _occluder, "appearance": _appearance, "semantic-subtle": _semantic_subtle, "state-ramp": _state_ramp,
+    "topology": _topology,
 }

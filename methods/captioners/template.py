@@ -28,7 +28,7 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
-from benchmark.core.caption_noise import DEFAULT_CAPTION_NOISE, CaptionNoise, caption_noise
+from benchmark.core.caption_noise import DEFAULT_CAPTION_NOISE, CaptionNoise, caption_noise, split_lag, with_extra_lag
 from benchmark.core.errors import InputError
 from benchmark.core.scene import Frame, Scene
 
@@ -47,7 +47,7 @@ class TemplateCaptioner(Captioner):
             seed: seed of the per-frame paraphrase draw (and of the noise draws).
             paraphrases: draw one of the state's paraphrases per frame (True) or always use the first.
             noise: caption noise level (:data:`benchmark.core.caption_noise.CAPTION_NOISE`), or ``"scene"``:
-                the level the scene's truth declares.
+                the level the scene's truth declares; either may carry an extra lag (``scene+lag:0.1``).
         """
         from methods.supervision.truth_access import open_truth
 
@@ -62,9 +62,11 @@ class TemplateCaptioner(Captioner):
         self._shown: dict[str, list[dict]] = {}  # node -> the states its training frames show
 
     def _noise_level(self, noise: str) -> CaptionNoise:
-        if noise == "scene":
+        base, extra = split_lag(noise, field="captions.noise")
+        if base == "scene":  # the declared level, with any extra lag asked for (scene+lag:0.1)
             declared = self.truth.doc.get("caption_noise", DEFAULT_CAPTION_NOISE)
-            return caption_noise(declared, where=self.truth.root, field="caption_noise")
+            return with_extra_lag(caption_noise(declared, where=self.truth.root, field="caption_noise"), extra,
+                                  field="captions.noise")
         return caption_noise(noise, field="captions.noise")
 
     def config(self) -> dict[str, Any]:

@@ -11,7 +11,7 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any, ClassVar, Optional
 
-from benchmark.core.caption_noise import CAPTION_NOISE
+from benchmark.core.caption_noise import CAPTION_NOISE, split_lag, with_extra_lag
 from methods.fields.configs import CaptionAutoencoderConfig, StatusHeadConfig
 
 from ._language import BENCHMARK_UNMASKED_TEXT, LanguageExtensions, LanguageMethodConfig
@@ -53,7 +53,8 @@ class CaptionConfig:
     """Seed of the template captioner's paraphrase draw (fixed: every method and seed sees the same captions)."""
     noise: str = "scene"
     """Noise of the template captioner's captions: a level of :mod:`benchmark.core.caption_noise` (``clean``,
-    ``mllm``), or ``"scene"``: the level the scene declares (the synthetic presets with time queries: ``mllm``)."""
+    ``mllm``) or ``"scene"`` (the level the scene declares: ``mllm`` on the presets with time queries), either
+    with an optional extra lag (``scene+lag:0.1``)."""
     text_encoder: Optional[str] = None
     """Text encoder of the captions and the time-sensitive queries (paper: ``e5-mistral``); ``None``: the
     run's text encoder (the image-text source's text tower on the real track)."""
@@ -63,8 +64,11 @@ class CaptionConfig:
             raise ValueError(f"captioner must be one of {CAPTIONER_CHOICES}, got {self.captioner!r}")
         if self.object_tracks not in TRACK_CHOICES:
             raise ValueError(f"object_tracks must be one of {TRACK_CHOICES}, got {self.object_tracks!r}")
-        if self.noise != "scene" and self.noise not in CAPTION_NOISE:
-            raise ValueError(f"noise must be 'scene' or one of {tuple(CAPTION_NOISE)}, got {self.noise!r}")
+        base, extra = split_lag(self.noise, field="captions.noise")
+        if base != "scene" and base not in CAPTION_NOISE:
+            raise ValueError(f"noise must be 'scene' or one of {tuple(CAPTION_NOISE)} (+lag:X optional), "
+                             f"got {self.noise!r}")
+        with_extra_lag(CAPTION_NOISE.get(base, CAPTION_NOISE["clean"]), extra, field="captions.noise")  # refused now
         if self.min_track_frames < 1 or not 0 <= self.min_track_area < 1:
             raise ValueError("min_track_frames must be >= 1 and min_track_area in [0, 1)")
 
