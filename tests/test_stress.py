@@ -819,3 +819,23 @@ def test_seeds_generate_their_own_scenes_and_the_rows_record_split_machine_and_s
     assert "Machine kind of every run:" in (tmp_path / "report" / "README.md").read_text()
     with pytest.raises(InputError):
         stress.SuiteConfig(split="held-out")
+
+
+def test_a_fitted_method_clears_the_floors_only_when_its_whole_clean_interval_lies_above_theirs():
+    from benchmark.studies.stress import Score
+    from benchmark.studies.stress_plots import floor_clearance, machine_line
+
+    def clean(method, values):
+        return [Score("mask-drop", 0.0, method, seed, {"mIoU": v, "Acc": None, "vIoU": None}, None, 1.0, "", "",
+                      "CPU X (avx2)") for seed, v in enumerate(values)]
+
+    floors = clean("nearest-frame", [40, 42, 44]) + clean("nearest-frame-masks", [45, 46, 47])
+    scores = floors + clean("4d-langsplat", [60, 62, 64]) + clean("langsplat", [44, 60, 70]) + clean("feature-3dgs", [])
+    methods = ("nearest-frame", "nearest-frame-masks", "4d-langsplat", "langsplat", "feature-3dgs")
+    assert floor_clearance(scores, methods) == {"4d-langsplat": True, "langsplat": False, "feature-3dgs": None}
+    # a mean above both floors is not enough: langsplat's mean (58) clears them, its lowest seed does not
+    assert floor_clearance(scores, ("nearest-frame", "4d-langsplat")) == {"4d-langsplat": True}
+    assert floor_clearance(scores, ("4d-langsplat",)) == {"4d-langsplat": None}, "no floor: nothing to clear"
+    assert machine_line(scores).startswith("Machine kind of every run: CPU X (avx2) (12 runs)")
+    mixed = scores + [dataclasses.replace(scores[0], seed=7, machine="CPU Y (avx512)")]
+    assert "mix kinds" in machine_line(mixed)

@@ -291,16 +291,49 @@ def family_gallery(config: SuiteConfig, scores: Sequence[Score], fam: str, path:
                    clean_root=scene_folder(config, fam, 0.0, seed) if clean_runs else None, label=label)
 
 
+def clean_interval(scores: Sequence[Score], method: str, metric: str = "mIoU") -> Optional[tuple[float, float]]:
+    """The 95 % interval over seeds of ``method``'s clean ``metric`` (:func:`~benchmark.studies.stress.seed_interval`);
+    None where it has no clean value."""
+    from .stress import seed_interval
+
+    values = {s.seed: s.metrics.get(metric) for s in scores if s.method == method and s.strength == 0}
+    values = [float(v) for v in values.values() if v is not None]
+    return seed_interval(values) if values else None
+
+
+def floor_clearance(scores: Sequence[Score], methods: Sequence[str], metric: str = "mIoU") -> dict[str, Optional[bool]]:
+    """Per fitted (non-floor) method of ``methods``: whether its clean interval of ``metric`` lies wholly above
+    the clean interval of every floor among ``methods`` (:attr:`methods.registry.MethodSpec.floor`) -- the
+    base scene asks a question the floors cannot answer for it; None where a floor or the method has no
+    clean value. The suite's size is the smallest where every fitted method clears."""
+    from methods import registry
+
+    floors = [m for m in methods if registry.get(m).floor]
+    floor_tops = [clean_interval(scores, f, metric) for f in floors]
+    out: dict[str, Optional[bool]] = {}
+    for method in methods:
+        if method in floors:
+            continue
+        own = clean_interval(scores, method, metric)
+        out[method] = None if own is None or not floors or None in floor_tops else \
+            all(own[0] > top[1] for top in floor_tops)
+    return out
+
+
 def _clean_table(scores: Sequence[Score], methods: Sequence[str]) -> str:
     rows = []
+    clears = floor_clearance(scores, methods)
     for method in methods:
         clean = [s for s in scores if s.method == method and s.strength == 0]
         by_seed = {s.seed: s for s in clean}
         cells = [number_cell(np.mean([s.metrics[m] for s in by_seed.values() if s.metrics.get(m) is not None])
                              if any(s.metrics.get(m) is not None for s in by_seed.values()) else None, 1)
                  for m in METRICS]
-        rows.append([method, str(len(by_seed))] + cells)
-    return markdown_table(["method", "seeds", *METRICS], rows)
+        interval = clean_interval(scores, method)
+        span = "–" if interval is None else f"[{interval[0]:.1f}, {interval[1]:.1f}]"
+        verdict = {True: "yes", False: "no", None: "–"}[clears.get(method)] if method in clears else "floor"
+        rows.append([method, str(len(by_seed))] + cells + [span, verdict])
+    return markdown_table(["method", "seeds", *METRICS, "mIoU 95 % interval", "above both floors"], rows)
 
 
 def _run_time_table(scores: Sequence[Score], methods: Sequence[str]) -> str:
@@ -495,7 +528,10 @@ def _readme(config: SuiteConfig, scores: Sequence[Score], families: Sequence[str
             f"Coverage: {coverage(config, scores)}\n"
             f"Run time, each run on the core it ran on (a fit reused from the cache costs nothing here):\n\n"
             f"{_run_time_table(scores, config.methods)}\n"
-            f"## Clean scores (strength 0, mean over seeds)\n\n{_clean_table(scores, config.methods)}\n"
+            f"## Clean scores (strength 0, mean over seeds)\n\nA fitted method is *above both floors* where its "
+            f"clean mIoU interval over seeds lies wholly above every floor's: on a base scene where it is not, the "
+            f"floor answers the question as well, and a perturbation measures little.\n\n"
+            f"{_clean_table(scores, config.methods)}\n"
             f"## Breaking points\n\nThe first strength at which a method's 95 % interval over seeds lies wholly "
             f"below half of its clean interval's lower end: a drop outside the seed noise (`≤ s`: weaker strengths were not run; `> s`: it holds up to the strongest strength run; `–`: not run, or no clean score to halve).\n\n"
             f"{table}\n## Findings per family (measured)\n\nMeans over the seeds run (the clean runs' and, "
