@@ -290,6 +290,17 @@ def test_video_annotations_import_merges_intervals(session, seq):
                             base64.b64encode(json.dumps({"nothing": {"x": [[0, 1]]}}).encode()).decode())
 
 
+@pytest.mark.parametrize("name", ["\x1b[2J\x9b31m.json", "a\rb.json", "\u202ename.json"])
+def test_an_import_whose_file_name_holds_control_characters_is_refused_before_anything_changes(session, seq, name):
+    _annotated(session, seq)
+    before = session.path.read_bytes()
+    doc = {"blob": {"blob late": [[5, 7]]}}
+    with pytest.raises(InputError, match="filename"):
+        session.import_data(session.revision, "video-annotations", name,
+                            base64.b64encode(json.dumps(doc).encode()).decode())
+    assert session.path.read_bytes() == before
+
+
 def _zip(entries):
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w") as zf:

@@ -218,12 +218,12 @@ def test_a_save_body_beyond_the_route_limit_is_413_without_reading_it(server):
     assert time.monotonic() - t0 < 3.0
 
 
-@pytest.mark.parametrize("shape", ["lists", "objects", "strings"])
+@pytest.mark.parametrize("shape", ["lists", "objects", "strings", "short strings", "fractions"])
 def test_a_body_of_many_tiny_values_is_parsed_without_large_amplification(server, shape):
     """A body's parsed form costs a bounded multiple of its bytes: a body of empty containers (about 60
     bytes of Python objects per 3 bytes of JSON) is refused before it is parsed."""
     n = 2_000_000
-    item = {"lists": b"[],", "objects": b"{},", "strings": b'"",'}[shape]
+    item = {"lists": b"[],", "objects": b"{},", "strings": b'"",', "short strings": b'"ab",', "fractions": b"0.5,"}[shape]
     body = b'{"revision": 0, "changes": [' + item * n + b'0]}'
     tracemalloc.start()
     try:
@@ -235,6 +235,75 @@ def test_a_body_of_many_tiny_values_is_parsed_without_large_amplification(server
     # the client's own copy of the request counts here too; old: about 25 bytes a byte for empty containers
     assert peak < 8 * len(body), f"{peak / len(body):.1f} bytes of memory per body byte"
     assert_alive(server)
+
+
+def test_connections_busy_with_token_less_requests_never_lock_the_annotator_out(server, monkeypatch):
+    """Every untrusted slot busy serving a slow request (none only waiting, so none can be closed for
+    another): the token holder's new connection is admitted on probation and served; a token-less one on
+    probation is answered 503 unserved."""
+    release = threading.Event()
+    real_state = server.session.state
+
+    def slow_state():
+        release.wait(10)
+        return real_state()
+
+    monkeypatch.setattr(server.session, "state", slow_state)
+    busy = []
+    try:
+        for _ in range(server._untrusted_caps()[0]):
+            s = socket.create_connection(("127.0.0.1", server.port), timeout=10)
+            s.sendall(raw_request(server, "GET", "/api/state", []))
+            busy.append(s)
+        time.sleep(0.3)
+        for _ in range(3):
+            t0 = time.monotonic()
+            assert _annotator_saves(server) == 200
+            assert time.monotonic() - t0 < 3.0
+        code, _ = post(server, "/api/export", {"format": "project"}, token=False)
+        assert code == 503, "a token-less connection on probation is not served"
+    finally:
+        release.set()
+        for s in busy:
+            s.close()
+
+
+def test_an_absolute_form_target_is_400_and_changes_nothing(server):
+    before = server.session.revision
+    body = json.dumps({"revision": before, "text": "smuggled cup"}).encode()
+    headers = [("Content-Type", "application/json"), ("Content-Length", len(body)),
+               ("X-Bench4d-Token", server.token), ("Connection", "close")]
+    stream = exchange(server, raw_request(server, "POST", "http://evil.example/api/queries/add", headers, body))
+    assert statuses(stream) == [400], stream[:300]
+    assert server.session.revision == before
+    assert_alive(server)
+
+
+def test_a_head_ending_in_lf_then_crlf_is_read_as_a_head(server):
+    body = b'{\n "format": "nope"\n}'
+    raw = (b"POST /api/export HTTP/1.1\r\nHost: " + host(server).encode() + b"\r\nContent-Type: application/json\r\n"
+           b"X-Bench4d-Token: " + server.token.encode() + b"\r\nConnection: close\r\nContent-Length: "
+           + str(len(body)).encode() + b"\n\r\n" + body)
+    stream = exchange(server, raw)
+    assert statuses(stream) == [400] and b"nope" in stream and b"folding" not in stream, stream[:300]
+
+
+@pytest.mark.parametrize("body", [
+    b'{"revision": REV, "text": "surrogate level", "level": "\\ud800"}',
+    b'{"revision": REV, "text": "lone low", "level": "whole\\udfff"}',
+    b'{"revision": REV, "text": "escape level", "level": "\\u001b[2J"}',
+    b'{"revision": REV, "text": "c1 level", "level": "\\u009b31m"}',
+    b'{"revision": REV, "text": "\\ud83d"}',
+])
+def test_a_lone_surrogate_or_a_control_character_anywhere_is_400_and_never_stored(server, body):
+    before = server.session.revision
+    code, stream = post(server, "/api/queries/add", body.replace(b"REV", str(before).encode()))
+    assert code == 400 and b"Traceback" not in stream, stream[:300]
+    assert server.session.revision == before
+    # a valid pair is a character like any other
+    pair = b'{"revision": REV, "text": "cup \\ud83d\\ude00", "level": "whole"}'.replace(b"REV", str(before).encode())
+    code, stream = post(server, "/api/queries/add", pair)
+    assert code == 200, stream[:300]
 
 
 # -- keys: what a route reads, and nothing that varies it ----------------------------------------------------

@@ -330,3 +330,24 @@ def test_terminal_text_escapes_every_control_character():
     for ch in ["\x1b", "\r", "\x07", "\x00", "\x7f", "\x9b", "\u202e", "\u2066", "\n", "\t"]:
         escaped = terminal_text(f"a{ch}b")
         assert ch not in escaped and escaped.startswith("a") and escaped.endswith("b"), repr(escaped)
+
+
+@pytest.mark.parametrize("text", ['{"a": "\\ud800"}', '{"a": ["x", "y\\udfffz"]}', '{"\\udc00": 1}',
+                                  '["\\ud83d"]', '{"a": "\\ude00\\ud83d"}'])
+def test_a_lone_surrogate_is_refused_by_the_strict_reader_and_a_pair_is_one_character(text):
+    from benchmark.core.strict import loads
+
+    with pytest.raises(InputError, match="lone surrogate"):
+        loads(text, "f.json")
+    assert loads('{"a": "cup \\ud83d\\ude00"}', "f.json") == {"a": "cup \U0001F600"}
+
+
+def test_a_query_level_with_a_control_character_is_refused_in_an_annotation_file(tmp_path):
+    from annotations.format import FORMAT_NAME, FORMAT_VERSION, annotation_set_from_dict
+
+    doc = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "scene": "s", "num_time_steps": 2, "images": [],
+           "categories": [{"id": 1, "name": "cup", "level": "whole"}], "annotations": []}
+    assert annotation_set_from_dict(doc, file="a.json").queries[0].level == "whole"
+    doc["categories"][0]["level"] = "whole\u001b[2J"
+    with pytest.raises(InputError, match="level"):
+        annotation_set_from_dict(doc, file="a.json")
