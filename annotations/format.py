@@ -347,6 +347,8 @@ def _parse_categories(categories: Any, file) -> list[Query]:
         kind = _get(cat, "kind", file, field, types=(str,), default="agnostic",
                     check=lambda v: v in ("agnostic", "sensitive"), expect="'agnostic' or 'sensitive'")
         level = _get(cat, "level", file, field, types=(str, type(None)), default=None)
+        if level is not None:
+            level = check_text(level, file, f"{field}.level", max_chars=100)
         review = _get(cat, "review", file, field, types=(str, type(None)), default=None,
                       check=lambda v: v is None or v == DRAFT, expect=f"{DRAFT!r} or null")
         base = _get(cat, "base", file, field, types=(int, type(None)), default=None)

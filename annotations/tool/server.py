@@ -38,8 +38,8 @@ Hostile or faulty clients (a request is bytes from anyone who can reach the port
   the token holder's next connection is served. Trusted connections are never closed for another;
 * size: a body is at most :data:`MAX_BODY_BYTES` (an import: its upload limit in base64); its JSON is
   parsed strictly (:func:`parse_json_body`: no key twice, bounded nesting, no ``NaN`` or infinities,
-  and lists and objects counted before parsing, so that a body costs at most a few times its bytes in
-  memory); a route reads only its own keys (another key, or ``Box`` beside ``box``, is a 400);
+  and lists, objects, strings and fractions counted before parsing, so that a body costs at most about
+  eight times its bytes in memory, and bodies over a MiB are parsed one at a time); a route reads only its own keys (another key, or ``Box`` beside ``box``, is a 400);
 * numbers in paths, queries and headers are ASCII digits; masks are checked before any decoder sees
   them; any malformed input is a 4xx with a one-line JSON error, never a traceback.
 """
@@ -92,6 +92,14 @@ MAX_JSON_DEPTH = 32
 """Deepest nesting a request body may have (the deepest legitimate one, a save, has 5 levels)."""
 BODY_CONTAINER_BYTES = 32
 """A body may hold one list or object per this many bytes (plus 4096): a save holds one list per mask."""
+BODY_TEXT_BYTES = 16
+"""A body may hold one string, and one non-integer number, per this many bytes (plus 65536 each): a save's
+masks are lists of integers (run lengths; small ones are shared objects in Python), its strings are keys and
+its fractions a box or clicks, while a list of short strings or fractions costs 10 to 20 bytes of memory per
+byte of JSON."""
+LARGE_BODY_BYTES = 1024 * 1024
+"""Bodies above this size are parsed one at a time (a parsed body costs several times its bytes)."""
+_LARGE_BODY_PARSE = threading.Lock()
 DRAIN_BYTES = 1024 * 1024
 """A refused body up to this size is read and dropped (the connection stays usable); a larger one
 closes the connection instead."""
@@ -99,6 +107,7 @@ TOKEN_HEADER = "X-Bench4d-Token"
 _MAX_ERROR_CHARS = 400
 _DIGITS = re.compile(r"[0-9]{1,15}")  # ASCII only: str.isdigit() also accepts '²' and '١'
 _OBS_FOLD = re.compile(rb"\n[ \t]")
+_HEAD_END = re.compile(rb"\r?\n\r?\n")
 _CONTENT_LENGTH = re.compile(rb"(?im)^content-length[ \t]*:([^\r\n]*)")
 
 ROUTE_KEYS = {
@@ -177,6 +186,12 @@ def parse_json_body(raw: bytes | bytearray | str) -> Any:
     if count_containers(text) > budget:
         raise InputError(None, "body", f"more than {budget} lists and objects for {len(text)} bytes: not a "
                                        "request this server reads")
+    values = container_budget(len(text), BODY_TEXT_BYTES, 65536)
+    strings = text.count('"') // 2  # an upper bound (escaped quotes count too)
+    fractions = text.count(".") + text.count("e") + text.count("E")  # an upper bound on non-integer numbers
+    if strings > values or fractions > values:
+        raise InputError(None, "body", f"more than {values} strings or fractions for {len(text)} bytes: not a "
+                                       "request this server reads")
     try:
         obj = loads(text, None, max_depth=MAX_JSON_DEPTH, containers=budget)
     except InputError as err:
@@ -217,6 +232,9 @@ class _Connection:
         answer): then, untrusted, it may be closed for another."""
         self.opened = time.monotonic()
         self.closed = False
+        self.probation = False
+        """Admitted past a full untrusted pool whose connections were all busy: its first request must show
+        the token (it then joins the trusted pool) or it is answered 503 and closed unserved."""
 
     def close_for_another(self) -> None:
         """Wake its thread with end-of-stream (``shutdown``): it ends without another request."""
@@ -252,6 +270,10 @@ class AnnotationServer(socketserver.ThreadingMixIn, socketserver.TCPServer):
     """Untrusted connections from one address other than a loopback one; ``None``: half of
     :attr:`max_unauthenticated` (at least 1). Every local process shares the loopback address, the token
     holder's browser among them: there the pool's eviction rule alone applies."""
+    probation_connections = 4
+    """Connections admitted past a full untrusted pool whose connections are all busy (serving requests,
+    not waiting): each must show the token in its first request. However busy other processes keep their
+    connections, the token holder's next connection is served."""
     max_head_bytes = 16 * 1024
     """Largest request line plus headers."""
     linger_seconds = 1.0
@@ -300,12 +322,15 @@ class AnnotationServer(socketserver.ThreadingMixIn, socketserver.TCPServer):
 
     def _admit(self, sock: socket.socket, peer: str) -> Optional[_Connection]:
         """Register a new (untrusted) connection, closing the oldest waiting untrusted one of its client or
-        of the pool to make room; ``None`` when every untrusted connection is busy."""
+        of the pool to make room. Where every one of them is busy, the new connection is admitted on
+        probation (:attr:`_Connection.probation`), closing the oldest waiting probation connection if those
+        are all taken; ``None`` only when they are all busy too."""
         pool, per = self._untrusted_caps()
         victim = None
+        probation = False
         with self._conns_lock:
             live = [c for c in self._conns if not c.closed]
-            untrusted = [c for c in live if not c.trusted]
+            untrusted = [c for c in live if not c.trusted and not c.probation]
             same = [c for c in untrusted if c.peer == peer]
             crowd = None
             if len(untrusted) >= pool or len(live) >= self.max_connections:
@@ -314,11 +339,17 @@ class AnnotationServer(socketserver.ThreadingMixIn, socketserver.TCPServer):
                 crowd = same
             if crowd is not None:
                 idle = [c for c in crowd if c.waiting]
-                if not idle:
-                    return None
-                victim = min(idle, key=lambda c: c.opened)
-                victim.closed = True
+                if not idle:  # all busy: on probation, in a small pool of its own
+                    probation = True
+                    crowd = [c for c in live if c.probation and not c.trusted]
+                    idle = [c for c in crowd if c.waiting] if len(crowd) >= self.probation_connections else []
+                    if len(crowd) >= self.probation_connections and not idle:
+                        return None
+                if idle:
+                    victim = min(idle, key=lambda c: c.opened)
+                    victim.closed = True
             conn = _Connection(sock, peer)
+            conn.probation = probation
             self._conns.append(conn)
         if victim is not None:
             victim.close_for_another()
@@ -334,6 +365,7 @@ class AnnotationServer(socketserver.ThreadingMixIn, socketserver.TCPServer):
             if trusted >= max(1, self.max_connections - pool):
                 return False
             conn.trusted = True
+            conn.probation = False
             return True
 
     def _forget(self, conn: _Connection) -> None:
@@ -472,14 +504,18 @@ class _Handler(socketserver.BaseRequestHandler):
             self._reading_head = False
         if not isinstance(event, h11.Request):  # ConnectionClosed, or the end of a stream
             return False
-        end = min((i for i in (self._head.find(b"\r\n\r\n"), self._head.find(b"\n\n")) if i >= 0),
-                  default=len(self._head))
+        blank = _HEAD_END.search(self._head)  # the first empty line, whatever mix of CRLF and LF ends it
+        end = blank.start() if blank else len(self._head)
         self._head = self._head[:end]
         self.req = _Request(event)
         self.conn.waiting = False
         problem = self._framing_problem()
         if problem:
             self._send_error_and_close(HTTPStatus.BAD_REQUEST, problem)
+            return False
+        if self.conn.probation and not (self._host_ok() and self._token_ok(cookie=True)
+                                        and self.server._trust(self.conn)):
+            self._send_error_and_close(HTTPStatus.SERVICE_UNAVAILABLE, "too many connections; retry")
             return False
         method = self.req.command
         handler = {"GET": self._do_get, "HEAD": self._do_get, "POST": self._do_post}.get(method)
@@ -503,6 +539,8 @@ class _Handler(socketserver.BaseRequestHandler):
             return "more than one Content-Length"
         if lengths and not _DIGITS.fullmatch(lengths[0].strip(b" \t").decode("latin-1")):
             return "Content-Length must be one number in ASCII digits"
+        if not (self.req.path.startswith("/") or (self.req.command == "OPTIONS" and self.req.path == "*")):
+            return "the request target must be a path (origin form, RFC 9112 3.2.1): no scheme or host"
         if self.req.command == "POST" and not lengths:
             return "Content-Length required (a POST without one has no body: what follows would be a request)"
         return None
@@ -722,7 +760,10 @@ class _Handler(socketserver.BaseRequestHandler):
         except UnicodeDecodeError:
             raise InputError(None, "body", "not valid JSON (not UTF-8)") from None
         del raw  # the text alone from here: a body costs a bounded multiple of its size
-        return parse_json_body(text)
+        if len(text) <= LARGE_BODY_BYTES:
+            return parse_json_body(text)
+        with _LARGE_BODY_PARSE:  # one large body parsed at a time: their peaks never add up
+            return parse_json_body(text)
 
     def _dispatch(self, work: Callable[[], None]) -> None:
         """Run one request; every failure becomes a one-line JSON error (the traceback, for a
@@ -740,6 +781,8 @@ class _Handler(socketserver.BaseRequestHandler):
         except (_Closed, OSError):
             self._linger = False
             raise
+        except MemoryError:  # the machine's memory, not the request: retry later
+            self._error(HTTPStatus.SERVICE_UNAVAILABLE, "out of memory; retry")
         except Exception as err:  # noqa: BLE001 - report, keep serving
             traceback.print_exc()
             self._error(HTTPStatus.INTERNAL_SERVER_ERROR, f"{type(err).__name__}: {err}")

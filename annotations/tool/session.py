@@ -617,8 +617,8 @@ class AnnotationSession:
         text = check_text(text.strip(), None, "text")
         if kind not in ("agnostic", "sensitive"):
             raise InputError(None, "kind", "expected 'agnostic' or 'sensitive'")
-        if level is not None and not isinstance(level, str):
-            raise InputError(None, "level", "expected a string or null")
+        if level is not None:
+            level = check_text(level, None, "level", max_chars=100)
         with self._lock:
             self._check_revision(revision)
             same = next((q for q in self.aset.queries if text_key(q.text) == text_key(text)), None)
@@ -788,6 +788,7 @@ class AnnotationSession:
             raise InputError(None, "format", f"unknown import format {fmt!r} ({', '.join(IMPORT_FORMATS)})")
         if not isinstance(filename, str) or not isinstance(data_b64, str):
             raise InputError(None, "data", "expected a file name and base64 data")
+        filename = check_text(Path(filename).name or filename, None, "filename", max_chars=255)  # kept in info
         if len(data_b64) > self.config.max_import_bytes * 4 // 3 + 8:
             raise InputError(None, "data", f"import larger than {self.config.max_import_bytes} bytes")
         try:

@@ -108,7 +108,35 @@ def loads(text: str, file: str | Path | None = None, *, max_depth: Optional[int]
         raise InputError(file, None, f"invalid JSON: {str(err).splitlines()[0][:200]}") from None
     if json_depth_exceeds(doc, max_depth):
         raise InputError(file, None, f"invalid JSON: nested deeper than {max_depth} levels")
+    if _SURROGATE_ESCAPE.search(text):  # only an escape can make one: the walk is for those texts alone
+        where = _lone_surrogate(doc)
+        if where is not None:
+            raise InputError(file, where or None, "invalid JSON: a lone surrogate escape (\\uD800-\\uDFFF not in "
+                                                  "a pair), a character no UTF-8 text can hold")
     return doc
+
+
+_SURROGATE_ESCAPE = re.compile(r"\\u[dD][89a-fA-F]")
+_SURROGATE = re.compile("[\ud800-\udfff]")
+
+
+def _lone_surrogate(doc: Any) -> Optional[str]:
+    """The path of the first key or string of ``doc`` holding a surrogate code point (JSON decodes a valid
+    escaped pair to one character, so any left is lone); ``None`` when there is none."""
+    stack: list[tuple[str, Any]] = [("", doc)]
+    while stack:
+        where, node = stack.pop()
+        if isinstance(node, str):
+            if _SURROGATE.search(node):
+                return where
+        elif isinstance(node, dict):
+            for key, value in node.items():
+                if _SURROGATE.search(key):
+                    return where or "key"
+                stack.append((f"{where}.{key}" if where else key, value))
+        elif isinstance(node, list):
+            stack.extend((f"{where}[{i}]", v) for i, v in enumerate(node))
+    return None
 
 
 # -- keys ---------------------------------------------------------------------------------------------------
