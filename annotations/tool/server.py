@@ -34,8 +34,10 @@ Hostile or faulty clients (a request is bytes from anyone who can reach the port
   (yet) trusted are capped apart: at most :attr:`AnnotationServer.max_unauthenticated` of them, and at
   most :attr:`AnnotationServer.max_unauthenticated_per_client` from one address. When a new connection
   finds its pool full, the oldest untrusted connection that is only waiting (for a request, or for a
-  refused body) is closed to make room: however many connections other local processes open and hold,
-  the token holder's next connection is served. Trusted connections are never closed for another;
+  refused body) is closed to make room; when every one is busy serving a request, the new connection is
+  admitted on probation and served only if its first request shows the token: however many connections
+  other local processes open, hold or keep busy, the token holder's next connection is served. Trusted
+  connections are never closed for another;
 * size: a body is at most :data:`MAX_BODY_BYTES` (an import: its upload limit in base64); its JSON is
   parsed strictly (:func:`parse_json_body`: no key twice, bounded nesting, no ``NaN`` or infinities,
   and lists, objects, strings and fractions counted before parsing, so that a body costs at most about
