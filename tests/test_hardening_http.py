@@ -268,6 +268,14 @@ def test_connections_busy_with_token_less_requests_never_lock_the_annotator_out(
             s.close()
 
 
+@pytest.mark.parametrize("size", [20_000, 60_000])
+def test_a_head_beyond_its_limit_is_431_even_when_it_arrives_in_one_piece(server, size):
+    raw = raw_request(server, "GET", "/api/state", [("X-Big", "a" * size), ("Connection", "close")])
+    assert statuses(exchange(server, raw)) == [431]
+    ok = raw_request(server, "GET", "/api/state", [("X-Small", "a" * 1000), ("Connection", "close")])
+    assert statuses(exchange(server, ok)) == [200]
+
+
 def test_an_absolute_form_target_is_400_and_changes_nothing(server):
     before = server.session.revision
     body = json.dumps({"revision": before, "text": "smuggled cup"}).encode()

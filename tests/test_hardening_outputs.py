@@ -218,3 +218,28 @@ def test_leaderboard_never_writes_over_its_ceiling_nor_into_the_results_folder(t
                  str(ceiling), "--reports-dir", str(tmp_path / "results"), "--out", str(tmp_path / "lb.md"),
                  "--csv-dir", str(tmp_path / "results")]) == 2
     assert digest(tmp_path) == before
+
+
+def test_names_from_results_files_cannot_hijack_the_markdown_or_a_spreadsheet(tmp_path):
+    """Bidi overrides and zero-width marks are shown as escapes in Markdown; a CSV text cell a spreadsheet
+    would run as a formula gets a leading quote; a results file whose recorded run differs from its place is
+    refused, naming it."""
+    import json
+
+    import pandas as pd
+
+    from benchmark.cli import main
+    from benchmark.leaderboard import _csv, md
+
+    assert "\u202e" not in md("cup\u202eevil") and "\\u202e" in md("cup\u202eevil")
+    assert md("a\u200bb") == "a\\\\u200bb"
+    text = _csv(pd.DataFrame({"method": ["=HYPERLINK(\"http://x\")", "+1", "ok", "-x"], "v": [1.0, -2.0, 3.0, 4.0]}))
+    assert text.splitlines()[1:] == ['"\'=HYPERLINK(""http://x"")",1', "'+1,-2", "ok,3", "'-x,4"]
+    repo = Path(__file__).resolve().parents[1]
+    doc = json.loads((repo / "results" / "dnerf" / "lego" / "langsplat" / "oracle" / "seed0.json").read_text())
+    moved = tmp_path / "results" / "dnerf" / "lego" / "evil" / "oracle"
+    moved.mkdir(parents=True)
+    (moved / "seed0.json").write_text(json.dumps(doc))
+    assert main(["leaderboard", "--results-dir", str(tmp_path / "results"), "--allow-dirty",
+                 "--out", str(tmp_path / "lb.md")]) == 2
+    assert not (tmp_path / "lb.md").exists()
