@@ -44,6 +44,7 @@ from benchmark.core.atomic import read_json, write_text
 from benchmark.core.errors import InputError
 from benchmark.core.official import OFFICIAL_SCENES, is_official
 from benchmark.core.outputs import guard_output
+from benchmark.core.strict import terminal_text
 from benchmark.core.protocol import DEFAULT_PROTOCOL, SCORED_FRAMES_NOTE
 from benchmark.core.scene import DEFAULT_EVAL_SPLIT
 from . import stats
@@ -113,9 +114,11 @@ _MARKDOWN = re.compile(r"([\\`*_\[\]|~])")
 
 def md(text: Any) -> str:
     """``text`` from a file made safe for a Markdown table cell: control characters and line breaks become
-    spaces; ``&``, ``<`` and ``>`` become HTML entities (``<b>`` is no tag); Markdown's ``\\ ` * _ [ ] | ~`` are
-    backslash-escaped (a ``|`` cannot end a cell, a ``*`` cannot open emphasis, ``[x](y)`` is no link)."""
-    text = _CONTROL.sub(" ", str(text))
+    spaces, formatting characters (bidi overrides, zero-width marks) visible ``\\uNNNN`` escapes
+    (:func:`benchmark.core.strict.terminal_text`); ``&``, ``<`` and ``>`` become HTML entities (``<b>`` is no
+    tag); Markdown's ``\\ ` * _ [ ] | ~`` are backslash-escaped (a ``|`` cannot end a cell, a ``*`` cannot open
+    emphasis, ``[x](y)`` is no link)."""
+    text = terminal_text(_CONTROL.sub(" ", str(text)))
     text = text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
     return _MARKDOWN.sub(r"\\\1", text)
 
@@ -317,6 +320,18 @@ def _recorded_method(name: str, recorded: Any) -> str:
     return registry.recorded_method(name, recorded if isinstance(recorded, Mapping) else None)
 
 
+def _check_place(relative: Path, row: Mapping[str, Any]) -> None:
+    """A results file lies where its run writes it (``<dataset>/<scene>/<method>/<track>/[<split>/]seed<N>.json``,
+    :func:`benchmark.results.results_path`): a file whose recorded method, scene or seed differs from its place
+    (copied or hand-edited) would show under names nothing ran; an :class:`InputError` names it."""
+    parts = relative.parts
+    expected = (str(row["dataset"]), str(row["scene"]), str(row["method"]), str(row["track"]))
+    if tuple(parts[:4]) != expected or parts[-1] != f"seed{int(row['seed'])}.json" or len(parts) not in (5, 6):
+        raise InputError(relative, "method", f"records {'/'.join(expected)} seed {int(row['seed'])} but lies at "
+                                             f"{relative.as_posix()}: a results file is read where its run "
+                                             "writes it")
+
+
 def load_runs(results_dir: str | Path, *, extra: Optional[Callable[[dict], dict[str, Any]]] = None
               ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """(one row per results file: :data:`RUN_COLUMNS` and :data:`EXTRA_COLUMNS`, sorted; one row per asked
@@ -330,6 +345,7 @@ def load_runs(results_dir: str | Path, *, extra: Optional[Callable[[dict], dict[
         check_run_values(doc, path)
         shown = path.relative_to(results_dir).as_posix()
         row = run_row(doc, shown)
+        _check_place(path.relative_to(results_dir), row)
         # a run shows under the name its recorded config stands for today (a run made with the benchmark's
         # extensions before the paper configs became the defaults is the variant's, e.g. 4d-langsplat+)
         row["method"] = _recorded_method(str(row["method"]), doc.get("method_config"))
@@ -1280,7 +1296,18 @@ def _group_tables(group: pd.DataFrame, queries: Optional[pd.DataFrame], *, ranke
     return out
 
 
+_FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
+"""First characters that make a spreadsheet read a text cell as a formula."""
+
+
 def _csv(table: pd.DataFrame) -> str:
+    """The table as CSV; a text cell a spreadsheet would run as a formula (``=HYPERLINK(...)``, from a name
+    in a results file) is written with a leading ``'``, as spreadsheets mark text (OWASP's CSV injection)."""
+    table = table.copy()
+    for column in table.columns:
+        if not pd.api.types.is_numeric_dtype(table[column]):
+            table[column] = [f"'{v}" if isinstance(v, str) and v.startswith(_FORMULA_START) else v
+                             for v in table[column]]
     return table.to_csv(index=False, float_format="%.6g", lineterminator="\n")
 
 

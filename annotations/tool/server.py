@@ -70,6 +70,7 @@ from urllib.parse import parse_qs, urlsplit
 import h11
 
 from benchmark.core.errors import InputError
+from benchmark.core.imageio import NATIVE_STDERR_LOCK
 from benchmark.core.strict import check_keys, container_budget, count_containers, loads
 
 from .session import AnnotationSession, Conflict
@@ -510,6 +511,10 @@ class _Handler(socketserver.BaseRequestHandler):
         end = blank.start() if blank else len(self._head)
         self._head = self._head[:end]
         self.req = _Request(event)
+        if len(self._head) > self.server.max_head_bytes:  # h11 bounds only a head still incomplete
+            self._send_error_and_close(HTTPStatus.REQUEST_HEADER_FIELDS_TOO_LARGE,
+                                       f"request line and headers beyond {self.server.max_head_bytes} bytes")
+            return False
         self.conn.waiting = False
         problem = self._framing_problem()
         if problem:
@@ -630,7 +635,9 @@ class _Handler(socketserver.BaseRequestHandler):
         if getattr(self.server, "quiet", True) or self.req is None:
             return
         line = f"{self.req.command} {self.req.path} {int(status)}".replace(self.server.token, "<token>")
-        sys.stderr.write(f"{self.client_address[0]} - {_one_line(line)}\n")
+        with NATIVE_STDERR_LOCK:  # never into a decoder's capture on another thread
+            sys.stderr.write(f"{self.client_address[0]} - {_one_line(line)}\n")
+            sys.stderr.flush()
 
     def _json(self, status: int, obj: Any, close: bool = False) -> None:
         self._send(status, json.dumps(obj, separators=(",", ":")).encode("utf-8"), "application/json", close=close)
@@ -786,7 +793,8 @@ class _Handler(socketserver.BaseRequestHandler):
         except MemoryError:  # the machine's memory, not the request: retry later
             self._error(HTTPStatus.SERVICE_UNAVAILABLE, "out of memory; retry")
         except Exception as err:  # noqa: BLE001 - report, keep serving
-            traceback.print_exc()
+            with NATIVE_STDERR_LOCK:
+                traceback.print_exc()
             self._error(HTTPStatus.INTERNAL_SERVER_ERROR, f"{type(err).__name__}: {err}")
 
     # -- methods --------------------------------------------------------------------------------

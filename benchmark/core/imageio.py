@@ -18,10 +18,15 @@ foreground when:
 
 from __future__ import annotations
 
+import contextlib
+import os
 import struct
+import sys
+import tempfile
+import threading
 import zlib
 from pathlib import Path
-from typing import Optional
+from typing import Iterator, Optional
 
 import cv2
 import numpy as np
@@ -30,12 +35,61 @@ from .atomic import atomic_path
 from .errors import InputError
 
 
+NATIVE_STDERR_LOCK = threading.RLock()
+"""Held while native decoders write to file descriptor 2 into a capture (:func:`native_decoder_messages`);
+a thread writing its own lines to the terminal takes it too, so no line of its lands in a capture."""
+_MAX_MESSAGE_BYTES = 4096
+
+
+@contextlib.contextmanager
+def native_decoder_messages() -> Iterator[list[str]]:
+    """Capture what native code (libpng, libjpeg inside OpenCV) writes to file descriptor 2 during the block;
+    the list yielded holds it, one line a message, once the block ends. Those libraries print their errors
+    and warnings there, past Python, before they fail or pad an image: caught, they become one error naming
+    the file instead of raw lines on the terminal."""
+    said: list[str] = []
+    with NATIVE_STDERR_LOCK, tempfile.TemporaryFile() as capture:
+        try:
+            sys.stderr.flush()
+        except (OSError, ValueError):
+            pass
+        saved = os.dup(2)
+        try:
+            os.dup2(capture.fileno(), 2)
+            yield said
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            capture.seek(0)
+            text = capture.read(_MAX_MESSAGE_BYTES).decode("utf-8", "replace")
+            said.extend(line.strip() for line in text.splitlines() if line.strip())
+
+
+def decode_checked(path: Path, data: bytes | np.ndarray, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
+    """``cv2.imdecode`` of ``data`` (the file ``path``'s checked bytes): an image the decoder says anything
+    about (libpng's or libjpeg's errors and warnings: a corrupt stream, a JPEG scan cut short and padded) or
+    cannot decode is an :class:`InputError` naming the file, with the decoder's first message."""
+    buffer = np.frombuffer(data, dtype=np.uint8) if isinstance(data, (bytes, bytearray)) else data
+    with native_decoder_messages() as said:
+        try:
+            img = cv2.imdecode(buffer, flags) if buffer.size else None
+        except cv2.error:
+            img = None
+    if said:
+        from .strict import terminal_text
+
+        raise InputError(path, None, f"the image decoder reports: {terminal_text(said[0])[:200]}")
+    if img is None:
+        raise InputError(path, None, "cannot decode image (truncated or not an image)")
+    return img
+
+
 def read_image_pixels(path: str | Path) -> np.ndarray:
     """The decoded pixels of a PNG or JPEG as OpenCV gives them (``IMREAD_UNCHANGED``: uint8 or uint16, BGR(A)
-    or grey), after every check that needs no decoding: a regular file, a PNG header within the pixels any
-    frame may have, a PNG stream complete and consistent with its header (:func:`_png_stream_complete`: the
-    decoder then never meets a fault it would print), a JPEG with its end marker. An :class:`InputError` names
-    the file otherwise."""
+    or grey), after every check that needs no decoding: a regular file, a header within the pixels any frame
+    may have, a PNG stream complete and consistent with its header and handed to the decoder with its
+    critical chunks only (:func:`_png_checked`), a JPEG with its end marker; then decoded with the decoder's
+    messages caught (:func:`decode_checked`). An :class:`InputError` names the file otherwise."""
     from .annotation import MAX_MASK_PIXELS
 
     from .strict import file_problem, open_regular
@@ -56,16 +110,14 @@ def read_image_pixels(path: str | Path) -> np.ndarray:
         if width * height > MAX_MASK_PIXELS:
             raise InputError(path, None, f"image of {width}x{height} pixels is larger than the "
                                          f"{MAX_MASK_PIXELS} pixels any frame may have")
-        _png_stream_complete(path, data.tobytes())
-    elif data[:3].tobytes() == b"\xff\xd8\xff":
+        return decode_checked(path, _png_checked(path, data.tobytes()))
+    if data[:3].tobytes() == b"\xff\xd8\xff":
         _jpeg_complete(path, data)
-    try:
-        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
-    except cv2.error:
-        img = None
-    if img is None:
-        raise InputError(path, None, "cannot decode image (truncated or not an image)")
-    return img
+        width, height = jpeg_size(path, data.tobytes())
+        if width * height > MAX_MASK_PIXELS:
+            raise InputError(path, None, f"image of {width}x{height} pixels is larger than the "
+                                         f"{MAX_MASK_PIXELS} pixels any frame may have")
+    return decode_checked(path, data)
 
 
 def read_image(path: str | Path, *, keep_alpha: bool = False) -> np.ndarray:
@@ -118,12 +170,15 @@ def png_row_bytes(width: int, height: int, depth: int, colour: int, interlaced: 
     return rows
 
 
-def _png_stream_complete(path: Path, data: bytes) -> None:
-    """A PNG that a decoder reads without a fault: every chunk present up to its IEND with its CRC right, a
-    known colour type and bit depth, and image data that inflate to exactly the rows its header declares,
-    each starting with a valid filter type. A file cut short, a corrupt stream, too much or too little image
-    data are refused naming the file: a decoder would pad missing rows, or print its own error to the
-    terminal before failing."""
+def _png_checked(path: Path, data: bytes) -> bytes:
+    """The PNG ``data`` as the decoder is given it: its critical chunks only (IHDR, PLTE, tRNS, the image data
+    as one IDAT, IEND), once checked that a decoder reads them without a fault: every chunk present up to
+    its IEND with its CRC right, IHDR once and first, a known colour type and bit depth, a palette where and
+    as long as the colour type allows, a tRNS of the length its colour type takes, the IDAT chunks together,
+    and image data that inflate to exactly the rows the header declares, each starting with a valid filter
+    type. Anything else is refused naming the file: a decoder would pad missing rows, or print its own
+    error or warning to the terminal. Ancillary chunks (gamma, colour profiles, text) are left out: OpenCV
+    applies none of them, and a damaged one only makes the decoder print."""
     width, height, depth, colour = png_header(path, data[:33])
     if colour not in _PNG_CHANNELS or depth not in (1, 2, 4, 8, 16) or (colour in (2, 4, 6) and depth < 8) \
             or (colour == 3 and depth > 8):
@@ -132,6 +187,9 @@ def _png_stream_complete(path: Path, data: bytes) -> None:
         raise InputError(path, "IHDR", f"unknown PNG interlace method {data[28]}")
     rows = png_row_bytes(width, height, depth, colour, bool(data[28]))
     expected = sum(rows)
+    kept: dict[bytes, bytes] = {}
+    idat: list[bytes] = []
+    idat_done = False
     inflate = zlib.decompressobj()
     produced, row, next_start = 0, 0, 0  # bytes of rows so far; the row whose filter byte comes at next_start
 
@@ -160,7 +218,18 @@ def _png_stream_complete(path: Path, data: bytes) -> None:
         body = data[offset + 8:offset + 8 + length]
         if zlib.crc32(kind + body) != struct.unpack(">I", data[offset + 8 + length:offset + 12 + length])[0]:
             raise InputError(path, None, f"corrupt PNG: chunk {kind!r} at byte {offset} fails its CRC")
+        if kind == b"IHDR" and offset != 8:
+            raise InputError(path, None, f"corrupt PNG: a second IHDR chunk at byte {offset}")
+        if kind in (b"PLTE", b"tRNS") and (idat or kind in kept):
+            raise InputError(path, None, f"corrupt PNG: chunk {kind!r} at byte {offset} out of place")
+        if kind in (b"PLTE", b"tRNS"):
+            kept[kind] = body
+        if kind == b"IDAT" and idat_done:
+            raise InputError(path, None, f"corrupt PNG: image data chunks apart (another IDAT at byte {offset})")
+        if idat and kind != b"IDAT":
+            idat_done = True
         if kind == b"IDAT":
+            idat.append(body)
             try:
                 block = inflate.decompress(body, _INFLATE_STEP)
                 take(block)
@@ -175,6 +244,27 @@ def _png_stream_complete(path: Path, data: bytes) -> None:
         raise InputError(path, "IDAT", f"PNG image data holds {produced} of the {expected} bytes of rows its "
                                        f"{width}x{height} header declares" + ("" if inflate.eof else
                                                                              " (the stream is cut short)"))
+    palette, alpha = kept.get(b"PLTE"), kept.get(b"tRNS")
+    if colour == 3 and palette is None:
+        raise InputError(path, "PLTE", "palette PNG without a palette")
+    if palette is not None:
+        entries = len(palette) // 3
+        if colour in (0, 4) or len(palette) % 3 or not 1 <= entries <= min(256, 1 << depth if colour == 3 else 256):
+            raise InputError(path, "PLTE", f"a palette of {len(palette)} bytes for colour type {colour} and bit "
+                                           f"depth {depth}")
+        if colour != 3:
+            palette = None  # a suggested palette of a colour image: nothing OpenCV reads
+    if alpha is not None:
+        allowed = {0: (2,), 2: (6,), 3: tuple(range(1, len(kept[b"PLTE"]) // 3 + 1))}.get(colour, ())
+        if len(alpha) not in allowed:
+            raise InputError(path, "tRNS", f"a transparency chunk of {len(alpha)} bytes for colour type {colour}")
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+    return b"".join([data[:33], chunk(b"PLTE", palette) if palette is not None else b"",
+                     chunk(b"tRNS", alpha) if alpha is not None else b"", chunk(b"IDAT", b"".join(idat)),
+                     chunk(b"IEND", b"")])
 
 
 def _jpeg_complete(path: Path, data: np.ndarray) -> None:
@@ -184,6 +274,45 @@ def _jpeg_complete(path: Path, data: np.ndarray) -> None:
     last_scan = raw.rfind(b"\xff\xda")
     if last_scan < 0 or raw.find(b"\xff\xd9", last_scan) < 0:
         raise InputError(path, None, "truncated JPEG: no end-of-image marker after its last scan")
+
+
+_JPEG_FRAME_MARKERS = frozenset({0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF})
+"""Start-of-frame markers (baseline, extended, progressive, lossless; Huffman or arithmetic)."""
+
+
+def jpeg_size(path: str | Path, data: bytes) -> tuple[int, int]:
+    """``(width, height)`` from a JPEG's first start-of-frame segment, walking its markers without decoding;
+    every frame segment must declare the same size. An :class:`InputError` names the file when none is
+    found before the first scan, or a segment runs past the end."""
+    offset, size = 2, None
+    while offset + 4 <= len(data):
+        if data[offset] != 0xFF:
+            raise InputError(path, None, f"corrupt JPEG: no marker at byte {offset}")
+        marker = data[offset + 1]
+        if marker == 0xFF:  # fill byte
+            offset += 1
+            continue
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            offset += 2
+            continue
+        length, = struct.unpack(">H", data[offset + 2:offset + 4])
+        if length < 2 or offset + 2 + length > len(data):
+            raise InputError(path, None, f"corrupt JPEG: segment 0x{marker:02X} at byte {offset} runs past the end")
+        if marker in _JPEG_FRAME_MARKERS:
+            if length < 8:
+                raise InputError(path, None, "corrupt JPEG: a frame header too short")
+            height, width = struct.unpack(">HH", data[offset + 5:offset + 9])
+            if width == 0 or height == 0:
+                raise InputError(path, None, f"JPEG of {width}x{height} pixels")
+            if size is not None and size != (width, height):
+                raise InputError(path, None, "corrupt JPEG: frame headers of different sizes")
+            size = (width, height)
+        if marker == 0xDA:  # the first scan: every frame header comes before it
+            break
+        offset += 2 + length
+    if size is None:
+        raise InputError(path, None, "corrupt JPEG: no frame header before its image data")
+    return size
 
 
 def png_header(path: str | Path, data: Optional[bytes] = None) -> tuple[int, int, int, int]:
@@ -266,12 +395,13 @@ def read_mask(path: str | Path, size: Optional[tuple[int, int]] = None) -> np.nd
     """
     path = Path(path)
     data, width, height, _, _ = read_png_bytes(path, size)
-    _png_stream_complete(path, data)
     try:
-        img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
-    except cv2.error:  # OpenCV raises on some corrupt streams instead of returning None
-        img = None
-    if img is None or img.shape[:2] != (height, width) or img.dtype not in (np.uint8, np.uint16):
+        img = decode_checked(path, _png_checked(path, data))
+    except InputError as err:
+        if "decoder" in err.message or "cannot decode" in err.message:
+            raise InputError(path, None, f"cannot decode mask PNG ({err.message})") from None
+        raise
+    if img.shape[:2] != (height, width) or img.dtype not in (np.uint8, np.uint16):
         raise InputError(path, None, "cannot decode mask PNG (truncated or corrupt)")
     if img.ndim == 2:
         return img
