@@ -19,7 +19,7 @@ import math
 import textwrap
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Mapping, Optional, Sequence
+from typing import TYPE_CHECKING, Any, Mapping, Optional, Sequence
 
 import numpy as np
 
@@ -453,6 +453,17 @@ def label_clusters(points: Sequence[ChartPoint], *, x_span: float, y_span: float
     return sorted(clusters, key=min)
 
 
+def method_colours(methods: Sequence[str]) -> dict[str, Any]:
+    """A colour per method, no two alike: matplotlib's ten-colour cycle while it suffices, else ``tab20``
+    (a base method and its ``+`` variant, sorted next to each other, get a dark and a light shade of one hue
+    when their count fills the pairs)."""
+    plt = _pyplot()
+    palette = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    if len(methods) > len(palette):
+        palette = [plt.get_cmap("tab20")(i) for i in range(20)]
+    return {m: palette[i % len(palette)] for i, m in enumerate(methods)}
+
+
 def _draw_pareto_panel(ax, panel: ParetoPanel, colour: dict[str, str], *, legend: bool) -> None:
     shown = [p for p in panel.points if p.finite]
     for p in shown:  # faded where all are at chance: their order means nothing
@@ -532,12 +543,11 @@ def pareto(results_dir: str | Path = "results", reports_dir: str | Path = "repor
         raise InputError(results_dir, None, "no results files to plot (run bench4d run-all first)")
     ceilings = load_ceiling_file(Path(reports_dir) / CEILING_FILE if ceiling is None else ceiling).values
     written: list[Path] = []
-    palette = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for chart in pareto_charts(runs, floors=floor_methods(), ceilings=ceilings):
         fig, axes = plt.subplots(len(chart.rows), 2, figsize=(11, 5.8 * len(chart.rows)), squeeze=False,
                                  layout="constrained")
         methods = sorted({p.methods[0] for row in chart.rows for panel in row for p in panel.points})
-        colour = {m: palette[i % len(palette)] for i, m in enumerate(methods)}
+        colour = method_colours(methods)
         for r, row in enumerate(chart.rows):
             for c, panel in enumerate(row):
                 _draw_pareto_panel(axes[r][c], panel, colour, legend=c == 0)

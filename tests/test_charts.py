@@ -215,3 +215,12 @@ def test_a_missing_machine_kind_of_any_form_falls_back_to_the_device():
     table = _table([_run("a", "s1", 0, miou=1.0, machine_kind="xeon"), _run("a", "s1", 1, miou=1.0)])
     table["machine_kind"] = pd.array(["xeon", pd.NA], dtype="string")
     assert machine_kinds(table).tolist() == ["cpu: xeon", "cpu"]
+
+
+def test_every_method_of_a_chart_gets_a_colour_of_its_own():
+    from benchmark.plots import method_colours
+
+    for count in (3, 10, 14, 20):
+        names = [f"m{i:02d}" for i in range(count)]
+        colours = method_colours(names)
+        assert len({str(c) for c in colours.values()}) == count, count
