@@ -21,11 +21,16 @@ bench4d's temporal rule (``release`` protocol: threshold at the mean of the raw 
 from __future__ import annotations
 
 import csv
+import io
+import math
+import os
+import re
 from pathlib import Path
 from typing import Optional
 
-from benchmark.core.errors import InputError
+from benchmark.core.errors import InputError, short_repr
 from benchmark.core.imageio import read_mask
+from benchmark.core.strict import open_regular, terminal_text
 
 from .predictions import QueryPrediction, ScenePredictions, write_predictions
 
@@ -38,30 +43,78 @@ def image_folder(image_id: int) -> str:
     return f"{image_id + 1:05d}"
 
 
+MAX_TABLE_BYTES = 64 << 20
+"""Largest ``video-query-results-<query>.csv`` read (the release writes 5 rows of a few hundred numbers: kB)."""
+MAX_FIELD_CHARS = 1000
+"""Longest field of such a table (a column name or a number is tens of characters)."""
+_FRAME_COLUMN = re.compile(r"frame_([0-9]{1,9})_iou", re.ASCII)
+_NUMBER = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?", re.ASCII)
+"""A decimal number as Python or numpy writes one, in ASCII digits: ``float()`` also reads other scripts' digits,
+``"1_0"``, ``"inf"`` and ``"nan"``."""
+
+
+def _table_rows(path: Path) -> list[list[str]]:
+    """The rows of the CSV file ``path``: a regular file of at most :data:`MAX_TABLE_BYTES` bytes of UTF-8 whose
+    fields hold at most :data:`MAX_FIELD_CHARS` characters; an :class:`InputError` names the file otherwise."""
+    with open_regular(path) as handle:  # a FIFO or folder is refused before a read could block
+        size = os.fstat(handle.fileno()).st_size
+        if size > MAX_TABLE_BYTES:  # checked before reading: the release writes kilobytes
+            raise InputError(path, None, f"a table of {size} bytes; at most {MAX_TABLE_BYTES}")
+        data = handle.read(MAX_TABLE_BYTES + 1)
+    if len(data) > MAX_TABLE_BYTES:  # grown since it was measured
+        raise InputError(path, None, f"a table of more than {MAX_TABLE_BYTES} bytes")
+    try:
+        text = data.decode("utf-8-sig")  # a spreadsheet's byte-order mark is not part of the header
+    except UnicodeDecodeError as err:
+        line = data.count(b"\n", 0, err.start) + 1
+        raise InputError(path, f"line {line}", f"not UTF-8 text (byte {data[err.start]:#04x} at offset "
+                                               f"{err.start})") from None
+    reader = csv.reader(io.StringIO(text, newline=""), strict=True)
+    rows = []
+    try:
+        for row in reader:
+            long = next((k for k, field in enumerate(row) if len(field) > MAX_FIELD_CHARS), None)
+            if long is not None:
+                raise InputError(path, f"line {reader.line_num} column {long + 1}", f"a field of {len(row[long])} "
+                                 f"characters; at most {MAX_FIELD_CHARS}")
+            rows.append(row)
+    except csv.Error as err:  # e.g. a field beyond csv's own limit, or a quote never closed
+        raise InputError(path, f"line {reader.line_num}", f"not a readable CSV table ({err})") from None
+    return rows
+
+
 def read_similarity_csv(path: Path, row: str) -> dict[int, float]:
     """Time index -> similarity of row ``row`` of a ``video-query-results-<query>.csv``."""
-    with open(path, newline="", encoding="utf-8") as handle:
-        rows = list(csv.reader(handle))
+    rows = _table_rows(path)
     if not rows or not rows[0] or rows[0][0] != "Type":
         raise InputError(path, None, "expected the release's header 'Type, frame_<i>_iou, ...'")
-    indices = []
-    for column in rows[0][1:]:
-        number = column.removeprefix("frame_").removesuffix("_iou")
-        if not number.isdigit():
-            raise InputError(path, column, "expected a column named frame_<time index>_iou")
-        indices.append(int(number))
-    found = [r for r in rows[1:] if r and r[0] == row]
+    indices: list[int] = []
+    seen: set[int] = set()
+    for number, column in enumerate(rows[0][1:], start=2):
+        match = _FRAME_COLUMN.fullmatch(column)
+        if match is None:
+            raise InputError(path, f"line 1 column {number}", f"{terminal_text(short_repr(column))} is not a column "
+                                                              "named frame_<time index>_iou")
+        if int(match.group(1)) in seen:  # the later column would silently replace the earlier one's value
+            raise InputError(path, f"line 1 column {number}", f"column {column} appears twice")
+        indices.append(int(match.group(1)))
+        seen.add(indices[-1])
+    found = [(number, r) for number, r in enumerate(rows[1:], start=2) if r and r[0] == row]
     if not found:
-        raise InputError(path, row, f"no row {row!r} (rows: {[r[0] for r in rows[1:] if r]})")
-    values = found[0][1:]
+        labels = [terminal_text(short_repr(r[0], 40)) for r in rows[1:] if r][:8]
+        raise InputError(path, row, f"no row {row!r} (rows: {', '.join(labels)})")
+    if len(found) > 1:
+        raise InputError(path, row, f"row {row!r} appears twice (rows {found[0][0]} and {found[1][0]} of the table)")
+    values = found[0][1][1:]
     if len(values) != len(indices):
         raise InputError(path, row, f"{len(values)} values for {len(indices)} frames")
     out = {}
     for index, value in zip(indices, values):
-        try:
-            out[index] = float(value)
-        except ValueError:
-            raise InputError(path, f"{row}.frame_{index}", f"not a number: {value!r}") from None
+        number = float(value) if _NUMBER.fullmatch(value.strip()) else math.nan  # 1e400 reads as inf
+        if not math.isfinite(number):
+            raise InputError(path, f"{row}.frame_{index}", f"not a number: {terminal_text(short_repr(value))} "
+                                                           "(expected a finite decimal number)")
+        out[index] = number
     return out
 
 

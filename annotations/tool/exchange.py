@@ -11,9 +11,12 @@ from __future__ import annotations
 
 import copy
 import json
+import lzma
 import os
 import shutil
 import tempfile
+import zipfile
+import zlib
 from pathlib import Path
 from typing import Optional
 
@@ -23,7 +26,7 @@ from pycocotools import mask as mask_utils
 from benchmark.core.atomic import atomic_path
 from benchmark.core.errors import InputError
 from benchmark.core.scene import Scene, paper_camera
-from benchmark.core.strict import check_int, check_keys, check_text, loads, text_key
+from benchmark.core.strict import check_int, check_keys, check_text, loads, terminal_text, text_key
 
 from ..format import annotation_set_from_dict, load_annotations, save_annotations
 from benchmark.core.annotation import MAX_MASK_PIXELS, AnnotatedFrame, AnnotationSet, Query, decode_mask, encode_mask, normalise_intervals
@@ -325,6 +328,40 @@ def _merge_video(doc, file: str, current: AnnotationSet) -> AnnotationSet:
     return out
 
 
+ZIP_METHODS = {zipfile.ZIP_STORED: "stored", zipfile.ZIP_DEFLATED: "deflate", zipfile.ZIP_BZIP2: "bzip2",
+               zipfile.ZIP_LZMA: "lzma"}
+"""Compression methods an uploaded zip's members may use (those Python's zipfile reads)."""
+
+
+def _member_names(archive: zipfile.ZipFile, file: str) -> list[str]:
+    """The names of the file members of an uploaded zip, once every member is found readable in principle: no
+    name given twice (zipfile would silently read the last one), no encrypted member and no compression method
+    zipfile lacks (which it reports as a RuntimeError or NotImplementedError on reading)."""
+    seen: set[str] = set()
+    for member in archive.infolist():
+        key = member.filename.replace("\\", "/")  # the archive check reads a backslash as a separator too
+        if key in seen:
+            raise InputError(file, member.filename, "appears twice in the archive (which one is meant?)")
+        seen.add(key)
+        if member.flag_bits & 0x1:
+            raise InputError(file, member.filename, "is encrypted (upload an archive without a password)")
+        if member.compress_type not in ZIP_METHODS:
+            raise InputError(file, member.filename, f"uses compression method {member.compress_type}; "
+                                                    f"supported: {', '.join(ZIP_METHODS.values())}")
+    return [m.filename for m in archive.infolist() if not m.is_dir()]
+
+
+def _read_member(archive: zipfile.ZipFile, name: str, file: str) -> bytes:
+    """The unpacked bytes of member ``name`` of an uploaded zip; a damaged member (bad CRC, a compressed stream
+    that does not decode, a local header that disagrees with the directory) is an :class:`InputError`."""
+    try:
+        return archive.read(name)
+    except (zipfile.BadZipFile, zlib.error, lzma.LZMAError, EOFError, OSError, NotImplementedError, RuntimeError,
+            ValueError) as err:  # bzip2 reports a damaged stream as an OSError
+        reason = str(err).splitlines()[0][:200] if str(err) else type(err).__name__
+        raise InputError(file, name, f"cannot unpack this member (damaged archive: {terminal_text(reason)})") from None
+
+
 def import_set(fmt: str, filename: str, data: bytes, scene: Scene, current: AnnotationSet, config) -> AnnotationSet:
     """Build the annotation set an upload describes (``current`` supplies what the format lacks)."""
     from .session import check_archive
@@ -339,16 +376,16 @@ def import_set(fmt: str, filename: str, data: bytes, scene: Scene, current: Anno
         video_bytes = None
         if filename.lower().endswith(".zip") or data[:4] == b"PK\x03\x04":
             zf = check_archive(data, config, filename)
-            names = [m.filename for m in zf.infolist() if not m.is_dir()]
+            names = _member_names(zf, filename)
             cocos = [n for n in names if n.endswith("_annotations.coco.json")]
             if not cocos:
                 raise InputError(filename, None, "no '_annotations.coco.json' in the archive")
             # prefer the train split (where the release keeps its annotations)
             cocos.sort(key=lambda n: (0 if "/train/" in f"/{n}" else 1, len(n)))
-            coco_bytes = zf.read(cocos[0])
+            coco_bytes = _read_member(zf, cocos[0], filename)
             videos = [n for n in names if Path(n).name == "video_annotations.json"]
             if videos:
-                video_bytes = zf.read(sorted(videos, key=len)[0])
+                video_bytes = _read_member(zf, sorted(videos, key=len)[0], filename)
         else:
             coco_bytes = data
         doc = _json(coco_bytes, filename)

@@ -782,6 +782,11 @@ class AnnotationSession:
 
     def import_data(self, revision: Any, fmt: Any, filename: Any, data_b64: Any) -> dict:
         """Replace the working set by an imported one (the current file is backed up first)."""
+        import lzma
+        import zlib
+
+        from benchmark.core.strict import terminal_text
+
         from .exchange import import_set
 
         if fmt not in IMPORT_FORMATS:
@@ -803,11 +808,14 @@ class AnnotationSession:
                 validate_against_scene(new, self.scene, file=filename)
             except InputError:
                 raise
-            except (ValueError, TypeError, KeyError, IndexError, AttributeError, ArithmeticError, RecursionError) as err:
+            except (ValueError, TypeError, KeyError, IndexError, AttributeError, ArithmeticError, RuntimeError,
+                    EOFError, zipfile.BadZipFile, zipfile.LargeZipFile, zlib.error, lzma.LZMAError) as err:
                 # the upload is untrusted data: whatever its parsers trip over is a malformed file, and
-                # nothing has changed yet
+                # nothing has changed yet. RuntimeError covers RecursionError and what zipfile raises for an
+                # encrypted member (RuntimeError) or an unknown compression method (NotImplementedError)
+                reason = str(err).splitlines()[0][:200] if str(err) else ""
                 raise InputError(Path(filename).name, None,
-                                 f"cannot read the file: {type(err).__name__}: {str(err)[:200]}") from None
+                                 f"cannot read the file: {type(err).__name__}: {terminal_text(reason)}") from None
             backup = None
             if self.path.exists():
                 backup = self.root / ".bench4d-backups" / f"{self.path.stem}.rev{self.revision}.json"

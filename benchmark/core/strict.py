@@ -348,14 +348,54 @@ MAX_ARRAY_FILE_BYTES = 8 << 30
 """Bytes of arrays one ``.npz`` file may declare at most (a scene's truth maps are a few MB a frame)."""
 
 
-def check_npz(path: str | Path, *, max_bytes: int = MAX_ARRAY_FILE_BYTES) -> None:
-    """Every member of the ``.npz`` at ``path`` is a ``.npy`` array (no pickled objects) whose header declares
-    exactly the bytes the member holds, and all of them together at most ``max_bytes``: read before
-    ``np.load`` allocates what a header claims (a 200-byte file can claim 16 GiB). An :class:`InputError`
-    names the file and member otherwise."""
-    import zipfile
+_UNREADABLE_HEADER = (OSError, ValueError, EOFError, TypeError, SyntaxError, RecursionError)
+"""What numpy's header reader raises on a damaged magic string or header (it parses the header as a Python
+literal; ``tokenize.TokenError`` is added where it is used)."""
 
+
+def _array_header(stream, path: str | Path, field: Optional[str]) -> tuple[tuple, Any]:
+    """``(shape, dtype)`` from the ``.npy`` header at the start of ``stream`` (format 1.0 or 2.0); the stream is
+    left at the first data byte."""
     import numpy as np
+
+    version = np.lib.format.read_magic(stream)
+    if version == (1, 0):
+        shape, _, dtype = np.lib.format.read_array_header_1_0(stream)
+    elif version == (2, 0):
+        shape, _, dtype = np.lib.format.read_array_header_2_0(stream)
+    else:
+        raise InputError(path, field, f"unsupported .npy format version {version}")
+    return tuple(shape), dtype
+
+
+def _declared_bytes(path: str | Path, field: Optional[str], shape: tuple, dtype, held: int,
+                    kinds: Optional[str] = None) -> int:
+    """The bytes an array header declares, once found trustworthy: no pickled objects, a dtype of ``kinds``
+    (numpy's letters; any when ``None``), elements of some size, no negative length, and exactly the ``held``
+    bytes that follow the header. An :class:`InputError` names the file and ``field`` otherwise."""
+    import numpy as np
+
+    if dtype.hasobject:
+        raise InputError(path, field, "holds Python objects, not numbers")
+    if kinds is not None and dtype.kind not in kinds:
+        raise InputError(path, field, f"array of dtype {dtype}, expected kind {kinds!r}")
+    if dtype.itemsize == 0:  # any count of nothing fits in no bytes: the count itself is then unchecked
+        raise InputError(path, field, f"array of dtype {dtype}, whose elements have no size")
+    if any(n < 0 for n in shape):
+        raise InputError(path, field, f"declares the shape {shape}, with a negative length")
+    declared = int(np.prod(shape, dtype=object)) * dtype.itemsize  # exact: a product of Python ints
+    if declared != held:
+        raise InputError(path, field, f"declares an array of shape {shape} ({declared} bytes) but holds {held} bytes")
+    return declared
+
+
+def check_npz(path: str | Path, *, max_bytes: int = MAX_ARRAY_FILE_BYTES) -> None:
+    """Every member of the ``.npz`` at ``path`` is a ``.npy`` array whose header is trustworthy
+    (:func:`_declared_bytes`), and all of them together hold at most ``max_bytes``: read before ``np.load``
+    allocates what a header claims (a 200-byte file can claim 16 GiB). An :class:`InputError` names the file
+    and member otherwise."""
+    import tokenize
+    import zipfile
 
     total = 0
     try:
@@ -364,27 +404,40 @@ def check_npz(path: str | Path, *, max_bytes: int = MAX_ARRAY_FILE_BYTES) -> Non
                 if not info.filename.endswith(".npy"):
                     raise InputError(path, info.filename, "not an array (.npy) member")
                 with archive.open(info) as member:
-                    version = np.lib.format.read_magic(member)
-                    if version == (1, 0):
-                        shape, _, dtype = np.lib.format.read_array_header_1_0(member)
-                    elif version == (2, 0):
-                        shape, _, dtype = np.lib.format.read_array_header_2_0(member)
-                    else:
-                        raise InputError(path, info.filename, f"unsupported .npy format version {version}")
-                    header = member.tell()
-                if dtype.hasobject:
-                    raise InputError(path, info.filename, "holds Python objects, not numbers")
-                declared = int(np.prod(shape, dtype=object)) * dtype.itemsize
-                if declared != info.file_size - header:
-                    raise InputError(path, info.filename, f"declares an array of shape {tuple(shape)} ({declared} "
-                                                          f"bytes) but holds {info.file_size - header} bytes")
-                total += declared
+                    shape, dtype = _array_header(member, path, info.filename)
+                    held = info.file_size - member.tell()
+                total += _declared_bytes(path, info.filename, shape, dtype, held)
                 if total > max_bytes:
                     raise InputError(path, info.filename, f"arrays of more than {max_bytes} bytes in one file")
     except InputError:
         raise
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, NotImplementedError) as err:
-        raise InputError(path, None, f"not a readable .npz file ({type(err).__name__}: {err})") from None
+    except (*_UNREADABLE_HEADER, tokenize.TokenError, zipfile.BadZipFile, NotImplementedError) as err:
+        raise InputError(path, None, f"not a readable .npz file ({type(err).__name__}: "
+                                     f"{terminal_text(str(err).splitlines()[0][:200] if str(err) else '')})") from None
+
+
+def check_npy(path: str | Path, *, max_bytes: int = MAX_ARRAY_FILE_BYTES, kinds: Optional[str] = None) -> tuple:
+    """``(shape, dtype)`` the ``.npy`` file at ``path`` declares, read from its header alone, once the header is
+    trustworthy (:func:`_declared_bytes`, with a dtype of ``kinds``) and the array at most ``max_bytes``.
+    Called before ``np.load``, which allocates what the header claims (a 200-byte file can claim 24 TB). An
+    :class:`InputError` names the file otherwise."""
+    import tokenize
+
+    try:
+        with open_regular(path) as fh:
+            shape, dtype = _array_header(fh, path, None)
+            held = os.fstat(fh.fileno()).st_size - fh.tell()
+    except InputError:
+        raise
+    except (*_UNREADABLE_HEADER, tokenize.TokenError) as err:
+        raise InputError(path, None, f"not a readable .npy file ({type(err).__name__}: "
+                                     f"{terminal_text(str(err).splitlines()[0][:200] if str(err) else '')})") from None
+    field = "dtype" if dtype.hasobject or (kinds is not None and dtype.kind not in kinds) or not dtype.itemsize \
+        else "shape"
+    declared = _declared_bytes(path, field, shape, dtype, held, kinds)
+    if declared > max_bytes:
+        raise InputError(path, "shape", f"an array of {declared} bytes; at most {max_bytes} bytes in one file")
+    return shape, dtype
 
 
 CACHED_ARRAY_SUFFIXES = (".npz", ".npy", ".pt", ".pth")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from pathlib import Path
 from typing import Any, Iterable, Optional, Sequence
 
@@ -41,8 +42,10 @@ def get_key(mapping: Any, key: str, file: Path, parent: str = "") -> Any:
     return mapping[key]
 
 
-def as_array(value: Any, shape: tuple[int, ...], file: Path, field: str) -> np.ndarray:
-    """``value`` as a finite float64 array of exactly ``shape`` (-1 = any length)."""
+def as_array(value: Any, shape: tuple[int, ...], file: Path, field: str, *,
+             limit: Optional[float] = None) -> np.ndarray:
+    """``value`` as a finite float64 array of exactly ``shape`` (-1 = any length), every ``|entry|`` at most
+    ``limit`` when given."""
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError, OverflowError):  # OverflowError: an integer beyond float range
@@ -51,6 +54,8 @@ def as_array(value: Any, shape: tuple[int, ...], file: Path, field: str) -> np.n
         raise InputError(file, field, f"expected shape {shape}, got {arr.shape}")
     if not np.all(np.isfinite(arr)):
         raise InputError(file, field, "contains NaN or inf")
+    if limit is not None and arr.size and float(np.abs(arr).max()) > limit:
+        raise InputError(file, field, f"expected values within +-{limit:g}, got {arr.tolist()!r:.80}")
     return arr
 
 
@@ -103,8 +108,12 @@ def image_size(path: Path, field: str = "image") -> tuple[int, int]:
         raise InputError(path, field, "image file not found" if problem == "missing" else f"is {problem}, "
                                                                                           "expected an image file")
     try:
-        with open_regular(path) as fh, Image.open(fh) as img:
-            width, height = int(img.size[0]), int(img.size[1])
+        with warnings.catch_warnings():
+            # PIL warns (two lines on stderr) of a header above its own limit before refusing twice that: the
+            # size check below refuses such a header in one line, so the warning would only repeat it
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with open_regular(path) as fh, Image.open(fh) as img:
+                width, height = int(img.size[0]), int(img.size[1])
     except Image.DecompressionBombError:  # a header declaring billions of pixels
         raise InputError(path, field, f"the image header declares more than the {MAX_MASK_PIXELS} pixels any "
                                       "frame may have") from None

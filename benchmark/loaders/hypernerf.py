@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import re
 import warnings
+from collections import Counter
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -59,10 +60,25 @@ import numpy as np
 from benchmark.core.atomic import read_json
 from benchmark.core.errors import InputError
 from benchmark.core.scene import Camera, Frame, Scene, eval_splits_of
+from benchmark.core.strict import MAX_COUNT, check_finite, check_int, check_npy
 from . import _common as C
 
 LAYOUT = "hypernerf"
 SPLIT_RULES = ("auto", "every4", "every4-release", "dataset")
+MAX_POINTS_BYTES = 1 << 30
+"""Largest ``points.npy`` read (44 M float64 points; a capture's sparse cloud is well under a million)."""
+FOCAL_RANGE = (1e-3, 1e7)
+"""Focal lengths (pixels) a camera file may give: below a thousandth of a pixel or above ten million (a field of
+view under 0.01 degree on a 64 K-pixel image) no real camera is meant, and the frustum arithmetic overflows."""
+ASPECT_RANGE = (1e-3, 1e3)
+"""Pixel aspect ratios a camera file may give (real ones are within a few percent of 1)."""
+MAX_PIXEL_VALUE = 1e7
+"""Largest ``|principal_point|``, ``|skew|`` or distortion coefficient a camera file may give."""
+MAX_IMAGE_SIDE = 65535
+"""Largest ``image_size`` side (PNG and most decoders stop well below; the frames' own check is in pixels)."""
+METADATA_IDS = ("warp_id", "appearance_id", "camera_id", "time_id")
+"""Integer ids of a ``metadata.json`` entry; the time key (``warp_id`` by default) is required, the others are
+checked where present."""
 
 
 @dataclass
@@ -122,20 +138,36 @@ def read_camera(path: Path) -> NerfiesCamera:
     orientation = C.as_array(C.get_key(data, "orientation", path), (3, 3), path, "orientation")
     C.check_rotation(orientation, path, "orientation")
     position = C.as_array(C.get_key(data, "position", path), (3,), path, "position")
-    focal = C.as_float(C.get_key(data, "focal_length", path), path, "focal_length", positive=True)
-    pp = C.as_array(C.get_key(data, "principal_point", path), (2,), path, "principal_point")
-    size = C.as_array(C.get_key(data, "image_size", path), (2,), path, "image_size")
-    if np.any(size < 1) or np.any(size != np.round(size)):
-        raise InputError(path, "image_size", f"expected two positive integers [width, height], got {size.tolist()}")
-    skew = C.as_float(data.get("skew", 0.0), path, "skew")
-    aspect = C.as_float(data.get("pixel_aspect_ratio", 1.0), path, "pixel_aspect_ratio", positive=True)
-    radial = C.as_array(data.get("radial_distortion", [0.0, 0.0, 0.0]), (-1,), path, "radial_distortion")
+    # every intrinsic bounded where it is read: a value beyond any camera would otherwise overflow later, in
+    # arithmetic that no longer knows which file it came from
+    focal = check_finite(C.get_key(data, "focal_length", path), path, "focal_length", *FOCAL_RANGE)
+    pp = C.as_array(C.get_key(data, "principal_point", path), (2,), path, "principal_point", limit=MAX_PIXEL_VALUE)
+    width, height = _image_size(C.get_key(data, "image_size", path), path)
+    skew = check_finite(data.get("skew", 0.0), path, "skew", -MAX_PIXEL_VALUE, MAX_PIXEL_VALUE)
+    aspect = check_finite(data.get("pixel_aspect_ratio", 1.0), path, "pixel_aspect_ratio", *ASPECT_RANGE)
+    radial = C.as_array(data.get("radial_distortion", [0.0, 0.0, 0.0]), (-1,), path, "radial_distortion",
+                        limit=MAX_PIXEL_VALUE)
     if radial.size > 3:
         raise InputError(path, "radial_distortion", f"expected at most 3 values [k1, k2, k3], got {radial.size}")
     tan_key = "tangential_distortion" if "tangential_distortion" in data else "tangential"
-    tangential = C.as_array(data.get(tan_key, [0.0, 0.0]), (2,), path, tan_key)
+    tangential = C.as_array(data.get(tan_key, [0.0, 0.0]), (2,), path, tan_key, limit=MAX_PIXEL_VALUE)
     return NerfiesCamera(orientation, position, focal, pp, skew, aspect,
-                         np.pad(radial, (0, 3 - radial.size)), tangential, int(size[0]), int(size[1]))
+                         np.pad(radial, (0, 3 - radial.size)), tangential, width, height)
+
+
+def _image_size(value, path: Path) -> tuple[int, int]:
+    """``image_size`` ``[width, height]``: two integers in 1..:data:`MAX_IMAGE_SIDE` (``640.0`` is 640)."""
+    if not isinstance(value, list) or len(value) != 2:
+        raise InputError(path, "image_size", f"expected [width, height], got {value!r:.80}")
+    sides = []
+    for side in value:
+        if isinstance(side, float) and side.is_integer() and abs(side) <= MAX_IMAGE_SIDE:
+            side = int(side)  # some exporters write sizes as floats
+        if isinstance(side, bool) or not isinstance(side, int) or not 1 <= side <= MAX_IMAGE_SIDE:
+            raise InputError(path, "image_size", f"expected two integers in 1..{MAX_IMAGE_SIDE} [width, height], "
+                                                 f"got {value!r:.80}")
+        sides.append(side)
+    return sides[0], sides[1]
 
 
 def to_opencv(cam: NerfiesCamera, center: np.ndarray, world_scale: float, *, path: Path,
@@ -215,8 +247,11 @@ def _frame_times(root: Path, ids: list[str], time_key: str) -> tuple[list[int], 
     steps, cams = [], []
     for fid in ids:
         entry = C.get_key(meta, fid, meta_path)
-        steps.append(C.as_int(C.get_key(entry, time_key, meta_path, fid), meta_path, f"{fid}.{time_key}", minimum=0))
-        cams.append(str(entry.get("camera_id", 0)))
+        C.get_key(entry, time_key, meta_path, fid)  # the time key is required, the other ids optional
+        found = {key: check_int(entry[key], meta_path, f"{fid}.{key}", 0, MAX_COUNT)
+                 for key in dict.fromkeys((time_key, *METADATA_IDS)) if key in entry}
+        steps.append(found[time_key])
+        cams.append(str(found.get("camera_id", 0)))
     top = max(steps)
     return steps, [s / top if top > 0 else 0.0 for s in steps], cams, f"metadata.json {time_key}"
 
@@ -250,6 +285,8 @@ def _assign_splits(ids: list[str], train_ids: list[str], val_ids: list[str], rul
 
 
 def _load_points(path: Path, center: np.ndarray, world_scale: float) -> np.ndarray:
+    """The (N, 3) initial point cloud of ``points.npy``, centred and scaled like the cameras."""
+    check_npy(path, max_bytes=MAX_POINTS_BYTES, kinds="iuf")  # before np.load allocates what the header claims
     try:
         pts = np.load(path, allow_pickle=False)
     except (ValueError, OSError, EOFError) as err:
@@ -307,6 +344,16 @@ def _read_dataset_ids(ds_path: Path) -> tuple[list[str], list[str], list[str]]:
         unknown = sorted(set(lst) - set(ids))
         if unknown:
             raise InputError(ds_path, key, f"ids not in 'ids': {unknown[:5]}")
+        if len(set(lst)) != len(lst):
+            repeated = sorted(i for i, n in Counter(lst).items() if n > 1)
+            raise InputError(ds_path, key, f"ids given twice: {repeated[:5]}")
+    # whatever split rule is used: a frame both trained on and held out would score its own training view
+    both = sorted(set(train_ids) & set(val_ids))
+    if both:
+        raise InputError(ds_path, "val_ids", f"ids both in train_ids and val_ids: {both[:5]}")
+    for key in ("count", "num_exemplars"):  # optional (a bare export lacks them); never used, but never absurd
+        if key in dataset:
+            check_int(dataset[key], ds_path, key, 0, MAX_COUNT)
     return ids, train_ids, val_ids
 
 

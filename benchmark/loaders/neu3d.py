@@ -48,12 +48,15 @@ from benchmark.core.atomic import read_json
 from benchmark.core.errors import InputError
 from benchmark.core.imageio import read_image
 from benchmark.core.scene import Camera, Frame, Scene, eval_splits_of
+from benchmark.core.strict import check_npy
 from . import _common as C
 
 LAYOUT = "neu3d"
 SPLIT_RULES = ("test-cameras",)
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 META_FILE = "bench4d_meta.json"
+MAX_POSES_BYTES = 16 << 20
+"""Largest ``poses_bounds.npy`` read: 123 K cameras of 17 float64 (a capture has a few dozen)."""
 
 
 @dataclass
@@ -217,6 +220,8 @@ def _video_info(path: Path) -> tuple[int, int, int]:
 
 
 def _read_poses(path: Path) -> np.ndarray:
+    """The (N, 17) rows of ``poses_bounds.npy`` as float64, checked finite."""
+    check_npy(path, max_bytes=MAX_POSES_BYTES, kinds="iuf")  # before np.load allocates what the header claims
     try:
         arr = np.load(path, allow_pickle=False)
     except (ValueError, OSError, EOFError) as err:
