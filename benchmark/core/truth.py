@@ -171,7 +171,10 @@ class SceneTruth:
         path = self.root / LEVELS_DIR / f"{name}.npz"
         if not path.is_file():
             raise InputError(path, None, "truth file of this frame not found")
-        check_npz(path)  # what each header declares, before np.load allocates it
+        try:
+            check_npz(path)  # what each header declares, before np.load allocates it
+        except InputError as err:
+            raise InputError(path, err.field, f"damaged truth file ({err.message}); regenerate the scene") from None
         try:
             with np.load(path, allow_pickle=False) as data:
                 arrays = {k: data[k] for k in data.files}

@@ -52,9 +52,9 @@ class CaptionConfig:
     seed: int = 0
     """Seed of the template captioner's paraphrase draw (fixed: every method and seed sees the same captions)."""
     noise: str = "scene"
-    """Noise of the template captioner's captions: a level of :mod:`benchmark.core.caption_noise` (``clean``,
-    ``mllm``) or ``"scene"`` (the level the scene declares: ``mllm`` on the presets with time queries), either
-    with an optional extra lag (``scene+lag:0.1``)."""
+    """Template captions' noise: a level of :mod:`benchmark.core.caption_noise` (``clean``, ``mllm``) or
+    ``"scene"`` (the scene's own: ``mllm`` on presets with time queries), optionally lagging more
+    (``scene+lag:0.1``)."""
     text_encoder: Optional[str] = None
     """Text encoder of the captions and the time-sensitive queries (paper: ``e5-mistral``); ``None``: the
     run's text encoder (the image-text source's text tower on the real track)."""
