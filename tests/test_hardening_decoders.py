@@ -178,3 +178,128 @@ def test_a_write_beyond_the_file_size_limit_names_the_file_and_leaves_the_old_on
     assert "out.txt" in out.stdout and "too large" in out.stdout.lower(), out.stdout + out.stderr
     assert target.read_text() == "before\n"
     assert [p.name for p in tmp_path.iterdir()] == ["out.txt"]
+
+
+# -- fourth probe: transparency keys, other formats, file sizes, JPEG scans and trailers -------------------
+@pytest.mark.parametrize("colour,trns,ok", [(2, bytes(6), True), (0, bytes(2), True), (6, bytes(8), False),
+                                            (4, bytes(2), False), (2, bytes(4), False)])
+def test_a_transparency_key_reads_where_its_colour_type_takes_one_and_is_refused_elsewhere(tmp_path, colour, trns, ok,
+                                                                                        capfd):
+    per_pixel = {0: 1, 2: 3, 4: 2, 6: 4}[colour]
+    path = tmp_path / "t.png"
+    path.write_bytes(_png(W, H, 8, colour, _rows(W, H, per_pixel, 5), before_idat=_chunk(b"tRNS", trns)))
+    if ok:
+        assert read_image(path).shape == (H, W, 3) and read_mask(path).shape == (H, W)
+    else:
+        for reader in (read_image, read_mask):
+            with pytest.raises(InputError, match="tRNS"):
+                reader(path)
+    assert capfd.readouterr().err == ""
+
+
+def test_a_palette_longer_than_its_bit_depth_indexes_still_reads(tmp_path):
+    path = tmp_path / "p.png"
+    palette = _chunk(b"PLTE", bytes(range(256)) * 3)
+    path.write_bytes(_png(W, H, 4, 3, _rows(W, H, 0.5, 0x11), before_idat=palette))
+    assert read_image(path).shape == (H, W, 3)
+
+
+def test_an_image_in_another_format_is_refused_before_any_decoder_sizes_it(tmp_path):
+    ok, bmp = cv2.imencode(".bmp", np.zeros((8, 8, 3), np.uint8))
+    path = tmp_path / "000005.png"
+    path.write_bytes(bmp.tobytes())
+    with pytest.raises(InputError, match="not a PNG or JPEG"):
+        read_image(path)
+
+
+def test_an_image_file_far_larger_than_its_pixels_need_is_refused_before_it_is_read(tmp_path):
+    path = tmp_path / "big.png"
+    good = _png(W, H, 8, 2, _rows(W, H, 3, 1))
+    path.write_bytes(good[:-12] + _chunk(b"tEXt", b"k\x00" + bytes(3_000_000)) + good[-12:])
+    with pytest.raises(InputError, match="more than"):
+        read_image(path)
+
+
+def test_a_jpeg_of_thousands_of_scans_is_refused_and_a_trailer_after_its_end_is_not_its_image(tmp_path):
+    from benchmark.core.imageio import MAX_JPEG_SCANS, jpeg_layout
+
+    progressive = _jpeg(progressive=True)
+    width, height, scans = jpeg_layout("p.jpg", progressive)
+    assert (width, height) == (64, 64) and 1 < scans <= MAX_JPEG_SCANS
+    # one extra AC scan header repeated: a small file, a long decode
+    last = progressive.rfind(b"\xff\xda")
+    end = progressive.rfind(b"\xff\xd9")
+    many = progressive[:end] + progressive[last:end] * (MAX_JPEG_SCANS + 1) + b"\xff\xd9"
+    path = tmp_path / "many.jpg"
+    path.write_bytes(many)
+    with pytest.raises(InputError, match="scans"):
+        read_image(path)
+    # a trailer after the end-of-image marker that happens to hold FF DA: the image before it reads
+    trailer = tmp_path / "trailer.jpg"
+    trailer.write_bytes(_jpeg() + b"ftypmp42" + b"\xff\xda\x00\x08" + bytes(64))
+    assert read_image(trailer).shape == (64, 64, 3)
+
+
+def _npz_member_patched(tmp_path: Path, patch) -> Path:
+    """A real compressed npz with its member's bytes changed by ``patch(raw) -> raw``."""
+    path = tmp_path / "t.npz"
+    np.savez_compressed(path, a=np.arange(4096, dtype=np.float32))
+    path.write_bytes(patch(path.read_bytes()))
+    return path
+
+
+@pytest.mark.parametrize("damage", ["encrypted", "bad deflate"])
+def test_an_npz_member_that_cannot_be_opened_or_inflated_is_one_error_naming_the_file(tmp_path, damage):
+    from benchmark.core.strict import check_npz
+
+    def patch(raw: bytes) -> bytes:
+        raw = bytearray(raw)
+        if damage == "encrypted":
+            raw[6] |= 1
+            central = raw.rfind(b"PK\x01\x02")
+            raw[central + 8] |= 1
+        else:
+            start = 30 + int.from_bytes(raw[26:28], "little") + int.from_bytes(raw[28:30], "little")
+            raw[start:start + 8] = b"\xff" * 8
+        return bytes(raw)
+
+    path = _npz_member_patched(tmp_path, patch)
+    with pytest.raises(InputError, match="t.npz"):
+        check_npz(path)
+
+
+def test_a_results_file_in_another_splits_folder_is_refused(tmp_path):
+    import shutil
+
+    repo = Path(__file__).resolve().parents[1]
+    for folder in ("not-a-split", "novel-view"):
+        place = tmp_path / folder / "results" / "dnerf" / "lego" / "langsplat" / "oracle" / folder
+        place.mkdir(parents=True)
+        shutil.copy(repo / "results" / "dnerf" / "lego" / "langsplat" / "oracle" / "seed0.json", place / "seed0.json")
+        assert main(["leaderboard", "--results-dir", str(tmp_path / folder / "results"), "--allow-dirty",
+                     "--out", str(tmp_path / folder / "lb.md")]) == 2
+
+
+def test_recon_never_writes_into_the_scene_it_reads(tmp_path, capsys):
+    from benchmark.synthetic.generate import generate
+
+    scene = generate("smoke", tmp_path / "smoke", size=32, frames=8)
+    before = sorted(p.relative_to(scene).as_posix() for p in scene.rglob("*"))
+    assert main(["recon", "--scene", str(scene), "--model", "3dgs", "--out", str(scene / "renders")]) == 2
+    assert "--out" in capsys.readouterr().err
+    assert sorted(p.relative_to(scene).as_posix() for p in scene.rglob("*")) == before
+
+
+def test_a_video_the_decoder_complains_about_is_refused_with_its_message(tmp_path, capfd):
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_loaders import write_neu3d
+
+    write_neu3d(tmp_path / "s")
+    video = tmp_path / "s" / "cam02.mp4"
+    video.write_bytes(video.read_bytes()[:280])  # cut before its index (moov)
+    capfd.readouterr()
+    assert main(["data", "validate", str(tmp_path / "s")]) == 2
+    err = capfd.readouterr().err
+    assert len([line for line in err.splitlines() if line.strip()]) == 1 and "cam02.mp4" in err, err

@@ -281,8 +281,9 @@ def test_an_absolute_form_target_is_400_and_changes_nothing(server):
     body = json.dumps({"revision": before, "text": "smuggled cup"}).encode()
     headers = [("Content-Type", "application/json"), ("Content-Length", len(body)),
                ("X-Bench4d-Token", server.token), ("Connection", "close")]
-    stream = exchange(server, raw_request(server, "POST", "http://evil.example/api/queries/add", headers, body))
-    assert statuses(stream) == [400], stream[:300]
+    for target in ("http://evil.example/api/queries/add", "//evil.example/api/queries/add"):
+        stream = exchange(server, raw_request(server, "POST", target, headers, body))
+        assert statuses(stream) == [400], (target, stream[:300])
     assert server.session.revision == before
     assert_alive(server)
 

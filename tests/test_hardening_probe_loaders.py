@@ -439,3 +439,12 @@ def test_an_image_header_of_a_hundred_million_pixels_is_one_error_and_no_warning
             _common.image_size(path)
     one_line_error(err, str(path), "pixels")
     assert not caught, [str(w.message) for w in caught]
+
+
+# -- fourth probe: path-equivalent member names ------------------------------------------------------------
+@pytest.mark.parametrize("alias", ["annotations/train/./_annotations.coco.json", "annotations//train/_annotations.coco.json"])
+def test_one_member_under_two_spellings_of_its_path_is_refused(session, alias):
+    data = release_zip((COCO_MEMBER, COCO), (alias, b"{}"))
+    with pytest.raises(InputError) as err:
+        session.import_data(session.revision, "release", "upload.zip", base64.b64encode(data).decode())
+    one_line_error(err, "appears twice")
