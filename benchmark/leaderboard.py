@@ -46,7 +46,7 @@ from benchmark.core.official import OFFICIAL_SCENES, is_official
 from benchmark.core.outputs import guard_output
 from benchmark.core.strict import terminal_text
 from benchmark.core.protocol import DEFAULT_PROTOCOL, SCORED_FRAMES_NOTE
-from benchmark.core.scene import DEFAULT_EVAL_SPLIT
+from benchmark.core.scene import DEFAULT_EVAL_SPLIT, EVAL_SPLITS
 from . import stats
 from .results import (ACCURACY_METRICS, MEAN_SCENE, RUN_COLUMNS, comparable_runs, find_results, load_results, run_row,
                       seed_summary)
@@ -326,7 +326,9 @@ def _check_place(relative: Path, row: Mapping[str, Any]) -> None:
     (copied or hand-edited) would show under names nothing ran; an :class:`InputError` names it."""
     parts = relative.parts
     expected = (str(row["dataset"]), str(row["scene"]), str(row["method"]), str(row["track"]))
-    if tuple(parts[:4]) != expected or parts[-1] != f"seed{int(row['seed'])}.json" or len(parts) not in (5, 6):
+    # a split of its own has its folder (novel-view); the paper split and splits of older runs have none
+    split_folder = (str(row["split"]),) if row["split"] in EVAL_SPLITS and row["split"] != DEFAULT_EVAL_SPLIT else ()
+    if tuple(parts) != (*expected, *split_folder, f"seed{int(row['seed'])}.json"):
         raise InputError(relative, "method", f"records {'/'.join(expected)} seed {int(row['seed'])} but lies at "
                                              f"{relative.as_posix()}: a results file is read where its run "
                                              "writes it")

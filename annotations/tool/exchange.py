@@ -13,6 +13,7 @@ import copy
 import json
 import lzma
 import os
+import posixpath
 import shutil
 import tempfile
 import zipfile
@@ -339,7 +340,9 @@ def _member_names(archive: zipfile.ZipFile, file: str) -> list[str]:
     zipfile lacks (which it reports as a RuntimeError or NotImplementedError on reading)."""
     seen: set[str] = set()
     for member in archive.infolist():
-        key = member.filename.replace("\\", "/")  # the archive check reads a backslash as a separator too
+        # one path, however written: the archive check reads a backslash as a separator too, and "a//b" or
+        # "a/./b" name the member "a/b" does
+        key = posixpath.normpath(member.filename.replace("\\", "/"))
         if key in seen:
             raise InputError(file, member.filename, "appears twice in the archive (which one is meant?)")
         seen.add(key)

@@ -546,7 +546,8 @@ class _Handler(socketserver.BaseRequestHandler):
             return "more than one Content-Length"
         if lengths and not _DIGITS.fullmatch(lengths[0].strip(b" \t").decode("latin-1")):
             return "Content-Length must be one number in ASCII digits"
-        if not (self.req.path.startswith("/") or (self.req.command == "OPTIONS" and self.req.path == "*")):
+        origin_form = self.req.path.startswith("/") and not self.req.path.startswith("//")  # "//host/..." names a host
+        if not (origin_form or (self.req.command == "OPTIONS" and self.req.path == "*")):
             return "the request target must be a path (origin form, RFC 9112 3.2.1): no scheme or host"
         if self.req.command == "POST" and not lengths:
             return "Content-Length required (a POST without one has no body: what follows would be a request)"

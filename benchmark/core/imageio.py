@@ -102,9 +102,14 @@ def read_image_pixels(path: str | Path) -> np.ndarray:
         raise InputError(path, None, f"is {problem}, expected an image file")
     try:
         with open_regular(path) as fh:
-            data = np.frombuffer(fh.read(), dtype=np.uint8)
+            head = fh.read(64 * 1024)
+            limit = _image_file_limit(path, head)
+            rest = fh.read(limit - len(head) + 1) if len(head) == 64 * 1024 else b""
     except OSError as err:
         raise InputError(path, None, f"cannot read: {err.strerror or err}") from None
+    if len(head) + len(rest) > limit:
+        raise InputError(path, None, f"file of more than {limit} bytes: more than its pixels can need")
+    data = np.frombuffer(head + rest, dtype=np.uint8)
     if data[:8].tobytes() == PNG_SIGNATURE:  # refuse a huge PNG from its header, before decoding
         width, height, _, _ = png_header(path, data[:33].tobytes())
         if width * height > MAX_MASK_PIXELS:
@@ -112,12 +117,25 @@ def read_image_pixels(path: str | Path) -> np.ndarray:
                                          f"{MAX_MASK_PIXELS} pixels any frame may have")
         return decode_checked(path, _png_checked(path, data.tobytes()))
     if data[:3].tobytes() == b"\xff\xd8\xff":
-        _jpeg_complete(path, data)
-        width, height = jpeg_size(path, data.tobytes())
+        width, height, _ = jpeg_layout(path, data.tobytes())
         if width * height > MAX_MASK_PIXELS:
             raise InputError(path, None, f"image of {width}x{height} pixels is larger than the "
                                          f"{MAX_MASK_PIXELS} pixels any frame may have")
-    return decode_checked(path, data)
+        return decode_checked(path, data)
+    # OpenCV would decode BMP, TIFF, WebP... of any declared size: frames and masks are PNG or JPEG
+    raise InputError(path, None, "not a PNG or JPEG file (no PNG or JPEG signature)")
+
+
+def _image_file_limit(path: Path, head: bytes) -> int:
+    """The most bytes an image file may have, plus a MiB for metadata: a PNG twice what its rows can need
+    (8 bytes a pixel at most: 16-bit RGBA; its header gives the size), a JPEG (8-bit, its size read only after
+    the whole file) 4 bytes a pixel of the largest frame."""
+    from .annotation import MAX_MASK_PIXELS
+
+    if head[:8] == PNG_SIGNATURE and len(head) >= 33:
+        width, height, _, _ = png_header(path, head[:33])
+        return 2 * (8 * width * height + height) + (1 << 20)
+    return 4 * MAX_MASK_PIXELS + (1 << 20)
 
 
 def read_image(path: str | Path, *, keep_alpha: bool = False) -> np.ndarray:
@@ -249,13 +267,15 @@ def _png_checked(path: Path, data: bytes) -> bytes:
         raise InputError(path, "PLTE", "palette PNG without a palette")
     if palette is not None:
         entries = len(palette) // 3
-        if colour in (0, 4) or len(palette) % 3 or not 1 <= entries <= min(256, 1 << depth if colour == 3 else 256):
-            raise InputError(path, "PLTE", f"a palette of {len(palette)} bytes for colour type {colour} and bit "
-                                           f"depth {depth}")
+        # a palette longer than the bit depth can index is out of the PNG rules but read by libpng (truncated
+        # in silence): kept, as readers keep it
+        if colour in (0, 4) or len(palette) % 3 or not 1 <= entries <= 256:
+            raise InputError(path, "PLTE", f"a palette of {len(palette)} bytes for colour type {colour}")
         if colour != 3:
             palette = None  # a suggested palette of a colour image: nothing OpenCV reads
     if alpha is not None:
-        allowed = {0: (2,), 2: (6,), 3: tuple(range(1, len(kept[b"PLTE"]) // 3 + 1))}.get(colour, ())
+        entries = len(kept[b"PLTE"]) // 3 if colour == 3 else 0
+        allowed = {0: (2,), 2: (6,), 3: tuple(range(1, entries + 1))}.get(colour, ())  # none with an alpha channel
         if len(alpha) not in allowed:
             raise InputError(path, "tRNS", f"a transparency chunk of {len(alpha)} bytes for colour type {colour}")
 
@@ -267,37 +287,40 @@ def _png_checked(path: Path, data: bytes) -> bytes:
                      chunk(b"IEND", b"")])
 
 
-def _jpeg_complete(path: Path, data: np.ndarray) -> None:
-    """A JPEG's last scan ends with its end-of-image marker (``FF D9``): a file cut short is refused rather
-    than decoded with grey rows in place of the missing ones."""
-    raw = data.tobytes()
-    last_scan = raw.rfind(b"\xff\xda")
-    if last_scan < 0 or raw.find(b"\xff\xd9", last_scan) < 0:
-        raise InputError(path, None, "truncated JPEG: no end-of-image marker after its last scan")
-
-
 _JPEG_FRAME_MARKERS = frozenset({0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF})
 """Start-of-frame markers (baseline, extended, progressive, lossless; Huffman or arithmetic)."""
+MAX_JPEG_SCANS = 64
+"""Scans a JPEG may hold (a progressive one has about ten): each costs a pass over every coefficient, so a
+small file of thousands of scans would keep the decoder busy for minutes."""
 
 
-def jpeg_size(path: str | Path, data: bytes) -> tuple[int, int]:
-    """``(width, height)`` from a JPEG's first start-of-frame segment, walking its markers without decoding;
-    every frame segment must declare the same size. An :class:`InputError` names the file when none is
-    found before the first scan, or a segment runs past the end."""
-    offset, size = 2, None
-    while offset + 4 <= len(data):
+def jpeg_layout(path: str | Path, data: bytes) -> tuple[int, int, int]:
+    """``(width, height, scans)`` of a JPEG, walking its markers and its scans' entropy-coded data without
+    decoding, up to its end-of-image marker (bytes after it, such as a trailer, are not the image's). Refused
+    naming the file: no frame header before the first scan, frame headers of different sizes, a segment
+    running past the end, more than :data:`MAX_JPEG_SCANS` scans, and no end-of-image marker (a file cut
+    short: the decoder would pad the missing rows with grey)."""
+    offset, size, scans = 2, None, 0
+    n = len(data)
+    while True:
+        if offset + 2 > n:
+            raise InputError(path, None, "truncated JPEG: no end-of-image marker after its last scan")
         if data[offset] != 0xFF:
             raise InputError(path, None, f"corrupt JPEG: no marker at byte {offset}")
         marker = data[offset + 1]
         if marker == 0xFF:  # fill byte
             offset += 1
             continue
+        if marker == 0xD9:
+            break
         if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
             offset += 2
             continue
+        if offset + 4 > n:
+            raise InputError(path, None, "truncated JPEG: no end-of-image marker after its last scan")
         length, = struct.unpack(">H", data[offset + 2:offset + 4])
-        if length < 2 or offset + 2 + length > len(data):
-            raise InputError(path, None, f"corrupt JPEG: segment 0x{marker:02X} at byte {offset} runs past the end")
+        if length < 2 or offset + 2 + length > n:
+            raise InputError(path, None, f"truncated JPEG: segment 0x{marker:02X} at byte {offset} runs past the end")
         if marker in _JPEG_FRAME_MARKERS:
             if length < 8:
                 raise InputError(path, None, "corrupt JPEG: a frame header too short")
@@ -307,12 +330,25 @@ def jpeg_size(path: str | Path, data: bytes) -> tuple[int, int]:
             if size is not None and size != (width, height):
                 raise InputError(path, None, "corrupt JPEG: frame headers of different sizes")
             size = (width, height)
-        if marker == 0xDA:  # the first scan: every frame header comes before it
-            break
         offset += 2 + length
-    if size is None:
-        raise InputError(path, None, "corrupt JPEG: no frame header before its image data")
-    return size
+        if marker == 0xDA:  # a scan: its entropy-coded data runs to the next marker other than a stuffed byte or RSTn
+            if size is None:
+                raise InputError(path, None, "corrupt JPEG: a scan before any frame header")
+            scans += 1
+            if scans > MAX_JPEG_SCANS:
+                raise InputError(path, None, f"JPEG of more than {MAX_JPEG_SCANS} scans")
+            while True:
+                offset = data.find(b"\xff", offset)
+                if offset < 0 or offset + 1 >= n:
+                    raise InputError(path, None, "truncated JPEG: no end-of-image marker after its last scan")
+                follower = data[offset + 1]
+                if follower == 0x00 or 0xD0 <= follower <= 0xD7 or follower == 0xFF:
+                    offset += 1 if follower == 0xFF else 2
+                    continue
+                break
+    if size is None or scans == 0:
+        raise InputError(path, None, "corrupt JPEG: no frame header or no scan before its end")
+    return size[0], size[1], scans
 
 
 def png_header(path: str | Path, data: Optional[bytes] = None) -> tuple[int, int, int, int]:

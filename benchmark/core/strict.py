@@ -348,9 +348,23 @@ MAX_ARRAY_FILE_BYTES = 8 << 30
 """Bytes of arrays one ``.npz`` file may declare at most (a scene's truth maps are a few MB a frame)."""
 
 
-_UNREADABLE_HEADER = (OSError, ValueError, EOFError, TypeError, SyntaxError, RecursionError)
+_UNREADABLE_HEADER = (OSError, ValueError, EOFError, TypeError, SyntaxError, RuntimeError)
 """What numpy's header reader raises on a damaged magic string or header (it parses the header as a Python
-literal; ``tokenize.TokenError`` is added where it is used)."""
+literal; ``tokenize.TokenError`` is added where it is used), and what zipfile raises for a member it cannot
+open (RuntimeError: encrypted; NotImplementedError, a RuntimeError: an unknown compression)."""
+ARRAY_FILE_ERRORS: tuple = (*_UNREADABLE_HEADER, KeyError, MemoryError)
+"""What ``np.load`` of a damaged ``.npy`` or ``.npz`` raises beyond the header check (with the zip and
+stream errors :func:`array_file_errors` adds): a read turns them into one error naming the file."""
+
+
+def array_file_errors() -> tuple:
+    """:data:`ARRAY_FILE_ERRORS` with the errors of zip members and their compressed streams."""
+    import lzma
+    import tokenize
+    import zipfile
+    import zlib
+
+    return (*ARRAY_FILE_ERRORS, tokenize.TokenError, zipfile.BadZipFile, zlib.error, lzma.LZMAError)
 
 
 def _array_header(stream, path: str | Path, field: Optional[str]) -> tuple[tuple, Any]:
@@ -394,7 +408,6 @@ def check_npz(path: str | Path, *, max_bytes: int = MAX_ARRAY_FILE_BYTES) -> Non
     (:func:`_declared_bytes`), and all of them together hold at most ``max_bytes``: read before ``np.load``
     allocates what a header claims (a 200-byte file can claim 16 GiB). An :class:`InputError` names the file
     and member otherwise."""
-    import tokenize
     import zipfile
 
     total = 0
@@ -411,7 +424,7 @@ def check_npz(path: str | Path, *, max_bytes: int = MAX_ARRAY_FILE_BYTES) -> Non
                     raise InputError(path, info.filename, f"arrays of more than {max_bytes} bytes in one file")
     except InputError:
         raise
-    except (*_UNREADABLE_HEADER, tokenize.TokenError, zipfile.BadZipFile, NotImplementedError) as err:
+    except array_file_errors() as err:
         raise InputError(path, None, f"not a readable .npz file ({type(err).__name__}: "
                                      f"{terminal_text(str(err).splitlines()[0][:200] if str(err) else '')})") from None
 

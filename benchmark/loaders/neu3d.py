@@ -46,9 +46,9 @@ import numpy as np
 
 from benchmark.core.atomic import read_json
 from benchmark.core.errors import InputError
-from benchmark.core.imageio import read_image
+from benchmark.core.imageio import native_decoder_messages, read_image
 from benchmark.core.scene import Camera, Frame, Scene, eval_splits_of
-from benchmark.core.strict import check_npy
+from benchmark.core.strict import check_npy, terminal_text
 from . import _common as C
 
 LAYOUT = "neu3d"
@@ -125,12 +125,16 @@ class VideoFrames:
 
     def _decode(self):
         """Yield (H, W, 3) uint8 BGR frames at the output size."""
-        cap = cv2.VideoCapture(str(self.path))
+        with native_decoder_messages() as said:  # FFmpeg prints on fd 2: an open it complains about is refused
+            cap = cv2.VideoCapture(str(self.path))
+        _refuse_if_said(self.path, said)
         if not cap.isOpened():
             raise InputError(self.path, "video", "cannot open the video")
         try:
             for k in range(self.count):
-                ok, frame = cap.read()
+                with native_decoder_messages() as said:
+                    ok, frame = cap.read()
+                _refuse_if_said(self.path, said, f"frame {k}")
                 if not ok or frame is None:
                     raise InputError(self.path, f"frame {k}", f"video ends after {k} frames, expected {self.count}")
                 yield C.resize(frame, self.width, self.height)
@@ -204,10 +208,19 @@ def _camera_sources(root: Path) -> dict[str, tuple[str, object]]:
     return dict(sorted(sources.items(), key=lambda kv: (int(kv[0][3:]), kv[0])))
 
 
+def _refuse_if_said(path: Path, said: list[str], field: str = "video") -> None:
+    """A video the decoder (FFmpeg, inside OpenCV) said anything about while opening or reading it is refused,
+    with its first message: it printed because the file is damaged (a cut container, a broken frame header)."""
+    if said:
+        raise InputError(path, field, f"the video decoder reports: {terminal_text(said[0])[:200]}")
+
+
 def _video_info(path: Path) -> tuple[int, int, int]:
     """(width, height, frame count) from the container metadata."""
-    cap = cv2.VideoCapture(str(path))
+    with native_decoder_messages() as said:  # FFmpeg prints on fd 2 (a missing index, a damaged header)
+        cap = cv2.VideoCapture(str(path))
     try:
+        _refuse_if_said(path, said)
         if not cap.isOpened():
             raise InputError(path, "video", "cannot open the video (missing codec or not a video)")
         w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))

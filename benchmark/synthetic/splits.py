@@ -37,7 +37,8 @@ from typing import Any, Optional, Sequence
 import numpy as np
 
 from benchmark.core.scene import Camera, eval_splits_of
-from benchmark.core.strict import check_npz
+from benchmark.core.errors import InputError
+from benchmark.core.strict import array_file_errors, check_npz
 from benchmark.core.truth import LEVELS, LEVELS_DIR
 from .model import Catalogue, FrameContext, SceneDef, resolve
 
@@ -75,8 +76,11 @@ def _object_points(truth_dir: Path, name: str, camera: Camera) -> tuple[np.ndarr
     """((M, 3) world points, (M,) subpart ids) of the object pixels of frame ``name`` (its truth maps)."""
     path = Path(truth_dir) / LEVELS_DIR / f"{name}.npz"
     check_npz(path)
-    with np.load(path, allow_pickle=False) as data:
-        ids, depth = data[LEVELS[0]], data["depth"]
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            ids, depth = data[LEVELS[0]], data["depth"]
+    except array_file_errors() as err:  # a damaged stream under a sound header
+        raise InputError(path, None, f"damaged truth file ({type(err).__name__}); regenerate the scene") from None
     i, j = np.nonzero((ids > 0) & np.isfinite(depth))
     z = depth[i, j].astype(np.float64)
     cam = np.stack([(j + 0.5 - camera.cx) / camera.fx * z, (i + 0.5 - camera.cy) / camera.fy * z, z], axis=1)
