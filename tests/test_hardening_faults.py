@@ -131,38 +131,23 @@ def test_a_fit_that_diverged_to_nan_is_never_cached(env, capsys, monkeypatch):
     assert not (env["results"] / RUN / "seed0.json").exists()
 
 
-def test_a_cached_model_file_that_is_a_fifo_never_hangs_eval(env, tmp_path):
+@pytest.mark.parametrize("entry,said", [("model/nearest_frame.npz", "nearest_frame.npz"),
+                                        ("fit.json", "fit.json is a FIFO")])
+def test_a_cached_fit_file_that_is_a_fifo_never_hangs_eval_and_is_fitted_again(env, tmp_path, entry, said):
     first = evaluate(_options(env))
-    fit = _fit_folder(env, first.results)
-    model = fit / "model" / "nearest_frame.npz"
-    model.unlink()
-    os.mkfifo(model)
+    fifo = _fit_folder(env, first.results) / entry
+    fifo.unlink()
+    os.mkfifo(fifo)
     env_vars = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
     try:
         proc = subprocess.run([sys.executable, "-m", "benchmark.cli", *_argv(env)], capture_output=True, text=True,
                               timeout=90, env=env_vars, cwd=str(ROOT))
     except subprocess.TimeoutExpired:
-        pytest.fail("eval hung on a FIFO in the fit cache")
+        pytest.fail(f"eval hung on a FIFO at {entry} in the fit cache")
     assert proc.returncode == 0, proc.stderr[-2000:]
     warnings = warnings_of(proc.stderr)
-    assert len(warnings) == 1 and "nearest_frame.npz" in warnings[0], proc.stderr[-2000:]
-
-
-def test_a_cached_fit_record_that_is_a_fifo_is_warned_about_and_fitted_again(env, tmp_path):
-    first = evaluate(_options(env))
-    record = _fit_folder(env, first.results) / "fit.json"
-    record.unlink()
-    os.mkfifo(record)
-    env_vars = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
-    try:
-        proc = subprocess.run([sys.executable, "-m", "benchmark.cli", *_argv(env)], capture_output=True, text=True,
-                              timeout=90, env=env_vars, cwd=str(ROOT))
-    except subprocess.TimeoutExpired:
-        pytest.fail("eval hung on a FIFO fit record")
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    warnings = warnings_of(proc.stderr)
-    assert len(warnings) == 1 and "fit.json is a FIFO" in warnings[0], proc.stderr[-2000:]
-    assert record.is_file(), "the fit made again replaces the FIFO"
+    assert len(warnings) == 1 and said in warnings[0], proc.stderr[-2000:]
+    assert fifo.is_file(), "the fit made again replaces the FIFO"
 
 
 # -- the supervision cache: folders, wrong shapes, NaN ----------------------------------------------------
