@@ -303,3 +303,32 @@ def test_a_video_the_decoder_complains_about_is_refused_with_its_message(tmp_pat
     assert main(["data", "validate", str(tmp_path / "s")]) == 2
     err = capfd.readouterr().err
     assert len([line for line in err.splitlines() if line.strip()]) == 1 and "cam02.mp4" in err, err
+
+
+def test_a_png_with_an_unknown_critical_chunk_is_refused_and_an_unknown_ancillary_one_ignored(tmp_path):
+    path = tmp_path / "c.png"
+    path.write_bytes(_png(W, H, 8, 2, _rows(W, H, 3, 1), before_idat=_chunk(b"ZZZZ", b"x")))
+    with pytest.raises(InputError, match="unknown critical"):
+        read_image(path)
+    path.write_bytes(_png(W, H, 8, 2, _rows(W, H, 3, 1), before_idat=_chunk(b"zzZz", b"x")))
+    assert read_image(path).shape == (H, W, 3)
+
+
+def test_a_truth_file_declaring_more_than_its_frame_can_hold_is_refused_before_loading(tmp_path):
+    import io
+    import zipfile
+
+    from benchmark.core.truth import load_truth
+    from benchmark.synthetic.generate import generate
+
+    scene = generate("smoke", tmp_path / "smoke", size=32, frames=8)
+    truth = load_truth(scene)
+    name = truth.training_frames[0]
+    camera = truth.frames[name].camera
+    rows = camera.width * camera.height * 1000  # float32: 4000 bytes a pixel, far more than any truth needs
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {"descr": "<f4", "fortran_order": False, "shape": (rows,)})
+    with zipfile.ZipFile(scene / "truth" / "levels" / f"{name}.npz", "w", zipfile.ZIP_DEFLATED) as archive:
+        archive.writestr("depth.npy", header.getvalue() + bytes(rows * 4))
+    with pytest.raises(InputError, match="damaged truth file"):
+        truth.levels(name)

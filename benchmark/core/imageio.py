@@ -236,6 +236,8 @@ def _png_checked(path: Path, data: bytes) -> bytes:
         body = data[offset + 8:offset + 8 + length]
         if zlib.crc32(kind + body) != struct.unpack(">I", data[offset + 8 + length:offset + 12 + length])[0]:
             raise InputError(path, None, f"corrupt PNG: chunk {kind!r} at byte {offset} fails its CRC")
+        if not kind[0] & 0x20 and kind not in (b"IHDR", b"PLTE", b"IDAT", b"IEND"):  # critical: its reader must know it
+            raise InputError(path, None, f"PNG with the unknown critical chunk {kind!r} at byte {offset}")
         if kind == b"IHDR" and offset != 8:
             raise InputError(path, None, f"corrupt PNG: a second IHDR chunk at byte {offset}")
         if kind in (b"PLTE", b"tRNS") and (idat or kind in kept):

@@ -54,6 +54,9 @@ FORMAT_VERSION = 1
 FRAME_KEYS = ("name", "split", "time_index", "time", "camera_id", "camera", "image")
 """Keys of every entry of ``frames`` in ``scene_truth.json``."""
 ARRAYS = (*LEVELS, "depth")
+TRUTH_BYTES_PER_PIXEL = 64
+"""Bytes a pixel a frame's truth file may declare (its id maps and depth take about 10): a header claiming
+more is refused before anything is allocated."""
 """Arrays of every ``levels/<frame>.npz``."""
 
 
@@ -171,8 +174,11 @@ class SceneTruth:
         path = self.root / LEVELS_DIR / f"{name}.npz"
         if not path.is_file():
             raise InputError(path, None, "truth file of this frame not found")
+        camera = self.frames[name].camera if name in self.frames else None
+        # what each header declares, before np.load allocates it: a frame's maps need some bytes a pixel
+        budget = None if camera is None else TRUTH_BYTES_PER_PIXEL * camera.width * camera.height + (1 << 20)
         try:
-            check_npz(path)  # what each header declares, before np.load allocates it
+            check_npz(path) if budget is None else check_npz(path, max_bytes=budget)
         except InputError as err:
             raise InputError(path, err.field, f"damaged truth file ({err.message}); regenerate the scene") from None
         try:
@@ -185,7 +191,6 @@ class SceneTruth:
                 raise InputError(path, key, "missing array; regenerate the scene")
             if arrays[key].ndim != 2:
                 raise InputError(path, key, f"expected an (H, W) map, got shape {arrays[key].shape}")
-        camera = self.frames[name].camera if name in self.frames else None
         for key in ARRAYS:
             if camera is not None and arrays[key].shape != (camera.height, camera.width):
                 raise InputError(path, key, f"map is {arrays[key].shape[0]}x{arrays[key].shape[1]}, the frame is "
