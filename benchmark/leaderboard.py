@@ -44,7 +44,7 @@ from benchmark.core.atomic import read_json, write_text
 from benchmark.core.errors import InputError
 from benchmark.core.official import OFFICIAL_SCENES, is_official
 from benchmark.core.outputs import guard_output
-from benchmark.core.strict import terminal_text
+from benchmark.core.strict import check_name, terminal_text
 from benchmark.core.protocol import DEFAULT_PROTOCOL, SCORED_FRAMES_NOTE
 from benchmark.core.scene import DEFAULT_EVAL_SPLIT, EVAL_SPLITS
 from . import stats
@@ -324,6 +324,8 @@ def _check_place(relative: Path, row: Mapping[str, Any]) -> None:
     """A results file lies where its run writes it (``<dataset>/<scene>/<method>/<track>/[<split>/]seed<N>.json``,
     :func:`benchmark.results.results_path`): a file whose recorded method, scene or seed differs from its place
     (copied or hand-edited) would show under names nothing ran; an :class:`InputError` names it."""
+    for field in ("dataset", "scene", "method", "track"):  # names become cells and folder names: no control characters
+        check_name(str(row[field]), relative, field)
     parts = relative.parts
     expected = (str(row["dataset"]), str(row["scene"]), str(row["method"]), str(row["track"]))
     # a split of its own has its folder (novel-view); the paper split and splits of older runs have none

@@ -332,3 +332,48 @@ def test_a_truth_file_declaring_more_than_its_frame_can_hold_is_refused_before_l
         archive.writestr("depth.npy", header.getvalue() + bytes(rows * 4))
     with pytest.raises(InputError, match="damaged truth file"):
         truth.levels(name)
+
+
+def test_bytes_after_the_image_data_stream_and_a_repeated_npz_member_are_refused(tmp_path):
+    import zipfile
+
+    from benchmark.core.strict import check_npz
+
+    rows = _rows(W, H, 3, 1)
+    ihdr = _chunk(b"IHDR", struct.pack(">IIBBBBB", W, H, 8, 2, 0, 0, 0))
+    path = tmp_path / "x.png"
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + ihdr + _chunk(b"IDAT", zlib.compress(rows) + b"garbage")
+                     + _chunk(b"IEND", b""))
+    with pytest.raises(InputError, match="after the end"):
+        read_image(path)
+    npz = tmp_path / "t.npz"
+    np.savez(npz, a=np.zeros(3))
+    with zipfile.ZipFile(npz, "a") as archive:
+        with pytest.warns(UserWarning):
+            archive.writestr("a.npy", _npy_bytes(np.ones(3)))
+    with pytest.raises(InputError, match="twice"):
+        check_npz(npz)
+
+
+def _npy_bytes(array: np.ndarray) -> bytes:
+    import io
+
+    buffer = io.BytesIO()
+    np.save(buffer, array)
+    return buffer.getvalue()
+
+
+def test_a_results_name_with_a_control_character_is_refused(tmp_path):
+    import json
+    import shutil
+
+    repo = Path(__file__).resolve().parents[1]
+    doc = json.loads((repo / "results" / "dnerf" / "lego" / "langsplat" / "oracle" / "seed0.json").read_text())
+    doc["method"] = "evil\rname"
+    place = tmp_path / "results" / "dnerf" / "lego" / "evil\rname" / "oracle"
+    place.mkdir(parents=True)
+    (place / "seed0.json").write_text(json.dumps(doc))
+    assert main(["leaderboard", "--results-dir", str(tmp_path / "results"), "--allow-dirty",
+                 "--out", str(tmp_path / "lb.md"), "--csv-dir", str(tmp_path / "csv")]) == 2
+    assert not (tmp_path / "csv").exists()
+    shutil.rmtree(tmp_path / "results")

@@ -260,6 +260,8 @@ def _png_checked(path: Path, data: bytes) -> bytes:
         offset += 12 + length
         if kind == b"IEND":
             break
+    if inflate.unused_data:  # a second stream or garbage after the first: not one zlib stream of rows
+        raise InputError(path, "IDAT", f"{len(inflate.unused_data)} bytes after the end of the PNG image data stream")
     if not inflate.eof or produced != expected:
         raise InputError(path, "IDAT", f"PNG image data holds {produced} of the {expected} bytes of rows its "
                                        f"{width}x{height} header declares" + ("" if inflate.eof else

@@ -411,11 +411,15 @@ def check_npz(path: str | Path, *, max_bytes: int = MAX_ARRAY_FILE_BYTES) -> Non
     import zipfile
 
     total = 0
+    names: set[str] = set()
     try:
         with open_regular(path) as fh, zipfile.ZipFile(fh) as archive:
             for info in archive.infolist():
                 if not info.filename.endswith(".npy"):
                     raise InputError(path, info.filename, "not an array (.npy) member")
+                if info.filename in names:  # np.load would silently read the last one
+                    raise InputError(path, info.filename, "appears twice in the file (which one is meant?)")
+                names.add(info.filename)
                 with archive.open(info) as member:
                     shape, dtype = _array_header(member, path, info.filename)
                     held = info.file_size - member.tell()
