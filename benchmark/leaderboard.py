@@ -330,10 +330,10 @@ def _check_place(relative: Path, row: Mapping[str, Any]) -> None:
     expected = (str(row["dataset"]), str(row["scene"]), str(row["method"]), str(row["track"]))
     # a split of its own has its folder (novel-view); the paper split and splits of older runs have none
     split_folder = (str(row["split"]),) if row["split"] in EVAL_SPLITS and row["split"] != DEFAULT_EVAL_SPLIT else ()
-    if tuple(parts) != (*expected, *split_folder, f"seed{int(row['seed'])}.json"):
-        raise InputError(relative, "method", f"records {'/'.join(expected)} seed {int(row['seed'])} but lies at "
-                                             f"{relative.as_posix()}: a results file is read where its run "
-                                             "writes it")
+    place = (*expected, *split_folder, f"seed{int(row['seed'])}.json")
+    if tuple(parts) != place:
+        raise InputError(relative, "method", f"its run ({row['split']} split) writes it at {'/'.join(place)}: a "
+                                             "results file is read only where its run writes it")
 
 
 def load_runs(results_dir: str | Path, *, extra: Optional[Callable[[dict], dict[str, Any]]] = None
