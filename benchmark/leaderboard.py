@@ -43,7 +43,7 @@ import pandas as pd
 from benchmark.core.atomic import read_json, write_text
 from benchmark.core.errors import InputError
 from benchmark.core.official import OFFICIAL_SCENES, is_official
-from benchmark.core.outputs import guard_output
+from benchmark.core.outputs import InputSet, guard_output
 from benchmark.core.strict import check_name, terminal_text
 from benchmark.core.protocol import DEFAULT_PROTOCOL, SCORED_FRAMES_NOTE
 from benchmark.core.scene import DEFAULT_EVAL_SPLIT, EVAL_SPLITS
@@ -1363,7 +1363,7 @@ def build_leaderboard(results_dir: str | Path = "results", *, markdown: str | Pa
         raise InputError(results_dir, "results-dir", "no such folder (the leaderboard and reports were left as "
                          "they are); an empty folder gives a leaderboard of the paper's numbers alone")
     ceiling_file = Path(reports_dir) / CEILING_FILE if ceiling is None else Path(ceiling)
-    inputs = [results_dir, ceiling_file]
+    inputs = InputSet([results_dir, ceiling_file])  # the results folder walked once for every output
     md_path = Path(markdown)
     guard_output(md_path, inputs, option="--out")  # before anything is read: a refused path costs nothing
     if csv_dir is not None:
@@ -1388,8 +1388,9 @@ def build_leaderboard(results_dir: str | Path = "results", *, markdown: str | Pa
             outputs["/".join(map(str, identity))] = (
                 reports / f"{name}.csv", _table_csv(group, queries[queries["path"].isin(set(group["path"]))], stats_rows))
         outputs["paper"] = (reports / "paper_numbers.csv", _csv(paper_numbers_table()))
-    for path, _ in outputs.values():  # every file checked before the first is written: all or nothing refused
-        guard_output(path, inputs, option="--csv-dir" if path != md_path else "--out")
+    for path, _ in outputs.values():  # every CSV checked before the first file is written: all or nothing
+        if path != md_path:
+            guard_output(path, inputs, option="--csv-dir")
     for path, body in outputs.values():
         write_text(path, body)
     return {key: path for key, (path, _) in outputs.items()}

@@ -65,6 +65,7 @@ from benchmark.core.atomic import json_ready, read_json, write_json
 from benchmark.core.errors import InputError
 from benchmark.core.outputs import guard_output
 from benchmark.core.strict import check_cached_files, file_problem
+from benchmark.core.strict import error_reason as reason  # one short line for a warning
 from benchmark.core.openblas import cpuinfo_value, openblas_core
 from benchmark.core.protocol import DEFAULT_PROTOCOL, get_protocol
 from .results import RunResults, exclusive_lock, results_lock, results_path, write_results
@@ -146,13 +147,6 @@ def warn(message: str) -> None:
     from tqdm.auto import tqdm
 
     tqdm.write(f"warning: {' '.join(message.split())}", file=sys.stderr)
-
-
-def reason(err: BaseException) -> str:
-    """``err`` as one short line for a warning (messages of zipfile or numpy may span lines)."""
-    text = " ".join(str(err).split()) or type(err).__name__
-    text = text if len(text) <= 200 else text[:197] + "..."
-    return text if isinstance(err, InputError) else f"{type(err).__name__}: {text}"
 
 
 def check_folder(path: str | Path, option: str) -> None:

@@ -11,13 +11,11 @@ from __future__ import annotations
 
 import copy
 import json
-import lzma
 import os
 import posixpath
 import shutil
 import tempfile
 import zipfile
-import zlib
 from pathlib import Path
 from typing import Optional
 
@@ -27,7 +25,7 @@ from pycocotools import mask as mask_utils
 from benchmark.core.atomic import atomic_path
 from benchmark.core.errors import InputError
 from benchmark.core.scene import Scene, paper_camera
-from benchmark.core.strict import check_int, check_keys, check_text, loads, terminal_text, text_key
+from benchmark.core.strict import check_int, check_keys, check_text, error_reason, loads, text_key, unpacking_errors
 
 from ..format import annotation_set_from_dict, load_annotations, save_annotations
 from benchmark.core.annotation import MAX_MASK_PIXELS, AnnotatedFrame, AnnotationSet, Query, decode_mask, encode_mask, normalise_intervals
@@ -359,10 +357,8 @@ def _read_member(archive: zipfile.ZipFile, name: str, file: str) -> bytes:
     that does not decode, a local header that disagrees with the directory) is an :class:`InputError`."""
     try:
         return archive.read(name)
-    except (zipfile.BadZipFile, zlib.error, lzma.LZMAError, EOFError, OSError, NotImplementedError, RuntimeError,
-            ValueError) as err:  # bzip2 reports a damaged stream as an OSError
-        reason = str(err).splitlines()[0][:200] if str(err) else type(err).__name__
-        raise InputError(file, name, f"cannot unpack this member (damaged archive: {terminal_text(reason)})") from None
+    except (*unpacking_errors(), OSError, ValueError) as err:  # bzip2 reports a damaged stream as an OSError
+        raise InputError(file, name, f"cannot unpack this member (damaged archive: {error_reason(err)})") from None
 
 
 def import_set(fmt: str, filename: str, data: bytes, scene: Scene, current: AnnotationSet, config) -> AnnotationSet:

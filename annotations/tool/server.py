@@ -344,10 +344,11 @@ class AnnotationServer(socketserver.ThreadingMixIn, socketserver.TCPServer):
                 idle = [c for c in crowd if c.waiting]
                 if not idle:  # all busy: on probation, in a small pool of its own
                     probation = True
-                    crowd = [c for c in live if c.probation and not c.trusted]
-                    idle = [c for c in crowd if c.waiting] if len(crowd) >= self.probation_connections else []
-                    if len(crowd) >= self.probation_connections and not idle:
-                        return None
+                    on_probation = [c for c in live if c.probation and not c.trusted]
+                    if len(on_probation) >= self.probation_connections:  # full: its oldest waiting one goes
+                        idle = [c for c in on_probation if c.waiting]
+                        if not idle:
+                            return None
                 if idle:
                     victim = min(idle, key=lambda c: c.opened)
                     victim.closed = True

@@ -782,10 +782,7 @@ class AnnotationSession:
 
     def import_data(self, revision: Any, fmt: Any, filename: Any, data_b64: Any) -> dict:
         """Replace the working set by an imported one (the current file is backed up first)."""
-        import lzma
-        import zlib
-
-        from benchmark.core.strict import terminal_text
+        from benchmark.core.strict import error_reason, unpacking_errors
 
         from .exchange import import_set
 
@@ -808,14 +805,11 @@ class AnnotationSession:
                 validate_against_scene(new, self.scene, file=filename)
             except InputError:
                 raise
-            except (ValueError, TypeError, KeyError, IndexError, AttributeError, ArithmeticError, RuntimeError,
-                    EOFError, zipfile.BadZipFile, zipfile.LargeZipFile, zlib.error, lzma.LZMAError) as err:
+            except (ValueError, TypeError, KeyError, IndexError, AttributeError, ArithmeticError,
+                    *unpacking_errors()) as err:
                 # the upload is untrusted data: whatever its parsers trip over is a malformed file, and
-                # nothing has changed yet. RuntimeError covers RecursionError and what zipfile raises for an
-                # encrypted member (RuntimeError) or an unknown compression method (NotImplementedError)
-                reason = str(err).splitlines()[0][:200] if str(err) else ""
-                raise InputError(Path(filename).name, None,
-                                 f"cannot read the file: {type(err).__name__}: {terminal_text(reason)}") from None
+                # nothing has changed yet (RuntimeError, among the unpacking errors, covers RecursionError)
+                raise InputError(Path(filename).name, None, f"cannot read the file: {error_reason(err)}") from None
             backup = None
             if self.path.exists():
                 backup = self.root / ".bench4d-backups" / f"{self.path.stem}.rev{self.revision}.json"

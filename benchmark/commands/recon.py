@@ -297,6 +297,7 @@ def run_job(job: dict, isolate: bool) -> dict:
 # ---------------------------------------------------------------------------------------------------
 def run(args: argparse.Namespace) -> int:
     from benchmark.core.atomic import write_json
+    from benchmark.core.outputs import guard_output
     from ..runner import resolve_scene
 
     if args.summarize is not None:
@@ -318,8 +319,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"  frames {time_range[0]}..{time_range[1]} only: {kept[0]} training, {kept[1]} test")
     suffix = "" if time_range is None else f"-frames-{time_range[0]}-{time_range[1]}"
     out_dir = args.out or Path("reports") / "recon" / (scene.name + suffix)
-    from benchmark.core.outputs import guard_output
-
     guard_output(out_dir, [scene_dir], option="--out")  # never into the scene it reads (its digest would move)
     out_dir.mkdir(parents=True, exist_ok=True)
 

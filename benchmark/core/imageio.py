@@ -39,6 +39,9 @@ NATIVE_STDERR_LOCK = threading.RLock()
 """Held while native decoders write to file descriptor 2 into a capture (:func:`native_decoder_messages`);
 a thread writing its own lines to the terminal takes it too, so no line of its lands in a capture."""
 _MAX_MESSAGE_BYTES = 4096
+_capture_file = None
+"""The file fd 2 is pointed at during a capture: one per process, emptied for each (a decode is on the path of
+every frame a scene loads)."""
 
 
 @contextlib.contextmanager
@@ -47,8 +50,14 @@ def native_decoder_messages() -> Iterator[list[str]]:
     the list yielded holds it, one line a message, once the block ends. Those libraries print their errors
     and warnings there, past Python, before they fail or pad an image: caught, they become one error naming
     the file instead of raw lines on the terminal."""
+    global _capture_file
     said: list[str] = []
-    with NATIVE_STDERR_LOCK, tempfile.TemporaryFile() as capture:
+    with NATIVE_STDERR_LOCK:
+        if _capture_file is None or _capture_file.closed:
+            _capture_file = tempfile.TemporaryFile()
+        capture = _capture_file
+        capture.seek(0)
+        capture.truncate()
         try:
             sys.stderr.flush()
         except (OSError, ValueError):
@@ -65,22 +74,22 @@ def native_decoder_messages() -> Iterator[list[str]]:
             said.extend(line.strip() for line in text.splitlines() if line.strip())
 
 
-def decode_checked(path: Path, data: bytes | np.ndarray, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
-    """``cv2.imdecode`` of ``data`` (the file ``path``'s checked bytes): an image the decoder says anything
-    about (libpng's or libjpeg's errors and warnings: a corrupt stream, a JPEG scan cut short and padded) or
-    cannot decode is an :class:`InputError` naming the file, with the decoder's first message."""
-    buffer = np.frombuffer(data, dtype=np.uint8) if isinstance(data, (bytes, bytearray)) else data
+def decode_checked(path: Path, data: bytes, *, kind: str = "image") -> np.ndarray:
+    """``cv2.imdecode`` (``IMREAD_UNCHANGED``) of ``data``, the file ``path``'s checked bytes: an image the
+    decoder says anything about (libpng's or libjpeg's errors and warnings: a corrupt stream, a JPEG scan cut
+    short and padded) or cannot decode is an :class:`InputError` naming the file and ``kind``, with the
+    decoder's first message."""
     with native_decoder_messages() as said:
         try:
-            img = cv2.imdecode(buffer, flags) if buffer.size else None
+            img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED) if data else None
         except cv2.error:
             img = None
     if said:
         from .strict import terminal_text
 
-        raise InputError(path, None, f"the image decoder reports: {terminal_text(said[0])[:200]}")
+        raise InputError(path, None, f"cannot decode {kind}: the decoder reports {terminal_text(said[0])[:200]}")
     if img is None:
-        raise InputError(path, None, "cannot decode image (truncated or not an image)")
+        raise InputError(path, None, f"cannot decode {kind} (truncated or corrupt)")
     return img
 
 
@@ -109,15 +118,15 @@ def read_image_pixels(path: str | Path) -> np.ndarray:
         raise InputError(path, None, f"cannot read: {err.strerror or err}") from None
     if len(head) + len(rest) > limit:
         raise InputError(path, None, f"file of more than {limit} bytes: more than its pixels can need")
-    data = np.frombuffer(head + rest, dtype=np.uint8)
-    if data[:8].tobytes() == PNG_SIGNATURE:  # refuse a huge PNG from its header, before decoding
-        width, height, _, _ = png_header(path, data[:33].tobytes())
+    data = head + rest
+    if data[:8] == PNG_SIGNATURE:  # refuse a huge PNG from its header, before decoding
+        width, height, _, _ = png_header(path, data[:33])
         if width * height > MAX_MASK_PIXELS:
             raise InputError(path, None, f"image of {width}x{height} pixels is larger than the "
                                          f"{MAX_MASK_PIXELS} pixels any frame may have")
-        return decode_checked(path, _png_checked(path, data.tobytes()))
-    if data[:3].tobytes() == b"\xff\xd8\xff":
-        width, height, _ = jpeg_layout(path, data.tobytes())
+        return decode_checked(path, _png_checked(path, data))
+    if data[:3] == b"\xff\xd8\xff":
+        width, height, _ = jpeg_layout(path, data)
         if width * height > MAX_MASK_PIXELS:
             raise InputError(path, None, f"image of {width}x{height} pixels is larger than the "
                                          f"{MAX_MASK_PIXELS} pixels any frame may have")
@@ -435,12 +444,7 @@ def read_mask(path: str | Path, size: Optional[tuple[int, int]] = None) -> np.nd
     """
     path = Path(path)
     data, width, height, _, _ = read_png_bytes(path, size)
-    try:
-        img = decode_checked(path, _png_checked(path, data))
-    except InputError as err:
-        if "decoder" in err.message or "cannot decode" in err.message:
-            raise InputError(path, None, f"cannot decode mask PNG ({err.message})") from None
-        raise
+    img = decode_checked(path, _png_checked(path, data), kind="mask PNG")
     if img.shape[:2] != (height, width) or img.dtype not in (np.uint8, np.uint16):
         raise InputError(path, None, "cannot decode mask PNG (truncated or corrupt)")
     if img.ndim == 2:

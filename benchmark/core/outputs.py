@@ -95,13 +95,14 @@ class InputSet:
         return any(_within(real, f) for f in self.real_folders)
 
 
-def guard_output(target: str | Path, inputs: Iterable[str | Path], *, option: str = "--out") -> None:
+def guard_output(target: str | Path, inputs: "Iterable[str | Path] | InputSet", *, option: str = "--out") -> None:
     """Refuse (:class:`InputError` naming ``option``) a ``target`` that resolves, through symbolic or hard
     links, to any of ``inputs``' files or into any of ``inputs``' folders (module docstring). ``inputs``
-    are files and folders a command reads; ``None`` entries are skipped. Call it before anything is read
-    or computed, so that a refused path costs nothing."""
+    are files and folders a command reads (``None`` entries are skipped), or an :class:`InputSet` of them
+    made once for several targets (each folder walked once). Call it before anything is read or computed,
+    so that a refused path costs nothing."""
     target = Path(target)
-    inputs = InputSet(inputs)
+    inputs = inputs if isinstance(inputs, InputSet) else InputSet(inputs)
     if inputs.holds(target):
         raise InputError(target, option, "is an input of this command or lies among its inputs (an input file, "
                                          "a hard or symbolic link of one, or a place inside an input folder); "

@@ -348,23 +348,32 @@ MAX_ARRAY_FILE_BYTES = 8 << 30
 """Bytes of arrays one ``.npz`` file may declare at most (a scene's truth maps are a few MB a frame)."""
 
 
-_UNREADABLE_HEADER = (OSError, ValueError, EOFError, TypeError, SyntaxError, RuntimeError)
-"""What numpy's header reader raises on a damaged magic string or header (it parses the header as a Python
-literal; ``tokenize.TokenError`` is added where it is used), and what zipfile raises for a member it cannot
-open (RuntimeError: encrypted; NotImplementedError, a RuntimeError: an unknown compression)."""
-ARRAY_FILE_ERRORS: tuple = (*_UNREADABLE_HEADER, KeyError, MemoryError)
-"""What ``np.load`` of a damaged ``.npy`` or ``.npz`` raises beyond the header check (with the zip and
-stream errors :func:`array_file_errors` adds): a read turns them into one error naming the file."""
+def error_reason(err: BaseException, limit: int = 200) -> str:
+    """``err`` as one short line safe to print (messages of zipfile, numpy or a decoder may span lines or hold
+    control characters); an :class:`InputError` as its own words, anything else prefixed by its type."""
+    text = " ".join(str(err).split()) or type(err).__name__
+    text = terminal_text(text if len(text) <= limit else text[:limit - 3] + "...")
+    return text if isinstance(err, InputError) else f"{type(err).__name__}: {text}"
 
 
-def array_file_errors() -> tuple:
-    """:data:`ARRAY_FILE_ERRORS` with the errors of zip members and their compressed streams."""
+def unpacking_errors() -> tuple:
+    """What unpacking a damaged zip member or compressed stream raises (zipfile, zlib, lzma: a bad CRC, a broken
+    stream, an encrypted member or an unknown method as RuntimeError / NotImplementedError). Not OSError: bz2
+    reports a broken stream as one, but so does a full disk, which a caller must not call a damaged file."""
     import lzma
-    import tokenize
     import zipfile
     import zlib
 
-    return (*ARRAY_FILE_ERRORS, tokenize.TokenError, zipfile.BadZipFile, zlib.error, lzma.LZMAError)
+    return (zipfile.BadZipFile, zipfile.LargeZipFile, zlib.error, lzma.LZMAError, EOFError, RuntimeError)
+
+
+def array_file_errors() -> tuple:
+    """What reading a damaged ``.npy`` or ``.npz`` raises, header or data (numpy parses a header as a Python
+    literal), with :func:`unpacking_errors`: a read turns them into one error naming the file."""
+    import tokenize
+
+    return (*unpacking_errors(), OSError, ValueError, TypeError, SyntaxError, KeyError, MemoryError,
+            tokenize.TokenError)
 
 
 def _array_header(stream, path: str | Path, field: Optional[str]) -> tuple[tuple, Any]:
@@ -382,29 +391,31 @@ def _array_header(stream, path: str | Path, field: Optional[str]) -> tuple[tuple
     return tuple(shape), dtype
 
 
-def _declared_bytes(path: str | Path, field: Optional[str], shape: tuple, dtype, held: int,
+def _declared_bytes(path: str | Path, member: Optional[str], shape: tuple, dtype, held: int,
                     kinds: Optional[str] = None) -> int:
     """The bytes an array header declares, once found trustworthy: no pickled objects, a dtype of ``kinds``
     (numpy's letters; any when ``None``), elements of some size, no negative length, and exactly the ``held``
-    bytes that follow the header. An :class:`InputError` names the file and ``field`` otherwise."""
+    bytes that follow the header. An :class:`InputError` names the file and the npz ``member`` (a lone
+    ``.npy``: the field at fault, ``dtype`` or ``shape``) otherwise."""
     import numpy as np
 
     if dtype.hasobject:
-        raise InputError(path, field, "holds Python objects, not numbers")
+        raise InputError(path, member or "dtype", "holds Python objects, not numbers")
     if kinds is not None and dtype.kind not in kinds:
-        raise InputError(path, field, f"array of dtype {dtype}, expected kind {kinds!r}")
+        raise InputError(path, member or "dtype", f"array of dtype {dtype}, expected kind {kinds!r}")
     if dtype.itemsize == 0:  # any count of nothing fits in no bytes: the count itself is then unchecked
-        raise InputError(path, field, f"array of dtype {dtype}, whose elements have no size")
+        raise InputError(path, member or "dtype", f"array of dtype {dtype}, whose elements have no size")
     if any(n < 0 for n in shape):
-        raise InputError(path, field, f"declares the shape {shape}, with a negative length")
+        raise InputError(path, member or "shape", f"declares the shape {shape}, with a negative length")
     declared = int(np.prod(shape, dtype=object)) * dtype.itemsize  # exact: a product of Python ints
     if declared != held:
-        raise InputError(path, field, f"declares an array of shape {shape} ({declared} bytes) but holds {held} bytes")
+        raise InputError(path, member or "shape", f"declares an array of shape {shape} ({declared} bytes) but "
+                                                  f"holds {held} bytes")
     return declared
 
 
 def check_npz(path: str | Path, *, max_bytes: int = MAX_ARRAY_FILE_BYTES) -> None:
-    """Every member of the ``.npz`` at ``path`` is a ``.npy`` array whose header is trustworthy
+    """Every member of the ``.npz`` at ``path`` is a ``.npy`` array, named once, whose header is trustworthy
     (:func:`_declared_bytes`), and all of them together hold at most ``max_bytes``: read before ``np.load``
     allocates what a header claims (a 200-byte file can claim 16 GiB). An :class:`InputError` names the file
     and member otherwise."""
@@ -429,8 +440,20 @@ def check_npz(path: str | Path, *, max_bytes: int = MAX_ARRAY_FILE_BYTES) -> Non
     except InputError:
         raise
     except array_file_errors() as err:
-        raise InputError(path, None, f"not a readable .npz file ({type(err).__name__}: "
-                                     f"{terminal_text(str(err).splitlines()[0][:200] if str(err) else '')})") from None
+        raise InputError(path, None, f"not a readable .npz file ({error_reason(err)})") from None
+
+
+def load_npz(path: str | Path, *, max_bytes: int = MAX_ARRAY_FILE_BYTES) -> dict[str, Any]:
+    """Name -> array of the ``.npz`` at ``path``, read once its headers are trustworthy (:func:`check_npz`);
+    a damaged stream under sound headers is an :class:`InputError` naming the file too."""
+    import numpy as np
+
+    check_npz(path, max_bytes=max_bytes)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {key: data[key] for key in data.files}
+    except array_file_errors() as err:
+        raise InputError(path, None, f"not a readable .npz file ({error_reason(err)})") from None
 
 
 def check_npy(path: str | Path, *, max_bytes: int = MAX_ARRAY_FILE_BYTES, kinds: Optional[str] = None) -> tuple:
@@ -438,20 +461,15 @@ def check_npy(path: str | Path, *, max_bytes: int = MAX_ARRAY_FILE_BYTES, kinds:
     trustworthy (:func:`_declared_bytes`, with a dtype of ``kinds``) and the array at most ``max_bytes``.
     Called before ``np.load``, which allocates what the header claims (a 200-byte file can claim 24 TB). An
     :class:`InputError` names the file otherwise."""
-    import tokenize
-
     try:
         with open_regular(path) as fh:
             shape, dtype = _array_header(fh, path, None)
             held = os.fstat(fh.fileno()).st_size - fh.tell()
     except InputError:
         raise
-    except (*_UNREADABLE_HEADER, tokenize.TokenError) as err:
-        raise InputError(path, None, f"not a readable .npy file ({type(err).__name__}: "
-                                     f"{terminal_text(str(err).splitlines()[0][:200] if str(err) else '')})") from None
-    field = "dtype" if dtype.hasobject or (kinds is not None and dtype.kind not in kinds) or not dtype.itemsize \
-        else "shape"
-    declared = _declared_bytes(path, field, shape, dtype, held, kinds)
+    except array_file_errors() as err:
+        raise InputError(path, None, f"not a readable .npy file ({error_reason(err)})") from None
+    declared = _declared_bytes(path, None, shape, dtype, held, kinds)
     if declared > max_bytes:
         raise InputError(path, "shape", f"an array of {declared} bytes; at most {max_bytes} bytes in one file")
     return shape, dtype

@@ -31,7 +31,7 @@ import numpy as np
 
 from .atomic import read_json, write_json
 from .errors import InputError
-from .strict import check_npz
+from .strict import MAX_ARRAY_FILE_BYTES, error_reason, load_npz
 from .scene import Camera, Frame
 
 Level = Literal["whole", "part", "subpart"]
@@ -54,10 +54,10 @@ FORMAT_VERSION = 1
 FRAME_KEYS = ("name", "split", "time_index", "time", "camera_id", "camera", "image")
 """Keys of every entry of ``frames`` in ``scene_truth.json``."""
 ARRAYS = (*LEVELS, "depth")
+"""Arrays of every ``levels/<frame>.npz``."""
 TRUTH_BYTES_PER_PIXEL = 64
 """Bytes a pixel a frame's truth file may declare (its id maps and depth take about 10): a header claiming
 more is refused before anything is allocated."""
-"""Arrays of every ``levels/<frame>.npz``."""
 
 
 class TruthAccessError(PermissionError):
@@ -126,7 +126,7 @@ class SceneTruth:
             try:
                 camera = Camera.from_dict(f["camera"])
             except (KeyError, TypeError, ValueError) as err:
-                raise InputError(file, f"frames[{i}].camera", f"not a camera ({_reason(err)})") from None
+                raise InputError(file, f"frames[{i}].camera", f"not a camera ({error_reason(err, 160)})") from None
             self.frames[f["name"]] = TruthFrame(f["name"], f["split"], f["time_index"], f["time"], str(f["camera_id"]),
                                                 camera, f["image"])
         self._by_cam_time = {(f.camera_id, f.time_index): f.name for f in self.frames.values()}
@@ -135,7 +135,7 @@ class SceneTruth:
             self.catalogue: dict[str, dict[int, dict]] = {
                 lv: {int(k): v for k, v in doc["catalogue"][lv].items()} for lv in LEVELS}
         except (TypeError, ValueError, AttributeError) as err:
-            raise InputError(file, "catalogue", f"expected {{level: {{id: entry}}}} ({_reason(err)})") from None
+            raise InputError(file, "catalogue", f"expected {{level: {{id: entry}}}} ({error_reason(err, 160)})") from None
 
     # -- frames -----------------------------------------------------------------------------------
     def frame_name(self, frame: FrameKey) -> str:
@@ -175,17 +175,13 @@ class SceneTruth:
         if not path.is_file():
             raise InputError(path, None, "truth file of this frame not found")
         camera = self.frames[name].camera if name in self.frames else None
-        # what each header declares, before np.load allocates it: a frame's maps need some bytes a pixel
-        budget = None if camera is None else TRUTH_BYTES_PER_PIXEL * camera.width * camera.height + (1 << 20)
+        # what each header declares, before anything is allocated: a frame's maps need some bytes a pixel
+        budget = (MAX_ARRAY_FILE_BYTES if camera is None
+                  else TRUTH_BYTES_PER_PIXEL * camera.width * camera.height + (1 << 20))
         try:
-            check_npz(path) if budget is None else check_npz(path, max_bytes=budget)
+            arrays = load_npz(path, max_bytes=budget)
         except InputError as err:
             raise InputError(path, err.field, f"damaged truth file ({err.message}); regenerate the scene") from None
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                arrays = {k: data[k] for k in data.files}
-        except Exception as err:  # noqa: BLE001 - zipfile, zlib, numpy: any of them, the file is damaged
-            raise InputError(path, None, f"damaged truth file ({_reason(err)}); regenerate the scene") from None
         for key in ARRAYS:
             if key not in arrays:
                 raise InputError(path, key, "missing array; regenerate the scene")
@@ -305,13 +301,6 @@ def check_truth(path: str | Path) -> SceneTruth:
     for name in truth.frames:
         truth._load(name)
     return truth
-
-
-def _reason(err: BaseException) -> str:
-    """``err`` as one short line (messages of zipfile and numpy may span lines)."""
-    text = " ".join(str(err).split()) or type(err).__name__
-    text = text if len(text) <= 160 else text[:157] + "..."
-    return text if isinstance(err, InputError) else f"{type(err).__name__}: {text}"
 
 
 def _check_doc(doc: dict, file: Path) -> None:

@@ -61,8 +61,9 @@ def states_report(scene: str | Path, ks: Sequence[int], *, seeds: Sequence[int] 
         rows.append([str(k), spread("Acc"), spread("vIoU"), number_cell(mean("status_seconds"), 1),
                      number_cell(mean("bytes_per_gaussian"), 1)])
     protocols = sorted({r.get("protocol") or "?" for row in doc_rows for r in row["runs"]})
+    tracks = sorted({r.get("track") or "?" for row in doc_rows for r in row["runs"]})
     md = (f"Number of states K of the status field ({method} on {scene}, seeds "
-          f"{' '.join(map(str, seeds))}; protocol {', '.join(protocols)}; paper Table 5). Acc and vIoU: mean "
+          f"{' '.join(map(str, seeds))}; protocol {', '.join(protocols)}; {', '.join(tracks)} track; paper Table 5). Acc and vIoU: mean "
           f"± sample std over the seeds; status stage and bytes: means.\n\n"
           + markdown_table(["K", "Acc", "vIoU", "status stage s", "bytes/Gaussian"], rows))
     doc = {"ablation": "states", "method": method, "scene": scene, "seeds": seeds,
@@ -106,6 +107,7 @@ def _run_row(outcome, seed: int, method: str, cache_dir: Path) -> dict:
     train = info.get("train", {})
     protocol = res.get("protocol")
     return {"seed": seed, "protocol": protocol.get("name") if isinstance(protocol, dict) else protocol,
+            "track": res.get("track"),
             "Acc": res["metrics"].get("Acc"), "vIoU": res["metrics"].get("vIoU"),
             "mIoU": res["metrics"].get("mIoU"), "status_seconds": train.get("seconds"),
             "seconds_per_iteration": train.get("seconds_per_iteration"),

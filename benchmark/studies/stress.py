@@ -38,6 +38,7 @@ import numpy as np
 
 from benchmark.core.atomic import read_json
 from benchmark.core.errors import InputError
+from benchmark.core.scene import DEFAULT_EVAL_SPLIT, check_eval_split
 from benchmark.synthetic.perturb import FAMILIES, family
 
 from ._report import keep_replaced_table, number_cell
@@ -47,6 +48,9 @@ METRICS = ("mIoU", "Acc", "vIoU")
 REFERENCE_WIDTH = 48
 """Image width the mask-noise radii are given at."""
 CLEAN = "clean"
+TRACK = "oracle"
+"""Supervision track of every run of the suite: the generator's exact 2D supervision, on which the
+supervision-side families put their noise."""
 
 
 @dataclass
@@ -79,8 +83,6 @@ class SuiteConfig:
     """Run again where a results file exists."""
 
     def __post_init__(self) -> None:
-        from benchmark.core.scene import check_eval_split
-
         check_eval_split(self.split)
         for value in self.strengths or ():
             if not np.isfinite(float(value)) or float(value) < 0:  # before any run starts, not at the first scene
@@ -443,12 +445,12 @@ def results_file(config: SuiteConfig, key: RunKey) -> Optional[Path]:
     """The run's results file, if it was written with the method config the run has now, on the scene the
     generator makes now: a file of a config since changed (a default that moved) or of a scene since
     changed is stale, neither read nor reported, and is redone."""
+    from benchmark.results import results_path
     from methods import registry
 
-    from benchmark.core.scene import DEFAULT_EVAL_SPLIT
-
-    split = "" if config.split == DEFAULT_EVAL_SPLIT else f"{config.split}/"  # as results_path places it
-    found = sorted(key.folder(config.runs_dir).glob(f"*/*/{key.method}/oracle/{split}seed{key.seed}.json"))
+    # any dataset and scene folder under the run's folder, the rest as results_path places a run's file
+    pattern = results_path(".", "*", "*", key.method, TRACK, key.seed, config.split)
+    found = sorted(key.folder(config.runs_dir).glob(pattern.as_posix()))
     if not found:
         return None
     try:
@@ -556,8 +558,6 @@ def config_digest(config: SuiteConfig, key: RunKey) -> str:
     options = run_options(config, key, None)
     if "captions.file" in options:
         options["captions.file"] = Path(options["captions.file"]).name
-    from benchmark.core.scene import DEFAULT_EVAL_SPLIT
-
     recorded = config_dict(registry.get(key.method).make_config(options))
     if config.split != DEFAULT_EVAL_SPLIT:  # the paper split's digests stay those written before splits
         recorded = {"config": recorded, "split": config.split}
@@ -625,23 +625,23 @@ def read_scores_table(csv: Path) -> list[Score]:
         raise InputError(csv, None, f"a row that is not a score ({exc})") from None
 
 
-def _csv_cell(text: str) -> str:
-    """``text`` as one CSV cell (quoted where it holds a comma, a quote or a line break)."""
-    return '"' + text.replace('"', '""') + '"' if any(c in text for c in ',"\r\n') else text
-
-
 def write_scores_table(scores: Sequence[Score], path: Path) -> Path:
     """``scores.csv``: one row per (family, strength, method, seed), the clean runs under every family. A
     table there already whose runs this one drops (stale ones, or all of a table written without digests)
     is kept beside it as ``scores-replaced-<UTC time>.csv``: no measurement is lost by rewriting."""
+    import csv
+    import io
+
     from benchmark.core.atomic import write_text
 
     rows = sorted(scores, key=lambda s: (s.family, s.strength, s.method, s.seed))
-    lines = [",".join(_SCORE_COLUMNS)]
+    table = io.StringIO()
+    writer = csv.writer(table, lineterminator="\n")  # quotes a cell (a CPU model) that holds a comma
+    writer.writerow(_SCORE_COLUMNS)
     for s in rows:
         cells = ["" if s.metrics.get(m) is None else f"{s.metrics[m]:.3f}" for m in METRICS]
-        lines.append(f"{s.family},{strength_label(s.strength)},{s.method},{s.seed}," + ",".join(cells)
-                     + f",{s.wall_seconds:.1f},{s.scene_digest},{s.config_digest},{_csv_cell(s.machine)}")
+        writer.writerow([s.family, strength_label(s.strength), s.method, s.seed, *cells, f"{s.wall_seconds:.1f}",
+                         s.scene_digest, s.config_digest, s.machine])
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     if path.is_file():
@@ -650,7 +650,7 @@ def write_scores_table(scores: Sequence[Score], path: Path) -> Path:
         except InputError:
             before = {None}  # unreadable: kept as it is
         keep_replaced_table(path, before, {(s.family, s.strength, s.method, s.seed) for s in rows})
-    write_text(path, "\n".join(lines) + "\n")
+    write_text(path, table.getvalue())
     return path
 
 

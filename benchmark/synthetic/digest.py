@@ -79,16 +79,12 @@ def _hash_file(digest, root: Path, path: Path) -> None:
         # checked before decoding (size, a complete stream): a damaged or hostile file is one line naming it
         _array_bytes(digest, read_image_pixels(path))  # pixels, not the encoder's bytes (PNG settings may differ)
     elif suffix == ".npz":
-        from benchmark.core.strict import array_file_errors, check_npz
+        from benchmark.core.strict import load_npz
 
-        check_npz(path)  # no header's claim is allocated before it is checked against the bytes present
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                for key in sorted(data.files):
-                    digest.update(key.encode() + b"\0")
-                    _array_bytes(digest, data[key])
-        except array_file_errors() as err:  # a damaged stream under a sound header
-            raise InputError(path, None, f"cannot read a scene file for its digest ({type(err).__name__})") from None
+        arrays = load_npz(path)  # no header's claim is allocated before it is checked against the bytes present
+        for key in sorted(arrays):
+            digest.update(key.encode() + b"\0")
+            _array_bytes(digest, arrays[key])
     else:
         digest.update(path.read_bytes())
 

@@ -38,7 +38,7 @@ import numpy as np
 
 from benchmark.core.scene import Camera, eval_splits_of
 from benchmark.core.errors import InputError
-from benchmark.core.strict import array_file_errors, check_npz
+from benchmark.core.strict import load_npz
 from benchmark.core.truth import LEVELS, LEVELS_DIR
 from .model import Catalogue, FrameContext, SceneDef, resolve
 
@@ -75,12 +75,11 @@ def _leaf_poses(scene: SceneDef, catalogue: Catalogue, time_index: int) -> dict[
 def _object_points(truth_dir: Path, name: str, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     """((M, 3) world points, (M,) subpart ids) of the object pixels of frame ``name`` (its truth maps)."""
     path = Path(truth_dir) / LEVELS_DIR / f"{name}.npz"
-    check_npz(path)
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            ids, depth = data[LEVELS[0]], data["depth"]
-    except array_file_errors() as err:  # a damaged stream under a sound header
-        raise InputError(path, None, f"damaged truth file ({type(err).__name__}); regenerate the scene") from None
+    arrays = load_npz(path)
+    missing = [key for key in (LEVELS[0], "depth") if key not in arrays]
+    if missing:
+        raise InputError(path, missing[0], "missing array; regenerate the scene")
+    ids, depth = arrays[LEVELS[0]], arrays["depth"]
     i, j = np.nonzero((ids > 0) & np.isfinite(depth))
     z = depth[i, j].astype(np.float64)
     cam = np.stack([(j + 0.5 - camera.cx) / camera.fx * z, (i + 0.5 - camera.cy) / camera.fy * z, z], axis=1)
