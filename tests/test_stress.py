@@ -587,6 +587,17 @@ def test_a_negative_strength_is_refused_before_any_run(tmp_path):
         stress.SuiteConfig(families=("occludr",), cache_dir=tmp_path)
 
 
+def test_the_screen_runs_each_familys_clean_end_and_strongest_strength_only(tmp_path):
+    screen = stress.SuiteConfig(families=("occluder", "mask-drop"), strongest_only=True, cache_dir=tmp_path)
+    for name in ("occluder", "mask-drop"):
+        assert screen.strengths_of(name) == (0.0, max(FAMILIES[name].strengths))
+    full = stress.SuiteConfig(families=("occluder",), cache_dir=tmp_path)
+    assert len(full.strengths_of("occluder")) > 2
+    # given strengths are screened the same way: their largest only
+    assert stress.SuiteConfig(strengths=(0.2, 0.6), strongest_only=True, cache_dir=tmp_path
+                              ).strengths_of("occluder") == (0.0, 0.6)
+
+
 def test_the_log_marks_a_metric_the_method_does_not_answer():
     # Feature-3DGS answers no time query: its Acc is missing, which is not a score of 0
     assert stress.score_line({"mIoU": 28.84, "Acc": None, "vIoU": float("nan")}) == "mIoU 28.8, Acc –, vIoU –"

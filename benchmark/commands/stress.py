@@ -57,6 +57,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"perturbation families (default: all: {', '.join(FAMILIES)})")
     parser.add_argument("--strengths", nargs="+", type=float, default=None,
                         help="strengths of every family (default: each family's own; 0 is always run)")
+    parser.add_argument("--strongest-only", action="store_true",
+                        help="each family's clean end and strongest strength only: a screen of which families "
+                             "break a method or separate two (breaking points read '≤ s')")
     parser.add_argument("--seeds", nargs="+", type=parse_seed, default=[0, 1, 2],
                         help="seeds: seed s generates the scene with scene seed s and fits on it with seed s")
     parser.add_argument("--split", choices=EVAL_SPLITS, default="novel-view",
@@ -102,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
     config = stress.SuiteConfig(
         preset=args.preset, size=args.size, frames=args.frames, methods=tuple(args.methods),
         families=tuple(args.families), strengths=None if args.strengths is None else tuple(args.strengths),
+        strongest_only=args.strongest_only,
         seeds=tuple(args.seeds), split=args.split, method_options=method_options(args.methods, args.schedule, args.set),
         out_dir=args.out_dir, cache_dir=args.cache_dir, device=args.device, force=args.force)
     start = time.perf_counter()

@@ -67,6 +67,9 @@ class SuiteConfig:
     families: tuple[str, ...] = tuple(FAMILIES)
     strengths: Optional[tuple[float, ...]] = None
     """Strengths run for every family (None: each family's own, :data:`FAMILIES`)."""
+    strongest_only: bool = False
+    """Run each family at its clean end and its strongest strength only: the screen of which families break
+    a method or separate two, before the strengths between are paid for."""
     seeds: tuple[int, ...] = (0, 1, 2)
     """Seeds of the generated scene, of the fit and of the supervision noise: seed ``s`` generates the base
     preset with scene seed ``s`` and fits on it with seed ``s``, so the seeds vary scene and fit together."""
@@ -100,6 +103,8 @@ class SuiteConfig:
 
     def strengths_of(self, name: str) -> tuple[float, ...]:
         chosen = self.strengths if self.strengths is not None else family(name).strengths
+        if self.strongest_only and chosen:
+            chosen = (max(map(float, chosen)),)
         return tuple(sorted({0.0, *map(float, chosen)}))
 
 
