@@ -21,6 +21,7 @@
     bench4d ablate real-cost [--size full|tiny] [--device cuda] [--masks-per-frame 120] [--objects 3]
     bench4d ablate timing --baseline REV [--candidate REV] [--method 4d-langsplat] [--scenes split-cookie ...]
                           [--seeds 0 ...] [--size 128] [--set KEY=VALUE] [--rounds 1] [--out reports/fit-timing]
+    bench4d ablate paired --name NAME --baseline DIR --candidate DIR [--out reports/ablations]
     bench4d ablate kernels [--method 4d-langsplat] [--scenes S ...] [--seeds 0 ...] [--size 128]
                            [--capabilities default avx2 native] [--results-dir results] [--out reports/kernel-spread]
     bench4d ablate status-gap [--presets P ...] [--seeds 0 1 2] [--size 48] [--schedule demo|default]
@@ -152,7 +153,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     for add in (_delta_sim_arguments, _speed_arguments, _query_speed_arguments, _ceiling_arguments,
                 _autoencoder_arguments, _rescore_arguments, _gap_arguments, _decisions_arguments, _states_arguments,
                 _capacity_arguments, _real_cost_arguments, _timing_arguments, _status_gap_arguments,
-                _kernels_arguments):
+                _kernels_arguments, _paired_arguments):
         add(sub)
     for study in sub.choices.values():
         add_threads_argument(study)
@@ -416,6 +417,16 @@ def _timing_arguments(sub) -> None:
     t.set_defaults(out=Path("reports/fit-timing"))
 
 
+def _paired_arguments(sub) -> None:
+    p = sub.add_parser("paired", help="two results folders of the same runs under two configs, run by run: "
+                                      "score differences with intervals, and fit seconds")
+    p.add_argument("--name", required=True, help="output file stem: <out>/paired-<name>.{json,md}")
+    p.add_argument("--baseline", type=Path, required=True, metavar="DIR", help="results folder of the old config")
+    p.add_argument("--candidate", type=Path, required=True, metavar="DIR",
+                   help="results folder of the new config (each run paired with the baseline's at its path)")
+    _output_arguments(p)
+
+
 def _kernels_arguments(sub) -> None:
     k = sub.add_parser("kernels", help="one fit's scores under torch's default, AVX2 and native CPU kernels")
     k.add_argument("--method", default="4d-langsplat")
@@ -609,6 +620,15 @@ def _kernels(args) -> int:
     return _print_report(kernel_spread_report(config, log=stderr_log(args.quiet)))
 
 
+def _paired(args) -> int:
+    from benchmark.studies.paired_runs import paired_report
+
+    for flag, folder in (("--baseline", args.baseline), ("--candidate", args.candidate)):
+        if not Path(folder).is_dir():
+            raise InputError(folder, flag, "not a results folder")
+    return _print_report(paired_report(args.name, args.baseline, args.candidate, args.out, log=stderr_log(args.quiet)))
+
+
 def _status_gap(args) -> int:
     from benchmark.studies.status_gap import StatusGapConfig, status_gap_report, time_sensitive_presets
 
@@ -624,5 +644,5 @@ def _status_gap(args) -> int:
 RUNS = {"delta-sim": _delta_sim, "speed": _speed, "query-speed": _query_speed, "ceiling": _ceiling,
         "autoencoder": _autoencoder, "rescore": _rescore, "gap": _gap, "decisions": _decisions, "states": _states,
         "capacity": _capacity, "real-cost": _real_cost, "timing": _timing, "status-gap": _status_gap,
-        "kernels": _kernels}
+        "kernels": _kernels, "paired": _paired}
 """The function each subcommand runs."""

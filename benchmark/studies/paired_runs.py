@@ -1,0 +1,204 @@
+"""Two results folders of the same runs under two configs, compared run by run: did the change move the scores
+beyond the noise, and what did it save?
+
+A candidate run is paired with the baseline run of the same dataset, scene, method, track, split and seed
+(the same relative path), on the same scene (the digest of a generated scene, ``scene_info.generated.digest``).
+Per method, split and score the report gives the baseline and candidate means, their mean paired difference
+(candidate - baseline, scenes weighted equally), its 95 % interval and how many pairs moved down and up.
+The interval resamples each scene's pairs with replacement (:func:`benchmark.stats.bootstrap_means`), so a
+difference whose interval excludes 0 is one every scene's seeds agree on; with two seeds per scene the
+interval is coarse, which the pair counts make visible.
+
+Cost is the fit seconds each run added beyond a geometry fit (``timing.fit_seconds`` less the geometry's
+seconds where that run fitted it): the geometry of a scene and seed is fitted once and charged to whichever
+method ran first, so the seconds a config's other stages cost are compared, summed per method.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+import numpy as np
+
+from benchmark.results import find_results, read_results
+from benchmark.stats import bootstrap_means, interval_text, percentile_interval, stable_seed
+
+from ._report import Report, markdown_table, write_report
+
+MIN_PAIRS_PER_SCENE = 2
+"""A scene with fewer pairs leaves its row without an interval (and so never beyond the noise)."""
+SCORES = ("mIoU", "Acc", "vIoU")
+"""Scores compared (higher is better); a score a method does not answer is left out."""
+
+
+@dataclass
+class Pair:
+    """One run under both configs."""
+
+    dataset: str
+    scene: str
+    method: str
+    split: str
+    seed: int
+    baseline: dict[str, Optional[float]]
+    candidate: dict[str, Optional[float]]
+    baseline_seconds: float
+    candidate_seconds: float
+    options: dict[str, tuple[Any, Any]] = field(default_factory=dict)
+    """Method option (dotted path) -> (baseline value, candidate value), where the two configs differ."""
+
+
+def _flat(config: Any, prefix: str = "") -> dict[str, Any]:
+    if not isinstance(config, dict):
+        return {prefix: config}
+    out: dict[str, Any] = {}
+    for key, value in config.items():
+        out.update(_flat(value, f"{prefix}{key}." if isinstance(value, dict) else f"{prefix}{key}"))
+    return out
+
+
+def added_seconds(doc: dict) -> float:
+    """Fit seconds of a run beyond the geometry it fitted itself (0 for a fit read from the cache)."""
+    timing = doc.get("timing") or {}
+    if timing.get("fit_cached"):
+        return 0.0
+    seconds = float(timing.get("fit_seconds") or 0.0)
+    info = (doc.get("fit") or {}).get("info") or {}
+    geometry = info.get("geometry") if isinstance(info, dict) else None
+    cached = (info.get("cached") or {}).get("geometry", True) if isinstance(info, dict) else True
+    if isinstance(geometry, dict) and not cached:
+        seconds -= float(geometry.get("seconds") or 0.0)
+    return max(0.0, seconds)
+
+
+def _scores(doc: dict) -> dict[str, Optional[float]]:
+    metrics = doc.get("metrics") or {}
+    out: dict[str, Optional[float]] = {}
+    for name in SCORES:
+        value = metrics.get(name)
+        out[name] = float(value) if isinstance(value, (int, float)) and math.isfinite(value) else None
+    return out
+
+
+def _scene_digest(doc: dict) -> Optional[str]:
+    """The digest of the generated scene a run read (None for a scene folder, which records none)."""
+    generated = (doc.get("scene_info") or {}).get("generated")
+    return generated.get("digest") if isinstance(generated, dict) else None
+
+
+def pair_runs(baseline_dir: Path, candidate_dir: Path) -> tuple[list[Pair], list[str]]:
+    """The candidate's runs paired with the baseline's; and, for each candidate run left unpaired, why."""
+    pairs, unpaired = [], []
+    for path in find_results(candidate_dir):
+        rel = path.relative_to(candidate_dir)
+        other = Path(baseline_dir) / rel
+        if not other.is_file():
+            unpaired.append(f"{rel}: no baseline run")
+            continue
+        new, old = read_results(path), read_results(other)
+        if _scene_digest(new) != _scene_digest(old):
+            unpaired.append(f"{rel}: another scene (generated-scene digests differ)")
+            continue
+        a, b = _flat(old.get("method_config") or {}), _flat(new.get("method_config") or {})
+        options = {k: (a.get(k), b.get(k)) for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)}
+        pairs.append(Pair(new["dataset"], new["scene"], new["method"], new.get("split") or "paper", int(new["seed"]),
+                          _scores(old), _scores(new), added_seconds(old), added_seconds(new), options))
+    return pairs, unpaired
+
+
+def compare(pairs: list[Pair]) -> list[dict[str, Any]]:
+    """One row per (method, split, score) with its paired difference and interval."""
+    rows = []
+    for method, split in sorted({(p.method, p.split) for p in pairs}):
+        mine = [p for p in pairs if (p.method, p.split) == (method, split)]
+        for name in SCORES:
+            both = [p for p in mine if p.baseline[name] is not None and p.candidate[name] is not None]
+            if not both:
+                continue
+            scenes = sorted({(p.dataset, p.scene) for p in both})
+            by_scene = [[p for p in both if (p.dataset, p.scene) == s] for s in scenes]
+            diffs = [np.array([[p.candidate[name] - p.baseline[name]] for p in group]) for group in by_scene]
+            old = [np.array([[p.baseline[name]] for p in group]) for group in by_scene]
+            new = [np.array([[p.candidate[name]] for p in group]) for group in by_scene]
+            if min(len(group) for group in by_scene) >= MIN_PAIRS_PER_SCENE:
+                reps = bootstrap_means({"diff": diffs}, seed=stable_seed("paired", method, split, name),
+                                       resample_queries=False)["diff"]
+                lo, hi = percentile_interval(reps)
+            else:  # one pair cannot be resampled: its "interval" would be a point
+                lo = hi = math.nan
+            mean = float(np.mean([d.mean() for d in diffs]))
+            flat = np.concatenate([d.ravel() for d in diffs])
+            rows.append({"method": method, "split": split, "score": name, "pairs": int(flat.size),
+                         "scenes": len(scenes), "baseline": float(np.mean([o.mean() for o in old])),
+                         "candidate": float(np.mean([n.mean() for n in new])), "difference": mean,
+                         "interval": [lo, hi], "down": int((flat < 0).sum()), "up": int((flat > 0).sum()),
+                         "beyond_noise": bool(math.isfinite(lo) and (lo > 0 or hi < 0))})
+    return rows
+
+
+def costs(pairs: list[Pair]) -> list[dict[str, Any]]:
+    """Per method (paper split, where each fit is charged), the fit seconds beyond geometry on both sides."""
+    rows = []
+    fitted = [p for p in pairs if p.split == "paper"] or pairs
+    for method in sorted({p.method for p in fitted}):
+        mine = [p for p in fitted if p.method == method]
+        old, new = sum(p.baseline_seconds for p in mine), sum(p.candidate_seconds for p in mine)
+        rows.append({"method": method, "runs": len(mine), "baseline_seconds": old, "candidate_seconds": new})
+    old, new = sum(r["baseline_seconds"] for r in rows), sum(r["candidate_seconds"] for r in rows)
+    rows.append({"method": "all", "runs": sum(r["runs"] for r in rows), "baseline_seconds": old,
+                 "candidate_seconds": new})
+    return rows
+
+
+def _noise_cell(row: dict[str, Any]) -> str:
+    if not all(math.isfinite(v) for v in row["interval"]):
+        return f"– (fewer than {MIN_PAIRS_PER_SCENE} pairs in a scene)"
+    return "yes" if row["beyond_noise"] else "no (a tie)"
+
+
+def _seconds_cell(value: float) -> str:
+    return f"{value:.0f}"
+
+
+def paired_report(name: str, baseline_dir: Path, candidate_dir: Path, out: Path,
+                  log: Callable[[str], None] = lambda m: None) -> Report:
+    """Pair, compare and write ``<out>/paired-<name>.{json,md}``."""
+    baseline_dir, candidate_dir = Path(baseline_dir), Path(candidate_dir)
+    pairs, unpaired = pair_runs(baseline_dir, candidate_dir)
+    for line in unpaired:
+        log(f"unpaired: {line}")
+    if not pairs:
+        from benchmark.core.errors import InputError
+
+        raise InputError(candidate_dir, "results", f"no run here has a baseline run at the same place under "
+                                                    f"{baseline_dir}")
+    rows, cost = compare(pairs), costs(pairs)
+    options = sorted({(k, repr(v[0]), repr(v[1])) for p in pairs for k, v in p.options.items()})
+    lines = [f"# Paired runs: {name}", "",
+             f"Baseline `{baseline_dir}`, candidate `{candidate_dir}`: {len(pairs)} runs paired by dataset, scene, "
+             f"method, track, split and seed ({len(unpaired)} left unpaired). Difference = candidate - baseline, "
+             "mean over scenes of each scene's mean over its pairs; interval: 95 %, each scene's pairs resampled; "
+             "down / up: pairs that fell / rose.", ""]
+    if options:
+        lines += ["Options that differ (baseline -> candidate):", ""]
+        lines += [f"* `{k}`: {a} -> {b}" for k, a, b in options] + [""]
+    lines += [markdown_table(
+        ["method", "split", "score", "pairs", "baseline", "candidate", "difference", "95 % interval", "down / up",
+         "beyond noise"],
+        [[r["method"], r["split"], r["score"], str(r["pairs"]), f"{r['baseline']:.2f}", f"{r['candidate']:.2f}",
+          f"{r['difference']:+.2f}", interval_text(*r["interval"]), f"{r['down']} / {r['up']}",
+          _noise_cell(r)] for r in rows])]
+    lines += ["Fit seconds beyond geometry (paper-split runs; a stage read from the cache costs 0 there, so a "
+              "method that reuses another's stage shows less than it needs alone):", "",
+              markdown_table(["method", "runs", "baseline s", "candidate s", "ratio"],
+                             [[r["method"], str(r["runs"]), _seconds_cell(r["baseline_seconds"]),
+                               _seconds_cell(r["candidate_seconds"]),
+                               f"{r['candidate_seconds'] / r['baseline_seconds']:.2f}" if r["baseline_seconds"] else "–"]
+                              for r in cost])]
+    table = "\n".join(lines)
+    doc = {"name": name, "baseline": str(baseline_dir), "candidate": str(candidate_dir), "pairs": len(pairs),
+           "unpaired": unpaired, "options": [list(o) for o in options], "scores": rows, "costs": cost}
+    return Report(table, write_report(Path(out), f"paired-{name}", doc, table))

@@ -1,0 +1,89 @@
+"""``bench4d ablate paired``: runs of two configs paired by place, differences with intervals, unpaired runs
+named, fit seconds net of the geometry a run fitted."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from benchmark.results import results_path, write_results
+from benchmark.studies.paired_runs import added_seconds, compare, pair_runs, paired_report
+
+
+def _doc(scene, seed, miou, *, acc=None, digest="d", fit=100.0, geometry=None, steps=1200, method="m"):
+    info = {"cached": {"geometry": geometry is None}}
+    if geometry is not None:
+        info["geometry"] = {"seconds": geometry}
+    return {"dataset": "synthetic", "track": "oracle", "method": method, "scene": scene, "seed": seed,
+            "split": "paper", "metrics": {"mIoU": miou, "Acc": acc, "vIoU": None},
+            "method_config": {"field": {"iterations": steps}},
+            "scene_info": {"generated": {"digest": f"{digest}-{scene}-{seed}"}},
+            "timing": {"fit_seconds": fit, "fit_cached": False}, "fit": {"key": "k", "info": info}}
+
+
+def _write(root, doc):
+    write_results(results_path(root, "synthetic", doc["scene"], doc["method"], "oracle", doc["seed"]), doc)
+
+
+def _folders(tmp_path, shifts, *, acc_shift=None):
+    old, new = tmp_path / "old", tmp_path / "new"
+    for i, (scene, seed) in enumerate((s, k) for s in ("a", "b", "c") for k in (0, 1)):
+        base = 50.0 + 7 * i
+        _write(old, _doc(scene, seed, base, acc=60.0))
+        acc = None if acc_shift is None else 60.0 + acc_shift[i]
+        _write(new, _doc(scene, seed, base + shifts[i], acc=acc, steps=400, fit=30.0))
+    return old, new
+
+
+def test_a_drop_every_scene_agrees_on_is_beyond_the_noise(tmp_path):
+    old, new = _folders(tmp_path, [-1.0, -1.2, -0.9, -1.1, -1.3, -1.0], acc_shift=[5, -5, 5, -5, 0, 0])
+    pairs, unpaired = pair_runs(old, new)
+    assert len(pairs) == 6 and not unpaired
+    assert pairs[0].options == {"field.iterations": (1200, 400)}
+    rows = {r["score"]: r for r in compare(pairs)}
+    miou = rows["mIoU"]
+    assert miou["difference"] == pytest.approx(-1.0833, abs=1e-3)
+    assert miou["interval"][1] < 0 and miou["beyond_noise"] and (miou["down"], miou["up"]) == (6, 0)
+    # time answers that move both ways in every scene are a tie
+    acc = rows["Acc"]
+    assert acc["interval"][0] < 0 < acc["interval"][1] and not acc["beyond_noise"]
+    assert "vIoU" not in rows  # answered by neither side: no row, not a score of 0
+
+
+def test_one_pair_per_scene_gives_no_interval(tmp_path):
+    old, new = tmp_path / "old", tmp_path / "new"
+    for scene in ("a", "b"):
+        _write(old, _doc(scene, 0, 50.0))
+        _write(new, _doc(scene, 0, 40.0))
+    row = compare(pair_runs(old, new)[0])[0]
+    assert row["difference"] == -10.0 and not row["beyond_noise"]
+    report = paired_report("one", old, new, tmp_path / "out")
+    assert "fewer than 2 pairs in a scene" in report.table
+
+
+def test_runs_without_a_baseline_or_on_another_scene_are_named_not_paired(tmp_path):
+    old, new = _folders(tmp_path, [0.0] * 6)
+    _write(new, _doc("d", 0, 10.0))  # no baseline run
+    _write(new, _doc("a", 0, 10.0, digest="other"))  # regenerated scene: another question
+    pairs, unpaired = pair_runs(old, new)
+    assert len(pairs) == 5
+    assert sorted(unpaired) == ["synthetic/a/m/oracle/seed0.json: another scene (generated-scene digests differ)",
+                                "synthetic/d/m/oracle/seed0.json: no baseline run"]
+
+
+def test_fit_seconds_are_net_of_a_geometry_the_run_fitted():
+    assert added_seconds(_doc("a", 0, 1.0, fit=700.0, geometry=640.0)) == 60.0
+    assert added_seconds(_doc("a", 0, 1.0, fit=90.0)) == 90.0  # geometry read from the cache
+    cached = _doc("a", 0, 1.0, fit=0.2)
+    cached["timing"]["fit_cached"] = True
+    assert added_seconds(cached) == 0.0
+
+
+def test_the_report_states_options_and_costs(tmp_path):
+    old, new = _folders(tmp_path, [-1.0, -1.2, -0.9, -1.1, -1.3, -1.0])
+    report = paired_report("field-third", old, new, tmp_path / "out")
+    assert "`field.iterations`: 1200 -> 400" in report.table
+    doc = json.loads((tmp_path / "out" / "paired-field-third.json").read_text())
+    assert doc["costs"][-1] == {"method": "all", "runs": 6, "baseline_seconds": 600.0, "candidate_seconds": 180.0}
+    assert "| m | 6 | 600 | 180 | 0.30 |" in report.table
