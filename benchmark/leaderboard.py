@@ -675,6 +675,9 @@ class _Table:
         self.ceiling_missing: list[tuple[str, int]] = []
         self.shared = shared
         self.stats_rows: dict[tuple[str, str], dict[str, Any]] = {}
+        self.floor_findings: list[dict[str, Any]] = []
+        """Per floor of a ranked table: the floor, its rule and mean, and which methods answering by that rule
+        clear it, tie with it or fall below it (filled by :meth:`lines`)."""
 
     def lines(self) -> Optional[tuple[list[str], list[str]]]:
         """(the table's Markdown rows, the notes under it), or None where no run has a number of its kind."""
@@ -923,6 +926,8 @@ class _Table:
                 if cleared:
                     words.append("Clear of it: " + ", ".join(md(m) for m in cleared) + ".")
                 notes.append(" ".join(words) + "_")
+                self.floor_findings.append({"floor": floor, "rule": rule, "metric": primary, "floor_text": ci(floor),
+                                            "cleared": cleared, "tied": tied, "below": below})
         if self.ranked and len(contenders) >= 2:
             top = [m for m in contenders if groups.get(m) == 1]
             if len(top) > 1:
@@ -1228,6 +1233,8 @@ def render_markdown(runs: pd.DataFrame, results_dir_label: str,
     official = runs[runs["official"].astype(bool)]
     other = runs[~runs["official"].astype(bool)]
     datasets_done: set[str] = set()
+    findings: list[dict[str, Any]] = []
+    header, out = out, []
     for split in sorted(set(official["split"]), key=split_order):
         out += [f"## Split: {md(split)}", "", f"_{SPLIT_TITLE.get(split, 'a split of the scenes')}._", ""]
         of_split = official[official["split"] == split]
@@ -1240,7 +1247,7 @@ def render_markdown(runs: pd.DataFrame, results_dir_label: str,
             out += [f"### {md(dataset)} — track: {md(track)} — protocol: {md(protocol)}{default} — split: {md(split)}",
                     "", _machine_line(group), ""]
             out += _group_tables(group, queries, ranked=True, ceilings=ceilings,
-                                 identity=(dataset, track, protocol, split), stats_out=stats_out)
+                                 identity=(dataset, track, protocol, split), stats_out=stats_out, findings=findings)
             if dataset not in datasets_done:  # the paper's numbers once per dataset, after its first tables
                 paper = _paper_tables(dataset)
                 if paper:
@@ -1264,11 +1271,38 @@ def render_markdown(runs: pd.DataFrame, results_dir_label: str,
         out += ["## Paper, reported, on datasets not yet run here", ""]
         for dataset in others:
             out += [f"### {dataset}", *_paper_tables(dataset), ""]
+    out = header + floors_first(findings) + out
     return "\n".join(line.rstrip() for line in out).rstrip() + "\n"
 
 
+def floors_first(findings: Sequence[Mapping[str, Any]]) -> list[str]:
+    """The section that opens the leaderboard: for every ranked table, whether the methods that answer by a
+    floor's rule clear that floor. A 2D floor that ties a 3D/4D method says something about the question
+    (it can be answered from the training frames), so it is read before any ranking."""
+    if not findings:
+        return []
+    lines = ["## Against the floors, first", "",
+             "A floor answers from the training frames' 2D supervision alone. Where a method does not clear the floor "
+             "that answers by its rule, that table's question can be answered without a 3D/4D model; its ranking "
+             "says less than it seems. Per ranked table (95 % intervals; details under each table):", ""]
+    for f in findings:
+        dataset, track, protocol, split = f["identity"][-4:]
+        rule = f" (answers by {md(f['rule'])})" if f["rule"] else ""
+
+        def names(methods: Sequence[str]) -> str:
+            return ", ".join(md(m) for m in methods) if methods else "none"
+
+        verdict = ("**no method clears it**" if not f["cleared"]
+                   else f"clear of it: {names(f['cleared'])}")
+        lines.append(f"* {md(dataset)}, split {md(split)}, {KIND_TITLE[f['kind']].lower()} ({md(f['metric'])}; "
+                     f"{md(track)}, {md(protocol)}): floor `{md(f['floor'])}`{rule} {f['floor_text']}: {verdict}; "
+                     f"tied: {names(f['tied'])}; below: {names(f['below'])}.")
+    return lines + [""]
+
+
 def _group_tables(group: pd.DataFrame, queries: Optional[pd.DataFrame], *, ranked: bool,
-                  ceilings: Ceilings, identity: tuple, stats_out: Optional[dict]) -> list[str]:
+                  ceilings: Ceilings, identity: tuple, stats_out: Optional[dict],
+                  findings: Optional[list] = None) -> list[str]:
     dataset, track, protocol, split = identity[-4:]
     out: list[str] = []
     group_queries = None if queries is None else queries[queries["path"].isin(set(group["path"]))]
@@ -1294,6 +1328,8 @@ def _group_tables(group: pd.DataFrame, queries: Optional[pd.DataFrame], *, ranke
             out += [note, ""]
         for key, values in table.stats_rows.items():
             collected.setdefault(key, {}).update(values)
+        if findings is not None:
+            findings += [{**f, "identity": identity, "kind": kind} for f in table.floor_findings]
     out += _draft_note(group, group_queries)
     if stats_out is not None:
         stats_out[identity] = collected

@@ -944,3 +944,40 @@ def test_a_kind_declined_on_one_scene_counts_zero_there_and_is_not_left_out(tmp_
     assert zeta[1:3] == ["55.00 ± 0.00", "0.00 ± 0.00"]  # americano answered; keyboard declined: 0, not left out
     assert any(cell.startswith("27.50 [") for cell in zeta)  # the mean (55 + 0) / 2, not 55
     assert "3/6" in zeta and "2/2" in zeta  # answered / asked, and both scenes covered
+
+
+def test_the_floor_comparisons_open_the_leaderboard_before_any_ranking(tmp_path, monkeypatch):
+    from types import SimpleNamespace
+
+    from benchmark import leaderboard
+
+    specs = {"alpha": SimpleNamespace(floor=False, answer_rule="relevance"),
+             "beta": SimpleNamespace(floor=False, answer_rule="mask-selection"),
+             "floor-r": SimpleNamespace(floor=True, answer_rule="relevance"),
+             "floor-m": SimpleNamespace(floor=True, answer_rule={"agnostic": "mask-selection"})}
+    monkeypatch.setattr(leaderboard, "_spec", lambda name: specs.get(name))
+    root = tmp_path / "results"
+    for method, value in (("alpha", 60.0), ("beta", 90.0), ("floor-r", 61.0), ("floor-m", 70.0)):
+        FIT.setdefault(method, 1.0)
+        FPS.setdefault(method, 1.0)
+        for scene in (S1, S2):
+            write_results(results_path(root, "synthetic", scene, method, "oracle", 0), _doc(method, scene, 0, value))
+    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
+    md = (tmp_path / "lb.md").read_text()
+    first = _section(md, "## Against the floors, first")
+    assert md.index("## Against the floors, first") < md.index("## Split:") < md.index("| method |")
+    lines = [line for line in first.splitlines() if line.startswith("* ") and "time-agnostic" in line]
+    assert len(lines) == 2  # one per floor with methods of its rule
+    # the time table: the relevance floor (Acc 51) above alpha (50), which every query agrees on
+    sensitive = [line for line in first.splitlines() if line.startswith("* ") and "time-sensitive" in line]
+    assert len(sensitive) == 1 and "**no method clears it**; tied: none; below: alpha." in sensitive[0]
+    relevance = next(line for line in lines if "`floor-r`" in line)
+    assert "(answers by relevance) 61.00 [" in relevance and "**no method clears it**; tied: alpha; below: none." in relevance
+    masks = next(line for line in lines if "`floor-m`" in line)
+    assert "clear of it: beta; tied: none; below: none." in masks
+
+
+def test_no_floor_no_opening_section():
+    from benchmark.leaderboard import floors_first
+
+    assert floors_first([]) == []
