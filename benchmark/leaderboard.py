@@ -1285,13 +1285,12 @@ def floors_first(findings: Sequence[Mapping[str, Any]]) -> list[str]:
              "A floor answers from the training frames' 2D supervision alone. Where a method does not clear the floor "
              "that answers by its rule, that table's question can be answered without a 3D/4D model; its ranking "
              "says less than it seems. Per ranked table (95 % intervals; details under each table):", ""]
+    def names(methods: Sequence[str]) -> str:
+        return ", ".join(md(m) for m in methods) if methods else "none"
+
     for f in findings:
         dataset, track, protocol, split = f["identity"][-4:]
         rule = f" (answers by {md(f['rule'])})" if f["rule"] else ""
-
-        def names(methods: Sequence[str]) -> str:
-            return ", ".join(md(m) for m in methods) if methods else "none"
-
         verdict = ("**no method clears it**" if not f["cleared"]
                    else f"clear of it: {names(f['cleared'])}")
         lines.append(f"* {md(dataset)}, split {md(split)}, {KIND_TITLE[f['kind']].lower()} ({md(f['metric'])}; "
