@@ -594,3 +594,35 @@ def test_the_caption_autoencoder_is_kept_for_the_other_heads_and_retrained_when_
     assert again.info["autoencoder"]["cached"] is False and kept[0].stat().st_size > 100
     for a, b in zip(again.state()["module"].values(), plain.state()["module"].values()):
         assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("kind", ["status", "non-status"])
+def test_steps_on_each_views_own_gaussians_train_the_same_field(world, monkeypatch, kind):
+    from methods.fields import time_varying
+
+    options = _options({"status.iterations": 60})
+    compact = fit_time_varying_field(world.geometry, world.scene, world.sup, options, kind=kind, seed=0,
+                                     backend="torch")
+    monkeypatch.setattr(time_varying, "compact_views", lambda views: 1.0)  # every step on every Gaussian
+    full = fit_time_varying_field(world.geometry, world.scene, world.sup, options, kind=kind, seed=0,
+                                  backend="torch")
+    share = compact.info["blend_operators"]["rows_share"]
+    assert 0 < share < 1  # some Gaussians are seen by no supervised pixel of a view: their rows are skipped
+    assert full.info["blend_operators"]["rows_share"] == 1.0
+    for (name, a), (_, b) in zip(compact.module.named_parameters(), full.module.named_parameters()):
+        assert torch.allclose(a, b, atol=1e-5, rtol=1e-5), name
+    assert compact.info["train"]["losses"] == pytest.approx(full.info["train"]["losses"], rel=1e-5, abs=1e-7)
+
+
+def test_a_row_plan_places_states_and_fixed_vectors():
+    from methods.fields.status import StatusField
+
+    base = torch.arange(12.0).reshape(6, 2)
+    field = StatusField(base, hexplane_dim=3, semantic_dynamic=torch.tensor([1, 0, 1, 0, 0, 1]).bool())
+    h = torch.randn(3, 3)  # the three dynamic Gaussians' HexPlane features
+    rows = torch.tensor([1, 2, 5])
+    plan = field.plan(rows)
+    assert plan.hexplane_index.tolist() == [1, 2] and plan.dynamic_at.tolist() == [1, 2]
+    assert plan.static_at.tolist() == [0] and plan.static_index.tolist() == [0]
+    with torch.no_grad():
+        assert torch.equal(field.forward_rows(h[plan.hexplane_index], plan), field(h)[rows])

@@ -21,7 +21,23 @@ import torch.nn as nn
 
 from .configs import StatusFieldConfig
 
-__all__ = ["StatusFieldConfig", "StatusField", "NonStatusField"]
+__all__ = ["StatusFieldConfig", "StatusField", "NonStatusField", "RowPlan"]
+
+
+class RowPlan:
+    """Where a view's Gaussians (``rows``: the ones its supervised pixels blend, ascending) sit in a field's
+    parameters, so a training step evaluates those rows only: a Gaussian no supervised pixel sees gets a
+    zero gradient either way, so the step is the same up to float rounding of the network's sums.
+
+    ``hexplane_index``: the rows of the module's HexPlane input to feed (None: the module takes none);
+    ``dynamic_at`` / ``static_at``: positions within ``rows`` of the Gaussians with states / one vector;
+    ``static_index``: those one-vector Gaussians' positions in the module's ``fixed`` parameter."""
+
+    def __init__(self, rows: torch.Tensor, hexplane_index: Optional[torch.Tensor] = None,
+                 dynamic_at: Optional[torch.Tensor] = None, static_at: Optional[torch.Tensor] = None,
+                 static_index: Optional[torch.Tensor] = None) -> None:
+        self.rows, self.hexplane_index = rows, hexplane_index
+        self.dynamic_at, self.static_at, self.static_index = dynamic_at, static_at, static_index
 
 
 class StatusField(nn.Module):
@@ -54,6 +70,10 @@ class StatusField(nn.Module):
                                         nn.Linear(cfg.hidden_dim, cfg.num_states))
         self.num_gaussians = n
         self.latent_dim = d
+        position = torch.full((n,), -1, dtype=torch.long)
+        position[self.dynamic_index] = torch.arange(len(self.dynamic_index))
+        position[self.static_index] = -2 - torch.arange(len(self.static_index))  # static k at -2 - k
+        self.register_buffer("_position", position, persistent=False)
 
     def weights(self, hexplane_features: torch.Tensor) -> torch.Tensor:
         """[N_dyn, F] HexPlane features of the dynamic Gaussians -> [N_dyn, K] state weights."""
@@ -81,6 +101,23 @@ class StatusField(nn.Module):
         out[self.static_index] = self.fixed
         return out
 
+    def plan(self, rows: torch.Tensor) -> RowPlan:
+        """The :class:`RowPlan` of ``rows`` (global Gaussian ids)."""
+        position = self._position[rows]
+        dynamic = position >= 0
+        return RowPlan(rows, position[dynamic], torch.nonzero(dynamic).flatten(), torch.nonzero(~dynamic).flatten(),
+                       -2 - position[~dynamic])
+
+    def forward_rows(self, hexplane_features: torch.Tensor, plan: RowPlan) -> torch.Tensor:
+        """:meth:`forward` on ``plan.rows`` only: [M, F] HexPlane features of its dynamic rows
+        (``plan.hexplane_index`` of the module's input) -> [R, D] features at t of ``plan.rows``."""
+        w = self.weights(hexplane_features)
+        dyn_feat = torch.einsum("nk,nkd->nd", w, self.states[plan.hexplane_index])
+        out = self.states.new_empty(len(plan.rows), self.latent_dim)
+        out[plan.dynamic_at] = dyn_feat
+        out[plan.static_at] = self.fixed[plan.static_index]
+        return out
+
     def parameter_bytes(self) -> int:
         """Bytes of per-Gaussian and network parameters (for the memory-per-Gaussian report)."""
         return sum(p.numel() * p.element_size() for p in self.parameters())
@@ -106,6 +143,14 @@ class NonStatusField(nn.Module):
     def forward(self, hexplane_features: torch.Tensor) -> torch.Tensor:
         """[N, F] HexPlane features at (x, t) -> [N, D] features at t."""
         return self.static + self.delta_mlp(hexplane_features)
+
+    def plan(self, rows: torch.Tensor) -> RowPlan:
+        """The :class:`RowPlan` of ``rows`` (every Gaussian reads its HexPlane feature)."""
+        return RowPlan(rows, rows)
+
+    def forward_rows(self, hexplane_features: torch.Tensor, plan: RowPlan) -> torch.Tensor:
+        """:meth:`forward` on ``plan.rows`` only ([R, F] their HexPlane features -> [R, D])."""
+        return self.static[plan.rows] + self.delta_mlp(hexplane_features)
 
     def parameter_bytes(self) -> int:
         return sum(p.numel() * p.element_size() for p in self.parameters())

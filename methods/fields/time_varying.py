@@ -73,7 +73,7 @@ from ..captioners.supervision import (CaptionSupervision, build_captions, embed_
 from .caption_targets import caption_segments, window_caption_embeddings
 from .language_field import FrozenGeometry, GaussianState, matmul_precision
 from .language_field import csr32 as _csr32
-from .status import NonStatusField, StatusField, StatusFieldConfig
+from .status import NonStatusField, RowPlan, StatusField, StatusFieldConfig
 
 KINDS = ("status", "non-status")
 
@@ -666,6 +666,12 @@ class StaticLatents(nn.Module):
     def forward(self, hexplane: Optional[torch.Tensor] = None) -> torch.Tensor:
         return self.static
 
+    def plan(self, rows: torch.Tensor) -> RowPlan:
+        return RowPlan(rows)
+
+    def forward_rows(self, hexplane: Optional[torch.Tensor], plan: RowPlan) -> torch.Tensor:
+        return self.static[plan.rows]
+
 
 @dataclass
 class LatentView:
@@ -678,6 +684,34 @@ class LatentView:
     """Recorded blending operator (fast path), or None: rasterize every step."""
     hexplane: Optional[torch.Tensor] = None
     """Cached standardised HexPlane input at the view's time."""
+    rows: Optional[torch.Tensor] = None
+    """The Gaussians the view's supervised pixels blend (ascending) when :attr:`op` maps only them
+    (:func:`compact_views`), else None: ``op`` maps every Gaussian."""
+
+
+def compact_views(views: Sequence[LatentView]) -> float:
+    """Restrict each recorded operator to the Gaussians it blends (:attr:`LatentView.rows`), so a training step
+    evaluates the field on those only; returns the mean share of Gaussians kept. The operators lose their
+    ``outside`` weights, which only :func:`object_weights_from_operators` reads: call it first."""
+    shares = []
+    for v in views:
+        op = v.op
+        if op is None or v.rows is not None:
+            continue
+        n = op.wt.shape[0]
+        crow = op.wt.crow_indices().to(torch.long)
+        rows = torch.nonzero(crow[1:] > crow[:-1]).flatten()
+        local = torch.full((n,), -1, dtype=torch.long, device=rows.device)
+        local[rows] = torch.arange(len(rows), device=rows.device)
+        w_crow = op.w.crow_indices().to(torch.long)
+        pixel = torch.repeat_interleave(torch.arange(op.w.shape[0], device=rows.device), w_crow[1:] - w_crow[:-1])
+        column = local[op.w.col_indices().to(torch.long)]
+        values = op.w.values()
+        shape = (op.w.shape[0], len(rows))
+        v.op = BlendOperator(_csr32(pixel, column, values, shape), _csr32(column, pixel, values, shape[::-1]))
+        v.rows = rows
+        shares.append(len(rows) / max(1, n))
+    return float(np.mean(shares)) if shares else 1.0
 
 
 def prepare_views(geometry: FrozenGeometry, targets: Sequence[ViewTarget], *, budget_mib: float,
@@ -740,6 +774,12 @@ def _optimise(module: nn.Module, views: Sequence[LatentView], geometry: FrozenGe
     times the mean entropy of a status field's state weights at the view's time.
     """
     neighbours = adjacent_times(views) if time_tv_weight > 0 and hexplane_fn is not None else None
+    # steps on a view's own Gaussians (compacted operators); the extensions' terms read every Gaussian
+    plans = [module.plan(v.rows) if v.rows is not None else None for v in views] \
+        if time_tv_weight == 0 and entropy_weight == 0 else [None] * len(views)
+    if any(v.rows is not None for v in views) and not all(plans):
+        raise ValueError("compacted operators need a step on the view's rows: no extension term reading every "
+                         "Gaussian (time_tv_weight, entropy_weight) may be on")
     per_gaussian = [p for n, p in module.named_parameters() if n in ("states", "fixed", "static")]
     network = [p for n, p in module.named_parameters() if n not in ("states", "fixed", "static")]
     groups = [{"params": per_gaussian, "lr": per_gaussian_lr}]
@@ -765,7 +805,11 @@ def _optimise(module: nn.Module, views: Sequence[LatentView], geometry: FrozenGe
         h = None
         if hexplane_fn is not None:
             h = view.hexplane if view.hexplane is not None else hexplane_fn(t.time)
-        latents = module(h)
+        plan = plans[order_index]
+        if plan is not None:  # the view's own Gaussians: [R, d]
+            latents = module.forward_rows(None if h is None else h[plan.hexplane_index], plan)
+        else:
+            latents = module(h)
         if view.op is not None:
             pred = view.op(latents)
         else:
@@ -786,6 +830,11 @@ def _optimise(module: nn.Module, views: Sequence[LatentView], geometry: FrozenGe
             loss = loss + entropy_weight * module.weight_entropy(h)
         opt.zero_grad(set_to_none=True)
         loss.backward()
+        if plan is not None:  # a parameter the view's rows did not reach has the zero gradient of a full step
+            for group in groups:
+                for param in group["params"]:
+                    if param.grad is None:
+                        param.grad = torch.zeros_like(param)
         opt.step()
         if step % 100 == 0 or step == iterations - 1:
             loss_value = float(loss.detach())
@@ -832,6 +881,8 @@ def fit_time_varying_field(geometry: FrozenGeometry, scene: Scene, sup: CaptionS
     dynamic = _gaussians_with_states(kind, k, geometry, scene, sup, sem, views, ext, backend=backend, near=near)
     info["assignment_seconds"] = time.perf_counter() - t_assign
     info["dynamic_gaussians"] = int(dynamic.sum()) if kind == "status" else geometry.num_gaussians
+    if ext.time_tv_weight == 0 and ext.entropy_weight == 0:
+        info["blend_operators"]["rows_share"] = compact_views(views)  # steps on each view's own Gaussians
 
     # 5. time-agnostic caption field (the states' starting point)
     static = StaticLatents(geometry.num_gaussians, ae.cfg.latent_dim).to(device)
