@@ -911,7 +911,13 @@ class _Table:
                 lo_f, hi_f = mean_ci[primary].get(floor, (math.nan, math.nan))
                 rule = answer_rule(floor, kind)
                 same = [m for m in contenders if answer_rule(m, kind) == rule and covered[m] == covered[floor]]
-                if not same or not _finite(lo_f):
+                if not _finite(lo_f):
+                    continue
+                if not same and rule:  # a reference only: the opening section says no method answers by its rule
+                    self.floor_findings.append({"floor": floor, "rule": rule, "metric": primary,
+                                                "floor_text": ci(floor), "cleared": [], "tied": [], "below": [],
+                                                "unmatched": True})
+                if not same:
                     continue
                 tied = [m for m in same if stats.overlaps(mean_ci[primary].get(m, (math.nan, math.nan)), (lo_f, hi_f))]
                 below = [m for m in same if m not in tied and mean_of[m] < mean_of[floor]]
@@ -1291,6 +1297,11 @@ def floors_first(findings: Sequence[Mapping[str, Any]]) -> list[str]:
     for f in findings:
         dataset, track, protocol, split = f["identity"][-4:]
         rule = f" (answers by {md(f['rule'])})" if f["rule"] else ""
+        if f.get("unmatched"):
+            lines.append(f"* {md(dataset)}, split {md(split)}, {KIND_TITLE[f['kind']].lower()} ({md(f['metric'])}; "
+                         f"{md(track)}, {md(protocol)}): floor `{md(f['floor'])}`{rule} {f['floor_text']}: no ranked "
+                         "method answers by this rule; a reference only.")
+            continue
         verdict = ("**no method clears it**" if not f["cleared"]
                    else f"clear of it: {names(f['cleared'])}")
         lines.append(f"* {md(dataset)}, split {md(split)}, {KIND_TITLE[f['kind']].lower()} ({md(f['metric'])}; "

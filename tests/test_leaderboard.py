@@ -977,6 +977,28 @@ def test_the_floor_comparisons_open_the_leaderboard_before_any_ranking(tmp_path,
     assert "clear of it: beta; tied: none; below: none." in masks
 
 
+def test_a_floor_no_ranked_method_shares_a_rule_with_is_named_a_reference(tmp_path, monkeypatch):
+    from types import SimpleNamespace
+
+    from benchmark import leaderboard
+
+    specs = {"alpha": SimpleNamespace(floor=False, answer_rule="relevance"),
+             "beta": SimpleNamespace(floor=False, answer_rule="relevance"),
+             "floor-m": SimpleNamespace(floor=True, answer_rule={"agnostic": "mask-selection"})}
+    monkeypatch.setattr(leaderboard, "_spec", lambda name: specs.get(name))
+    root = tmp_path / "results"
+    for method, value in (("alpha", 60.0), ("beta", 50.0), ("floor-m", 70.0)):
+        FIT.setdefault(method, 1.0)
+        FPS.setdefault(method, 1.0)
+        for scene in (S1, S2):
+            write_results(results_path(root, "synthetic", scene, method, "oracle", 0), _doc(method, scene, 0, value))
+    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
+    first = _section((tmp_path / "lb.md").read_text(), "## Against the floors, first")
+    line = next(line for line in first.splitlines() if "time-agnostic" in line)
+    assert "floor `floor-m` (answers by mask-selection) 70.00 [" in line
+    assert line.endswith("no ranked method answers by this rule; a reference only.")
+
+
 def test_no_floor_no_opening_section():
     from benchmark.leaderboard import floors_first
 
