@@ -626,3 +626,19 @@ def test_a_row_plan_places_states_and_fixed_vectors():
     assert plan.static_at.tolist() == [0] and plan.static_index.tolist() == [0]
     with torch.no_grad():
         assert torch.equal(field.forward_rows(h[plan.hexplane_index], plan), field(h)[rows])
+
+
+def test_views_with_and_without_an_operator_train_together(world):
+    # a budget that records some operators: those views step on their own Gaussians, the others rasterize
+    from methods.fields.time_varying import blend_operator
+
+    frame = world.scene.frame(world.tracks.frame_names[0])
+    pixels = torch.as_tensor(np.nonzero(world.masks[frame.name].reshape(-1) >= 0)[0])
+    one = blend_operator(world.geometry.at(frame.time), frame.camera, pixels).nbytes()
+    options = _options({"status.iterations": 20, "status.cache_view_mib": 2.5 * one / 2 ** 20})
+    tv = fit_time_varying_field(world.geometry, world.scene, world.sup, options, kind="status", seed=0,
+                                backend="torch")
+    recorded = tv.info["blend_operators"]["recorded"]
+    assert 1 <= recorded < len(world.tracks.frame_names)
+    assert 0 < tv.info["blend_operators"]["rows_share"] < 1
+    assert np.isfinite(tv.info["train"]["final_loss"])

@@ -774,12 +774,12 @@ def _optimise(module: nn.Module, views: Sequence[LatentView], geometry: FrozenGe
     times the mean entropy of a status field's state weights at the view's time.
     """
     neighbours = adjacent_times(views) if time_tv_weight > 0 and hexplane_fn is not None else None
-    # steps on a view's own Gaussians (compacted operators); the extensions' terms read every Gaussian
-    plans = [module.plan(v.rows) if v.rows is not None else None for v in views] \
-        if time_tv_weight == 0 and entropy_weight == 0 else [None] * len(views)
-    if any(v.rows is not None for v in views) and not all(plans):
-        raise ValueError("compacted operators need a step on the view's rows: no extension term reading every "
+    # steps on a view's own Gaussians where its operator is compacted (the others rasterize every Gaussian);
+    # the extensions' terms read every Gaussian, so compacted operators and those terms never meet
+    if (time_tv_weight > 0 or entropy_weight > 0) and any(v.rows is not None for v in views):
+        raise ValueError("compacted operators step on each view's own Gaussians: no extension term reading every "
                          "Gaussian (time_tv_weight, entropy_weight) may be on")
+    plans = [module.plan(v.rows) if v.rows is not None else None for v in views]
     per_gaussian = [p for n, p in module.named_parameters() if n in ("states", "fixed", "static")]
     network = [p for n, p in module.named_parameters() if n not in ("states", "fixed", "static")]
     groups = [{"params": per_gaussian, "lr": per_gaussian_lr}]
