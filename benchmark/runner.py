@@ -64,8 +64,7 @@ from benchmark.core.annotation import AnnotationSet
 from benchmark.core.atomic import json_ready, read_json, write_json
 from benchmark.core.errors import InputError
 from benchmark.core.outputs import guard_output
-from benchmark.core.strict import check_cached_files, file_problem
-from benchmark.core.strict import error_reason as reason  # one short line for a warning
+from benchmark.core.strict import check_cached_files, error_reason, file_problem
 from benchmark.core.openblas import cpuinfo_value, openblas_core
 from benchmark.core.protocol import DEFAULT_PROTOCOL, get_protocol
 from .results import RunResults, exclusive_lock, results_lock, results_path, write_results
@@ -251,7 +250,7 @@ def _check_cached_scene(root: Path) -> tuple[Optional[str], Optional[str]]:
         load_annotations(root / "annotations.json")
         digest = scene_digest(root)  # decodes every image and map: what a run and its record read
     except Exception as err:  # noqa: BLE001 - whatever fails to read, the scene is made again
-        return reason(err), None
+        return error_reason(err), None
     return None, digest
 
 
@@ -265,7 +264,7 @@ def _scene_version(root: Path) -> Optional[dict]:
     except InputError:
         raise
     except Exception as err:  # noqa: BLE001 - zipfile, zlib, numpy: a file of the scene is damaged
-        raise InputError(root, "scene", f"a file of this generated scene cannot be read ({reason(err)}); "
+        raise InputError(root, "scene", f"a file of this generated scene cannot be read ({error_reason(err)}); "
                          "generate it again (bench4d data make-synthetic)") from None
 
 
@@ -677,9 +676,9 @@ def _fit_or_load_locked(spec, method_cls, config, scene: Scene, supervision, *, 
             model = method_cls.load(final / "model", supervision=supervision, device=device)
         except Exception as err:  # noqa: BLE001 - whatever a damaged fit raises, it is fitted again
             if reuse_key is not None:
-                raise InputError(final, "cached_key", f"the cached fit {reuse_key!r} is damaged ({reason(err)}); a "
+                raise InputError(final, "cached_key", f"the cached fit {reuse_key!r} is damaged ({error_reason(err)}); a "
                                  "reused fit is never fitted again") from None
-            warn(f"cached fit of {spec.name} on {scene.name} at {final} is damaged ({reason(err)}): fitting again")
+            warn(f"cached fit of {spec.name} on {scene.name} at {final} is damaged ({error_reason(err)}): fitting again")
         else:
             if hasattr(model, "use_answer_options"):
                 model.use_answer_options(config)  # the fit may have been made with other answer options
@@ -698,7 +697,7 @@ def _fit_or_load_locked(spec, method_cls, config, scene: Scene, supervision, *, 
                 base = method_cls.load(folder / head_from / "model", supervision=supervision, device=device)
             except Exception as err:  # noqa: BLE001 - a damaged base cannot be fitted again under its key
                 raise InputError(folder / head_from, "head_refit_from", f"the cached fit {head_from!r} is damaged "
-                                 f"({reason(err)})") from None
+                                 f"({error_reason(err)})") from None
             model = method_cls.refit_head(base, scene, supervision, config, seed=seed, device=device,
                                           progress=progress, work_dir=work)
         else:

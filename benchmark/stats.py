@@ -15,6 +15,8 @@ Reinforcement Learning at the Edge of the Statistical Precipice", NeurIPS 2021):
   pairs where X scores higher, ties counted half.
 * :func:`interquartile_mean`: the mean of the middle 50 % of scores (rliable's IQM).
 * :func:`kendall_tau_test`: Kendall's tau-b with an exact two-sided permutation p-value (ties kept).
+* :func:`sign_flip_test`: the exact two-sided p-value of a mean of paired differences (each sign a coin flip
+  under no effect), valid for the two or three pairs a scene has, where a bootstrap interval is too narrow.
 """
 
 from __future__ import annotations
@@ -204,6 +206,30 @@ def kendall_tau_test(x: Sequence[float], y: Sequence[float], *, seed: int = 0) -
     taus = (_sign_pairs(b[orders]) * sa).sum(axis=1) / denominator
     p = float(np.mean(np.abs(taus) >= abs(observed) - 1e-12))
     return observed, p
+
+
+EXACT_SIGN_FLIPS_UP_TO = 16
+""":func:`sign_flip_test` enumerates all 2^n sign patterns up to this many pairs (65 536), else samples."""
+
+
+def sign_flip_test(differences: Sequence[np.ndarray], *, seed: int = 0) -> float:
+    """Two-sided p-value of the mean over strata (scenes) of each stratum's mean paired difference, under the
+    null that every difference is as likely negative as positive (Fisher's randomisation test): the share of
+    sign patterns whose statistic is at least as far from 0 as the observed one. ``differences[s]``: stratum
+    ``s``'s paired differences. With n pairs the smallest p-value is 2 / 2^n (6 pairs: 0.031)."""
+    groups = [np.asarray(d, dtype=np.float64).ravel() for d in differences]
+    groups = [g for g in groups if g.size]
+    if not groups:
+        return math.nan
+    weighted = np.concatenate([g / (len(groups) * g.size) for g in groups])  # each stratum weighs the same
+    n = weighted.size
+    if n <= EXACT_SIGN_FLIPS_UP_TO:
+        signs = 1.0 - 2.0 * ((np.arange(2 ** n)[:, None] >> np.arange(n)[None, :]) & 1)
+    else:
+        rng = np.random.default_rng(seed)
+        signs = np.vstack([np.ones((1, n)), rng.choice([-1.0, 1.0], size=(SAMPLED_PERMUTATIONS, n))])
+    observed = abs(float(weighted.sum()))
+    return float(np.mean(np.abs(signs @ weighted) >= observed - 1e-12))
 
 
 def interval_text(lo: Optional[float], hi: Optional[float], digits: int = 2) -> str:

@@ -570,24 +570,31 @@ def test_each_split_gets_its_own_tables_the_papers_first(tmp_path):
         _section(md, "#### Time-agnostic queries", "## Split: legacy-dense")
 
 
+def _floor_board(tmp_path, monkeypatch, specs, mious) -> None:
+    """``tmp_path/lb.md`` from one seed of each (method, mIoU) of ``mious`` on both scenes, the methods' specs
+    (floor or not, answering rule) those of ``specs``."""
+    from benchmark import leaderboard
+
+    monkeypatch.setattr(leaderboard, "_spec", lambda name: specs.get(name))
+    root = tmp_path / "results"
+    for method, value in mious:
+        FIT.setdefault(method, 1.0)
+        FPS.setdefault(method, 1.0)
+        for scene in (S1, S2):
+            write_results(results_path(root, "synthetic", scene, method, "oracle", 0), _doc(method, scene, 0, value))
+    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
+
+
 def test_a_ranked_method_that_does_not_clear_its_floor_is_told_in_words(tmp_path, monkeypatch):
     from types import SimpleNamespace
 
-    from benchmark import leaderboard
 
     specs = {"alpha": SimpleNamespace(floor=False, answer_rule="relevance"),
              "beta": SimpleNamespace(floor=False, answer_rule="mask-selection"),
              "alpha+": SimpleNamespace(floor=False, answer_rule="relevance", variant_of="alpha"),
              "floor-r": SimpleNamespace(floor=True, answer_rule="relevance"),
              "floor-m": SimpleNamespace(floor=True, answer_rule={"agnostic": "mask-selection"})}
-    monkeypatch.setattr(leaderboard, "_spec", lambda name: specs.get(name))
-    root = tmp_path / "results"
-    for method, value in (("alpha", 60.0), ("alpha+", 80.0), ("beta", 40.0), ("floor-r", 61.0), ("floor-m", 70.0)):
-        FIT.setdefault(method, 1.0)
-        FPS.setdefault(method, 1.0)
-        for scene in (S1, S2):
-            write_results(results_path(root, "synthetic", scene, method, "oracle", 0), _doc(method, scene, 0, value))
-    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
+    _floor_board(tmp_path, monkeypatch, specs, (("alpha", 60.0), ("alpha+", 80.0), ("beta", 40.0), ("floor-r", 61.0), ("floor-m", 70.0)))
     table = _section((tmp_path / "lb.md").read_text(), "#### Time-agnostic queries")
     rows = _rows(table)
     assert "alpha+ (variant of alpha)" in rows
@@ -949,20 +956,12 @@ def test_a_kind_declined_on_one_scene_counts_zero_there_and_is_not_left_out(tmp_
 def test_the_floor_comparisons_open_the_leaderboard_before_any_ranking(tmp_path, monkeypatch):
     from types import SimpleNamespace
 
-    from benchmark import leaderboard
 
     specs = {"alpha": SimpleNamespace(floor=False, answer_rule="relevance"),
              "beta": SimpleNamespace(floor=False, answer_rule="mask-selection"),
              "floor-r": SimpleNamespace(floor=True, answer_rule="relevance"),
              "floor-m": SimpleNamespace(floor=True, answer_rule={"agnostic": "mask-selection"})}
-    monkeypatch.setattr(leaderboard, "_spec", lambda name: specs.get(name))
-    root = tmp_path / "results"
-    for method, value in (("alpha", 60.0), ("beta", 90.0), ("floor-r", 61.0), ("floor-m", 70.0)):
-        FIT.setdefault(method, 1.0)
-        FPS.setdefault(method, 1.0)
-        for scene in (S1, S2):
-            write_results(results_path(root, "synthetic", scene, method, "oracle", 0), _doc(method, scene, 0, value))
-    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
+    _floor_board(tmp_path, monkeypatch, specs, (("alpha", 60.0), ("beta", 90.0), ("floor-r", 61.0), ("floor-m", 70.0)))
     md = (tmp_path / "lb.md").read_text()
     first = _section(md, "## Against the floors, first")
     assert md.index("## Against the floors, first") < md.index("## Split:") < md.index("| method |")
@@ -980,19 +979,11 @@ def test_the_floor_comparisons_open_the_leaderboard_before_any_ranking(tmp_path,
 def test_a_floor_no_ranked_method_shares_a_rule_with_is_named_a_reference(tmp_path, monkeypatch):
     from types import SimpleNamespace
 
-    from benchmark import leaderboard
 
     specs = {"alpha": SimpleNamespace(floor=False, answer_rule="relevance"),
              "beta": SimpleNamespace(floor=False, answer_rule="relevance"),
              "floor-m": SimpleNamespace(floor=True, answer_rule={"agnostic": "mask-selection"})}
-    monkeypatch.setattr(leaderboard, "_spec", lambda name: specs.get(name))
-    root = tmp_path / "results"
-    for method, value in (("alpha", 60.0), ("beta", 50.0), ("floor-m", 70.0)):
-        FIT.setdefault(method, 1.0)
-        FPS.setdefault(method, 1.0)
-        for scene in (S1, S2):
-            write_results(results_path(root, "synthetic", scene, method, "oracle", 0), _doc(method, scene, 0, value))
-    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
+    _floor_board(tmp_path, monkeypatch, specs, (("alpha", 60.0), ("beta", 50.0), ("floor-m", 70.0)))
     first = _section((tmp_path / "lb.md").read_text(), "## Against the floors, first")
     line = next(line for line in first.splitlines() if "time-agnostic" in line)
     assert "floor `floor-m` (answers by mask-selection) 70.00 [" in line

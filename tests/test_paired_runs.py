@@ -11,7 +11,11 @@ from benchmark.results import results_path, write_results
 from benchmark.studies.paired_runs import added_seconds, compare, pair_runs, paired_report
 
 
-def _doc(scene, seed, miou, *, acc=None, digest="d", fit=100.0, geometry=None, steps=1200, method="m"):
+METHOD = "langsplat"
+"""A registered method: the report reads recorded options as it does."""
+
+
+def _doc(scene, seed, miou, *, acc=None, digest="d", fit=100.0, geometry=None, steps=1200, method=METHOD):
     info = {"cached": {"geometry": geometry is None}}
     if geometry is not None:
         info["geometry"] = {"seconds": geometry}
@@ -45,6 +49,7 @@ def test_a_drop_every_scene_agrees_on_is_beyond_the_noise(tmp_path):
     miou = rows["mIoU"]
     assert miou["difference"] == pytest.approx(-1.0833, abs=1e-3)
     assert miou["interval"][1] < 0 and miou["beyond_noise"] and (miou["down"], miou["up"]) == (6, 0)
+    assert miou["p_value"] == pytest.approx(2 / 64)  # six pairs, all down: the smallest p six pairs allow
     # time answers that move both ways in every scene are a tie
     acc = rows["Acc"]
     assert acc["interval"][0] < 0 < acc["interval"][1] and not acc["beyond_noise"]
@@ -68,8 +73,8 @@ def test_runs_without_a_baseline_or_on_another_scene_are_named_not_paired(tmp_pa
     _write(new, _doc("a", 0, 10.0, digest="other"))  # regenerated scene: another question
     pairs, unpaired = pair_runs(old, new)
     assert len(pairs) == 5
-    assert sorted(unpaired) == ["synthetic/a/m/oracle/seed0.json: another scene (generated-scene digests differ)",
-                                "synthetic/d/m/oracle/seed0.json: no baseline run"]
+    assert sorted(unpaired) == [f"synthetic/a/{METHOD}/oracle/seed0.json: another scene (generated-scene digests "
+                                "differ)", f"synthetic/d/{METHOD}/oracle/seed0.json: no baseline run"]
 
 
 def test_fit_seconds_are_net_of_a_geometry_the_run_fitted():
@@ -86,4 +91,14 @@ def test_the_report_states_options_and_costs(tmp_path):
     assert "`field.iterations`: 1200 -> 400" in report.table
     doc = json.loads((tmp_path / "out" / "paired-field-third.json").read_text())
     assert doc["costs"][-1] == {"method": "all", "runs": 6, "baseline_seconds": 600.0, "candidate_seconds": 180.0}
-    assert "| m | 6 | 600 | 180 | 0.30 |" in report.table
+    assert f"| {METHOD} | 6 | 600 | 180 | 0.30 |" in report.table
+    assert f"| {METHOD} | oracle | paper | mIoU | 6 |" in report.table  # every row names its supervision track
+
+
+def test_a_narrow_interval_from_few_pairs_is_not_a_verdict(tmp_path):
+    # five of six pairs down by a little, one up by a little: the bootstrap interval of two pairs a scene can
+    # miss 0 ([-0.23, -0.12] here), the exact test (p = 4/64) does not call it beyond the noise
+    old, new = _folders(tmp_path, [-0.20, -0.22, -0.25, -0.21, -0.24, 0.05])
+    row = next(r for r in compare(pair_runs(old, new)[0]) if r["score"] == "mIoU")
+    assert (row["down"], row["up"]) == (5, 1)
+    assert row["p_value"] >= 0.05 and not row["beyond_noise"]

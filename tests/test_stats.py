@@ -116,3 +116,15 @@ def test_overlap_and_interval_text():
     assert stats.overlaps((1.0, 2.0), (math.nan, 3.0))
     assert stats.interval_text(1.234, 5.678) == "[1.23, 5.68]" and stats.interval_text(math.nan, 1.0) == "–"
     assert stats.stable_seed("a", 1) == stats.stable_seed("a", 1) != stats.stable_seed("a", 2)
+
+
+def test_the_sign_flip_test_against_known_answers():
+    # six differences of one sign: only "all down" and "all up" are as extreme, 2 of 2^6 patterns
+    assert stats.sign_flip_test([np.array([-1.0, -1.2]), np.array([-0.9, -1.1]), np.array([-1.3, -1.0])]) \
+        == pytest.approx(2 / 64)
+    # no difference at all, and one pair of each sign: nothing beyond chance
+    assert stats.sign_flip_test([np.zeros(3)]) == 1.0
+    assert stats.sign_flip_test([np.array([1.0, -1.0])]) == 1.0
+    # scenes weigh the same: a big pair in a scene of one is half the statistic, as two pairs are in another
+    assert stats.sign_flip_test([np.array([4.0]), np.array([1.0, 1.0])]) == pytest.approx(2 / 8)
+    assert math.isnan(stats.sign_flip_test([]))

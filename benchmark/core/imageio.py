@@ -18,6 +18,7 @@ foreground when:
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import os
 import struct
@@ -55,6 +56,7 @@ def native_decoder_messages() -> Iterator[list[str]]:
     with NATIVE_STDERR_LOCK:
         if _capture_file is None or _capture_file.closed:
             _capture_file = tempfile.TemporaryFile()
+            atexit.register(_capture_file.close)  # closed with the process, not left to the collector
         capture = _capture_file
         capture.seek(0)
         capture.truncate()
@@ -74,6 +76,16 @@ def native_decoder_messages() -> Iterator[list[str]]:
             said.extend(line.strip() for line in text.splitlines() if line.strip())
 
 
+def refuse_if_said(path: Path, said: list[str], what: str, field: Optional[str] = None) -> None:
+    """An :class:`InputError` naming the file (and ``field``) where a native decoder said anything while it
+    read it (:func:`native_decoder_messages`): it printed because the file is damaged. ``what``: the refusal
+    ("cannot decode image"), followed by the decoder's first message."""
+    if said:
+        from .strict import terminal_text
+
+        raise InputError(path, field, f"{what}: the decoder reports {terminal_text(said[0])[:200]}")
+
+
 def decode_checked(path: Path, data: bytes, *, kind: str = "image") -> np.ndarray:
     """``cv2.imdecode`` (``IMREAD_UNCHANGED``) of ``data``, the file ``path``'s checked bytes: an image the
     decoder says anything about (libpng's or libjpeg's errors and warnings: a corrupt stream, a JPEG scan cut
@@ -84,10 +96,7 @@ def decode_checked(path: Path, data: bytes, *, kind: str = "image") -> np.ndarra
             img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED) if data else None
         except cv2.error:
             img = None
-    if said:
-        from .strict import terminal_text
-
-        raise InputError(path, None, f"cannot decode {kind}: the decoder reports {terminal_text(said[0])[:200]}")
+    refuse_if_said(path, said, f"cannot decode {kind}")
     if img is None:
         raise InputError(path, None, f"cannot decode {kind} (truncated or corrupt)")
     return img
@@ -99,8 +108,6 @@ def read_image_pixels(path: str | Path) -> np.ndarray:
     may have, a PNG stream complete and consistent with its header and handed to the decoder with its
     critical chunks only (:func:`_png_checked`), a JPEG with its end marker; then decoded with the decoder's
     messages caught (:func:`decode_checked`). An :class:`InputError` names the file otherwise."""
-    from .annotation import MAX_MASK_PIXELS
-
     from .strict import file_problem, open_regular
 
     path = Path(path)
@@ -112,37 +119,40 @@ def read_image_pixels(path: str | Path) -> np.ndarray:
     try:
         with open_regular(path) as fh:
             head = fh.read(64 * 1024)
-            limit = _image_file_limit(path, head)
+            limit = _image_file_limit(path, head)  # a PNG too large for a frame is refused here, unread
             rest = fh.read(limit - len(head) + 1) if len(head) == 64 * 1024 else b""
     except OSError as err:
         raise InputError(path, None, f"cannot read: {err.strerror or err}") from None
     if len(head) + len(rest) > limit:
         raise InputError(path, None, f"file of more than {limit} bytes: more than its pixels can need")
     data = head + rest
-    if data[:8] == PNG_SIGNATURE:  # refuse a huge PNG from its header, before decoding
-        width, height, _, _ = png_header(path, data[:33])
-        if width * height > MAX_MASK_PIXELS:
-            raise InputError(path, None, f"image of {width}x{height} pixels is larger than the "
-                                         f"{MAX_MASK_PIXELS} pixels any frame may have")
+    if data[:8] == PNG_SIGNATURE:
         return decode_checked(path, _png_checked(path, data))
     if data[:3] == b"\xff\xd8\xff":
-        width, height, _ = jpeg_layout(path, data)
-        if width * height > MAX_MASK_PIXELS:
-            raise InputError(path, None, f"image of {width}x{height} pixels is larger than the "
-                                         f"{MAX_MASK_PIXELS} pixels any frame may have")
+        _check_frame_pixels(path, *jpeg_layout(path, data)[:2])  # a JPEG's size comes only with the whole file
         return decode_checked(path, data)
     # OpenCV would decode BMP, TIFF, WebP... of any declared size: frames and masks are PNG or JPEG
     raise InputError(path, None, "not a PNG or JPEG file (no PNG or JPEG signature)")
 
 
-def _image_file_limit(path: Path, head: bytes) -> int:
-    """The most bytes an image file may have, plus a MiB for metadata: a PNG twice what its rows can need
-    (8 bytes a pixel at most: 16-bit RGBA; its header gives the size), a JPEG (8-bit, its size read only after
-    the whole file) 4 bytes a pixel of the largest frame."""
+def _check_frame_pixels(path: Path, width: int, height: int) -> None:
+    """An :class:`InputError` for an image of more pixels than any frame may have, before it is decoded."""
     from .annotation import MAX_MASK_PIXELS
 
-    if head[:8] == PNG_SIGNATURE and len(head) >= 33:
+    if width * height > MAX_MASK_PIXELS:
+        raise InputError(path, None, f"image of {width}x{height} pixels is larger than the {MAX_MASK_PIXELS} pixels "
+                                     "any frame may have")
+
+
+def _image_file_limit(path: Path, head: bytes) -> int:
+    """The most bytes an image file may have, plus a MiB for metadata: a PNG (its header checked against the
+    pixels a frame may have) twice what its rows can need (8 bytes a pixel at most: 16-bit RGBA), a JPEG (8-bit,
+    its size read only after the whole file) 4 bytes a pixel of the largest frame."""
+    from .annotation import MAX_MASK_PIXELS
+
+    if head[:8] == PNG_SIGNATURE:
         width, height, _, _ = png_header(path, head[:33])
+        _check_frame_pixels(path, width, height)
         return 2 * (8 * width * height + height) + (1 << 20)
     return 4 * MAX_MASK_PIXELS + (1 << 20)
 

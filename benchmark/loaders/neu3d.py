@@ -46,12 +46,15 @@ import numpy as np
 
 from benchmark.core.atomic import read_json
 from benchmark.core.errors import InputError
-from benchmark.core.imageio import native_decoder_messages, read_image
+from benchmark.core.imageio import native_decoder_messages, read_image, refuse_if_said
 from benchmark.core.scene import Camera, Frame, Scene, eval_splits_of
-from benchmark.core.strict import check_npy, terminal_text
+from benchmark.core.strict import check_npy
 from . import _common as C
 
 LAYOUT = "neu3d"
+VIDEO_REFUSED = "damaged video"
+"""How a video FFmpeg (inside OpenCV) complained about while opening or reading it is refused: it printed
+because the file is damaged (a cut container, a broken frame header)."""
 SPLIT_RULES = ("test-cameras",)
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 META_FILE = "bench4d_meta.json"
@@ -127,14 +130,14 @@ class VideoFrames:
         """Yield (H, W, 3) uint8 BGR frames at the output size."""
         with native_decoder_messages() as said:  # FFmpeg prints on fd 2: an open it complains about is refused
             cap = cv2.VideoCapture(str(self.path))
-        _refuse_if_said(self.path, said)
-        if not cap.isOpened():
-            raise InputError(self.path, "video", "cannot open the video")
         try:
+            refuse_if_said(self.path, said, VIDEO_REFUSED, "video")
+            if not cap.isOpened():
+                raise InputError(self.path, "video", "cannot open the video")
             for k in range(self.count):
                 with native_decoder_messages() as said:
                     ok, frame = cap.read()
-                _refuse_if_said(self.path, said, f"frame {k}")
+                refuse_if_said(self.path, said, VIDEO_REFUSED, f"frame {k}")
                 if not ok or frame is None:
                     raise InputError(self.path, f"frame {k}", f"video ends after {k} frames, expected {self.count}")
                 yield C.resize(frame, self.width, self.height)
@@ -208,19 +211,12 @@ def _camera_sources(root: Path) -> dict[str, tuple[str, object]]:
     return dict(sorted(sources.items(), key=lambda kv: (int(kv[0][3:]), kv[0])))
 
 
-def _refuse_if_said(path: Path, said: list[str], field: str = "video") -> None:
-    """A video the decoder (FFmpeg, inside OpenCV) said anything about while opening or reading it is refused,
-    with its first message: it printed because the file is damaged (a cut container, a broken frame header)."""
-    if said:
-        raise InputError(path, field, f"the video decoder reports: {terminal_text(said[0])[:200]}")
-
-
 def _video_info(path: Path) -> tuple[int, int, int]:
     """(width, height, frame count) from the container metadata."""
     with native_decoder_messages() as said:  # FFmpeg prints on fd 2 (a missing index, a damaged header)
         cap = cv2.VideoCapture(str(path))
     try:
-        _refuse_if_said(path, said)
+        refuse_if_said(path, said, VIDEO_REFUSED, "video")
         if not cap.isOpened():
             raise InputError(path, "video", "cannot open the video (missing codec or not a video)")
         w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))

@@ -3,11 +3,12 @@ beyond the noise, and what did it save?
 
 A candidate run is paired with the baseline run of the same dataset, scene, method, track, split and seed
 (the same relative path), on the same scene (the digest of a generated scene, ``scene_info.generated.digest``).
-Per method, split and score the report gives the baseline and candidate means, their mean paired difference
-(candidate - baseline, scenes weighted equally), its 95 % interval and how many pairs moved down and up.
-The interval resamples each scene's pairs with replacement (:func:`benchmark.stats.bootstrap_means`), so a
-difference whose interval excludes 0 is one every scene's seeds agree on; with two seeds per scene the
-interval is coarse, which the pair counts make visible.
+Per method, track, split and score the report gives the baseline and candidate means, their mean paired
+difference (candidate - baseline, scenes weighted equally), its 95 % interval (each scene's pairs resampled,
+:func:`benchmark.stats.bootstrap_means`; none where a scene has one pair) and how many pairs moved down and up.
+With two or three pairs a scene that interval is too narrow to decide on, so the verdict is the exact
+sign-flip test's (:func:`benchmark.stats.sign_flip_test`): beyond the noise where p < 0.05, which six pairs
+can reach only when all six move the same way.
 
 Cost is the fit seconds each run added beyond a geometry fit (``timing.fit_seconds`` less the geometry's
 seconds where that run fitted it): the geometry of a scene and seed is fitted once and charged to whichever
@@ -24,12 +25,14 @@ from typing import Any, Callable, Optional
 import numpy as np
 
 from benchmark.results import find_results, read_results
-from benchmark.stats import bootstrap_means, interval_text, percentile_interval, stable_seed
+from benchmark.stats import bootstrap_means, interval_text, percentile_interval, sign_flip_test, stable_seed
 
 from ._report import Report, markdown_table, write_report
 
 MIN_PAIRS_PER_SCENE = 2
-"""A scene with fewer pairs leaves its row without an interval (and so never beyond the noise)."""
+"""A scene with fewer pairs leaves its row without an interval (its pairs still count in the test)."""
+SIGNIFICANCE = 0.05
+"""A difference is beyond the noise where the sign-flip test's two-sided p-value is below this."""
 SCORES = ("mIoU", "Acc", "vIoU")
 """Scores compared (higher is better); a score a method does not answer is left out."""
 
@@ -41,6 +44,7 @@ class Pair:
     dataset: str
     scene: str
     method: str
+    track: str
     split: str
     seed: int
     baseline: dict[str, Optional[float]]
@@ -51,13 +55,14 @@ class Pair:
     """Method option (dotted path) -> (baseline value, candidate value), where the two configs differ."""
 
 
-def _flat(config: Any, prefix: str = "") -> dict[str, Any]:
-    if not isinstance(config, dict):
-        return {prefix: config}
-    out: dict[str, Any] = {}
-    for key, value in config.items():
-        out.update(_flat(value, f"{prefix}{key}." if isinstance(value, dict) else f"{prefix}{key}"))
-    return out
+def _options(doc: dict) -> dict[str, Any]:
+    """Dotted option path -> value of the run's recorded method config, read as its registered method reads
+    records (older option names included); none for a method not registered here."""
+    from methods import registry
+
+    if doc["method"] not in registry.names():
+        return {}
+    return registry.get(doc["method"]).recorded_options(doc.get("method_config"))
 
 
 def added_seconds(doc: dict) -> float:
@@ -102,18 +107,19 @@ def pair_runs(baseline_dir: Path, candidate_dir: Path) -> tuple[list[Pair], list
         if _scene_digest(new) != _scene_digest(old):
             unpaired.append(f"{rel}: another scene (generated-scene digests differ)")
             continue
-        a, b = _flat(old.get("method_config") or {}), _flat(new.get("method_config") or {})
+        a, b = _options(old), _options(new)
         options = {k: (a.get(k), b.get(k)) for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)}
-        pairs.append(Pair(new["dataset"], new["scene"], new["method"], new.get("split") or "paper", int(new["seed"]),
-                          _scores(old), _scores(new), added_seconds(old), added_seconds(new), options))
+        pairs.append(Pair(new["dataset"], new["scene"], new["method"], new["track"], new.get("split") or "paper",
+                          int(new["seed"]), _scores(old), _scores(new), added_seconds(old), added_seconds(new),
+                          options))
     return pairs, unpaired
 
 
 def compare(pairs: list[Pair]) -> list[dict[str, Any]]:
-    """One row per (method, split, score) with its paired difference and interval."""
+    """One row per (method, track, split, score) with its paired difference, interval and test."""
     rows = []
-    for method, split in sorted({(p.method, p.split) for p in pairs}):
-        mine = [p for p in pairs if (p.method, p.split) == (method, split)]
+    for method, track, split in sorted({(p.method, p.track, p.split) for p in pairs}):
+        mine = [p for p in pairs if (p.method, p.track, p.split) == (method, track, split)]
         for name in SCORES:
             both = [p for p in mine if p.baseline[name] is not None and p.candidate[name] is not None]
             if not both:
@@ -124,18 +130,19 @@ def compare(pairs: list[Pair]) -> list[dict[str, Any]]:
             old = [np.array([[p.baseline[name]] for p in group]) for group in by_scene]
             new = [np.array([[p.candidate[name]] for p in group]) for group in by_scene]
             if min(len(group) for group in by_scene) >= MIN_PAIRS_PER_SCENE:
-                reps = bootstrap_means({"diff": diffs}, seed=stable_seed("paired", method, split, name),
+                reps = bootstrap_means({"diff": diffs}, seed=stable_seed("paired", method, track, split, name),
                                        resample_queries=False)["diff"]
                 lo, hi = percentile_interval(reps)
             else:  # one pair cannot be resampled: its "interval" would be a point
                 lo = hi = math.nan
             mean = float(np.mean([d.mean() for d in diffs]))
             flat = np.concatenate([d.ravel() for d in diffs])
-            rows.append({"method": method, "split": split, "score": name, "pairs": int(flat.size),
+            p_value = sign_flip_test(diffs)
+            rows.append({"method": method, "track": track, "split": split, "score": name, "pairs": int(flat.size),
                          "scenes": len(scenes), "baseline": float(np.mean([o.mean() for o in old])),
                          "candidate": float(np.mean([n.mean() for n in new])), "difference": mean,
                          "interval": [lo, hi], "down": int((flat < 0).sum()), "up": int((flat > 0).sum()),
-                         "beyond_noise": bool(math.isfinite(lo) and (lo > 0 or hi < 0))})
+                         "p_value": p_value, "beyond_noise": bool(p_value < SIGNIFICANCE)})
     return rows
 
 
@@ -153,10 +160,14 @@ def costs(pairs: list[Pair]) -> list[dict[str, Any]]:
     return rows
 
 
-def _noise_cell(row: dict[str, Any]) -> str:
+def _interval_cell(row: dict[str, Any]) -> str:
     if not all(math.isfinite(v) for v in row["interval"]):
         return f"– (fewer than {MIN_PAIRS_PER_SCENE} pairs in a scene)"
-    return "yes" if row["beyond_noise"] else "no (a tie)"
+    return interval_text(*row["interval"])
+
+
+def _noise_cell(row: dict[str, Any]) -> str:
+    return ("yes" if row["beyond_noise"] else "no (a tie)") + f", p = {row['p_value']:.3f}"
 
 
 def _seconds_cell(value: float) -> str:
@@ -180,16 +191,17 @@ def paired_report(name: str, baseline_dir: Path, candidate_dir: Path, out: Path,
     lines = [f"# Paired runs: {name}", "",
              f"Baseline `{baseline_dir}`, candidate `{candidate_dir}`: {len(pairs)} runs paired by dataset, scene, "
              f"method, track, split and seed ({len(unpaired)} left unpaired). Difference = candidate - baseline, "
-             "mean over scenes of each scene's mean over its pairs; interval: 95 %, each scene's pairs resampled; "
-             "down / up: pairs that fell / rose.", ""]
+             "mean over scenes of each scene's mean over its pairs; interval: 95 %, each scene's pairs resampled (too "
+             "narrow with two pairs a scene to decide on); beyond noise: the exact sign-flip test's p < "
+             f"{SIGNIFICANCE}; down / up: pairs that fell / rose.", ""]
     if options:
         lines += ["Options that differ (baseline -> candidate):", ""]
         lines += [f"* `{k}`: {a} -> {b}" for k, a, b in options] + [""]
     lines += [markdown_table(
-        ["method", "split", "score", "pairs", "baseline", "candidate", "difference", "95 % interval", "down / up",
-         "beyond noise"],
-        [[r["method"], r["split"], r["score"], str(r["pairs"]), f"{r['baseline']:.2f}", f"{r['candidate']:.2f}",
-          f"{r['difference']:+.2f}", interval_text(*r["interval"]), f"{r['down']} / {r['up']}",
+        ["method", "track", "split", "score", "pairs", "baseline", "candidate", "difference", "95 % interval",
+         "down / up", "beyond noise (sign-flip test)"],
+        [[r["method"], r["track"], r["split"], r["score"], str(r["pairs"]), f"{r['baseline']:.2f}",
+          f"{r['candidate']:.2f}", f"{r['difference']:+.2f}", _interval_cell(r), f"{r['down']} / {r['up']}",
           _noise_cell(r)] for r in rows])]
     lines += ["Fit seconds beyond geometry (paper-split runs; a stage read from the cache costs 0 there, so a "
               "method that reuses another's stage shows less than it needs alone):", "",
