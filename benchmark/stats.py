@@ -108,6 +108,19 @@ def percentile_interval(replicates: np.ndarray, confidence: float = CONFIDENCE) 
     return float(lo), float(hi)
 
 
+def prediction_interval(values: Sequence[float], confidence: float = CONFIDENCE) -> tuple[float, float]:
+    """Where one more draw from the distribution of ``values`` falls with probability ``confidence``, under
+    a normal model: mean -+ t(n - 1) s sqrt(1 + 1/n) (s the sample standard deviation). The interval for a
+    single new fit, where :func:`bootstrap_means` gives the interval of a mean; (NaN, NaN) below two values."""
+    from scipy.stats import t
+
+    x = np.asarray([v for v in values if v is not None and math.isfinite(v)], dtype=np.float64)
+    if x.size < 2:
+        return math.nan, math.nan
+    half = float(t.ppf(0.5 + confidence / 2.0, x.size - 1)) * float(x.std(ddof=1)) * math.sqrt(1.0 + 1.0 / x.size)
+    return float(x.mean()) - half, float(x.mean()) + half
+
+
 def overlaps(a: tuple[float, float], b: tuple[float, float]) -> bool:
     """Whether two closed intervals share a point (an interval with a NaN end overlaps everything: an
     unknown interval never separates two methods)."""

@@ -102,3 +102,42 @@ def test_a_narrow_interval_from_few_pairs_is_not_a_verdict(tmp_path):
     row = next(r for r in compare(pair_runs(old, new)[0]) if r["score"] == "mIoU")
     assert (row["down"], row["up"]) == (5, 1)
     assert row["p_value"] >= 0.05 and not row["beyond_noise"]
+
+
+def _geometry(key, static_cpu, deform_cpu, wall, psnr, novel):
+    return {"key": key, "seconds": wall, "test_psnr": psnr, "novel_view_psnr": novel,
+            "stages": [{"stage": "static", "cpu_seconds": static_cpu}, {"stage": "deformation", "cpu_seconds": deform_cpu}]}
+
+
+def test_a_geometry_change_compares_its_psnr_and_its_stage_seconds_once_per_fit(tmp_path):
+    old, new = tmp_path / "old", tmp_path / "new"
+    for scene in ("a", "b"):
+        for seed in (0, 1):
+            for method in ("langsplat", "feature-3dgs"):  # two methods on one geometry fit: counted once
+                base = _doc(scene, seed, 50.0, method=method)
+                base["fit"]["info"]["geometry"] = _geometry(f"old-{scene}{seed}", 100.0, 400.0, 600.0, 25.0, 20.0)
+                cand = _doc(scene, seed, 49.0, method=method)
+                cand["fit"]["info"]["geometry"] = _geometry(f"new-{scene}{seed}", 50.0, 250.0, 350.0, 24.0, 19.5)
+                _write(old, base)
+                _write(new, cand)
+    pairs, _ = pair_runs(old, new)
+    rows = {(r["method"], r["score"]): r for r in compare(pairs)}
+    assert rows["langsplat", "held-out PSNR (dB)"]["difference"] == pytest.approx(-1.0)
+    assert rows["langsplat", "novel-view PSNR (dB)"]["difference"] == pytest.approx(-0.5)
+    report = paired_report("geo", old, new, tmp_path / "out")
+    doc = json.loads((tmp_path / "out" / "paired-geo.json").read_text())
+    costs = {r["cost"]: r for r in doc["geometry_costs"]}
+    assert costs["static stage CPU s"]["fits"] == 4  # four fits, not eight runs
+    assert costs["static stage CPU s"]["baseline_seconds"] == pytest.approx(400.0)
+    assert costs["deformation stage CPU s"]["candidate_seconds"] == pytest.approx(1000.0)
+    assert "| deformation stage CPU s | 4 | 1600 | 1000 | 0.62 |" in report.table
+
+
+def test_the_geometrys_psnr_is_read_from_paper_split_runs_only():
+    from benchmark.studies.paired_runs import _scores
+
+    doc = _doc("a", 0, 50.0)
+    doc["fit"]["info"]["geometry"] = _geometry("k", 1.0, 1.0, 1.0, 25.0, 20.0)
+    assert _scores(doc)["held-out PSNR (dB)"] == 25.0
+    doc["split"] = "novel-view"  # the same fit answers this split: not counted twice
+    assert _scores(doc)["held-out PSNR (dB)"] is None and _scores(doc)["novel-view PSNR (dB)"] is None

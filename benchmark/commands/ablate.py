@@ -23,7 +23,8 @@
                           [--seeds 0 ...] [--size 128] [--set KEY=VALUE] [--rounds 1] [--out reports/fit-timing]
     bench4d ablate paired --name NAME --baseline DIR --candidate DIR [--out reports/ablations]
     bench4d ablate kernels [--method 4d-langsplat] [--scenes S ...] [--seeds 0 ...] [--size 128]
-                           [--capabilities default avx2 native] [--results-dir results] [--out reports/kernel-spread]
+                           [--capabilities default avx2 native] [--results-dir results] [--trace]
+                           [--out reports/kernel-spread]
     bench4d ablate status-gap [--presets P ...] [--seeds 0 1 2] [--size 48] [--schedule demo|default]
                               [--captions scene clean mllm] [--set KEY=VALUE] [--out reports/ablations]
 
@@ -118,7 +119,9 @@ and seed. Writes ``<out>/<name>.json``, ``.md`` and the runs' results files (def
 ``kernels`` (:mod:`benchmark.studies.kernel_spread`): one method fitted on each scene and seed once per setting
 of torch's CPU kernels (``ATEN_CPU_CAPABILITY`` default, avx2, or unset), each a fresh single-threaded fit;
 every run's scores, their spread, and each setting's mean over scenes beside the results folder's interval of
-the same mean. Writes ``<out>/<name>.json``, ``.md`` and the runs' results files (default
+the same mean; each seed's spread over kernels beside the folder's spread over seeds, and each fit against the
+seeds' prediction interval for one fit; with ``--trace``, where a short fit parts under each setting
+(:mod:`benchmark.studies.kernel_trace`). Writes ``<out>/<name>.json``, ``.md`` and the runs' results files (default
 ``reports/kernel-spread/kernel-spread``); kept runs are read, not redone.
 
 ``status-gap`` (:mod:`benchmark.studies.status_gap`): ``4d-langsplat`` against ``non-status-field`` with the paper's
@@ -443,6 +446,8 @@ def _kernels_arguments(sub) -> None:
                    help="runs of the same method, split and scenes whose interval the spread is set beside")
     k.add_argument("--cache-dir", type=Path, default=Path("cache"), help="where a generated preset is kept")
     k.add_argument("--name", default="kernel-spread", help="output file stem under --out")
+    k.add_argument("--trace", action="store_true",
+                   help="also a short 4D-GS fit per setting with its loss at every iteration: where the fits part")
     _output_arguments(k)
     k.set_defaults(out=Path("reports/kernel-spread"))
 
@@ -616,7 +621,8 @@ def _kernels(args) -> int:
     config = KernelSpreadConfig(method=args.method, scenes=tuple(args.scenes), seeds=tuple(args.seeds), size=args.size,
                                 capabilities=tuple(args.capabilities), split=args.split,
                                 overrides={k: str(v) for k, v in parse_overrides(args.set).items()},
-                                results_dir=args.results_dir, cache_dir=args.cache_dir, name=args.name, out=args.out)
+                                results_dir=args.results_dir, cache_dir=args.cache_dir, name=args.name, out=args.out,
+                                trace=args.trace)
     return _print_report(kernel_spread_report(config, log=stderr_log(args.quiet)))
 
 

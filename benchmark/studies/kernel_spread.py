@@ -38,6 +38,7 @@ from benchmark.core.errors import InputError
 from benchmark.core.scene import DEFAULT_EVAL_SPLIT, check_eval_split
 
 from . import fit_timing
+from .kernel_trace import TraceConfig, parting, run_trace, trace_markdown
 from ._report import Report, markdown_table, write_report
 
 REPORTS = Path("reports/kernel-spread")
@@ -79,6 +80,11 @@ class KernelSpreadConfig:
     """Where a generated preset is kept (fits never are: each run has a cache of its own)."""
     timeout: float = 4 * 3600.0
     """Seconds one run may take before it counts as failed."""
+    trace: bool = False
+    """Also run :mod:`.kernel_trace`: a short fit per setting (default, avx2, native) with its loss at every
+    iteration, to show where the fits part."""
+    trace_config: TraceConfig = field(default_factory=TraceConfig)
+    """The trace's fit."""
     name: str = "kernel-spread"
     """Output file stem."""
     out: Path = REPORTS
@@ -223,9 +229,9 @@ def reference_interval(values: dict[str, list[float]], *, seed: int = 0) -> Opti
     return {"mean": mean, "low": lo, "high": hi, "seeds": {s: len(values[s]) for s in sorted(values)}}
 
 
-def leaderboard_values(results_dir: Path, method: str, split: str, scenes: Sequence[str], label: str,
-                       machine_kind: Optional[str] = None, runs=None) -> dict[str, list[float]]:
-    """Scene -> the per-seed ``label`` of ``method``'s runs on ``split`` under ``results_dir``, read as the
+def folder_values(results_dir: Path, method: str, split: str, scenes: Sequence[str], label: str,
+                  machine_kind: Optional[str] = None, runs=None) -> dict[str, dict[int, float]]:
+    """Scene -> seed -> ``label`` of ``method``'s runs on ``split`` under ``results_dir``, read as the
     leaderboard reads them (:func:`benchmark.leaderboard.load_runs`): runs of a clean, unchanging checkout
     only, of ``machine_kind`` where given. ``runs``: that folder's runs table, when already read."""
     from benchmark.leaderboard import load_runs
@@ -239,12 +245,19 @@ def leaderboard_values(results_dir: Path, method: str, split: str, scenes: Seque
             & ~runs["dirty"].astype(bool) & ~runs["code_changed"].astype(bool))
     if machine_kind is not None:
         keep &= runs["machine_kind"] == machine_kind
-    out: dict[str, list[float]] = {}
+    out: dict[str, dict[int, float]] = {}
     for _, row in runs[keep].sort_values(["scene", "seed"]).iterrows():
         value = row[label]
         if value is not None and np.isfinite(float(value)):
-            out.setdefault(str(row["scene"]), []).append(float(value))
+            out.setdefault(str(row["scene"]), {})[int(row["seed"])] = float(value)
     return out
+
+
+def leaderboard_values(results_dir: Path, method: str, split: str, scenes: Sequence[str], label: str,
+                       machine_kind: Optional[str] = None, runs=None) -> dict[str, list[float]]:
+    """Scene -> the per-seed ``label`` (in seed order) of :func:`folder_values`."""
+    found = folder_values(results_dir, method, split, scenes, label, machine_kind=machine_kind, runs=runs)
+    return {scene: [seeds[k] for k in sorted(seeds)] for scene, seeds in found.items()}
 
 
 def native_kind(runs: Sequence[dict]) -> Optional[str]:
@@ -254,16 +267,25 @@ def native_kind(runs: Sequence[dict]) -> Optional[str]:
     return kinds.pop() if len(kinds) == 1 else None
 
 
-def summarize(runs: Sequence[dict], config: KernelSpreadConfig) -> list[dict]:
-    """Per compared score: each setting's mean over scenes, the spread of those means, the mean and largest
-    per-run spread, and the results folder's interval with whether each setting's mean lies inside it."""
+def read_folder(config: KernelSpreadConfig):
+    """The results folder's runs table (:func:`benchmark.leaderboard.load_runs`), or None without a folder."""
     from benchmark.leaderboard import load_runs
 
+    if config.results_dir is None or not Path(config.results_dir).is_dir():
+        return None
+    return load_runs(Path(config.results_dir))[0]
+
+
+_UNREAD = object()
+
+
+def summarize(runs: Sequence[dict], config: KernelSpreadConfig, folder_runs=_UNREAD) -> list[dict]:
+    """Per compared score: each setting's mean over scenes, the spread of those means, the mean and largest
+    per-run spread, and the results folder's interval with whether each setting's mean lies inside it.
+    ``folder_runs``: the folder's runs table (:func:`read_folder`), when already read."""
     out = []
     per_run = spread_rows(runs)
-    folder = None  # the results folder's runs, read once for every score
-    if config.results_dir is not None and Path(config.results_dir).is_dir():
-        folder = load_runs(Path(config.results_dir))[0]
+    folder = read_folder(config) if folder_runs is _UNREAD else folder_runs
     for label in COMPARED:
         means = setting_means(runs, label)
         got = [v for v in means.values() if v is not None]
@@ -281,6 +303,68 @@ def summarize(runs: Sequence[dict], config: KernelSpreadConfig) -> list[dict]:
                     "mean_run_spread": float(np.mean(spreads)) if spreads else None,
                     "max_run_spread": max(spreads) if spreads else None, "reference": reference, "inside": inside})
     return out
+
+
+def noise_rows(runs: Sequence[dict], config: KernelSpreadConfig, folder_runs=None) -> list[dict]:
+    """Per scene, seed and compared score: the fit's values over the kernel settings -- with the results
+    folder's own fit of that seed (``folder``) where the study did not refit ``native`` -- beside the folder's
+    values over seeds, and the 95 % prediction interval those seeds give for one more fit
+    (:func:`benchmark.stats.prediction_interval`) with whether each kernel setting's fit lies inside it.
+
+    The kernel settings of one seed and the seeds of one setting are two sources of the same kind of
+    variation when a fit amplifies float rounding: their spreads are set side by side."""
+    from benchmark.stats import prediction_interval
+
+    folder: dict[str, dict[str, dict[int, float]]] = {}
+    if folder_runs is not None:
+        for label in COMPARED:
+            folder[label] = folder_values(Path(config.results_dir), config.method, config.split, config.scenes,
+                                          label, machine_kind=native_kind(runs), runs=folder_runs)
+    refit_native = any(r["capability"] == "native" for r in runs)
+    rows = []
+    for scene, seed in sorted({(r["scene"], r["seed"]) for r in runs}):
+        mine = [r for r in runs if (r["scene"], r["seed"]) == (scene, seed)]
+        for label in COMPARED:
+            kernels = {r["capability"]: r["scores"].get(label) for r in mine}
+            kernels = {k: v for k, v in kernels.items() if v is not None and np.isfinite(v)}
+            seeds = folder.get(label, {}).get(scene, {})
+            if not refit_native and seed in seeds:
+                kernels["folder"] = seeds[seed]
+            k_values, s_values = list(kernels.values()), list(seeds.values())
+            lo, hi = prediction_interval(s_values)
+            inside = ({k: bool(lo <= v <= hi) for k, v in kernels.items() if k != "folder"}
+                      if np.isfinite(lo) else None)
+            rows.append({"scene": scene, "seed": seed, "score": label, "kernels": kernels,
+                         "kernel_std": float(np.std(k_values, ddof=1)) if len(k_values) > 1 else None,
+                         "kernel_range": (max(k_values) - min(k_values)) if len(k_values) > 1 else None,
+                         "seeds": {str(k): v for k, v in sorted(seeds.items())},
+                         "seed_std": float(np.std(s_values, ddof=1)) if len(s_values) > 1 else None,
+                         "seed_range": (max(s_values) - min(s_values)) if len(s_values) > 1 else None,
+                         "prediction_interval": None if inside is None else [lo, hi], "inside_prediction": inside})
+    return rows
+
+
+def noise_markdown(rows: Sequence[dict]) -> str:
+    """The kernels-against-seeds section of the report."""
+    if not rows:
+        return ""
+    table_rows = []
+    for r in rows:
+        pi = r["prediction_interval"]
+        inside = "-" if r["inside_prediction"] is None else ", ".join(
+            f"{k}: {'yes' if v else 'no'}" for k, v in sorted(r["inside_prediction"].items()))
+        table_rows.append([r["scene"], str(r["seed"]), r["score"], str(len(r["kernels"])), _cell(r["kernel_std"]),
+                           _cell(r["kernel_range"]), str(len(r["seeds"])), _cell(r["seed_std"]), _cell(r["seed_range"]),
+                           "-" if pi is None else f"[{pi[0]:.2f}, {pi[1]:.2f}]", inside])
+    table = markdown_table(["scene", "seed", "score", "kernel settings", "std over kernels", "range over kernels",
+                            "seeds (results folder)", "std over seeds", "range over seeds",
+                            "one fit's 95 % prediction interval (from the seeds)", "inside?"], table_rows)
+    return ("\n\n## Kernels against seeds\n\nOne seed's fit under each kernel setting (with the results folder's own "
+            "fit of that seed where the study did not refit `native`), beside the results folder's fits of the "
+            "same scene over seeds: sample standard deviations and ranges. The last columns set each kernel "
+            "setting's fit against the 95 % prediction interval of one fit given those seeds (t distribution, "
+            "`benchmark.stats.prediction_interval`) -- the yardstick for a single fit, where the interval of the "
+            "means above is the yardstick for a mean.\n\n" + table)
 
 
 def _cell(value: Optional[float], digits: int = 2) -> str:
@@ -344,11 +428,23 @@ def kernel_spread_report(config: KernelSpreadConfig, log: Callable[[str], None] 
                 if doc is None:
                     doc = run_one(config, scene_dir, seed, cap, kept, log)
                 runs.append(run_record(doc, scene, seed, cap, kept))
-    summary = summarize(runs, config)
+    folder = read_folder(config)
+    summary = summarize(runs, config, folder)
+    noise = noise_rows(runs, config, folder)
     doc = {"config": {**asdict(config), "out": str(config.out), "cache_dir": str(config.cache_dir),
                       "results_dir": None if config.results_dir is None else str(config.results_dir)},
-           "runs": runs, "spread": spread_rows(runs), "summary": summary}
-    table = spread_markdown(config, runs, summary)
+           "runs": runs, "spread": spread_rows(runs), "summary": summary, "kernels_against_seeds": noise}
+    table = spread_markdown(config, runs, summary) + noise_markdown(noise)
+    if config.trace:
+        t = config.trace_config
+        scene_dir = resolve_scene(t.preset, Path(config.cache_dir), size=t.size, seed=t.seed, log=log)
+        traces = {cap: run_trace(t, cap, scene_dir, out / f"{config.name}-trace" / f"{cap}.json", log)
+                  for cap in CAPABILITIES}
+        names = list(traces)
+        doc["trace"] = {"config": asdict(t), "kernels": {cap: tr.get("capability") for cap, tr in traces.items()},
+                        "pairs": {f"{a} / {b}": parting(traces[a], traces[b], t.jump)
+                                  for i, a in enumerate(names) for b in names[i + 1:]}}
+        table += "\n\n" + trace_markdown(t, traces)
     paths = write_report(out, config.name, doc, table)
     for path in paths:
         log(f"wrote {path}")

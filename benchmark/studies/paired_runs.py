@@ -10,9 +10,14 @@ With two or three pairs a scene that interval is too narrow to decide on, so the
 sign-flip test's (:func:`benchmark.stats.sign_flip_test`): beyond the noise where p < 0.05, which six pairs
 can reach only when all six move the same way.
 
+The geometry's own scores -- held-out PSNR on the paper split's frames and PSNR on the novel views -- are
+compared on the paper-split runs (one fit answers both splits, so the novel-view runs would count it twice).
+
 Cost is the fit seconds each run added beyond a geometry fit (``timing.fit_seconds`` less the geometry's
 seconds where that run fitted it): the geometry of a scene and seed is fitted once and charged to whichever
-method ran first, so the seconds a config's other stages cost are compared, summed per method.
+method ran first, so the seconds a config's other stages cost are compared, summed per method. The geometry
+fits themselves are compared apart, each counted once (by its cache key), stage by stage in CPU seconds, which a
+shared machine disturbs less than wall seconds.
 """
 
 from __future__ import annotations
@@ -33,8 +38,12 @@ MIN_PAIRS_PER_SCENE = 2
 """A scene with fewer pairs leaves its row without an interval (its pairs still count in the test)."""
 SIGNIFICANCE = 0.05
 """A difference is beyond the noise where the sign-flip test's two-sided p-value is below this."""
-SCORES = ("mIoU", "Acc", "vIoU")
+SCORES = ("mIoU", "Acc", "vIoU", "held-out PSNR (dB)", "novel-view PSNR (dB)")
 """Scores compared (higher is better); a score a method does not answer is left out."""
+GEOMETRY_SCORES = {"held-out PSNR (dB)": "test_psnr", "novel-view PSNR (dB)": "novel_view_psnr"}
+"""Scores of the geometry fit (``fit.info.geometry``), read from paper-split runs only."""
+GEOMETRY_COSTS = ("static stage CPU s", "deformation stage CPU s", "whole geometry wall s")
+"""The geometry fit's seconds compared (the stages as the fit recorded them)."""
 
 
 @dataclass
@@ -53,6 +62,10 @@ class Pair:
     candidate_seconds: float
     options: dict[str, tuple[Any, Any]] = field(default_factory=dict)
     """Method option (dotted path) -> (baseline value, candidate value), where the two configs differ."""
+    baseline_geometry: Optional[dict[str, Any]] = None
+    """:func:`geometry_seconds` of the baseline run's geometry (None: the run records none)."""
+    candidate_geometry: Optional[dict[str, Any]] = None
+    """... and of the candidate run's."""
 
 
 def _options(doc: dict) -> dict[str, Any]:
@@ -79,13 +92,40 @@ def added_seconds(doc: dict) -> float:
     return max(0.0, seconds)
 
 
+def _number(value: Any) -> Optional[float]:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    return float(value) if ok else None
+
+
+def _geometry_info(doc: dict) -> Optional[dict]:
+    info = (doc.get("fit") or {}).get("info")
+    geometry = info.get("geometry") if isinstance(info, dict) else None
+    return geometry if isinstance(geometry, dict) else None
+
+
 def _scores(doc: dict) -> dict[str, Optional[float]]:
     metrics = doc.get("metrics") or {}
+    geometry = _geometry_info(doc) if (doc.get("split") or "paper") == "paper" else None
     out: dict[str, Optional[float]] = {}
     for name in SCORES:
-        value = metrics.get(name)
-        out[name] = float(value) if isinstance(value, (int, float)) and math.isfinite(value) else None
+        if name in GEOMETRY_SCORES:
+            out[name] = _number((geometry or {}).get(GEOMETRY_SCORES[name]))
+        else:
+            out[name] = _number(metrics.get(name))
     return out
+
+
+def geometry_seconds(doc: dict) -> Optional[dict[str, Any]]:
+    """The run's geometry fit as its record gives it (whether this run fitted it or read it from the cache):
+    its cache ``key`` and :data:`GEOMETRY_COSTS`; None where the run records no geometry."""
+    geometry = _geometry_info(doc)
+    if geometry is None or not geometry.get("key"):
+        return None
+    stages = {s.get("stage"): s for s in geometry.get("stages") or [] if isinstance(s, dict)}
+    return {"key": str(geometry["key"]),
+            "static stage CPU s": _number((stages.get("static") or {}).get("cpu_seconds")),
+            "deformation stage CPU s": _number((stages.get("deformation") or {}).get("cpu_seconds")),
+            "whole geometry wall s": _number(geometry.get("seconds"))}
 
 
 def _scene_digest(doc: dict) -> Optional[str]:
@@ -111,7 +151,7 @@ def pair_runs(baseline_dir: Path, candidate_dir: Path) -> tuple[list[Pair], list
         options = {k: (a.get(k), b.get(k)) for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)}
         pairs.append(Pair(new["dataset"], new["scene"], new["method"], new["track"], new.get("split") or "paper",
                           int(new["seed"]), _scores(old), _scores(new), added_seconds(old), added_seconds(new),
-                          options))
+                          options, geometry_seconds(old), geometry_seconds(new)))
     return pairs, unpaired
 
 
@@ -157,6 +197,24 @@ def costs(pairs: list[Pair]) -> list[dict[str, Any]]:
     old, new = sum(r["baseline_seconds"] for r in rows), sum(r["candidate_seconds"] for r in rows)
     rows.append({"method": "all", "runs": sum(r["runs"] for r in rows), "baseline_seconds": old,
                  "candidate_seconds": new})
+    return rows
+
+
+def geometry_costs(pairs: list[Pair]) -> list[dict[str, Any]]:
+    """Per geometry cost (:data:`GEOMETRY_COSTS`): the sums over the geometry fits both sides record, each fit
+    counted once (pairs whose two geometries are the same fit, or that lack one, are left out)."""
+    seen: dict[tuple[str, str], tuple[dict, dict]] = {}
+    for p in pairs:
+        a, b = p.baseline_geometry, p.candidate_geometry
+        if a is None or b is None or a["key"] == b["key"]:
+            continue
+        seen.setdefault((a["key"], b["key"]), (a, b))
+    rows = []
+    for name in GEOMETRY_COSTS:
+        both = [(a[name], b[name]) for a, b in seen.values() if a[name] is not None and b[name] is not None]
+        if both:
+            rows.append({"cost": name, "fits": len(both), "baseline_seconds": sum(x for x, _ in both),
+                         "candidate_seconds": sum(y for _, y in both)})
     return rows
 
 
@@ -210,7 +268,17 @@ def paired_report(name: str, baseline_dir: Path, candidate_dir: Path, out: Path,
                                _seconds_cell(r["candidate_seconds"]),
                                f"{r['candidate_seconds'] / r['baseline_seconds']:.2f}" if r["baseline_seconds"] else "–"]
                               for r in cost])]
+    geometry = geometry_costs(pairs)
+    if geometry:
+        lines += ["", "The geometry fits, each counted once (CPU seconds per stage as each fit recorded them, and its "
+                  "wall seconds):", "",
+                  markdown_table(["geometry", "fits", "baseline s", "candidate s", "ratio"],
+                                 [[r["cost"], str(r["fits"]), _seconds_cell(r["baseline_seconds"]),
+                                   _seconds_cell(r["candidate_seconds"]),
+                                   f"{r['candidate_seconds'] / r['baseline_seconds']:.2f}" if r["baseline_seconds"]
+                                   else "–"] for r in geometry])]
     table = "\n".join(lines)
     doc = {"name": name, "baseline": str(baseline_dir), "candidate": str(candidate_dir), "pairs": len(pairs),
-           "unpaired": unpaired, "options": [list(o) for o in options], "scores": rows, "costs": cost}
+           "unpaired": unpaired, "options": [list(o) for o in options], "scores": rows, "costs": cost,
+           "geometry_costs": geometry}
     return Report(table, write_report(Path(out), f"paired-{name}", doc, table))
