@@ -125,3 +125,15 @@ def test_head_against_the_working_tree_on_a_tiny_fit(tmp_path):
     assert rows["whole fit"]["baseline_seconds"] == whole["baseline"]
     assert all(r["scores"]["mIoU"] is not None for r in runs)
     assert "| whole fit |" in report.table and Path(report.paths[1]).read_text() == report.table
+
+
+def test_candidate_options_reach_the_candidate_side_only(tmp_path):
+    config = TimingConfig(baseline="HEAD", overrides={"field.iterations": "5"},
+                          candidate_overrides={"geometry.deformation_iterations": "1000", "field.iterations": "7"})
+    old = fit_timing.eval_command(config, tmp_path, 0, tmp_path / "c", tmp_path / "r", side="baseline")
+    new = fit_timing.eval_command(config, tmp_path, 0, tmp_path / "c", tmp_path / "r", side="candidate")
+    assert [old[i + 1] for i, a in enumerate(old) if a == "--set"] == ["field.iterations=5"]
+    assert sorted(new[i + 1] for i, a in enumerate(new) if a == "--set") == [
+        "field.iterations=7", "geometry.deformation_iterations=1000"]  # the candidate's own value wins
+    text = fit_timing.timing_markdown(config, {"baseline": "a", "candidate": "b"}, [], [])
+    assert "the candidate's own: `geometry.deformation_iterations=1000`" in text

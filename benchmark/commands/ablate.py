@@ -413,6 +413,8 @@ def _timing_arguments(sub) -> None:
     t.add_argument("--seeds", nargs="+", type=parse_seed, default=[0])
     t.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="a method option for both sides, e.g. geometry.deformation_iterations=600 (repeatable)")
+    t.add_argument("--candidate-set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a method option of the candidate side only (repeatable): a config change timed with the code")
     t.add_argument("--rounds", type=int, default=1, help="fits per side (sides alternate the lead each round)")
     t.add_argument("--cache-dir", type=Path, default=Path("cache"), help="where a generated preset is kept")
     t.add_argument("--name", default="fit-timing", help="output file stem under --out")
@@ -610,7 +612,9 @@ def _timing(args) -> int:
 
     config = TimingConfig(baseline=args.baseline, candidate=args.candidate, method=args.method,
                           scenes=tuple(args.scenes), size=args.size,
-                          overrides={k: str(v) for k, v in parse_overrides(args.set).items()}, rounds=args.rounds,
+                          overrides={k: str(v) for k, v in parse_overrides(args.set).items()},
+                          candidate_overrides={k: str(v) for k, v in parse_overrides(args.candidate_set).items()},
+                          rounds=args.rounds,
                           seeds=tuple(args.seeds), cache_dir=args.cache_dir, name=args.name, out=args.out)
     return _print_report(fit_timing_report(config, log=stderr_log(args.quiet)))
 

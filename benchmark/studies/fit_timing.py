@@ -107,6 +107,9 @@ class TimingConfig:
     """Image size of a generated preset."""
     overrides: dict[str, str] = field(default_factory=dict)
     """Method options (``--set KEY=VALUE``) given to both sides, e.g. a shortened schedule."""
+    candidate_overrides: dict[str, str] = field(default_factory=dict)
+    """Method options (``--candidate-set KEY=VALUE``) of the candidate side only, after ``overrides``: a
+    config change timed together with the code's."""
     rounds: int = 1
     """Runs per side; sides alternate which goes first from round to round."""
     seeds: tuple[int, ...] = (0,)
@@ -166,13 +169,18 @@ def export_commit(commit: str, dest: Path, repo: Path = REPO) -> Path:
     return dest
 
 
+def side_overrides(config: TimingConfig, side: str) -> dict[str, str]:
+    """The method options of ``side``: ``overrides``, and for the candidate ``candidate_overrides`` over them."""
+    return {**config.overrides, **(config.candidate_overrides if side == "candidate" else {})}
+
+
 def eval_command(config: TimingConfig, scene_dir: Path, seed: int, cache: Path, results: Path,
-                 python: str = sys.executable) -> list[str]:
-    """The ``bench4d eval`` command line both sides run (in their own tree)."""
+                 python: str = sys.executable, side: str = "baseline") -> list[str]:
+    """The ``bench4d eval`` command line ``side`` runs (in its own tree)."""
     cmd = [python, "-m", "benchmark.cli", "eval", "--method", config.method, "--scene", str(scene_dir),
            "--seed", str(seed), "--cache-dir", str(cache), "--results-dir", str(results), "--threads", "1",
            "--quiet"]
-    for key, value in config.overrides.items():
+    for key, value in side_overrides(config, side).items():
         cmd += ["--set", f"{key}={value}"]
     return cmd
 
@@ -195,7 +203,7 @@ def run_side(tree: Path, side: str, round_: int, config: TimingConfig, scene: st
     run_dir = work / f"{side}-{Path(scene).name}-seed{seed}-round{round_}"
     cache, results = run_dir / "cache", run_dir / "results"
     env = {**os.environ, "PYTHONPATH": str(tree), "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    cmd = eval_command(config, scene_dir, seed, cache, results)
+    cmd = eval_command(config, scene_dir, seed, cache, results, side=side)
     log(f"round {round_}: {side}, {scene} seed {seed} ({tree})")
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
@@ -293,9 +301,11 @@ def timing_markdown(config: TimingConfig, commits: dict[str, str], rows: Sequenc
             f"{', '.join(map(str, config.seeds))}\n\n"
             f"Baseline `{commits['baseline']}`, candidate `{commits['candidate']}`; {config.rounds} round(s), "
             f"sides alternating, one thread each, run one after the other on this machine. Options: "
-            f"{', '.join(f'`{k}={v}`' for k, v in config.overrides.items()) or 'the method defaults'}.\n"
-            f"Seconds: per scene and seed the median over rounds, then the mean over scenes and seeds (wall time as "
-            f"each fit recorded it, unless marked CPU); ratio = candidate / baseline.\n\n")
+            f"{', '.join(f'`{k}={v}`' for k, v in config.overrides.items()) or 'the method defaults'}"
+            + (f"; the candidate's own: {', '.join(f'`{k}={v}`' for k, v in config.candidate_overrides.items())}"
+               if config.candidate_overrides else "") + ".\n"
+            "Seconds: per scene and seed the median over rounds, then the mean over scenes and seeds (wall time as "
+            "each fit recorded it, unless marked CPU); ratio = candidate / baseline.\n\n")
     table = markdown_table(["stage", "baseline s", "candidate s", "ratio", "speed-up"],
                            [[r["stage"], _cell(r["baseline_seconds"]), _cell(r["candidate_seconds"]),
                              _cell(r["ratio"], 3), _cell(r["speedup"], 2)] for r in rows])
