@@ -850,3 +850,48 @@ def test_a_fitted_method_clears_the_floors_only_when_its_whole_clean_interval_li
     assert machine_line(scores).startswith("Machine kind of every run: CPU X (avx2) (12 runs)")
     mixed = scores + [dataclasses.replace(scores[0], seed=7, machine="CPU Y (avx512)")]
     assert "mix kinds" in machine_line(mixed)
+
+
+def _runs(fam, method, clean, strongest, metric="mIoU"):
+    from benchmark.studies.stress import Score
+
+    out = []
+    for strength, values in ((0.0, clean), (1.0, strongest)):
+        for seed, v in enumerate(values):
+            metrics = {"mIoU": None, "Acc": None, "vIoU": None, metric: v}
+            out.append(Score(fam if strength else "mask-drop", strength, method, seed, metrics, None, 1.0))
+    # the clean runs count for every family: the same scores under this family's name
+    return [dataclasses.replace(s, family=fam) for s in out]
+
+
+def test_a_family_is_kept_where_a_method_breaks_or_two_methods_drop_apart_and_dropped_otherwise():
+    from benchmark.stats import t_interval
+    from benchmark.studies.stress_plots import family_verdicts, separated_pairs, verdict_markdown
+
+    methods = ("nearest-frame", "4d-langsplat", "langsplat", "feature-3dgs")
+    scores = (
+        # "occluder": 4d-langsplat drops about 20 points on every seed, langsplat about 2: separated
+        _runs("occluder", "4d-langsplat", [60, 62, 61], [40, 43, 40]) + _runs("occluder", "langsplat", [55, 56, 57], [53, 55, 54])
+        # "appearance": both drop about the same, within the noise: dropped
+        + _runs("appearance", "4d-langsplat", [60, 62, 61], [55, 58, 56]) + _runs("appearance", "langsplat", [55, 56, 57], [50, 52, 51])
+        # "mask-drop": langsplat falls below half of its clean score on every seed: it breaks
+        + _runs("mask-drop", "4d-langsplat", [60, 62, 61], [58, 60, 59]) + _runs("mask-drop", "langsplat", [55, 56, 57], [10, 12, 11])
+        # "camera-slow": only the floor moves: a floor keeps nothing
+        + _runs("camera-slow", "nearest-frame", [60, 61, 62], [5, 6, 7]) + _runs("camera-slow", "langsplat", [55, 56, 57], [54, 56, 56])
+        # "caption-swap": nothing moves, but it is kept for the time-varying heads
+        + _runs("caption-swap", "4d-langsplat", [80, 90, 85], [80, 90, 85], metric="Acc")
+        # "topology": a consistent difference of 1 point is outside the noise but too small to separate
+        + _runs("topology", "4d-langsplat", [60, 62, 61], [50, 52, 51]) + _runs("topology", "langsplat", [55, 56, 57], [46, 47, 48]))
+    assert separated_pairs(scores, "occluder", ["4d-langsplat", "langsplat"], "mIoU") == [
+        ("4d-langsplat", "langsplat", pytest.approx(18.0))]
+    assert t_interval([1.0, 1.0, 1.0]) == (1.0, 1.0) and all(np.isnan(v) for v in t_interval([1.0]))
+    verdicts = {v["family"]: v for v in family_verdicts(scores, ["occluder", "appearance", "mask-drop", "camera-slow",
+                                                                 "caption-swap", "topology"], methods)}
+    assert verdicts["occluder"]["kept"] and "4d-langsplat drops 18.0 more than langsplat" in verdicts["occluder"]["reason"]
+    assert not verdicts["appearance"]["kept"] and "no method breaks" in verdicts["appearance"]["reason"]
+    assert verdicts["mask-drop"]["kept"] and verdicts["mask-drop"]["breaks"] == ["langsplat (mIoU)"]
+    assert not verdicts["camera-slow"]["kept"], "a family that moves only a floor says nothing of the methods"
+    assert verdicts["caption-swap"]["kept"] and "time-varying heads" in verdicts["caption-swap"]["reason"]
+    assert not verdicts["topology"]["kept"], "a 1-point difference separates nothing"
+    text = verdict_markdown(list(verdicts.values()))
+    assert "`--families occluder mask-drop caption-swap`" in text

@@ -486,6 +486,102 @@ def findings(scores: Sequence[Score], families: Sequence[str], methods: Sequence
     return "\n".join(lines) + "\n"
 
 
+ALWAYS_KEPT = ("caption-swap", "state-ramp", "caption-lag")
+"""Families kept whatever the measurements: wrong-state captions, gradual changes and late captions are what
+the status field is argued for, so they compare it with the directly time-varying field under stress."""
+
+
+def _strongest_pair(scores: Sequence[Score], fam: str, method: str, metric: str) -> dict[int, float]:
+    """Seed -> clean minus strongest-strength ``metric`` of ``method`` on ``fam`` (seeds with both)."""
+    by = {(s.strength, s.seed): s.metrics.get(metric) for s in scores if s.family == fam and s.method == method}
+    strengths = [k for k, _ in by if k > 0]
+    if not strengths:
+        return {}
+    top = max(strengths)
+    return {seed: float(by[0.0, seed]) - float(by[top, seed]) for (k, seed), v in by.items()
+            if k == top and v is not None and by.get((0.0, seed)) is not None}
+
+
+def separated_pairs(scores: Sequence[Score], fam: str, methods: Sequence[str],
+                    metric: str) -> list[tuple[str, str, float]]:
+    """Pairs of ``methods`` whose drops from the clean scene to the family's strongest strength differ outside the
+    seed noise: the 95 % t interval (:func:`benchmark.stats.t_interval`) of their paired difference over seeds
+    (same seed, so the same scene) excludes 0 and the mean difference is at least :data:`MIN_SEPARATION`.
+    ``(a, b, d)``: ``a`` drops ``d`` points more than ``b``. A t
+    interval, not the bootstrap of the breaking points: with two or three seeds a bootstrap interval is about
+    their range, and the same sign on three seeds happens by chance one time in four."""
+    from benchmark.stats import t_interval
+
+    drops = {m: _strongest_pair(scores, fam, m, metric) for m in methods}
+    out = []
+    for i, a in enumerate(methods):
+        for b in methods[i + 1:]:
+            common = sorted(set(drops[a]) & set(drops[b]))
+            diffs = [drops[a][k] - drops[b][k] for k in common]
+            lo, hi = t_interval(diffs)
+            if lo > 0 and np.mean(diffs) >= MIN_SEPARATION:
+                out.append((a, b, float(np.mean(diffs))))
+            elif hi < 0 and -np.mean(diffs) >= MIN_SEPARATION:
+                out.append((b, a, -float(np.mean(diffs))))
+    return out
+
+
+SHOWN_PAIRS = 3
+"""Separated pairs a family's reason names (the largest differences); the rest are counted."""
+MIN_SEPARATION = 5.0
+"""Points (of a 0-100 score) by which two methods' drops must differ, beyond the seed noise, to separate them:
+a difference can be outside the noise and still too small to tell a reader anything."""
+
+
+def family_verdicts(scores: Sequence[Score], families: Sequence[str], methods: Sequence[str]) -> list[dict]:
+    """Per family: the fitted methods that break on it (mIoU, or Acc where the clean Acc is above
+    :data:`ACC_FLOOR`), the pairs of fitted methods it separates, and whether the suite keeps it, with the
+    reason. The floors are left out: a family that moves only a floor says nothing of the methods."""
+    from methods import registry
+
+    methods = [m for m in methods if not registry.get(m).floor]
+    out = []
+    for fam in families:
+        breaks, separates, said = [], [], []
+        for metric in ("mIoU", "Acc"):
+            scored = []
+            for method in methods:
+                values = mean_by_strength(scores, fam, method, metric)
+                if not values.get(0.0) or not any(k > 0 for k in values):
+                    continue
+                if metric == "Acc" and float(np.mean(values[0.0])) <= ACC_FLOOR:
+                    continue
+                scored.append(method)
+                if breaking_point(values) is not None:
+                    breaks.append(f"{method} ({metric})")
+            pairs = sorted(separated_pairs(scores, fam, scored, metric), key=lambda p: -p[2])
+            separates += [{"metric": metric, "more": a, "less": b, "difference": d} for a, b, d in pairs]
+            if pairs:
+                shown = ", ".join(f"{a} drops {d:.1f} more than {b}" for a, b, d in pairs[:SHOWN_PAIRS])
+                rest = len(pairs) - SHOWN_PAIRS
+                said.append(f"separates {len(pairs)} pair(s) on {metric}: {shown}" + (f" (+{rest} more)" if rest > 0
+                                                                                        else ""))
+        if breaks or separates:
+            kept, reason = True, "; ".join((["breaks " + ", ".join(breaks)] if breaks else []) + said)
+        elif fam in ALWAYS_KEPT:
+            kept, reason = True, "kept for the time-varying heads (no break or separation measured)"
+        else:
+            kept, reason = False, ("no method breaks, and no two methods' drops differ outside the seed noise "
+                                   "(mIoU, Acc)")
+        out.append({"family": fam, "kept": kept, "reason": reason, "breaks": breaks, "separates": separates})
+    return out
+
+
+def verdict_markdown(verdicts: Sequence[dict]) -> str:
+    """The kept and dropped families as a table, and the ``--families`` of the kept ones."""
+    if not verdicts:
+        return ""
+    table = markdown_table(["family", "kept", "why"], [[v["family"], "yes" if v["kept"] else "dropped", v["reason"]]
+                                                       for v in verdicts])
+    kept = [v["family"] for v in verdicts if v["kept"]]
+    return (f"{table}\nThe kept families, to fill in their strengths: `--families {' '.join(kept) or '(none)'}`.\n")
+
+
 NOTES_FILE = "notes.md"
 """A hand-written reading of the measurements in the report folder, copied into README.md when present."""
 
@@ -535,7 +631,12 @@ def _readme(config: SuiteConfig, scores: Sequence[Score], families: Sequence[str
             f"{_clean_table(scores, config.methods)}\n"
             f"## Breaking points\n\nThe first strength at which a method's 95 % interval over seeds lies wholly "
             f"below half of its clean interval's lower end: a drop outside the seed noise (`≤ s`: weaker strengths were not run; `> s`: it holds up to the strongest strength run; `–`: not run, or no clean score to halve).\n\n"
-            f"{table}\n## Findings per family (measured)\n\nMeans over the seeds run (the clean runs' and, "
+            f"{table}\n## Families kept and dropped\n\nA family is kept where a fitted method breaks on it, or where two "
+            f"fitted methods' drops from the clean scene to its strongest strength differ outside the seed noise (the "
+            f"95 % t interval over seeds of their paired difference excludes 0) by at least {MIN_SEPARATION:g} "
+            f"points; floors are not counted; {', '.join(ALWAYS_KEPT)} are kept for the "
+            f"time-varying heads in any case.\n\n{verdict_markdown(family_verdicts(scores, families, config.methods))}\n"
+            f"## Findings per family (measured)\n\nMeans over the seeds run (the clean runs' and, "
             f"where a perturbed strength has fewer, which at which strengths).\n\n"
             f"{findings(scores, families, config.methods)}\n"
             + (f"{notes.strip()}\n\n" if notes.strip() else "")
