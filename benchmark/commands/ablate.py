@@ -25,6 +25,7 @@
     bench4d ablate kernels [--method 4d-langsplat] [--scenes S ...] [--seeds 0 ...] [--size 128]
                            [--capabilities default avx2 native] [--results-dir results] [--trace]
                            [--out reports/kernel-spread]
+    bench4d ablate step-profile --geometry FILE --scene SCENE [--steps 10] [--recorded-dynamic]
     bench4d ablate status-gap [--presets P ...] [--seeds 0 1 2] [--size 48] [--schedule demo|default]
                               [--captions scene clean mllm] [--set KEY=VALUE] [--out reports/ablations]
 
@@ -124,6 +125,11 @@ seeds' prediction interval for one fit; with ``--trace``, where a short fit part
 (:mod:`benchmark.studies.kernel_trace`). Writes ``<out>/<name>.json``, ``.md`` and the runs' results files (default
 ``reports/kernel-spread/kernel-spread``); kept runs are read, not redone.
 
+``step-profile`` (:mod:`benchmark.studies.step_profile`): deformation-stage steps on a cached 4D-GS geometry,
+one thread, under the profiler; the step's CPU time by part (compositing, HexPlane, the MLP's products and
+ReLUs, the optimisers, the rest). Writes ``<out>/<name>.json`` and ``.md`` (default
+``reports/fit-timing/step-profile``).
+
 ``status-gap`` (:mod:`benchmark.studies.status_gap`): ``4d-langsplat`` against ``non-status-field`` with the paper's
 components only, on the presets whose states change gradually or back and forth (MLLM-like captions), over
 seeds: each method's Acc, vIoU and AUC, their difference with its spread over seeds, and each method's decision
@@ -156,7 +162,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     for add in (_delta_sim_arguments, _speed_arguments, _query_speed_arguments, _ceiling_arguments,
                 _autoencoder_arguments, _rescore_arguments, _gap_arguments, _decisions_arguments, _states_arguments,
                 _capacity_arguments, _real_cost_arguments, _timing_arguments, _status_gap_arguments,
-                _kernels_arguments, _paired_arguments):
+                _kernels_arguments, _paired_arguments, _step_profile_arguments):
         add(sub)
     for study in sub.choices.values():
         add_threads_argument(study)
@@ -454,6 +460,22 @@ def _kernels_arguments(sub) -> None:
     k.set_defaults(out=Path("reports/kernel-spread"))
 
 
+def _step_profile_arguments(sub) -> None:
+    sp = sub.add_parser("step-profile", help="one deformation-stage step's CPU time, part by part, at a fitted size")
+    sp.add_argument("--geometry", type=Path, required=True,
+                    help="a cached 4D-GS geometry (<cache>/language/<dataset>-<scene>/geometry-4dgs-*.pt)")
+    sp.add_argument("--scene", required=True, help="the synthetic preset or scene folder it was fitted on")
+    sp.add_argument("--size", type=int, default=128, help="image size of a generated preset")
+    sp.add_argument("--seed", type=parse_seed, default=0, help="scene seed of a generated preset")
+    sp.add_argument("--steps", type=int, default=10, help="profiled steps")
+    sp.add_argument("--recorded-dynamic", action="store_true",
+                    help="deform only the Gaussians the geometry records as dynamic (default: all of them)")
+    sp.add_argument("--cache-dir", type=Path, default=Path("cache"), help="where a generated preset is kept")
+    sp.add_argument("--name", default="step-profile", help="output file stem under --out")
+    _output_arguments(sp)
+    sp.set_defaults(out=Path("reports/fit-timing"))
+
+
 def _output_arguments(p: argparse.ArgumentParser, out_help: Optional[str] = None) -> None:
     p.add_argument("--out", type=Path, default=REPORTS, help=out_help)
     p.add_argument("--quiet", action="store_true")
@@ -651,8 +673,17 @@ def _status_gap(args) -> int:
     return _print_report(status_gap_report(config))
 
 
+def _step_profile(args) -> int:
+    from benchmark.studies.step_profile import StepProfileConfig, step_profile_report
+
+    config = StepProfileConfig(geometry=args.geometry, scene=args.scene, size=args.size, seed=args.seed,
+                               steps=args.steps, all_dynamic=not args.recorded_dynamic, cache_dir=args.cache_dir,
+                               name=args.name, out=args.out)
+    return _print_report(step_profile_report(config, log=stderr_log(args.quiet)))
+
+
 RUNS = {"delta-sim": _delta_sim, "speed": _speed, "query-speed": _query_speed, "ceiling": _ceiling,
         "autoencoder": _autoencoder, "rescore": _rescore, "gap": _gap, "decisions": _decisions, "states": _states,
         "capacity": _capacity, "real-cost": _real_cost, "timing": _timing, "status-gap": _status_gap,
-        "kernels": _kernels, "paired": _paired}
+        "kernels": _kernels, "paired": _paired, "step-profile": _step_profile}
 """The function each subcommand runs."""
