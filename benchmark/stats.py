@@ -108,29 +108,36 @@ def percentile_interval(replicates: np.ndarray, confidence: float = CONFIDENCE) 
     return float(lo), float(hi)
 
 
-def t_interval(values: Sequence[float], confidence: float = CONFIDENCE) -> tuple[float, float]:
-    """The t interval of the mean of ``values``: mean -+ t(n - 1) s / sqrt(n) (s the sample standard deviation);
-    wide at few values, as it should be (three seeds: t = 4.30); (NaN, NaN) below two values."""
+def _t_parts(values: Sequence[float], confidence: float) -> Optional[tuple[float, float, int, float]]:
+    """(mean, sample standard deviation, n, the t quantile of ``confidence``) of the finite ``values``; None
+    below two."""
     from scipy.stats import t
 
     x = np.asarray([v for v in values if v is not None and math.isfinite(v)], dtype=np.float64)
     if x.size < 2:
+        return None
+    return float(x.mean()), float(x.std(ddof=1)), int(x.size), float(t.ppf(0.5 + confidence / 2.0, x.size - 1))
+
+
+def t_interval(values: Sequence[float], confidence: float = CONFIDENCE) -> tuple[float, float]:
+    """The t interval of the mean of ``values``: mean -+ t(n - 1) s / sqrt(n) (s the sample standard deviation);
+    wide at few values, as it should be (three seeds: t = 4.30); (NaN, NaN) below two values."""
+    parts = _t_parts(values, confidence)
+    if parts is None:
         return math.nan, math.nan
-    half = float(t.ppf(0.5 + confidence / 2.0, x.size - 1)) * float(x.std(ddof=1)) / math.sqrt(x.size)
-    return float(x.mean()) - half, float(x.mean()) + half
+    mean, s, n, q = parts
+    return mean - q * s / math.sqrt(n), mean + q * s / math.sqrt(n)
 
 
 def prediction_interval(values: Sequence[float], confidence: float = CONFIDENCE) -> tuple[float, float]:
     """Where one more draw from the distribution of ``values`` falls with probability ``confidence``, under
-    a normal model: mean -+ t(n - 1) s sqrt(1 + 1/n) (s the sample standard deviation). The interval for a
-    single new fit, where :func:`bootstrap_means` gives the interval of a mean; (NaN, NaN) below two values."""
-    from scipy.stats import t
-
-    x = np.asarray([v for v in values if v is not None and math.isfinite(v)], dtype=np.float64)
-    if x.size < 2:
+    a normal model: mean -+ t(n - 1) s sqrt(1 + 1/n). The interval for a single new fit, where
+    :func:`t_interval` and :func:`bootstrap_means` give intervals of a mean; (NaN, NaN) below two values."""
+    parts = _t_parts(values, confidence)
+    if parts is None:
         return math.nan, math.nan
-    half = float(t.ppf(0.5 + confidence / 2.0, x.size - 1)) * float(x.std(ddof=1)) * math.sqrt(1.0 + 1.0 / x.size)
-    return float(x.mean()) - half, float(x.mean()) + half
+    mean, s, n, q = parts
+    return mean - q * s * math.sqrt(1.0 + 1.0 / n), mean + q * s * math.sqrt(1.0 + 1.0 / n)
 
 
 def overlaps(a: tuple[float, float], b: tuple[float, float]) -> bool:

@@ -125,6 +125,7 @@ def test_head_against_the_working_tree_on_a_tiny_fit(tmp_path):
     assert rows["whole fit"]["baseline_seconds"] == whole["baseline"]
     assert all(r["scores"]["mIoU"] is not None for r in runs)
     assert "| whole fit |" in report.table and Path(report.paths[1]).read_text() == report.table
+    assert "## Scores (oracle track)" in report.table  # the scores name the supervision they were fitted on
 
 
 def test_candidate_options_reach_the_candidate_side_only(tmp_path):
@@ -137,3 +138,15 @@ def test_candidate_options_reach_the_candidate_side_only(tmp_path):
         "field.iterations=7", "geometry.deformation_iterations=1000"]  # the candidate's own value wins
     text = fit_timing.timing_markdown(config, {"baseline": "a", "candidate": "b"}, [], [])
     assert "the candidate's own: `geometry.deformation_iterations=1000`" in text
+
+
+def test_the_scores_name_their_track():
+    import dataclasses
+
+    config = TimingConfig(baseline="HEAD")
+    runs = [dataclasses.replace(_run("baseline", 0, 10.0, 5.0, 20.0), track="oracle"),
+            dataclasses.replace(_run("candidate", 0, 5.0, 5.0, 12.0), track="oracle")]
+    text = fit_timing.timing_markdown(config, {"baseline": "a", "candidate": "b"}, summarize(runs), runs)
+    assert "## Scores (oracle track)" in text
+    unknown = fit_timing.timing_markdown(config, {"baseline": "a", "candidate": "b"}, [], [_run("baseline", 0, 1, 1, 1)])
+    assert "## Scores (unrecorded track)" in unknown

@@ -47,7 +47,7 @@ def test_a_setting_inside_the_results_folders_interval_is_marked_inside(tmp_path
     monkeypatch.setattr(kernel_spread, "leaderboard_values",
                         lambda *a, **k: {"a": [48.0, 52.0, 50.0]} if a[4] == "mIoU" else {})
     config = KernelSpreadConfig(scenes=("a",), capabilities=("default", "native"), results_dir=tmp_path)
-    mine = {s["score"]: s for s in summarize(runs, config)}
+    mine = {s["score"]: s for s in summarize(runs, config, kernel_spread.read_folder(config))}
     assert mine["mIoU"]["inside"] == {"default": True, "native": False}
     assert mine["mIoU"]["spread_of_means"] == pytest.approx(30.0)
     assert mine["Acc"]["reference"] is None and mine["Acc"]["inside"] is None
@@ -82,6 +82,7 @@ def test_two_settings_on_a_tiny_fit_then_resumed_without_refitting(tmp_path, mon
     assert {r["capability"] for r in doc["runs"]} == {"default", "native"}
     assert all(np.isfinite(r["scores"]["mIoU"]) for r in doc["runs"])
     assert "| smoke | 1 | mIoU |" in report.table
+    assert "paper split, oracle track" in report.table.splitlines()[0]
 
     def refit(*args, **kwargs):
         raise AssertionError("a kept run was fitted again")
@@ -161,14 +162,19 @@ def test_parting_finds_the_first_difference_the_jump_and_the_densification_befor
 
 
 def test_the_reading_says_densification_only_when_every_pair_parted_right_after_one():
-    from benchmark.studies.kernel_trace import TraceConfig, trace_markdown
+    from benchmark.studies.kernel_trace import TraceConfig, pairings, trace_markdown
+
+    def text(traces):
+        return trace_markdown(TraceConfig(), traces, pairings(traces))
 
     a = _trace([1.0] * 6, [3] * 6, densify=[3])
     after = _trace([1.0, 1.0, 1.0, 1.1, 1.1, 1.1], [3] * 6, densify=[3])
     later = _trace([1.0, 1.0, 1.0, 1.0, 1.0, 1.2], [3] * 6, densify=[3])
-    assert "right after a densification step" in trace_markdown(TraceConfig(), {"x": a, "y": after})
-    text = trace_markdown(TraceConfig(), {"x": a, "y": later})
-    assert "right after a densification step, the difference" not in text and "Not every pair" in text
+    assert "right after a densification step" in text({"x": a, "y": after})
+    mixed = text({"x": a, "y": later})
+    assert "right after a densification step, the difference" not in mixed and "Not every pair" in mixed
+    assert "No pair parted" in text({"x": a, "y": a})  # nothing to explain: said so, not "not every pair"
+    assert list(pairings({"x": a, "y": after, "z": later})) == ["x / y", "x / z", "y / z"]
 
 
 def test_a_trace_runs_per_setting_in_its_own_process_and_is_read_back(tmp_path, monkeypatch):
@@ -194,3 +200,16 @@ def test_a_trace_runs_per_setting_in_its_own_process_and_is_read_back(tmp_path, 
     (tmp_path / "native.json").write_text("{broken")
     with pytest.raises(AssertionError, match="fitted again"):  # a damaged kept trace is traced again
         run_trace(config, "native", scene, tmp_path / "native.json", log=lambda m: None)
+
+
+def test_the_folders_runs_are_read_on_the_studys_track_only():
+    import pandas as pd
+
+    table = pd.DataFrame([
+        {"method": "4d-langsplat", "split": "paper", "scene": "a", "seed": s, "dirty": False, "code_changed": False,
+         "machine_kind": "cpu (x)", "track": track, "mIoU": value}
+        for s, track, value in ((0, "oracle", 50.0), (1, "oracle", 52.0), (0, "real", 10.0), (1, "real", 12.0))])
+    got = kernel_spread.folder_values(None, "4d-langsplat", "paper", ["a"], "mIoU", runs=table, track="oracle")
+    assert got == {"a": {0: 50.0, 1: 52.0}}
+    assert kernel_spread.study_track([{"track": "oracle"}, {"track": "oracle"}]) == "oracle"
+    assert kernel_spread.study_track([{"track": "oracle"}, {"track": "real"}]) is None

@@ -895,3 +895,13 @@ def test_a_family_is_kept_where_a_method_breaks_or_two_methods_drop_apart_and_dr
     assert not verdicts["topology"]["kept"], "a 1-point difference separates nothing"
     text = verdict_markdown(list(verdicts.values()))
     assert "`--families occluder mask-drop caption-swap`" in text
+
+
+def test_drops_are_compared_at_one_strength_for_every_method():
+    from benchmark.studies.stress_plots import separated_pairs
+
+    # 4d-langsplat ran the strongest strength (1.0); langsplat only a weaker one: no comparison at mixed strengths
+    weak = [dataclasses.replace(s, strength=0.5) if s.strength > 0 else s
+            for s in _runs("occluder", "langsplat", [55, 56, 57], [53, 55, 54])]
+    scores = _runs("occluder", "4d-langsplat", [60, 62, 61], [40, 43, 40]) + weak
+    assert separated_pairs(scores, "occluder", ["4d-langsplat", "langsplat"], "mIoU") == []

@@ -141,6 +141,8 @@ class RunRecord:
     process_wall_seconds: float
     results_file: str
     """The run's results file (relative to the report's folder once kept there)."""
+    track: Optional[str] = None
+    """The supervision track the run was scored on (its results file's)."""
 
 
 def _git(*args: str, repo: Path = REPO) -> subprocess.CompletedProcess:
@@ -194,7 +196,7 @@ def read_run(results: Path, side: str, round_: int, cpu: float, wall: float, sce
     doc = json.loads(files[0].read_text())
     stages = {label: _path(doc, *keys) for label, keys in STAGES + CPU_STAGES}
     scores = {label: _path(doc, *keys) for label, keys in SCORES}
-    return RunRecord(side, round_, scene, seed, stages, scores, cpu, wall, str(files[0]))
+    return RunRecord(side, round_, scene, seed, stages, scores, cpu, wall, str(files[0]), doc.get("track"))
 
 
 def run_side(tree: Path, side: str, round_: int, config: TimingConfig, scene: str, scene_dir: Path, seed: int,
@@ -310,6 +312,7 @@ def timing_markdown(config: TimingConfig, commits: dict[str, str], rows: Sequenc
                            [[r["stage"], _cell(r["baseline_seconds"]), _cell(r["candidate_seconds"]),
                              _cell(r["ratio"], 3), _cell(r["speedup"], 2)] for r in rows])
     scores = score_rows(runs)
+    tracks = sorted({r.track for r in runs if r.track}) or ["unrecorded"]
     score_table = markdown_table(["scene", "seed", "score", "baseline", "candidate", "new - old"],
                                  [[Path(r["scene"]).name, str(r["seed"]), r["score"], _cell(r["baseline"], 2),
                                    _cell(r["candidate"], 2), _cell(r["difference"], 2)] for r in scores])
@@ -317,7 +320,7 @@ def timing_markdown(config: TimingConfig, commits: dict[str, str], rows: Sequenc
                              [[r["score"], _cell(r["mean_difference"], 2), _cell(r["min_difference"], 2),
                                _cell(r["max_difference"], 2), _cell(r["baseline_seed_spread"], 2),
                                _cell(r["candidate_seed_spread"], 2)] for r in score_summary(scores)])
-    return (head + table + "\n## Scores\n\n" + score_table + "\nAcross scenes and seeds (seed spread: per scene the "
+    return (head + table + f"\n## Scores ({', '.join(tracks)} track)\n\n" + score_table + "\nAcross scenes and seeds (seed spread: per scene the "
             "largest minus the smallest seed's value, averaged over scenes):\n\n" + summary)
 
 

@@ -38,7 +38,7 @@ from benchmark.core.errors import InputError
 from benchmark.core.scene import DEFAULT_EVAL_SPLIT, check_eval_split
 
 from . import fit_timing
-from .kernel_trace import TraceConfig, parting, run_trace, trace_markdown
+from .kernel_trace import TraceConfig, pairings, run_trace, trace_markdown
 from ._report import Report, markdown_table, write_report
 
 REPORTS = Path("reports/kernel-spread")
@@ -181,7 +181,7 @@ def run_record(doc: dict, scene: str, seed: int, capability: str, path: Path) ->
     from benchmark.results import machine_of
 
     machine = machine_of(doc)
-    return {"scene": Path(scene).name, "seed": seed, "capability": capability,
+    return {"scene": Path(scene).name, "seed": seed, "capability": capability, "track": doc.get("track"),
             "recorded_capability": machine["cpu_capability"] or None, "machine_kind": machine["machine_kind"],
             "scores": {label: _path(doc, keys) for label, keys in SCORES},
             "fit_seconds": _path(doc, ("timing", "fit_seconds")), "results_file": path.name}
@@ -230,10 +230,11 @@ def reference_interval(values: dict[str, list[float]], *, seed: int = 0) -> Opti
 
 
 def folder_values(results_dir: Path, method: str, split: str, scenes: Sequence[str], label: str,
-                  machine_kind: Optional[str] = None, runs=None) -> dict[str, dict[int, float]]:
+                  machine_kind: Optional[str] = None, runs=None,
+                  track: Optional[str] = None) -> dict[str, dict[int, float]]:
     """Scene -> seed -> ``label`` of ``method``'s runs on ``split`` under ``results_dir``, read as the
     leaderboard reads them (:func:`benchmark.leaderboard.load_runs`): runs of a clean, unchanging checkout
-    only, of ``machine_kind`` where given. ``runs``: that folder's runs table, when already read."""
+    only, of ``machine_kind`` and ``track`` where given. ``runs``: that folder's runs table, when already read."""
     from benchmark.leaderboard import load_runs
 
     if runs is None:
@@ -245,6 +246,8 @@ def folder_values(results_dir: Path, method: str, split: str, scenes: Sequence[s
             & ~runs["dirty"].astype(bool) & ~runs["code_changed"].astype(bool))
     if machine_kind is not None:
         keep &= runs["machine_kind"] == machine_kind
+    if track is not None:
+        keep &= runs["track"] == track
     out: dict[str, dict[int, float]] = {}
     for _, row in runs[keep].sort_values(["scene", "seed"]).iterrows():
         value = row[label]
@@ -254,9 +257,11 @@ def folder_values(results_dir: Path, method: str, split: str, scenes: Sequence[s
 
 
 def leaderboard_values(results_dir: Path, method: str, split: str, scenes: Sequence[str], label: str,
-                       machine_kind: Optional[str] = None, runs=None) -> dict[str, list[float]]:
+                       machine_kind: Optional[str] = None, runs=None,
+                       track: Optional[str] = None) -> dict[str, list[float]]:
     """Scene -> the per-seed ``label`` (in seed order) of :func:`folder_values`."""
-    found = folder_values(results_dir, method, split, scenes, label, machine_kind=machine_kind, runs=runs)
+    found = folder_values(results_dir, method, split, scenes, label, machine_kind=machine_kind, runs=runs,
+                          track=track)
     return {scene: [seeds[k] for k in sorted(seeds)] for scene, seeds in found.items()}
 
 
@@ -276,16 +281,19 @@ def read_folder(config: KernelSpreadConfig):
     return load_runs(Path(config.results_dir))[0]
 
 
-_UNREAD = object()
+def study_track(runs: Sequence[dict]) -> Optional[str]:
+    """The supervision track of the study's runs (the folder's runs are read on it alone); None without one."""
+    tracks = {r.get("track") for r in runs} - {None}
+    return tracks.pop() if len(tracks) == 1 else None
 
 
-def summarize(runs: Sequence[dict], config: KernelSpreadConfig, folder_runs=_UNREAD) -> list[dict]:
+def summarize(runs: Sequence[dict], config: KernelSpreadConfig, folder_runs=None) -> list[dict]:
     """Per compared score: each setting's mean over scenes, the spread of those means, the mean and largest
     per-run spread, and the results folder's interval with whether each setting's mean lies inside it.
-    ``folder_runs``: the folder's runs table (:func:`read_folder`), when already read."""
+    ``folder_runs``: the folder's runs table (:func:`read_folder`; None: no folder)."""
     out = []
     per_run = spread_rows(runs)
-    folder = read_folder(config) if folder_runs is _UNREAD else folder_runs
+    folder = folder_runs
     for label in COMPARED:
         means = setting_means(runs, label)
         got = [v for v in means.values() if v is not None]
@@ -294,7 +302,7 @@ def summarize(runs: Sequence[dict], config: KernelSpreadConfig, folder_runs=_UNR
         if folder is not None:
             reference = reference_interval(leaderboard_values(Path(config.results_dir), config.method, config.split,
                                                               config.scenes, label, machine_kind=native_kind(runs),
-                                                              runs=folder))
+                                                              runs=folder, track=study_track(runs)))
             if reference is not None and set(reference["seeds"]) != {r["scene"] for r in runs}:
                 reference = None  # the folder lacks one of the study's scenes: no like-for-like interval
         inside = ({cap: (v is not None and reference["low"] <= v <= reference["high"]) for cap, v in means.items()}
@@ -319,7 +327,8 @@ def noise_rows(runs: Sequence[dict], config: KernelSpreadConfig, folder_runs=Non
     if folder_runs is not None:
         for label in COMPARED:
             folder[label] = folder_values(Path(config.results_dir), config.method, config.split, config.scenes,
-                                          label, machine_kind=native_kind(runs), runs=folder_runs)
+                                          label, machine_kind=native_kind(runs), runs=folder_runs,
+                                          track=study_track(runs))
     refit_native = any(r["capability"] == "native" for r in runs)
     rows = []
     for scene, seed in sorted({(r["scene"], r["seed"]) for r in runs}):
@@ -376,7 +385,7 @@ def spread_markdown(config: KernelSpreadConfig, runs: Sequence[dict], summary: S
     scenes = ", ".join(Path(s).name for s in config.scenes)
     recorded = sorted({f"{r['capability']} -> {r['recorded_capability']}" for r in runs})
     head = (f"# Kernel spread: {config.method} on {scenes} ({config.size} px), seeds "
-            f"{', '.join(map(str, config.seeds))}, {config.split} split\n\n"
+            f"{', '.join(map(str, config.seeds))}, {config.split} split, {study_track(runs) or 'mixed'} track\n\n"
             "Made by `bench4d ablate kernels`. Each run is a fresh fit in its own process, single-threaded, with "
             "torch's CPU kernels set by `ATEN_CPU_CAPABILITY` (`native`: unset); code, seed, scene and options are "
             f"the same. Kernels each run recorded: {'; '.join(recorded)}.\n\n")
@@ -440,11 +449,10 @@ def kernel_spread_report(config: KernelSpreadConfig, log: Callable[[str], None] 
         scene_dir = resolve_scene(t.preset, Path(config.cache_dir), size=t.size, seed=t.seed, log=log)
         traces = {cap: run_trace(t, cap, scene_dir, out / f"{config.name}-trace" / f"{cap}.json", log)
                   for cap in CAPABILITIES}
-        names = list(traces)
+        pairs = pairings(traces, t.jump)
         doc["trace"] = {"config": asdict(t), "kernels": {cap: tr.get("capability") for cap, tr in traces.items()},
-                        "pairs": {f"{a} / {b}": parting(traces[a], traces[b], t.jump)
-                                  for i, a in enumerate(names) for b in names[i + 1:]}}
-        table += "\n\n" + trace_markdown(t, traces)
+                        "pairs": pairs}
+        table += "\n\n" + trace_markdown(t, traces, pairs)
     paths = write_report(out, config.name, doc, table)
     for path in paths:
         log(f"wrote {path}")

@@ -155,28 +155,32 @@ def _step(step: Optional[Sequence]) -> str:
     return "never" if step is None else f"{step[0]} {step[1]}"
 
 
-def trace_markdown(config: TraceConfig, traces: dict[str, dict]) -> str:
-    """The report section: every pair of settings' :func:`parting`, and a reading generated from it."""
+def pairings(traces: dict[str, dict], jump: float = TraceConfig.jump) -> dict[str, dict]:
+    """``"x / y"`` -> :func:`parting` of every pair of the settings' traces, in their order."""
+    names = list(traces)
+    return {f"{x} / {y}": parting(traces[x], traces[y], jump) for i, x in enumerate(names) for y in names[i + 1:]}
+
+
+def trace_markdown(config: TraceConfig, traces: dict[str, dict], pairs: dict[str, dict]) -> str:
+    """The report section: every pair's :func:`parting` (``pairs``, from :func:`pairings`), and a reading
+    generated from them."""
     from ._report import markdown_table
 
-    names = list(traces)
     rows, gaps, growths = [], [], []
-    for i, x in enumerate(names):
-        for y in names[i + 1:]:
-            p = parting(traces[x], traces[y], config.jump)
-            gap = None
-            if p["first_jump"] is not None and p["densify_before_jump"] is not None:
-                gap = p["first_jump"][1] - p["densify_before_jump"][1]
-                gaps.append(gap)
-            if p["growth"] is not None:
-                growths.append(p["growth"])
-            count = p["first_count_difference"]
-            rows.append([f"{x} / {y}", _step(p["first_difference"]), f"{p['before_jump']:.1e}", _step(p["first_jump"]),
-                         _step(p["densify_before_jump"]) + ("" if gap is None else f" ({gap} before)"),
-                         "-" if p["growth"] is None else f"{p['growth']:.0f}x",
-                         "never" if count is None else f"{count[0]} {count[1]} ({count[2]} / {count[3]})",
-                         f"{p['final_relative']:.1e}", f"{p['final_counts'][0]} / {p['final_counts'][1]}"])
-    recorded = ", ".join(f"{n} -> {traces[n].get('capability')}" for n in names)
+    for label, p in pairs.items():
+        gap = None
+        if p["first_jump"] is not None and p["densify_before_jump"] is not None:
+            gap = p["first_jump"][1] - p["densify_before_jump"][1]
+            gaps.append(gap)
+        if p["growth"] is not None:
+            growths.append(p["growth"])
+        count = p["first_count_difference"]
+        rows.append([label, _step(p["first_difference"]), f"{p['before_jump']:.1e}", _step(p["first_jump"]),
+                     _step(p["densify_before_jump"]) + ("" if gap is None else f" ({gap} before)"),
+                     "-" if p["growth"] is None else f"{p['growth']:.0f}x",
+                     "never" if count is None else f"{count[0]} {count[1]} ({count[2]} / {count[3]})",
+                     f"{p['final_relative']:.1e}", f"{p['final_counts'][0]} / {p['final_counts'][1]}"])
+    recorded = ", ".join(f"{n} -> {trace.get('capability')}" for n, trace in traces.items())
     head = (f"## Where the fits part\n\nOne 4D-GS fit of preset `{config.preset}` at {config.size} px "
             f"({config.static_iterations} + {config.deformation_iterations} iterations, seed {config.seed}) per kernel "
             f"setting, each in a fresh single-threaded process; loss and Gaussian count at every iteration "
@@ -191,6 +195,8 @@ def trace_markdown(config: TraceConfig, traces: dict[str, dict]) -> str:
                    "apart slowly in their last bits, then a densification step's threshold or its budget's last "
                    "pick falls between the two fits' values of one Gaussian's gradient, and the fits densify "
                    "different Gaussians. From there they differ as two seeds do.\n")
+    elif rows and not gaps and all(p["first_jump"] is None for p in pairs.values()):
+        reading = f"\n\nNo pair parted: the relative loss difference stayed at or below {config.jump:g}.\n"
     elif rows:
         reading = ("\n\nNot every pair parted right after a densification step: see the table for where the "
                    "difference grew.\n")

@@ -16,7 +16,7 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Callable
 
 from benchmark.core.errors import InputError
 
@@ -142,18 +142,10 @@ def profile_steps(config: StepProfileConfig, log: Callable[[str], None] = lambda
                                      trainer.generator, "cpu")
     run = StageRun("deformation", iterations, model, opt, deformable, net_opt, sched, strategy,
                    iter_seconds=np.zeros(iterations), deform_seconds=np.zeros(iterations))
-    late = iterations  # past densification: the step a fitted model's size costs
 
     def step() -> None:
-        view = trainer._next_view()
-        render, offsets = trainer._render(run, view, late)
-        strategy.step_pre_backward(render)
-        loss = trainer._loss(run, render, view, offsets)
-        loss.backward()
-        with torch.no_grad():
-            opt.step()
-            net_opt.step()
-            net_opt.zero_grad(set_to_none=True)
+        # the stage's last iteration: past densification, as every step of a fitted model's size
+        trainer.train_step(run, iterations)
 
     log(f"step profile: {n} Gaussians, {len(trainer.views)} training views, {config.warmup} + {config.steps} steps")
     for _ in range(config.warmup):
@@ -192,11 +184,12 @@ def step_profile_markdown(config: StepProfileConfig, result: dict) -> str:
 
 def step_profile_report(config: StepProfileConfig, log: Callable[[str], None] = lambda m: None) -> Report:
     """Profile, then write ``<out>/<name>.json`` and ``.md``."""
-    if config.steps < 1 or config.warmup < 0:
+    if config.steps < 1:
         raise InputError(None, "--steps", f"need at least one profiled step, got {config.steps}")
+    if config.warmup < 0:
+        raise InputError(None, "warmup", f"must be >= 0, got {config.warmup}")
     result = profile_steps(config, log)
     table = step_profile_markdown(config, result)
-    doc: dict[str, Optional[object]] = {"config": {**asdict(config), "geometry": str(config.geometry),
-                                                   "cache_dir": str(config.cache_dir), "out": str(config.out)},
-                                        **result}
+    doc = {"config": {**asdict(config), "geometry": str(config.geometry), "cache_dir": str(config.cache_dir),
+                      "out": str(config.out)}, **result}
     return Report(table, write_report(Path(config.out), config.name, doc, table))

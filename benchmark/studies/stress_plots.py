@@ -491,14 +491,10 @@ ALWAYS_KEPT = ("caption-swap", "state-ramp", "caption-lag")
 the status field is argued for, so they compare it with the directly time-varying field under stress."""
 
 
-def _strongest_pair(scores: Sequence[Score], fam: str, method: str, metric: str) -> dict[int, float]:
-    """Seed -> clean minus strongest-strength ``metric`` of ``method`` on ``fam`` (seeds with both)."""
+def _drops(scores: Sequence[Score], fam: str, method: str, metric: str, top: float) -> dict[int, float]:
+    """Seed -> clean minus strength-``top`` ``metric`` of ``method`` on ``fam`` (seeds with both)."""
     by = {(s.strength, s.seed): s.metrics.get(metric) for s in scores if s.family == fam and s.method == method}
-    strengths = [k for k, _ in by if k > 0]
-    if not strengths:
-        return {}
-    top = max(strengths)
-    return {seed: float(by[0.0, seed]) - float(by[top, seed]) for (k, seed), v in by.items()
+    return {seed: float(by[0.0, seed]) - float(v) for (k, seed), v in by.items()
             if k == top and v is not None and by.get((0.0, seed)) is not None}
 
 
@@ -512,7 +508,11 @@ def separated_pairs(scores: Sequence[Score], fam: str, methods: Sequence[str],
     their range, and the same sign on three seeds happens by chance one time in four."""
     from benchmark.stats import t_interval
 
-    drops = {m: _strongest_pair(scores, fam, m, metric) for m in methods}
+    # one strength for every method: the family's strongest run (a method without it is not compared)
+    top = max((s.strength for s in scores if s.family == fam), default=0.0)
+    if top <= 0:
+        return []
+    drops = {m: _drops(scores, fam, m, metric, top) for m in methods}
     out = []
     for i, a in enumerate(methods):
         for b in methods[i + 1:]:

@@ -626,22 +626,30 @@ class Trainer:
         for it in self._iterations(run):
             started = time.perf_counter()
             self._follow_schedule(run, it)
-            view = self._next_view()
-            render, offsets = self._render(run, view, it)
-            strategy.step_pre_backward(render)
-            loss = self._loss(run, render, view, offsets)
-            loss.backward()
+            loss, render, view = self.train_step(run, it)
             with torch.no_grad():
-                opt.step()
-                if net_opt is not None:
-                    net_opt.step()
-                    net_opt.zero_grad(set_to_none=True)
                 self._refine(run, it, render, view)
             run.record(it, float(loss.detach()), started)
             self._log(run, it, result)
             if self._checkpoints.due(it, iterations, stage_follows):
                 self._checkpoints.save(stage, it, self._training_state(run, result))
         result.stages.append(run.summary())
+
+    def train_step(self, run: StageRun, it: int) -> tuple[torch.Tensor, RenderOutput, RGBView]:
+        """Iteration ``it`` of ``run`` once its schedule is set: the epoch's next view rendered, the loss and its
+        backward, the Gaussians' and the field's optimisers stepped; (loss, render, view). Densification is the
+        stage loop's (:meth:`_refine`), which reads the render's gradients."""
+        view = self._next_view()
+        render, offsets = self._render(run, view, it)
+        run.strategy.step_pre_backward(render)
+        loss = self._loss(run, render, view, offsets)
+        loss.backward()
+        with torch.no_grad():
+            run.opt.step()
+            if run.net_opt is not None:
+                run.net_opt.step()
+                run.net_opt.zero_grad(set_to_none=True)
+        return loss, render, view
 
     def _iterations(self, run: StageRun) -> Iterable[int]:
         """The stage's iterations still to run, through the progress wrapper where there is one."""
