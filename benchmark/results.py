@@ -462,7 +462,8 @@ def write_results(path: str | Path, doc: RunResults | dict) -> None:
     check_results(full, path)
     frames = (full.get("scores") or {}).get("frames")
     if not frames:
-        write_json(path, full)  # already strict JSON
+        # no per-frame table (a slim file, as the committed tree keeps them): one compact line, a third smaller
+        write_json(path, full, indent=None)
         return
     columns = list(frames[0])
     rows = [[_plain(record.get(c)) for c in columns] for record in frames]
@@ -530,6 +531,14 @@ ARCHIVE_DIR = "archive"
 scene version the committed generator does not make): kept, never read by the leaderboard."""
 
 
+def needs_slimming(path: str | Path, doc: dict) -> bool:
+    """Whether :func:`slim_results` would change the results file at ``path`` (read as ``doc``): it holds
+    per-frame records or predictions, has a predictions folder beside it, or is written indented."""
+    path = Path(path)
+    return ("frames" in (doc.get("scores") or {}) or "predictions" in doc
+            or path.with_suffix(".predictions").is_dir() or path.read_bytes().count(b"\n") > 1)
+
+
 def slim_results(path: str | Path) -> int:
     """Rewrite the results file at ``path`` as the committed tree keeps it: what the leaderboard, the paper
     tables, the charts and the studies' tables read (metrics, per-query scores, timing, memory, provenance)
@@ -544,8 +553,8 @@ def slim_results(path: str | Path) -> int:
     if folder.is_dir():
         freed += sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
         shutil.rmtree(folder)
-    if "frames" not in scores and "predictions" not in doc:
-        return freed
+    if not needs_slimming(path, doc):
+        return freed  # slim and compact already (an indented slim file from an older writer is compacted)
     if "frames" in scores:
         doc["scores"] = {**{k: v for k, v in scores.items() if k != "frames"},
                          "frames_dropped": len(scores["frames"]) + int(scores.get("frames_dropped", 0))}

@@ -242,5 +242,13 @@ def test_slim_keeps_what_the_tables_read_and_drops_frames_and_predictions(tmp_pa
     from benchmark.results import slim_results
 
     assert slim_results(target) == 0 and target.stat().st_size == size
+    assert target.read_bytes().count(b"\n") == 1  # a slim file is one compact line
+    # a slim file an older writer indented is compacted: listed by --dry-run, smaller after, same content
+    from benchmark.core.atomic import write_json
+
+    write_json(target, json.loads(target.read_text()), indent=1)
+    indented = target.stat().st_size
+    assert main(["slim", str(target), "--dry-run"]) == 0 and f"would slim {target}" in capsys.readouterr().out
+    assert slim_results(target) == indented - size and read_results(target) == slim
     assert main(["slim", str(tmp_path / "missing")]) == 2
 

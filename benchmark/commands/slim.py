@@ -38,14 +38,13 @@ def results_files(paths: list[Path]) -> list[Path]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from benchmark.results import read_results, slim_results
+    from benchmark.results import needs_slimming, read_results, slim_results
 
     files = results_files(args.paths)
     freed = 0
     for path in files:
         if args.dry_run:
-            doc = read_results(path)
-            if "frames" in (doc.get("scores") or {}) or path.with_suffix(".predictions").is_dir():
+            if needs_slimming(path, read_results(path)):
                 print(f"would slim {path}")
             continue
         freed += slim_results(path)
