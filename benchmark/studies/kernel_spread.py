@@ -293,16 +293,16 @@ def summarize(runs: Sequence[dict], config: KernelSpreadConfig, folder_runs=None
     ``folder_runs``: the folder's runs table (:func:`read_folder`; None: no folder)."""
     out = []
     per_run = spread_rows(runs)
-    folder = folder_runs
+    track = study_track(runs)
     for label in COMPARED:
         means = setting_means(runs, label)
         got = [v for v in means.values() if v is not None]
         spreads = [r["spread"] for r in per_run if r["score"] == label and r["spread"] is not None]
         reference = None
-        if folder is not None:
+        if folder_runs is not None:
             reference = reference_interval(leaderboard_values(Path(config.results_dir), config.method, config.split,
                                                               config.scenes, label, machine_kind=native_kind(runs),
-                                                              runs=folder, track=study_track(runs)))
+                                                              runs=folder_runs, track=track))
             if reference is not None and set(reference["seeds"]) != {r["scene"] for r in runs}:
                 reference = None  # the folder lacks one of the study's scenes: no like-for-like interval
         inside = ({cap: (v is not None and reference["low"] <= v <= reference["high"]) for cap, v in means.items()}
