@@ -477,6 +477,14 @@ def ranked_values(runs: pd.DataFrame, queries: Optional[pd.DataFrame], kind: str
     return _declined_runs_count_zero(out, kind)
 
 
+def ranked_runs(runs: pd.DataFrame, queries: Optional[pd.DataFrame]) -> pd.DataFrame:
+    """``runs`` with both kinds' metrics as the tables rank them (:func:`ranked_values`: draft queries left out,
+    a declined scene counting 0), without the counting columns: what every chart and CSV of a table reads."""
+    for kind in ("agnostic", "sensitive"):
+        runs = ranked_values(runs, queries, kind)
+    return runs.drop(columns=[c for c in runs if c.startswith(("answered_", "asked_"))])
+
+
 def _declined_runs_count_zero(runs: pd.DataFrame, kind: str) -> pd.DataFrame:
     """A run that answered none of the ``kind`` queries it was asked scores 0 on that kind (not NaN) where
     the same method answered that kind in another run of its table (same dataset, track, protocol and split):
@@ -1386,10 +1394,7 @@ def see_also_links(reports_dir: str | Path, markdown: str | Path) -> list[tuple[
 def _table_csv(runs: pd.DataFrame, queries: pd.DataFrame, collected: Mapping[tuple[str, str], Mapping[str, Any]]) -> str:
     """One table group's CSV: the seed summary of its ranked values (both kinds), with intervals, tie groups,
     probabilities of improvement and coverage per (method, scene)."""
-    merged = with_defaults(runs)
-    for kind in ("agnostic", "sensitive"):
-        merged = ranked_values(merged, queries, kind)
-    summary = seed_summary(merged.drop(columns=[c for c in merged if c.startswith(("answered_", "asked_"))]))
+    summary = seed_summary(ranked_runs(with_defaults(runs), queries))
     extra = pd.DataFrame([{"method": m, "scene": s, **v} for (m, s), v in sorted(collected.items())])
     if len(extra):
         summary = summary.merge(extra, on=["method", "scene"], how="left")

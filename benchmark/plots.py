@@ -417,6 +417,20 @@ LABEL_LINE_HEIGHT = 0.045
 """Height of one line of a point label (8 pt) as a fraction of a chart panel's height."""
 
 
+def line_label_groups(ys: Sequence[float], *, y_span: float) -> list[list[int]]:
+    """Indices of horizontal lines at heights ``ys`` grouped so that lines closer than one label line
+    (:data:`LABEL_LINE_HEIGHT` of ``y_span``) share one label: two floors at one height would print their
+    names over each other. Groups in order of height."""
+    order = sorted(range(len(ys)), key=lambda i: ys[i])
+    groups: list[list[int]] = []
+    for i in order:
+        if groups and ys[i] - ys[groups[-1][-1]] < LABEL_LINE_HEIGHT * y_span:
+            groups[-1].append(i)
+        else:
+            groups.append([i])
+    return groups
+
+
 def label_clusters(points: Sequence[ChartPoint], *, x_span: float, y_span: float) -> list[list[int]]:
     """Indices of ``points`` (finite, on a log x axis spanning ``x_span`` decades and a y axis spanning
     ``y_span``) whose labels share one stacked label: those that coincide (:func:`label_groups`), joined
@@ -485,9 +499,6 @@ def _draw_pareto_panel(ax, panel: ParetoPanel, colour: dict[str, str], *, legend
         where = "" if not np.isfinite(f.x) else (f", {_sig(f.x)} FPS" if speed else f", fit {_sig(f.x)} s")
         ax.axhline(f.y, color="0.35", linestyle=":", linewidth=1.4,
                    label=f"2D floor {f.label} (not ranked): {f.y:.1f}{where}")
-        # labels of the lines sit at the left edge, below the line: method labels are right of their points
-        ax.annotate(f"floor: {f.label}", (0.0, f.y), xycoords=ax.get_yaxis_transform(), textcoords="offset points",
-                    xytext=(4, -2), ha="left", va="top", fontsize=7.5, color="0.3")
     if panel.ceiling is not None:
         ax.axhline(panel.ceiling, color="tab:green", linestyle="-.", linewidth=1.2,
                    label=f"perfect-feature ceiling: {panel.ceiling:.1f}")
@@ -503,6 +514,13 @@ def _draw_pareto_panel(ax, panel: ParetoPanel, colour: dict[str, str], *, legend
     # one label per cluster, placed after the limits are final, right of the cluster's bars
     x_lo, x_hi = ax.get_xlim()
     y_lo, y_hi = ax.get_ylim()
+    floors = [f for f in panel.floors if np.isfinite(f.y)]
+    for members in line_label_groups([f.y for f in floors], y_span=y_hi - y_lo):
+        # at the left edge, below the lowest line of the group: method labels are right of their points
+        names = ", ".join(floors[i].label for i in members)
+        ax.annotate(f"floor{'s' if len(members) > 1 else ''}: {names}", (0.0, min(floors[i].y for i in members)),
+                    xycoords=ax.get_yaxis_transform(), textcoords="offset points", xytext=(4, -2), ha="left",
+                    va="top", fontsize=7.5, color="0.3")
     for members in label_clusters(shown, x_span=math.log10(x_hi / x_lo), y_span=y_hi - y_lo):
         middle = (max(shown[i].y for i in members) + min(shown[i].y for i in members)) / 2
         text = "\n".join(shown[i].methods[0] + "".join(f"\n= {m}" for m in shown[i].methods[1:]) for i in members)
@@ -534,11 +552,13 @@ def pareto(results_dir: str | Path = "results", reports_dir: str | Path = "repor
     """Write ``reports/pareto_<dataset>_<track>_<protocol>_<split>[_<machine>].{png,pdf}`` (:func:`pareto_charts`);
     returns the files written. ``ceiling``: the protocol ceiling's JSON (default:
     ``<reports_dir>/ablations/protocol-ceiling.json``; no line where it is missing)."""
-    from .leaderboard import CEILING_FILE, load_ceiling_file, load_runs
+    from .leaderboard import CEILING_FILE, load_ceiling_file, load_runs, ranked_runs, with_defaults
 
     plt = _pyplot()
-    # as the leaderboard reads them: each run under the name its recorded config stands for today
-    runs = comparable_runs(load_runs(results_dir)[0])[0]
+    # as the leaderboard reads them: each run under the name its recorded config stands for today, its
+    # accuracy the ranked one (draft queries out), so a point sits where the leaderboard's mean does
+    runs, queries = load_runs(results_dir)
+    runs = ranked_runs(comparable_runs(with_defaults(runs))[0], queries)
     if not len(runs):
         raise InputError(results_dir, None, "no results files to plot (run bench4d run-all first)")
     ceilings = load_ceiling_file(Path(reports_dir) / CEILING_FILE if ceiling is None else ceiling).values

@@ -211,6 +211,15 @@ def test_the_written_chart_draws_floor_and_ceiling_lines(tmp_path, monkeypatch):
     assert len(ceilings) == 2 and all(ys[0] == pytest.approx(85.0) for ys in ceilings)
 
 
+def test_floor_lines_closer_than_a_label_share_one_label():
+    from benchmark.plots import LABEL_LINE_HEIGHT, line_label_groups
+
+    gap = LABEL_LINE_HEIGHT * 100.0
+    assert line_label_groups([64.2, 30.0, 64.18], y_span=100.0) == [[1], [2, 0]]
+    assert line_label_groups([10.0, 10.0 + 1.01 * gap], y_span=100.0) == [[0], [1]]
+    assert line_label_groups([], y_span=100.0) == []
+
+
 def test_a_missing_machine_kind_of_any_form_falls_back_to_the_device():
     table = _table([_run("a", "s1", 0, miou=1.0, machine_kind="xeon"), _run("a", "s1", 1, miou=1.0)])
     table["machine_kind"] = pd.array(["xeon", pd.NA], dtype="string")

@@ -920,6 +920,31 @@ def test_draft_queries_stay_out_of_the_ranked_means_and_are_listed_under_their_t
     assert md.count("Draft ground truth") == 1
 
 
+def test_pareto_points_leave_draft_queries_out_as_the_leaderboard_does(tmp_path, monkeypatch):
+    import benchmark.plots as plots
+
+    root = tmp_path / "results"
+    _write_all(root, 0, OFFICIAL)
+    for path in find_results(root):
+        doc = json.loads(path.read_text())
+        if doc["scene"] == S1:
+            doc["scene_info"]["draft_queries"] = ["pitcher"]
+            path.write_text(json.dumps(doc))
+    seen = {}
+
+    def charts(runs, **_):
+        seen["runs"] = runs
+        return []
+
+    monkeypatch.setattr(plots, "pareto_charts", charts)
+    plots.pareto(root, tmp_path / "rep")
+    runs = seen["runs"]
+    alpha = runs[(runs["method"] == "alpha") & (runs["scene"] == S1)].sort_values("seed")
+    # the two lower queries of 50, 52, 54 (seeds): the recorded mIoU (all three) would be 2 higher
+    assert alpha["mIoU"].round(6).tolist() == [49.0, 51.0, 53.0]
+    assert not [c for c in runs if c.startswith(("answered_", "asked_"))]
+
+
 def test_runs_record_the_draft_queries_of_their_ground_truth():
     from benchmark.core.annotation import AnnotationSet, Query
     from benchmark.runner import draft_query_texts
