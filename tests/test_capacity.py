@@ -69,6 +69,22 @@ def test_a_knob_that_does_not_reach_the_geometry_or_the_method_is_refused(monkey
         capacity.check_knobs(CapacityConfig(method="langsplat", knobs=("states",)))
 
 
+def test_a_knob_runs_only_for_the_methods_whose_config_has_its_option():
+    config = CapacityConfig(methods=("4d-langsplat", "deformable-clip"), presets=("smoke",), knobs=("states", "latent"),
+                            values={"states": ("2", "4"), "latent": ("2",)},
+                            overrides={k: v for k, v in TINY.items() if not k.startswith(("status.", "caption_"))})
+    capacity.check_knobs(config)  # deformable-clip has no status field: the states knob passes it by
+    cells = capacity.plan(config, pixels={"smoke": 1000})
+    knobs_of = {m: {c.knob for c in cells if c.run.method == m} for m in config.methods}
+    assert knobs_of == {"4d-langsplat": {AUTO, "states", "latent", RELEASE},
+                        "deformable-clip": {AUTO, "latent", RELEASE}}
+    release = next(c.run for c in cells if c.knob == RELEASE and c.run.method == "deformable-clip")
+    assert dict(release.options) == {"geometry.max_gaussians": "360000",
+                                     "geometry.gaussians_per_foreground_pixel": "1e9"}
+    with pytest.raises(InputError, match="none of the methods"):
+        capacity.check_knobs(CapacityConfig(methods=("deformable-clip", "langsplat"), knobs=("states",)))
+
+
 def test_the_selection_score_is_the_mean_of_miou_and_acc_or_miou_alone():
     assert capacity.selection_score({"mIoU": 50.0, "Acc": 80.0}) == 65.0
     assert capacity.selection_score({"mIoU": 50.0, "Acc": math.nan}) == 50.0  # no time queries: mIoU alone

@@ -199,6 +199,26 @@ def value_label(value: str) -> str:
         return str(value)
 
 
+def method_option_paths(method: str) -> frozenset[str]:
+    """Every dotted option of ``method``'s config."""
+    from methods import registry
+
+    return frozenset(o.path for o in registry.get(method).options())
+
+
+def knob_applies(method: str, knob: str) -> bool:
+    """Whether ``knob`` moves an option of ``method``'s config (the number of states is no option of a method
+    without a status field): a knob that does not is not run for that method."""
+    return KNOBS[knob].option in method_option_paths(method)
+
+
+def own_options(method: str, options: Sequence[tuple[str, str]]) -> dict[str, str]:
+    """``options`` less those ``method``'s config does not have (a knob's fixed options and the release's recipe
+    name options of the status field that a method without one does not have)."""
+    paths = method_option_paths(method)
+    return {k: v for k, v in options if k in paths}
+
+
 def knob_options(config: CapacityConfig, knob: str, value: str, pixels: int,
                  method: Optional[str] = None) -> dict[str, str]:
     """The options of ``knob`` at ``value`` for ``method`` (default: the first) on a scene of ``pixels`` pixels
@@ -206,7 +226,7 @@ def knob_options(config: CapacityConfig, knob: str, value: str, pixels: int,
     from methods import registry
 
     spec = KNOBS[knob]
-    options = {**dict(spec.fixed), spec.option: str(value)}
+    options = {**own_options(method or config.method, spec.fixed), spec.option: str(value)}
     if knob == "gaussians":  # the per-pixel budget alone decides: raise the bound where it would cap first
         bound = registry.get(method or config.method).make_config(config.overrides).geometry.max_gaussians
         needed = math.ceil(float(value) * pixels)
@@ -231,19 +251,26 @@ def check_knobs(config: CapacityConfig) -> None:
     geometry); the release's recipe must be options of each method."""
     from methods import registry
 
+    for name in config.knobs:
+        if name not in KNOBS:
+            raise InputError(None, "--knobs", f"no knob {name!r}; knobs: {', '.join(KNOBS)}")
+        if not any(knob_applies(m, name) for m in config.methods):
+            raise InputError(None, "--knobs", f"{KNOBS[name].option} is an option of none of the methods "
+                             f"({', '.join(config.methods)})")
     for method in config.methods:
         spec = registry.get(method)
         for name in config.knobs:
-            if name not in KNOBS:
-                raise InputError(None, "--knobs", f"no knob {name!r}; knobs: {', '.join(KNOBS)}")
+            if not knob_applies(method, name):
+                continue
             for value in config.values_of(name):
-                spec.make_config({**config.overrides, **dict(KNOBS[name].fixed), KNOBS[name].option: value})
+                spec.make_config({**config.overrides, **own_options(method, KNOBS[name].fixed),
+                                  KNOBS[name].option: value})
             if KNOBS[name].option.startswith("geometry.") and not _reaches_geometry(config, name, method):
                 raise InputError(None, "--knobs", f"{KNOBS[name].option} does not change the geometry "
                                  f"{method} fits: its values would share one geometry")
         if config.release:
             try:
-                spec.make_config({**config.overrides, **dict(RELEASE_OPTIONS)})
+                spec.make_config({**config.overrides, **own_options(method, RELEASE_OPTIONS)})
             except InputError as err:
                 raise InputError(None, "--no-release", f"the release's recipe is not a config of {method} "
                                  f"({err.message}): leave it out with --no-release") from None
@@ -260,7 +287,8 @@ def _reaches_geometry(config: CapacityConfig, name: str, method: Optional[str] =
     spec = registry.get(method or config.method)
     recipes = set()
     for value in config.values_of(name):
-        cfg = spec.make_config({**config.overrides, **dict(KNOBS[name].fixed), KNOBS[name].option: value})
+        cfg = spec.make_config({**config.overrides, **own_options(method or config.method, KNOBS[name].fixed),
+                                KNOBS[name].option: value})
         recipes.add(repr(dataclasses.asdict(recon_config(cfg, 0))))
     return len(recipes) > 1 or len(config.values_of(name)) < 2
 
@@ -298,11 +326,11 @@ def plan(config: CapacityConfig, pixels: Optional[Mapping] = None) -> list[Cell]
                   or view_pixels(config, preset, seed))
             for method in config.methods:
                 wanted = [(AUTO, "", AUTO, {})]
-                for name in config.knobs:
+                for name in (k for k in config.knobs if knob_applies(method, k)):
                     wanted += [(name, value_label(v), f"{name}-{value_label(v)}",
                                 knob_options(config, name, v, px, method)) for v in config.values_of(name)]
                 if config.release:
-                    wanted.append((RELEASE, "", RELEASE, dict(RELEASE_OPTIONS)))
+                    wanted.append((RELEASE, "", RELEASE, own_options(method, RELEASE_OPTIONS)))
                 runs: dict[str, Run] = {}
                 for knob, value, label, options in wanted:
                     items = tuple(sorted(options.items()))
