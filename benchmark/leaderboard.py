@@ -978,6 +978,10 @@ class _Table:
 
     def _no_ceiling_reason(self) -> str:
         metric = CEILING_METRIC[self.kind]
+        if len(self.runs) and self.runs["scene_current"].isna().all():
+            # scene_current is None for a scene no generator made (benchmark.results.scene_status)
+            return ("the perfect-feature ceiling (`bench4d ablate ceiling`) answers from a generated scene's "
+                    "per-pixel truth (every part's name at every level); these scenes are real and have none")
         if self.ceiling_refused:
             return f"the perfect-feature ceiling (`bench4d ablate ceiling`) is not read: {md(self.ceiling_refused)}"
         if self.ceiling is None:

@@ -229,6 +229,21 @@ def test_a_table_without_ceiling_says_why(tmp_path):
     assert "% of ceiling (" not in text
     assert text.count("_No ceiling column: the perfect-feature ceiling (`bench4d ablate ceiling`) has no") == 2
 
+def test_a_table_of_real_scenes_says_the_ceiling_needs_a_generated_scene(tmp_path):
+    root = tmp_path / "results"
+    for scene in ("lego", "standup"):
+        for seed in (0, 1):
+            doc = {**_doc("alpha", scene, seed, 60.0 + seed), "dataset": "dnerf", "scene_info": {}}
+            write_results(results_path(root, "dnerf", scene, "alpha", "oracle", seed), doc)
+    _write_all(root, 0, OFFICIAL)
+    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
+    real = _section((tmp_path / "lb.md").read_text(), "### dnerf")
+    assert real.count("answers from a generated scene's per-pixel truth") == 2  # both kinds' tables
+    assert "has no mIoU" not in real
+    synthetic = _section((tmp_path / "lb.md").read_text(), "### synthetic")
+    assert "per-pixel truth" not in synthetic and "has no mIoU" in synthetic
+
+
 def test_summary_means_stds_and_dataset_mean_per_seed(tmp_path):
     _write_all(tmp_path / "results", 0)
     # an ablation run (config changed on purpose) is never a leaderboard entry
