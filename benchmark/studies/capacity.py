@@ -7,7 +7,8 @@ seed). Several methods (``methods``) are measured on the same fitted geometries:
 
 * ``gaussians``: the Gaussian budget, ``geometry.gaussians_per_foreground_pixel`` (``geometry.max_gaussians``
   raised where the default bound would cap it first);
-* ``states``: the number of states K, ``status.num_states`` with ``extensions.choose_states=false``;
+* ``states``: the number of states K, ``status.num_states`` with ``extensions.choose_states=false`` (methods
+  with a status field only: a knob runs for the methods whose config has its option);
 * ``latent``: the latent dimension of the time-agnostic autoencoder, ``autoencoder.latent_dim``;
 * ``hexplane``: the base resolution of the deformation field's HexPlane, ``geometry.hexplane_resolution``.
 
@@ -246,9 +247,10 @@ def view_pixels(config: CapacityConfig, preset: str, seed: int = 0) -> int:
 
 
 def check_knobs(config: CapacityConfig) -> None:
-    """Every method is known, every knob is known and its option is one of each method's; a geometry knob must
-    change the geometry the method fits (an option the geometry fit does not read would give each value the same
-    geometry); the release's recipe must be options of each method."""
+    """Every method is known, every knob is known and an option of at least one method (it runs for those only,
+    :func:`knob_applies`); a geometry knob must change the geometry the method fits (an option the geometry fit
+    does not read would give each value the same geometry); the release's recipe, less the options a method does
+    not have, must be a config of each method."""
     from methods import registry
 
     for name in config.knobs:
