@@ -26,9 +26,9 @@ from benchmark.core.atomic import read_json
 from benchmark.core.errors import InputError
 from benchmark.core.protocol import DEFAULT_PROTOCOL, RELEASE_DEFECTS_NOT_COPIED, SCORED_FRAMES_NOTE
 from . import stats
-from .leaderboard import (LEGACY_SPLIT, SPLIT_TITLE, _Cells, _machine_spread, check_provenance, load_runs, md,
+from .leaderboard import (LEGACY_SPLIT, SPLIT_TITLE, _Cells, _fmt, _machine_spread, check_provenance, load_runs, md,
                           ranked_values, split_order, with_defaults)
-from .results import ACCURACY_METRICS, MEAN_SCENE, comparable_runs, load_results, protocol_of, seed_summary
+from .results import ACCURACY_METRICS, MEAN_SCENE, comparable_runs, seed_summary
 
 SYNTHETIC_ANALOGUE = {("hypernerf", s): s for s in
                       ("americano", "chickchicken", "split-cookie", "espresso", "keyboard", "torchocolate")}
@@ -281,38 +281,62 @@ def _comparison(title: str, dataset: str, methods: Sequence[str], metrics: tuple
     return lines
 
 
-def _states_table(results_dir: Path, paper_ablations: dict) -> list[str]:
+def _states_runs(results_dir: Path, *, protocol: str, track: str, split: str, allow_dirty: bool) -> pd.DataFrame:
+    """The ``4d-langsplat`` runs of ``bench4d ablate states`` (``<results>/ablations/states-k<K>/``) of one protocol,
+    track and split on the committed scene versions, each with its recorded ``num_states``; runs from a dirty or
+    changing checkout refused unless ``allow_dirty``."""
     from methods import registry
 
+    def num_states(doc: dict) -> dict[str, Any]:
+        options = registry.get(doc["method"]).recorded_options(doc.get("method_config"))
+        return {"num_states": options.get("status.num_states")}
+
+    folders = [root for root in sorted(results_dir.glob("ablations/states-k*")) if root.is_dir()]
+    parts = [runs for runs in (load_runs(root, extra=num_states)[0] for root in folders) if len(runs)]
+    if not parts:
+        return pd.DataFrame()
+    runs = comparable_runs(with_defaults(pd.concat(parts, ignore_index=True)))[0]
+    runs = runs[(runs["method"] == "4d-langsplat") & runs["num_states"].notna() & (runs["protocol"] == protocol)
+                & (runs["track"] == track) & (runs["split"] == split)]
+    check_provenance(runs, allow_dirty, results_dir / "ablations")
+    return runs.assign(num_states=runs["num_states"].astype(int))
+
+
+def _states_table(runs: pd.DataFrame, paper_ablations: dict) -> list[str]:
+    """Paper Table 5 beside ours: per K, the mean over seeds (each seed's mean over the scenes run) of Acc and
+    vIoU with its 95 % t interval; the K whose Acc is best here and every K not separated from it."""
     paper = paper_ablations["states_chickchicken"]
-    ours: dict[int, tuple[float, float, str, str]] = {}
-    for path in sorted(results_dir.glob("ablations/states-k*/*/*/4d-langsplat/*/seed*.json")):
-        doc = load_results(path)
-        k = registry.get(doc["method"]).recorded_options(doc.get("method_config")).get("status.num_states")
-        if k is not None:
-            ours[int(k)] = (doc["metrics"].get("Acc"), doc["metrics"].get("vIoU"), doc["scene"], protocol_of(doc).name)
     lines = ["## Number of states K of the status field (paper Table 5: chickchicken)", ""]
-    where = sorted({(v[2], v[3]) for v in ours.values()})
-    if where:
-        lines += ["Ours: `results/ablations/states-k*/`, "
-                  + "; ".join(f"scene {scene}, protocol {protocol}" for scene, protocol in where)
-                  + " (oracle track, one seed). Cells: Acc / vIoU.", ""]
-    else:
-        lines += ["Ours: not run (`bench4d ablate states`).", ""]
-    lines += ["| K | paper | ours |", "|---:|---:|---:|"]
+    if not len(runs):
+        return lines + ["Ours: not run (`bench4d ablate states`).", ""]
+    per_seed = runs.groupby(["num_states", "seed"])[["Acc", "vIoU"]].mean()  # mean over the scenes of a seed
+    ours = {int(k): group.droplevel(0) for k, group in per_seed.groupby(level=0)}
+    seeds = sorted(set(runs["seed"]))
+    lines += [f"Ours: `results/ablations/states-k*/`, scenes {', '.join(sorted(set(runs['scene'])))}, seeds "
+              f"{' '.join(map(str, seeds))}, protocol {runs['protocol'].iloc[0]}, track {runs['track'].iloc[0]}, "
+              f"split {runs['split'].iloc[0]} (`bench4d ablate states`). Cells: Acc / vIoU; ours the mean over seeds "
+              "± their sample std, with the 95 % t interval of the mean Acc.", "",
+              "| K | paper | ours | ours Acc [95 % CI] | seeds |", "|---:|---:|---:|---:|---:|"]
+    intervals = {str(k): stats.t_interval(v["Acc"].tolist()) for k, v in ours.items()}
     for k in sorted(set(paper) | set(ours)):
-        p = paper.get(k, {})
-        o = ours.get(k)
-        lines.append(f"| {k} | {_cell(p.get('Acc'), p.get('vIoU'))} | "
-                     + (_cell(o[0], o[1]) if o else "–") + " |")
+        p, o = paper.get(k, {}), ours.get(k)
+        cell = "–" if o is None else " / ".join(_fmt(o[m].mean(), o[m].std(ddof=1) if len(o) > 1 else None)
+                                               for m in ("Acc", "vIoU"))
+        ci = "–" if o is None else f"{o['Acc'].mean():.2f} {stats.interval_text(*intervals[str(k)])}"
+        lines.append(f"| {k} | {_cell(p.get('Acc'), p.get('vIoU'))} | {cell} | {ci} | "
+                     f"{'–' if o is None else len(o)} |")
     paper_acc = {str(k): v["Acc"] for k, v in paper.items()}
-    ours_acc = {str(k): v[0] for k, v in ours.items()}
+    ours_acc = {str(k): float(v["Acc"].mean()) for k, v in ours.items()}
     tau, n, p = kendall_tau(paper_acc, ours_acc)
     best_p = max(paper_acc, key=paper_acc.get)
+    groups = stats.tie_groups(ours_acc, intervals)
+    best = sorted((k for k, g in groups.items() if g == 1), key=int)
+    verdict = (f"ours: K = {best[0]}" if len(best) == 1 else
+               f"ours: no single best, K = {', '.join(best)} tied (95 % intervals of the mean Acc overlap)")
     p_text = f"p = {p:.3f}" if math.isfinite(p) else "p not defined"
-    lines += ["", f"_Acc over K: Kendall's tau = {tau:+.2f} ({p_text}) over {n} values of K; the paper's best K = {best_p}"
-              + (f", ours: K = {max(ours_acc, key=ours_acc.get)} (ties to the smallest)." if ours_acc else ".") + "_"
-              if n >= 2 else f"_Acc over K: not measurable ({n} values of K with both numbers)._", ""]
+    lines += ["", f"_Acc over K: Kendall's tau = {tau:+.2f} ({p_text}) over {n} values of K (mean Acc); the paper's "
+              f"best K = {best_p}; {verdict}._" if n >= 2 else
+              f"_Acc over K: not measurable ({n} values of K with both numbers)._", ""]
     return lines
 
 
@@ -397,7 +421,8 @@ def render(results_dir: str | Path = "results", reports_dir: str | Path = "repor
                          "five Neu3D scenes have no analogue, so the Neu3D mean is the paper's alone.")
     lines += _comparison("Time-sensitive queries, HyperNeRF (paper Table 1)", "hypernerf", SENSITIVE_METHODS,
                          ("Acc", "vIoU"), ours, PAPER_NUMBERS, "Ours: the four presets with state changes.")
-    lines += _states_table(results_dir, PAPER_ABLATIONS)
+    lines += _states_table(_states_runs(results_dir, protocol=protocol, track=track, split=ours.split,
+                                        allow_dirty=allow_dirty), PAPER_ABLATIONS)
     lines += _prompt_tables(PAPER_ABLATIONS)
     lines += _speed_table(ours, reports_dir, PAPER_NUMBERS)
     return "\n".join(line.rstrip() for line in lines).rstrip() + "\n"

@@ -47,3 +47,31 @@ def test_the_states_table_reads_kept_runs_and_gives_the_seed_spread(tmp_path, mo
     with pytest.raises(AssertionError, match="evaluated K=4 seed 0"):  # a missing run is evaluated
         states.states_report("chickchicken", [4], seeds=[0], results_dir=tmp_path / "results",
                              cache_dir=tmp_path / "cache", size=128, out=tmp_path / "out", reuse=True)
+
+
+def test_the_paper_tables_states_section_reads_every_seed_and_calls_overlapping_k_a_tie(tmp_path):
+    from benchmark.core.errors import InputError
+    from benchmark.paper_tables import _states_runs, _states_table
+    from benchmark.results import find_results
+    from methods.registry import paper_reference
+
+    results = tmp_path / "results"
+    for seed, (acc2, acc3) in enumerate([(90.0, 100.0), (80.0, 90.0), (70.0, 95.0)]):
+        _kept(results, 2, seed, acc2, 40.0 + seed)
+        _kept(results, 3, seed, acc3, 50.0)
+    runs = _states_runs(results, protocol="release", track="oracle", split="paper", allow_dirty=False)
+    assert sorted(zip(runs["num_states"], runs["seed"])) == [(k, s) for k in (2, 3) for s in (0, 1, 2)]
+    text = "\n".join(_states_table(runs, paper_reference().ablations))
+    assert "| 2 | 94.56 / 88.05 | 80.00 ± 10.00 / 41.00 ± 1.00 |" in text  # every seed, not the last one read
+    assert "seeds 0 1 2, protocol release, track oracle, split paper" in text
+    assert "no single best, K = 2, 3 tied" in text  # 80 [55.2, 104.8] and 95 [82.6, 107.4] overlap
+    separated = runs.assign(Acc=runs["seed"] / 10 + runs["num_states"].map({2: 50.0, 3: 99.0}))
+    assert "ours: K = 3._" in "\n".join(_states_table(separated, paper_reference().ablations))
+    # a run from a changing checkout is refused, unless allowed
+    path = next(p for p in find_results(results / "ablations" / "states-k3"))
+    doc = json.loads(path.read_text())
+    doc["environment"] = {**doc.get("environment", {}), "git": {"commit": "abc", "dirty": True}}
+    path.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="uncommitted code"):
+        _states_runs(results, protocol="release", track="oracle", split="paper", allow_dirty=False)
+    assert len(_states_runs(results, protocol="release", track="oracle", split="paper", allow_dirty=True)) == 6
