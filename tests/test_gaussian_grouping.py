@@ -229,17 +229,24 @@ def test_fitted_identities_classify_training_views_and_answer_better_than_unfitt
     aset = load_annotations(smoke["scene_dir"] / "annotations.json")
 
     def mean_iou(model) -> float:
+        """Over the whole objects covering at least 5 % of a frame: at 48 px on a 20-step geometry neither
+        field separates the smaller ones (1-2 % of the frame; both score near 0 on them on every kernel set),
+        so they would only add noise to the margin."""
         ious = []
         for query in aset.agnostic_queries:
             if query.level != "whole":  # the identities are whole objects (identity_level 2)
                 continue
             for annotated in aset.annotated_frames(query.id):
                 truth = aset.get_mask(query.id, annotated.id)
+                if truth.mean() < 0.05:
+                    continue
                 mask = model.query_agnostic(query.text, [scene.frame(annotated.name)])[0].mask
                 ious.append((truth & mask).sum() / max(1, (truth | mask).sum()))
+        assert len(ious) >= 6, len(ious)
         return float(np.mean(ious))
 
-    assert mean_iou(fitted) > mean_iou(unfitted) + 0.05, (mean_iou(fitted), mean_iou(unfitted))
+    # measured: 0.31 against 0.17 (AVX2 and AVX-512 kernels), 0.36 against 0.06 (default kernels)
+    assert mean_iou(fitted) > mean_iou(unfitted) + 0.1, (mean_iou(fitted), mean_iou(unfitted))
     info = fitted.describe()
     assert info["identities"]["count"] == table.num_identities and info["geometry"]["kind"] == "4dgs"
     assert "losses" not in info["field"] and info["field"]["seconds"] > 0

@@ -77,7 +77,31 @@ def decode_agreement(model, texts: Sequence[str], frames: Sequence[Frame], optio
     return {"options": dict(options), "texts": len(texts), "frames": len(frames), "pixels": pixels,
             "pixel_agreement": agree["mask_agreement_with_exact"], "mask_pixels": agree["mask_pixels"],
             "mask_pixel_agreement": agree["mask_pixel_agreement_with_exact"],
-            "worst_frame_pixel_agreement": agree["min_mask_agreement_with_exact"]}
+            "worst_frame_pixel_agreement": agree["min_mask_agreement_with_exact"],
+            **relevance_error(answers["chosen"], answers["exact"])}
+
+
+def relevance_error(answers, exact) -> dict[str, Any]:
+    """How far the relevance behind ``answers`` strays from ``exact``'s (paired
+    :class:`methods.fields.relevance.AgnosticResult`): the largest difference of the chosen level's min-max
+    rescaled map (the scale the threshold reads) over pairs that choose the same level, how many pairs
+    choose another level, and the widest gap between the exact answer's top two level peaks among those.
+
+    Why beside the mask shares: on a flat relevance map near the threshold a tiny error flips many pixels,
+    so the mask shares of a small fit say more about its flatness than about the table."""
+    from methods.fields.relevance import rescaled
+
+    worst, changes, widest_gap = 0.0, 0, 0.0
+    for a, b in zip(answers, exact):
+        if a.level != b.level:
+            top = torch.sort(b.level_peaks.float(), descending=True).values
+            changes += 1
+            widest_gap = max(widest_gap, float(top[0] - top[1]))
+            continue
+        diff = rescaled(a.relevance.float()) - rescaled(b.relevance.float())
+        worst = max(worst, float(diff.abs().max()))
+    return {"max_rescaled_relevance_error": worst, "level_changes": changes,
+            "widest_peak_gap_at_level_change": widest_gap}
 
 
 def sensitive_speed(num_gaussians: int, width: int, height: int, *, device: str, frames: int = 10, warmup: int = 2,
