@@ -681,6 +681,7 @@ def metric_curves(stem: Path, lines: "dict[str, pd.DataFrame]", *, x: str, x_lab
                   columns: int = 4) -> list[Path]:
     """One figure of small charts, one per ``panels`` entry (column, title), each drawing that column against
     ``x`` with one line per entry of ``lines`` (label -> table of points); written as ``stem``.png / .pdf.
+    A table with ``<column>_low`` and ``<column>_high`` gets that band shaded under its line (an interval).
     A panel whose column no table has a value in says so instead of drawing."""
     plt = _pyplot()
     rows = max(1, math.ceil(len(panels) / columns))
@@ -692,7 +693,10 @@ def metric_curves(stem: Path, lines: "dict[str, pd.DataFrame]", *, x: str, x_lab
             ys = table[column].to_numpy(float) if column in table else np.full(len(table), np.nan)
             ok = np.isfinite(xs) & np.isfinite(ys) & ((xs > 0) if log_x else True)
             if ok.any():
-                ax.plot(xs[ok], ys[ok], marker="o", linewidth=1.2, markersize=4, label=label)
+                (line,) = ax.plot(xs[ok], ys[ok], marker="o", linewidth=1.2, markersize=4, label=label)
+                if f"{column}_low" in table and f"{column}_high" in table:
+                    lo, hi = table[f"{column}_low"].to_numpy(float)[ok], table[f"{column}_high"].to_numpy(float)[ok]
+                    ax.fill_between(xs[ok], lo, hi, color=line.get_color(), alpha=0.15, linewidth=0)
                 drawn = True
         if not drawn:
             ax.text(0.5, 0.5, "not recorded", ha="center", va="center", transform=ax.transAxes, color="0.5")

@@ -154,6 +154,9 @@ def test_a_tiny_study_runs_reports_resumes_and_its_table_reads_the_csv(tmp_path,
     assert "Plateau (highest mean score): **" in readme and "Knee (the cheapest value" in readme
     assert "## The automatic setting against the plateau, per preset" in readme
     assert "Best fixed value" not in readme and "ties: lower fit time" not in readme
+    assert (table["track"] == "oracle").all() and table["machine_kind"].str.len().gt(0).all()
+    assert f"Made under: supervision track oracle; split {table['split'][0]}; protocol {table['protocol'][0]}; " \
+        f"machine {table['machine_kind'][0]}; code {table['git_commit'][0]}." in readme
     # the charts redraw from the written table alone
     assert main(["plot", "capacity", "--table", str(out / "capacity.csv"), "--out", str(tmp_path / "redrawn")]) == 0
     assert (tmp_path / "redrawn" / "charts" / "latent.png").stat().st_size > 0
@@ -307,3 +310,38 @@ def test_the_runs_can_live_beside_the_report_so_a_study_resumes_without_its_cach
     kept = CapacityConfig(cache_dir=tmp_path / "cache", size=128, methods=("4d-langsplat",),
                           runs_root=tmp_path / "reports" / "runs")
     assert kept.runs_dir_of("non-status-field") == tmp_path / "reports" / "runs" / "non-status-field-128px" / "runs"
+
+
+def test_the_header_names_what_the_runs_were_made_under_and_shows_a_mix_with_its_counts():
+    table = _hand_table({"2": [[40, 42], [45, 47]], "4": [[60, 66], [70, 76]]}, {"2": 10.0, "4": 20.0})
+    table = table.assign(run=table["value"], track="oracle", split="paper", protocol="release",
+                         machine_kind="CPU A (avx2)", git_commit="abc123")
+    assert capacity.provenance_line(table) == ("Made under: supervision track oracle; split paper; protocol release; "
+                                               "machine CPU A (avx2); code abc123.")
+    table.loc[table["seed"] == 1, "machine_kind"] = "CPU B (avx512)"
+    assert "machine mixed: CPU A (avx2) (4 runs), CPU B (avx512) (4 runs);" in capacity.provenance_line(table)
+    assert "supervision track not recorded" in capacity.provenance_line(table.drop(columns=["track"]))
+
+
+def test_the_pooled_curve_carries_the_readme_s_interval_and_the_chart_shades_it(tmp_path, monkeypatch):
+    from benchmark import plots
+
+    table = _hand_table({"2": [[40, 42, 41], [45, 47, 46]], "8": [[62, 68, 65], [72, 78, 75]]}, {"2": 10.0, "8": 40.0})
+    table = table.reindex(columns=list(capacity.CSV_COLUMNS))  # the CSV's columns, those not measured empty
+    curve = capacity.pooled_curve(table, "gaussians", "m")
+    assert list(curve["value"]) == ["2", "8"]
+    scored = capacity.with_scores(table)
+    readme = capacity.estimates(scored, capacity.SCORE, ["2", "8"], ["p0", "p1"],
+                                seed=capacity.stats.stable_seed("capacity", "m", "gaussians"))
+    for _, row in curve.iterrows():
+        est = readme[row["value"]]
+        assert (row["score"], row["score_low"], row["score_high"]) == (est.mean, est.low, est.high)
+        assert row["score_low"] < row["score"] < row["score_high"]
+    assert curve["fit_seconds"].tolist() == [10.0, 40.0]
+
+    figures = []
+    monkeypatch.setattr(plots, "_save", lambda fig, stem: figures.append(fig) or [stem.with_suffix(".png")])
+    plots.metric_curves(tmp_path / "c", {"m": curve.assign(x=[2.0, 8.0])}, x="x", x_label="x",
+                        panels=[("score", "score"), ("fit_seconds", "fit")])
+    score_ax, fit_ax = figures[0].axes[:2]
+    assert len(score_ax.collections) == 1 and len(fit_ax.collections) == 0  # a band where the table has one

@@ -100,7 +100,10 @@ CSV_COLUMNS = ("method", "preset", "seed", "scene_seed", "knob", "value", "run",
                "vIoU", "psnr", "fit_seconds", "model_mib", "peak_cpu_above_baseline_mib", "peak_cpu_needed_mib",
                "peak_gpu_needed_mib", "fps_agnostic", "fps_sensitive", "gaussians", "cap", "num_states",
                "dynamic_gaussians", "per_gaussian_floats", "network_parameters", "parameters", "geometry_key",
-               "results")
+               "track", "split", "protocol", "machine_kind", "git_commit", "results")
+PROVENANCE = (("track", "supervision track"), ("split", "split"), ("protocol", "protocol"),
+              ("machine_kind", "machine"), ("git_commit", "code"))
+"""Columns of what a run was made under and how the report's header names them."""
 
 
 @dataclass
@@ -512,7 +515,7 @@ def run_record(config: CapacityConfig, path: Path) -> dict:
             "network_parameters": counts.get("network_parameters"), "parameters": parameters,
             "model_mib": None if parameters is None else parameters * BYTES_PER_PARAMETER / 2 ** 20,
             "peak_cpu_above_baseline_mib": peak_above_baseline(doc),
-            "geometry_key": geometry.get("key"), "results": str(path)}
+            "geometry_key": geometry.get("key"), **{k: row[k] for k, _ in PROVENANCE}, "results": str(path)}
 
 
 def collect(config: CapacityConfig, cells: Sequence[Cell]):
@@ -662,9 +665,9 @@ def _listing(values: Sequence[str]) -> str:
 # -- report ---------------------------------------------------------------------------------------------
 def preset_means(table, knob: str, method: Optional[str] = None):
     """Per (preset, value) of ``knob`` (of ``method``, default: every method's rows): the mean over seeds of
-    every numeric column."""
-    columns = [c for c, _ in ACCURACY + COST] + ["gaussians", "num_states"]
-    part = table[table["knob"] == knob]
+    every numeric column and of the score."""
+    columns = [SCORE] + [c for c, _ in ACCURACY + COST] + ["gaussians", "num_states"]
+    part = with_scores(table[table["knob"] == knob])
     if method is not None:
         part = part[part["method"] == method]
     return part.groupby(["preset", "value"], sort=False)[columns].mean().reset_index()
@@ -841,6 +844,26 @@ def _table_methods(table, config: CapacityConfig) -> list[str]:
     return [m for m in config.methods if m in present] + [m for m in present if m not in config.methods]
 
 
+def provenance_line(table) -> str:
+    """What the runs were made under (:data:`PROVENANCE`), each with its run counts where the runs differ; a
+    column a table lacks (written before it was recorded) is said to be missing."""
+    import pandas as pd
+
+    runs = table.drop_duplicates(subset=[c for c in ("method", "run", "preset", "seed") if c in table.columns])
+    parts = []
+    for column, name in PROVENANCE:
+        if column not in runs.columns:
+            parts.append(f"{name} not recorded")
+            continue
+        counts = pd.Series(["not recorded" if pd.isna(v) or str(v) == "" else str(v) for v in runs[column]],
+                           dtype=object).value_counts()
+        if len(counts) == 1:
+            parts.append(f"{name} {counts.index[0]}")
+        else:
+            parts.append(f"{name} mixed: " + ", ".join(f"{v} ({n} runs)" for v, n in sorted(counts.items())))
+    return "Made under: " + "; ".join(parts) + "."
+
+
 def render_readme(table, config: CapacityConfig) -> str:
     """The report's Markdown, from the CSV's rows."""
     knobs = [k for k in config.knobs if (table["knob"] == k).any()]
@@ -857,7 +880,7 @@ def render_readme(table, config: CapacityConfig) -> str:
            "seed s fits the preset generated with generator seed s (and fits with seed s), so the spread over seeds "
            "covers scene instances as well as fits (column `scene_seed` of the CSV). The methods of one preset and "
            "seed are measured on the same fitted geometries. Made by `bench4d ablate capacity`; the rows are "
-           f"`capacity.csv`, the runs' results files under {runs_dirs}.", "",
+           f"`capacity.csv`, the runs' results files under {runs_dirs}.", "", provenance_line(table), "",
            "Accuracy in percent (mIoU time-agnostic; Acc and vIoU time-sensitive, where the preset has time queries); "
            "PSNR of the geometry on held-out frames." + psnr_note + " The score that picks the plateau is the mean "
            "of mIoU and Acc per run (mIoU alone where a preset has no time queries). Per value: the mean over "
@@ -883,24 +906,48 @@ def render_readme(table, config: CapacityConfig) -> str:
     return "\n".join(out).rstrip() + "\n"
 
 
+def pooled_curve(table, knob: str, method: str):
+    """Per value of ``knob`` of ``method``: the mean over the presets that have every value (each the mean over
+    its seeds) of every charted column, and the score's 95 % interval as ``score_low``/``score_high`` (the
+    bootstrap draws of :func:`knob_section`, so the band is the README's interval). Sorted by value."""
+    import pandas as pd
+
+    rows = with_scores(table[table["method"] == method])
+    part = rows[rows["knob"] == knob]
+    values = _values_in_order(part)
+    presets = complete_presets(part, values)
+    score = estimates(part, SCORE, values, presets, seed=stats.stable_seed("capacity", method, knob))
+    records = [{"value": v, "x": _numeric(v),
+                **{c: _mean_over_presets(part[part["value"] == v], c, presets) for c, _ in ACCURACY + COST},
+                SCORE: score[v].mean, f"{SCORE}_low": score[v].low, f"{SCORE}_high": score[v].high}
+               for v in values]
+    return pd.DataFrame(records).sort_values("x")
+
+
 def write_charts(table, config: CapacityConfig) -> list[Path]:
-    """Per knob, every accuracy and cost column against the value, one line per preset (and method, where the
-    table has several)."""
+    """Per knob, the score (with its 95 % band) and every accuracy and cost column against the value: one line
+    per method, pooled over presets; a single method's chart adds one thin line per preset."""
     from benchmark.plots import metric_curves
 
     methods = _table_methods(table, config)
+    panels = [(SCORE, "score [95 %]")] + list(ACCURACY + COST)
     paths = []
     for knob in config.knobs:
         lines = {}
         for method in methods:
-            means = preset_means(table, knob, method)
-            for preset, group in means.groupby("preset", sort=True):
-                group = group.assign(x=[_numeric(v) for v in group["value"]]).sort_values("x")
-                lines[str(preset) if len(methods) == 1 else f"{method} {preset}"] = group
+            if not ((table["method"] == method) & (table["knob"] == knob)).any():
+                continue
+            pooled = pooled_curve(table, knob, method)
+            if len(methods) == 1:
+                for preset, group in preset_means(table, knob, method).groupby("preset", sort=True):
+                    lines[str(preset)] = group.assign(x=[_numeric(v) for v in group["value"]]).sort_values("x")
+                lines["all presets"] = pooled
+            else:
+                lines[method] = pooled
         if not lines:
             continue
         paths += metric_curves(config.out_dir / "charts" / knob, lines, x="x", x_label=KNOBS[knob].title,
-                               panels=list(ACCURACY + COST), title=f"{', '.join(methods)}: {KNOBS[knob].title}",
+                               panels=panels, title=f"{', '.join(methods)}: {KNOBS[knob].title}",
                                log_x=KNOBS[knob].log_x)
     return paths
 
