@@ -345,3 +345,16 @@ def test_the_pooled_curve_carries_the_readme_s_interval_and_the_chart_shades_it(
                         panels=[("score", "score"), ("fit_seconds", "fit")])
     score_ax, fit_ax = figures[0].axes[:2]
     assert len(score_ax.collections) == 1 and len(fit_ax.collections) == 0  # a band where the table has one
+
+
+def test_the_cheapest_value_at_every_preset_s_plateau_is_named_and_a_value_failing_one_preset_is_not():
+    # 8 is each preset's plateau; 4 sits inside its interval on both presets; 2 on p0 only
+    table = _hand_table({"2": [[63, 64, 65], [40, 42, 41]], "4": [[63, 65, 64], [73, 75, 74]],
+                         "8": [[60, 70, 65], [70, 80, 75]]}, {"2": 10.0, "4": 20.0, "8": 40.0})
+    table = table.assign(run=table["value"]).reindex(columns=list(capacity.CSV_COLUMNS))
+    assert capacity.at_every_plateau(table, "gaussians", "m") == {"2": ["p0"], "4": ["p0", "p1"], "8": ["p0", "p1"]}
+    section = "\n".join(capacity.every_preset_section(table, ["gaussians"], ["m"]))
+    assert "| m | gaussians | 2: 1/2; 4: 2/2; 8: 2/2 | 4 |" in section
+    # no value at the plateau everywhere but the plateau itself costs most: still named, never 'none' then
+    lone = table[table["value"] != "4"]
+    assert "| m | gaussians | 2: 1/2; 8: 2/2 | 8 |" in "\n".join(capacity.every_preset_section(lone, ["gaussians"], ["m"]))

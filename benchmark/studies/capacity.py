@@ -766,11 +766,7 @@ def auto_vs_plateau(table, knobs: Sequence[str], methods: Sequence[str]) -> list
             for preset in complete_presets(part, values):
                 if preset not in set(auto_part["preset"]):
                     continue
-                seed = stats.stable_seed("capacity", method, knob, preset)
-                one = part[part["preset"] == preset]
-                score = estimates(one, SCORE, values, [preset], seed=seed)
-                seconds = {v: _mean(one[one["value"] == v]["fit_seconds"]) for v in values}
-                choice = plateau_and_knee(score, seconds)
+                seed, score, seconds, choice = _preset_plateau(part, method, knob, preset)
                 if choice is None:
                     continue
                 mine = auto_part[auto_part["preset"] == preset]
@@ -794,6 +790,63 @@ def auto_vs_plateau(table, knobs: Sequence[str], methods: Sequence[str]) -> list
             "score, whether that mean lies inside the plateau's interval, and the ratio of their mean fit times. "
             "With few seeds a preset's interval is wide: it is the spread of its seeds, not more.", "",
             markdown_table(header, rows).rstrip(), ""]
+
+
+def _preset_plateau(part, method: str, knob: str, preset: str):
+    """(bootstrap seed, score estimates, mean fit seconds per value, :class:`Choice`) of one preset's rows of
+    ``part`` (one method and knob), its seeds resampled."""
+    values = _values_in_order(part)
+    seed = stats.stable_seed("capacity", method, knob, preset)
+    one = part[part["preset"] == preset]
+    score = estimates(one, SCORE, values, [preset], seed=seed)
+    seconds = {v: _mean(one[one["value"] == v]["fit_seconds"]) for v in values}
+    return seed, score, seconds, plateau_and_knee(score, seconds)
+
+
+def at_every_plateau(table, knob: str, method: str) -> dict[str, list[str]]:
+    """Per value of ``knob`` of ``method``: the presets (of those with every value) on which its mean score lies
+    inside the interval of that preset's plateau (:func:`auto_vs_plateau`'s per-preset plateau)."""
+    part = with_scores(table[table["method"] == method])
+    part = part[part["knob"] == knob]
+    values = _values_in_order(part)
+    inside: dict[str, list[str]] = {v: [] for v in values}
+    for preset in complete_presets(part, values):
+        _, score, _, choice = _preset_plateau(part, method, knob, preset)
+        if choice is None:
+            continue
+        for v in values:
+            if any(_inside(score[v].mean, score[p].interval) for p in choice.plateau):
+                inside[v].append(preset)
+    return inside
+
+
+def every_preset_section(table, knobs: Sequence[str], methods: Sequence[str]) -> list[str]:
+    """Per method and knob: on how many presets each value sits at the plateau, and the cheapest value (by mean
+    fit time over the presets) that does so on every preset: where a default must sit for the per-preset check."""
+    rows = []
+    for method in methods:
+        for knob in knobs:
+            part = table[(table["method"] == method) & (table["knob"] == knob)]
+            if not len(part):
+                continue
+            inside = at_every_plateau(table, knob, method)
+            presets = complete_presets(part, _values_in_order(part))
+            if not presets:
+                continue
+            seconds = {v: _mean_over_presets(part[part["value"] == v], "fit_seconds", presets) for v in inside}
+            everywhere = [v for v in inside if len(inside[v]) == len(presets)]
+            cheapest = (min(seconds[v] for v in everywhere) if everywhere else math.nan)
+            chosen = [v for v in everywhere if seconds[v] <= cheapest + SAME]
+            rows.append([method, knob, "; ".join(f"{v}: {len(inside[v])}/{len(presets)}" for v in inside),
+                         ", ".join(chosen) if chosen else "none"])
+    if not rows:
+        return []
+    return ["## The cheapest value at the plateau on every preset", "",
+            "Per value, the presets on which its mean score lies inside that preset's plateau interval (the "
+            "per-preset plateau above), and the cheapest value by mean fit time that does so on every preset: "
+            "where a default must sit to pass the per-preset check.", "",
+            markdown_table(["method", "knob", "presets at the plateau, per value", "cheapest on every preset"],
+                           rows).rstrip(), ""]
 
 
 def _auto_choice(row, knob: str) -> str:
@@ -901,6 +954,7 @@ def render_readme(table, config: CapacityConfig) -> str:
                 out += knob_section(table, knob, method)
         out += [f"![{KNOBS[knob].title}](charts/{knob}.png)", ""]
     out += auto_vs_plateau(table, knobs, methods)
+    out += every_preset_section(table, knobs, methods)
     for method in methods:
         out += release_vs_auto(table, method)
     return "\n".join(out).rstrip() + "\n"
