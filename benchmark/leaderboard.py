@@ -98,7 +98,7 @@ LEGACY_SPLIT = "legacy-dense"
 """The split of results files that record none (written before splits were recorded)."""
 UNKNOWN = "unknown"
 EXTRA_COLUMNS = ["machine_kind", "cpu_model", "cpu_capability", "gpu", "split", "scene_seed", "code_changed",
-                 "dirty", "official", "field_key", "has_query_scores"]
+                 "dirty", "official", "field_key", "has_query_scores", "config_changes"]
 """Columns the leaderboard adds to :data:`benchmark.results.RUN_COLUMNS` (kept where the runs table already
 has them)."""
 QUERY_COLUMNS = ["path", "query", "kind", "draft", "answered", *QUERY_METRICS]
@@ -320,6 +320,19 @@ def _recorded_method(name: str, recorded: Any) -> str:
     return registry.recorded_method(name, recorded if isinstance(recorded, Mapping) else None)
 
 
+def _config_changes(name: str, recorded: Any) -> str:
+    """``path=recorded (now default)`` of every option where a run's recorded config differs from the method's
+    defaults today, ``;``-joined: empty for a run at today's defaults or of a method this checkout lacks."""
+    from methods import registry
+
+    try:
+        spec = registry.get(name)
+    except InputError:
+        return ""
+    changes = spec.differences_from_defaults(recorded if isinstance(recorded, Mapping) else None) or {}
+    return "; ".join(f"{path}={made} (now {now})" for path, (made, now) in sorted(changes.items()))
+
+
 def _check_place(relative: Path, row: Mapping[str, Any]) -> None:
     """A results file lies where its run writes it (``<dataset>/<scene>/<method>/<track>/[<split>/]seed<N>.json``,
     :func:`benchmark.results.results_path`): a file whose recorded method, scene or seed differs from its place
@@ -353,6 +366,7 @@ def load_runs(results_dir: str | Path, *, extra: Optional[Callable[[dict], dict[
         # a run shows under the name its recorded config stands for today (a run made with the benchmark's
         # extensions before the paper configs became the defaults is the variant's, e.g. 4d-langsplat+)
         row["method"] = _recorded_method(str(row["method"]), doc.get("method_config"))
+        row["config_changes"] = _config_changes(str(row["method"]), doc.get("method_config"))
         row.update(run_extras(doc, row))
         if extra is not None:
             row.update(extra(doc))
@@ -380,7 +394,7 @@ def with_defaults(runs: pd.DataFrame) -> pd.DataFrame:
     runs = runs.copy()
     defaults = {"machine_kind": UNKNOWN, "cpu_model": UNKNOWN, "cpu_capability": UNKNOWN, "gpu": "",
                 "split": LEGACY_SPLIT, "scene_seed": 0, "code_changed": False, "field_key": "",
-                "has_query_scores": False}
+                "has_query_scores": False, "config_changes": ""}
     for column, value in defaults.items():
         if column not in runs:
             runs[column] = value
@@ -1242,6 +1256,13 @@ def render_markdown(runs: pd.DataFrame, results_dir_label: str,
         out += [f"**{len(stale)} result file(s) left out**: measured on a synthetic scene other than the version the",
                 "committed generator makes (`benchmark/synthetic/digests.json`), so not comparable with these tables:",
                 ", ".join(md(p) for p in stale["path"][:10]) + (" and more." if len(stale) > 10 else ""), ""]
+    changed = runs[runs["config_changes"].astype(str).str.len() > 0]
+    if len(changed):
+        counts = changed["config_changes"].value_counts()
+        out += [f"**{len(changed)} result file(s) were made under configs other than their methods' defaults "
+                "today** (rerun them to rank today's defaults): "
+                + "; ".join(f"{n} with `{text}`" for text, n in sorted(counts.items(), key=lambda kv: (-kv[1], kv[0]))[:5])
+                + (f"; {len(counts) - 5} other set(s) of options." if len(counts) > 5 else "."), ""]
     dirty = runs[runs["dirty"]]
     if len(dirty):
         out += [f"**{len(dirty)} result file(s) from a checkout with uncommitted code changes or code that changed "

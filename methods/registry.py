@@ -224,6 +224,22 @@ class MethodSpec:
         except InputError:
             return False
 
+    def differences_from_defaults(self, recorded: Optional[Mapping[str, Any]]) -> Optional[dict[str, tuple[Any, Any]]]:
+        """Dotted path -> (recorded value, today's default) of every option where a recorded ``method_config``
+        differs from this method's defaults today (empty: made at today's defaults); None when the record
+        cannot be read as this method's config (missing, refused or retired options)."""
+        from benchmark.core.config import option_values
+
+        from .specs._recorded import holds_retired_options
+
+        if not isinstance(recorded, Mapping) or holds_retired_options(recorded):
+            return None
+        try:
+            made, now = option_values(self.config_from_record(recorded)), option_values(self.make_config())
+        except InputError:
+            return None
+        return {path: (made.get(path), value) for path, value in now.items() if made.get(path) != value}
+
     def results_made_as(self, path: Path, overrides: Optional[Mapping[str, Any]] = None) -> bool:
         """:meth:`recorded_as` of the ``method_config`` of the results file at ``path`` (False when the
         file cannot be read: the run is made anew)."""

@@ -267,9 +267,13 @@ def test_seeds_sample_scenes_and_methods_share_one_geometry(tmp_path, monkeypatc
         return real_fit(self, *args, **kwargs)
 
     monkeypatch.setattr(Trainer, "fit_4dgs", counting)
+    from methods import registry
+
     tiny = {**TINY, "geometry.static_iterations": "6", "geometry.deformation_iterations": "6"}
+    # the default budget: the knob's one value is the auto run, so each method has one run
+    budget = f"{registry.get('4d-langsplat').make_config().geometry.gaussians_per_foreground_pixel:g}"
     config = CapacityConfig(methods=("4d-langsplat", "non-status-field"), presets=("smoke",), size=24, seeds=(1,),
-                            knobs=("gaussians",), values={"gaussians": ("2",)}, overrides=tiny, release=False,
+                            knobs=("gaussians",), values={"gaussians": (budget,)}, overrides=tiny, release=False,
                             cache_dir=tmp_path / "cache", out_dir=tmp_path / "report", timing_frames=1,
                             timing_repeats=1)
     runs = capacity.distinct_runs(capacity.plan(config))
@@ -292,7 +296,7 @@ def test_seeds_sample_scenes_and_methods_share_one_geometry(tmp_path, monkeypatc
 
     # the command: --methods reports the same runs; --method is a one-method --methods; not both
     args = ["ablate", "capacity", "--presets", "smoke", "--size", "24", "--seeds", "1", "--knobs", "gaussians",
-            "--values", "gaussians=2", "--no-release", "--report-only", "--cache-dir", str(tmp_path / "cache"),
+            "--values", f"gaussians={budget}", "--no-release", "--report-only", "--cache-dir", str(tmp_path / "cache"),
             "--quiet"] + [a for k, v in tiny.items() for a in ("--set", f"{k}={v}")]
     assert main(args + ["--methods", "4d-langsplat", "non-status-field", "--out", str(tmp_path / "cli")]) == 0
     assert (tmp_path / "cli" / "capacity.csv").read_text() == (tmp_path / "report" / "capacity.csv").read_text()

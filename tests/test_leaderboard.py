@@ -1034,3 +1034,26 @@ def test_no_floor_no_opening_section():
     from benchmark.leaderboard import floors_first
 
     assert floors_first([]) == []
+
+
+def test_runs_made_under_other_defaults_are_counted_with_the_options_that_moved(tmp_path):
+    import dataclasses
+
+    from methods import registry
+
+    root = tmp_path / "results"
+    _write_all(root, 0, OFFICIAL)
+    spec = registry.get("deformable-clip")
+    default = spec.make_config().geometry.gaussians_per_foreground_pixel
+    for seed, options in ((0, {"geometry.gaussians_per_foreground_pixel": str(default * 2)}), (1, {})):
+        doc = _doc("alpha", S1, seed, 50.0)
+        doc["method"] = "deformable-clip"
+        doc["method_config"] = json.loads(json.dumps(dataclasses.asdict(spec.make_config(options))))
+        write_results(results_path(root, "synthetic", S1, "deformable-clip", "oracle", seed), doc)
+    build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
+    md = (tmp_path / "lb.md").read_text()
+    assert ("**1 result file(s) were made under configs other than their methods' defaults today** (rerun them to "
+            f"rank today's defaults): 1 with `geometry.gaussians_per_foreground_pixel={default * 2} (now {default})`."
+            in md)
+    assert spec.differences_from_defaults(doc["method_config"]) == {}
+    assert spec.differences_from_defaults(None) is None

@@ -34,8 +34,9 @@ class GeometryConfig:
     """Iterations of ``langsplat``'s static 3D-GS (``None``: static + deformation iterations)."""
     max_gaussians: int = 360_000
     """Upper bound of the scene-adaptive Gaussian cap (protocol: densification up to 360k)."""
-    gaussians_per_foreground_pixel: float = 2.0
-    """Gaussian cap = this x mean foreground pixels of a training view."""
+    gaussians_per_foreground_pixel: float = 4.0
+    """Gaussian cap = this x mean foreground pixels of a training view; 4: the cheapest budget at the plateau on
+    every preset at 128 px (reports/capacity)."""
     hexplane_resolution: int = 64
     """Base resolution of the spatial axes of the deformation field's HexPlane (protocol: 64; each of its
     multi-resolution levels multiplies it)."""
