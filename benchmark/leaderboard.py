@@ -322,7 +322,8 @@ def _recorded_method(name: str, recorded: Any) -> str:
 
 def _config_changes(name: str, recorded: Any) -> str:
     """``path=recorded (now default)`` of every option where a run's recorded config differs from the method's
-    defaults today, ``;``-joined: empty for a run at today's defaults or of a method this checkout lacks."""
+    defaults today, ``;``-joined: empty for a run at today's defaults, of a method this checkout lacks, or whose
+    recorded config cannot be read as its method's (no record, retired options)."""
     from methods import registry
 
     try:
