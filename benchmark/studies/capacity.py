@@ -667,9 +667,10 @@ def preset_means(table, knob: str, method: Optional[str] = None):
     """Per (preset, value) of ``knob`` (of ``method``, default: every method's rows): the mean over seeds of
     every numeric column and of the score."""
     columns = [SCORE] + [c for c, _ in ACCURACY + COST] + ["gaussians", "num_states"]
-    part = with_scores(table[table["knob"] == knob])
+    part = table[table["knob"] == knob]
     if method is not None:
         part = part[part["method"] == method]
+    part = with_scores(part)  # the rows kept only
     return part.groupby(["preset", "value"], sort=False)[columns].mean().reset_index()
 
 
