@@ -1261,7 +1261,7 @@ def render_markdown(runs: pd.DataFrame, results_dir_label: str,
     if len(changed):
         counts = changed["config_changes"].value_counts()
         out += [f"**{len(changed)} result file(s) were made under configs other than their methods' defaults "
-                "today** (rerun them to rank today's defaults): "
+                "today** (`bench4d run-all` archives and reruns them at today's defaults): "
                 + "; ".join(f"{n} with `{text}`" for text, n in sorted(counts.items(), key=lambda kv: (-kv[1], kv[0]))[:5])
                 + (f"; {len(counts) - 5} other set(s) of options." if len(counts) > 5 else "."), ""]
     dirty = runs[runs["dirty"]]

@@ -344,6 +344,21 @@ def test_run_all_runs_each_seed_once_and_resumes(env, capsys):
     archived = env["results"] / "archive" / f"scene-{'0' * 24}" / "synthetic" / "smoke" / "nearest-frame" / "oracle"
     assert (archived / "seed1.json").is_file() and (archived / "seed1.predictions").is_dir()
     assert scene_status(load_results(path))[1] is True and len(find_results(env["results"])) == 2
+    # one made with another method config (a default that moved since) is archived and rerun too
+    doc = load_results(path)
+    doc["method_config"]["time_weight"] = 0.5
+    write_results(path, doc)
+    assert main(argv) == 0
+    captured = capsys.readouterr()
+    assert "2 run(s) (1 reused)" in captured.out
+    assert "another method config than this sweep's (time_weight=0.5, now 0.1)" in captured.err
+    assert len(list((env["results"] / "archive").glob("config-*/synthetic/smoke/nearest-frame/oracle/seed1.json"))) == 1
+    assert load_results(path)["method_config"]["time_weight"] == 0.1
+    # and a sweep with other options reruns the runs made at the defaults, then reuses its own
+    assert main(argv + ["--set", "time_weight=0.5"]) == 0
+    assert "2 run(s) (0 reused)" in capsys.readouterr().out
+    assert main(argv + ["--set", "time_weight=0.5"]) == 0
+    assert "2 run(s) (2 reused)" in capsys.readouterr().out
     assert main(["run-all", "--methods", "nearest-frme", "--scenes", str(env["scene"])]) == 2
 
 

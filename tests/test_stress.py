@@ -712,6 +712,12 @@ def test_the_coverage_line_and_the_findings_count_the_seeds_from_the_scores(tmp_
     found = findings(fewer, ["mask-drop"], ["a", "b"])
     assert "b 32.0 -> 30.0 at 1 (never below half; only seed 0 at 0.5, 1)" in found
     assert "(below half from 1; only seed 0 at 1)" in found
+    # a clean-only suite (--strengths 0) counts its clean runs, not "0 distinct runs of the 0"
+    clean_only = stress.SuiteConfig(methods=("a", "b"), families=("mask-drop",), strengths=(0.0,), seeds=(0, 1),
+                                    cache_dir=tmp_path)
+    clean_runs = [s for s in scores if s.strength == 0]
+    assert coverage(clean_only, clean_runs).startswith("4 distinct runs of the 4 the suite names")
+    assert "not run (1)" in coverage(clean_only, clean_runs[1:]).lower()
 
 
 def test_a_gallery_puts_the_clean_row_above_each_row_of_the_strongest_strength(tmp_path, monkeypatch):

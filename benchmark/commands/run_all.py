@@ -7,8 +7,9 @@
 Defaults: every registered method, every synthetic preset (except the tiny test preset ``smoke``),
 seeds 0 1 2, the ``paper`` evaluation split. Seed ``s`` of a preset measures the scene generated with
 generator seed ``s`` (seeds sample scenes as well as fits). Runs whose results file exists are skipped (so
-an interrupted sweep resumes) unless ``--force``; a rerun moves the file it replaces to ``results/archive/``
-(never overwritten). A sweep of the other split reuses the first sweep's fits.
+an interrupted sweep resumes) unless ``--force``, or the file measured another version of its preset, or its
+method config is not the sweep's (a default moved since, other ``--set`` options); a rerun moves the file it
+replaces to ``results/archive/`` (never overwritten). A sweep of the other split reuses the first sweep's fits.
 
 ``--jobs N`` runs N (scene, seed) groups at once, each in a worker process with ``--threads`` torch
 threads (default 1, :func:`~benchmark.commands._common.set_threads`); the methods of a group run in
@@ -200,7 +201,7 @@ class _Tally:
 def _plan_groups(args: argparse.Namespace, runnable: list[str], tally: _Tally) -> list[list]:
     """The runs to make, one group per (scene, seed): its methods run in order in one process, so a
     method sharing another's geometry and field (the 4D methods) finds them cached. A run whose results
-    file exists is reused (counted in ``tally``) unless ``--force`` or it measured another scene version."""
+    file exists is reused (counted in ``tally``) unless ``--force`` or :func:`_reuse` finds it stale."""
     from benchmark.core.errors import InputError
 
     from ..loaders import load_scene
@@ -223,7 +224,7 @@ def _plan_groups(args: argparse.Namespace, runnable: list[str], tally: _Tally) -
             for method in runnable:
                 path = results_path(args.results_dir, dataset_label(scene), scene.name, method, args.track, seed,
                                     args.split)
-                if path.is_file() and not args.force and _reuse(path, args.results_dir, args.split):
+                if path.is_file() and not args.force and _reuse(path, args.results_dir, args.split, method, overrides):
                     tally.reused(path)
                     continue
                 group.append(EvalOptions(
@@ -237,18 +238,30 @@ def _plan_groups(args: argparse.Namespace, runnable: list[str], tally: _Tally) -
     return groups
 
 
-def _reuse(path: Path, results_dir: Path, split: str) -> bool:
-    """Whether the existing results file ``path`` stands; one measured on another version of its preset, or
-    written before evaluation splits were recorded (its split is not ``split``), is moved to the archive
+def _reuse(path: Path, results_dir: Path, split: str, method: str, overrides: dict) -> bool:
+    """Whether the existing results file ``path`` stands; one measured on another version of its preset,
+    written before evaluation splits were recorded (its split is not ``split``), or made with another method
+    config than this sweep's (a default that moved since, or other ``--set`` options) is moved to the archive
     instead (and rerun)."""
+    from methods import registry
+
     from ..results import archive_results, load_results, results_lock, run_split, scene_status
 
     doc = load_results(path)
     digest, current = scene_status(doc)
-    if current is not False and run_split(doc) == split:
+    made_as = registry.get(method).recorded_as(doc.get("method_config"), overrides)
+    if current is not False and run_split(doc) == split and made_as:
         return True
-    label, why = ((f"scene-{digest or 'unversioned'}", "measured on another scene version") if current is False else
-                  (f"split-{run_split(doc)}", f"scored the {run_split(doc)} split"))
+    if current is False:
+        label, why = f"scene-{digest or 'unversioned'}", "measured on another scene version"
+    elif run_split(doc) != split:
+        label, why = f"split-{run_split(doc)}", f"scored the {run_split(doc)} split"
+    else:
+        changed = registry.get(method).differences_from_defaults(doc.get("method_config")) if not overrides else None
+        label = f"config-{str(doc.get('created') or 'undated').replace(':', '').replace(' ', '_')[:17]}"
+        why = ("made with another method config than this sweep's"
+               + (f" ({', '.join(f'{k}={a!r}, now {b!r}' for k, (a, b) in sorted(changed.items()))})"
+                  if changed else ""))
     with results_lock(path):  # a run writing this file meanwhile finishes first
         moved = archive_results(path, results_dir, label) if path.is_file() else None
     if moved is not None:

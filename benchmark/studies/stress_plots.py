@@ -359,6 +359,8 @@ def coverage(config: SuiteConfig, scores: Sequence[Score]) -> str:
     from .stress import CLEAN, RunKey, applies
 
     families = [f for f in config.families if any(s.family == f and s.strength > 0 for s in scores)]
+    if not families and all(config.strengths_of(f) == (0.0,) for f in config.families):
+        families = list(config.families)[:1]  # a clean-only suite (--strengths 0): its clean runs are the suite
     present = {(s.family, s.strength, s.method, s.seed) for s in scores}
     expected, missing = set(), {}
     for fam in families:
@@ -595,6 +597,8 @@ def write_reports(config: SuiteConfig, scores: Sequence[Score], *, wall_seconds:
         notes = (out / NOTES_FILE).read_text() if (out / NOTES_FILE).is_file() else ""
     written: list[Path] = []
     families = [f for f in config.families if any(s.family == f and s.strength > 0 for s in scores)]
+    if not families and all(config.strengths_of(f) == (0.0,) for f in config.families):
+        families = list(config.families)[:1]  # a clean-only suite (--strengths 0): its clean runs are the suite
     for fam in families:
         for made in (family_chart(scores, fam, config.methods, out / "charts" / f"{fam}.png"),
                      family_gallery(config, scores, fam, out / "galleries" / f"{fam}.png")):
