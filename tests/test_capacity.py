@@ -362,3 +362,21 @@ def test_the_cheapest_value_at_every_preset_s_plateau_is_named_and_a_value_faili
     # no value at the plateau everywhere but the plateau itself costs most: still named, never 'none' then
     lone = table[table["value"] != "4"]
     assert "| m | gaussians | 2: 1/2; 8: 2/2 | 8 |" in "\n".join(capacity.every_preset_section(lone, ["gaussians"], ["m"]))
+
+
+def test_each_value_is_averaged_over_the_same_seeds_and_auto_over_them_too():
+    # value 4 (and auto) ran seeds 0-2, value 8 seeds 0-1: seed 2 of 4 and of auto is left out of the comparison
+    table = _hand_table({"4": [[60, 62, 10], [70, 72, 10]], "8": [[61, 63], [71, 73]]}, {"4": 20.0, "8": 40.0})
+    auto = table[table["value"] == "4"].assign(knob=AUTO, value="")
+    full = pd.concat([table, auto], ignore_index=True).reindex(columns=list(capacity.CSV_COLUMNS))
+    full = full.assign(run=full["value"])
+    matched = capacity.matched_runs(capacity.with_scores(table))
+    assert sorted(set(matched["seed"])) == [0, 1] and len(matched) == 8
+    readme = capacity.render_readme(full, CapacityConfig(methods=("m",), knobs=("gaussians",), seeds=(0, 1, 2)))
+    assert "each the mean over its seeds (0 1)" in readme
+    assert "Left out: 2 run(s) of a preset and seed that lack a run of another value." in readme
+    assert _readme_row(readme, "m: Gaussians per foreground pixel", "4")[1].startswith("66.00 [")  # not 46.33
+    assert "Automatic setting (`auto`): 66.00 [" in readme
+    curve = capacity.pooled_curve(full, "gaussians", "m")
+    assert list(curve["score"]) == [66.0, 67.0]
+    assert capacity.at_every_plateau(full, "gaussians", "m") == {"4": ["p0", "p1"], "8": ["p0", "p1"]}

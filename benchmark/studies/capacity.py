@@ -573,6 +573,24 @@ def _values_in_order(part) -> list[str]:
     return sorted(dict.fromkeys(part["value"].astype(str)), key=lambda v: (_numeric(v), v))
 
 
+def matched_runs(part):
+    """The rows of one method's knob whose (preset, seed) has a run of every value of the knob, so that each
+    value is averaged over the same scenes and fits (a value with a seed more would be its mean over other
+    scenes)."""
+    if part.empty:
+        return part
+    values = set(_values_in_order(part))
+    have = part.groupby(["preset", "seed"])["value"].agg(lambda v: set(map(str, v)))
+    keep = {key for key, got in have.items() if values <= got}
+    return part[[key in keep for key in zip(part["preset"], part["seed"])]]
+
+
+def same_runs(rows, part):
+    """The rows of ``rows`` (``auto``'s) on the (preset, seed) pairs that ``part`` (a knob's matched runs) has."""
+    pairs = set(zip(part["preset"], part["seed"]))
+    return rows[[key in pairs for key in zip(rows["preset"], rows["seed"])]]
+
+
 def complete_presets(part, values: Sequence[str]) -> list[str]:
     """The presets of ``part`` that have a run of every value in ``values`` (the strata of the bootstrap:
     every value is averaged over the same presets)."""
@@ -693,10 +711,11 @@ def knob_section(table, knob: str, method: str) -> list[str]:
     shared one geometry."""
     spec = KNOBS[knob]
     rows_of = with_scores(table[table["method"] == method])
-    part = rows_of[rows_of["knob"] == knob]
+    every = rows_of[rows_of["knob"] == knob]
+    part = matched_runs(every)
     values = _values_in_order(part)
     presets = complete_presets(part, values)
-    left_out = sorted(set(part["preset"]) - set(presets))
+    left_out = sorted(set(every["preset"]) - set(presets))
     seed = stats.stable_seed("capacity", method, knob)
     score = estimates(part, SCORE, values, presets, seed=seed)
     miou = estimates(part, "mIoU", values, presets, seed=seed)
@@ -715,7 +734,9 @@ def knob_section(table, knob: str, method: str) -> list[str]:
            f"Mean over {len(presets)} preset(s) ({', '.join(presets) or 'none'}), each the mean over its seeds "
            f"({' '.join(map(str, seeds))}); 95 % intervals from the stratified bootstrap (presets fixed, seeds "
            "resampled within each)."
-           + (f" Left out (a value has no run there): {', '.join(left_out)}." if left_out else ""),
+           + (f" Left out (a value has no run there): {', '.join(left_out)}." if left_out else "")
+           + (f" Left out: {len(every) - len(part)} run(s) of a preset and seed that lack a run of another value."
+              if len(every) > len(part) else ""),
            "", markdown_table(header, rows).rstrip(), ""]
     choice = plateau_and_knee(score, means["fit_seconds"])
     if choice is None:
@@ -728,7 +749,7 @@ def knob_section(table, knob: str, method: str) -> list[str]:
                 f"- Knee (the cheapest value by mean fit time whose interval overlaps the plateau's): "
                 f"{_listing(choice.knee)} ({knee_text}). Values not separated from the plateau: "
                 f"{', '.join(choice.overlapping)}."]
-        auto_part = rows_of[rows_of["knob"] == AUTO]
+        auto_part = same_runs(rows_of[rows_of["knob"] == AUTO], part)
         if presets and set(presets) <= set(auto_part["preset"]):
             auto = estimates(auto_part.assign(value=AUTO), SCORE, [AUTO], presets, seed=seed)[AUTO]
             auto_seconds = _mean_over_presets(auto_part, "fit_seconds", presets)
@@ -762,15 +783,15 @@ def auto_vs_plateau(table, knobs: Sequence[str], methods: Sequence[str]) -> list
         rows_of = with_scores(table[table["method"] == method])
         auto_part = rows_of[rows_of["knob"] == AUTO]
         for knob in knobs:
-            part = rows_of[rows_of["knob"] == knob]
+            part = matched_runs(rows_of[rows_of["knob"] == knob])
             values = _values_in_order(part)
             for preset in complete_presets(part, values):
-                if preset not in set(auto_part["preset"]):
+                if preset not in set(same_runs(auto_part, part)["preset"]):
                     continue
                 seed, score, seconds, choice = _preset_plateau(part, method, knob, preset)
                 if choice is None:
                     continue
-                mine = auto_part[auto_part["preset"] == preset]
+                mine = same_runs(auto_part[auto_part["preset"] == preset], part)
                 auto = estimates(mine.assign(value=AUTO), SCORE, [AUTO], [preset], seed=seed)[AUTO]
                 auto_seconds = _mean(mine["fit_seconds"])
                 plateau_seconds = min(seconds[p] for p in choice.plateau)
@@ -808,7 +829,7 @@ def at_every_plateau(table, knob: str, method: str) -> dict[str, list[str]]:
     """Per value of ``knob`` of ``method``: the presets (of those with every value) on which its mean score lies
     inside the interval of that preset's plateau (:func:`auto_vs_plateau`'s per-preset plateau)."""
     part = with_scores(table[table["method"] == method])
-    part = part[part["knob"] == knob]
+    part = matched_runs(part[part["knob"] == knob])
     values = _values_in_order(part)
     inside: dict[str, list[str]] = {v: [] for v in values}
     for preset in complete_presets(part, values):
@@ -827,7 +848,7 @@ def every_preset_section(table, knobs: Sequence[str], methods: Sequence[str]) ->
     rows = []
     for method in methods:
         for knob in knobs:
-            part = table[(table["method"] == method) & (table["knob"] == knob)]
+            part = matched_runs(table[(table["method"] == method) & (table["knob"] == knob)])
             if not len(part):
                 continue
             inside = at_every_plateau(table, knob, method)
@@ -968,7 +989,7 @@ def pooled_curve(table, knob: str, method: str):
     import pandas as pd
 
     rows = with_scores(table[table["method"] == method])
-    part = rows[rows["knob"] == knob]
+    part = matched_runs(rows[rows["knob"] == knob])
     values = _values_in_order(part)
     presets = complete_presets(part, values)
     score = estimates(part, SCORE, values, presets, seed=stats.stable_seed("capacity", method, knob))
