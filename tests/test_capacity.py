@@ -380,3 +380,17 @@ def test_each_value_is_averaged_over_the_same_seeds_and_auto_over_them_too():
     curve = capacity.pooled_curve(full, "gaussians", "m")
     assert list(curve["score"]) == [66.0, 67.0]
     assert capacity.at_every_plateau(full, "gaussians", "m") == {"4": ["p0", "p1"], "8": ["p0", "p1"]}
+
+
+def test_a_knob_that_changes_neither_model_nor_scores_is_called_out():
+    table = _hand_table({"2": [[60, 62], [70, 72]], "4": [[60, 62], [70, 72]]}, {"2": 20.0, "4": 21.0})
+    table = table.assign(parameters=1000.0, Acc=50.0, vIoU=30.0).reindex(columns=list(capacity.CSV_COLUMNS))
+    table = table.assign(run=table["value"])
+    section = "\n".join(capacity.knob_section(table, "gaussians", "m"))
+    assert "does not reach m's model" in section
+    # a model that grows with the value is reached, whatever the scores
+    grown = table.assign(parameters=table["value"].astype(float) * 1000.0)
+    assert "does not reach" not in "\n".join(capacity.knob_section(grown, "gaussians", "m"))
+    changed = table.copy()
+    changed.loc[(changed["value"] == "4") & (changed["seed"] == 1), "mIoU"] += 1.0
+    assert "does not reach" not in "\n".join(capacity.knob_section(changed, "gaussians", "m"))

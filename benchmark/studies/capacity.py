@@ -582,13 +582,13 @@ def matched_runs(part):
     values = set(_values_in_order(part))
     have = part.groupby(["preset", "seed"])["value"].agg(lambda v: set(map(str, v)))
     keep = {key for key, got in have.items() if values <= got}
-    return part[[key in keep for key in zip(part["preset"], part["seed"])]]
+    return part.loc[[key in keep for key in zip(part["preset"], part["seed"])]]
 
 
 def same_runs(rows, part):
     """The rows of ``rows`` (``auto``'s) on the (preset, seed) pairs that ``part`` (a knob's matched runs) has."""
     pairs = set(zip(part["preset"], part["seed"]))
-    return rows[[key in pairs for key in zip(rows["preset"], rows["seed"])]]
+    return rows.loc[[key in pairs for key in zip(rows["preset"], rows["seed"])]]  # .loc: an empty list selects no row
 
 
 def complete_presets(part, values: Sequence[str]) -> list[str]:
@@ -763,7 +763,20 @@ def knob_section(table, knob: str, method: str) -> list[str]:
         if len(keys) and (keys <= 1).all():
             out += ["", f"Warning: every value of this knob was fitted on one geometry: `{spec.option}` did not reach "
                     "the geometry fit."]
+    if part["value"].nunique() > 1 and _same_model_and_scores(part):
+        out += ["", f"Warning: every value gave a model of the same size and the same scores on every preset and seed: "
+                f"`{spec.option}` does not reach {method}'s model (its fit times differ by noise alone)."]
     return out + [""]
+
+
+def _same_model_and_scores(part) -> bool:
+    """Whether every value of one method's knob has the same parameter count and the same mIoU, Acc and vIoU on
+    each (preset, seed): the option is in the method's config but not in its model."""
+    columns = [c for c in ("parameters", "mIoU", "Acc", "vIoU") if c in part]
+    if "parameters" not in columns or part["parameters"].isna().all():
+        return False
+    spread = part.groupby(["preset", "seed"])[columns].nunique(dropna=False)
+    return bool(len(spread)) and bool((spread <= 1).all().all())
 
 
 def _inside(value: float, interval: tuple[float, float]) -> bool:
