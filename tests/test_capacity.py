@@ -26,8 +26,8 @@ def test_hexplane_resolution_is_a_geometry_option_of_the_language_methods():
     from methods import registry
 
     spec = registry.get("4d-langsplat")
-    assert spec.make_config({}).geometry.hexplane_resolution == 64
-    assert spec.make_config({"geometry.hexplane_resolution": "32"}).geometry.hexplane_resolution == 32
+    assert spec.make_config({}).geometry.hexplane_resolution == 32
+    assert spec.make_config({"geometry.hexplane_resolution": "64"}).geometry.hexplane_resolution == 64
     with pytest.raises(InputError, match="hexplane_resolution"):
         spec.make_config({"geometry.hexplane_resolution": "1"})
 

@@ -1052,8 +1052,8 @@ def test_runs_made_under_other_defaults_are_counted_with_the_options_that_moved(
         write_results(results_path(root, "synthetic", S1, "deformable-clip", "oracle", seed), doc)
     build_leaderboard(root, markdown=tmp_path / "lb.md", reports_dir=tmp_path / "rep")
     md = (tmp_path / "lb.md").read_text()
-    assert ("**1 result file(s) were made under configs other than their methods' defaults today** (rerun them to "
-            f"rank today's defaults): 1 with `geometry.gaussians_per_foreground_pixel={default * 2} (now {default})`."
-            in md)
+    assert ("**1 result file(s) were made under configs other than their methods' defaults today** (`bench4d "
+            "run-all` archives and reruns them at today's defaults): 1 with "
+            f"`geometry.gaussians_per_foreground_pixel={default * 2} (now {default})`." in md)
     assert spec.differences_from_defaults(doc["method_config"]) == {}
     assert spec.differences_from_defaults(None) is None

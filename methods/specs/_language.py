@@ -37,9 +37,9 @@ class GeometryConfig:
     gaussians_per_foreground_pixel: float = 4.0
     """Gaussian cap = this x mean foreground pixels of a training view; 4: the cheapest budget at the plateau on
     every preset at 128 px (reports/capacity)."""
-    hexplane_resolution: int = 64
-    """Base resolution of the spatial axes of the deformation field's HexPlane (protocol: 64; each of its
-    multi-resolution levels multiplies it)."""
+    hexplane_resolution: int = 32
+    """Base resolution of the deformation HexPlane's spatial axes (each multi-resolution level multiplies it);
+    32: the cheapest at the plateau on every preset at 128 px (reports/capacity; protocol: 64)."""
     render_backend: str = "auto"
     """Rasterizer: ``"auto"`` (gsplat on CUDA when importable, else PyTorch), ``"torch"`` or ``"gsplat"``."""
 
