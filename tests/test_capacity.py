@@ -394,3 +394,28 @@ def test_a_knob_that_changes_neither_model_nor_scores_is_called_out():
     changed = table.copy()
     changed.loc[(changed["value"] == "4") & (changed["seed"] == 1), "mIoU"] += 1.0
     assert "does not reach" not in "\n".join(capacity.knob_section(changed, "gaussians", "m"))
+
+
+def test_the_report_redraws_from_its_csv_alone_and_says_whether_the_runs_are_kept(tmp_path):
+    from benchmark.cli import main
+    from benchmark.studies.capacity import CapacityConfig
+
+    table = _hand_table({"2": [[40, 42, 41], [45, 47, 46]], "8": [[62, 68, 65], [72, 78, 75]]}, {"2": 10.0, "8": 40.0})
+    table = table.assign(run=table["value"]).reindex(columns=list(capacity.CSV_COLUMNS))
+    out = tmp_path / "report"
+    out.mkdir()
+    csv = table.to_csv(index=False)
+    (out / "capacity.csv").write_text(csv)
+    config = CapacityConfig(methods=("m",), knobs=("gaussians",), seeds=(0, 1, 2), out_dir=out,
+                            runs_root=tmp_path / "runs")
+    report = capacity.capacity_report(config, from_csv=True)
+    readme = (out / "README.md").read_text()
+    assert readme == report.table and "Plateau (highest mean score): **8**" in readme
+    assert "the runs' results files are not kept beside it" in readme
+    assert (out / "capacity.csv").read_text() == csv  # read, never rewritten
+    assert not list(out.glob("capacity-replaced-*.csv"))
+    config.runs_dir_of("m").mkdir(parents=True)
+    assert f"the runs' results files under `{config.runs_dir_of('m').as_posix()}/`" in \
+        capacity.capacity_report(config, from_csv=True).table
+    assert main(["ablate", "capacity", "--from-csv", "--out", str(tmp_path / "none"), "--quiet"]) == 2
+    assert main(["ablate", "capacity", "--from-csv", "--report-only", "--out", str(out), "--quiet"]) == 2

@@ -17,7 +17,7 @@
     bench4d ablate decisions [--methods M ...] [--datasets D ...] [--scenes S ...] [--results-dir results]
     bench4d ablate capacity [--methods 4d-langsplat+ ...] [--presets split-cookie espresso americano] [--size 64]
                             [--knobs gaussians states latent hexplane] [--values KNOB=V,V,...] [--seeds 0]
-                            [--set KEY=VALUE] [--no-release] [--jobs N] [--report-only] [--out reports/capacity]
+                            [--set KEY=VALUE] [--no-release] [--jobs N] [--report-only | --from-csv] [--out reports/capacity]
     bench4d ablate real-cost [--size full|tiny] [--device cuda] [--masks-per-frame 120] [--objects 3]
     bench4d ablate timing --baseline REV [--candidate REV] [--method 4d-langsplat] [--scenes split-cookie ...]
                           [--seeds 0 ...] [--size 128] [--set KEY=VALUE] [--rounds 1] [--out reports/fit-timing]
@@ -352,6 +352,8 @@ def _capacity_arguments(sub) -> None:
                    help="groups of runs sharing a geometry run at once, each in a worker process (default 1: this "
                         "process, in order)")
     c.add_argument("--report-only", action="store_true", help="write the report from the runs present")
+    c.add_argument("--from-csv", action="store_true",
+                   help="redraw README and charts from --out's capacity.csv alone (where the runs are not kept)")
     c.add_argument("--cache-dir", type=Path, default=default.cache_dir,
                    help="generated scenes, fits and the study's results files (<cache>/capacity/...)")
     c.add_argument("--device", default="cpu")
@@ -585,13 +587,16 @@ def _capacity(args) -> int:
         values[knob.strip()] = tuple(v.strip() for v in listed.split(",") if v.strip())
     if args.method is not None and args.methods is not None:
         raise InputError(None, "--method", "give --method or --methods, not both")
+    if args.report_only and args.from_csv:
+        raise InputError(None, "--from-csv", "give --report-only (from the runs) or --from-csv (from the CSV), not both")
     methods = tuple(args.methods or ([args.method] if args.method is not None else []))
     config = CapacityConfig(
         methods=methods, presets=tuple(args.presets), size=args.size, seeds=tuple(args.seeds),
         knobs=tuple(args.knobs), values=values, overrides=parse_overrides(args.set), release=not args.no_release,
         jobs=args.jobs, threads=args.threads or 1, device=args.device, text_encoder=args.text_encoder,
         cache_dir=args.cache_dir, out_dir=args.out, runs_root=args.runs_dir)
-    report = capacity_report(config, report_only=args.report_only, log=stderr_log(args.quiet))
+    report = capacity_report(config, report_only=args.report_only, from_csv=args.from_csv,
+                             log=stderr_log(args.quiet))
     if not args.quiet:
         print(report.table)
     for path in report.paths:

@@ -960,7 +960,10 @@ def render_readme(table, config: CapacityConfig) -> str:
                  f" The fits recorded no geometry PSNR (`fit.info.geometry.{PSNR_KEY}`): its column is empty.")
     baseline_note = ("" if table["peak_cpu_above_baseline_mib"].notna().any() else
                      " The runs recorded no baseline (made before fits recorded one): that column is empty.")
-    runs_dirs = ", ".join(f"`{config.runs_dir_of(m).as_posix()}/`" for m in methods)
+    kept = [config.runs_dir_of(m) for m in methods if config.runs_dir_of(m).is_dir()]
+    runs_line = (f"the runs' results files under {', '.join(f'`{d.as_posix()}/`' for d in kept)}" if kept else
+                 "the runs' results files are not kept beside it (the CSV holds every value this report reads: "
+                 "`--from-csv` redraws the report; rerunning the study refits the runs)")
     out = [f"# Capacity curves: {', '.join(methods) or config.method}", "",
            f"One knob moved at a time from each method's defaults, on {', '.join(sorted(set(table['preset'])))} at "
            f"{config.size} px, seeds {' '.join(map(str, config.seeds))}; "
@@ -968,7 +971,7 @@ def render_readme(table, config: CapacityConfig) -> str:
            "seed s fits the preset generated with generator seed s (and fits with seed s), so the spread over seeds "
            "covers scene instances as well as fits (column `scene_seed` of the CSV). The methods of one preset and "
            "seed are measured on the same fitted geometries. Made by `bench4d ablate capacity`; the rows are "
-           f"`capacity.csv`, the runs' results files under {runs_dirs}.", "", provenance_line(table), "",
+           f"`capacity.csv`, {runs_line}.", "", provenance_line(table), "",
            "Accuracy in percent (mIoU time-agnostic; Acc and vIoU time-sensitive, where the preset has time queries); "
            "PSNR of the geometry on held-out frames." + psnr_note + " The score that picks the plateau is the mean "
            "of mIoU and Acc per run (mIoU alone where a preset has no time queries). Per value: the mean over "
@@ -1081,6 +1084,12 @@ def write_report(config: CapacityConfig, cells: Sequence[Cell]) -> Report:
             before = {None}  # unreadable: kept as it is
         keep_replaced_table(out / "capacity.csv", before, _row_keys(table) if len(table) else set())
     write_text(out / "capacity.csv", table.to_csv(index=False, float_format="%.6g", lineterminator="\n"))
+    return report_from_csv(config)
+
+
+def report_from_csv(config: CapacityConfig) -> Report:
+    """``README.md`` and the charts under ``config.out_dir`` redrawn from its ``capacity.csv`` alone (no run read)."""
+    out = Path(config.out_dir)
     table = read_table(out / "capacity.csv")
     readme = render_readme(table, config)
     charts = write_charts(table, config)
@@ -1088,9 +1097,12 @@ def write_report(config: CapacityConfig, cells: Sequence[Cell]) -> Report:
     return Report(readme, [out / "capacity.csv", out / "README.md", *charts])
 
 
-def capacity_report(config: CapacityConfig, *, report_only: bool = False,
+def capacity_report(config: CapacityConfig, *, report_only: bool = False, from_csv: bool = False,
                     log: Callable[[str], None] = print) -> Report:
-    """Run (or read) the study, then write its report; ``report_only``: from the runs present only."""
+    """Run (or read) the study, then write its report; ``report_only``: from the runs present only;
+    ``from_csv``: from the written ``capacity.csv`` alone (where the runs are not kept)."""
+    if from_csv:
+        return report_from_csv(config)
     if report_only:
         check_knobs(config)
         cells = plan(config)
