@@ -911,3 +911,31 @@ def test_drops_are_compared_at_one_strength_for_every_method():
             for s in _runs("occluder", "langsplat", [55, 56, 57], [53, 55, 54])]
     scores = _runs("occluder", "4d-langsplat", [60, 62, 61], [40, 43, 40]) + weak
     assert separated_pairs(scores, "occluder", ["4d-langsplat", "langsplat"], "mIoU") == []
+
+
+def test_the_status_field_and_the_non_status_field_are_compared_per_seed_with_an_interval():
+    from benchmark.studies.stress_plots import status_comparison, status_markdown
+
+    # caption-swap: the status head is ahead by 10 Acc on every seed at strength 1 and ties on the clean scene;
+    # caption-lag: one seed only at its strength, so undecided; mask-drop is no caption family
+    scores = (_runs("caption-swap", "4d-langsplat", [80, 82, 81], [70, 71, 72], metric="Acc")
+              + _runs("caption-swap", "non-status-field", [81, 80, 82], [60, 61, 62], metric="Acc")
+              + _runs("caption-lag", "4d-langsplat", [80], [50], metric="Acc")
+              + _runs("caption-lag", "non-status-field", [80], [70], metric="Acc")
+              + _runs("mask-drop", "4d-langsplat", [80, 81], [10, 11], metric="Acc")
+              + _runs("mask-drop", "non-status-field", [80, 81], [70, 71], metric="Acc"))
+    rows = status_comparison(scores)
+    cells = {(r["family"], r["strength"], r["metric"]): r for r in rows}
+    assert set(cells) == {("caption-swap", 0.0, "Acc"), ("caption-swap", 1.0, "Acc"), ("caption-lag", 0.0, "Acc"),
+                          ("caption-lag", 1.0, "Acc")}, "vIoU is answered by neither; mask-drop is no caption family"
+    strong = cells["caption-swap", 1.0, "Acc"]
+    assert strong["difference"] == pytest.approx(10.0) and strong["low"] == pytest.approx(10.0)
+    assert strong["verdict"] == "4d-langsplat ahead" and strong["seeds"] == 3
+    assert cells["caption-swap", 0.0, "Acc"]["verdict"] == "a tie"
+    assert cells["caption-lag", 1.0, "Acc"]["verdict"] == "one seed: undecided"
+    reversed_ = status_comparison(scores, pair=("non-status-field", "4d-langsplat"))
+    assert [(r["verdict"], r["difference"]) for r in reversed_ if r["family"] == "caption-swap"
+            and r["strength"] == 1.0] == [("4d-langsplat ahead", pytest.approx(-10.0))], "the order only flips the sign"
+    text = status_markdown(rows)
+    assert "1 of 4 cells are outside the seed noise" in text and "caption-swap 1 Acc: 4d-langsplat ahead" in text
+    assert "Not measured" in status_markdown([])

@@ -584,6 +584,60 @@ def verdict_markdown(verdicts: Sequence[dict]) -> str:
     return (f"{table}\nThe kept families, to fill in their strengths: `--families {' '.join(kept) or '(none)'}`.\n")
 
 
+STATUS_PAIR = ("4d-langsplat", "non-status-field")
+"""The status field and the directly time-varying field it is argued against: one CLIP field, one geometry,
+only the time-varying head differs."""
+STATUS_METRICS = ("Acc", "vIoU")
+"""The time-sensitive scores the two heads are compared on."""
+
+
+def status_comparison(scores: Sequence[Score], families: Sequence[str] = ALWAYS_KEPT,
+                      pair: tuple[str, str] = STATUS_PAIR) -> list[dict]:
+    """Per caption family, strength (the clean scene first) and time-sensitive metric: the paired difference
+    ``pair[0]`` minus ``pair[1]`` per seed (same seed, same scene and supervision), its mean and 95 % t interval
+    (:func:`benchmark.stats.t_interval`; NaN below two seeds) and a verdict: ahead where the interval excludes
+    0, else a tie. Families or metrics neither method answers are left out."""
+    from benchmark.stats import t_interval
+
+    a, b = pair
+    rows = []
+    for fam in families:
+        by = {(s.method, s.strength, s.seed): s.metrics for s in scores if s.family == fam and s.method in pair}
+        strengths = sorted({k for (_, k, _) in by})
+        if not any(k > 0 for k in strengths):
+            continue
+        for metric in STATUS_METRICS:
+            for strength in strengths:
+                seeds = sorted({seed for (m, k, seed) in by if k == strength})
+                diffs = [float(by[a, strength, seed][metric]) - float(by[b, strength, seed][metric]) for seed in seeds
+                         if (a, strength, seed) in by and (b, strength, seed) in by
+                         and by[a, strength, seed].get(metric) is not None
+                         and by[b, strength, seed].get(metric) is not None]
+                if not diffs:
+                    continue
+                lo, hi = t_interval(diffs)
+                verdict = (f"{a} ahead" if lo > 0 else f"{b} ahead" if hi < 0 else
+                           "a tie" if np.isfinite(lo) else "one seed: undecided")
+                rows.append({"family": fam, "strength": strength, "metric": metric, "seeds": len(diffs),
+                             "difference": float(np.mean(diffs)), "low": lo, "high": hi, "verdict": verdict})
+    return rows
+
+
+def status_markdown(rows: Sequence[dict], pair: tuple[str, str] = STATUS_PAIR) -> str:
+    """:func:`status_comparison` as a table, with a count of the cells outside the noise."""
+    if not rows:
+        return f"Not measured: no caption family was run with both {pair[0]} and {pair[1]}.\n"
+    table = markdown_table(
+        ["family", "strength", "metric", "seeds", f"{pair[0]} − {pair[1]}", "95 % interval", "reading"],
+        [[r["family"], strength_label(r["strength"]), r["metric"], str(r["seeds"]), number_cell(r["difference"], 2),
+          (f"[{r['low']:.2f}, {r['high']:.2f}]" if np.isfinite(r["low"]) else "–"), r["verdict"]] for r in rows])
+    decided = [r for r in rows if r["verdict"].endswith("ahead")]
+    return (f"{table}\n{len(decided)} of {len(rows)} cells are outside the seed noise"
+            + (": " + "; ".join(f"{r['family']} {strength_label(r['strength'])} {r['metric']}: {r['verdict']}"
+                                for r in decided) if decided else "; the two heads cannot be told apart here")
+            + ".\n")
+
+
 NOTES_FILE = "notes.md"
 """A hand-written reading of the measurements in the report folder, copied into README.md when present."""
 
@@ -643,6 +697,10 @@ def _readme(config: SuiteConfig, scores: Sequence[Score], families: Sequence[str
             f"## Findings per family (measured)\n\nMeans over the seeds run (the clean runs' and, "
             f"where a perturbed strength has fewer, which at which strengths).\n\n"
             f"{findings(scores, families, config.methods)}\n"
+            f"## The status field against the non-status field under the caption families\n\nPer seed, "
+            f"{STATUS_PAIR[0]} minus {STATUS_PAIR[1]} on the same scene and supervision (one CLIP field, one "
+            f"geometry; only the time-varying head differs); the mean over seeds with its 95 % t interval. A "
+            f"cell is a tie where the interval holds 0.\n\n{status_markdown(status_comparison(scores))}\n"
             + (f"{notes.strip()}\n\n" if notes.strip() else "")
             + f"## Charts and galleries\n\nA chart draws each metric against the family's strength: per method "
               f"a line through the mean over the seeds, shaded from its lowest to its highest seed, and a dotted "
