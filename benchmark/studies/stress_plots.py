@@ -602,17 +602,15 @@ def status_comparison(scores: Sequence[Score], families: Sequence[str] = ALWAYS_
     a, b = pair
     rows = []
     for fam in families:
-        by = {(s.method, s.strength, s.seed): s.metrics for s in scores if s.family == fam and s.method in pair}
-        strengths = sorted({k for (_, k, _) in by})
-        if not any(k > 0 for k in strengths):
+        runs = [s for s in scores if s.family == fam and s.method in pair]
+        if not any(s.strength > 0 for s in runs):
             continue
         for metric in STATUS_METRICS:
-            for strength in strengths:
-                seeds = sorted({seed for (m, k, seed) in by if k == strength})
-                diffs = [float(by[a, strength, seed][metric]) - float(by[b, strength, seed][metric]) for seed in seeds
-                         if (a, strength, seed) in by and (b, strength, seed) in by
-                         and by[a, strength, seed].get(metric) is not None
-                         and by[b, strength, seed].get(metric) is not None]
+            value = {(s.method, s.strength, s.seed): s.metrics.get(metric) for s in runs
+                     if s.metrics.get(metric) is not None}
+            for strength in sorted({s.strength for s in runs}):
+                diffs = [float(value[a, k, seed]) - float(value[b, k, seed])
+                         for (m, k, seed) in sorted(value) if m == a and k == strength and (b, k, seed) in value]
                 if not diffs:
                     continue
                 lo, hi = t_interval(diffs)
@@ -625,12 +623,14 @@ def status_comparison(scores: Sequence[Score], families: Sequence[str] = ALWAYS_
 
 def status_markdown(rows: Sequence[dict], pair: tuple[str, str] = STATUS_PAIR) -> str:
     """:func:`status_comparison` as a table, with a count of the cells outside the noise."""
+    from benchmark.stats import interval_text
+
     if not rows:
         return f"Not measured: no caption family was run with both {pair[0]} and {pair[1]}.\n"
     table = markdown_table(
         ["family", "strength", "metric", "seeds", f"{pair[0]} − {pair[1]}", "95 % interval", "reading"],
         [[r["family"], strength_label(r["strength"]), r["metric"], str(r["seeds"]), number_cell(r["difference"], 2),
-          (f"[{r['low']:.2f}, {r['high']:.2f}]" if np.isfinite(r["low"]) else "–"), r["verdict"]] for r in rows])
+          interval_text(r["low"], r["high"]), r["verdict"]] for r in rows])
     decided = [r for r in rows if r["verdict"].endswith("ahead")]
     return (f"{table}\n{len(decided)} of {len(rows)} cells are outside the seed noise"
             + (": " + "; ".join(f"{r['family']} {strength_label(r['strength'])} {r['metric']}: {r['verdict']}"
