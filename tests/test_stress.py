@@ -718,6 +718,12 @@ def test_the_coverage_line_and_the_findings_count_the_seeds_from_the_scores(tmp_
     clean_runs = [s for s in scores if s.strength == 0]
     assert coverage(clean_only, clean_runs).startswith("4 distinct runs of the 4 the suite names")
     assert "not run (1)" in coverage(clean_only, clean_runs[1:]).lower()
+    # a family asked for with no perturbed run is named, and the suite is not called complete
+    two = stress.SuiteConfig(methods=("a", "b"), families=("mask-drop", "occluder"), strengths=(0.5, 1.0),
+                             seeds=(0, 1), cache_dir=tmp_path)
+    text = coverage(two, scores)
+    assert text.startswith("12 distinct runs of the 12") and "complete" not in text
+    assert "no perturbed run yet, in no table below (1): occluder." in text
 
 
 def test_a_gallery_puts_the_clean_row_above_each_row_of_the_strongest_strength(tmp_path, monkeypatch):

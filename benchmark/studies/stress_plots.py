@@ -377,7 +377,14 @@ def coverage(config: SuiteConfig, scores: Sequence[Score]) -> str:
     fams = f"{len(families)} " + ("family" if len(families) == 1 else "families")
     head = (f"{len(done)} distinct runs of the {len(expected)} the suite names ({methods}, {fams} at their "
             f"strengths, {_seeds_text(config.seeds)}; a clean run shared by the families counts once)")
+    # a family asked for with no perturbed run is in no table below: named here, so a partial suite says so
+    unrun = [f for f in config.families if f not in families and config.strengths_of(f) != (0.0,)]
+    if unrun:
+        head += (f". Families asked for with no perturbed run yet, in no table below ({len(unrun)}): "
+                 + ", ".join(unrun))
     if not missing:
+        if unrun:
+            return head + ".\n"
         return head + ": complete, every method on every family at every strength with every seed.\n"
     lines = [head + f". Not run ({len(expected) - len(done)}):", ""]
     for method in config.methods:
