@@ -20,6 +20,7 @@ import functools
 import importlib
 import importlib.util
 import re
+import threading
 from typing import Callable, Generic, Iterable, Optional, Protocol, TypeVar
 
 from benchmark.core.cache_keys import PROJECT_PACKAGES, code_modules
@@ -67,13 +68,23 @@ class Registry(Generic[T]):
         self._discover = discover
         self._discovered = discover is None
         self._entries: dict[str, T] = {}
+        # discovery registers through register(), which comes back here: reentrant, and other threads wait for it
+        self._lock = threading.RLock()
+        self._discovering = False
 
     def _ensure_discovered(self) -> None:
         if self._discovered:
             return
-        self._discovered = True  # before the call: discovered entries register through register()
-        for entry in self._discover():
-            self.register(entry)
+        with self._lock:  # another thread waits here until the entries are in
+            if self._discovered or self._discovering:  # done meanwhile, or this thread's discovery registering
+                return
+            self._discovering = True
+            try:
+                for entry in self._discover():
+                    self.register(entry)
+                self._discovered = True
+            finally:
+                self._discovering = False
 
     def register(self, entry: T, *, replace: bool = False) -> T:
         """Add ``entry``; a different entry of the same name raises ``ValueError`` unless ``replace``."""

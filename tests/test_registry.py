@@ -56,6 +56,29 @@ def test_registry_imports_an_entry_only_when_it_is_loaded(tmp_path, monkeypatch)
     assert reg.names() == ["alpha", "beta"] and discovered == [1, 1]
 
 
+def test_a_thread_that_asks_during_discovery_waits_for_its_entries():
+    import threading
+    import time
+
+    from methods._registry import Registry
+
+    started, calls = threading.Event(), []
+
+    def slow_discover():
+        calls.append(1)
+        started.set()
+        time.sleep(0.2)  # the other thread asks meanwhile
+        return [Plugin("alpha", "mod:make")]
+
+    reg = Registry("plugin", slow_discover)
+    first = threading.Thread(target=reg.names)
+    first.start()
+    assert started.wait(10)
+    assert reg.get("alpha").name == "alpha"  # not "unknown plugin 'alpha'; registered: none"
+    first.join(10)
+    assert calls == [1]  # discovered once
+
+
 def test_registry_suggests_close_names_and_refuses_a_second_entry_of_one_name():
     from methods._registry import Registry
 
