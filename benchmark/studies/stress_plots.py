@@ -352,15 +352,21 @@ def _run_time_table(scores: Sequence[Score], methods: Sequence[str]) -> str:
     return markdown_table(["method", "runs", "run time (min)", "median run (s)"], rows)
 
 
+def reported_families(config: SuiteConfig, scores: Sequence[Score]) -> list[str]:
+    """The suite's families with a perturbed run among ``scores``: those the tables and charts show."""
+    families = [f for f in config.families if any(s.family == f and s.strength > 0 for s in scores)]
+    if not families and all(config.strengths_of(f) == (0.0,) for f in config.families):
+        families = list(config.families)[:1]  # a clean-only suite (--strengths 0): its clean runs are the suite
+    return families
+
+
 def coverage(config: SuiteConfig, scores: Sequence[Score]) -> str:
     """What the scores cover, counted from them: the distinct runs present against those the suite names
     (its methods x families x strengths x seeds, where the family applies to the method; a clean run shared
     by the families counts once), and per method the (family, seed) cells missing at some strength."""
     from .stress import CLEAN, RunKey, applies
 
-    families = [f for f in config.families if any(s.family == f and s.strength > 0 for s in scores)]
-    if not families and all(config.strengths_of(f) == (0.0,) for f in config.families):
-        families = list(config.families)[:1]  # a clean-only suite (--strengths 0): its clean runs are the suite
+    families = reported_families(config, scores)
     present = {(s.family, s.strength, s.method, s.seed) for s in scores}
     expected, missing = set(), {}
     for fam in families:
@@ -600,10 +606,10 @@ STATUS_METRICS = ("Acc", "vIoU")
 
 def status_comparison(scores: Sequence[Score], families: Sequence[str] = ALWAYS_KEPT,
                       pair: tuple[str, str] = STATUS_PAIR) -> list[dict]:
-    """Per caption family, strength (the clean scene first) and time-sensitive metric: the paired difference
-    ``pair[0]`` minus ``pair[1]`` per seed (same seed, same scene and supervision), its mean and 95 % t interval
-    (:func:`benchmark.stats.t_interval`; NaN below two seeds) and a verdict: ahead where the interval excludes
-    0, else a tie. Families or metrics neither method answers are left out."""
+    """Per family (by default those kept for the time-varying heads), strength (the clean scene first) and
+    time-sensitive metric: the paired difference ``pair[0]`` minus ``pair[1]`` per seed (same seed, same scene
+    and supervision), its mean and 95 % t interval (:func:`benchmark.stats.t_interval`; NaN below two seeds)
+    and a verdict: ahead where the interval excludes 0, else a tie. Families or metrics neither method answers are left out."""
     from benchmark.stats import t_interval
 
     a, b = pair
@@ -613,13 +619,13 @@ def status_comparison(scores: Sequence[Score], families: Sequence[str] = ALWAYS_
         if not any(s.strength > 0 for s in runs):
             continue
         for metric in STATUS_METRICS:
-            value = {(s.method, s.strength, s.seed): s.metrics.get(metric) for s in runs
+            value = {(s.method, s.strength, s.seed): float(s.metrics[metric]) for s in runs
                      if s.metrics.get(metric) is not None}
             for strength in sorted({s.strength for s in runs}):
-                diffs = [float(value[a, k, seed]) - float(value[b, k, seed])
-                         for (m, k, seed) in sorted(value) if m == a and k == strength and (b, k, seed) in value]
-                if not diffs:
+                seeds = sorted(seed for m, k, seed in value if m == a and k == strength and (b, k, seed) in value)
+                if not seeds:
                     continue
+                diffs = [value[a, strength, seed] - value[b, strength, seed] for seed in seeds]
                 lo, hi = t_interval(diffs)
                 verdict = (f"{a} ahead" if lo > 0 else f"{b} ahead" if hi < 0 else
                            "a tie" if np.isfinite(lo) else "one seed: undecided")
@@ -633,7 +639,7 @@ def status_markdown(rows: Sequence[dict], pair: tuple[str, str] = STATUS_PAIR) -
     from benchmark.stats import interval_text
 
     if not rows:
-        return f"Not measured: no caption family was run with both {pair[0]} and {pair[1]}.\n"
+        return f"Not measured: no family of {', '.join(ALWAYS_KEPT)} was run with both {pair[0]} and {pair[1]}.\n"
     table = markdown_table(
         ["family", "strength", "metric", "seeds", f"{pair[0]} − {pair[1]}", "95 % interval", "reading"],
         [[r["family"], strength_label(r["strength"]), r["metric"], str(r["seeds"]), number_cell(r["difference"], 2),
@@ -657,9 +663,7 @@ def write_reports(config: SuiteConfig, scores: Sequence[Score], *, wall_seconds:
     if notes is None:
         notes = (out / NOTES_FILE).read_text() if (out / NOTES_FILE).is_file() else ""
     written: list[Path] = []
-    families = [f for f in config.families if any(s.family == f and s.strength > 0 for s in scores)]
-    if not families and all(config.strengths_of(f) == (0.0,) for f in config.families):
-        families = list(config.families)[:1]  # a clean-only suite (--strengths 0): its clean runs are the suite
+    families = reported_families(config, scores)
     for fam in families:
         for made in (family_chart(scores, fam, config.methods, out / "charts" / f"{fam}.png"),
                      family_gallery(config, scores, fam, out / "galleries" / f"{fam}.png")):
@@ -704,7 +708,7 @@ def _readme(config: SuiteConfig, scores: Sequence[Score], families: Sequence[str
             f"## Findings per family (measured)\n\nMeans over the seeds run (the clean runs' and, "
             f"where a perturbed strength has fewer, which at which strengths).\n\n"
             f"{findings(scores, families, config.methods)}\n"
-            f"## The status field against the non-status field under the caption families\n\nPer seed, "
+            f"## The status field against the non-status field under {', '.join(ALWAYS_KEPT)}\n\nPer seed, "
             f"{STATUS_PAIR[0]} minus {STATUS_PAIR[1]} on the same scene and supervision (one CLIP field, one "
             f"geometry; only the time-varying head differs); the mean over seeds with its 95 % t interval. A "
             f"cell is a tie where the interval holds 0.\n\n{status_markdown(status_comparison(scores))}\n"
