@@ -710,8 +710,10 @@ def test_the_coverage_line_and_the_findings_count_the_seeds_from_the_scores(tmp_
     assert "* `a`: seed 1 at 1 on mask-drop." in text
     assert "* `b`: seed 1 at any strength past clean on mask-drop." in text
     found = findings(fewer, ["mask-drop"], ["a", "b"])
-    assert "b 32.0 -> 30.0 at 1 (never below half; only seed 0 at 0.5, 1)" in found
+    # the clean end has two seeds, so its interval is shown; one seed's "interval" is its value and is not
+    assert "b 32.0 [30.0, 34.0] -> 30.0 at 1 (never below half; only seed 0 at 0.5, 1)" in found
     assert "(below half from 1; only seed 0 at 1)" in found
+    assert "a 62.0 [60.0, 64.0] -> 20.0 at 1" in found
     # a clean-only suite (--strengths 0) counts its clean runs, not "0 distinct runs of the 0"
     clean_only = stress.SuiteConfig(methods=("a", "b"), families=("mask-drop",), strengths=(0.0,), seeds=(0, 1),
                                     cache_dir=tmp_path)
@@ -900,6 +902,13 @@ def test_a_family_is_kept_where_a_method_breaks_or_two_methods_drop_apart_and_dr
     verdicts = {v["family"]: v for v in family_verdicts(scores, ["occluder", "appearance", "mask-drop", "camera-slow",
                                                                  "caption-swap", "topology"], methods)}
     assert verdicts["occluder"]["kept"] and "4d-langsplat drops 18.0 more than langsplat" in verdicts["occluder"]["reason"]
+    assert "separates 1 of 1 pairs on mIoU" in verdicts["occluder"]["reason"]
+    # two methods that break alike: kept for the breaks, and the text says the pair cannot be told apart
+    alike = (_runs("frames-dropped", "4d-langsplat", [60, 62, 61], [10, 12, 11])
+             + _runs("frames-dropped", "langsplat", [55, 56, 57], [5, 6, 7]))
+    (verdict,) = family_verdicts(alike, ["frames-dropped"], methods)
+    assert verdict["breaks"] == ["4d-langsplat (mIoU)", "langsplat (mIoU)"] and not verdict["separates"]
+    assert "none of its 1 pairs on mIoU separate" in verdict["reason"]
     assert not verdicts["appearance"]["kept"] and "no method breaks" in verdicts["appearance"]["reason"]
     assert verdicts["mask-drop"]["kept"] and verdicts["mask-drop"]["breaks"] == ["langsplat (mIoU)"]
     assert not verdicts["camera-slow"]["kept"], "a family that moves only a floor says nothing of the methods"

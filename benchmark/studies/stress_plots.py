@@ -20,7 +20,7 @@ from benchmark.core.atomic import read_json, write_text
 from benchmark.synthetic.perturb import FAMILIES
 from ._report import markdown_table, number_cell
 from .stress import (METRICS, SCORES_FILE, Score, SuiteConfig, breaking_point, mean_by_strength,
-                     TRACK, read_scores_table, strength_label, write_scores_table)
+                     TRACK, read_scores_table, seed_interval, strength_label, write_scores_table)
 
 GALLERY_FRAMES = 3
 """(query, frame) pairs a gallery shows."""
@@ -294,8 +294,6 @@ def family_gallery(config: SuiteConfig, scores: Sequence[Score], fam: str, path:
 def clean_interval(scores: Sequence[Score], method: str, metric: str = "mIoU") -> Optional[tuple[float, float]]:
     """The 95 % interval over seeds of ``method``'s clean ``metric`` (:func:`~benchmark.studies.stress.seed_interval`);
     None where it has no clean value."""
-    from .stress import seed_interval
-
     values = {s.seed: s.metrics.get(metric) for s in scores if s.method == method and s.strength == 0}
     values = [float(v) for v in values.values() if v is not None]
     return seed_interval(values) if values else None
@@ -451,6 +449,15 @@ def _seed_note(scores: Sequence[Score], fam: str, method: str, metric: str) -> s
         strength_label(k) for k, seen in sorted(by_strength.items()) if seen == v) for v in sorted(fewer, key=sorted))
 
 
+def _interval_text(seeds: Sequence[float]) -> str:
+    """`` [lo, hi]``: the 95 % interval over seeds a breaking point reads (:func:`seed_interval`); empty for one
+    seed, whose interval is its value."""
+    if len(seeds) < 2:
+        return ""
+    low, high = seed_interval(seeds)
+    return f" [{low:.1f}, {high:.1f}]"
+
+
 def _family_parts(scores, fam: str, methods: Sequence[str], metric: str) -> tuple[list[str], list[tuple]]:
     """Per method: the clean -> strongest sentence of ``metric`` and its (break strength, kept share, method)."""
     parts, order = [], []
@@ -464,7 +471,8 @@ def _family_parts(scores, fam: str, methods: Sequence[str], metric: str) -> tupl
             continue
         point = breaking_point(values)
         fate = f"below half from {strength_label(point)}" if point is not None else "never below half"
-        parts.append(f"{method} {clean:.1f} -> {last:.1f} at {strength_label(strongest)} ({fate}"
+        parts.append(f"{method} {clean:.1f}{_interval_text(values[0.0])} -> {last:.1f}"
+                     f"{_interval_text(values[strongest])} at {strength_label(strongest)} ({fate}"
                      f"{_seed_note(scores, fam, method, metric)})")
         order.append((point if point is not None else np.inf, last / max(clean, 1e-9), method))
     return parts, order
@@ -571,11 +579,17 @@ def family_verdicts(scores: Sequence[Score], families: Sequence[str], methods: S
                     breaks.append(f"{method} ({metric})")
             pairs = sorted(separated_pairs(scores, fam, scored, metric), key=lambda p: -p[2])
             separates += [{"metric": metric, "more": a, "less": b, "difference": d} for a, b, d in pairs]
+            compared = len(scored) * (len(scored) - 1) // 2
             if pairs:
                 shown = ", ".join(f"{a} drops {d:.1f} more than {b}" for a, b, d in pairs[:SHOWN_PAIRS])
                 rest = len(pairs) - SHOWN_PAIRS
-                said.append(f"separates {len(pairs)} pair(s) on {metric}: {shown}" + (f" (+{rest} more)" if rest > 0
-                                                                                        else ""))
+                said.append(f"separates {len(pairs)} of {compared} pairs on {metric}: {shown}"
+                            + (f" (+{rest} more)" if rest > 0 else "")
+                            + (f"; the other {compared - len(pairs)} tie or differ by under {MIN_SEPARATION:g} points"
+                               if compared > len(pairs) else ""))
+            elif compared:
+                said.append(f"none of its {compared} pairs on {metric} separate (ties, or under "
+                            f"{MIN_SEPARATION:g} points)")
         if breaks or separates:
             kept, reason = True, "; ".join((["breaks " + ", ".join(breaks)] if breaks else []) + said)
         elif fam in ALWAYS_KEPT:
@@ -706,7 +720,8 @@ def _readme(config: SuiteConfig, scores: Sequence[Score], families: Sequence[str
             f"points; floors are not counted; {', '.join(ALWAYS_KEPT)} are kept for the "
             f"time-varying heads in any case.\n\n{verdict_markdown(family_verdicts(scores, families, config.methods))}\n"
             f"## Findings per family (measured)\n\nMeans over the seeds run (the clean runs' and, "
-            f"where a perturbed strength has fewer, which at which strengths).\n\n"
+            f"where a perturbed strength has fewer, which at which strengths), each with the 95 % interval over "
+            f"seeds a breaking point reads: clean [interval] -> strongest strength [interval].\n\n"
             f"{findings(scores, families, config.methods)}\n"
             f"## The status field against the non-status field under {', '.join(ALWAYS_KEPT)}\n\nPer seed, "
             f"{STATUS_PAIR[0]} minus {STATUS_PAIR[1]} on the same scene and supervision (one CLIP field, one "
