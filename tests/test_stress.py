@@ -362,6 +362,12 @@ def test_findings_name_a_break_in_acc_and_leave_out_acc_at_the_floor():
     assert "other and timed break first, at the same strength 1 (Acc): a tie" in line
     calm = [score("timed", 0.0, 40, 80), score("timed", 1.0, 39, 70)]
     assert "no method breaks outside the seed noise" in findings(calm, ["caption-swap"], ["timed"])
+    # a screen (clean and strongest only): the breaks read "by" the strongest, and no order among them is claimed
+    screen = [score("timed", 0.0, 40, 80), score("timed", 1.0, 40, 30),
+              score("other", 0.0, 60, 80), score("other", 1.0, 20, 70)]
+    line = findings(screen, ["caption-swap"], ["timed", "other"])
+    assert "other and timed break by the strongest strength run, 1 (weaker strengths not run" in line
+    assert "timed 80.0 -> 30.0 at 1 (below half by 1; weaker strengths not run)" in line and "first (" not in line
 
 
 def test_plot_stability_redraws_each_family_from_the_scores_table(tmp_path, capsys):
@@ -641,6 +647,9 @@ def test_breaking_table_marks_held_and_unprobed_strengths():
     header, rows = breaking_rows(scores, ["occluder"], ["a", "b", "c"], metrics=("mIoU",))
     assert header == ["family", "unit", "a mIoU", "b mIoU", "c mIoU"]
     assert rows[0][2:] == ["0.2", "≤ 0.45", "> 0.45"]
+    # a strength not run below a weaker one that held is no doubt: the break lies between the two run
+    held = [score("d", 0.0, 60), score("d", 0.3, 50), score("d", 0.45, 10)]
+    assert breaking_rows(held, ["occluder"], ["d"], metrics=("mIoU",))[1][0][2:] == ["0.45"]
 
 
 def _chart_scores() -> list:
@@ -712,7 +721,7 @@ def test_the_coverage_line_and_the_findings_count_the_seeds_from_the_scores(tmp_
     found = findings(fewer, ["mask-drop"], ["a", "b"])
     # the clean end has two seeds, so its interval is shown; one seed's "interval" is its value and is not
     assert "b 32.0 [30.0, 34.0] -> 30.0 at 1 (never below half; only seed 0 at 0.5, 1)" in found
-    assert "(below half from 1; only seed 0 at 1)" in found
+    assert "(below half by 1; weaker strengths not run; only seed 0 at 1)" in found  # 0.9 was not run
     assert "a 62.0 [60.0, 64.0] -> 20.0 at 1" in found
     # a clean-only suite (--strengths 0) counts its clean runs, not "0 distinct runs of the 0"
     clean_only = stress.SuiteConfig(methods=("a", "b"), families=("mask-drop",), strengths=(0.0,), seeds=(0, 1),

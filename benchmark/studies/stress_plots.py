@@ -105,6 +105,13 @@ def family_chart(scores: Sequence[Score], fam: str, methods: Sequence[str], path
     return _save_png(fig, path)
 
 
+def _unprobed_below(fam: str, values: dict, point: float) -> bool:
+    """Whether a strength of ``fam`` between the strongest run that held and the break ``point`` was not run
+    (a screen): the method may break there already, so the break reads "by", not "from"."""
+    held = max((k for k in values if k < point), default=0.0)
+    return any(held < k < point and k not in values for k in FAMILIES[fam].strengths)
+
+
 def breaking_rows(scores: Sequence[Score], families: Sequence[str], methods: Sequence[str],
                   metrics: Sequence[str] = ("mIoU", "Acc")) -> tuple[list[str], list[list[str]]]:
     """The breaking-point table: per family, per method and metric, the strength at which the seeds'
@@ -121,8 +128,7 @@ def breaking_rows(scores: Sequence[Score], families: Sequence[str], methods: Seq
                 point = breaking_point(values)
                 strongest = max((s for s in values if s > 0), default=None)
                 if point is not None:
-                    # strengths below it that were not run: it breaks there or earlier
-                    skipped = any(0 < s < point and s not in values for s in FAMILIES[fam].strengths)
+                    skipped = _unprobed_below(fam, values, point)
                     row.append(("≤ " if skipped else "") + strength_label(point))
                 elif strongest is None or not values.get(0.0) or float(np.mean(values[0.0])) == 0:
                     row.append("–")
@@ -470,11 +476,14 @@ def _family_parts(scores, fam: str, methods: Sequence[str], metric: str) -> tupl
         if metric == "Acc" and clean <= ACC_FLOOR:
             continue
         point = breaking_point(values)
-        fate = f"below half from {strength_label(point)}" if point is not None else "never below half"
+        skipped = point is not None and _unprobed_below(fam, values, point)
+        fate = ("never below half" if point is None else
+                f"below half by {strength_label(point)}; weaker strengths not run" if skipped else
+                f"below half from {strength_label(point)}")
         parts.append(f"{method} {clean:.1f}{_interval_text(values[0.0])} -> {last:.1f}"
                      f"{_interval_text(values[strongest])} at {strength_label(strongest)} ({fate}"
                      f"{_seed_note(scores, fam, method, metric)})")
-        order.append((point if point is not None else np.inf, last / max(clean, 1e-9), method))
+        order.append((point if point is not None else np.inf, last / max(clean, 1e-9), method, skipped))
     return parts, order
 
 
@@ -488,16 +497,24 @@ def findings(scores: Sequence[Score], families: Sequence[str], methods: Sequence
         time_, time_order = _family_parts(scores, fam, methods, "Acc")
         if not space and not time_:
             continue
-        breaks = sorted([(o[0], o[1], o[2], "mIoU") for o in space_order]
-                        + [(o[0], o[1], o[2], "Acc") for o in time_order])
+        breaks = sorted([(o[0], o[1], o[2], "mIoU", o[3]) for o in space_order]
+                        + [(o[0], o[1], o[2], "Acc", o[3]) for o in time_order])
         if breaks and np.isfinite(breaks[0][0]):
             # every method breaking at the earliest strength leads: no secondary sort picks one of them
             first = [b for b in breaks if b[0] == breaks[0][0]]
             names = sorted(set(b[2] for b in first))
             metrics = ", ".join(dict.fromkeys(b[3] for b in first))
-            lead = (f"{names[0]} breaks first ({metrics})" if len(names) == 1 else
-                    f"{' and '.join(names)} break first, at the same strength {strength_label(breaks[0][0])} "
-                    f"({metrics}): a tie")
+            at = strength_label(breaks[0][0])
+            if any(b[4] for b in breaks if np.isfinite(b[0])):
+                # a screen: a break "by s" may be at any weaker strength, so no order among the breaks is known
+                broken = sorted(set(b[2] for b in breaks if np.isfinite(b[0])))
+                lead = (f"{' and '.join(broken)} {'breaks' if len(broken) == 1 else 'break'} by the strongest "
+                        f"strength run, {strength_label(max(b[0] for b in breaks if np.isfinite(b[0])))} "
+                        f"(weaker strengths not run: which breaks first is not measured)")
+            elif len(names) == 1:
+                lead = f"{names[0]} breaks first ({metrics})"
+            else:
+                lead = f"{' and '.join(names)} break first, at the same strength {at} ({metrics}): a tie"
         else:
             lead = "no method breaks outside the seed noise"
         text = f"* **{fam}** ({FAMILIES[fam].unit}): {lead}."
