@@ -918,6 +918,13 @@ def test_a_family_is_kept_where_a_method_breaks_or_two_methods_drop_apart_and_dr
     (verdict,) = family_verdicts(alike, ["frames-dropped"], methods)
     assert verdict["breaks"] == ["4d-langsplat (mIoU)", "langsplat (mIoU)"] and not verdict["separates"]
     assert "none of its 1 pairs on mIoU separate" in verdict["reason"]
+    # a family whose every run scores as its clean run changed nothing on the base, and says so
+    same = _runs("mask-dilate", "langsplat", [55, 56, 57], [55, 56, 57])
+    (verdict,) = family_verdicts(same, ["mask-dilate"], methods)
+    assert not verdict["kept"] and "changes nothing on this base" in verdict["reason"]
+    (verdict,) = family_verdicts(_runs("mask-dilate", "langsplat", [55, 56, 57], [55, 56, 56.5]), ["mask-dilate"],
+                                 methods)
+    assert "changes nothing" not in verdict["reason"]
     assert not verdicts["appearance"]["kept"] and "no method breaks" in verdicts["appearance"]["reason"]
     assert verdicts["mask-drop"]["kept"] and verdicts["mask-drop"]["breaks"] == ["langsplat (mIoU)"]
     assert not verdicts["camera-slow"]["kept"], "a family that moves only a floor says nothing of the methods"

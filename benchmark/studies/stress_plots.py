@@ -573,6 +573,15 @@ MIN_SEPARATION = 5.0
 a difference can be outside the noise and still too small to tell a reader anything."""
 
 
+def _changes_nothing(scores: Sequence[Score], fam: str) -> bool:
+    """Whether ``fam`` has perturbed runs and each one's scores equal those of the clean run of its method and
+    seed: the perturbation left the base as it was (a mask growing only into uncovered pixels, where every
+    pixel is covered)."""
+    clean = {(s.method, s.seed): s.metrics for s in scores if s.family == fam and s.strength == 0}
+    perturbed = [s for s in scores if s.family == fam and s.strength > 0]
+    return bool(perturbed) and all(clean.get((s.method, s.seed)) == s.metrics for s in perturbed)
+
+
 def family_verdicts(scores: Sequence[Score], families: Sequence[str], methods: Sequence[str]) -> list[dict]:
     """Per family: the fitted methods that break on it (mIoU, or Acc where the clean Acc is above
     :data:`ACC_FLOOR`), the pairs of fitted methods it separates, and whether the suite keeps it, with the
@@ -607,7 +616,11 @@ def family_verdicts(scores: Sequence[Score], families: Sequence[str], methods: S
             elif compared:
                 said.append(f"none of its {compared} pairs on {metric} separate (ties, or under "
                             f"{MIN_SEPARATION:g} points)")
-        if breaks or separates:
+        if _changes_nothing(scores, fam):
+            kept = fam in ALWAYS_KEPT
+            reason = ("changes nothing on this base: every perturbed run scores exactly as its seed's clean run"
+                      + ("; kept for the time-varying heads in any case" if kept else ""))
+        elif breaks or separates:
             kept, reason = True, "; ".join((["breaks " + ", ".join(breaks)] if breaks else []) + said)
         elif fam in ALWAYS_KEPT:
             kept, reason = True, "kept for the time-varying heads (no break or separation measured)"
