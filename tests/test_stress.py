@@ -260,8 +260,15 @@ def test_erosion_shrinks_and_dilation_grows_each_mask():
         assert (eroded[1] == index).sum() < (clean[1] == index).sum()
         assert np.all(clean[1][eroded[1] == index] == index)
         assert (grown[1] == index).sum() > (clean[1] == index).sum()
-    # dilation takes only pixels no mask covered; the features stay
-    assert np.all(grown[clean >= 0] == clean[clean >= 0])
+    # dilation takes uncovered pixels and those of larger masks, never a smaller mask's; the features stay
+    area = {i: int((clean[1] == i).sum()) for i in (0, 1)}
+    assert area[1] < area[0]
+    assert np.all(grown[1][clean[1] == 1] == 1), "the smaller mask keeps every pixel"
+    # a level every pixel of which a mask covers (a background mask, as the oracle's) still changes
+    covered = np.zeros((1, 24, 24), np.int16)
+    covered[0, 8:12, 8:12] = 1
+    spilled = stress.dilate_levels(covered, 2)
+    assert (spilled == 1).sum() > 16 and np.all(spilled[covered == 1] == 1)
     assert np.array_equal(stress.noisy_supervision(sup, "mask-dilate", 2.0, seed=0).frames[0].features[0],
                           sup.frames[0].features[0])
 

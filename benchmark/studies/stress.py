@@ -10,7 +10,7 @@ scenes (:mod:`benchmark.synthetic.perturb`); the supervision-side families put n
 track gives a method, here, so no method changes:
 
 * ``mask-erode`` / ``mask-dilate``: every mask of every level shrinks or grows by a radius (pixels at
-  48 px, scaled with the image width); a dilated mask grows only into pixels no mask covers;
+  48 px, scaled with the image width); a dilated mask grows over uncovered pixels and larger masks;
 * ``mask-id-swap``: in a share of the training frames the masks' features are shuffled (each mask
   carries the label of another);
 * ``mask-drop``: a share of the masks is removed (their pixels carry no mask);
@@ -241,8 +241,10 @@ def erode_levels(levels: np.ndarray, radius: int) -> np.ndarray:
 
 
 def dilate_levels(levels: np.ndarray, radius: int) -> np.ndarray:
-    """(3, H, W) mask indices with every mask grown by ``radius`` pixels into pixels no mask covers
-    (where two masks reach one pixel, the lower index takes it)."""
+    """(3, H, W) mask indices with every mask grown by ``radius`` pixels over the pixels no mask covers and the
+    pixels of larger masks at its level: a part spills over what surrounds it, as a loose segmenter's mask does.
+    Where several masks reach one pixel the smallest takes it (equal areas: the lower index). Oracle masks cover
+    every pixel (the background is a mask), so growing into uncovered pixels alone would change nothing."""
     import cv2
 
     out = levels.copy()
@@ -250,9 +252,17 @@ def dilate_levels(levels: np.ndarray, radius: int) -> np.ndarray:
         return out
     kernel = _disk(radius)
     for lv in range(levels.shape[0]):
-        for index in np.unique(levels[lv][levels[lv] >= 0]):
+        indices, areas = np.unique(levels[lv][levels[lv] >= 0], return_counts=True)
+        area_of = dict(zip(indices.tolist(), areas.tolist()))
+        # the area of each pixel's owner so far (uncovered: larger than any mask)
+        owner_area = np.full(levels.shape[1:], np.inf)
+        for index, area in area_of.items():
+            owner_area[levels[lv] == index] = area
+        for index in indices.tolist():  # ascending, so among equal areas the lower index keeps a pixel
             grown = cv2.dilate((levels[lv] == index).astype(np.uint8), kernel) > 0
-            out[lv][grown & (out[lv] < 0)] = index
+            take = grown & (area_of[index] < owner_area)
+            out[lv][take] = index
+            owner_area[take] = area_of[index]
     return out
 
 
