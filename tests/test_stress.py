@@ -736,6 +736,14 @@ def test_the_coverage_line_and_the_findings_count_the_seeds_from_the_scores(tmp_
     clean_runs = [s for s in scores if s.strength == 0]
     assert coverage(clean_only, clean_runs).startswith("4 distinct runs of the 4 the suite names")
     assert "not run (1)" in coverage(clean_only, clean_runs[1:]).lower()
+    # a family screened whole (clean and strongest only, every method and seed) is one line, not a gap per cell
+    full = stress.SuiteConfig(methods=("a", "b"), families=("mask-drop",), seeds=(0, 1), cache_dir=tmp_path)
+    screen = [dataclasses.replace(s, strength=0.9) if s.strength == 1.0 else s for s in scores if s.strength != 0.5]
+    text = coverage(full, screen)
+    assert "Screened at the clean end and the strongest strength only" in text and "(1): mask-drop." in text
+    assert "Not run" not in text and "complete" not in text
+    text = coverage(full, [s for s in screen if not (s.method == "b" and s.seed == 1 and s.strength > 0)])
+    assert "Screened" not in text and "seed 1 at any strength past clean on mask-drop." in text
     # a family asked for with no perturbed run is named, and the suite is not called complete
     two = stress.SuiteConfig(methods=("a", "b"), families=("mask-drop", "occluder"), strengths=(0.5, 1.0),
                              seeds=(0, 1), cache_dir=tmp_path)
