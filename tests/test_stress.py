@@ -985,3 +985,22 @@ def test_the_status_field_and_the_non_status_field_are_compared_per_seed_with_an
     text = status_markdown(rows)
     assert "1 of 4 cells are outside the seed noise" in text and "caption-swap 1 Acc: 4d-langsplat ahead" in text
     assert "Not measured" in status_markdown([])
+
+
+def test_the_floor_table_names_the_fitted_methods_a_floor_beats_or_ties_at_the_strongest_strength():
+    from benchmark.studies.stress_plots import floor_at_strongest
+
+    methods = ("nearest-frame", "langsplat", "4d-langsplat", "gaussian-grouping")
+    scores = (_runs("frames-dropped", "nearest-frame", [45, 46, 47], [38, 40, 42])
+              + _runs("frames-dropped", "langsplat", [60, 62, 64], [5, 6, 8])
+              + _runs("frames-dropped", "4d-langsplat", [55, 57, 66], [35, 41, 45])
+              + _runs("frames-dropped", "gaussian-grouping", [52, 54, 60], [50, 51, 55]))
+    table = floor_at_strongest(scores, ["frames-dropped"], methods)
+    row = next(line for line in table.splitlines() if line.startswith("| frames-dropped"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[:3] == ["frames-dropped", "1", "nearest-frame [38.0, 42.0]"]
+    assert cells[3] == "langsplat [5.0, 8.0]" and cells[4] == "4d-langsplat [35.0, 45.0]"
+    # every fitted method above the floor: no table
+    assert floor_at_strongest(_runs("occluder", "nearest-frame", [45, 46, 47], [38, 40, 42])
+                              + _runs("occluder", "langsplat", [60, 62, 64], [55, 56, 58]), ["occluder"], methods) == ""
+

@@ -324,6 +324,47 @@ def floor_clearance(scores: Sequence[Score], methods: Sequence[str], metric: str
     return out
 
 
+def floor_at_strongest(scores: Sequence[Score], families: Sequence[str], methods: Sequence[str],
+                       metric: str = "mIoU") -> str:
+    """Per family, at its strongest strength run: the fitted methods whose interval over seeds of ``metric`` lies
+    wholly below a floor's (the floor answers better) and those whose interval overlaps a floor's (a tie), as a
+    table of the families where any fitted method no longer clears every floor; an empty string where none."""
+    from methods import registry
+
+    floors = [m for m in methods if registry.get(m).floor]
+    fitted = [m for m in methods if m not in floors]
+    rows = []
+    for fam in families:
+        top = max((s.strength for s in scores if s.family == fam), default=0.0)
+        if top <= 0:
+            continue
+
+        def interval(method):
+            values = [float(s.metrics[metric]) for s in scores if s.family == fam and s.method == method
+                      and s.strength == top and s.metrics.get(metric) is not None]
+            return seed_interval(values) if values else None
+
+        floor_spans = {f: interval(f) for f in floors if interval(f) is not None}
+        if not floor_spans:
+            continue
+        below, tied = [], []
+        for method in fitted:
+            own = interval(method)
+            if own is None:
+                continue
+            if any(own[1] < span[0] for span in floor_spans.values()):
+                below.append(f"{method} [{own[0]:.1f}, {own[1]:.1f}]")
+            elif any(own[0] <= span[1] for span in floor_spans.values()):
+                tied.append(f"{method} [{own[0]:.1f}, {own[1]:.1f}]")
+        if below or tied:
+            shown = ", ".join(f"{f} [{a:.1f}, {b:.1f}]" for f, (a, b) in floor_spans.items())
+            rows.append([fam, strength_label(top), shown, ", ".join(below) or "–", ", ".join(tied) or "–"])
+    if not rows:
+        return ""
+    return markdown_table(["family", "strength", "floors", "fitted methods below a floor",
+                           "fitted methods tied with a floor"], rows)
+
+
 def _clean_table(scores: Sequence[Score], methods: Sequence[str]) -> str:
     rows = []
     clears = floor_clearance(scores, methods)
@@ -736,6 +777,15 @@ def write_reports(config: SuiteConfig, scores: Sequence[Score], *, wall_seconds:
     return written + [out / "README.md"]
 
 
+def _floor_section(scores: Sequence[Score], families: Sequence[str], methods: Sequence[str]) -> str:
+    table = floor_at_strongest(scores, families, methods)
+    if not table:
+        return ""
+    return ("## Where a floor answers as well at the strongest strength\n\nFirst, because it says what a family's "
+            "question no longer asks: the families at whose strongest strength a fitted method's mIoU interval over "
+            "seeds lies wholly below a floor's (the floor answers better) or overlaps it (a tie).\n\n" + table + "\n")
+
+
 def _readme(config: SuiteConfig, scores: Sequence[Score], families: Sequence[str], table: str,
             wall_seconds: Optional[float], notes: str) -> str:
     options = "; ".join(f"`{m}`: " + ", ".join(f"{k}={v}" for k, v in sorted(o.items()))
@@ -758,6 +808,7 @@ def _readme(config: SuiteConfig, scores: Sequence[Score], families: Sequence[str
             f"clean mIoU interval over seeds lies wholly above every floor's: on a base scene where it is not, the "
             f"floor answers the question as well, and a perturbation measures little.\n\n"
             f"{_clean_table(scores, config.methods)}\n"
+            f"{_floor_section(scores, families, config.methods)}"
             f"## Breaking points\n\nThe first strength at which a method's 95 % interval over seeds lies wholly "
             f"below half of its clean interval's lower end: a drop outside the seed noise (`≤ s`: weaker strengths were not run; `> s`: it holds up to the strongest strength run; `–`: not run, or no clean score to halve).\n\n"
             f"{table}\n## Families kept and dropped\n\nA family is kept where a fitted method breaks on it, or where two "
