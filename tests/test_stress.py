@@ -251,6 +251,15 @@ def test_mask_noise_at_zero_is_the_clean_supervision(fam):
     assert [f.name for f in noisy.frames] == [f.name for f in sup.frames]
 
 
+def test_the_noisy_fingerprint_follows_the_noisy_masks_not_only_the_familys_name(monkeypatch):
+    sup = _supervision()
+    first = stress.noisy_supervision(sup, "mask-dilate", 2.0, seed=0).fingerprint
+    assert stress.noisy_supervision(sup, "mask-dilate", 2.0, seed=0).fingerprint == first  # cached fits are found
+    # a dilation whose code changed (here: one that changes nothing) must not find the fits of the former one
+    monkeypatch.setattr(stress, "dilate_levels", lambda levels, radius: levels.copy())
+    assert stress.noisy_supervision(sup, "mask-dilate", 2.0, seed=0).fingerprint != first
+
+
 def test_erosion_shrinks_and_dilation_grows_each_mask():
     sup = _supervision()
     eroded = stress.noisy_supervision(sup, "mask-erode", 2.0, seed=0).frames[0].levels

@@ -313,7 +313,14 @@ def noisy_supervision(supervision, family_name: str, strength: float, seed: int)
         return supervision
     width = max(int(f.levels.shape[-1]) for f in supervision.frames)
     frames = [noisy_frame(f, family_name, strength, seed, width) for f in supervision.frames]
-    tag = f"{supervision.fingerprint}|{family_name}|{strength!r}|{seed}"
+    # the noisy masks and features themselves, not only the family's name: fits are cached by this
+    # fingerprint, so a perturbation whose code changes must not find the fits of its former output
+    content = hashlib.sha256()
+    for f in frames:
+        content.update(np.ascontiguousarray(f.levels).tobytes())
+        for level_features in f.features:
+            content.update(np.ascontiguousarray(level_features).tobytes())
+    tag = f"{supervision.fingerprint}|{family_name}|{strength!r}|{seed}|{content.hexdigest()}"
     return replace(supervision, frames=frames, fingerprint=hashlib.sha256(tag.encode()).hexdigest()[:24])
 
 
