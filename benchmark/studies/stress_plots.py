@@ -339,17 +339,13 @@ def floor_at_strongest(scores: Sequence[Score], families: Sequence[str], methods
         if top <= 0:
             continue
 
-        def interval(method):
-            values = [float(s.metrics[metric]) for s in scores if s.family == fam and s.method == method
-                      and s.strength == top and s.metrics.get(metric) is not None]
-            return seed_interval(values) if values else None
-
-        floor_spans = {f: interval(f) for f in floors if interval(f) is not None}
+        spans = {m: seed_interval(v) for m in methods if (v := mean_by_strength(scores, fam, m, metric).get(top))}
+        floor_spans = {f: spans[f] for f in floors if f in spans}
         if not floor_spans:
             continue
         below, tied = [], []
         for method in fitted:
-            own = interval(method)
+            own = spans.get(method)
             if own is None:
                 continue
             if any(own[1] < span[0] for span in floor_spans.values()):
@@ -556,22 +552,21 @@ def findings(scores: Sequence[Score], families: Sequence[str], methods: Sequence
             continue
         breaks = sorted([(o[0], o[1], o[2], "mIoU", o[3]) for o in space_order]
                         + [(o[0], o[1], o[2], "Acc", o[3]) for o in time_order])
-        if breaks and np.isfinite(breaks[0][0]):
+        found = [b for b in breaks if np.isfinite(b[0])]
+        if any(b[4] for b in found):
+            # a screen: a break "by s" may be at any weaker strength, so no order among the breaks is known
+            broken = sorted(set(b[2] for b in found))
+            lead = (f"{' and '.join(broken)} {'breaks' if len(broken) == 1 else 'break'} by the strongest "
+                    f"strength run, {strength_label(max(b[0] for b in found))} "
+                    f"(weaker strengths not run: which breaks first is not measured)")
+        elif found:
             # every method breaking at the earliest strength leads: no secondary sort picks one of them
-            first = [b for b in breaks if b[0] == breaks[0][0]]
+            first = [b for b in found if b[0] == found[0][0]]
             names = sorted(set(b[2] for b in first))
             metrics = ", ".join(dict.fromkeys(b[3] for b in first))
-            at = strength_label(breaks[0][0])
-            if any(b[4] for b in breaks if np.isfinite(b[0])):
-                # a screen: a break "by s" may be at any weaker strength, so no order among the breaks is known
-                broken = sorted(set(b[2] for b in breaks if np.isfinite(b[0])))
-                lead = (f"{' and '.join(broken)} {'breaks' if len(broken) == 1 else 'break'} by the strongest "
-                        f"strength run, {strength_label(max(b[0] for b in breaks if np.isfinite(b[0])))} "
-                        f"(weaker strengths not run: which breaks first is not measured)")
-            elif len(names) == 1:
-                lead = f"{names[0]} breaks first ({metrics})"
-            else:
-                lead = f"{' and '.join(names)} break first, at the same strength {at} ({metrics}): a tie"
+            lead = (f"{names[0]} breaks first ({metrics})" if len(names) == 1 else
+                    f"{' and '.join(names)} break first, at the same strength {strength_label(found[0][0])} "
+                    f"({metrics}): a tie")
         else:
             lead = "no method breaks outside the seed noise"
         text = f"* **{fam}** ({FAMILIES[fam].unit}): {lead}."
