@@ -704,12 +704,14 @@ def results_lock(path: str | Path) -> contextlib.AbstractContextManager:
 
 def archive_results(path: str | Path, results_dir: str | Path, label: str) -> Path:
     """Move a results file and its predictions folder to ``results_dir/archive/<label>/`` (same
-    relative path), so a rerun never overwrites what was measured; returns the new file's path. A writer
-    that may run beside others holds :func:`results_lock` around this and the writing that follows."""
+    relative path), so a rerun never overwrites what was measured; returns the new file's path. Where that
+    label already holds a file of the name (two archivings in one second), ``<label>-2``, ``-3``, ... is used.
+    A writer that may run beside others holds :func:`results_lock` around this and the writing that follows."""
     path, root = Path(path), Path(results_dir)
-    target = root / ARCHIVE_DIR / label / path.relative_to(root)
-    if target.exists():
-        raise InputError(target, None, "an archived results file of that name exists already")
+    target, n = root / ARCHIVE_DIR / label / path.relative_to(root), 1
+    while target.exists():
+        n += 1
+        target = root / ARCHIVE_DIR / f"{label}-{n}" / path.relative_to(root)
     target.parent.mkdir(parents=True, exist_ok=True)
     predictions = path.with_suffix(".predictions")
     if predictions.is_dir():

@@ -1096,7 +1096,7 @@ def keep_replaced(path: Path, results_dir: str | Path) -> Path:
     """Move the results file ``path`` (and its predictions) that a new run is about to replace to
     ``results_dir/archive/replaced-<its creation time>/``; returns where it went. The caller holds
     :func:`~benchmark.results.results_lock` of ``path`` until its own file is written."""
-    from .results import ARCHIVE_DIR, archive_results
+    from .results import archive_results
 
     try:
         created = str(read_json(path).get("created") or "")
@@ -1105,11 +1105,7 @@ def keep_replaced(path: Path, results_dir: str | Path) -> Path:
     if not created:
         created = datetime.fromtimestamp(path.stat().st_mtime, timezone.utc).isoformat(timespec="seconds")
     stamp = created.replace("+00:00", "Z").replace(":", "").replace("-", "")
-    label, n = f"replaced-{stamp}", 1
-    while (Path(results_dir) / ARCHIVE_DIR / label / path.relative_to(results_dir)).exists():
-        n += 1
-        label = f"replaced-{stamp}-{n}"
-    return archive_results(path, results_dir, label)
+    return archive_results(path, results_dir, f"replaced-{stamp}")
 
 
 def to_size(mask, size: tuple[int, int]):
