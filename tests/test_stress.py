@@ -1013,3 +1013,39 @@ def test_the_floor_table_names_the_fitted_methods_a_floor_beats_or_ties_at_the_s
     assert floor_at_strongest(_runs("occluder", "nearest-frame", [45, 46, 47], [38, 40, 42])
                               + _runs("occluder", "langsplat", [60, 62, 64], [55, 56, 58]), ["occluder"], methods) == ""
 
+
+
+def test_a_family_with_nothing_to_act_on_is_refused_by_the_generator_and_not_run_by_the_suite(tmp_path, monkeypatch):
+    from benchmark.studies.stress_plots import _verdicts, coverage
+    from benchmark.synthetic.generate import perturbation_changes_nothing
+
+    # split-cookie moves only parts that carry a state: the motion families would give its clean scene back
+    why = perturbation_changes_nothing("split-cookie", ("motion-amplitude", 4.0), seed=0)
+    assert why is not None and "state timeline" in why
+    assert perturbation_changes_nothing("split-cookie", ("topology", 0.5), seed=0) is None
+    assert perturbation_changes_nothing("smoke", ("motion-amplitude", 4.0), seed=0) is None
+    assert perturbation_changes_nothing("split-cookie", ("motion-amplitude", 0.0), seed=0) is None, "clean is clean"
+    with pytest.raises(InputError, match="perturbation.*motion-speed changes nothing on this scene"):
+        generate("split-cookie", tmp_path / "noop", size=SIZE, frames=FRAMES, perturbation=("motion-speed", 2.0))
+    assert not (tmp_path / "noop").exists()
+
+    config = stress.SuiteConfig(methods=("nearest-frame",), families=("motion-amplitude", "mask-drop"), seeds=(0,),
+                                strongest_only=True, cache_dir=tmp_path / "cache", out_dir=tmp_path / "out")
+    assert stress.unchanged_families(config) == {"motion-amplitude": why}
+    made = []
+    monkeypatch.setattr(stress, "run_one", lambda config, key, log=print: made.append(key))
+    monkeypatch.setattr(stress, "collect", lambda config: [])
+    logged = []
+    stress.run_suite(config, log=logged.append)
+    assert {(k.family, k.strength) for k in made} == {("clean", 0.0), ("mask-drop", 0.9)}
+    assert any(line.startswith("motion-amplitude: not run, it changes nothing on split-cookie") for line in logged)
+    # the report counts no run of it, names it and drops it with the reason
+    scores = [stress.Score(fam, strength, "nearest-frame", 0, {"mIoU": 40.0, "Acc": 50.0, "vIoU": 20.0}, None, 1.0)
+              for fam, strength in (("mask-drop", 0.0), ("mask-drop", 0.9), ("motion-amplitude", 0.0))]
+    text = coverage(config, scores)
+    assert text.startswith("2 distinct runs of the 2 the suite names")
+    assert "change nothing on `split-cookie`, not run (1): motion-amplitude (no part moves" in text
+    assert "no perturbed run yet" not in text
+    rows = {v["family"]: v for v in _verdicts(config, scores, ["mask-drop"])}
+    assert not rows["motion-amplitude"]["kept"]
+    assert rows["motion-amplitude"]["reason"].startswith("changes nothing on split-cookie (no part moves")

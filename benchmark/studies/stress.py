@@ -25,6 +25,7 @@ track gives a method, here, so no method changes:
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import shutil
@@ -155,6 +156,37 @@ def scene_folder(config: SuiteConfig, family_name: str, strength: float, seed: i
     with exclusive_lock(folder.parent / f".{name}.lock"):
         perturbation = (family_name, strength) if scene_side else None
         return current_scene(folder, lambda out: _generate(config, out, perturbation, seed))
+
+
+def changes_nothing(config: SuiteConfig, family_name: str, seed: int) -> Optional[str]:
+    """Why a scene-side family leaves the base preset of scene seed ``seed`` as it is (it has nothing the
+    family acts on, e.g. no freely moving part for the motion families), else None. Such a family's runs are
+    not made: they would fit the clean scene again under another name."""
+    if family(family_name).side != "scene":
+        return None
+    return _changes_nothing(config.preset, family_name, int(seed), int(config.frames))
+
+
+@functools.lru_cache(maxsize=256)
+def _changes_nothing(preset: str, family_name: str, seed: int, frames: int) -> Optional[str]:
+    from benchmark.synthetic.generate import perturbation_changes_nothing
+
+    return perturbation_changes_nothing(preset, (family_name, 1.0), seed=seed, frames=frames)
+
+
+def unchanged_families(config: SuiteConfig) -> dict[str, str]:
+    """The suite's families that change nothing on the base preset at any of its seeds: family -> why."""
+    out = {}
+    for name in config.families:
+        reasons = {changes_nothing(config, name, seed) for seed in config.seeds}
+        if reasons and None not in reasons:
+            out[name] = "; ".join(sorted(reasons))
+    return out
+
+
+def skipped(config: SuiteConfig, key: RunKey) -> bool:
+    """Whether the run is not made: a perturbed run of a family that changes nothing on its seed's scene."""
+    return not key.clean and changes_nothing(config, key.family, key.seed) is not None
 
 
 def _generate(config: SuiteConfig, out: Path, perturbation: Optional[tuple], seed: int) -> Path:
@@ -562,7 +594,7 @@ def collect(config: SuiteConfig) -> list[Score]:
             for fam in config.families:
                 for strength in config.strengths_of(fam):
                     key = RunKey(CLEAN if strength == 0 else fam, strength, method, seed)
-                    if not applies(RunKey(fam, strength, method, seed)):
+                    if not applies(RunKey(fam, strength, method, seed)) or skipped(config, key):
                         continue
                     path = results_file(config, key)
                     if path is not None:
@@ -724,8 +756,10 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] = print) -> list[S
     keys = run_keys(config)
     kept = {} if config.force else kept_scores(config)
     deferred: list[RunKey] = []
+    for name, why in unchanged_families(config).items():
+        log(f"{name}: not run, it changes nothing on {config.preset}: {why}")
     for k, key in enumerate(keys, start=1):
-        if not applies(key) or (key.family, key.strength, key.method, key.seed) in kept:
+        if not applies(key) or skipped(config, key) or (key.family, key.strength, key.method, key.seed) in kept:
             continue
         name = f"{key.method} {key.family} {strength_label(key.strength)} seed{key.seed}"
         with exclusive_lock(claim_file(config, key), wait=False) as claimed:

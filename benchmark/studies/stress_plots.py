@@ -405,7 +405,7 @@ def coverage(config: SuiteConfig, scores: Sequence[Score]) -> str:
     """What the scores cover, counted from them: the distinct runs present against those the suite names
     (its methods x families x strengths x seeds, where the family applies to the method; a clean run shared
     by the families counts once), and per method the (family, seed) cells missing at some strength."""
-    from .stress import CLEAN, RunKey, applies
+    from .stress import CLEAN, RunKey, applies, skipped, unchanged_families
 
     families = reported_families(config, scores)
     present = {(s.family, s.strength, s.method, s.seed) for s in scores}
@@ -414,7 +414,8 @@ def coverage(config: SuiteConfig, scores: Sequence[Score]) -> str:
         for strength in config.strengths_of(fam):
             for method in config.methods:
                 for seed in config.seeds:
-                    if not applies(RunKey(fam, strength, method, seed)):
+                    if not applies(RunKey(fam, strength, method, seed)) or skipped(config, RunKey(fam, strength,
+                                                                                                  method, seed)):
                         continue
                     expected.add((CLEAN if strength == 0 else fam, strength, method, seed))
                     if (fam, strength, method, seed) not in present:
@@ -425,7 +426,12 @@ def coverage(config: SuiteConfig, scores: Sequence[Score]) -> str:
     head = (f"{len(done)} distinct runs of the {len(expected)} the suite names ({methods}, {fams} at their "
             f"strengths, {_seeds_text(config.seeds)}; a clean run shared by the families counts once)")
     # a family asked for with no perturbed run is in no table below: named here, so a partial suite says so
-    unrun = [f for f in config.families if f not in families and config.strengths_of(f) != (0.0,)]
+    unchanged = unchanged_families(config)
+    unrun = [f for f in config.families
+             if f not in families and f not in unchanged and config.strengths_of(f) != (0.0,)]
+    if unchanged:
+        head += (f". Families that change nothing on `{config.preset}`, not run ({len(unchanged)}): "
+                 + "; ".join(f"{f} ({why})" for f, why in unchanged.items()))
     if unrun:
         head += (f". Families asked for with no perturbed run yet, in no table below ({len(unrun)}): "
                  + ", ".join(unrun))
@@ -446,7 +452,7 @@ def coverage(config: SuiteConfig, scores: Sequence[Score]) -> str:
         head += (f". Screened at the clean end and the strongest strength only, every method and seed (the "
                  f"strengths between not run) ({len(screened)}): " + ", ".join(screened))
     if not missing:
-        if unrun or screened:
+        if unrun or screened or unchanged:
             return head + ".\n"
         return head + ": complete, every method on every family at every strength with every seed.\n"
     lines = [head + f". Not run ({len(expected) - len(done)}):", ""]
@@ -781,6 +787,18 @@ def _floor_section(scores: Sequence[Score], families: Sequence[str], methods: Se
             "seeds lies wholly below a floor's (the floor answers better) or overlaps it (a tie).\n\n" + table + "\n")
 
 
+def _verdicts(config: SuiteConfig, scores: Sequence[Score], families: Sequence[str]) -> list[dict]:
+    """:func:`family_verdicts`, then a dropped row for each family that changes nothing on the base preset."""
+    from .stress import unchanged_families
+
+    out = family_verdicts(scores, families, config.methods)
+    for fam, why in unchanged_families(config).items():
+        if fam not in families:
+            out.append({"family": fam, "kept": False, "reason": f"changes nothing on {config.preset} ({why}): not run",
+                        "breaks": [], "separates": []})
+    return out
+
+
 def _readme(config: SuiteConfig, scores: Sequence[Score], families: Sequence[str], table: str,
             wall_seconds: Optional[float], notes: str) -> str:
     options = "; ".join(f"`{m}`: " + ", ".join(f"{k}={v}" for k, v in sorted(o.items()))
@@ -810,7 +828,7 @@ def _readme(config: SuiteConfig, scores: Sequence[Score], families: Sequence[str
             f"fitted methods' drops from the clean scene to its strongest strength differ outside the seed noise (the "
             f"95 % t interval over seeds of their paired difference excludes 0) by at least {MIN_SEPARATION:g} "
             f"points; floors are not counted; {', '.join(ALWAYS_KEPT)} are kept for the "
-            f"time-varying heads in any case.\n\n{verdict_markdown(family_verdicts(scores, families, config.methods))}\n"
+            f"time-varying heads in any case.\n\n{verdict_markdown(_verdicts(config, scores, families))}\n"
             f"## Findings per family (measured)\n\nMeans over the seeds run (the clean runs' and, "
             f"where a perturbed strength has fewer, which at which strengths), each with the 95 % interval over "
             f"seeds a breaking point reads: clean [interval] -> strongest strength [interval].\n\n"

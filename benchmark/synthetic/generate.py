@@ -204,6 +204,17 @@ def generate(preset: str, out_dir: str | Path, *, size: Optional[int] = None, fr
     return out
 
 
+def perturbation_changes_nothing(preset: str, perturbation, *, seed: int = 0,
+                                 frames: Optional[int] = None) -> Optional[str]:
+    """Why ``perturbation`` would leave preset ``preset`` (scene seed ``seed``) as it is, else None: read from
+    the scene definition alone, before anything is rendered (:meth:`Perturbation.changes_nothing`)."""
+    perturbation = parse_perturbation(perturbation)
+    if perturbation is None:
+        return None
+    _, _, frames, _, _ = resolve_settings(preset, None, frames, None, None, None)
+    return perturbation.changes_nothing(_spec(preset).build(preset_rng(preset, seed), frames))
+
+
 @dataclass(frozen=True)
 class _Plan:
     """What a scene is built from: every process that renders its frames rebuilds the same scene from it."""

@@ -29,6 +29,10 @@ Families on the scene's side (strength units in :data:`FAMILIES`):
   between two changes of the same timeline (:func:`widened_ramp`);
 * ``topology``: the parts of every object of several parts move apart and back together, twice.
 
+A family with nothing to act on in a preset (no freely moving part for the motion families, no object of
+several parts for ``topology``, no state for the state families) is refused: its scene would be the clean one
+under another name (:meth:`Perturbation.changes_nothing`).
+
 The supervision-side families (noise of the oracle track's masks, captions and query wording) act on
 what a method is given, not on the scene: :mod:`benchmark.studies.stress`.
 """
@@ -137,10 +141,21 @@ class Perturbation:
         """The perturbation's own random stream (the preset's is left as the clean scene drew it)."""
         return np.random.default_rng([int(seed), zlib.crc32(self.family.encode()), int(round(self.strength * 1e6))])
 
+    def changes_nothing(self, scene: SceneDef) -> Optional[str]:
+        """Why the family would leave ``scene`` as it is (it has nothing the family acts on), else None."""
+        if self.is_clean or self.family not in _NOTHING_TO_ACT_ON:
+            return None
+        test, reason = _NOTHING_TO_ACT_ON[self.family]
+        return reason if test(scene) else None
+
     def apply(self, scene: SceneDef, records: list[FrameRecord], seed: int) -> tuple[SceneDef, list[FrameRecord]]:
-        """The perturbed (scene, frames); strength 0 returns both as given."""
+        """The perturbed (scene, frames); strength 0 returns both as given. A family with nothing to act on
+        in ``scene`` (:meth:`changes_nothing`) is an error: its scene would be the clean one under another name."""
         if self.is_clean:
             return scene, records
+        reason = self.changes_nothing(scene)
+        if reason is not None:
+            raise InputError(None, "perturbation", f"{self.family} changes nothing on this scene: {reason}")
         return _APPLY[self.family](scene, records, self.strength, self.rng(seed))
 
 
@@ -438,6 +453,17 @@ def _topology(scene: SceneDef, records: list, strength: float, rng) -> tuple:
             child.pose = apart
     return scene, records
 
+
+_NOTHING_TO_ACT_ON: dict[str, tuple[Callable[[SceneDef], bool], str]] = {
+    "motion-speed": (lambda scene: not _free_movers(scene),
+                     "no part moves without a state timeline above or below it"),
+    "motion-amplitude": (lambda scene: not _free_movers(scene),
+                         "no part moves without a state timeline above or below it"),
+    "topology": (lambda scene: all(len(w.children) < 2 for w in scene.wholes), "no object has several parts"),
+    "semantic-subtle": (lambda scene: _first_timeline(scene) is None, "no object changes state"),
+    "state-ramp": (lambda scene: _first_timeline(scene) is None, "no object changes state"),
+}
+"""Families that act on one kind of part only, with the test that a scene has none, and what it lacks."""
 
 _APPLY: dict[str, Callable] = {
     "motion-speed": _motion_speed, "motion-amplitude": _motion_amplitude, "frames-dropped": _frames_dropped,
