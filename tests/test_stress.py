@@ -949,6 +949,11 @@ def test_a_family_is_kept_where_a_method_breaks_or_two_methods_drop_apart_and_dr
     (verdict,) = family_verdicts(_runs("mask-dilate", "langsplat", [55, 56, 57], [55, 56, 56.5]), ["mask-dilate"],
                                  methods)
     assert "changes nothing" not in verdict["reason"]
+    # where both methods gain (a rig of cameras helps), the text says which gains more, not which "drops" more
+    gain = (_runs("camera-rig", "4d-langsplat", [60, 62, 61], [80, 82, 81])
+            + _runs("camera-rig", "langsplat", [55, 56, 57], [60, 61, 62]))
+    (verdict,) = family_verdicts(gain, ["camera-rig"], methods)
+    assert verdict["kept"] and "4d-langsplat gains 15.0 more than langsplat" in verdict["reason"]
     assert not verdicts["appearance"]["kept"] and "no method breaks" in verdicts["appearance"]["reason"]
     assert verdicts["mask-drop"]["kept"] and verdicts["mask-drop"]["breaks"] == ["langsplat (mIoU)"]
     assert not verdicts["camera-slow"]["kept"], "a family that moves only a floor says nothing of the methods"

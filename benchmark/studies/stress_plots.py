@@ -631,6 +631,16 @@ MIN_SEPARATION = 5.0
 a difference can be outside the noise and still too small to tell a reader anything."""
 
 
+def _pair_phrase(scores: Sequence[Score], fam: str, metric: str, a: str, b: str, d: float) -> str:
+    """``a`` drops ``d`` more than ``b``, in words; where both gain on the family (a rig of cameras helps),
+    "``b`` gains ``d`` more than ``a``"."""
+    top = max((s.strength for s in scores if s.family == fam), default=0.0)
+    mean_drop = {m: np.mean(list(_drops(scores, fam, m, metric, top).values()) or [0.0]) for m in (a, b)}
+    if mean_drop[a] < 0 and mean_drop[b] < 0:
+        return f"{b} gains {d:.1f} more than {a}"
+    return f"{a} drops {d:.1f} more than {b}"
+
+
 def _changes_nothing(scores: Sequence[Score], fam: str) -> bool:
     """Whether ``fam`` has perturbed runs and each one's scores equal those of the clean run of its method and
     seed: the perturbation left the base as it was (a mask growing only into uncovered pixels, where every
@@ -665,7 +675,7 @@ def family_verdicts(scores: Sequence[Score], families: Sequence[str], methods: S
             separates += [{"metric": metric, "more": a, "less": b, "difference": d} for a, b, d in pairs]
             compared = len(scored) * (len(scored) - 1) // 2
             if pairs:
-                shown = ", ".join(f"{a} drops {d:.1f} more than {b}" for a, b, d in pairs[:SHOWN_PAIRS])
+                shown = ", ".join(_pair_phrase(scores, fam, metric, a, b, d) for a, b, d in pairs[:SHOWN_PAIRS])
                 rest = len(pairs) - SHOWN_PAIRS
                 said.append(f"separates {len(pairs)} of {compared} pairs on {metric}: {shown}"
                             + (f" (+{rest} more)" if rest > 0 else "")
