@@ -376,6 +376,21 @@ def test_findings_name_a_break_in_acc_and_leave_out_acc_at_the_floor():
     tied = scores + [score("other", 0.0, 60, 80), score("other", 0.5, 58, 70), score("other", 1.0, 57, 5)]
     line = findings(tied, ["caption-swap"], ["timed", "untimed", "other"])
     assert "other and timed break first, at the same strength 1 (Acc): a tie" in line
+    # "first" needs every other method to hold there outside the noise: an interval across half its clean
+    # interval's lower end is neither a break nor a hold, and the headline names no first
+    def seeded(method, strength, values):
+        return [stress.Score("mask-id-swap", strength, method, k, {"mIoU": v, "Acc": None, "vIoU": None},
+                             Path("x"), 1.0) for k, v in enumerate(values)]
+
+    spread = (seeded("early", 0.0, [40, 42, 44]) + seeded("early", 0.5, [5, 6, 7]) + seeded("early", 1.0, [3, 3, 3])
+              + seeded("field", 0.0, [50, 52, 54]) + seeded("field", 0.5, [14, 30, 42])
+              + seeded("field", 1.0, [2, 2, 2])
+              + [c for m in ("early", "field") for k in (0.1, 0.25) for c in seeded(m, k, [40, 42, 44])])
+    line = findings(spread, ["mask-id-swap"], ["early", "field"])
+    assert "breaks first" not in line
+    assert "early breaks at 0.5 (mIoU), the weakest strength of any break; whether field does too" in line
+    held = [s for s in spread if not (s.method == "field" and s.strength == 0.5)] + seeded("field", 0.5, [40, 44, 48])
+    assert "early breaks first (mIoU)" in findings(held, ["mask-id-swap"], ["early", "field"])
     calm = [score("timed", 0.0, 40, 80), score("timed", 1.0, 39, 70)]
     assert "no method breaks outside the seed noise" in findings(calm, ["caption-swap"], ["timed"])
     # a screen (clean and strongest only): the breaks read "by" the strongest, and no order among them is claimed
