@@ -607,7 +607,7 @@ def test_a_method_keeps_its_colour_in_every_panel_of_a_family_chart(tmp_path, mo
     # the first method answers no time query: it is missing from the Acc and vIoU panels
     scores = [score(s, m, None if m == "feature-3dgs" else 60.0) for s in (0.0, 0.3) for m in ("feature-3dgs", "4d-langsplat")]
     figures = []
-    monkeypatch.setattr(stress_plots, "_save_png", lambda fig, path: figures.append(fig) or path)
+    monkeypatch.setattr(stress_plots, "_save_png", lambda fig, path, *dpi: figures.append(fig) or path)
     stress_plots.family_chart(scores, "occluder", ["feature-3dgs", "4d-langsplat"], tmp_path / "c.png")
     colours = [{line.get_label(): line.get_color() for line in ax.get_lines()} for ax in figures[0].axes]
     methods = [{k: v for k, v in panel.items() if not k.startswith("half of")} for panel in colours]
@@ -705,7 +705,7 @@ def test_a_family_chart_marks_half_the_clean_score_explains_the_seed_band_and_ke
 
     figures = []
     real = stress_plots._save_png
-    monkeypatch.setattr(stress_plots, "_save_png", lambda fig, path: figures.append(fig) or real(fig, path))
+    monkeypatch.setattr(stress_plots, "_save_png", lambda fig, path, *dpi: figures.append(fig) or real(fig, path, *dpi))
     path = stress_plots.family_chart(_chart_scores(), "mask-drop", ["a", "b"], tmp_path / "c.png")
     fig = figures[0]
     halves = [{line.get_label(): line.get_ydata()[0] for line in ax.get_lines() if line.get_label().startswith("half of")}
@@ -787,7 +787,7 @@ def test_a_gallery_puts_the_clean_row_above_each_row_of_the_strongest_strength(t
                                 out_dir=tmp_path / "report", cache_dir=tmp_path / "cache")
     scores = stress.run_suite(config, log=lambda _: None)
     figures = []
-    monkeypatch.setattr(stress_plots, "_save_png", lambda fig, path: figures.append(fig) or path)
+    monkeypatch.setattr(stress_plots, "_save_png", lambda fig, path, *dpi: figures.append(fig) or path)
     assert stress_plots.family_gallery(config, scores, "occluder", tmp_path / "g.png") is not None
     titles = [ax.get_title() for ax in figures[0].axes]
     frames = [t for t in titles if ": frame " in t]

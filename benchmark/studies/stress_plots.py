@@ -25,7 +25,10 @@ from .stress import (METRICS, SCORES_FILE, Score, SuiteConfig, breaking_point, m
 GALLERY_FRAMES = 3
 """(query, frame) pairs a gallery shows."""
 DPI = 150
-"""Resolution of the PNGs (palette images, :func:`benchmark.plots.write_png`: small enough to commit)."""
+"""Resolution of the charts (palette images, :func:`benchmark.plots.write_png`: small enough to commit)."""
+GALLERY_DPI = 80
+"""A gallery's resolution: a 1.9 in tile is then 152 px, above the 96 px of a suite scene, and a gallery is a
+third of its size at :data:`DPI` (about 250 KB there, one per family)."""
 
 
 def _pyplot():
@@ -37,10 +40,10 @@ def _pyplot():
     return plt
 
 
-def _save_png(fig, path: Path) -> Path:
+def _save_png(fig, path: Path, dpi: int = DPI) -> Path:
     from ..plots import write_png
 
-    write_png(fig, path, dpi=DPI)
+    write_png(fig, path, dpi=dpi)
     _pyplot().close(fig)
     return path
 
@@ -263,7 +266,7 @@ def gallery(runs: dict[str, Path], scene_root: Path, title: str, path: Path, *,
     import textwrap
 
     fig.suptitle(textwrap.fill(title, width=max(40, int(columns * 1.9 * 10))), fontsize=10)  # no wider than the panels
-    return _save_png(fig, path)
+    return _save_png(fig, path, GALLERY_DPI)
 
 
 def charts_from_csv(csv: Path, out_dir: Path) -> list[Path]:
