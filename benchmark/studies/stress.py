@@ -185,8 +185,9 @@ def unchanged_families(config: SuiteConfig) -> dict[str, str]:
 
 
 def skipped(config: SuiteConfig, key: RunKey) -> bool:
-    """Whether the run is not made: a perturbed run of a family that changes nothing on its seed's scene."""
-    return not key.clean and changes_nothing(config, key.family, key.seed) is not None
+    """Whether the run is not made: its family does not apply to its method (:func:`applies`), or it is a
+    perturbed run of a family that changes nothing on its seed's scene."""
+    return not applies(key) or (not key.clean and changes_nothing(config, key.family, key.seed) is not None)
 
 
 def _generate(config: SuiteConfig, out: Path, perturbation: Optional[tuple], seed: int) -> Path:
@@ -594,7 +595,7 @@ def collect(config: SuiteConfig) -> list[Score]:
             for fam in config.families:
                 for strength in config.strengths_of(fam):
                     key = RunKey(CLEAN if strength == 0 else fam, strength, method, seed)
-                    if not applies(RunKey(fam, strength, method, seed)) or skipped(config, key):
+                    if skipped(config, RunKey(fam, strength, method, seed)):
                         continue
                     path = results_file(config, key)
                     if path is not None:
@@ -759,7 +760,7 @@ def run_suite(config: SuiteConfig, log: Callable[[str], None] = print) -> list[S
     for name, why in unchanged_families(config).items():
         log(f"{name}: not run, it changes nothing on {config.preset}: {why}")
     for k, key in enumerate(keys, start=1):
-        if not applies(key) or skipped(config, key) or (key.family, key.strength, key.method, key.seed) in kept:
+        if skipped(config, key) or (key.family, key.strength, key.method, key.seed) in kept:
             continue
         name = f"{key.method} {key.family} {strength_label(key.strength)} seed{key.seed}"
         with exclusive_lock(claim_file(config, key), wait=False) as claimed:
