@@ -768,6 +768,14 @@ def test_the_coverage_line_and_the_findings_count_the_seeds_from_the_scores(tmp_
     assert "Not run" not in text and "complete" not in text
     text = coverage(full, [s for s in screen if not (s.method == "b" and s.seed == 1 and s.strength > 0)])
     assert "Screened" not in text and "seed 1 at any strength past clean on mask-drop." in text
+    # a screen filled in at some strengths between, every method and seed alike: one line naming what is not run
+    filled = screen + [dataclasses.replace(s, strength=0.5) for s in scores if s.strength == 0.5]
+    text = coverage(full, filled)
+    assert "every method and seed (1): mask-drop (0.1, 0.25 not run)." in text
+    assert "Screened" not in text and "Not run" not in text and "complete" not in text
+    # one cell short of the others is a gap of its own, not the family's line
+    text = coverage(full, [s for s in filled if not (s.method == "a" and s.seed == 0 and s.strength == 0.5)])
+    assert "some of the strengths between" not in text and "* `a`: seed 0 at 0.1, 0.25, 0.5 on mask-drop;" in text
     # a family asked for with no perturbed run is named, and the suite is not called complete
     two = stress.SuiteConfig(methods=("a", "b"), families=("mask-drop", "occluder"), strengths=(0.5, 1.0),
                              seeds=(0, 1), cache_dir=tmp_path)

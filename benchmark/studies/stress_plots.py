@@ -437,24 +437,34 @@ def coverage(config: SuiteConfig, scores: Sequence[Score]) -> str:
     if unrun:
         head += (f". Families asked for with no perturbed run yet, in no table below ({len(unrun)}): "
                  + ", ".join(unrun))
-    # families screened whole (every method and seed at the clean end and the strongest strength, nothing between):
-    # one line, not a gap per method and seed
-    screened = []
+    # families where every method and seed lacks the same strengths between the clean end and the strongest (a
+    # screen, or a screen filled in part): one line per family, not a gap per method and seed
+    screened, partial = [], []
     for fam in families:
         between = sorted(v for v in config.strengths_of(fam) if 0 < v < max(config.strengths_of(fam)))
         cells = [(method, seed) for method in config.methods for seed in config.seeds
                  if applies(RunKey(fam, max(config.strengths_of(fam)), method, seed))]
-        if between and cells and all(sorted(missing.get(m, {}).get((fam, seed), [])) == between
-                                      for m, seed in cells):
+        gaps = {tuple(sorted(missing.get(m, {}).get((fam, seed), []))) for m, seed in cells}
+        if len(gaps) != 1 or not cells:
+            continue
+        gap = list(gaps.pop())
+        if not gap or not set(gap) <= set(between):
+            continue
+        if gap == between:
             screened.append(fam)
-            for method, seed in cells:
-                del missing[method][fam, seed]
+        else:
+            partial.append(f"{fam} ({', '.join(strength_label(v) for v in gap)} not run)")
+        for method, seed in cells:
+            del missing[method][fam, seed]
     missing = {m: gaps for m, gaps in missing.items() if gaps}
     if screened:
         head += (f". Screened at the clean end and the strongest strength only, every method and seed (the "
                  f"strengths between not run) ({len(screened)}): " + ", ".join(screened))
+    if partial:
+        head += (f". Run at some of the strengths between, every method and seed ({len(partial)}): "
+                 + ", ".join(partial))
     if not missing:
-        if unrun or screened or unchanged:
+        if unrun or screened or partial or unchanged:
             return head + ".\n"
         return head + ": complete, every method on every family at every strength with every seed.\n"
     lines = [head + f". Not run ({len(expected) - len(done)}):", ""]
