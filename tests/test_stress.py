@@ -426,6 +426,11 @@ def test_breaking_point_is_the_first_strength_whose_interval_lies_below_half_the
     assert stress.breaking_point({0.0: [80], 1.0: [39]}) == 1.0  # one seed: its value against half the clean
     assert stress.breaking_point({0.0: [80], 1.0: [60]}) is None
     assert stress.breaking_point({1.0: [10]}) is None
+    # one line decides both: wholly below it a break, wholly at or above it a hold, across it neither
+    values = {0.0: [80, 60], 1.0: [50, 40], 2.0: [36, 20], 4.0: [10, 0]}
+    assert stress.break_line(values) == pytest.approx(0.5 * stress.seed_interval([80, 60])[0])
+    assert stress.held_at(values, 1.0) and not stress.held_at(values, 2.0) and not stress.held_at(values, 4.0)
+    assert stress.breaking_point(values) == 4.0
 
 
 def test_method_options_apply_the_schedule_then_scoped_settings():

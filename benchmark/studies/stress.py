@@ -742,11 +742,23 @@ def breaking_point(values: dict[float, list[float]]) -> Optional[float]:
     against half the clean value."""
     if 0.0 not in values or not values[0.0]:
         return None
-    clean_low = seed_interval(values[0.0])[0]
+    line = break_line(values)
     for strength, seeds in values.items():
-        if strength > 0 and seeds and seed_interval(seeds)[1] < 0.5 * clean_low:
+        if strength > 0 and seeds and seed_interval(seeds)[1] < line:
             return strength
     return None
+
+
+def break_line(values: dict[float, list[float]]) -> float:
+    """Half the clean (strength 0) interval's lower end: a strength's interval wholly below it is a break
+    (:func:`breaking_point`), wholly at or above it a hold (:func:`held_at`), across it inside the seed noise."""
+    return 0.5 * seed_interval(values[0.0])[0]
+
+
+def held_at(values: dict[float, list[float]], strength: float) -> bool:
+    """Whether the interval over seeds at ``strength`` lies wholly at or above :func:`break_line`: held outside
+    the seed noise."""
+    return seed_interval(values[strength])[0] >= break_line(values)
 
 
 def run_suite(config: SuiteConfig, log: Callable[[str], None] = print) -> list[Score]:

@@ -19,7 +19,7 @@ import numpy as np
 from benchmark.core.atomic import read_json, write_text
 from benchmark.synthetic.perturb import FAMILIES
 from ._report import markdown_table, number_cell
-from .stress import (METRICS, SCORES_FILE, Score, SuiteConfig, breaking_point, mean_by_strength,
+from .stress import (METRICS, SCORES_FILE, Score, SuiteConfig, breaking_point, held_at, mean_by_strength,
                      TRACK, read_scores_table, seed_interval, strength_label, write_scores_table)
 
 GALLERY_FRAMES = 3
@@ -586,7 +586,7 @@ def findings(scores: Sequence[Score], families: Sequence[str], methods: Sequence
             # "first" only where every other method held there outside the noise, its interval wholly above half
             # its clean one; an interval across that line is neither a break nor a hold
             others = [(b[2], mean_by_strength(scores, fam, b[2], b[3])) for b in breaks if b[2] not in names]
-            undecided = sorted({m for m, values in others if values.get(at) and not _held_at(values, at)})
+            undecided = sorted({m for m, values in others if values.get(at) and not held_at(values, at)})
             if undecided:
                 lead = (f"{' and '.join(names)} {'breaks' if len(names) == 1 else 'break'} at {strength_label(at)} "
                         f"({metrics}), the weakest strength of any break; whether {' and '.join(undecided)} "
@@ -605,12 +605,6 @@ def findings(scores: Sequence[Score], families: Sequence[str], methods: Sequence
             text += " Acc: " + "; ".join(time_) + "."
         lines.append(text)
     return "\n".join(lines) + "\n"
-
-
-def _held_at(values: dict[float, list[float]], strength: float) -> bool:
-    """Whether the interval over seeds at ``strength`` lies wholly above half the clean interval's lower end (the
-    line :func:`benchmark.studies.stress.breaking_point` reads): held outside the seed noise."""
-    return seed_interval(values[strength])[0] >= 0.5 * seed_interval(values[0.0])[0]
 
 
 ALWAYS_KEPT = ("caption-swap", "state-ramp", "caption-lag")
