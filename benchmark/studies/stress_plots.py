@@ -408,7 +408,7 @@ def coverage(config: SuiteConfig, scores: Sequence[Score]) -> str:
     """What the scores cover, counted from them: the distinct runs present against those the suite names
     (its methods x families x strengths x seeds, where the family applies to the method; a clean run shared
     by the families counts once), and per method the (family, seed) cells missing at some strength."""
-    from .stress import CLEAN, RunKey, applies, skipped, unchanged_families
+    from .stress import CLEAN, RunKey, skipped, unchanged_families
 
     families = reported_families(config, scores)
     present = {(s.family, s.strength, s.method, s.seed) for s in scores}
@@ -443,9 +443,9 @@ def coverage(config: SuiteConfig, scores: Sequence[Score]) -> str:
     for fam in families:
         between = sorted(v for v in config.strengths_of(fam) if 0 < v < max(config.strengths_of(fam)))
         cells = [(method, seed) for method in config.methods for seed in config.seeds
-                 if applies(RunKey(fam, max(config.strengths_of(fam)), method, seed))]
+                 if not skipped(config, RunKey(fam, max(config.strengths_of(fam)), method, seed))]
         gaps = {tuple(sorted(missing.get(m, {}).get((fam, seed), []))) for m, seed in cells}
-        if len(gaps) != 1 or not cells:
+        if len(gaps) != 1:
             continue
         gap = list(gaps.pop())
         if not gap or not set(gap) <= set(between):
