@@ -27,8 +27,8 @@ GALLERY_FRAMES = 3
 DPI = 150
 """Resolution of the charts (palette images, :func:`benchmark.plots.write_png`: small enough to commit)."""
 GALLERY_DPI = 80
-"""A gallery's resolution: a 1.9 in tile is then 152 px, above the 96 px of a suite scene, and a gallery is a
-third of its size at :data:`DPI` (about 250 KB there, one per family)."""
+"""A gallery's resolution: a 1.9 in tile is then 152 px, above the 96 px of a suite scene, and a gallery is
+about half its size at :data:`DPI` (about 130 KB against 270 KB, one per family)."""
 
 
 def _pyplot():
