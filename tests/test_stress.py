@@ -538,6 +538,10 @@ def test_scores_kept_in_the_report_count_without_their_results_files_while_their
     assert (tmp_path / "report" / "scores.csv").read_text() == table
     assert gallery.stat().st_mtime_ns == drawn, "a gallery is not redrawn without its runs"
     assert not list((tmp_path / "report").glob("scores-replaced-*"))
+    # a suite of another family reads only its own rows, and generates no scene for the table's others
+    other_family = dataclasses.replace(config, families=("mask-drop",), cache_dir=tmp_path / "third-cache")
+    assert {run[0] for run in stress.kept_scores(other_family)} == {stress.CLEAN}
+    assert not list((tmp_path / "third-cache").rglob("*occluder*"))
     # another method config: no row is current; rewriting the table keeps the old one beside it
     moved = dataclasses.replace(elsewhere, method_options={"nearest-frame": {"time_weight": "0.5"}})
     assert stress.collect(moved) == []

@@ -631,15 +631,18 @@ def scene_digest_now(config: SuiteConfig, key: RunKey) -> str:
 
 
 def kept_scores(config: SuiteConfig) -> dict[tuple, Score]:
-    """The runs of the report's ``scores.csv`` (``config.out_dir``) that are current, by :attr:`Score.run`:
+    """The suite's runs in the report's ``scores.csv`` (``config.out_dir``) that are current, by :attr:`Score.run`:
     written with both digests, equal to today's scene and method config. A row without them (a table
     written before they were recorded) or with another is not kept: the run is made again."""
     csv = Path(config.out_dir) / SCORES_FILE
     if not csv.is_file():
         return {}
+    # only this suite's runs: checking a row's scene digest generates its scene, which a run outside the
+    # suite (another family or strength in the table) does not need
+    wanted = {(key.family, key.strength, key.method, key.seed) for key in run_keys(config)}
     out = {}
     for score in read_scores_table(csv):
-        if not score.scene_digest or not score.config_digest or score.method not in config.methods:
+        if not score.scene_digest or not score.config_digest or score.run not in wanted:
             continue
         key = RunKey(*score.run)
         if (score.config_digest == config_digest(config, key)
